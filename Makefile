@@ -1,0 +1,33 @@
+# prtlab — every target creates .venv and installs what it needs on first use.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test test-slow bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test,reference,distributed]"
+	-@bash .ci/install-llvm.sh
+	touch $(STAMP)
+
+# Reproduce every figure and table that exists so far, in quick mode, into report/.
+demo: $(STAMP)
+	PRTLAB_QUICK=1 $(VENV)/bin/prtlab reproduce --quick --out report
+	@echo "open report/index.html"
+
+# The default test run: unit and property tests, notebooks in quick mode. Under 15 min on 2 cores.
+test: $(STAMP)
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 -m "not slow" tests
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --nbmake notebooks
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -n 2 -m slow tests
+
+bench: $(STAMP)
+	$(VENV)/bin/prtlab bench --json bench.json
+
+clean:
+	rm -rf $(VENV) report .pytest_cache .hypothesis

@@ -1,0 +1,47 @@
+"""prtlab: CPU reference implementations of precomputed radiance transfer for dynamic scenes.
+
+Entry points::
+
+    scene = prtlab.load_scene("scene.yaml")
+    res = prtlab.shade(scene, method="reference", bounces=1)
+    img = prtlab.render_image(scene, res)
+
+Building blocks live in subpackages: :mod:`prtlab.sh`, :mod:`prtlab.wavelet`,
+:mod:`prtlab.brdf`, :mod:`prtlab.pca`, :mod:`prtlab.geometry`,
+:mod:`prtlab.scene`; pipelines in :mod:`prtlab.shadowfields`,
+:mod:`prtlab.interreflection`, :mod:`prtlab.spherelights`,
+:mod:`prtlab.portals`; ground truth in :mod:`prtlab.reference`.
+Subpackages are imported on first use, so ``import prtlab`` is cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+_SUBPACKAGES = {
+    "sh", "wavelet", "brdf", "pca", "geometry", "scene", "shadowfields", "interreflection",
+    "spherelights", "portals", "reference", "render", "cache", "pipeline", "api",
+}
+_API = {
+    "load_scene": "prtlab.scene",
+    "Scene": "prtlab.scene",
+    "ShadeResult": "prtlab.scene",
+    "shade": "prtlab.api",
+    "render_image": "prtlab.api",
+}
+
+__all__ = sorted(_SUBPACKAGES | set(_API))
+
+
+def __getattr__(name: str):
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"prtlab.{name}")
+    if name in _API:
+        return getattr(importlib.import_module(_API[name]), name)
+    raise AttributeError(f"module 'prtlab' has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -1,0 +1,25 @@
+"""Geometry: sphere-image maps, meshes, transforms, ray casting and sampling."""
+
+from ._spheremaps import (
+    CUBE_FACES,
+    cubemap_directions,
+    cubemap_lookup,
+    cubemap_solid_angles,
+    direction_to_cubemap,
+    direction_to_equirect,
+    equirect_directions,
+    equirect_lookup,
+    equirect_solid_angles,
+)
+
+__all__ = [
+    "CUBE_FACES",
+    "cubemap_directions",
+    "cubemap_lookup",
+    "cubemap_solid_angles",
+    "direction_to_cubemap",
+    "direction_to_equirect",
+    "equirect_directions",
+    "equirect_lookup",
+    "equirect_solid_angles",
+]

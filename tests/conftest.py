@@ -1,0 +1,44 @@
+"""Shared test configuration: seeds, tolerances and hypothesis profiles live here only."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, settings
+
+# One place for tolerances (per dtype), as e3nn's FLOAT_TOLERANCE.
+FLOAT_TOLERANCE = {np.float64: 1e-10, np.float32: 1e-4}
+
+# Monte Carlo comparisons: |estimate - truth| <= MC_SIGMAS * standard error.
+MC_SIGMAS = 4.0
+
+settings.register_profile(
+    "default", max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.register_profile(
+    "thorough", max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile(os.environ.get("PRTLAB_HYPOTHESIS_PROFILE", "default"))
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A freshly seeded generator per test: reproducible, never global state."""
+    return np.random.default_rng(20070625)
+
+
+def random_directions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) uniformly distributed unit vectors."""
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly distributed (3, 3) rotation matrix (QR of a Gaussian matrix)."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
