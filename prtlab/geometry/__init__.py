@@ -1,5 +1,6 @@
 """Geometry: sphere-image maps, meshes, transforms, ray casting and sampling."""
 
+from ._meshes import BUILTIN_MESHES, DATA_DIR, builtin_mesh, load_mesh, normalize_mesh, subdivide
 from ._spheremaps import (
     CUBE_FACES,
     cubemap_directions,
@@ -13,6 +14,12 @@ from ._spheremaps import (
 )
 
 __all__ = [
+    "BUILTIN_MESHES",
+    "DATA_DIR",
+    "builtin_mesh",
+    "load_mesh",
+    "normalize_mesh",
+    "subdivide",
     "CUBE_FACES",
     "cubemap_directions",
     "cubemap_lookup",

@@ -1,0 +1,420 @@
+"""Built-in meshes, the committed assets and mesh loading.
+
+Every builder returns a :class:`trimesh.Trimesh` in object space (+Y up),
+created with ``process=False`` so that the vertex order written here is the
+order the pipelines shade in (see the design's "meshes are shaded at their
+own vertices, in input order").
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+__all__ = [
+    "BUILTIN_MESHES",
+    "DATA_DIR",
+    "builtin_mesh",
+    "load_mesh",
+    "normalize_mesh",
+    "subdivide",
+]
+
+#: Root of the assets committed with prtlab (``data/`` at the repository root).
+DATA_DIR = Path(__file__).resolve().parents[2] / "data"
+
+# Rotation taking the +Z axis of trimesh's primitives to the +Y axis of prtlab
+# (a proper rotation about +X by -90 degrees: (x, y, z) -> (x, z, -y)).
+_Z_TO_Y = np.array(
+    [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _finite_float(name: str, value: Any, *, positive: bool = False, context: str = "") -> float:
+    where = f"{context}: " if context else ""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{where}{name} must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{where}{name} must be finite, got {value!r}")
+    if positive and v <= 0.0:
+        raise ValueError(f"{where}{name} must be > 0, got {value!r}")
+    return v
+
+
+def _int(name: str, value: Any, *, minimum: int, context: str = "") -> int:
+    where = f"{context}: " if context else ""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if isinstance(value, (float, np.floating)) and float(value).is_integer():
+            value = int(value)
+        else:
+            raise TypeError(f"{where}{name} must be an integer >= {minimum}, got {value!r}")
+    if int(value) < minimum:
+        raise ValueError(f"{where}{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _vector(
+    name: str, value: Any, n: int, *, positive: bool = False, context: str = ""
+) -> np.ndarray:
+    where = f"{context}: " if context else ""
+    if np.isscalar(value):
+        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {value!r}")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{where}{name} must be a list of {n} numbers, got {value!r}") from None
+    if arr.shape != (n,):
+        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{where}{name} must be finite, got {value!r}")
+    if positive and np.any(arr <= 0.0):
+        raise ValueError(f"{where}{name} must be > 0 in every component, got {value!r}")
+    return arr
+
+
+def _int_pair(name: str, value: Any, *, minimum: int, context: str = "") -> tuple[int, int]:
+    where = f"{context}: " if context else ""
+    if np.isscalar(value):
+        value = (value, value)
+    if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 2:
+        raise ValueError(f"{where}{name} must be one integer or a list of 2 integers, got {value!r}")
+    a, b = (_int(name, v, minimum=minimum, context=context) for v in value)
+    return a, b
+
+
+def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
+    return trimesh.Trimesh(
+        vertices=np.ascontiguousarray(vertices, dtype=np.float64),
+        faces=np.ascontiguousarray(faces, dtype=np.int64),
+        process=False,
+    )
+
+
+# --------------------------------------------------------------------------- primitives
+
+
+def _plane(size=(1.0, 1.0), resolution=(1, 1)) -> trimesh.Trimesh:
+    w, d = _vector("size", size, 2, positive=True, context="builtin 'plane'")
+    nx, nz = _int_pair("resolution", resolution, minimum=1, context="builtin 'plane'")
+    xs = np.linspace(-0.5 * w, 0.5 * w, nx + 1)
+    zs = np.linspace(-0.5 * d, 0.5 * d, nz + 1)
+    # vertex (i, k) at index i * (nz + 1) + k: x varies slowest
+    gx, gz = np.meshgrid(xs, zs, indexing="ij")
+    vertices = np.stack([gx.ravel(), np.zeros(gx.size), gz.ravel()], axis=1)
+    i, k = np.meshgrid(np.arange(nx), np.arange(nz), indexing="ij")
+    a = (i * (nz + 1) + k).ravel()  # (x_i, z_k)
+    b = a + 1  # (x_i, z_k+1)
+    c = a + (nz + 1)  # (x_i+1, z_k)
+    e = c + 1  # (x_i+1, z_k+1)
+    # a -> b -> c turns counter-clockwise seen from +Y: cross(+z, +x) = +y
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([c, b, e], 1)])
+    return _mesh(vertices, faces)
+
+
+def _box(size=(1.0, 1.0, 1.0), subdivisions=0) -> trimesh.Trimesh:
+    extents = _vector("size", size, 3, positive=True, context="builtin 'box'")
+    levels = _int("subdivisions", subdivisions, minimum=0, context="builtin 'box'")
+    mesh = trimesh.creation.box(extents=extents)
+    mesh = _mesh(mesh.vertices, mesh.faces)
+    return subdivide(mesh, levels, method="midpoint") if levels else mesh
+
+
+def _icosphere(radius=1.0, subdivisions=3) -> trimesh.Trimesh:
+    r = _finite_float("radius", radius, positive=True, context="builtin 'icosphere'")
+    levels = _int("subdivisions", subdivisions, minimum=0, context="builtin 'icosphere'")
+    if levels > 7:
+        raise ValueError(
+            f"builtin 'icosphere': subdivisions must be <= 7 (163,842 vertices), got {subdivisions!r}"
+        )
+    mesh = trimesh.creation.icosphere(subdivisions=levels, radius=r)
+    return _mesh(mesh.vertices, mesh.faces)
+
+
+def _uv_sphere(radius=1.0, count=(32, 32)) -> trimesh.Trimesh:
+    r = _finite_float("radius", radius, positive=True, context="builtin 'uv_sphere'")
+    lat, lon = _int_pair("count", count, minimum=3, context="builtin 'uv_sphere'")
+    mesh = trimesh.creation.uv_sphere(radius=r, count=[lat, lon])
+    return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
+
+
+def _torus(major_radius=1.0, minor_radius=0.25, sections=(32, 16)) -> trimesh.Trimesh:
+    big = _finite_float("major_radius", major_radius, positive=True, context="builtin 'torus'")
+    small = _finite_float("minor_radius", minor_radius, positive=True, context="builtin 'torus'")
+    if small >= big:
+        raise ValueError(
+            f"builtin 'torus': minor_radius must be < major_radius, got {minor_radius!r} "
+            f">= {major_radius!r}"
+        )
+    n_major, n_minor = _int_pair("sections", sections, minimum=3, context="builtin 'torus'")
+    mesh = trimesh.creation.torus(big, small, major_sections=n_major, minor_sections=n_minor)
+    return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
+
+
+def _cylinder(radius=0.5, height=1.0, sections=32) -> trimesh.Trimesh:
+    r = _finite_float("radius", radius, positive=True, context="builtin 'cylinder'")
+    h = _finite_float("height", height, positive=True, context="builtin 'cylinder'")
+    n = _int("sections", sections, minimum=3, context="builtin 'cylinder'")
+    mesh = trimesh.creation.cylinder(radius=r, height=h, sections=n)
+    return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
+
+
+# --------------------------------------------------------------------------- registry
+
+#: name -> builder; each builder's keyword defaults are the documented defaults.
+_BUILDERS: dict[str, Callable[..., trimesh.Trimesh]] = {
+    "plane": _plane,
+    "box": _box,
+    "icosphere": _icosphere,
+    "uv_sphere": _uv_sphere,
+    "torus": _torus,
+    "cylinder": _cylinder,
+}
+
+
+def _register(name: str, builder: Callable[..., trimesh.Trimesh]) -> None:
+    _BUILDERS[name] = builder
+
+
+class _BuiltinNames(Mapping):
+    """Read-only view: builtin name -> dict of its parameters and their defaults."""
+
+    def __getitem__(self, name: str) -> dict[str, Any]:
+        import inspect
+
+        sig = inspect.signature(_BUILDERS[name])
+        return {k: p.default for k, p in sig.parameters.items()}
+
+    def __iter__(self):
+        return iter(sorted(_BUILDERS))
+
+    def __len__(self) -> int:
+        return len(_BUILDERS)
+
+    def __repr__(self) -> str:
+        return "BUILTIN_MESHES(" + ", ".join(sorted(_BUILDERS)) + ")"
+
+
+#: Names of the built-in meshes, each mapped to its parameters and defaults.
+BUILTIN_MESHES: Mapping[str, dict[str, Any]] = _BuiltinNames()
+
+
+def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
+    """Build one of prtlab's built-in meshes in object space (+Y up).
+
+    Parameters
+    ----------
+    name : str
+        One of the names below.
+    **params
+        The builtin's parameters; every one has a default.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        A new mesh (``process=False``: its vertex order is the shading order),
+        consistently wound with normals facing out of closed meshes.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name or parameter (the message lists the valid ones)
+        or an invalid parameter value.
+    TypeError
+        For a parameter of the wrong type.
+
+    Notes
+    -----
+    ====================  ==============================================================
+    ``plane``             ``size=[w, d]=[1, 1]``, ``resolution=[nx, nz]=[1, 1]`` cells;
+                          the grid ``|x| <= w/2, y = 0, |z| <= d/2`` with
+                          ``(nx+1)(nz+1)`` vertices, x slowest; normal +Y.
+    ``box``               ``size=[x, y, z]=[1, 1, 1]`` centred at the origin;
+                          ``subdivisions=0`` midpoint (1 -> 4) refinements.
+    ``icosphere``         ``radius=1``, ``subdivisions=3`` (642 vertices), centred.
+    ``uv_sphere``         ``radius=1``, ``count=[lat, lon]=[32, 32]``, poles on +-Y.
+    ``torus``             ``major_radius=1``, ``minor_radius=0.25``,
+                          ``sections=[major, minor]=[32, 16]``; lies in the xz plane
+                          (axis +Y), centred.
+    ``cylinder``          ``radius=0.5``, ``height=1``, ``sections=32``; axis +Y,
+                          centred, capped.
+    ``teapot``            ``resolution=8`` segments per patch edge: Newell's teapot.
+    ``bunny``             ``subdivisions=0``: the 1,839-vertex Stanford bunny, refined
+                          by Loop subdivision (1 -> 7,0xx, 2 -> 28,xxx vertices).
+    ``dragon``            ``variant="5k"`` (5,205 vertices) or ``"23k"`` (22,998).
+    ``room``              ``size=[w, h, d]``, ``windows=[...]``: the walls of
+                          :func:`room_with_windows`.
+    ``window``            ``room_size``, ``wall``, ``center``, ``size``: one window quad
+                          of :func:`room_with_windows`.
+    ====================  ==============================================================
+
+    The scanned meshes and the teapot are normalised by :func:`normalize_mesh`:
+    bounding box centred on ``x = z = 0``, resting on ``y = 0``, height 1.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"builtin mesh name must be a string, got {name!r}")
+    builder = _BUILDERS.get(name)
+    if builder is None:
+        raise ValueError(
+            f"unknown builtin mesh {name!r}; valid names: {', '.join(sorted(_BUILDERS))}"
+        )
+    valid = BUILTIN_MESHES[name]
+    unknown = sorted(set(params) - set(valid))
+    if unknown:
+        raise ValueError(
+            f"builtin {name!r}: unknown parameter(s) {', '.join(map(repr, unknown))}; "
+            f"valid parameters: {', '.join(valid) or '(none)'}"
+        )
+    return builder(**params)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def normalize_mesh(mesh: trimesh.Trimesh, height: float = 1.0) -> trimesh.Trimesh:
+    """Scale and move a mesh to stand on the floor, vertex order unchanged.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Any mesh with a non-flat y extent.
+    height : float
+        The bounding-box height after scaling.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        A new mesh: uniformly scaled so that ``max y - min y = height``, its
+        bounding box centred on ``x = z = 0``, with ``min y = 0``.
+    """
+    h = _finite_float("height", height, positive=True)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(v) == 0:
+        raise ValueError("normalize_mesh: the mesh has no vertices")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    if hi[1] - lo[1] <= 0.0:
+        raise ValueError("normalize_mesh: the mesh is flat in y and cannot be scaled to a height")
+    scale = h / (hi[1] - lo[1])
+    centre = 0.5 * (lo + hi)
+    out = (v - np.array([centre[0], lo[1], centre[2]])) * scale
+    out[:, 1] = np.maximum(out[:, 1], 0.0)  # exact floor contact despite rounding
+    return _mesh(out, mesh.faces)
+
+
+_SUBDIVISION_METHODS = ("loop", "midpoint")
+
+
+def subdivide(mesh: trimesh.Trimesh, levels: int = 1, method: str = "loop") -> trimesh.Trimesh:
+    """Refine a mesh for methods that need more shading vertices.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The mesh to refine (not modified).
+    levels : int
+        Number of 1 -> 4 triangle splits; 0 returns a copy.
+    method : {"loop", "midpoint"}
+        ``"loop"``: Loop's smoothing subdivision (the original vertices move
+        toward the limit surface); ``"midpoint"``: new vertices at edge
+        midpoints, the surface is unchanged.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        The refined mesh. Each level adds one vertex per edge, so
+        ``V' = V + E`` and ``F' = 4 F``.
+
+    Notes
+    -----
+    For ``"midpoint"`` the first ``V`` vertices are the input vertices,
+    unmoved and in input order, so per-vertex data of the coarse mesh stays
+    valid for them.
+
+    References
+    ----------
+    C. Loop, "Smooth Subdivision Surfaces Based on Triangles", MS thesis,
+    University of Utah, 1987.
+    """
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(f"subdivide: mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
+    n = _int("levels", levels, minimum=0, context="subdivide")
+    if method not in _SUBDIVISION_METHODS:
+        raise ValueError(
+            f"subdivide: unknown method {method!r}; valid methods: {', '.join(_SUBDIVISION_METHODS)}"
+        )
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if n == 0 or len(faces) == 0:
+        return _mesh(vertices.copy(), faces.copy())
+    if method == "loop":
+        vertices, faces = trimesh.remesh.subdivide_loop(vertices, faces, iterations=n)
+    else:
+        for _ in range(n):
+            vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    return _mesh(vertices, faces)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
+    """Load any mesh file trimesh reads as one triangle mesh, vertices as stored.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A PLY, OBJ, STL, OFF, GLB/GLTF, ... file.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        One mesh (``process=False``): a file holding several meshes (a scene)
+        is concatenated in file order. Vertices are neither merged nor
+        reordered, so vertex ``i`` of the result is vertex ``i`` of the file
+        (for a scene, counting through its meshes in order); unreferenced
+        vertices are kept.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ValueError
+        If trimesh cannot read the file or it holds no triangles.
+    """
+    p = Path(os.fspath(path))
+    if not p.is_file():
+        raise FileNotFoundError(f"mesh file not found: {str(p)!r}")
+    kwargs: dict[str, Any] = {"process": False}
+    if p.suffix.lower() == ".obj":
+        kwargs["maintain_order"] = True
+    try:
+        loaded = trimesh.load(p, **kwargs)
+    except Exception as err:  # trimesh raises many kinds for unreadable files
+        raise ValueError(f"cannot read mesh file {str(p)!r}: {err}") from err
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+        if not geoms:
+            raise ValueError(f"mesh file {str(p)!r} holds no triangle mesh (no faces)")
+        parts = [(np.asarray(g.vertices), np.asarray(g.faces)) for g in geoms]
+    elif isinstance(loaded, trimesh.Trimesh):
+        parts = [(np.asarray(loaded.vertices), np.asarray(loaded.faces))]
+    else:
+        raise ValueError(
+            f"mesh file {str(p)!r} holds no triangle mesh (no faces; trimesh read a "
+            f"{type(loaded).__name__})"
+        )
+    offsets = np.cumsum([0] + [len(v) for v, _ in parts])
+    vertices = np.concatenate([v for v, _ in parts]).reshape(-1, 3)
+    faces = np.concatenate([f.reshape(-1, 3) + o for (_, f), o in zip(parts, offsets)])
+    if len(faces) == 0:
+        raise ValueError(f"mesh file {str(p)!r} holds no triangle mesh (no faces)")
+    return _mesh(vertices, faces)
