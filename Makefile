@@ -20,8 +20,7 @@ demo: $(STAMP)
 
 # The default test run: unit and property tests, notebooks in quick mode. Under 15 min on 2 cores.
 test: $(STAMP)
-	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 -m "not slow" tests
-	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --nbmake notebooks
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 -m "not slow" --nbmake tests notebooks
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 -m slow tests
