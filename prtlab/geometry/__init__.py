@@ -1,6 +1,7 @@
 """Geometry: sphere-image maps, meshes, transforms, ray casting and sampling."""
 
 from ._meshes import BUILTIN_MESHES, DATA_DIR, builtin_mesh, load_mesh, normalize_mesh, subdivide
+from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RayCaster, RayHits, offset_origins
 from ._spheremaps import (
     CUBE_FACES,
     cubemap_directions,
@@ -14,6 +15,11 @@ from ._spheremaps import (
 )
 
 __all__ = [
+    "RAY_CHUNK",
+    "RAY_EPSILON_SCALE",
+    "RayCaster",
+    "RayHits",
+    "offset_origins",
     "BUILTIN_MESHES",
     "DATA_DIR",
     "builtin_mesh",

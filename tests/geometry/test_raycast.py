@@ -1,0 +1,224 @@
+"""Tests of prtlab.geometry._raycast: Embree ray casting against float64 brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given
+from hypothesis import strategies as st
+
+from prtlab.geometry import RAY_EPSILON_SCALE, RayCaster, offset_origins
+from prtlab.scene import Material, Scene, SceneObject, Transform
+from tests.conftest import random_directions
+
+
+def brute_force_closest(vertices, faces, origins, dirs):
+    """Obvious float64 Moller-Trumbore over every triangle: (distance, face, u, v)."""
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    e1, e2 = b - a, c - a
+    n = len(origins)
+    best = np.full(n, np.inf)
+    face = np.full(n, -1)
+    uv = np.zeros((n, 2))
+    for i in range(n):
+        p = np.cross(dirs[i], e2)
+        det = np.sum(e1 * p, axis=1)
+        ok = np.abs(det) > 1e-300
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = origins[i] - a
+        u = np.sum(s * p, axis=1) * inv
+        q = np.cross(s, e1)
+        v = (q @ dirs[i]) * inv
+        t = np.sum(e2 * q, axis=1) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        if np.any(hit):
+            k = np.flatnonzero(hit)[np.argmin(t[hit])]
+            best[i], face[i], uv[i] = t[k], k, (u[k], v[k])
+    return best, face, uv
+
+
+# ------------------------------------------------------------------ known answers
+
+
+def test_box_distance_and_normal():
+    caster = RayCaster([trimesh.creation.box()])
+    hits = caster.closest_hit([[0.0, 0.0, 5.0], [0.0, 0.0, -5.0]], [[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(hits.distance, [4.5, 4.5], atol=1e-6)
+    np.testing.assert_allclose(hits.normal, [[0, 0, 1], [0, 0, -1]], atol=1e-12)
+    np.testing.assert_allclose(hits.point[:, 2], [0.5, -0.5], atol=1e-12)
+    assert hits.hit.all() and (hits.object == 0).all()
+
+
+def test_miss_fields():
+    caster = RayCaster([trimesh.creation.box()])
+    hits = caster.closest_hit([0.0, 5.0, 0.0], [0.0, 1.0, 0.0])
+    assert hits.hit.shape == () and not hits.hit
+    assert hits.object == -1 and hits.triangle == -1 and np.isinf(hits.distance)
+    assert np.isnan(hits.point).all() and (hits.normal == 0).all()
+
+
+def test_object_index_and_transforms():
+    box = trimesh.creation.box()
+    move = Transform(translate=np.array([5.0, 0.0, 0.0]))
+    caster = RayCaster([box, box], [None, move])
+    hits = caster.closest_hit([[-5.0, 0, 0], [10.0, 0, 0]], [[1.0, 0, 0], [-1.0, 0, 0]])
+    np.testing.assert_array_equal(hits.object, [0, 1])
+    np.testing.assert_allclose(hits.distance, [4.5, 4.5], atol=1e-6)
+
+
+def test_hit_point_from_barycentrics_matches_ray(rng):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    caster = RayCaster([mesh])
+    origins = 3.0 * random_directions(rng, 200)
+    dirs = random_directions(rng, 200) * 0.3 - origins / 3.0
+    hits = caster.closest_hit(origins, dirs)
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    along = origins + hits.distance[:, None] * unit
+    np.testing.assert_allclose(hits.point[hits.hit], along[hits.hit], atol=1e-5)
+    np.testing.assert_allclose(hits.normal[hits.hit], mesh.face_normals[hits.triangle[hits.hit]], atol=1e-12)
+
+
+def test_tmax_limits_both_queries():
+    caster = RayCaster([trimesh.creation.box()])
+    o, d = [0.0, 0.0, 5.0], [0.0, 0.0, -1.0]
+    assert not caster.closest_hit(o, d, tmax=4.4).hit
+    assert caster.closest_hit(o, d, tmax=4.6).hit
+    assert not caster.occluded(o, d, 4.4)
+    assert caster.occluded(o, d, 4.6)
+    np.testing.assert_array_equal(caster.occluded([o, o], [d, d], tmax=[4.4, 4.6]), [False, True])
+    assert not caster.occluded(o, d, 0.0)
+
+
+def test_offset_prevents_self_intersection(rng):
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    caster = RayCaster([mesh])
+    p, n = mesh.vertices, mesh.vertex_normals
+    out = n + 0.5 * random_directions(rng, len(n))
+    out[np.sum(out * n, axis=1) < 1e-3] = n[np.sum(out * n, axis=1) < 1e-3]
+    assert not caster.occluded(p, out, normals=n).any()
+    # rays into the sphere from its surface reach the far side: chord = 2 cos
+    inward = -n + 0.3 * random_directions(rng, len(n))
+    hits = caster.closest_hit(p, inward, normals=n)
+    cos = -np.sum(inward * n, axis=1) / np.linalg.norm(inward, axis=1)
+    assert hits.hit.all()
+    np.testing.assert_allclose(hits.distance, 2 * cos * 0.995, rtol=0.02)
+
+
+def test_epsilon_scales_with_scene():
+    caster = RayCaster([trimesh.creation.box(extents=[2.0, 2.0, 2.0])])
+    assert caster.epsilon == pytest.approx(RAY_EPSILON_SCALE * 2.0 * np.sqrt(3.0))
+    assert RayCaster([trimesh.creation.box()], epsilon=0.25).epsilon == 0.25
+
+
+def test_offset_origins_side():
+    o = offset_origins([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]], 0.1)
+    np.testing.assert_allclose(o, [[0, 0.1, 0], [0, -0.1, 0]])
+
+
+def test_update_transforms_rebuilds_only_on_change():
+    box = trimesh.creation.box()
+    caster = RayCaster([box, box], [None, Transform(translate=np.array([5.0, 0, 0]))])
+    assert caster.n_builds == 1
+    assert not caster.update_transforms([None, Transform(translate=np.array([5.0, 0, 0]))])
+    assert caster.n_builds == 1
+    assert caster.update_transforms({1: Transform(translate=np.array([0.0, 5.0, 0]))})
+    assert caster.n_builds == 2
+    hits = caster.closest_hit([0.0, 10.0, 0.0], [0.0, -1.0, 0.0])
+    assert hits.object == 1 and hits.distance == pytest.approx(4.5, abs=1e-6)
+
+
+def test_scene_input_skips_portals():
+    objs = [
+        SceneObject("floor", trimesh.creation.box(), Transform(), Material()),
+        SceneObject("window", trimesh.creation.box(), Transform(translate=np.array([5.0, 0, 0])), portal=True),
+    ]
+    caster = RayCaster(Scene(objects=objs))
+    assert caster.n_objects == 1 and caster.object_index == [0]
+    assert not caster.occluded([3.0, 0, 0], [1.0, 0, 0])
+
+
+def test_empty_mesh_keeps_object_ids():
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    caster = RayCaster([empty, trimesh.creation.box()])
+    assert caster.closest_hit([0.0, 0, 5], [0.0, 0, -1]).object == 1
+
+
+def test_empty_batch_shapes():
+    caster = RayCaster([trimesh.creation.box()])
+    hits = caster.closest_hit(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert hits.hit.shape == (0,) and hits.point.shape == (0, 3) and hits.barycentric.shape == (0, 2)
+    assert caster.occluded(np.zeros((2, 0, 3)), np.ones((2, 0, 3))).shape == (2, 0)
+
+
+# -------------------------------------------------- float64 brute-force reference
+
+
+@given(seed=st.integers(0, 2**31 - 1))
+def test_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    mesh.vertices *= rng.uniform(0.5, 1.5, size=3)
+    box = trimesh.creation.box(extents=rng.uniform(0.2, 0.8, size=3))
+    box.apply_translation(rng.normal(size=3) * 1.5)
+    caster = RayCaster([mesh, box])
+    origins = rng.normal(size=(40, 3)) * 3.0
+    dirs = random_directions(rng, 40)
+    dirs[:20] = -origins[:20] + 0.3 * rng.normal(size=(20, 3))  # aim most rays at the scene
+    hits = caster.closest_hit(origins, dirs)
+    unit = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    verts = np.vstack([mesh.vertices, box.vertices])
+    faces = np.vstack([mesh.faces, box.faces + len(mesh.vertices)])
+    dist, face, _ = brute_force_closest(verts, faces, origins, unit)
+    # float32 traversal: edge-grazing rays may differ; everything else must agree
+    agree = np.isinf(dist) == ~hits.hit
+    assert agree.mean() >= 0.95
+    both = hits.hit & np.isfinite(dist)
+    np.testing.assert_allclose(hits.distance[both], dist[both], rtol=1e-5, atol=1e-5)
+    occ = caster.occluded(origins, unit)
+    assert (occ == hits.hit).all()
+
+
+# ------------------------------------------------------------------------- errors
+
+
+def test_errors():
+    caster = RayCaster([trimesh.creation.box()])
+    with pytest.raises(ValueError, match=r"origins must be a \(\.\.\., 3\) array"):
+        caster.closest_hit(np.zeros((4, 2)), np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="dirs contains NaN"):
+        caster.closest_hit(np.zeros(3), [np.nan, 0.0, 1.0])
+    with pytest.raises(ValueError, match="zero vectors"):
+        caster.occluded(np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        caster.closest_hit(np.zeros((4, 3)), np.ones((5, 3)))
+    with pytest.raises(ValueError, match="tmax contains NaN"):
+        caster.occluded(np.zeros(3), np.ones(3), np.nan)
+    with pytest.raises(ValueError, match="tmax of shape"):
+        caster.occluded(np.zeros((3, 3)), np.ones(3), np.ones(4))
+    with pytest.raises(ValueError, match=r"normals must be a \(\.\.\., 3\)"):
+        caster.occluded(np.zeros(3), np.ones(3), normals=np.ones(2))
+    with pytest.raises(ValueError, match="normals .* do not broadcast"):
+        caster.occluded(np.zeros((3, 3)), np.ones(3), normals=np.ones((4, 3)))
+    with pytest.raises(ValueError, match="transforms has 2 entries for 1 meshes"):
+        RayCaster([trimesh.creation.box()], [None, None])
+    with pytest.raises(ValueError, match="transforms has 2 entries for 1 objects"):
+        caster.update_transforms([None, None])
+    with pytest.raises(ValueError, match=r"object index 3 is out of range"):
+        caster.update_transforms({3: np.eye(4)})
+    with pytest.raises(ValueError, match=r"a transform must be a prtlab Transform or a \(4, 4\)"):
+        RayCaster([trimesh.creation.box()], [np.eye(3)])
+    with pytest.raises(ValueError, match="a transform contains NaN"):
+        RayCaster([trimesh.creation.box()], [np.full((4, 4), np.nan)])
+    with pytest.raises(TypeError, match=r"meshes\[0\] must be a trimesh.Trimesh"):
+        RayCaster(["box"])
+    with pytest.raises(ValueError, match=r"meshes\[0\] vertices must be"):
+        RayCaster([(np.zeros((3, 2)), np.zeros((1, 3), dtype=int))])
+    with pytest.raises(ValueError, match=r"meshes\[0\] faces must be an integer"):
+        RayCaster([(np.zeros((3, 3)), np.zeros((1, 3)))])
+    with pytest.raises(ValueError, match=r"meshes\[0\] vertices contain NaN"):
+        RayCaster([(np.full((3, 3), np.nan), np.zeros((1, 3), dtype=int))])
+    with pytest.raises(ValueError, match=r"meshes\[0\] faces index vertices outside"):
+        RayCaster([(np.zeros((3, 3)), np.full((1, 3), 7))])
+    with pytest.raises(ValueError, match="epsilon must be a finite number"):
+        RayCaster([trimesh.creation.box()], epsilon=-1.0)
