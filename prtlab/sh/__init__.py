@@ -5,8 +5,39 @@ Conventions (``../shared/DESIGN.md``): real orthonormal basis, index
 means bands ``l = 0..n-1`` (``n*n`` coefficients); colour is a trailing axis.
 """
 
-from ._eval import basis_reference
+from ._eval import basis, basis_reference, evaluate, index, n_coeffs
+from ._project import project, project_cubemap, project_equirect, project_function, quadrature
+from ._rotate import rotate, rotation_matrices, rotation_matrix
+from ._window import apply_window, is_nonnegative, min_value, nonnegative_window, window
+from ._zh import clamped_cosine_zh, convolve, irradiance, zh_project, zh_rotate
 
 __all__ = [
+    # evaluation
+    "basis",
     "basis_reference",
+    "evaluate",
+    "index",
+    "n_coeffs",
+    # projection
+    "project",
+    "project_cubemap",
+    "project_equirect",
+    "project_function",
+    "quadrature",
+    # rotation
+    "rotate",
+    "rotation_matrices",
+    "rotation_matrix",
+    # zonal harmonics
+    "clamped_cosine_zh",
+    "convolve",
+    "irradiance",
+    "zh_project",
+    "zh_rotate",
+    # windowing
+    "apply_window",
+    "is_nonnegative",
+    "min_value",
+    "nonnegative_window",
+    "window",
 ]
