@@ -2,6 +2,21 @@
 
 from ._meshes import BUILTIN_MESHES, DATA_DIR, builtin_mesh, load_mesh, normalize_mesh, subdivide
 from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RayCaster, RayHits, offset_origins
+from ._sampling import (
+    MeshSamples,
+    cosine_hemisphere,
+    cosine_hemisphere_pdf,
+    fibonacci_sphere,
+    geodesic_directions,
+    geodesic_sphere,
+    sample_mesh_area,
+    sample_parallelogram,
+    stratified_hemisphere,
+    stratified_sphere,
+    tangent_frame,
+    uniform_hemisphere,
+    uniform_sphere,
+)
 from ._spheremaps import (
     CUBE_FACES,
     cubemap_directions,
@@ -20,6 +35,19 @@ __all__ = [
     "RayCaster",
     "RayHits",
     "offset_origins",
+    "MeshSamples",
+    "cosine_hemisphere",
+    "cosine_hemisphere_pdf",
+    "fibonacci_sphere",
+    "geodesic_directions",
+    "geodesic_sphere",
+    "sample_mesh_area",
+    "sample_parallelogram",
+    "stratified_hemisphere",
+    "stratified_sphere",
+    "tangent_frame",
+    "uniform_hemisphere",
+    "uniform_sphere",
     "BUILTIN_MESHES",
     "DATA_DIR",
     "builtin_mesh",
