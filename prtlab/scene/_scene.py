@@ -31,6 +31,32 @@ __all__ = [
 ]
 
 
+def _values_equal(a, b) -> bool:
+    """Exact structural equality that understands arrays, meshes, dataclasses and containers."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        if a is None or b is None:
+            return False
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape == b.shape and bool(np.array_equal(a, b))
+    if hasattr(a, "vertices") and hasattr(a, "faces"):  # meshes: geometry and connectivity
+        return hasattr(b, "vertices") and _values_equal(np.asarray(a.vertices), np.asarray(b.vertices)) and (
+            _values_equal(np.asarray(a.faces), np.asarray(b.faces))
+        )
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_values_equal(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_values_equal(a[k], b[k]) for k in a)
+    return bool(a == b)
+
+
+def _dataclass_eq(self, other, skip: tuple[str, ...] = ()) -> bool:
+    if type(self) is not type(other):
+        return NotImplemented
+    from dataclasses import fields
+
+    return all(_values_equal(getattr(self, f.name), getattr(other, f.name)) for f in fields(self) if f.name not in skip)
+
+
 def euler_to_matrix(rotate_deg) -> np.ndarray:
     """Rotation matrix ``Rz @ Ry @ Rx`` from ``[rx, ry, rz]`` in degrees."""
     rx, ry, rz = np.radians(np.asarray(rotate_deg, dtype=np.float64))
@@ -77,6 +103,9 @@ class Transform:
             "scale": float(self.scale),
         }
 
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
+
 
 @dataclass
 class Material:
@@ -107,6 +136,9 @@ class Material:
                 "exponent": float(self.exponent),
             }
         return {"type": "diffuse", "albedo": [float(v) for v in self.albedo]}
+
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
 
 
 @dataclass
@@ -145,6 +177,26 @@ class SceneObject:
             vertices=self.world_vertices(transform), faces=np.asarray(self.mesh.faces), process=False
         )
 
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
+
+    def to_dict(self) -> dict:
+        """The object as in a scene file (needs ``mesh_spec``: a file path or ``{builtin: ...}``)."""
+        if self.mesh_spec is None:
+            raise ValueError(
+                f"object {self.name!r} has no mesh_spec, so it cannot be written to a scene file; "
+                "export its mesh (mesh.export('name.ply')) and set mesh_spec='name.ply'"
+            )
+        import copy
+
+        return {
+            "name": self.name,
+            "mesh": copy.deepcopy(self.mesh_spec),
+            "transform": self.transform.to_dict(),
+            "material": self.material.to_dict(),
+            "dynamic": bool(self.dynamic),
+            "portal": bool(self.portal),
+        }
 
 @dataclass
 class EnvironmentLight:
@@ -169,6 +221,20 @@ class EnvironmentLight:
         from prtlab.geometry import equirect_lookup
 
         return equirect_lookup(self.image, dirs)
+
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
+
+    def to_dict(self) -> dict:
+        """``{type: environment, file | sky | constant: ..., scale}`` as the scene file said."""
+        if not self.spec:
+            raise ValueError(
+                "this environment light has no spec (it was built from an array), so it cannot be written "
+                "to a scene file; save the image with prtlab.scene.write_exr and use {file: ...}"
+            )
+        import copy
+
+        return {"type": "environment", **copy.deepcopy(self.spec), "scale": float(self.scale)}
 
 
 @dataclass
@@ -199,6 +265,9 @@ class AreaLight:
             "radiance": [float(c) for c in self.radiance],
         }
 
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
+
 
 @dataclass
 class PointLight:
@@ -213,6 +282,9 @@ class PointLight:
             "position": [float(c) for c in self.position],
             "intensity": [float(c) for c in self.intensity],
         }
+
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
 
 
 @dataclass
@@ -233,6 +305,9 @@ class Camera:
             "fov_deg": float(self.fov_deg),
             "resolution": [int(r) for r in self.resolution],
         }
+
+    def __eq__(self, other):
+        return _dataclass_eq(self, other)
 
 
 @dataclass
@@ -264,3 +339,54 @@ class Scene:
     @property
     def point_lights(self) -> list[PointLight]:
         return [light for light in self.lights if isinstance(light, PointLight)]
+
+    def __eq__(self, other):
+        """Equal content (objects, meshes, lights, camera, animation, name); ``base_dir`` is not compared."""
+        return _dataclass_eq(self, other, skip=("base_dir",))
+
+    # ---- the scene format (``_load.py``)
+
+    @classmethod
+    def from_dict(cls, d: dict, base_dir=None, source: str | None = None) -> "Scene":
+        """Validate a scene dict (the YAML format) and build the scene; see :func:`prtlab.load_scene`."""
+        from ._load import scene_from_dict
+
+        return scene_from_dict(d, base_dir=base_dir, source=source)
+
+    @classmethod
+    def load(cls, path) -> "Scene":
+        """Load and validate a YAML scene file (same as :func:`prtlab.load_scene`)."""
+        from ._load import load_scene
+
+        return load_scene(path)
+
+    def to_dict(self) -> dict:
+        """The scene as a YAML-ready dict; ``Scene.from_dict(s.to_dict(), s.base_dir) == s``."""
+        from ._load import scene_to_dict
+
+        return scene_to_dict(self)
+
+    def save(self, path):
+        """Write the scene as a YAML file."""
+        from ._load import save_scene
+
+        return save_scene(self, path)
+
+    # ---- animation (``_animation.py``)
+
+    @property
+    def duration(self) -> float:
+        """Length of the animation in seconds (0 without one)."""
+        return 0.0 if not self.animation else float(self.animation["duration"])
+
+    def at_time(self, t: float) -> "Scene":
+        """The scene at time ``t`` of its animation: a new Scene sharing the meshes."""
+        from ._animation import scene_at_time
+
+        return scene_at_time(self, t)
+
+    def at_frame(self, i: int, n_frames: int) -> "Scene":
+        """Frame ``i`` of ``n_frames`` spread evenly over ``[0, duration]`` (both ends included)."""
+        from ._animation import scene_at_frame
+
+        return scene_at_frame(self, i, n_frames)
