@@ -1,6 +1,17 @@
 """Geometry: sphere-image maps, meshes, transforms, ray casting and sampling."""
 
-from ._meshes import BUILTIN_MESHES, DATA_DIR, builtin_mesh, load_mesh, normalize_mesh, subdivide
+from ._meshes import (
+    BUILTIN_MESHES,
+    CORNELL_BOX_PARTS,
+    DATA_DIR,
+    builtin_mesh,
+    cornell_box_light,
+    cornell_box_objects,
+    load_mesh,
+    normalize_mesh,
+    subdivide,
+)
+from ._room import ROOM_SURFACES, WINDOW_WALLS, room_with_windows, window_quad
 from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RayCaster, RayHits, offset_origins
 from ._sampling import (
     MeshSamples,
@@ -49,11 +60,18 @@ __all__ = [
     "uniform_hemisphere",
     "uniform_sphere",
     "BUILTIN_MESHES",
+    "CORNELL_BOX_PARTS",
     "DATA_DIR",
+    "ROOM_SURFACES",
+    "WINDOW_WALLS",
     "builtin_mesh",
+    "cornell_box_light",
+    "cornell_box_objects",
     "load_mesh",
     "normalize_mesh",
+    "room_with_windows",
     "subdivide",
+    "window_quad",
     "CUBE_FACES",
     "cubemap_directions",
     "cubemap_lookup",

@@ -8,6 +8,7 @@ own vertices, in input order").
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from collections.abc import Callable, Mapping
@@ -17,8 +18,13 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from . import _room as _room_module
+
 __all__ = [
     "BUILTIN_MESHES",
+    "CORNELL_BOX_PARTS",
+    "cornell_box_light",
+    "cornell_box_objects",
     "DATA_DIR",
     "builtin_mesh",
     "load_mesh",
@@ -168,6 +174,197 @@ def _cylinder(radius=0.5, height=1.0, sections=32) -> trimesh.Trimesh:
     return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
 
 
+# --------------------------------------------------------------------------- assets
+
+
+@functools.lru_cache(maxsize=None)
+def _asset_arrays(relative: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a committed PLY under data/, read once, read-only."""
+    path = DATA_DIR / relative
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"prtlab asset {relative!r} is missing from {str(DATA_DIR)!r}; it ships with the "
+            "repository (see data/README.md and tools/convert_assets.py)"
+        )
+    mesh = load_mesh(path)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    vertices.setflags(write=False)
+    faces.setflags(write=False)
+    return vertices, faces
+
+
+def _teapot(resolution=8, bottom=True, fit_lid=True) -> trimesh.Trimesh:
+    from ._teapot import tessellate_teapot
+
+    n = _int("resolution", resolution, minimum=1, context="builtin 'teapot'")
+    if n > 128:
+        raise ValueError(f"builtin 'teapot': resolution must be <= 128, got {resolution!r}")
+    for key, value in (("bottom", bottom), ("fit_lid", fit_lid)):
+        if not isinstance(value, (bool, np.bool_)):
+            raise TypeError(f"builtin 'teapot': {key} must be true or false, got {value!r}")
+    vertices, faces = tessellate_teapot(n, bottom=bool(bottom), fit_lid=bool(fit_lid))
+    return normalize_mesh(_mesh(vertices, faces))
+
+
+def _bunny(subdivisions=0) -> trimesh.Trimesh:
+    levels = _int("subdivisions", subdivisions, minimum=0, context="builtin 'bunny'")
+    if levels > 4:
+        raise ValueError(f"builtin 'bunny': subdivisions must be <= 4 (~470k vertices), got {subdivisions!r}")
+    vertices, faces = _asset_arrays("meshes/bunny.ply")
+    mesh = _mesh(vertices, faces)
+    if levels:  # Loop subdivision shrinks the mesh a little: normalise afterwards
+        mesh = subdivide(mesh, levels, method="loop")
+    return normalize_mesh(mesh)
+
+
+_DRAGON_VARIANTS = {"5k": "meshes/dragon_5k.ply", "23k": "meshes/dragon_23k.ply"}
+
+
+def _dragon(variant="5k") -> trimesh.Trimesh:
+    if variant not in _DRAGON_VARIANTS:
+        raise ValueError(
+            f"builtin 'dragon': variant must be one of {', '.join(map(repr, _DRAGON_VARIANTS))}, "
+            f"got {variant!r}"
+        )
+    vertices, faces = _asset_arrays(_DRAGON_VARIANTS[variant])
+    return normalize_mesh(_mesh(vertices, faces))
+
+
+#: The parts of the Cornell box, in the order of the source file.
+CORNELL_BOX_PARTS = (
+    "floor",
+    "light",
+    "ceiling",
+    "back_wall",
+    "green_wall",
+    "red_wall",
+    "short_block",
+    "tall_block",
+)
+_MM = 1e-3  # the Cornell box data is in millimetres; prtlab uses metres
+
+
+def _refine_quads(vertices: np.ndarray, faces: np.ndarray, resolution: int):
+    """Split each quad (triangle pair (q0,q1,q2), (q0,q2,q3)) into a bilinear grid."""
+    if resolution == 1:
+        return vertices, faces
+    n = resolution
+    quads = np.concatenate([faces[0::2], faces[1::2, 2:]], axis=1)  # (Q, 4): q0 q1 q2 q3
+    s = np.linspace(0.0, 1.0, n + 1)
+    ss, tt = np.meshgrid(s, s, indexing="ij")  # s along q0->q1, t along q0->q3
+    w = np.stack([(1 - ss) * (1 - tt), ss * (1 - tt), ss * tt, (1 - ss) * tt], -1).reshape(-1, 4)
+    out_v = np.einsum("gk,qkc->qgc", w, vertices[quads]).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    p00 = (i * (n + 1) + j).ravel()
+    p10 = p00 + (n + 1)
+    p11 = p10 + 1
+    p01 = p00 + 1
+    cell = np.concatenate([np.stack([p00, p10, p11], 1), np.stack([p00, p11, p01], 1)])
+    out_f = (cell[None] + (np.arange(len(quads)) * (n + 1) ** 2)[:, None, None]).reshape(-1, 3)
+    return out_v, out_f
+
+
+def cornell_box_objects(resolution: int = 1) -> dict[str, trimesh.Trimesh]:
+    """The measured Cornell box, one mesh per part, in metres.
+
+    Parameters
+    ----------
+    resolution : int
+        Each quad of the data is split into ``resolution x resolution``
+        bilinear grid cells (two triangles each), for per-vertex shading.
+
+    Returns
+    -------
+    dict of str -> trimesh.Trimesh
+        Keys ``CORNELL_BOX_PARTS``: ``floor``, ``light`` (the emitter's quad,
+        facing down; it reflects nothing), ``ceiling``, ``back_wall``,
+        ``green_wall``, ``red_wall``, ``short_block``, ``tall_block``.
+        Walls are single quads whose normals face into the box; the blocks are
+        closed (their footprints, which the source file lists with the floor,
+        are their bottoms) with outward normals. Vertices are not shared
+        between quads (flat shading).
+
+    Notes
+    -----
+    The Cornell program's measured geometry (as shipped in Embree's and
+    tinyobjloader's ``cornell_box.obj``) scaled from millimetres to metres:
+    the box spans about ``0 <= x <= 0.556``, ``0 <= y <= 0.5488``,
+    ``0 <= z <= 0.5592`` and is open toward -z, where the original camera
+    stands at ``(0.278, 0.273, -0.800)`` looking along +z (the red wall at
+    x = 0.556 is then on the left). Material colours of that file: white,
+    red, green ``Kd`` = (1,1,1), (1,0,0), (0,1,0); the scene file chooses albedos.
+    """
+    n = _int("resolution", resolution, minimum=1, context="cornell_box")
+    if n > 256:
+        raise ValueError(f"cornell_box: resolution must be <= 256, got {resolution!r}")
+    out = {}
+    for part in CORNELL_BOX_PARTS:
+        vertices, faces = _asset_arrays(f"meshes/cornell_box/{part}.ply")
+        v, f = _refine_quads(vertices * _MM, faces, n)
+        out[part] = _mesh(v, f)
+    return out
+
+
+#: Radiance of the Cornell box light in the source file (its ``Ka 20 20 20``).
+_CORNELL_LIGHT_RADIANCE = (20.0, 20.0, 20.0)
+
+
+def cornell_box_light() -> dict[str, np.ndarray]:
+    """The Cornell box's ceiling light as a prtlab area light (metres).
+
+    Returns
+    -------
+    dict
+        ``center`` (3,), ``u`` (3,), ``v`` (3,): the parallelogram
+        ``center + s u + t v``, ``s, t`` in [-1, 1] (half edges), emitting on the
+        side of ``normalize(cross(u, v))``, which is ``-Y`` (down);
+        ``radiance`` (3,): ``[20, 20, 20]``, the value the source file gives
+        the light material (scale it to taste in the scene).
+
+    Notes
+    -----
+    The light quad (130 x 105 mm at y = 548 mm, 0.8 mm below the ceiling) is
+    the ``light`` part of :func:`cornell_box_objects`; its corners are
+    ``center +- u +- v``.
+    """
+    vertices, faces = _asset_arrays("meshes/cornell_box/light.ply")
+    corners = np.asarray(vertices, dtype=np.float64) * _MM
+    center = corners.mean(axis=0)
+    u = 0.5 * (corners[0] - corners[3])
+    v = 0.5 * (corners[1] - corners[0])
+    normal = np.cross(corners[faces[0, 1]] - corners[faces[0, 0]], corners[faces[0, 2]] - corners[faces[0, 0]])
+    if np.dot(np.cross(u, v), normal) < 0.0:
+        u, v = v, u
+    return {
+        "center": center,
+        "u": u,
+        "v": v,
+        "radiance": np.array(_CORNELL_LIGHT_RADIANCE, dtype=np.float64),
+    }
+
+
+def _cornell_box(part=None, resolution=1) -> trimesh.Trimesh:
+    if part not in CORNELL_BOX_PARTS:
+        raise ValueError(
+            f"builtin 'cornell_box' is not a single mesh: pass part= one of "
+            f"{', '.join(CORNELL_BOX_PARTS)} (got {part!r}), or call cornell_box_objects()"
+        )
+    return cornell_box_objects(resolution)[part]
+
+
+def _room(
+    size=_room_module._DEFAULT_ROOM_SIZE,
+    windows=(_room_module._DEFAULT_WINDOW,),
+    cell_size=0.25,
+    surfaces=_room_module.ROOM_SURFACES,
+) -> trimesh.Trimesh:
+    walls, _ = _room_module.room_with_windows(
+        size=size, windows=windows, cell_size=cell_size, surfaces=surfaces
+    )
+    return walls
+
+
 # --------------------------------------------------------------------------- registry
 
 #: name -> builder; each builder's keyword defaults are the documented defaults.
@@ -178,11 +375,13 @@ _BUILDERS: dict[str, Callable[..., trimesh.Trimesh]] = {
     "uv_sphere": _uv_sphere,
     "torus": _torus,
     "cylinder": _cylinder,
+    "teapot": _teapot,
+    "bunny": _bunny,
+    "dragon": _dragon,
+    "cornell_box": _cornell_box,
+    "room": _room,
+    "window": _room_module.window_quad,
 }
-
-
-def _register(name: str, builder: Callable[..., trimesh.Trimesh]) -> None:
-    _BUILDERS[name] = builder
 
 
 class _BuiltinNames(Mapping):
