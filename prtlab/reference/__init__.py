@@ -1,0 +1,11 @@
+"""Monte Carlo ground truth: small estimators for tests and the Mitsuba 3 adapter."""
+
+from ._mitsuba import MitsubaUnavailable, mitsuba_variant, render_mitsuba, shade_mitsuba, to_mitsuba
+
+__all__ = [
+    "MitsubaUnavailable",
+    "mitsuba_variant",
+    "render_mitsuba",
+    "shade_mitsuba",
+    "to_mitsuba",
+]
