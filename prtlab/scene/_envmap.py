@@ -714,7 +714,7 @@ def cubemap_to_equirect(faces, height: int, width: int, supersample: int | None 
 def environment_sh(env, order: int) -> np.ndarray:
     """SH coefficients of an environment light, ``(order**2, 3)``.
 
-    ``c_lm = int L(w) Y_lm(w) dw`` for the map's bilinear interpolant.
+    ``c_lm = int L(w) Y_lm(w) dw``.
 
     Parameters
     ----------
@@ -726,8 +726,9 @@ def environment_sh(env, order: int) -> np.ndarray:
     Notes
     -----
     Uses :func:`prtlab.sh.project_equirect` when the SH package provides it;
-    otherwise the quadrature ``sum_ij w_ij L_ij Y_lm(d_ij)`` with the exact
-    tent weights of :func:`prtlab.geometry.equirect_solid_angles` and the
+    otherwise the quadrature ``sum_ij w_ij L_ij Y_lm(d_ij)`` with the tent
+    weights of :func:`prtlab.geometry.equirect_solid_angles` (exact for
+    ``c_00``, error ``O(h^2)`` with ``h = pi / (H - 1)`` otherwise) and the
     reference basis :func:`prtlab.sh.basis_reference`.
     """
     import prtlab.sh as sh
