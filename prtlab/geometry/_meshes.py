@@ -565,6 +565,46 @@ def subdivide(mesh: trimesh.Trimesh, levels: int = 1, method: str = "loop") -> t
 # --------------------------------------------------------------------------- loading
 
 
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and triangulated faces of an OBJ file, vertices in file order."""
+    vertices: list[tuple[float, float, float]] = []
+    faces: list[tuple[int, int, int]] = []
+    text = path.read_text(encoding="utf-8", errors="replace").replace("\\\n", " ")
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        fields = line.split("#", 1)[0].split()
+        if not fields:
+            continue
+        where = f"mesh file {str(path)!r}, line {lineno}"
+        try:
+            if fields[0] == "v":
+                if len(fields) < 4:
+                    raise ValueError("a vertex needs x y z")
+                vertices.append((float(fields[1]), float(fields[2]), float(fields[3])))
+            elif fields[0] == "f":
+                polygon = []
+                for token in fields[1:]:
+                    i = int(token.split("/", 1)[0])
+                    if i < 0:
+                        i = len(vertices) + i + 1  # -1 = the latest vertex
+                        if i < 1:
+                            raise ValueError(f"relative index {token!r} reaches before the first vertex")
+                    elif i == 0:
+                        raise ValueError("OBJ indices start at 1, got 0")
+                    polygon.append(i - 1)
+                if len(polygon) < 3:
+                    raise ValueError("a face needs at least 3 vertices")
+                faces.extend((polygon[0], polygon[k], polygon[k + 1]) for k in range(1, len(polygon) - 1))
+        except ValueError as err:
+            raise ValueError(f"cannot read {where}: {err}") from None
+    v = np.array(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.array(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) and f.max() >= len(v):
+        raise ValueError(
+            f"cannot read mesh file {str(path)!r}: face index {int(f.max()) + 1} > {len(v)} vertices"
+        )
+    return v, f
+
+
 def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     """Load any mesh file trimesh reads as one triangle mesh, vertices as stored.
 
@@ -587,16 +627,28 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        If trimesh cannot read the file or it holds no triangles.
+        If the file cannot be read or holds no triangles.
+
+    Notes
+    -----
+    OBJ files are read by prtlab's own reader (positions and faces only:
+    ``v`` and ``f`` records, ``v/vt/vn`` index forms, negative indices
+    relative to the vertices read so far, polygons fanned into triangles
+    ``(0, i, i+1)``; groups, objects and materials ignored), because trimesh
+    reorders OBJ vertices and mis-reads negative indices. STL stores
+    unindexed triangles, so an STL mesh has three vertices per face; merge
+    them (``mesh.merge_vertices()``) if smooth per-vertex shading is wanted.
     """
     p = Path(os.fspath(path))
     if not p.is_file():
         raise FileNotFoundError(f"mesh file not found: {str(p)!r}")
-    kwargs: dict[str, Any] = {"process": False}
     if p.suffix.lower() == ".obj":
-        kwargs["maintain_order"] = True
+        vertices, faces = _read_obj(p)
+        if len(faces) == 0:
+            raise ValueError(f"mesh file {str(p)!r} holds no triangle mesh (no faces)")
+        return _mesh(vertices, faces)
     try:
-        loaded = trimesh.load(p, **kwargs)
+        loaded = trimesh.load(p, process=False)
     except Exception as err:  # trimesh raises many kinds for unreadable files
         raise ValueError(f"cannot read mesh file {str(p)!r}: {err}") from err
     if isinstance(loaded, trimesh.Scene):

@@ -158,7 +158,10 @@ def window_quad(
     normal faces into the room.
     """
     room = _room_size(room_size, "room_size")
-    w = _parse_window({"wall": wall, "center": center, "size": size}, room)
+    return _window_mesh(room, _parse_window({"wall": wall, "center": center, "size": size}, room))
+
+
+def _window_mesh(room: np.ndarray, w: dict[str, Any]) -> trimesh.Trimesh:
     plane, _, _ = _plane_bounds(room, w["wall"])
     (a0, b0), (a1, b1) = w["lo"], w["hi"]
     corners = _point(w["wall"], plane, np.array([a0, a1, a1, a0]), np.array([b0, b0, b1, b1]))
@@ -252,7 +255,5 @@ def room_with_windows(
     walls = trimesh.Trimesh(
         vertices=np.concatenate(vertices), faces=np.concatenate(faces), process=False
     )
-    quads = [
-        window_quad(room, w["wall"], 0.5 * (w["lo"] + w["hi"]), w["hi"] - w["lo"]) for w in parsed
-    ]
+    quads = [_window_mesh(room, w) for w in parsed]
     return walls, quads
