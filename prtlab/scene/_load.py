@@ -389,7 +389,7 @@ def _check_camera(v: Validator, c: Any, path: str) -> Camera:
     up = v.nonzero_vector(c["up"], child(path, "up")) if "up" in c else default.up
     view = look_at - position
     if not np.linalg.norm(view) > 0.0:
-        raise v.error(child(path, "look_at"), f"look_at equals position {show(position)}; the camera looks nowhere")
+        raise v.error(child(path, "look_at"), f"look_at equals position {show(c.get('position', position))}; the camera looks nowhere")
     if np.linalg.norm(np.cross(view, up)) <= 1e-9 * np.linalg.norm(view) * np.linalg.norm(up):
         raise v.error(child(path, "up"), f"up {show(up)} is parallel to the view direction {show(view)}")
     fov = v.number(c["fov_deg"], child(path, "fov_deg"), positive=True, maximum=179.0) if "fov_deg" in c else default.fov_deg
