@@ -446,18 +446,38 @@ def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
                           (axis +Y), centred.
     ``cylinder``          ``radius=0.5``, ``height=1``, ``sections=32``; axis +Y,
                           centred, capped.
-    ``teapot``            ``resolution=8`` segments per patch edge: Newell's teapot.
-    ``bunny``             ``subdivisions=0``: the 1,839-vertex Stanford bunny, refined
-                          by Loop subdivision (1 -> 7,0xx, 2 -> 28,xxx vertices).
-    ``dragon``            ``variant="5k"`` (5,205 vertices) or ``"23k"`` (22,998).
-    ``room``              ``size=[w, h, d]``, ``windows=[...]``: the walls of
-                          :func:`room_with_windows`.
-    ``window``            ``room_size``, ``wall``, ``center``, ``size``: one window quad
-                          of :func:`room_with_windows`.
+    ``teapot``            ``resolution=8`` segments per patch edge (2,081 vertices,
+                          ``64 n^2 - 8 n`` faces), ``bottom=True`` (Crow's bottom),
+                          ``fit_lid=True`` (three.js's 7.7 % wider lid): Newell's
+                          teapot, seams welded, spout toward +x. Four open sheets
+                          (body, lid, handle, spout), each with outward normals.
+    ``bunny``             ``subdivisions=0``: the 1,839-vertex Stanford bunny
+                          (watertight); Loop subdivision for paper-scale counts:
+                          1 -> 7,350, 2 -> 29,394 vertices.
+    ``dragon``            ``variant="5k"`` (5,203 vertices) or ``"23k"`` (22,982):
+                          Stanford's decimated dragons (not watertight).
+    ``cornell_box``       ``part`` (required: one of ``CORNELL_BOX_PARTS``),
+                          ``resolution=1``: one part of :func:`cornell_box_objects`.
+    ``room``              ``size=[4, 2.5, 4]``, ``windows=[one on -z]``,
+                          ``cell_size=0.25``, ``surfaces=all``: the walls of
+                          :func:`room_with_windows`, normals facing in.
+    ``window``            ``room_size``, ``wall``, ``center``, ``size`` (defaults: the
+                          default room's window): one window quad of
+                          :func:`room_with_windows`, normal facing into the room.
     ====================  ==============================================================
 
     The scanned meshes and the teapot are normalised by :func:`normalize_mesh`:
-    bounding box centred on ``x = z = 0``, resting on ``y = 0``, height 1.
+    bounding box centred on ``x = z = 0``, resting on ``y = 0``, height 1
+    (after subdivision, for the bunny). Primitives are centred on the origin.
+    Sources and licences of the assets: ``data/README.md``.
+
+    Examples
+    --------
+    >>> floor = builtin_mesh("plane", size=[6, 6], resolution=[40, 40])
+    >>> len(floor.vertices)
+    1681
+    >>> len(builtin_mesh("bunny").vertices)
+    1839
     """
     if not isinstance(name, str):
         raise TypeError(f"builtin mesh name must be a string, got {name!r}")
@@ -512,6 +532,58 @@ def normalize_mesh(mesh: trimesh.Trimesh, height: float = 1.0) -> trimesh.Trimes
 _SUBDIVISION_METHODS = ("loop", "midpoint")
 
 
+def _edge_topology(faces: np.ndarray):
+    """Unique edges (E, 2), each face's edge ids (F, 3) for (v0v1, v1v2, v2v0),
+    and the number of faces on each edge (E,)."""
+    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    edges, inverse = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    return edges, inverse.reshape(-1, 3), np.bincount(inverse, minlength=len(edges))
+
+
+def _split_faces(faces: np.ndarray, face_edges: np.ndarray, n_vertices: int) -> np.ndarray:
+    """1 -> 4 split; edge e becomes vertex n_vertices + e; winding kept."""
+    a, b, c = faces.T
+    ab, bc, ca = (face_edges + n_vertices).T
+    return np.concatenate(
+        [np.stack(t, axis=1) for t in ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))]
+    )
+
+
+def _subdivide_once(vertices: np.ndarray, faces: np.ndarray, loop: bool):
+    edges, face_edges, n_faces = _edge_topology(faces)
+    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    odd = 0.5 * (a + b)
+    even = vertices
+    if loop:
+        # odd (edge) vertices: 3/8 (a + b) + 1/8 (c + d) on interior edges
+        opposite = np.zeros((len(edges), 3))
+        np.add.at(opposite, face_edges.ravel(), vertices[np.roll(faces, -2, axis=1)].reshape(-1, 3))
+        interior = n_faces == 2
+        odd[interior] = 0.375 * (a + b)[interior] + 0.125 * opposite[interior]
+        # even vertices: Loop's beta rule inside, the cubic B-spline rule on boundaries
+        n = len(vertices)
+        valence = np.bincount(edges.ravel(), minlength=n)
+        ring = np.zeros((n, 3))
+        np.add.at(ring, edges[:, 0], vertices[edges[:, 1]])
+        np.add.at(ring, edges[:, 1], vertices[edges[:, 0]])
+        boundary = edges[n_faces == 1]
+        n_boundary = np.bincount(boundary.ravel(), minlength=n)
+        boundary_ring = np.zeros((n, 3))
+        np.add.at(boundary_ring, boundary[:, 0], vertices[boundary[:, 1]])
+        np.add.at(boundary_ring, boundary[:, 1], vertices[boundary[:, 0]])
+        k = np.maximum(valence, 1).astype(np.float64)
+        beta = (0.625 - (0.375 + 0.25 * np.cos(2.0 * np.pi / k)) ** 2) / k
+        even = (1.0 - k * beta)[:, None] * vertices + beta[:, None] * ring
+        on_boundary = n_boundary == 2
+        even[on_boundary] = 0.75 * vertices[on_boundary] + 0.125 * boundary_ring[on_boundary]
+        # isolated vertices, and vertices on non-manifold or several boundaries, stay put
+        fixed = (valence == 0) | ((n_boundary > 0) & ~on_boundary)
+        fixed[edges[n_faces > 2].ravel()] = True
+        even[fixed] = vertices[fixed]
+    return np.concatenate([even, odd]), _split_faces(faces, face_edges, len(vertices))
+
+
 def subdivide(mesh: trimesh.Trimesh, levels: int = 1, method: str = "loop") -> trimesh.Trimesh:
     """Refine a mesh for methods that need more shading vertices.
 
@@ -522,26 +594,35 @@ def subdivide(mesh: trimesh.Trimesh, levels: int = 1, method: str = "loop") -> t
     levels : int
         Number of 1 -> 4 triangle splits; 0 returns a copy.
     method : {"loop", "midpoint"}
-        ``"loop"``: Loop's smoothing subdivision (the original vertices move
-        toward the limit surface); ``"midpoint"``: new vertices at edge
-        midpoints, the surface is unchanged.
+        ``"loop"``: Loop's smoothing subdivision: the surface moves toward the
+        smooth limit surface (it shrinks a little; open boundaries follow the
+        cubic B-spline rule, so their corners get rounded). ``"midpoint"``:
+        new vertices at edge midpoints; the surface is unchanged (use it for
+        flat walls and floors).
 
     Returns
     -------
     trimesh.Trimesh
-        The refined mesh. Each level adds one vertex per edge, so
-        ``V' = V + E`` and ``F' = 4 F``.
+        The refined mesh: per level, the ``V`` old vertices first, in input
+        order (moved by ``"loop"``, unmoved by ``"midpoint"``), then one new
+        vertex per edge, so ``V' = V + E`` and ``F' = 4 F``. Face ``f`` becomes
+        faces ``f``, ``F + f``, ``2F + f``, ``3F + f``, with the same winding.
 
     Notes
     -----
-    For ``"midpoint"`` the first ``V`` vertices are the input vertices,
-    unmoved and in input order, so per-vertex data of the coarse mesh stays
-    valid for them.
+    Loop's rules: a new edge vertex is ``3/8 (a + b) + 1/8 (c + d)`` on an
+    interior edge ``ab`` with opposite vertices ``c, d`` and ``(a + b) / 2`` on
+    a boundary edge; an old interior vertex of valence ``k`` becomes
+    ``(1 - k beta) v + beta sum(neighbours)``, with
+    ``beta = (5/8 - (3/8 + cos(2 pi / k) / 4)^2) / k``; an old boundary vertex
+    becomes ``3/4 v + 1/8 (b1 + b2)`` of its two boundary neighbours. Vertices
+    of non-manifold edges stay put.
 
     References
     ----------
     C. Loop, "Smooth Subdivision Surfaces Based on Triangles", MS thesis,
-    University of Utah, 1987.
+    University of Utah, 1987. H. Hoppe et al., "Piecewise Smooth Surface
+    Reconstruction", SIGGRAPH 1994 (boundary rules).
     """
     if not isinstance(mesh, trimesh.Trimesh):
         raise TypeError(f"subdivide: mesh must be a trimesh.Trimesh, got {type(mesh).__name__}")
@@ -550,15 +631,14 @@ def subdivide(mesh: trimesh.Trimesh, levels: int = 1, method: str = "loop") -> t
         raise ValueError(
             f"subdivide: unknown method {method!r}; valid methods: {', '.join(_SUBDIVISION_METHODS)}"
         )
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if n == 0 or len(faces) == 0:
-        return _mesh(vertices.copy(), faces.copy())
-    if method == "loop":
-        vertices, faces = trimesh.remesh.subdivide_loop(vertices, faces, iterations=n)
-    else:
-        for _ in range(n):
-            vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    vertices = np.array(mesh.vertices, dtype=np.float64)
+    faces = np.array(mesh.faces, dtype=np.int64)
+    if len(faces) * 4**n > 50_000_000:
+        raise ValueError(
+            f"subdivide: {levels} levels would make {len(faces) * 4**n:,} faces; use fewer levels"
+        )
+    for _ in range(n if len(faces) else 0):
+        vertices, faces = _subdivide_once(vertices, faces, loop=method == "loop")
     return _mesh(vertices, faces)
 
 

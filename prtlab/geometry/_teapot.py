@@ -11,6 +11,8 @@ Coordinates are the original z-up ones; the tessellation turns them to +Y up.
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 __all__: list[str] = []
@@ -379,24 +381,16 @@ def teapot_control_points(bottom: bool = True, fit_lid: bool = True) -> np.ndarr
 
 def _weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float):
     """Merge vertices closer than ``tolerance``; keep first occurrences in order."""
+    n = len(vertices)
     pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray")
-    parent = np.arange(len(vertices))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in pairs:
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)  # the earliest vertex represents the group
-    root = np.array([find(i) for i in range(len(vertices))])
-    keep = np.flatnonzero(root == np.arange(len(vertices)))
-    new_index = np.full(len(vertices), -1)
-    new_index[keep] = np.arange(len(keep))
-    faces = new_index[root[faces]]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    first = np.full(label.max() + 1, n)
+    np.minimum.at(first, label, np.arange(n))  # the earliest vertex represents its group
+    keep = np.zeros(n, dtype=bool)
+    keep[first] = True
+    new_index = np.cumsum(keep) - 1
+    faces = new_index[first[label]][faces]
     degenerate = (
         (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
     )

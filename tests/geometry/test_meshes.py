@@ -167,9 +167,9 @@ def test_teapot_tessellation(n):
 def test_teapot_seams_are_welded_and_variants():
     teapot = builtin_mesh("teapot", resolution=6)
     # no two vertices coincide after welding
-    dist, _ = trimesh.proximity.ProximityQuery(teapot).vertex(teapot.vertices + 0.0)
-    assert len(np.unique(np.round(teapot.vertices, 9), axis=0)) == len(teapot.vertices)
-    assert np.all(dist == 0.0)
+    from scipy.spatial import cKDTree
+
+    assert len(cKDTree(teapot.vertices).query_pairs(1e-6)) == 0
     bottomless = builtin_mesh("teapot", resolution=6, bottom=False)
     assert len(bottomless.faces) < len(teapot.faces)
     narrow_lid = builtin_mesh("teapot", resolution=6, fit_lid=False)
@@ -338,6 +338,14 @@ def test_subdivide_counts_and_methods():
     assert (len(mid.vertices), len(mid.faces)) == (42 + 120 + 480, 1280)
     np.testing.assert_array_equal(mid.vertices[:42], mesh.vertices)  # coarse vertices first, unmoved
     assert mid.is_watertight and mid.volume > 0
+    # children of face f are f, F + f, 2F + f, 3F + f, with the parent's orientation
+    F = len(mesh.faces)
+    one = subdivide(mesh, levels=1, method="midpoint")
+    for k in range(4):
+        children = one.triangles_center[k * F : (k + 1) * F]
+        inside = trimesh.triangles.points_to_barycentric(mesh.triangles, children)
+        assert np.all(inside > 0.0)  # each child lies inside its parent
+        np.testing.assert_allclose(one.face_normals[k * F : (k + 1) * F], mesh.face_normals, atol=1e-12)
     copy = subdivide(mesh, levels=0)
     np.testing.assert_array_equal(copy.vertices, mesh.vertices)
     assert copy is not mesh
@@ -347,6 +355,36 @@ def test_subdivide_counts_and_methods():
         subdivide(mesh, levels=-1)
     with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
         subdivide(mesh.vertices)
+
+
+@pytest.mark.parametrize("name", ["icosphere", "torus", "bunny"])
+def test_loop_subdivision_matches_trimesh_on_closed_meshes(name):
+    from scipy.spatial import cKDTree
+
+    mesh = builtin_mesh(name)
+    ours = subdivide(mesh, levels=1, method="loop")
+    vertices, faces = trimesh.remesh.subdivide_loop(mesh.vertices, mesh.faces, iterations=1)
+    assert len(ours.vertices) == len(vertices) and len(ours.faces) == len(faces)
+    distance, _ = cKDTree(vertices).query(ours.vertices)
+    assert distance.max() < 1e-12
+    np.testing.assert_allclose(ours.vertices[: len(mesh.vertices)], vertices[: len(mesh.vertices)], atol=1e-12)
+    assert ours.area == pytest.approx(trimesh.Trimesh(vertices, faces).area, rel=1e-12)
+
+
+def test_loop_subdivision_keeps_open_flat_meshes_flat():
+    plane = builtin_mesh("plane", size=[2, 2], resolution=4)
+    fine = subdivide(plane, levels=2)
+    assert len(fine.vertices) == 17 * 17
+    assert np.all(fine.vertices[:, 1] == 0.0)
+    assert fine.is_winding_consistent
+    np.testing.assert_allclose(fine.face_normals[:, 1], 1.0)
+    # the boundary x = -1 stays straight; its corners are rounded (B-spline rule)
+    old = fine.vertices[: len(plane.vertices)]
+    edge = (plane.vertices[:, 0] == -1.0) & (np.abs(plane.vertices[:, 2]) < 1.0)
+    corner = (plane.vertices[:, 0] == -1.0) & (np.abs(plane.vertices[:, 2]) == 1.0)
+    np.testing.assert_array_equal(old[edge, 0], -1.0)
+    assert np.all(old[corner, 0] > -1.0)
+    assert np.all(np.abs(fine.vertices[:, [0, 2]]) <= 1.0)
 
 
 def test_normalize_mesh():
