@@ -99,9 +99,10 @@ def _int_pair(name: str, value: Any, *, minimum: int, context: str = "") -> tupl
 
 
 def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
+    """A Trimesh owning fresh copies of the arrays, vertex order as given."""
     return trimesh.Trimesh(
-        vertices=np.ascontiguousarray(vertices, dtype=np.float64),
-        faces=np.ascontiguousarray(faces, dtype=np.int64),
+        vertices=np.array(vertices, dtype=np.float64, order="C"),
+        faces=np.array(faces, dtype=np.int64, order="C"),
         process=False,
     )
 
@@ -724,9 +725,7 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
         raise FileNotFoundError(f"mesh file not found: {str(p)!r}")
     if p.suffix.lower() == ".obj":
         vertices, faces = _read_obj(p)
-        if len(faces) == 0:
-            raise ValueError(f"mesh file {str(p)!r} holds no triangle mesh (no faces)")
-        return _mesh(vertices, faces)
+        return _checked_mesh(p, vertices, faces)
     try:
         loaded = trimesh.load(p, process=False)
     except Exception as err:  # trimesh raises many kinds for unreadable files
@@ -746,6 +745,21 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     offsets = np.cumsum([0] + [len(v) for v, _ in parts])
     vertices = np.concatenate([v for v, _ in parts]).reshape(-1, 3)
     faces = np.concatenate([f.reshape(-1, 3) + o for (_, f), o in zip(parts, offsets)])
+    return _checked_mesh(p, vertices, faces)
+
+
+def _checked_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
     if len(faces) == 0:
-        raise ValueError(f"mesh file {str(p)!r} holds no triangle mesh (no faces)")
+        raise ValueError(f"mesh file {str(path)!r} holds no triangle mesh (no faces)")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[0])
+        raise ValueError(
+            f"mesh file {str(path)!r}: vertex {bad} has a non-finite coordinate "
+            f"{vertices[bad].tolist()}; fix or remove it"
+        )
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(
+            f"mesh file {str(path)!r}: face indices must lie in [0, {len(vertices) - 1}], "
+            f"found {int(faces.min())}..{int(faces.max())}"
+        )
     return _mesh(vertices, faces)

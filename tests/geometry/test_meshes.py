@@ -120,6 +120,10 @@ def test_plane_is_a_regular_grid_facing_up():
 
 def test_bunny_is_the_1839_vertex_stanford_bunny_normalised():
     bunny = builtin_mesh("bunny")
+    bunny.vertices[0] = 0.0  # a private copy: the cached asset is not touched
+    bunny.faces[0] = [0, 1, 2]
+    bunny = builtin_mesh("bunny")
+    assert bunny.vertices[0, 1] > 0.0
     assert (len(bunny.vertices), len(bunny.faces)) == (1839, 3674)
     assert_normalised(bunny)
     raw = load_mesh(DATA_DIR / "meshes" / "bunny.ply")
@@ -493,6 +497,10 @@ def test_load_mesh_errors(tmp_path):
     empty.write_text("v 0 0 0\nv 1 0 0\n")
     with pytest.raises(ValueError, match="holds no triangle mesh \\(no faces\\)"):
         load_mesh(empty)
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="vertex 1 has a non-finite coordinate"):
+        load_mesh(nan)
     garbage = tmp_path / "garbage.ply"
     garbage.write_text("not a mesh")
     with pytest.raises(ValueError, match="cannot read mesh file .*garbage.ply"):
