@@ -219,9 +219,14 @@ def read_hdr(path) -> np.ndarray:
                 and (int(body[k + 2]) << 8 | int(body[k + 3])) == width
                 and not body[k + 2] & 0x80
             )
-            if not new_rle:  # flat scanline
-                rgbe[row] = body[k : k + 4 * width].reshape(width, 4)
-                k += 4 * width
+            if not new_rle:  # flat scanline, possibly with old-style (1, 1, 1, n) repeat codes
+                flat = body[k : k + 4 * width]
+                flat = flat[: len(flat) // 4 * 4].reshape(-1, 4)
+                if len(flat) == width and not np.any((flat[:, 0] == 1) & (flat[:, 1] == 1) & (flat[:, 2] == 1)):
+                    rgbe[row] = flat
+                    k += 4 * width
+                else:
+                    k = _read_old_rle(body, k, rgbe[row])
                 continue
             k += 4
             for c in range(4):
@@ -245,6 +250,36 @@ def read_hdr(path) -> np.ndarray:
     except (IndexError, ValueError) as err:
         raise ValueError(f"{where}: corrupt or truncated pixel data at row {row} ({err})") from err
     return _rgbe_to_float(rgbe)
+
+
+def _read_old_rle(body: np.ndarray, k: int, line: np.ndarray) -> int:
+    """Decode one scanline of old-style RLE into ``line`` (W, 4); return the next byte offset.
+
+    A pixel ``(1, 1, 1, n)`` repeats the previous pixel ``n << shift`` times,
+    ``shift`` growing by 8 for consecutive repeat codes (Radiance's ``oldreadcolrs``).
+    """
+    width = len(line)
+    x = 0
+    shift = 0
+    while x < width:
+        pixel = body[k : k + 4]
+        if len(pixel) < 4:
+            raise ValueError("truncated scanline")
+        k += 4
+        if pixel[0] == 1 and pixel[1] == 1 and pixel[2] == 1:
+            if x == 0:
+                raise ValueError("repeat code at the start of a scanline")
+            count = int(pixel[3]) << shift
+            if x + count > width:
+                raise ValueError("scanline overrun")
+            line[x : x + count] = line[x - 1]
+            x += count
+            shift += 8
+        else:
+            line[x] = pixel
+            x += 1
+            shift = 0
+    return k
 
 
 def write_hdr(path, image, rle: bool = True) -> Path:

@@ -255,6 +255,20 @@ def test_hdr_round_trip(tmp_path, rng, rle):
     np.testing.assert_array_equal(read_envmap(path), back)
 
 
+def test_hdr_old_style_run_length(tmp_path):
+    # Radiance's old RLE: pixel (1, 1, 1, n) repeats the previous pixel n times
+    a, b = [128, 64, 32, 129], [200, 100, 50, 130]  # 1.0, 0.5, 0.25 and 3.125, 1.5625, 0.78125
+    row = bytes(a + [1, 1, 1, 3] + b + b)  # a a a a b b: 6 pixels
+    header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 2 +X 6\n"
+    (tmp_path / "old.hdr").write_bytes(header + row + row)
+    image = read_hdr(tmp_path / "old.hdr")
+    expected = np.array([[1.0, 0.5, 0.25]] * 4 + [[3.125, 1.5625, 0.78125]] * 2)
+    np.testing.assert_array_equal(image, np.stack([expected, expected]))
+    (tmp_path / "bad.hdr").write_bytes(header + bytes([1, 1, 1, 3]) + row)
+    with pytest.raises(ValueError, match="repeat code at the start of a scanline"):
+        read_hdr(tmp_path / "bad.hdr")
+
+
 def test_hdr_rle_is_smaller_for_runs(tmp_path):
     image = np.ones((4, 64, 3))
     assert write_hdr(tmp_path / "a.hdr", image).stat().st_size < write_hdr(tmp_path / "b.hdr", image, rle=False).stat().st_size
