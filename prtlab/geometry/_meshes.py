@@ -754,7 +754,7 @@ def _checked_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> trimes
     if not np.all(np.isfinite(vertices)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[0])
         raise ValueError(
-            f"mesh file {str(path)!r}: vertex {bad} has a non-finite coordinate "
+            f"mesh has NaN or inf vertex coordinates: vertex {bad} of {str(path)!r} is "
             f"{vertices[bad].tolist()}; fix or remove it"
         )
     if faces.min() < 0 or faces.max() >= len(vertices):

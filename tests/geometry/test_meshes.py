@@ -499,7 +499,7 @@ def test_load_mesh_errors(tmp_path):
         load_mesh(empty)
     nan = tmp_path / "nan.obj"
     nan.write_text("v 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n")
-    with pytest.raises(ValueError, match="vertex 1 has a non-finite coordinate"):
+    with pytest.raises(ValueError, match=r"mesh has NaN or inf vertex coordinates: vertex 1 of .*nan.obj' is \[1.0, nan, 0.0\]"):
         load_mesh(nan)
     garbage = tmp_path / "garbage.ply"
     garbage.write_text("not a mesh")
