@@ -302,7 +302,7 @@ def _max_depth(bounces: int, from_camera: bool) -> int:
     return int(bounces) + (2 if from_camera else 1)
 
 
-def to_mitsuba(scene, *, bounces: int | None = None, smooth_normals: bool = False, sensor: bool = True,
+def to_mitsuba(scene, *, bounces: int | None = None, smooth_normals: bool = True, sensor: bool = True,
                spp: int = 16, variant: str | None = None) -> dict:
     """Translate a prtlab scene into a Mitsuba 3 ``load_dict`` description.
 
@@ -314,7 +314,8 @@ def to_mitsuba(scene, *, bounces: int | None = None, smooth_normals: bool = Fals
         (``max_depth = bounces + 2``); None leaves Mitsuba's default (unbounded).
     smooth_normals : bool
         Give the Mitsuba meshes the scene's vertex normals as shading normals
-        (default: flat triangles, the geometric normal).
+        (barycentric interpolation, as prtlab's own estimators do at path
+        vertices; default). False: flat triangles, the geometric normal.
     sensor : bool
         Include a perspective sensor matching ``scene.camera``.
     spp : int
