@@ -251,3 +251,17 @@ def test_chunk_count_is_validated(cache):
 def test_mismatched_chunks_are_rejected(cache):
     with pytest.raises(ValueError, match="they must match"):
         cache.get_or_compute_chunks(cache_key("mm"), 2, lambda i: {"a": np.ones(1)} if i == 0 else {"b": np.ones(1)})
+
+
+def test_chunk_result_must_be_a_dict(cache):
+    with pytest.raises(TypeError, match="chunk result must be a dict of arrays"):
+        cache.get_or_compute_chunks(cache_key("d"), 2, lambda i: [i])
+
+
+def test_map_fn_that_skips_chunks_is_an_error(cache):
+    def lazy_map(fn, indices):
+        i = indices[0]
+        yield i, fn(i)
+
+    with pytest.raises(RuntimeError, match=r"chunks \[1, 2\] of 'data' are missing after computing them"):
+        cache.get_or_compute_chunks(cache_key("skip"), 3, _chunk, map_fn=lazy_map)

@@ -355,3 +355,19 @@ def test_resampling_errors():
         equirect_to_cubemap(np.zeros((4, 8, 3)), 0)
     with pytest.raises(ValueError, match=r"image must be an \(H, W, 3\) RGB image"):
         equirect_to_cubemap(np.zeros((4, 8)), 4)
+
+
+def test_exr_without_colour_channels(tmp_path):
+    import OpenEXR
+
+    z = np.zeros((2, 3), dtype=np.float32)
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"Z": z}).write(
+        str(tmp_path / "z.exr")
+    )
+    with pytest.raises(ValueError, match=r"has channels \['Z'\]; need R, G, B \(or Y\)"):
+        read_exr(tmp_path / "z.exr")
+
+
+def test_image_type_errors(tmp_path):
+    with pytest.raises(TypeError, match="image must be a real array"):
+        write_exr(tmp_path / "x.exr", np.full((2, 2, 3), "a"))

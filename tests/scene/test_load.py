@@ -352,3 +352,34 @@ def test_validation_happens_before_any_mesh_is_built(monkeypatch):
     monkeypatch.setattr(geometry, "builtin_mesh", fail)
     with pytest.raises(SceneError, match=r"camera\.fov_deg"):
         Scene.from_dict(with_change("camera.fov_deg", -1))
+
+
+def test_more_structure_messages():
+    with pytest.raises(SceneError, match=r"objects\[0\]: keys must be strings, got 1"):
+        Scene.from_dict({"objects": [{1: "a", "name": "a", "mesh": {"builtin": "plane"}}]})
+    with pytest.raises(SceneError, match=r"objects\[0\]\.name: expected a non-empty string, got nothing \(null\)"):
+        Scene.from_dict(with_change("objects.0.name", None))
+    with pytest.raises(SceneError, match=r"objects\[0\]\.name: expected a non-empty string, got int 3"):
+        Scene.from_dict(with_change("objects.0.name", 3))
+
+
+def test_mesh_checks_on_what_the_builders_return(monkeypatch):
+    import prtlab.geometry as geometry
+
+    monkeypatch.setattr(geometry, "builtin_mesh", lambda name, **p: trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False))
+    with pytest.raises(SceneError, match=r"objects\[0\]\.mesh: mesh has no faces"):
+        Scene.from_dict(base_dict())
+    box = trimesh.creation.box()
+    monkeypatch.setattr(
+        geometry, "builtin_mesh", lambda name, **p: trimesh.Trimesh(box.vertices, np.asarray(box.faces) + 5, process=False)
+    )
+    with pytest.raises(SceneError, match=r"objects\[0\]\.mesh: mesh faces index vertices outside 0\.\.7"):
+        Scene.from_dict(base_dict())
+
+
+def test_environment_file_with_negative_radiance(tmp_path):
+    write_exr(tmp_path / "neg.exr", -np.ones((4, 8, 3)))
+    d = base_dict()
+    d["lights"][0] = {"type": "environment", "file": "neg.exr"}
+    with pytest.raises(SceneError, match=r"lights\[0\]\.file: environment map has NaN, inf or negative radiance"):
+        Scene.from_dict(d, base_dir=tmp_path)
