@@ -1,8 +1,9 @@
 """The YAML scene format: loading, validation and writing (``../shared/DESIGN.md``, "Scene files").
 
 Everything is checked before any mesh is built or image read: first the whole
-dict (keys, numbers, colours, file existence), then the meshes (faces,
-degenerate triangles), then the environment images. Every failure is a
+dict (keys, numbers, colours, file existence), then the environment images
+(readable, finite, non-negative), then the meshes (faces, degenerate
+triangles). Every failure is a
 :class:`SceneError` naming the file and the key path.
 """
 
@@ -181,10 +182,10 @@ def scene_from_dict(d: Any, base_dir=None, source: str | None = None, default_na
 
         animation = check_animation(v, d["animation"], "animation", [p["name"] for p in object_plans], light_plans)
 
-    # ---- phase 2: meshes
-    objects = [_build_object(v, plan, base_dir) for plan in object_plans]
-    # ---- phase 3: lights (environment images)
+    # ---- phase 2: lights (reading environment images is cheaper than building meshes)
     lights = [_build_light(v, plan, base_dir) for plan in light_plans]
+    # ---- phase 3: meshes
+    objects = [_build_object(v, plan, base_dir) for plan in object_plans]
     return Scene(objects=objects, lights=lights, camera=camera, animation=animation, base_dir=base_dir, name=name)
 
 
