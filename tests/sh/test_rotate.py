@@ -149,6 +149,15 @@ def test_large_batch_matches_dense(rng):
     np.testing.assert_allclose(rotate(c, R), c @ rotation_matrix(R, 4).T, atol=TOL)
 
 
+def test_tiles_with_shared_and_mixed_rotations(rng):
+    # The kernel works in tiles of 64 vectors: whole tiles sharing a rotation, and mixed tiles.
+    a, b = random_rotation(rng), random_rotation(rng)
+    Rs = np.stack([a] * 130 + [b] * 70 + [random_rotation(rng) for _ in range(3)])
+    c = rng.normal(size=(Rs.shape[0], 25, 2))
+    expected = np.einsum("kij,kjc->kic", rotation_matrix(Rs, 5), c)
+    np.testing.assert_allclose(rotate(c, Rs), expected, atol=TOL)
+
+
 def test_empty_batches(rng):
     R = random_rotation(rng)
     assert rotate(np.zeros((0, 9)), R).shape == (0, 9)

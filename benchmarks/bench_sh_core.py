@@ -1,0 +1,75 @@
+"""Benchmarks of the SH core: basis evaluation (peer: sphericart) and batched rotation (peer: dense einsum)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from prtlab.bench import case
+from prtlab.sh import basis, rotate, rotation_matrix
+
+
+def _directions(n: int) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _basis_flops(order: int) -> int:
+    """Estimated flops per direction of the fast tier.
+
+    Normalisation ~10; per (l, m >= 0) pair ~6 (recurrence step 4, two output
+    products); per m ~6 (complex product for (x + i y)^m). The hand-written
+    bands l <= 3 cost less than this recurrence count, so it is an upper estimate.
+    """
+    return 10 + 3 * order * (order + 1) + 6 * order
+
+
+def _basis_case(order: int, quick: bool) -> dict:
+    n = 100_000 if quick else 1_000_000
+    dirs = _directions(n)
+    peer = None
+    try:
+        import sphericart
+
+        # sphericart 2.x: SphericalHarmonics(l_max) is the normalised real SH (same basis
+        # and order as prtlab); it runs on all cores with OpenMP, as our kernel does with numba.
+        calc = sphericart.SphericalHarmonics(order - 1)
+        peer = ("sphericart.SphericalHarmonics", lambda: calc.compute(dirs))
+    except ImportError:  # pragma: no cover - sphericart is a test extra
+        pass
+    return {
+        "run": lambda: basis(dirs, order),
+        "gflop": n * _basis_flops(order) / 1e9,
+        "items": n,
+        "peer": peer,
+    }
+
+
+@case("sh.basis.order4.1M")
+def basis_order4(quick: bool) -> dict:
+    return _basis_case(4, quick)
+
+
+@case("sh.basis.order8.1M")
+def basis_order8(quick: bool) -> dict:
+    return _basis_case(8, quick)
+
+
+@case("sh.rotate.order4.100k")
+def rotate_order4(quick: bool) -> dict:
+    order = 4
+    n = 100_000
+    rng = np.random.default_rng(2)
+    coeffs = rng.normal(size=(n, order * order))
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    R = q * np.sign(np.diag(r))
+    if np.linalg.det(R) < 0:
+        R[:, 0] = -R[:, 0]
+    dense = rotation_matrix(R, order)
+    block_macs = sum((2 * l + 1) ** 2 for l in range(order))
+    return {
+        "run": lambda: rotate(coeffs, R),
+        "gflop": 2 * n * block_macs / 1e9,
+        "items": n,
+        "peer": ("numpy.einsum dense (n*n, n*n)", lambda: np.einsum("ij,nj->ni", dense, coeffs)),
+    }
