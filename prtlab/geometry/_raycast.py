@@ -44,6 +44,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import numba
 import numpy as np
 
 __all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_CHUNK", "offset_origins"]
@@ -87,26 +88,101 @@ class RayHits:
     point: np.ndarray
 
 
-def _as_rays(origins, dirs, name_o="origins", name_d="dirs"):
+def _as_rays(origins, dirs, normals=None):
+    """Validate and broadcast rays; returns flat float64 views and the batch shape."""
     origins = np.asarray(origins, dtype=np.float64)
     dirs = np.asarray(dirs, dtype=np.float64)
-    for name, arr in ((name_o, origins), (name_d, dirs)):
+    for name, arr in (("origins", origins), ("dirs", dirs)):
         if arr.ndim == 0 or arr.shape[-1] != 3:
             raise ValueError(f"{name} must be a (..., 3) array, got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} contains NaN or inf; pass finite {name}")
     try:
         shape = np.broadcast_shapes(origins.shape, dirs.shape)
     except ValueError:
         raise ValueError(
             f"origins {origins.shape} and dirs {dirs.shape} do not broadcast; give both as (..., 3)"
         ) from None
-    origins = np.broadcast_to(origins, shape).reshape(-1, 3)
-    dirs = np.broadcast_to(dirs, shape).reshape(-1, 3)
-    norm = np.linalg.norm(dirs, axis=1)
-    if np.any(norm == 0.0):
-        raise ValueError("dirs contains zero vectors; every ray needs a nonzero direction")
-    return origins, dirs / norm[:, None], shape[:-1]
+    batch = shape[:-1]
+    flat = lambda a: np.ascontiguousarray(np.broadcast_to(a, shape).reshape(-1, 3))  # noqa: E731
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)
+        if normals.ndim == 0 or normals.shape[-1] != 3:
+            raise ValueError(f"normals must be a (..., 3) array, got shape {normals.shape}")
+        try:
+            normals = np.broadcast_to(normals, shape)
+        except ValueError:
+            raise ValueError(f"normals {normals.shape} do not broadcast to the rays' shape {shape}") from None
+        normals = flat(normals)
+    return flat(origins), flat(dirs), normals, batch
+
+
+@numba.njit(cache=True, parallel=True)
+def _stage_rays(origins, dirs, normals, epsilon, o32, d32):
+    """Unit float32 directions and (offset) float32 origins; returns (#non-finite, #zero dirs)."""
+    n = origins.shape[0]
+    bad = np.zeros(n, dtype=np.int64)
+    has_normals = normals.shape[0] == n
+    for i in numba.prange(n):
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        length = np.sqrt(dx * dx + dy * dy + dz * dz)
+        finite = np.isfinite(length)
+        for k in range(3):
+            finite = finite and np.isfinite(origins[i, k])
+        if not finite:
+            bad[i] = 1
+            continue
+        if length == 0.0:
+            bad[i] = 2
+            continue
+        dx /= length
+        dy /= length
+        dz /= length
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        if has_normals:
+            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+            side = epsilon if nx * dx + ny * dy + nz * dz >= 0.0 else -epsilon
+            ox += side * nx
+            oy += side * ny
+            oz += side * nz
+        o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
+        d32[i, 0], d32[i, 1], d32[i, 2] = dx, dy, dz
+    n_nonfinite = 0
+    n_zero = 0
+    for i in range(n):
+        if bad[i] == 1:
+            n_nonfinite += 1
+        elif bad[i] == 2:
+            n_zero += 1
+    return n_nonfinite, n_zero
+
+
+@numba.njit(cache=True)
+def _collect_hits(g32, p32, u32, v32, t32, geom, prim, uv, dist):
+    """Embree's per-chunk float32 / int32 output into the float64 / int64 result (misses cleaned)."""
+    for i in range(g32.shape[0]):
+        if g32[i] >= 0:
+            geom[i] = g32[i]
+            prim[i] = p32[i]
+            uv[i, 0] = u32[i]
+            uv[i, 1] = v32[i]
+            dist[i] = t32[i]
+
+
+@numba.njit(cache=True, parallel=True)
+def _resolve_hits(geom, prim, u, v, face_offset, faces, vertices, face_normals, point, normal):
+    """Hit points from barycentrics on the float64 triangles, and their unit face normals."""
+    for i in numba.prange(geom.shape[0]):
+        g = geom[i]
+        if g < 0:
+            for k in range(3):
+                point[i, k] = np.nan
+                normal[i, k] = 0.0
+            continue
+        f = face_offset[g] + prim[i]
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        w = 1.0 - u[i] - v[i]
+        for k in range(3):
+            point[i, k] = w * vertices[a, k] + u[i] * vertices[b, k] + v[i] * vertices[c, k]
+            normal[i, k] = face_normals[f, k]
 
 
 def offset_origins(points, normals, dirs, epsilon: float) -> np.ndarray:
@@ -270,6 +346,13 @@ class RayCaster:
                 tri = np.zeros((1, 3, 3), dtype=np.float32)
                 mesh_construction.TriangleMesh(scene, tri)
         self._bounds = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((2, 3))
+        vert_offset = np.cumsum([0] + [len(w) for w in self._world_vertices])
+        self._face_offset = np.cumsum([0] + [len(f) for f in self._faces]).astype(np.int64)
+        self._all_vertices = np.concatenate(self._world_vertices + [np.zeros((0, 3))])
+        self._all_faces = np.concatenate(
+            [f + off for f, off in zip(self._faces, vert_offset[:-1])] + [np.zeros((0, 3), dtype=np.int64)]
+        )
+        self._all_face_normals = np.concatenate(self._face_normals + [np.zeros((0, 3))])
         self._scene = scene
         self.n_builds += 1
 
@@ -336,19 +419,17 @@ class RayCaster:
     # --------------------------------------------------------------- queries
 
     def _prepare(self, origins, dirs, normals):
-        o, d, batch = _as_rays(origins, dirs)
-        if normals is not None:
-            n = np.asarray(normals, dtype=np.float64)
-            if n.ndim == 0 or n.shape[-1] != 3:
-                raise ValueError(f"normals must be a (..., 3) array, got shape {n.shape}")
-            try:
-                n = np.broadcast_to(n, batch + (3,)).reshape(-1, 3)
-            except ValueError:
-                raise ValueError(
-                    f"normals {n.shape} do not broadcast to the rays' shape {batch + (3,)}"
-                ) from None
-            o = offset_origins(o, n, d, self.epsilon)
-        return o, d, batch
+        o, d, n, batch = _as_rays(origins, dirs, normals)
+        o32 = np.empty(o.shape, dtype=np.float32)
+        d32 = np.empty(d.shape, dtype=np.float32)
+        nonfinite, zero = _stage_rays(o, d, np.zeros((0, 3)) if n is None else n, self.epsilon, o32, d32)
+        if nonfinite:
+            raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
+        if zero:
+            raise ValueError("dirs contains zero vectors; every ray needs a nonzero direction")
+        if n is not None and not np.all(np.isfinite(n)):
+            raise ValueError("normals contain NaN or inf; pass finite normals")
+        return o32, d32, batch
 
     @staticmethod
     def _tmax(tmax, batch, n):
@@ -388,31 +469,14 @@ class RayCaster:
         dist = np.full(n, np.inf)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            out = self._scene.run(
-                np.ascontiguousarray(o[s:e], dtype=np.float32),
-                np.ascontiguousarray(d[s:e], dtype=np.float32),
-                dists=np.ascontiguousarray(t[s:e], dtype=np.float32).copy(),
-                output=1,
-            )
-            g = out["geomID"].astype(np.int64)
-            hit = g >= 0
-            geom[s:e] = g
-            prim[s:e] = np.where(hit, out["primID"], -1)
-            uv[s:e, 0] = np.where(hit, out["u"], 0.0)
-            uv[s:e, 1] = np.where(hit, out["v"], 0.0)
-            dist[s:e] = np.where(hit, out["tfar"], np.inf)
+            out = self._scene.run(o[s:e], d[s:e], dists=np.asarray(t[s:e], dtype=np.float32).copy(), output=1)
+            _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
+                          geom[s:e], prim[s:e], uv[s:e], dist[s:e])
         hit = geom >= 0
-        normal = np.zeros((n, 3))
-        point = np.full((n, 3), np.nan)
-        for k in range(self.n_objects):
-            sel = np.flatnonzero(geom == k)
-            if not len(sel):
-                continue
-            f = self._faces[k][prim[sel]]
-            w = self._world_vertices[k]
-            u, v = uv[sel, 0:1], uv[sel, 1:2]
-            point[sel] = (1.0 - u - v) * w[f[:, 0]] + u * w[f[:, 1]] + v * w[f[:, 2]]
-            normal[sel] = self._face_normals[k][prim[sel]]
+        normal = np.empty((n, 3))
+        point = np.empty((n, 3))
+        _resolve_hits(geom, prim, uv[:, 0], uv[:, 1], self._face_offset, self._all_faces,
+                      self._all_vertices, self._all_face_normals, point, normal)
         return RayHits(
             hit=hit.reshape(batch),
             object=geom.reshape(batch),
@@ -446,16 +510,11 @@ class RayCaster:
         result = np.zeros(n, dtype=bool)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = np.ascontiguousarray(t[s:e], dtype=np.float32).copy()
+            ts = np.asarray(t[s:e], dtype=np.float32).copy()
             live = ts > 0
             if not np.any(live):
                 continue
             ts[~live] = np.float32(1e-30)
-            ids = self._scene.run(
-                np.ascontiguousarray(o[s:e], dtype=np.float32),
-                np.ascontiguousarray(d[s:e], dtype=np.float32),
-                dists=ts,
-                query="OCCLUDED",
-            )
+            ids = self._scene.run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
             result[s:e] = (ids != -1) & live
         return result.reshape(batch)

@@ -186,7 +186,7 @@ def test_errors():
     caster = RayCaster([trimesh.creation.box()])
     with pytest.raises(ValueError, match=r"origins must be a \(\.\.\., 3\) array"):
         caster.closest_hit(np.zeros((4, 2)), np.zeros((4, 3)))
-    with pytest.raises(ValueError, match="dirs contains NaN"):
+    with pytest.raises(ValueError, match="origins or dirs contain NaN"):
         caster.closest_hit(np.zeros(3), [np.nan, 0.0, 1.0])
     with pytest.raises(ValueError, match="zero vectors"):
         caster.occluded(np.zeros(3), np.zeros(3))
