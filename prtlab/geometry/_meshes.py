@@ -129,11 +129,33 @@ def _plane(size=(1.0, 1.0), resolution=(1, 1)) -> trimesh.Trimesh:
 
 
 def _box(size=(1.0, 1.0, 1.0), subdivisions=0) -> trimesh.Trimesh:
+    """Axis-aligned box centred at the origin; each side a (2^k x 2^k)-cell grid.
+
+    The six sides do not share vertices: every vertex has the normal of its
+    side, so per-vertex shading keeps the box's sharp edges (shared corners
+    would get the averaged, diagonal normal). The box is closed geometrically
+    (coincident edge vertices), not topologically.
+    """
     extents = _vector("size", size, 3, positive=True, context="builtin 'box'")
     levels = _int("subdivisions", subdivisions, minimum=0, context="builtin 'box'")
-    mesh = trimesh.creation.box(extents=extents)
-    mesh = _mesh(mesh.vertices, mesh.faces)
-    return subdivide(mesh, levels, method="midpoint") if levels else mesh
+    n = 2**levels
+    half = 0.5 * np.asarray(extents)
+    grid = np.linspace(-1.0, 1.0, n + 1)
+    gs, gt = np.meshgrid(grid, grid, indexing="ij")
+    i, k = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + k).ravel()
+    quads = np.concatenate([np.stack([a, a + n + 1, a + 1], 1), np.stack([a + 1, a + n + 1, a + n + 2], 1)])
+    vertices, faces = [], []
+    for axis in range(3):
+        s_axis, t_axis = (axis + 1) % 3, (axis + 2) % 3  # (s, t, axis) is a right-handed frame
+        for sign in (1.0, -1.0):
+            v = np.zeros(((n + 1) ** 2, 3))
+            v[:, axis] = sign
+            v[:, s_axis] = gs.ravel()
+            v[:, t_axis] = gt.ravel() * sign  # mirror t on the negative side to keep normals outward
+            faces.append(quads + sum(len(p) for p in vertices))
+            vertices.append(v * half)
+    return _mesh(np.concatenate(vertices), np.concatenate(faces))
 
 
 def _icosphere(radius=1.0, subdivisions=3) -> trimesh.Trimesh:
@@ -168,11 +190,26 @@ def _torus(major_radius=1.0, minor_radius=0.25, sections=(32, 16)) -> trimesh.Tr
 
 
 def _cylinder(radius=0.5, height=1.0, sections=32) -> trimesh.Trimesh:
+    """Cylinder about +Y, centred at the origin; side and caps do not share vertices.
+
+    Split rims keep the sharp edge under per-vertex shading: side vertices
+    carry radial normals, cap vertices carry +-Y (as the box's sides do).
+    """
     r = _finite_float("radius", radius, positive=True, context="builtin 'cylinder'")
     h = _finite_float("height", height, positive=True, context="builtin 'cylinder'")
     n = _int("sections", sections, minimum=3, context="builtin 'cylinder'")
-    mesh = trimesh.creation.cylinder(radius=r, height=h, sections=n)
-    return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
+    angle = 2.0 * np.pi * np.arange(n) / n
+    ring = np.stack([r * np.sin(angle), np.zeros(n), r * np.cos(angle)], axis=1)
+    low, high = ring + [0.0, -0.5 * h, 0.0], ring + [0.0, 0.5 * h, 0.0]
+    j, j1 = np.arange(n), (np.arange(n) + 1) % n
+    # side: low ring 0..n-1, high ring n..2n-1; counter-clockwise seen from outside
+    side = np.concatenate([np.stack([j, j1, n + j], 1), np.stack([j1, n + j1, n + j], 1)])
+    # caps: centre then rim, fans oriented along -Y (bottom) and +Y (top)
+    base = 2 * n
+    bottom = np.stack([np.full(n, base), base + 1 + j1, base + 1 + j], 1)
+    top = np.stack([np.full(n, base + n + 1), base + n + 2 + j, base + n + 2 + j1], 1)
+    vertices = np.concatenate([low, high, [[0.0, -0.5 * h, 0.0]], low, [[0.0, 0.5 * h, 0.0]], high])
+    return _mesh(vertices, np.concatenate([side, bottom, top]))
 
 
 # --------------------------------------------------------------------------- assets

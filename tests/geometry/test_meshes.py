@@ -68,9 +68,20 @@ def test_builtin_builds_with_defaults(name):
 )
 def test_closed_builtins_are_watertight_with_outward_normals(name, params):
     mesh = builtin_mesh(name, **params)
-    assert mesh.is_watertight
+    welded = mesh.copy()
+    welded.merge_vertices()  # box and cylinder split vertices at sharp edges on purpose
+    assert welded.is_watertight
     assert mesh.is_winding_consistent
     assert mesh.volume > 0.0  # positive signed volume: normals point out
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder"])
+def test_sharp_edges_keep_flat_vertex_normals(name):
+    # sides do not share vertices, so every vertex normal is a face normal of its own side
+    mesh = builtin_mesh(name)
+    normals = mesh.vertex_normals
+    flat = np.isclose(np.abs(normals[:, 1]), 1.0) | np.isclose(normals[:, 1], 0.0)
+    assert flat.all()
 
 
 def test_builtin_params_shape_the_primitives():
@@ -79,7 +90,7 @@ def test_builtin_params_shape_the_primitives():
     assert box.volume == pytest.approx(6.0)
 
     fine = builtin_mesh("box", size=[1, 2, 3], subdivisions=1)
-    assert (len(fine.vertices), len(fine.faces)) == (8 + 18, 4 * 12)
+    assert (len(fine.vertices), len(fine.faces)) == (6 * 3 * 3, 4 * 12)
     assert fine.volume == pytest.approx(6.0)
 
     for k in range(4):
@@ -483,7 +494,7 @@ def test_load_mesh_concatenates_scenes(tmp_path):
     path = tmp_path / "scene.glb"
     scene.export(path)
     mesh = load_mesh(path)
-    assert (len(mesh.vertices), len(mesh.faces)) == (8 + 42, 12 + 80)
+    assert (len(mesh.vertices), len(mesh.faces)) == (24 + 42, 12 + 80)
 
 
 def test_load_mesh_errors(tmp_path):
