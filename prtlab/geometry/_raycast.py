@@ -102,7 +102,8 @@ def _as_rays(origins, dirs, normals=None):
             f"origins {origins.shape} and dirs {dirs.shape} do not broadcast; give both as (..., 3)"
         ) from None
     batch = shape[:-1]
-    flat = lambda a: np.ascontiguousarray(np.broadcast_to(a, shape).reshape(-1, 3))  # noqa: E731
+    # writeable C-contiguous float64 copies: one numba signature for every call
+    flat = lambda a: np.require(np.broadcast_to(a, shape).reshape(-1, 3), np.float64, ["C", "W"])  # noqa: E731
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)
         if normals.ndim == 0 or normals.shape[-1] != 3:
@@ -168,7 +169,7 @@ def _collect_hits(g32, p32, u32, v32, t32, geom, prim, uv, dist):
 
 
 @numba.njit(cache=True, parallel=True)
-def _resolve_hits(geom, prim, u, v, face_offset, faces, vertices, face_normals, point, normal):
+def _resolve_hits(geom, prim, uv, face_offset, faces, vertices, face_normals, point, normal):
     """Hit points from barycentrics on the float64 triangles, and their unit face normals."""
     for i in numba.prange(geom.shape[0]):
         g = geom[i]
@@ -179,9 +180,10 @@ def _resolve_hits(geom, prim, u, v, face_offset, faces, vertices, face_normals, 
             continue
         f = face_offset[g] + prim[i]
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        w = 1.0 - u[i] - v[i]
+        u, v = uv[i, 0], uv[i, 1]
+        w = 1.0 - u - v
         for k in range(3):
-            point[i, k] = w * vertices[a, k] + u[i] * vertices[b, k] + v[i] * vertices[c, k]
+            point[i, k] = w * vertices[a, k] + u * vertices[b, k] + v * vertices[c, k]
             normal[i, k] = face_normals[f, k]
 
 
@@ -475,7 +477,7 @@ class RayCaster:
         hit = geom >= 0
         normal = np.empty((n, 3))
         point = np.empty((n, 3))
-        _resolve_hits(geom, prim, uv[:, 0], uv[:, 1], self._face_offset, self._all_faces,
+        _resolve_hits(geom, prim, uv, self._face_offset, self._all_faces,
                       self._all_vertices, self._all_face_normals, point, normal)
         return RayHits(
             hit=hit.reshape(batch),
