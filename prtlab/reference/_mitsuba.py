@@ -603,8 +603,9 @@ def _trace_scalar(mi, dr, mscene, integrator, points, normals, offset, dirs, em_
     return out
 
 
-def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, chunk_rays: int = 1 << 20,
-                  offset: float | None = None, variant: str | None = None) -> ShadeResult:
+def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_samples: int | None = None,
+                  chunk_rays: int = 1 << 20, offset: float | None = None, variant: str | None = None,
+                  progress: bool = False) -> ShadeResult:
     """Per-vertex outgoing radiance estimated with Mitsuba 3.
 
     Parameters
@@ -616,12 +617,17 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, chun
         Samples per vertex (each: one emitter sample and one BRDF-sampled ray), >= 2.
     seed : int
         Seed of every random number used (numpy and Mitsuba's sampler).
+    n_samples : int, optional
+        Alias of ``spp`` (the name :func:`shade_reference` uses), so that
+        ``prtlab.shade(scene, method=m, n_samples=n)`` works for both references.
     chunk_rays : int
         Rays per Dr.Jit wavefront (memory bound).
     offset : float, optional
         Ray-origin offset along the vertex normal; default ``1e-4`` times the scene diagonal.
     variant : str, optional
         ``"llvm_ad_rgb"`` or ``"scalar_rgb"`` (default: see the module notes).
+    progress : bool
+        Show a progress bar over the chunks.
 
     Returns
     -------
@@ -653,7 +659,9 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, chun
     """
     _check_scene(scene)
     bounces = _check_bounces(bounces)
-    spp = _check_count("spp", spp)
+    if n_samples is not None:
+        spp = n_samples
+    spp = _check_count("spp (n_samples)", spp)
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int, got {seed!r}")
     if int(chunk_rays) < 1:
@@ -675,7 +683,12 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, chun
     sums = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
     sq = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
     per_chunk = max(1, int(chunk_rays) // spp)
-    for chunk, lo in enumerate(range(0, n_vert, per_chunk)):
+    starts = range(0, n_vert, per_chunk)
+    if progress:
+        from tqdm.auto import tqdm
+
+        starts = tqdm(starts, desc=f"mitsuba B={bounces}", unit="chunk")
+    for chunk, lo in enumerate(starts):
         idx = np.arange(lo, min(n_vert, lo + per_chunk))
         m = len(idx)
         rep = lambda a: np.repeat(a[idx], spp, axis=0)  # noqa: E731

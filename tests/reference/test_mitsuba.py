@@ -312,6 +312,17 @@ def test_point_light_on_a_plane(mi_dr):
 
 
 @mitsuba
+def test_prtlab_shade_dispatches_to_mitsuba(mi_dr):
+    import prtlab
+
+    albedo, sky = np.array([0.5, 0.6, 0.8]), np.array([1.0, 2.0, 0.5])
+    scene = _plane_scene(Material(albedo=albedo), [EnvironmentLight(constant=sky)])
+    res = prtlab.shade(scene, method="mitsuba", bounces=0, n_samples=64, seed=1)
+    assert res.info["method"] == "mitsuba" and res.info["spp"] == 64
+    _assert_within_stderr(res.total["floor"], res.stderr["total"]["floor"], albedo * sky)
+
+
+@mitsuba
 def test_indirect_appears_with_bounces_between_facing_planes(mi_dr):
     """Two facing planes under a constant sky: indirect is zero at bounces=0, positive at 1."""
     from prtlab.reference import shade_mitsuba
@@ -374,7 +385,7 @@ def test_errors(mi_dr):
         shade_mitsuba(scene, bounces=-1)
     with pytest.raises(TypeError, match="bounces must be an int"):
         shade_mitsuba(scene, bounces=1.5)
-    with pytest.raises(ValueError, match="spp must be an int >= 2"):
+    with pytest.raises(ValueError, match=r"spp \(n_samples\) must be an int >= 2"):
         shade_mitsuba(scene, spp=1)
     with pytest.raises(TypeError, match="seed must be an int"):
         shade_mitsuba(scene, seed="x")
