@@ -402,3 +402,27 @@ def test_errors(mi_dr):
     nan_scene.objects[0].transform = Transform(np.array([np.nan, 0, 0]))
     with pytest.raises(ValueError, match="NaN or inf"):
         shade_mitsuba(nan_scene)
+
+
+@mitsuba
+def test_render_mitsuba_matches_prtlab_camera_pixel_for_pixel(mi_dr):
+    """An off-centre black ball against a white sky, non-square image: the silhouettes coincide."""
+    from scipy import ndimage
+
+    from prtlab.geometry import builtin_mesh
+    from prtlab.reference import render_mitsuba
+    from prtlab.render import render_image
+    from prtlab.scene import ShadeResult
+
+    ball = SceneObject("ball", builtin_mesh("icosphere", radius=0.5, subdivisions=4), Transform(np.array([-0.7, 0.4, 0.0])),
+                       Material(albedo=np.zeros(3)))
+    camera = Camera(position=np.array([0.0, 0.0, 4.0]), look_at=np.zeros(3), fov_deg=35.0, resolution=(40, 24))
+    scene = Scene(objects=[ball], lights=[EnvironmentLight(constant=np.ones(3))], camera=camera)
+    theirs = render_mitsuba(scene, spp=64, bounces=0)[..., 0]
+    black = ShadeResult(total={"ball": np.zeros((ball.n_vertices, 3))})
+    ours = render_image(scene, black)[..., 0]
+    inside = ndimage.binary_erosion(ours == 0.0)
+    outside = ndimage.binary_erosion(ours == 1.0)
+    assert inside.sum() > 20 and outside.sum() > 500
+    np.testing.assert_allclose(theirs[inside], 0.0, atol=1e-6)
+    np.testing.assert_allclose(theirs[outside], 1.0, atol=1e-5)
