@@ -475,13 +475,11 @@ def _frame(n):
 def _brdf_cos(wi, n, wo, kd, ks, ex):
     """Normalised Phong (ks = 0: Lambert) times max(0, cos) at the vertex; shapes (..., 3)."""
     cos_i = np.einsum("...k,...k->...", wi, n)
-    cos_o = np.einsum("...k,...k->...", wo, n)
     r = 2.0 * cos_i[..., None] * n - wi
     c = np.maximum(np.einsum("...k,...k->...", r, wo), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         lobe = np.where(ks.any(axis=-1), (ex + 2.0) / (2.0 * np.pi) * np.power(c, ex), 0.0)
     f = kd / np.pi + ks * lobe[..., None]
-    del cos_o
     return f * np.maximum(cos_i, 0.0)[..., None]
 
 
@@ -680,8 +678,8 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
     rng = np.random.default_rng(seed)
 
     n_vert = len(pos)
-    sums = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
-    sq = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
+    means = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
+    errors = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
     per_chunk = max(1, int(chunk_rays) // spp)
     starts = range(0, n_vert, per_chunk)
     if progress:
@@ -715,16 +713,15 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
         direct = direct + np.where(ok[:, None], fcos_e * tr["em_weight"] * w_e[:, None], 0.0)
         indirect = thr * tr["indirect"]
         for part, vals in (("direct", direct), ("indirect", indirect), ("total", direct + indirect)):
+            # every sample of a vertex is in this chunk: two-pass mean and standard error
             vals = vals.reshape(m, spp, 3)
-            sums[part][idx] = vals.sum(axis=1)
-            sq[part][idx] = (vals**2).sum(axis=1)
+            means[part][idx] = vals.mean(axis=1)
+            errors[part][idx] = vals.std(axis=1, ddof=1) / np.sqrt(spp)
 
     result = ShadeResult()
     bounds = np.concatenate([[0], np.cumsum(counts)])
     for part in ("direct", "indirect", "total"):
-        mean = sums[part] / spp
-        var = np.maximum(sq[part] / spp - mean**2, 0.0) * spp / (spp - 1)
-        err = np.sqrt(var / spp)
+        mean, err = means[part], errors[part]
         result.stderr[part] = {}
         for i, obj in enumerate(_shaded_objects(scene)):
             getattr(result, part)[obj.name] = mean[bounds[i]:bounds[i + 1]].copy()
