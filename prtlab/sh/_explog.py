@@ -31,14 +31,16 @@ from pathlib import Path
 import numpy as np
 
 from ._eval import _check_order, basis_reference
-from ._gaunt import _gaunt_block, _product_quadrature
-from ._product import _as_coeffs, _check_method, _from_bnc, _layout, _to_bnc
+from ._gaunt import _gaunt_block
+from ._product import _as_coeffs, _check_method, _from_bnc, _layout, _product_bnc, _to_bnc
 from ._product_kernels import _exp_hyb, _exp_ol
+from ._project import quadrature
+from ._zh import zh_rotate
 
 __all__ = ["blocker_log_zh", "blocker_zh", "exp", "log"]
 
 _SQRT4PI = math.sqrt(4.0 * math.pi)
-_EXP_METHODS = ("hyb", "ol", "exact")
+_EXP_METHODS = ("hyb", "ol", "exact", "hyb-reference", "ol-reference")
 
 #: Tabulated blocker radii: ``_N_RADII`` radii ``j * (pi/2) / _N_RADII``, j = 1.._N_RADII (plus 0).
 _N_RADII = 256
@@ -232,21 +234,43 @@ def _newton_log(target, rule_y, rule_w, x0, tol, max_iter):
         if active.size == 0:
             break
         phi = e.sum(axis=1) - np.einsum("ti,ti->t", xa, ta)
+        grad_norm = np.linalg.norm(grad, axis=1)
         hess = np.einsum("tq,qi,qj->tij", e, rule_y, rule_y)
-        step = np.linalg.solve(hess, -grad[..., None])[..., 0]
+        step, solved = _solve_rows(hess, -grad)
         slope = np.einsum("ti,ti->t", grad, step)
         t = np.ones(active.size)
         bad = np.ones(active.size, dtype=bool)
         for _ in range(50):
             xn = xa + t[:, None] * step
-            phin = (np.exp(xn @ rule_y.T) * rule_w).sum(axis=1) - np.einsum("ti,ti->t", xn, ta)
-            bad = ~(phin <= phi + 1e-4 * t * slope)
+            en = np.exp(xn @ rule_y.T) * rule_w
+            phin = en.sum(axis=1) - np.einsum("ti,ti->t", xn, ta)
+            grad_n = np.linalg.norm(en @ rule_y - ta, axis=1)
+            # Armijo on phi; near the solution phi changes at rounding level, so a
+            # step that shrinks the gradient is accepted too
+            bad = ~((phin <= phi + 1e-4 * t * slope) | (grad_n <= (1.0 - 1e-4 * t) * grad_norm)) | ~solved
             if not bad.any():
                 break
             t = np.where(bad, 0.5 * t, t)
         stalled[active[bad]] = True
         x[active[~bad]] = xn[~bad]
     return x, done
+
+
+def _solve_rows(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve ``a[t] x[t] = b[t]`` per row; rows with a singular or non-finite system get ``x = 0`` and False."""
+    try:
+        x = np.linalg.solve(a, b[..., None])[..., 0]
+        ok = np.all(np.isfinite(x), axis=1)
+    except np.linalg.LinAlgError:
+        x = np.zeros_like(b)
+        ok = np.zeros(b.shape[0], dtype=bool)
+        for t in range(b.shape[0]):
+            try:
+                x[t] = np.linalg.solve(a[t], b[t])
+                ok[t] = np.all(np.isfinite(x[t]))
+            except np.linalg.LinAlgError:
+                pass
+    return np.where(ok[:, None], x, 0.0), ok
 
 
 def _blocker_log_solve(theta: np.ndarray, order: int) -> np.ndarray:
@@ -323,9 +347,11 @@ def blocker_log_zh(angular_radius, order: int, *, method: str = "table") -> np.n
     ``B_theta``.) ``|g|`` grows quickly with ``theta`` and the order (order 4:
     0.44 at 20 degrees, 6.4 at 60, 44 at 90).
 
-    The residual reaches ``1e-12 |b_theta|`` except near ``theta = pi/2``
-    at orders >= 4, where the problem is ill-conditioned and we stop at
-    ``<= 1e-6 |b_theta|`` (order 4: ``2e-9``; order 8: ``4e-8``).
+    Newton stops at a residual of ``1e-12 |b_theta|`` or when rounding
+    stalls it: up to 20 degrees the residual is ``<= 1e-12 |b_theta|``, up
+    to 60 degrees ``<= 1e-10 |b_theta|`` (orders <= 6); near ``pi/2`` the
+    problem is ill-conditioned and we accept ``<= 1e-6 |b_theta|`` (order 4:
+    ``2e-9``; order 8: ``4e-8``).
 
     The table is interpolated linearly in ``u = 1 - cos(theta)`` between its
     knots (``g`` is proportional to ``u`` for small blockers); for order 4 this
@@ -362,7 +388,7 @@ def _interpolate_blocker_log(theta: np.ndarray, radii: np.ndarray, table: np.nda
 @functools.lru_cache(maxsize=None)
 def _exact_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
     """Basis at the nodes ``(N, n*n)`` and weights ``(N,)`` of the exact tier's quadrature."""
-    dirs, weights = _product_quadrature(_exact_degree(order))
+    dirs, weights = quadrature(1, degree=_exact_degree(order))
     y = basis_reference(dirs, order)
     y.setflags(write=False)
     return y, np.asarray(weights)
@@ -391,13 +417,6 @@ def _exp_exact_rows(f: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- OL table
 
 
-def _zh_rotate_rows(zh: np.ndarray, axes: np.ndarray) -> np.ndarray:
-    """``sqrt(4 pi / (2l+1)) zh_l Y_lm(axis)``: zh (M, n), axes (M, 3) -> (M, n*n)."""
-    order = zh.shape[1]
-    l = np.repeat(np.arange(order), 2 * np.arange(order) + 1)
-    return np.sqrt(4.0 * np.pi / (2 * l + 1)) * zh[:, l] * basis_reference(axes, order)
-
-
 def _blocker_sums(rng: np.random.Generator, n_sums: int, order: int, max_blockers: int = _MAX_BLOCKERS,
                   radius_range_deg=_RADIUS_RANGE_DEG, blocker_table=None) -> np.ndarray:
     """``(n_sums, n*n)`` log-visibility vectors: sums of 1..max_blockers rotated blocker logs.
@@ -414,7 +433,7 @@ def _blocker_sums(rng: np.random.Generator, n_sums: int, order: int, max_blocker
         zh = blocker_log_zh(radii, order)
     else:
         zh = _interpolate_blocker_log(radii, np.arange(_N_RADII + 1) * (0.5 * np.pi / _N_RADII), blocker_table)
-    logs = _zh_rotate_rows(zh, axes)
+    logs = zh_rotate(zh, axes, method="reference")
     owner = np.repeat(np.arange(n_sums), counts)
     out = np.zeros((n_sums, order * order))
     np.add.at(out, owner, logs)
@@ -508,6 +527,36 @@ def _compute_ol_table(order: int, blocker_table: np.ndarray) -> tuple[float, np.
     return r_max, tab_a, tab_b
 
 
+# --------------------------------------------------------------------------- numpy reference tiers of OL / HYB
+
+
+def _exp_ol_reference(x: np.ndarray, r_max: float, tab_a: np.ndarray, tab_b: np.ndarray) -> np.ndarray:
+    """OL exponential of ``(B, n2, C)`` in plain numpy (the specification of ``_exp_ol``)."""
+    fh = x[:, 1:, :]
+    r = np.sqrt(np.einsum("tic,tic->tc", fh, fh))
+    j, s = _hat_weights(r, r_max, tab_a.shape[0])
+    a = (1.0 - s) * tab_a[j] + s * tab_a[j + 1]
+    b = (1.0 - s) * tab_b[j] + s * tab_b[j + 1]
+    dc = np.exp(x[:, 0, :] / _SQRT4PI)
+    return np.concatenate([(dc * a * _SQRT4PI)[:, None, :], (dc * b)[:, None, :] * fh], axis=1)
+
+
+def _exp_hyb_reference(x: np.ndarray, r_max: float, tab_a: np.ndarray, tab_b: np.ndarray) -> np.ndarray:
+    """HYB exponential of ``(B, n2, C)`` in plain numpy with the dense product (the specification of ``_exp_hyb``)."""
+    order = math.isqrt(x.shape[1])
+    fh = x.copy()
+    fh[:, 0, :] = 0.0
+    r = np.sqrt(np.einsum("tic,tic->tc", fh, fh))
+    with np.errstate(divide="ignore"):
+        k = np.where(r > _HYB_THRESHOLD, np.ceil(np.log2(r / _HYB_THRESHOLD)), 0.0).astype(np.int64)
+    k += r / 2.0**k > _HYB_THRESHOLD  # rounding in log2, as the kernel
+    v = _exp_ol_reference(fh / 2.0 ** k[:, None, :], r_max, tab_a, tab_b)
+    for step in range(int(k.max(initial=0))):
+        w = _product_bnc(v, v, order, "dense")
+        v = np.where((step < k)[:, None, :], w, v)
+    return v * np.exp(x[:, :1, :] / _SQRT4PI)
+
+
 # --------------------------------------------------------------------------- public exp / log
 
 
@@ -518,11 +567,14 @@ def exp(f, method: str = "hyb", *, channels=None) -> np.ndarray:
     ----------
     f : (..., n*n) or (..., n*n, C) float
         Log-space SH function (e.g. a sum of blocker logs).
-    method : {"hyb", "ol", "exact"}
+    method : {"hyb", "ol", "exact", "hyb-reference", "ol-reference"}
         ``"exact"``: projection of ``exp`` of the reconstructed function with a
         product quadrature of degree ``16 + 16 n`` (the reference);
         ``"ol"``: optimal linear approximation (table lookup, numba);
-        ``"hyb"``: scaling and squaring over OL (numba).
+        ``"hyb"``: scaling and squaring over OL (numba);
+        ``"ol-reference"``, ``"hyb-reference"``: the same two in plain numpy
+        with the dense product (the reference tiers the tests hold the
+        kernels to).
     channels : bool, optional
         Whether the last axis is colour (inferred when None; see ``product``).
 
@@ -578,7 +630,10 @@ def exp(f, method: str = "hyb", *, channels=None) -> np.ndarray:
     x = _to_bnc(f, coloured, batch, n_chan)
     if method == "exact":
         rows = np.ascontiguousarray(np.moveaxis(x, 2, 1).reshape(-1, order * order))
-        out = np.moveaxis(_exp_exact_rows(rows).reshape(x.shape[0], n_chan, -1), 1, 2)
+        out = np.moveaxis(_exp_exact_rows(rows).reshape(x.shape[0], n_chan, order * order), 1, 2)
+    elif method.endswith("-reference"):
+        reference = _exp_ol_reference if method == "ol-reference" else _exp_hyb_reference
+        out = reference(x, *_ol_table(order))
     else:
         r_max, tab_a, tab_b = _ol_table(order)
         out = np.empty_like(x)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._eval import _check_order, basis_reference
+from ._project import quadrature
 
 __all__ = ["GauntTensor", "gaunt_tensor"]
 
@@ -22,28 +23,6 @@ __all__ = ["GauntTensor", "gaunt_tensor"]
 #: accidental zeros of the Wigner 3j symbols; quadrature noise is ~1e-17, the
 #: smallest true non-zero real Gaunt coefficient up to order 16 is ~1e-4).
 _ZERO = 1e-12
-
-
-def _product_quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Gauss-Legendre (in z) x uniform-phi rule, exact for polynomials of ``degree`` on S2.
-
-    Returns ``dirs (N, 3)`` and ``weights (N,)`` with ``sum(weights) = 4 pi``.
-    """
-    n_z = degree // 2 + 1  # exact for degree 2 n_z - 1 >= degree in z
-    n_phi = degree + 1  # exact for trigonometric degree <= degree
-    z, wz = np.polynomial.legendre.leggauss(n_z)
-    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
-    s = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    dirs = np.stack(
-        [
-            (s[:, None] * np.cos(phi)[None, :]).ravel(),
-            (s[:, None] * np.sin(phi)[None, :]).ravel(),
-            np.repeat(z, n_phi),
-        ],
-        axis=-1,
-    )
-    weights = np.repeat(wz * (2.0 * np.pi / n_phi), n_phi)
-    return dirs, weights
 
 
 def _band_index(order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -166,21 +145,25 @@ def gaunt_tensor(order: int) -> GauntTensor:
 @functools.lru_cache(maxsize=None)
 def _gaunt_cached(order: int) -> GauntTensor:
     n2 = order * order
-    dirs, weights = _product_quadrature(3 * (order - 1))
+    dirs, weights = quadrature(1, degree=3 * (order - 1))
     y = basis_reference(dirs, order)  # (N, n2)
     yw = y * weights[:, None]
     l, m = _band_index(order)
     ii, jj, kk, vv = [], [], [], []
-    for k in range(n2):
-        # (n2, n2) slice G[:, :, k] by BLAS
-        g_k = (yw * y[:, k : k + 1]).T @ y
-        allowed = _selection_rules(l[:, None], m[:, None], l[None, :], m[None, :], l[k], m[k])
-        keep = allowed & (np.abs(g_k) > _ZERO)
-        i_idx, j_idx = np.nonzero(keep)
+    chunk = max(1, (1 << 22) // (y.shape[0] * n2))  # output slices per GEMM (bounds memory)
+    for k0 in range(0, n2, chunk):
+        k1 = min(n2, k0 + chunk)
+        # G[:, :, k0:k1] as one GEMM: rows (k, i), columns j
+        lhs = (yw[:, None, :] * y[:, k0:k1, None]).reshape(y.shape[0], -1)
+        g_k = (lhs.T @ y).reshape(k1 - k0, n2, n2)
+        kidx = np.arange(k0, k1)[:, None, None]
+        allowed = _selection_rules(l[None, :, None], m[None, :, None], l[None, None, :], m[None, None, :],
+                                   l[kidx], m[kidx])
+        k_idx, i_idx, j_idx = np.nonzero(allowed & (np.abs(g_k) > _ZERO))
         ii.append(i_idx)
         jj.append(j_idx)
-        kk.append(np.full(i_idx.shape, k))
-        vv.append(g_k[i_idx, j_idx])
+        kk.append(k_idx + k0)
+        vv.append(g_k[k_idx, i_idx, j_idx])
     arrays = [np.concatenate(a).astype(np.int64) for a in (ii, jj, kk)]
     value = np.concatenate(vv).astype(np.float64)
     # exact permutation symmetry: every entry takes the value computed for its sorted triple

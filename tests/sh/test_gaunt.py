@@ -11,10 +11,16 @@ from hypothesis import strategies as st
 
 from prtlab.sh import gaunt_tensor
 from prtlab.sh._eval import basis_reference
-from prtlab.sh._gaunt import GauntTensor, _band_index, _product_quadrature, _selection_rules
+from prtlab.sh import quadrature
+from prtlab.sh._gaunt import GauntTensor, _band_index, _selection_rules
 from tests.conftest import FLOAT_TOLERANCE, random_directions
 
 TOL = FLOAT_TOLERANCE[np.float64]
+
+
+def _quad(degree):
+    """Product rule exact for spherical polynomials of ``degree``."""
+    return quadrature(1, degree=degree)
 
 # ----------------------------------------------------------------------------- known answers
 
@@ -127,7 +133,7 @@ def test_contraction_reproduces_pointwise_products(order, seed):
 
 def test_quadrature_is_exact_for_its_degree(rng):
     for degree in (0, 1, 5, 12):
-        dirs, w = _product_quadrature(degree)
+        dirs, w = _quad(degree)
         order = degree // 2 + 1
         y = basis_reference(dirs, order)
         np.testing.assert_allclose((y * w[:, None]).T @ y, np.eye(order * order), atol=1e-13)

@@ -7,12 +7,16 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from prtlab.sh import product, product_exact, product_matrix, triple_integral
+from prtlab.sh import product, product_exact, product_matrix, quadrature, triple_integral
 from prtlab.sh._eval import basis_reference
-from prtlab.sh._gaunt import _product_quadrature
 from tests.conftest import FLOAT_TOLERANCE, random_directions
 
 TOL = FLOAT_TOLERANCE[np.float64]
+
+
+def _quad(degree):
+    """Product rule exact for spherical polynomials of ``degree``."""
+    return quadrature(1, degree=degree)
 METHODS = ["sparse", "dense"]
 orders = st.integers(1, 5)
 seeds = st.integers(0, 2**31)
@@ -75,7 +79,7 @@ def test_products_commute_and_tiers_agree(na, nb, seed):
 def test_product_is_projection_of_pointwise_product(na, nb, nc, seed):
     rng = np.random.default_rng(seed)
     a, b = _random(rng, na, (2,)), _random(rng, nb, (2,))
-    dirs, w = _product_quadrature(na + nb + nc - 3)  # exact for Y_i Y_j Y_k
+    dirs, w = _quad(na + nb + nc - 3)  # exact for Y_i Y_j Y_k
     expected = _project(_values(a, dirs) * _values(b, dirs), dirs, w, nc)
     for method in METHODS:
         np.testing.assert_allclose(product(a, b, nc, method=method), expected, atol=1e-12)
@@ -107,7 +111,7 @@ def test_product_matrix_applies_the_product(nf, n, seed):
 def test_triple_integral_symmetric_and_equals_quadrature(na, nb, nc, seed):
     rng = np.random.default_rng(seed)
     a, b, c = _random(rng, na, (2,)), _random(rng, nb, (2,)), _random(rng, nc, (2,))
-    dirs, w = _product_quadrature(na + nb + nc - 3)
+    dirs, w = _quad(na + nb + nc - 3)
     expected = (_values(a, dirs) * _values(b, dirs) * _values(c, dirs)) @ w
     for method in METHODS:
         for x, y, z in [(a, b, c), (b, a, c), (c, b, a), (b, c, a)]:
