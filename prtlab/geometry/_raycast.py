@@ -444,7 +444,65 @@ class RayCaster:
             raise ValueError(f"tmax of shape {t.shape} does not broadcast to the rays' shape {batch}") from None
         return np.broadcast_to(t, (n,)) if t.size != n else t
 
-    def closest_hit(self, origins, dirs, tmax=np.inf, *, normals=None) -> RayHits:
+    def _check_method(self, method):
+        if method not in ("embree", "numpy"):
+            raise ValueError(f"method must be 'embree' (fast, float32) or 'numpy' (float64 brute force), got {method!r}")
+
+    def _prepare64(self, origins, dirs, normals):
+        o, d, n, batch = _as_rays(origins, dirs, normals)
+        if not (np.all(np.isfinite(o)) and np.all(np.isfinite(d))):
+            raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
+        length = np.linalg.norm(d, axis=1)
+        if np.any(length == 0):
+            raise ValueError("dirs contains zero vectors; every ray needs a nonzero direction")
+        d = d / length[:, None]
+        if n is not None:
+            if not np.all(np.isfinite(n)):
+                raise ValueError("normals contain NaN or inf; pass finite normals")
+            side = np.where(np.sum(n * d, axis=1) >= 0.0, 1.0, -1.0)
+            o = o + (self.epsilon * side)[:, None] * n
+        return o, d, batch
+
+    def _brute_force(self, o, d, t):
+        """Float64 Moller-Trumbore against every triangle: the specification of the Embree tier."""
+        n = len(o)
+        geom = np.full(n, -1, dtype=np.int64)
+        prim = np.full(n, -1, dtype=np.int64)
+        uv = np.zeros((n, 2))
+        dist = np.full(n, np.inf)
+        faces = self._all_faces
+        if not len(faces):
+            return geom, prim, uv, dist
+        a = self._all_vertices[faces[:, 0]]
+        e1 = self._all_vertices[faces[:, 1]] - a
+        e2 = self._all_vertices[faces[:, 2]] - a
+        owner = np.searchsorted(self._face_offset, np.arange(len(faces)), side="right") - 1
+        step = max(1, (1 << 22) // len(faces))
+        for s in range(0, n, step):
+            oo, dd = o[s : s + step, None, :], d[s : s + step, None, :]
+            p = np.cross(dd, e2)
+            det = np.sum(e1 * p, axis=-1)
+            ok = det != 0.0
+            inv = 1.0 / np.where(ok, det, 1.0)
+            sv = oo - a
+            u = np.sum(sv * p, axis=-1) * inv
+            q = np.cross(sv, e1)
+            v = np.sum(dd * q, axis=-1) * inv
+            tt = np.sum(e2 * q, axis=-1) * inv
+            hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt > 0) & (tt <= t[s : s + step, None])
+            tt = np.where(hit, tt, np.inf)
+            k = np.argmin(tt, axis=1)
+            rows = np.arange(len(k))
+            found = np.isfinite(tt[rows, k])
+            idx = np.flatnonzero(found) + s
+            kk = k[found]
+            geom[idx] = owner[kk]
+            prim[idx] = kk - self._face_offset[owner[kk]]
+            uv[idx, 0], uv[idx, 1] = u[found, kk], v[found, kk]
+            dist[idx] = tt[found, kk]
+        return geom, prim, uv, dist
+
+    def closest_hit(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> RayHits:
         """First surface hit along each ray within ``(0, tmax]``.
 
         Parameters
@@ -456,12 +514,20 @@ class RayCaster:
         normals : (..., 3) float, optional
             Surface normals at the origins: if given, each origin is offset by
             ``epsilon`` along ``±normal`` on the side of its ray (module docstring).
+        method : {"embree", "numpy"}
+            Embree in float32 (fast), or a float64 brute-force test of every
+            triangle (the slow specification, for tests and small scenes).
 
         Returns
         -------
         RayHits
             Fields with the rays' batch shape ``(...)``.
         """
+        self._check_method(method)
+        if method == "numpy":
+            o, d, batch = self._prepare64(origins, dirs, normals)
+            geom, prim, uv, dist = self._brute_force(o, d, self._tmax(tmax, batch, len(o)))
+            return self._hits(geom, prim, uv, dist, batch)
         o, d, batch = self._prepare(origins, dirs, normals)
         n = len(o)
         t = self._tmax(tmax, batch, n)
@@ -474,6 +540,10 @@ class RayCaster:
             out = self._scene.run(o[s:e], d[s:e], dists=np.asarray(t[s:e], dtype=np.float32).copy(), output=1)
             _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
                           geom[s:e], prim[s:e], uv[s:e], dist[s:e])
+        return self._hits(geom, prim, uv, dist, batch)
+
+    def _hits(self, geom, prim, uv, dist, batch) -> RayHits:
+        n = len(geom)
         hit = geom >= 0
         normal = np.empty((n, 3))
         point = np.empty((n, 3))
@@ -489,7 +559,7 @@ class RayCaster:
             point=point.reshape(batch + (3,)),
         )
 
-    def occluded(self, origins, dirs, tmax=np.inf, *, normals=None) -> np.ndarray:
+    def occluded(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> np.ndarray:
         """Whether any surface lies along each ray within ``(0, tmax)`` (any-hit query).
 
         Parameters
@@ -501,11 +571,19 @@ class RayCaster:
             shadow ray toward a light at distance ``r`` use ``r - epsilon``.
         normals : (..., 3) float, optional
             As in :meth:`closest_hit`: offset origins by ``epsilon`` off their surface.
+        method : {"embree", "numpy"}
+            As in :meth:`closest_hit`.
 
         Returns
         -------
         occluded : (...) bool
         """
+        self._check_method(method)
+        if method == "numpy":
+            o, d, batch = self._prepare64(origins, dirs, normals)
+            t = np.asarray(self._tmax(tmax, batch, len(o)), dtype=np.float64)
+            dist = self._brute_force(o, d, t)[3]
+            return ((dist < t) & (t > 0)).reshape(batch)
         o, d, batch = self._prepare(origins, dirs, normals)
         n = len(o)
         t = self._tmax(tmax, batch, n)
