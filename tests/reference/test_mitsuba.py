@@ -398,6 +398,14 @@ def test_errors(mi_dr):
     bad = _plane_scene(Material(type="glass"), [EnvironmentLight(constant=np.ones(3))])
     with pytest.raises(NotImplementedError, match="object 'floor': material type 'glass'"):
         to_mitsuba(bad)
+    with pytest.raises(NotImplementedError, match="light 1 of type str has no Mitsuba translation"):
+        to_mitsuba(_plane_scene(Material(), [EnvironmentLight(constant=np.ones(3)), "sun"]))
+    import trimesh
+
+    empty = _plane_scene(Material(), [EnvironmentLight(constant=np.ones(3))])
+    empty.objects[0].mesh = trimesh.Trimesh(vertices=np.zeros((3, 3)), faces=np.zeros((0, 3), int), process=False)
+    with pytest.raises(ValueError, match="object 'floor' has a mesh with no faces"):
+        to_mitsuba(empty)
     nan_scene = _plane_scene(Material(), [EnvironmentLight(constant=np.ones(3))])
     nan_scene.objects[0].transform = Transform(np.array([np.nan, 0, 0]))
     with pytest.raises(ValueError, match="NaN or inf"):

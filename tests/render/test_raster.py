@@ -145,6 +145,10 @@ def test_figure_errors(rng):
         agreement_plot(np.zeros(3), np.zeros(3), None, np.zeros(4))
     with pytest.raises(ValueError, match="channel must be"):
         agreement_plot(np.zeros((3, 3)), np.zeros((3, 3)), channel="alpha")
+    from prtlab.render import luminance
+
+    with pytest.raises(ValueError, match=r"img must be a \(\.\.\., 3\) RGB array"):
+        luminance(np.zeros((4, 2)))
     import matplotlib.pyplot as plt
 
     plt.close("all")

@@ -82,3 +82,14 @@ def test_tonemap_errors(tmp_path):
         save_png(tmp_path / "x.png", np.ones((4, 4)))
     with pytest.raises(ValueError, match=r"img must be an \(h, w, 3\)"):
         save_exr(tmp_path / "x.exr", np.ones((4, 4, 4)))
+
+
+def test_load_exr_without_rgb_channels(tmp_path):
+    import OpenEXR
+
+    path = tmp_path / "grey.exr"
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"Y": np.ones((2, 3), np.float32)}) as exr:
+        exr.write(str(path))
+    with pytest.raises(ValueError, match="no RGB channels"):
+        load_exr(path)
