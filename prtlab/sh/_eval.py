@@ -273,7 +273,7 @@ def basis(dirs, order: int, method: str = "numba") -> np.ndarray:
         raise TypeError(f"dirs must be a real array, got dtype {arr.dtype}")
     if arr.ndim == 0 or arr.shape[-1] != 3:
         raise ValueError(f"dirs must be a (..., 3) array of unit directions, got shape {arr.shape}")
-    flat = np.ascontiguousarray(arr.reshape(-1, 3), dtype=np.float64)
+    flat = _kernels.kernel_array(arr.reshape(-1, 3))
     out = np.empty((flat.shape[0], order * order))
     if flat.shape[0]:
         n_bad = _kernels.sh_basis(flat, order, out)

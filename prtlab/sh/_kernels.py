@@ -13,6 +13,19 @@ import math
 import numba
 import numpy as np
 
+# --------------------------------------------------------------------------- helpers
+
+
+def kernel_array(a, dtype=np.float64) -> np.ndarray:
+    """``a`` as a C-contiguous, writable array of ``dtype`` (copied only if needed).
+
+    Numba compiles a separate specialisation for read-only or non-contiguous
+    arrays; feeding kernels one array type keeps compilation to one signature.
+    """
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
 # --------------------------------------------------------------------------- constants
 
 _PI = math.pi
@@ -172,14 +185,14 @@ def block_offsets(order: int) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _blk(blocks, r, off, l, m, mp):
     """Entry (m, m') of band l's block, m and m' in -l..l."""
     d = 2 * l + 1
     return blocks[r, off + (m + l) * d + (mp + l)]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _ir_p(blocks, r, off1, offp, l, i, a, bb):
     """Ivanic-Ruedenberg P(i, l, a, b) from the band-1 block and band l-1's block."""
     r1 = _blk(blocks, r, off1, 1, i, 1)
@@ -192,7 +205,7 @@ def _ir_p(blocks, r, off1, offp, l, i, a, bb):
         return _blk(blocks, r, off1, 1, i, 0) * _blk(blocks, r, offp, l - 1, a, bb)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def ivanic_ruedenberg(rot, order, offsets, blocks):
     """Packed per-band rotation blocks of ``rot (B, 3, 3)`` into ``blocks (B, offsets[order])``.
 
@@ -200,7 +213,7 @@ def ivanic_ruedenberg(rot, order, offsets, blocks):
     the recurrence of Ivanic & Ruedenberg (1996, Tables 1-2, with the 1998 erratum).
     """
     nrot = rot.shape[0]
-    for r in numba.prange(nrot):
+    for r in range(nrot):
         blocks[r, 0] = 1.0
         if order < 2:
             continue

@@ -54,7 +54,7 @@ def _packed_blocks(rot_flat: np.ndarray, order: int) -> np.ndarray:
     offsets = _kernels.block_offsets(order)
     blocks = np.zeros((rot_flat.shape[0], int(offsets[-1])))
     if rot_flat.shape[0]:
-        _kernels.ivanic_ruedenberg(np.ascontiguousarray(rot_flat), order, offsets, blocks)
+        _kernels.ivanic_ruedenberg(_kernels.kernel_array(rot_flat), order, offsets, blocks)
     return blocks
 
 
@@ -190,11 +190,12 @@ def rotate(coeffs, R, method: str = "numba", channels: bool | None = None) -> np
         ) from None
     n_channels = coeffs.shape[-1] if has_channels else 1
     shaped = coeffs if has_channels else coeffs[..., None]
-    shaped = np.broadcast_to(shaped, out_batch + (order * order, n_channels))
-    flat = np.ascontiguousarray(shaped.reshape(-1, order * order, n_channels))
+    if shaped.shape[:-2] != out_batch:
+        shaped = np.broadcast_to(shaped, out_batch + (order * order, n_channels))
+    flat = _kernels.kernel_array(shaped.reshape(-1, order * order, n_channels))
     n_rot = blocks.shape[0]
     rot_index = np.broadcast_to(np.arange(n_rot, dtype=np.int64).reshape(r_batch), out_batch).ravel()
-    rot_index = np.ascontiguousarray(rot_index)
+    rot_index = _kernels.kernel_array(rot_index, dtype=np.int64)
     out = np.empty_like(flat)
     if flat.shape[0]:
         _kernels.apply_blocks(blocks, _kernels.block_offsets(order), rot_index, flat, out)
