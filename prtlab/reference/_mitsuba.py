@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+import warnings
 
 import numpy as np
 
@@ -120,6 +121,7 @@ _announce_llvm()
 
 def _import_mitsuba(variant: str | None = None):
     """Import Mitsuba with the chosen variant set; return ``(mi, dr)``."""
+    variant_arg = variant
     variant, llvm_path = _choose_variant(variant, os.environ, os.path.exists, "drjit" in sys.modules)
     if llvm_path is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = llvm_path
@@ -133,7 +135,15 @@ def _import_mitsuba(variant: str | None = None):
         ) from exc
     if variant not in mi.variants():  # pragma: no cover - depends on the wheel
         raise MitsubaUnavailable(f"this Mitsuba build has no variant {variant!r}; it has {mi.variants()}")
-    mi.set_variant(variant)
+    try:
+        mi.set_variant(variant)
+    except Exception as exc:  # pragma: no cover - only when the LLVM backend cannot start
+        requested = variant_arg or os.environ.get("PRTLAB_MITSUBA_VARIANT")
+        if variant != "llvm_ad_rgb" or requested:
+            raise MitsubaUnavailable(f"Mitsuba variant {variant!r} failed to start: {exc}") from exc
+        warnings.warn(f"Mitsuba's llvm_ad_rgb failed to start ({exc}); falling back to scalar_rgb (slow)",
+                      RuntimeWarning, stacklevel=2)
+        mi.set_variant("scalar_rgb")
     _register_phong(mi, dr)
     return mi, dr
 
