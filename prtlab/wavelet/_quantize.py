@@ -57,10 +57,8 @@ def _scale_of(magnitude: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
     peak = magnitude.max(axis=axes) if magnitude.size else np.zeros(magnitude.shape[: magnitude.ndim - len(axes)])
     if np.any(peak > np.finfo(np.float32).max):
         raise ValueError("values exceed the float32 range of the quantisation scale (|v| > 3.4e38); rescale them")
-    scale = peak.astype(np.float32)
-    low = scale.astype(np.float64) < peak
-    scale[low] = np.nextafter(scale[low], np.float32(np.inf))
-    return scale
+    scale = np.asarray(peak, dtype=np.float32)
+    return np.where(scale.astype(np.float64) < peak, np.nextafter(scale, np.float32(np.inf)), scale)
 
 
 def _quantize(arr: np.ndarray, axes: tuple[int, ...]) -> Quantized8:
