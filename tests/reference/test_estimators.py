@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from scipy.stats import chisquare
 
-from prtlab.geometry import direction_to_equirect, equirect_lookup
+from prtlab.geometry import direction_to_equirect, equirect_directions, equirect_lookup
 from prtlab.reference import direct, irradiance_at, path_trace, radiance_at, shade_reference
 from prtlab.reference._estimators import _EnvSampler
 from prtlab.reference._kernels import bsdf_eval_kernel, bsdf_eval_numpy, bsdf_sample_kernel
@@ -290,6 +290,21 @@ def test_environment_map_importance_sampling_with_mis(rng):
     assert_within(e.total[0], e.stderr[0], truth, extra=2e-4 * truth)
 
 
+def test_mis_and_bsdf_sampling_agree(rng):
+    """Two independent unbiased strategies for the same integral agree within their errors."""
+    scene = Scene([], [EnvironmentLight(image=_sun_sky())])
+    normals = random_directions(rng, 24)
+    mis = irradiance_at(scene, np.zeros((24, 3)), normals, 512, rng)
+    bsdf = irradiance_at(scene, np.zeros((24, 3)), normals, 20000, rng, env_sampling="bsdf")
+    z = (mis.total - bsdf.total) / np.hypot(mis.stderr, bsdf.stderr)
+    assert np.abs(z).max() < MC_SIGMAS
+    # importance sampling pays where the sun is in view: variance per sample far below BSDF sampling's
+    sun = equirect_directions(16, 32)[4, 9]
+    sees_sun = normals @ sun > 0.3
+    efficiency = (mis.stderr[sees_sun] ** 2 * 512) / (bsdf.stderr[sees_sun] ** 2 * 20000)
+    assert sees_sun.sum() >= 5 and np.all(efficiency < 0.1)
+
+
 def test_env_sampler_chi2_and_pdf(rng):
     img = _sun_sky()
     h, w = img.shape[:2]
@@ -455,5 +470,7 @@ def test_errors(rng):
         irradiance_at(scene, np.zeros((2, 2)), np.zeros((2, 3)), 4, rng)
     with pytest.raises(ValueError, match="normals contains NaN"):
         irradiance_at(scene, np.zeros((2, 3)), np.full((2, 3), np.nan), 4, rng)
+    with pytest.raises(ValueError, match="env_sampling must be 'mis'"):
+        direct(scene, 4, rng, env_sampling="nee")
     with pytest.raises(ValueError, match="view_dirs of shape"):
         radiance_at(scene, np.zeros((2, 3)), np.ones((2, 3)), np.ones((3, 3)), 4, rng)
