@@ -1,0 +1,77 @@
+"""Benchmarks of the SH algebra: order-4 products (peer: dense einsum tier) and OL / HYB exponentials.
+
+Inputs of the exponentials are what the papers feed them: sums of 1..20
+blocker logs (angular radius 5..60 degrees, random directions), order 4.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from prtlab.bench import case
+from prtlab.sh import exp, gaunt_tensor, product
+from prtlab.sh._explog import _HYB_THRESHOLD, _blocker_sums
+
+ORDER = 4
+
+
+def _batch(quick: bool) -> int:
+    return 20_000 if quick else 100_000
+
+
+def _product_flops(order: int) -> int:
+    """Flops of one truncated product: 3 per Gaunt entry (two multiplies, one add)."""
+    return 3 * gaunt_tensor(order).nnz
+
+
+def _log_visibility(n: int) -> np.ndarray:
+    rng = np.random.default_rng(2006)
+    base = _blocker_sums(rng, min(n, 5000), ORDER)
+    return np.ascontiguousarray(base[np.arange(n) % base.shape[0]])
+
+
+@case("sh.product.order4.100k")
+def product_order4(quick: bool) -> dict:
+    n = _batch(quick)
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(n, ORDER * ORDER))
+    b = rng.normal(size=(n, ORDER * ORDER))
+    return {
+        "run": lambda: product(a, b),
+        "gflop": n * _product_flops(ORDER) / 1e9,
+        "items": n,
+        "peer": ("dense einsum (method='dense')", lambda: product(a, b, method="dense")),
+    }
+
+
+@case("sh.exp.ol.order4.100k")
+def exp_ol_order4(quick: bool) -> dict:
+    n = _batch(quick)
+    f = _log_visibility(n)
+    n2 = ORDER * ORDER
+    # norm (2 per coefficient), table lookup (~15), scale and DC (~n2 + 20)
+    flops = 3 * n2 + 35
+    return {
+        "run": lambda: exp(f, method="ol"),
+        "gflop": n * flops / 1e9,
+        "items": n,
+        "peer": ("numpy reference tier (method='ol-reference')", lambda: exp(f, method="ol-reference")),
+    }
+
+
+@case("sh.exp.hyb.order4.100k")
+def exp_hyb_order4(quick: bool) -> dict:
+    n = _batch(quick)
+    f = _log_visibility(n)
+    r = np.linalg.norm(f[:, 1:], axis=1)
+    k = np.where(r > _HYB_THRESHOLD, np.ceil(np.log2(np.maximum(r, 1e-300) / _HYB_THRESHOLD)), 0.0)
+    # the kernel squares whole tiles of 64 items together, up to the tile's largest k
+    tiles = np.array_split(k, max(1, int(np.ceil(n / 64))))
+    squarings = sum(float(t.max()) * t.size for t in tiles)
+    flops = n * (3 * ORDER * ORDER + 35) + squarings * _product_flops(ORDER)
+    return {
+        "run": lambda: exp(f, method="hyb"),
+        "gflop": flops / 1e9,
+        "items": n,
+        "peer": ("numpy reference tier (method='hyb-reference')", lambda: exp(f, method="hyb-reference")),
+    }
