@@ -185,7 +185,7 @@ def basis_reference(dirs, order: int) -> np.ndarray:
     dirs = _as_unit_dirs(dirs)
     norm = np.linalg.norm(dirs, axis=-1, keepdims=True)
     if np.any(norm == 0.0):
-        raise ValueError("dirs contains a zero vector; every direction must be a unit vector")
+        _raise_bad_dirs(dirs)
     d = dirs / norm
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     out = np.empty(d.shape[:-1] + (order * order,))
@@ -264,21 +264,29 @@ def basis(dirs, order: int, method: str = "numba") -> np.ndarray:
     >>> np.round(y / np.sqrt(3 / (4 * np.pi)), 6)
     array([[0.57735, 0.     , 1.     , 0.     ]])
     """
+    return _basis(dirs, order, method, "dirs")
+
+
+def _basis(dirs, order, method: str, name: str) -> np.ndarray:
+    """:func:`basis` with the directions' parameter name used in error messages."""
     order = _check_order(order)
     method = _check_method(method)
     if method == "reference":
-        return basis_reference(dirs, order)
+        arr = _as_unit_dirs(dirs, name)
+        if np.any(np.all(arr == 0.0, axis=-1)):
+            _raise_bad_dirs(arr, name)
+        return basis_reference(arr, order)
     arr = np.asarray(dirs)
     if arr.dtype.kind not in "fiu":
-        raise TypeError(f"dirs must be a real array, got dtype {arr.dtype}")
+        raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
     if arr.ndim == 0 or arr.shape[-1] != 3:
-        raise ValueError(f"dirs must be a (..., 3) array of unit directions, got shape {arr.shape}")
+        raise ValueError(f"{name} must be a (..., 3) array of unit directions, got shape {arr.shape}")
     flat = _kernels.kernel_array(arr.reshape(-1, 3))
     out = np.empty((flat.shape[0], order * order))
     if flat.shape[0]:
         n_bad = _kernels.sh_basis(flat, order, out)
         if n_bad:
-            _raise_bad_dirs(flat)
+            _raise_bad_dirs(flat, name)
     return out.reshape(arr.shape[:-1] + (order * order,))
 
 

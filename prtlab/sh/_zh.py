@@ -12,7 +12,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from ._eval import _as_coeffs, _check_method, _check_order, _band_of_coeff, basis
+from ._eval import _as_coeffs, _band_of_coeff, _basis, _check_method, _check_order
 
 __all__ = ["clamped_cosine_zh", "convolve", "irradiance", "zh_project", "zh_rotate"]
 
@@ -65,7 +65,7 @@ def zh_rotate(zh, axes, method: str = "numba") -> np.ndarray:
     """
     zh = _as_zh(zh, "zh")
     order = zh.shape[-1]
-    y = basis(axes, order, method=_check_method(method))
+    y = _basis(axes, order, _check_method(method), "axes")
     try:
         np.broadcast_shapes(zh.shape[:-1], y.shape[:-1])
     except ValueError:

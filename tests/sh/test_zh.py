@@ -72,8 +72,12 @@ def test_zh_rotate_errors():
         zh_rotate(np.array([1.0, np.nan]), np.ones(3))
     with pytest.raises(TypeError, match="zh must be a real"):
         zh_rotate(np.array(["a"]), np.ones(3))
-    with pytest.raises(ValueError, match="axes|dirs contains NaN"):
+    with pytest.raises(ValueError, match="axes contains NaN"):
         zh_rotate(np.ones(2), np.array([np.nan, 0, 1]))
+    with pytest.raises(ValueError, match="axes contains a zero vector"):
+        zh_rotate(np.ones(2), np.zeros(3), method="reference")
+    with pytest.raises(ValueError, match=r"axes must be a \(\.\.\., 3\) array"):
+        zh_rotate(np.ones(2), np.ones(2))
 
 
 # --------------------------------------------------------------------------- clamped cosine and irradiance
