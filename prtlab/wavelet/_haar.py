@@ -105,7 +105,12 @@ def _flat_faces(arr: np.ndarray, channels: bool) -> tuple[np.ndarray, tuple]:
         arr = np.moveaxis(arr, -1, -4)
     shape = arr.shape
     r = shape[-1]
-    return np.ascontiguousarray(arr.reshape(-1, r, r)), shape
+    return _kernel_array(arr.reshape(-1, r, r)), shape
+
+
+def _kernel_array(arr: np.ndarray) -> np.ndarray:
+    """C-contiguous and writeable (one numba signature per kernel; read-only views are copied)."""
+    return np.require(arr, dtype=np.float64, requirements=["C", "W"])
 
 
 def _restore(flat: np.ndarray, shape: tuple, channels: bool) -> np.ndarray:

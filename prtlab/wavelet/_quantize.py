@@ -19,7 +19,16 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _kernels
-from ._haar import _as_cubemaps, _as_real, _check_finite, _check_method, haar2d, ihaar2d
+from ._haar import (
+    _as_cubemaps,
+    _as_real,
+    _check_finite,
+    _check_method,
+    _check_resolution,
+    _kernel_array,
+    haar2d,
+    ihaar2d,
+)
 
 __all__ = ["Quantized8", "quantize8", "dequantize8", "SparseTransfer", "encode_transfer"]
 
@@ -161,6 +170,41 @@ class SparseTransfer:
     PULSE = 0
     HAAR = 1
 
+    def __post_init__(self):
+        res = _check_resolution(self.res)
+        fields = {}
+        for name, dtypes in (("indptr", (np.int64,)), ("indices", (np.uint16, np.uint32)), ("codes", (np.uint8,)),
+                             ("scale", (np.float32,)), ("basis", (np.uint8,))):
+            arr = np.asarray(getattr(self, name))
+            if arr.ndim != 1 or arr.dtype not in dtypes:
+                raise TypeError(
+                    f"SparseTransfer.{name} must be a 1D {' or '.join(np.dtype(d).name for d in dtypes)} array, "
+                    f"got {arr.dtype} with shape {arr.shape}; build the container with encode_transfer"
+                )
+            fields[name] = np.require(arr, requirements=["C", "W"])
+        n_vertices = fields["indptr"].shape[0] - 1
+        n_entries = fields["codes"].shape[0]
+        if (
+            n_vertices < 0
+            or fields["indptr"][0] != 0
+            or fields["indptr"][-1] != n_entries
+            or np.any(np.diff(fields["indptr"]) < 0)
+            or fields["indices"].shape[0] != n_entries
+            or fields["scale"].shape[0] != n_vertices
+            or fields["basis"].shape[0] != n_vertices
+            or np.any(fields["basis"] > 1)
+        ):
+            raise ValueError(
+                "SparseTransfer arrays are inconsistent: need indptr (V+1,) non-decreasing from 0 to E, "
+                "indices and codes (E,), scale and basis (V,) with basis in {0, 1}; build it with encode_transfer"
+            )
+        sign_bit = 1 << (8 * fields["indices"].dtype.itemsize - 1)
+        if n_entries and int((fields["indices"].astype(np.int64) & (sign_bit - 1)).max()) >= 6 * res * res:
+            raise ValueError(f"SparseTransfer.indices point beyond the 6 * {res}**2 coefficients of a cubemap")
+        for name, arr in fields.items():
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "res", res)
+
     @property
     def n_vertices(self) -> int:
         return int(self.indptr.shape[0] - 1)
@@ -228,8 +272,8 @@ class SparseTransfer:
                 raise ValueError(f"light_haar must have the shape of light_pulse {lp.shape}, got {lh.shape}")
             _check_finite(lh, "light_haar")
         n = 6 * r * r
-        lp2 = np.ascontiguousarray(lp.reshape(n, -1))
-        lh2 = np.ascontiguousarray(lh.reshape(n, -1))
+        lp2 = _kernel_array(lp.reshape(n, -1))
+        lh2 = _kernel_array(lh.reshape(n, -1))
         if method == "reference":
             coeffs = self.coefficients().reshape(self.n_vertices, n)
             out = np.where((self.basis == self.HAAR)[:, None], coeffs @ lh2, coeffs @ lp2)

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..geometry._spheremaps import cubemap_solid_angles
 from . import _kernels
-from ._haar import _as_cubemaps, _check_method, _forward_reference, _inverse_reference
+from ._haar import _as_cubemaps, _check_method, _kernel_array, _forward_reference, _inverse_reference
 
 __all__ = ["triple_product", "product"]
 
@@ -63,7 +63,7 @@ def _prepare(arrays, names, per_face: bool):
             f"({', '.join(str(x.shape[: -len(core)]) for x in coerced)}) do not broadcast"
         ) from None
     r = coerced[0].shape[-1]
-    flats = [np.ascontiguousarray(np.broadcast_to(x, batch + core).reshape(-1, r, r)) for x in coerced]
+    flats = [_kernel_array(np.broadcast_to(x, batch + core).reshape(-1, r, r)) for x in coerced]
     return flats, batch, core, r
 
 
@@ -82,7 +82,7 @@ def _fold_solid_angle(flat: np.ndarray, r: int, method: str) -> np.ndarray:
     out = np.empty_like(flat)
     if flat.shape[0]:
         _kernels.haar_inverse(flat, texels)
-        _kernels.haar_forward(np.ascontiguousarray(texels * weight), out)
+        _kernels.haar_forward(texels * weight, out)
     return out
 
 

@@ -202,6 +202,22 @@ def test_empty_transfer():
         assert sparse.dot(np.ones((6, 4, 4, 3)), method=method).shape == (0, 3)
 
 
+def test_container_validation():
+    good = encode_transfer(np.ones((2, 6, 2, 2)))
+    parts = dict(indptr=good.indptr, indices=good.indices, codes=good.codes, scale=good.scale, basis=good.basis, res=2)
+    assert SparseTransfer(**parts).nbytes == good.nbytes
+    with pytest.raises(TypeError, match="SparseTransfer.codes must be a 1D uint8"):
+        SparseTransfer(**{**parts, "codes": good.codes.astype(np.int16)})
+    with pytest.raises(ValueError, match="arrays are inconsistent"):
+        SparseTransfer(**{**parts, "indptr": good.indptr[:-1]})
+    with pytest.raises(ValueError, match="arrays are inconsistent"):
+        SparseTransfer(**{**parts, "basis": np.array([0, 2], np.uint8)})
+    with pytest.raises(ValueError, match="point beyond"):
+        SparseTransfer(**{**parts, "indices": good.indices + np.uint16(30)})
+    with pytest.raises(ValueError, match="power of two"):
+        SparseTransfer(**{**parts, "res": 3})
+
+
 def test_encode_errors():
     t = np.zeros((2, 6, 4, 4))
     with pytest.raises(ValueError, match="basis must be one of"):
