@@ -46,6 +46,22 @@ def test_band_one_is_permuted_rotation(rng):
     np.testing.assert_allclose(rotation_matrices(R, 2)[1], R[np.ix_(perm, perm)], atol=1e-15)
 
 
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("alpha", [0.7, -2.9, np.pi, 1e-9])
+def test_rotation_about_the_pole_closed_form(method, alpha):
+    # f(R^T w) with R about z by alpha shifts phi by -alpha: per (l, m > 0) pair
+    # g_lm = cos(m a) c_lm - sin(m a) c_l-m,  g_l-m = sin(m a) c_lm + cos(m a) c_l-m.
+    order = 7
+    c = np.random.default_rng(5).normal(size=order * order)
+    g = rotate(c, axis_angle((0, 0, 1), alpha), method=method)
+    for l in range(order):
+        assert g[l * l + l] == pytest.approx(c[l * l + l], abs=TOL)
+        for m in range(1, l + 1):
+            cp, cm = c[l * l + l + m], c[l * l + l - m]
+            assert g[l * l + l + m] == pytest.approx(np.cos(m * alpha) * cp - np.sin(m * alpha) * cm, abs=TOL)
+            assert g[l * l + l - m] == pytest.approx(np.sin(m * alpha) * cp + np.cos(m * alpha) * cm, abs=TOL)
+
+
 def test_lobe_turns_with_R():
     rz = axis_angle((0, 0, 1), np.pi / 2)  # +x -> +y
     c = basis(np.array([1.0, 0.0, 0.0]), 6)
