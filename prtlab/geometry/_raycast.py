@@ -446,7 +446,9 @@ class RayCaster:
 
     def _check_method(self, method):
         if method not in ("embree", "numpy"):
-            raise ValueError(f"method must be 'embree' (fast, float32) or 'numpy' (float64 brute force), got {method!r}")
+            raise ValueError(
+                f"method must be 'embree' (fast, float32) or 'numpy' (float64 brute force), got {method!r}"
+            )
 
     def _prepare64(self, origins, dirs, normals):
         o, d, n, batch = _as_rays(origins, dirs, normals)

@@ -30,6 +30,8 @@ Conventions
   luminance``) by multiple importance sampling with the power heuristic.
 * **Portals** (``portal: true`` objects) are openings: they are neither
   shaded nor cast into the ray caster.
+* **Vertices without a normal** (zero-length vertex normals, e.g. vertices no
+  face uses) get zero radiance with a standard error of zero.
 * **Bounces.** A path starts at the shaded vertex (depth 0). Light that
   reaches depth ``k`` straight from a light source (NEE or an escaping ray)
   has ``k`` indirect bounces. ``direct`` is ``k = 0``, ``indirect`` is
@@ -471,7 +473,9 @@ def path_trace(
     ks = np.concatenate([np.tile(m[1], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))
     ex = np.concatenate([np.full(c, m[2]) for m, c in zip(mats, counts)]) if shaded else np.zeros(0)
     wo = _unit(np.asarray(scene.camera.position, float) - pos)
-    out = _estimate(data, pos, normals, wo, kd, ks, ex, bounces, n_samples, rng, progress, desc=f"reference B={bounces}")
+    out = _estimate(
+        data, pos, normals, wo, kd, ks, ex, bounces, n_samples, rng, progress, desc=f"reference B={bounces}"
+    )
     result = ShadeResult()
     result.stderr = {"direct": {}, "indirect": {}, "total": {}}
     offsets = np.concatenate([[0], np.cumsum(counts)])
@@ -590,7 +594,8 @@ def radiance_at(
         np.tile(kd, (v, 1)), np.tile(ks, (v, 1)), np.full(v, ex), bounces, n_samples, rng,
     )
     shape = batch + (3,)
-    return Estimate(*(out[k].reshape(shape) for k in ("total", "total_se", "direct", "direct_se", "indirect", "indirect_se")))
+    keys = ("total", "total_se", "direct", "direct_se", "indirect", "indirect_se")
+    return Estimate(*(out[k].reshape(shape) for k in keys))
 
 
 def irradiance_at(

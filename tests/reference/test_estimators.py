@@ -132,11 +132,12 @@ def test_point_light_exact_diffuse_and_phong(rng):
 
 def test_point_light_shadow_half_plane(rng):
     plane = grid_plane(size=4.0, res=8)
-    roof = trimesh.creation.box(extents=[4.0, 0.05, 2.0])  # covers z in [-1, 1] only... shifted below
+    roof = trimesh.creation.box(extents=[4.0, 0.05, 2.0])  # a slab over half of the floor:
     roof.apply_translation([0.0, 1.0, -1.0])  # covers z in [-2, 0]
     light = PointLight(position=np.array([0.0, 3.0, 0.0]), intensity=np.ones(3))
-    scene = Scene([SceneObject("floor", plane, material=diffuse(1.0)), SceneObject("roof", roof, material=diffuse(0.5))],
-                  [light])
+    scene = Scene(
+        [SceneObject("floor", plane, material=diffuse(1.0)), SceneObject("roof", roof, material=diffuse(0.5))], [light]
+    )
     res = direct(scene, 2, rng)
     x = plane.vertices
     # the shadow of the roof edge (z = 0 at y = 1) from y = 3 falls at z = 0 * 3/2 = 0 on the floor
