@@ -134,7 +134,7 @@ def test_uniform_and_stratified_hemisphere_chi2(rng):
     assert chi2_directions(d, hemi, axis=n) > CHI2_SIGNIFICANCE
     # stratified sets are too even for a chi-square test of independence: pool many
     # independent stratified sets of a small size instead
-    d = np.concatenate([stratified_hemisphere(16, rng, normal=n)[0] for _ in range(CHI2_SAMPLES // 16)])
+    d = stratified_hemisphere(16, rng, normal=np.tile(n, (CHI2_SAMPLES // 16, 1)))[0].reshape(-1, 3)
     assert chi2_directions(d, hemi, axis=n) > CHI2_SIGNIFICANCE
     d = stratified_hemisphere(16, rng, normal=np.tile(n, (CHI2_SAMPLES // 16, 1)), cosine=True)[0].reshape(-1, 3)
     assert chi2_directions(d, lambda w: cosine_hemisphere_pdf(w, n), axis=n) > CHI2_SIGNIFICANCE
@@ -145,7 +145,7 @@ def test_stratified_sphere_one_per_cell(rng):
     z_cell = np.floor((1 - d[:, 2]) / 2 * 4).astype(int)
     phi_cell = np.floor(np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi) / (2 * np.pi) * 8).astype(int)
     assert len(set(zip(z_cell, phi_cell))) == 32
-    d = np.concatenate([stratified_sphere(7, rng)[0] for _ in range(CHI2_SAMPLES // 7)])  # prime n: bands
+    d = np.concatenate([stratified_sphere(7, rng)[0] for _ in range(4000)])  # prime n: bands in z
     assert chi2_directions(d, lambda w: np.full(w.shape[:-1], 1 / (4 * np.pi))) > CHI2_SIGNIFICANCE
 
 
