@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.stats import chisquare
 
 from prtlab.geometry import (
@@ -197,6 +199,20 @@ def test_tangent_frame_orthonormal(rng):
     frame = np.stack([t, b, n], axis=-1)
     np.testing.assert_allclose(frame.transpose(0, 2, 1) @ frame, np.broadcast_to(np.eye(3), (103, 3, 3)), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(frame), 1.0, atol=1e-12)
+
+
+@given(seed=st.integers(0, 2**31 - 1), pole=st.sampled_from([None, 1.0, -1.0]))
+def test_hemisphere_samplers_stay_on_their_side(seed, pole):
+    rng = np.random.default_rng(seed)
+    n = random_directions(rng, 8)
+    if pole is not None:
+        n[0] = [0.0, 0.0, pole]  # the frame's singular direction
+        n[1] = [0.0, 0.0, pole * (1 - 1e-12)] / np.linalg.norm([0.0, 0.0, pole * (1 - 1e-12)])
+    for sampler in (cosine_hemisphere, uniform_hemisphere, stratified_hemisphere):
+        d, pdf = sampler(16, rng, normal=n)
+        np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+        assert np.all(np.sum(d * n[:, None, :], axis=-1) >= -1e-12)
+        assert np.all(pdf > 0) or sampler is cosine_hemisphere
 
 
 def test_batched_normals_shapes(rng):

@@ -465,6 +465,16 @@ def test_shade_reference_result_layout_and_seed():
     assert np.all(a.indirect["floor"] >= 0) and a.indirect["floor"].max() > 0  # the box reflects onto the floor
 
 
+def test_prtlab_shade_dispatches_to_the_reference():
+    import prtlab
+
+    scene = Scene([SceneObject("floor", grid_plane(res=2), material=diffuse(0.5))],
+                  [PointLight(np.array([0.0, 2.0, 0.0]), np.ones(3)), EnvironmentLight(constant=np.ones(3))])
+    a = prtlab.shade(scene, method="reference", bounces=1, n_samples=4, seed=5, progress=False)
+    b = shade_reference(scene, bounces=1, n_samples=4, seed=5, progress=False)
+    np.testing.assert_array_equal(a.total["floor"], b.total["floor"])
+
+
 def test_empty_point_set(rng):
     scene = Scene([], [EnvironmentLight(constant=np.ones(3))])
     e = irradiance_at(scene, np.zeros((0, 3)), np.zeros((0, 3)), 4, rng)
