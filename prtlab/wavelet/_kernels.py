@@ -62,6 +62,14 @@ def haar_forward(faces, out):
         dst[0, 0] = work[0, 0]
 
 
+@numba.njit(cache=True, inline="always")
+def _inverse_block(s, d01, d10, d11, dst, p, q):
+    dst[2 * p, 2 * q] = 0.5 * ((s + d01) + (d10 + d11))
+    dst[2 * p, 2 * q + 1] = 0.5 * ((s - d01) + (d10 - d11))
+    dst[2 * p + 1, 2 * q] = 0.5 * ((s + d01) - (d10 + d11))
+    dst[2 * p + 1, 2 * q + 1] = 0.5 * ((s - d01) - (d10 - d11))
+
+
 @numba.njit(cache=True, parallel=True)
 def haar_inverse(coeffs, out):
     """Inverse of :func:`haar_forward` (its transpose): ``coeffs (F, r, r)`` into ``out``."""
@@ -70,22 +78,23 @@ def haar_inverse(coeffs, out):
     for f in numba.prange(n_faces):
         src = coeffs[f]
         dst = out[f]
-        dst[0, 0] = src[0, 0]
+        if r == 1:
+            dst[0, 0] = src[0, 0]
+            continue
+        # coarse levels in a small scratch, in place in reverse order (block (p, q)
+        # overwrites scaling values of blocks >= (p, q), which have been read already)
+        work = np.empty((r // 2, r // 2))
+        work[0, 0] = src[0, 0]
         h = 1
-        while h < r:
-            # reverse order keeps the in-place update safe: block (p, q) overwrites
-            # scaling values of blocks >= (p, q), which have been read already
+        while 2 * h < r:
             for p in range(h - 1, -1, -1):
                 for q in range(h - 1, -1, -1):
-                    s = dst[p, q]
-                    d01 = src[p, h + q]
-                    d10 = src[h + p, q]
-                    d11 = src[h + p, h + q]
-                    dst[2 * p, 2 * q] = 0.5 * ((s + d01) + (d10 + d11))
-                    dst[2 * p, 2 * q + 1] = 0.5 * ((s - d01) + (d10 - d11))
-                    dst[2 * p + 1, 2 * q] = 0.5 * ((s + d01) - (d10 + d11))
-                    dst[2 * p + 1, 2 * q + 1] = 0.5 * ((s - d01) - (d10 - d11))
+                    _inverse_block(work[p, q], src[p, h + q], src[h + p, q], src[h + p, h + q], work, p, q)
             h *= 2
+        # finest level straight into the output, in memory order
+        for p in range(h):
+            for q in range(h):
+                _inverse_block(work[p, q], src[p, h + q], src[h + p, q], src[h + p, h + q], dst, p, q)
 
 
 # --------------------------------------------------------------------------- triple products

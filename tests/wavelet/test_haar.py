@@ -223,6 +223,14 @@ def test_bad_values_and_types():
     x[2, 1, 3] = np.inf
     with pytest.raises(ValueError, match="NaN or inf"):
         ihaar2d(x)
+    for method in METHODS:
+        for bad in (np.nan, np.inf, -np.inf):
+            y = np.zeros((2, 6, 4, 4))
+            y[1, 5, 3, 0] = bad
+            with pytest.raises(ValueError, match="NaN or inf"):
+                haar2d(y, method=method)
+    with pytest.raises(ValueError, match="too large"):
+        haar2d(np.full((6, 4, 4), 1e308))
     with pytest.raises(TypeError, match="real array"):
         haar2d(np.zeros((6, 4, 4), dtype=complex))
     with pytest.raises(ValueError, match="method must be one of"):
