@@ -38,16 +38,19 @@ import numpy as np
 
 from ..geometry._spheremaps import cubemap_solid_angles
 from . import _kernels
-from ._haar import _as_cubemaps, _check_method, _kernel_array, _forward_reference, _inverse_reference
+from ._haar import _as_cubemaps, _check_finite, _check_method, _forward_reference, _inverse_reference, _kernel_array
 
 __all__ = ["triple_product", "product"]
 
 _MEASURES = ("parameter", "solid_angle")
 
 
-def _prepare(arrays, names, per_face: bool):
+def _prepare(arrays, names, per_face: bool, check_finite: bool):
     hint = "" if per_face else "; pass per_face=True for single (..., r, r) faces"
-    coerced = [_as_cubemaps(x, n, faces_axis=not per_face, hint=hint) for x, n in zip(arrays, names)]
+    coerced = [
+        _as_cubemaps(x, n, faces_axis=not per_face, hint=hint, check_finite=check_finite)
+        for x, n in zip(arrays, names)
+    ]
     shapes = {x.shape[-1] for x in coerced}
     if len(shapes) != 1:
         raise ValueError(
@@ -63,8 +66,20 @@ def _prepare(arrays, names, per_face: bool):
             f"({', '.join(str(x.shape[: -len(core)]) for x in coerced)}) do not broadcast"
         ) from None
     r = coerced[0].shape[-1]
-    flats = [_kernel_array(np.broadcast_to(x, batch + core).reshape(-1, r, r)) for x in coerced]
+    flats = [
+        _kernel_array((x if x.shape == batch + core else np.broadcast_to(x, batch + core)).reshape(-1, r, r))
+        for x in coerced
+    ]
     return flats, batch, core, r
+
+
+def _post_check(values: np.ndarray, flats, names) -> None:
+    """The kernels' outputs are non-finite iff an input is (every coefficient enters a product that
+    reaches the result): check the cheap output, and explain from the inputs only if it fails."""
+    if not np.all(np.isfinite(values)):
+        for flat, name in zip(flats, names):
+            _check_finite(flat, name)
+        raise ValueError(f"{', '.join(names)} are too large: their products overflow float64; rescale them")
 
 
 def _check_measure(measure) -> str:
@@ -143,7 +158,7 @@ def triple_product(a, b, c, method: str = "numba", measure: str = "parameter", p
     """
     method = _check_method(method)
     measure = _check_measure(measure)
-    (fa, fb, fc), batch, core, r = _prepare((a, b, c), ("a", "b", "c"), per_face)
+    (fa, fb, fc), batch, core, r = _prepare((a, b, c), ("a", "b", "c"), per_face, method == "reference")
     if measure == "solid_angle":
         if per_face:
             raise ValueError(
@@ -157,6 +172,7 @@ def triple_product(a, b, c, method: str = "numba", measure: str = "parameter", p
         values = np.empty(fa.shape[0])
         if fa.shape[0]:
             _kernels.haar_triple(fa, fb, fc, values)
+        _post_check(values, (fa, fb, fc), ("a", "b", "c"))
     values = values.reshape(batch + core[:-2])
     return values if per_face else values.sum(axis=-1)
 
@@ -201,13 +217,14 @@ def product(a, b, method: str = "numba", per_face: bool = False) -> np.ndarray:
     two wavelet-coded functions is the tripling tensor contracted twice).
     """
     method = _check_method(method)
-    (fa, fb), batch, core, r = _prepare((a, b), ("a", "b"), per_face)
+    (fa, fb), batch, core, r = _prepare((a, b), ("a", "b"), per_face, method == "reference")
     if method == "reference":
         out = _forward_reference(_inverse_reference(fa) * _inverse_reference(fb))
     else:
         out = np.empty_like(fa)
         if fa.shape[0]:
             _kernels.haar_product(fa, fb, out)
+        _post_check(out[:, 0, 0], (fa, fb), ("a", "b"))
     return out.reshape(batch + core)
 
 

@@ -202,7 +202,17 @@ def test_errors():
         product(np.zeros((6, 3, 3)), np.zeros((6, 3, 3)))
     with pytest.raises(ValueError, match="method must be one of"):
         product(a, a, method="dense")
-    bad = a.copy()
-    bad[0, 0, 0] = np.nan
-    with pytest.raises(ValueError, match="NaN or inf"):
-        triple_product(a, bad, a)
+    for method in METHODS:
+        for value in (np.nan, np.inf):
+            for position in ((0, 0, 0), (3, 2, 3)):  # a scaling and a finest-level coefficient
+                bad = a.copy()
+                bad[position] = value
+                with pytest.raises(ValueError, match="b contains NaN or inf"):
+                    triple_product(a, bad, a, method=method)
+                with pytest.raises(ValueError, match="b contains NaN or inf"):
+                    product(a, bad, method=method)
+    huge = np.full((6, 4, 4), 1e200)
+    with pytest.raises(ValueError, match="overflow"):
+        triple_product(huge, huge, huge)
+    with pytest.raises(ValueError, match="overflow"):
+        product(huge, huge)
