@@ -72,7 +72,7 @@ import numpy as np
 from prtlab.geometry import RayCaster, direction_to_equirect
 from prtlab.scene import Material, ShadeResult
 
-from ._kernels import bsdf_eval_kernel, bsdf_sample_kernel
+from ._kernels import bsdf_eval_kernel, bsdf_sample_kernel, hit_frame_kernel
 
 __all__ = [
     "shade_reference",
@@ -121,6 +121,16 @@ class _SceneData:
         objs = [scene.objects[i] for i in self.caster.object_index]
         self.objects = objs
         self.vertex_normals = [np.asarray(o.world_normals(), float) for o in objs]
+        # global face / vertex-normal tables in the caster's object order, for the hit kernel
+        counts = [len(self.caster.world_vertices(k)) for k in range(self.caster.n_objects)]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.faces = np.concatenate(
+            [self.caster.faces(k) + offsets[k] for k in range(self.caster.n_objects)] + [np.zeros((0, 3), np.int64)]
+        )
+        self.face_offset = np.concatenate(
+            [[0], np.cumsum([len(self.caster.faces(k)) for k in range(self.caster.n_objects)])]
+        ).astype(np.int64)
+        self.all_vertex_normals = np.concatenate(self.vertex_normals + [np.zeros((0, 3))])
         mats = [_material_arrays(o.material) for o in objs]
         self.kd = np.array([m[0] for m in mats]).reshape(-1, 3)
         self.ks = np.array([m[1] for m in mats]).reshape(-1, 3)
@@ -279,8 +289,10 @@ def _continue(data: _SceneData, p: _Paths, acc, rng, last: bool):
     pdf = np.empty(n)
     if n:
         bsdf_sample_kernel(p.ns, p.wo, p.kd, p.ks, p.ex, rng.random((n, 3)), wi, weight, pdf)
-    live = np.flatnonzero((pdf > 0) & np.any(weight > 0, axis=1))
-    p, wi, weight, pdf = p.take(live), wi[live], weight[live], pdf[live]
+    keep = (pdf > 0) & np.any(weight > 0, axis=1)
+    if not keep.all():
+        live = np.flatnonzero(keep)
+        p, wi, weight, pdf = p.take(live), wi[live], weight[live], pdf[live]
     if last:
         escaped = ~data.caster.occluded(p.pos, wi, np.inf, normals=p.ng)
         hits = None
@@ -297,26 +309,15 @@ def _continue(data: _SceneData, p: _Paths, acc, rng, last: bool):
         return None
     sel = np.flatnonzero(hits.hit)
     obj = hits.object[sel]
-    tri = hits.triangle[sel]
-    uv = hits.barycentric[sel]
-    ng = hits.normal[sel]
-    ns = np.zeros_like(ng)
-    for k in np.unique(obj):
-        m = obj == k
-        f = data.caster.faces(k)[tri[m]]
-        vn = data.vertex_normals[k]
-        u, v = uv[m, :1], uv[m, 1:]
-        ns[m] = (1 - u - v) * vn[f[:, 0]] + u * vn[f[:, 1]] + v * vn[f[:, 2]]
-    wo = -wi[sel]
-    bad = np.linalg.norm(ns, axis=1) < 1e-12
-    ns[bad] = ng[bad]
-    ns = _unit(ns)
-    ns *= np.where(np.sum(ns * ng, axis=1) < 0, -1.0, 1.0)[:, None]
-    side = np.where(np.sum(ng * wo, axis=1) < 0, -1.0, 1.0)[:, None]
+    m = len(sel)
+    ns, ng, wo = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3))
+    if m:
+        hit_frame_kernel(obj, hits.triangle[sel], hits.barycentric[sel], hits.normal[sel], wi[sel],
+                         data.face_offset, data.faces, data.all_vertex_normals, ns, ng, wo)
     return _Paths(
         pos=hits.point[sel],
-        ns=ns * side,
-        ng=ng * side,
+        ns=ns,
+        ng=ng,
         wo=wo,
         kd=data.kd[obj],
         ks=data.ks[obj],
@@ -333,11 +334,13 @@ def _trace_chunk(data, pos, normals, wo, kd, ks, ex, bounces, n_samples, rng):
     n = v * n_samples
     direct_acc = np.zeros((n, 3))
     indirect_acc = np.zeros((n, 3))
-    valid = np.flatnonzero(rep(np.linalg.norm(normals, axis=1) > 0))
     p = _Paths(
         pos=rep(pos), ns=rep(normals), ng=rep(normals), wo=rep(wo), kd=rep(kd), ks=rep(ks), ex=rep(ex),
         beta=np.ones((n, 3)), index=np.arange(n),
-    ).take(valid)
+    )
+    has_normal = np.linalg.norm(p.ns, axis=1) > 0
+    if not has_normal.all():
+        p = p.take(np.flatnonzero(has_normal))
     for depth in range(bounces + 1):
         acc = direct_acc if depth == 0 else indirect_acc
         _next_event(data, p, acc, rng)

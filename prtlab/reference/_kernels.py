@@ -29,7 +29,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bsdf_eval_kernel", "bsdf_sample_kernel", "bsdf_eval_numpy"]
+__all__ = ["bsdf_eval_kernel", "bsdf_sample_kernel", "bsdf_eval_numpy", "hit_frame_kernel"]
 
 _INV_PI = 1.0 / np.pi
 
@@ -136,3 +136,31 @@ def bsdf_eval_numpy(n, wo, wi, kd, ks, ex):
     fcos = np.where(above[..., None], f * np.maximum(cos_i, 0.0)[..., None], 0.0)
     pdf = np.where(above, (1 - ps) * cos_i / np.pi + ps * (ex + 1.0) / (2.0 * np.pi) * spec, 0.0)
     return fcos, pdf
+
+
+@numba.njit(cache=True, parallel=True)
+def hit_frame_kernel(obj, tri, uv, ng, wi, face_offset, faces, vertex_normals, out_ns, out_ng, out_wo):
+    """Frames of new path vertices: interpolated shading normal and geometric normal, both
+    turned to the side of ``wo = -wi`` (the shading normal first follows the winding of ``ng``)."""
+    for i in numba.prange(obj.shape[0]):
+        f = face_offset[obj[i]] + tri[i]
+        u, v = uv[i, 0], uv[i, 1]
+        w = 1.0 - u - v
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        nx = w * vertex_normals[a, 0] + u * vertex_normals[b, 0] + v * vertex_normals[c, 0]
+        ny = w * vertex_normals[a, 1] + u * vertex_normals[b, 1] + v * vertex_normals[c, 1]
+        nz = w * vertex_normals[a, 2] + u * vertex_normals[b, 2] + v * vertex_normals[c, 2]
+        length = np.sqrt(nx * nx + ny * ny + nz * nz)
+        if length < 1e-12:
+            nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]
+        else:
+            nx, ny, nz = nx / length, ny / length, nz / length
+        if nx * ng[i, 0] + ny * ng[i, 1] + nz * ng[i, 2] < 0.0:
+            nx, ny, nz = -nx, -ny, -nz
+        side = 1.0
+        if ng[i, 0] * wi[i, 0] + ng[i, 1] * wi[i, 1] + ng[i, 2] * wi[i, 2] > 0.0:  # ng . wo < 0
+            side = -1.0
+        out_ns[i, 0], out_ns[i, 1], out_ns[i, 2] = side * nx, side * ny, side * nz
+        for k in range(3):
+            out_ng[i, k] = side * ng[i, k]
+            out_wo[i, k] = -wi[i, k]
