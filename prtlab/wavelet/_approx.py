@@ -79,6 +79,16 @@ def keep_largest(coeffs, k: int, weights=None):
     R. Ng, R. Ramamoorthi, P. Hanrahan, "All-frequency shadows using
     non-linear wavelet lighting approximation", SIGGRAPH 2003, Section 5
     (non-linear approximation, area-weighted selection).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from prtlab.wavelet import haar2d, keep_largest
+    >>> light = np.zeros((6, 8, 8))
+    >>> light[2, :4, :4] = 1.0  # a bright quarter of the +Y face
+    >>> approx, fraction = keep_largest(haar2d(light), 4)
+    >>> int((approx != 0).sum()), float(fraction)
+    (4, 1.0)
     """
     k = _as_count(k)
     arr, flat, order = _order(coeffs, weights)

@@ -110,6 +110,14 @@ def quantize8(values, group_ndim: int = 3) -> Quantized8:
     rendering of interior scenes with dynamic environment illumination",
     CGF 28(7) 2009, Section 4.1.2 (steps 4-6: quantise to 8 bits with the
     per-vertex maximum contribution).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from prtlab.wavelet import quantize8, dequantize8
+    >>> q = quantize8(np.array([[2.0, 1.0, -0.5, 0.0]]), group_ndim=1)
+    >>> q.codes.tolist(), q.scale.tolist(), dequantize8(q).round(3).tolist()
+    ([[255, 128, 64, 0]], [2.0], [[2.0, 1.004, -0.502, 0.0]])
     """
     arr = _as_real(values, "values")
     _check_finite(arr, "values")
@@ -328,6 +336,19 @@ def encode_transfer(transfer, basis: str = "auto") -> SparseTransfer:
     ----------
     Y. Yue et al., "Interactive rendering of interior scenes with dynamic
     environment illumination", CGF 28(7) 2009, Section 3.4 and 4.1.2.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from prtlab.wavelet import encode_transfer
+    >>> transfer = np.zeros((2, 6, 8, 8))
+    >>> transfer[0, 4, 3, 5] = 0.2  # sees the portal through one cell: pulse
+    >>> transfer[1, 2] = 0.1  # sees a whole face: one Haar coefficient
+    >>> sparse = encode_transfer(transfer)
+    >>> sparse.basis.tolist(), sparse.indptr.tolist()
+    ([0, 1], [0, 1, 2])
+    >>> sparse.dot(np.ones((6, 8, 8))).round(6).tolist()  # sum of T * L per vertex
+    [0.2, 6.4]
     """
     basis = _check_basis(basis)
     arr = _as_cubemaps(transfer, "transfer")

@@ -119,6 +119,8 @@ def triple_product(a, b, c, method: str = "numba", measure: str = "parameter", p
     per_face : bool
         If True, the trailing ``(r, r)`` axes are one face and the result is
         that face's integral; the leading axes are all batch axes.
+        (Colour: put the channel axis in front, ``np.moveaxis(a, -1, 0)``;
+        batch axes broadcast, so a grey visibility multiplies RGB lighting.)
 
     Returns
     -------

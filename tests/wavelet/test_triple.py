@@ -216,3 +216,17 @@ def test_errors():
         triple_product(huge, huge, huge)
     with pytest.raises(ValueError, match="overflow"):
         product(huge, huge)
+
+
+@pytest.mark.slow
+def test_tripling_coefficients_exhaustive_r8():
+    """All 64**3 tripling coefficients of an 8 x 8 face: rules against the dense numeric tensor."""
+    r = 8
+    basis = continuous_basis(r)
+    keys = list(basis)
+    values = np.stack([basis[k].ravel() for k in keys])  # (N, texels)
+    dense = np.einsum("ip,jp,kp->ijk", values, values, values) / (r * r)
+    rules = np.array([[[tripling_coefficient(i, j, k, r) for k in keys] for j in keys] for i in keys])
+    np.testing.assert_allclose(rules, dense, atol=1e-12)
+    # sparsity of the tensor: O(N log N) non-zeros, not O(N^3)
+    assert np.count_nonzero(rules) < 64 * 64 * 3
