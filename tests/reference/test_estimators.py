@@ -18,7 +18,7 @@ from scipy.stats import chisquare
 from prtlab.geometry import direction_to_equirect, equirect_directions, equirect_lookup
 from prtlab.reference import direct, irradiance_at, path_trace, radiance_at, shade_reference
 from prtlab.reference._estimators import _EnvSampler
-from prtlab.reference._kernels import bsdf_eval_kernel, bsdf_eval_numpy, bsdf_sample_kernel
+from prtlab.reference._kernels import bsdf_eval_kernel, bsdf_eval_numpy, bsdf_sample_kernel, hit_frame_kernel
 from prtlab.scene import (
     AreaLight,
     Camera,
@@ -419,6 +419,28 @@ def test_bsdf_kernels_match_numpy(seed):
     ok = p_ref > 0
     np.testing.assert_allclose(weight[ok], f_ref[ok] / p_ref[ok, None], rtol=1e-10)
     assert np.all(weight[~ok] == 0)
+
+
+def test_hit_frame_kernel_matches_numpy(rng):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    vn = mesh.vertex_normals
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    n = 200
+    tri = rng.integers(0, len(faces), n)
+    uv = rng.dirichlet([1, 1, 1], n)[:, 1:]
+    ng = mesh.face_normals[tri] * np.where(rng.random(n) < 0.2, -1.0, 1.0)[:, None]  # some reversed windings
+    wi = random_directions(rng, n)
+    ns, ng_out, wo = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    hit_frame_kernel(np.zeros(n, np.int64), tri, uv, ng, wi, np.zeros(1, np.int64), faces, vn, ns, ng_out, wo)
+    f = faces[tri]
+    interp = (1 - uv.sum(1))[:, None] * vn[f[:, 0]] + uv[:, :1] * vn[f[:, 1]] + uv[:, 1:] * vn[f[:, 2]]
+    interp /= np.linalg.norm(interp, axis=1, keepdims=True)
+    interp *= np.sign(np.sum(interp * ng, axis=1))[:, None]
+    side = np.where(np.sum(ng * -wi, axis=1) < 0, -1.0, 1.0)[:, None]
+    np.testing.assert_allclose(ns, interp * side, atol=1e-12)
+    np.testing.assert_allclose(ng_out, ng * side, atol=1e-15)
+    np.testing.assert_array_equal(wo, -wi)
+    assert np.all(np.sum(ng_out * wo, axis=1) >= 0)
 
 
 def test_phong_sampler_chi2(rng):
