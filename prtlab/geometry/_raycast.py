@@ -23,6 +23,8 @@ Self-intersection offset
     toward a light at distance ``r`` from ``o'`` should use
     ``tmax = r - epsilon`` so that geometry lying exactly at the light (a
     ceiling light on the ceiling) does not shadow it.
+    (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
+    per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
 
 Precision (float32)
     Embree stores vertices, origins, directions and distances in float32. The
