@@ -207,17 +207,19 @@ def _zonal_exp(g: np.ndarray, order: int) -> np.ndarray:
     return (np.exp(g @ yz.T) * w) @ yz
 
 
-def _newton_log(target, rule_y, rule_w, x0, tol, max_iter):
+def _newton_log(target, rule_y, rule_w, x0, tol, max_iter, scale=None):
     """Solve ``Y^T (w exp(Y x)) = target`` row by row (convex; damped Newton).
 
     Minimises ``phi(x) = sum_q w_q exp((Y x)_q) - x . target``, whose
     gradient is ``exp*(x) - target`` and Hessian ``Y^T diag(w exp(Y x)) Y``
     (positive definite). Armijo backtracking on ``phi``; a row whose line
     search cannot decrease ``phi`` any more (rounding) stops. Returns ``x``
-    and a boolean mask of rows that converged (``|grad| <= tol |target|``).
+    and a boolean mask of rows that converged (``|grad| <= tol * scale``,
+    ``scale = |target|`` unless given per row).
     """
     x = x0.copy()
-    scale = np.linalg.norm(target, axis=1)
+    if scale is None:
+        scale = np.linalg.norm(target, axis=1)
     done = np.zeros(x.shape[0], dtype=bool)
     stalled = np.zeros(x.shape[0], dtype=bool)
     for _ in range(max_iter):
@@ -283,7 +285,11 @@ def _blocker_log_solve(theta: np.ndarray, order: int) -> np.ndarray:
     target = blocker_zh(theta[pos], order)
     yz, w = _zonal_rule(order)
     x0 = np.zeros((target.shape[0], order))
-    g, done = _newton_log(target, yz, w, x0, tol=1e-12, max_iter=60)
+    # tolerance relative to the blocker's own contribution b - exp*(0) (tiny for small
+    # blockers), so small logs are as accurate as large ones
+    deviation = target.copy()
+    deviation[:, 0] -= _SQRT4PI
+    g, done = _newton_log(target, yz, w, x0, tol=1e-12, max_iter=60, scale=np.linalg.norm(deviation, axis=1))
     if not done.all():  # ill-conditioned near the moment-cone boundary: accept a looser residual
         resid = np.linalg.norm(_zonal_exp(g, order) - target, axis=1) / np.linalg.norm(target, axis=1)
         if np.any(resid > 1e-6):

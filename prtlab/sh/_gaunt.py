@@ -136,7 +136,7 @@ def gaunt_tensor(order: int) -> GauntTensor:
     Examples
     --------
     >>> g = gaunt_tensor(2)
-    >>> g.nnz, round(float(g.value[0]) * np.sqrt(4 * np.pi), 12)
+    >>> g.nnz, round(float(g.value[0] * np.sqrt(4 * np.pi)), 12)
     (10, 1.0)
     """
     return _gaunt_cached(_check_order(order))

@@ -77,7 +77,14 @@ def _to_bnc(x: np.ndarray, coloured: bool, batch: tuple, n_chan: int) -> np.ndar
     if not coloured:
         x = x[..., None]
     x = np.broadcast_to(x, batch + x.shape[-2:-1] + (n_chan,))
-    return np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:]))
+    return _read_only(np.ascontiguousarray(x.reshape((-1,) + x.shape[-2:])))
+
+
+def _read_only(x: np.ndarray) -> np.ndarray:
+    """A read-only view: kernel inputs always have the same numba type (one compiled signature)."""
+    x = x.view()
+    x.setflags(write=False)
+    return x
 
 
 def _layout(arrays, coloured):
@@ -219,7 +226,7 @@ def product_matrix(f, order=None, *, method="sparse") -> np.ndarray:
     f, nf, _ = _as_coeffs(f, "f", False)
     n = nf if order is None else _check_order(order)
     batch = f.shape[:-1]
-    flat = np.ascontiguousarray(f.reshape(-1, nf * nf))
+    flat = _read_only(np.ascontiguousarray(f.reshape(-1, nf * nf)))
     if method == "dense":
         g = _gaunt_cached(max(nf, n)).dense()[: nf * nf, : n * n, : n * n]
         out = np.einsum("ijk,ti->tkj", g, flat)

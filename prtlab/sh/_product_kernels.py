@@ -47,14 +47,15 @@ def _sparse_product(a, b, gi, gj, gk, gv, out):
     n_items, nc2, n_chan = out.shape
     na2 = a.shape[1]
     nb2 = b.shape[1]
-    n_tiles = (n_items + _TILE - 1) // _TILE
+    tile = max(1, min(_TILE, n_items))  # no idle lanes for small batches
+    n_tiles = (n_items + tile - 1) // tile
     for task in numba.prange(n_tiles * n_chan):
         c = task % n_chan
-        start = (task // n_chan) * _TILE
-        width = min(_TILE, n_items - start)
-        at = np.zeros((na2, _TILE))
-        bt = np.zeros((nb2, _TILE))
-        ot = np.empty((nc2, _TILE))
+        start = (task // n_chan) * tile
+        width = min(tile, n_items - start)
+        at = np.zeros((na2, tile))
+        bt = np.zeros((nb2, tile))
+        ot = np.empty((nc2, tile))
         for q in range(width):
             for i in range(na2):
                 at[i, q] = a[start + q, i, c]
@@ -126,16 +127,17 @@ def _exp_hyb(f, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, out):
     """
     n_items, n2, n_chan = f.shape
     sqrt4pi = math.sqrt(4.0 * math.pi)
-    n_tiles = (n_items + _TILE - 1) // _TILE
+    tile = max(1, min(_TILE, n_items))
+    n_tiles = (n_items + tile - 1) // tile
     for task in numba.prange(n_tiles * n_chan):
         c = task % n_chan
-        start = (task // n_chan) * _TILE
-        width = min(_TILE, n_items - start)
+        start = (task // n_chan) * tile
+        width = min(tile, n_items - start)
         h = np.zeros((n2, 1))
         v1 = np.empty((n2, 1))
-        vt = np.zeros((n2, _TILE))
-        wt = np.empty((n2, _TILE))
-        ks = np.zeros(_TILE, dtype=np.int64)
+        vt = np.zeros((n2, tile))
+        wt = np.empty((n2, tile))
+        ks = np.zeros(tile, dtype=np.int64)
         k_max = 0
         for q in range(width):
             norm2 = 0.0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import prtlab.sh._explog as explog
@@ -125,12 +125,13 @@ def test_dc_isolation_every_tier(order, seed, dc):
                                    rtol=1e-12, atol=1e-12)
 
 
+@settings(max_examples=12)
 @given(order=st.integers(1, 4), seed=st.integers(0, 2**31))
 def test_exact_tier_matches_taylor_series_of_products(order, seed):
     """exp* = sum f^k / k!, products at working order 10, truncated at the end.
 
-    With |f| <= 0.2 the terms lost by truncating at band 10 come back to bands
-    < order only after >= 6 more factors of f: below 1e-11.
+    With |f| <= 0.2 the parts lost by truncating at band 10 come back to bands
+    < order only after >= 7 factors of f in all (size ~ |f|^7 / 7!).
     """
     rng = np.random.default_rng(seed)
     f = rng.normal(size=order * order)
@@ -220,6 +221,7 @@ def _positive_band_limited(rng, order):
     return f
 
 
+@settings(max_examples=20)
 @given(order=st.integers(1, 5), seed=st.integers(0, 2**31))
 def test_exp_of_log_is_identity(order, seed):
     rng = np.random.default_rng(seed)
@@ -228,6 +230,7 @@ def test_exp_of_log_is_identity(order, seed):
     np.testing.assert_allclose(exp(g, method="exact"), f, atol=1e-11 * np.abs(f).max())
 
 
+@settings(max_examples=20)
 @given(order=st.integers(1, 5), seed=st.integers(0, 2**31))
 def test_log_of_exp_is_identity(order, seed):
     rng = np.random.default_rng(seed)
