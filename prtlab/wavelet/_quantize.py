@@ -144,7 +144,7 @@ def dequantize8(quantized: Quantized8) -> np.ndarray:
 # --------------------------------------------------------------------------- sparse transfer
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SparseTransfer:
     """8-bit sparse transfer cubemaps, one basis (pulse or Haar) per vertex.
 
