@@ -316,11 +316,13 @@ class SeparableBRDF:
         weights = np.repeat(w * 2.0 * np.pi / n_phi, n_phi)
         num = np.zeros(self.channels)
         den = np.zeros(self.channels)
-        for wi, wt in zip(dirs, weights):  # one incident direction at a time keeps memory small
-            exact = self.brdf.eval(wi, dirs)
-            approx = self.eval(wi, dirs)
-            num += wt * (weights @ (exact - approx) ** 2)
-            den += wt * (weights @ exact**2)
+        chunk = max(1, 200_000 // dirs.shape[0])  # incident directions per batch: bounded memory
+        for start in range(0, dirs.shape[0], chunk):
+            wi = dirs[start : start + chunk, None, :]
+            wt = weights[start : start + chunk, None, None] * weights[None, :, None]
+            exact = self.brdf.eval(wi, dirs[None])
+            num += np.sum(wt * (exact - self.eval(wi, dirs[None])) ** 2, axis=(0, 1))
+            den += np.sum(wt * exact**2, axis=(0, 1))
         return np.where(den > 0, np.sqrt(num / np.where(den > 0, den, 1.0)), 0.0)
 
 
