@@ -20,9 +20,10 @@ Self-intersection offset
     ray leaving either side of a two-sided sheet starts on that side. Pass
     ``normals=`` to :meth:`RayCaster.closest_hit` / :meth:`RayCaster.occluded`
     to apply it; without ``normals`` origins are used as given. A shadow ray
-    toward a light at distance ``r`` from ``o'`` should use
-    ``tmax = r - epsilon`` so that geometry lying exactly at the light (a
-    ceiling light on the ceiling) does not shadow it.
+    toward a light point ``y`` should start at ``o'`` (:func:`offset_origins`),
+    be aimed at ``y`` from there and use ``tmax = |y - o'| - epsilon``, so that
+    geometry lying exactly at the light (a ceiling light on the ceiling) does
+    not shadow it even at grazing angles.
     (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
     per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
 

@@ -19,9 +19,12 @@ Conventions
   normal to that side. Materials are Lambert ``albedo / pi`` or the
   normalised Phong of :class:`prtlab.scene.Material`.
 * **Area lights** are parallelograms emitting ``radiance`` on the side of
-  ``cross(u, v)`` only; they are not geometry (they neither reflect nor block,
-  and sampled rays never hit them), so they are reached only by next-event
-  estimation (NEE).
+  ``cross(u, v)`` only, reached only by next-event estimation (NEE). By
+  default they are not geometry (they neither reflect nor block, and sampled
+  rays never hit them); with ``area_lights_block=True`` each is also an
+  opaque black quad that ends any ray that hits it (Mitsuba's ``rectangle``
+  emitter: a shadow ray toward a light stops ``epsilon`` short of it, so a
+  light never shadows itself).
 * **Point lights**: exact shadow ray, irradiance ``I cos / r^2``.
 * **Environment**: ``EnvironmentLight.radiance(dirs)`` for rays that escape
   the scene. For a constant environment the estimator uses BSDF sampling only;
@@ -50,8 +53,9 @@ Conventions
   at 64 and 1.2 at 256 samples for irradiance under a one-pixel sun map, 1.0 at
   64 for a smooth sky).
 * **Ray offsets**: origins move ``RayCaster.epsilon`` (``1e-4`` of the scene
-  diagonal) along the normal on the side of the outgoing ray; shadow rays
-  stop ``2 epsilon`` before the light (see :mod:`prtlab.geometry._raycast`).
+  diagonal) along the normal on the side of the outgoing ray; shadow rays are
+  then aimed from the moved origin at the light point and stop ``epsilon``
+  before it (see :mod:`prtlab.geometry._raycast`).
 
 References
 ----------
@@ -69,7 +73,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from prtlab.geometry import RayCaster, direction_to_equirect
+from prtlab.geometry import RayCaster, direction_to_equirect, offset_origins
 from prtlab.scene import Material, ShadeResult
 
 from ._kernels import bsdf_eval_kernel, bsdf_sample_kernel, hit_frame_kernel
@@ -111,16 +115,28 @@ def _material_arrays(material: Material):
 class _SceneData:
     """World-space arrays of one pose of a scene: the ray caster, normals, materials, lights."""
 
-    def __init__(self, scene, env_sampling: str = "mis"):
+    def __init__(self, scene, env_sampling: str = "mis", area_lights_block: bool = False):
         if env_sampling not in ("mis", "bsdf"):
             raise ValueError(
                 f"env_sampling must be 'mis' (BSDF and map importance sampling) or 'bsdf', got {env_sampling!r}"
             )
+        if not isinstance(area_lights_block, (bool, np.bool_)):
+            raise TypeError(f"area_lights_block must be True or False, got {area_lights_block!r}")
         self.scene = scene
-        self.caster = RayCaster(scene)
-        objs = [scene.objects[i] for i in self.caster.object_index]
+        objs = [o for o in scene.objects if not o.portal]
+        meshes = [o.mesh for o in objs]
+        transforms = [o.transform for o in objs]
+        if area_lights_block:  # opaque black quads: they stop rays, reflect and transmit nothing
+            for light in scene.area_lights:
+                corners = light.center + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) @ np.stack([light.u, light.v])
+                meshes.append((corners, np.array([[0, 1, 2], [0, 2, 3]])))
+                transforms.append(None)
+        self.caster = RayCaster(meshes, transforms)
+        self.n_surfaces = len(objs)
         self.objects = objs
         self.vertex_normals = [np.asarray(o.world_normals(), float) for o in objs]
+        for k in range(len(objs), self.caster.n_objects):  # light quads: flat
+            self.vertex_normals.append(np.tile(self.caster.face_normals(k)[0], (4, 1)))
         # global face / vertex-normal tables in the caster's object order, for the hit kernel
         counts = [len(self.caster.world_vertices(k)) for k in range(self.caster.n_objects)]
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
@@ -132,6 +148,7 @@ class _SceneData:
         ).astype(np.int64)
         self.all_vertex_normals = np.concatenate(self.vertex_normals + [np.zeros((0, 3))])
         mats = [_material_arrays(o.material) for o in objs]
+        mats += [(np.zeros(3), np.zeros(3), 1.0)] * (self.caster.n_objects - len(objs))  # black lights
         self.kd = np.array([m[0] for m in mats]).reshape(-1, 3)
         self.ks = np.array([m[1] for m in mats]).reshape(-1, 3)
         self.ex = np.array([m[2] for m in mats], dtype=float)
@@ -238,10 +255,23 @@ def _unit(v):
     return v / np.where(length > 0, length, 1.0)
 
 
+def _shadowed(data: _SceneData, pos, ng, wi, target):
+    """Shadow rays from the offset origins straight to the light points, stopping epsilon short.
+
+    The origin moves ``epsilon`` off the surface on the side of ``wi``; the ray is then
+    re-aimed at ``target`` from there (a parallel ray would reach a light lying on a
+    surface up to ``epsilon / sin(elevation)`` early).
+    """
+    eps = data.epsilon
+    origins = offset_origins(pos, ng, wi, eps)
+    d = target - origins
+    dist = np.linalg.norm(d, axis=1)
+    return data.caster.occluded(origins, d / np.where(dist > 0, dist, 1.0)[:, None], dist - eps)
+
+
 def _next_event(data: _SceneData, p: _Paths, acc, rng):
     """Area, point and (importance-sampled) environment light at every path vertex."""
     n = len(p.pos)
-    eps = data.epsilon
     for light in data.area_lights:
         st = 2.0 * rng.random((n, 2)) - 1.0
         y = light.center + st[:, :1] * light.u + st[:, 1:] * light.v
@@ -254,8 +284,7 @@ def _next_event(data: _SceneData, p: _Paths, acc, rng):
         contrib = p.beta * fcos * np.asarray(light.radiance, float) * g[:, None]
         live = np.flatnonzero(np.any(contrib > 0, axis=1))
         if len(live):
-            occ = data.caster.occluded(p.pos[live], wi[live], dist[live] - 2 * eps, normals=p.ng[live])
-            live = live[~occ]
+            live = live[~_shadowed(data, p.pos[live], p.ng[live], wi[live], y[live])]
             acc[p.index[live]] += contrib[live]  # path ids are unique here
     for light in data.point_lights:
         d = np.asarray(light.position, float) - p.pos
@@ -266,8 +295,8 @@ def _next_event(data: _SceneData, p: _Paths, acc, rng):
         contrib = p.beta * fcos * np.asarray(light.intensity, float) * inv_r2[:, None]
         live = np.flatnonzero(np.any(contrib > 0, axis=1))
         if len(live):
-            occ = data.caster.occluded(p.pos[live], wi[live], dist[live] - 2 * eps, normals=p.ng[live])
-            live = live[~occ]
+            target = np.broadcast_to(np.asarray(light.position, float), (len(live), 3))
+            live = live[~_shadowed(data, p.pos[live], p.ng[live], wi[live], target)]
             acc[p.index[live]] += contrib[live]  # path ids are unique here
     if data.env_sampler is not None and data.env_sampler.cell_pdf is not None:
         wi, pdf_env = data.env_sampler.sample(rng.random((n, 3)))
@@ -307,7 +336,7 @@ def _continue(data: _SceneData, p: _Paths, acc, rng, last: bool):
         acc[p.index[escaped]] += contrib
     if last:
         return None
-    sel = np.flatnonzero(hits.hit)
+    sel = np.flatnonzero(hits.hit & (hits.object < data.n_surfaces))  # a light quad ends the path
     obj = hits.object[sel]
     m = len(sel)
     ns, ng, wo = np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3))
@@ -421,6 +450,7 @@ def path_trace(
     rng: np.random.Generator,
     *,
     env_sampling: str = "mis",
+    area_lights_block: bool = False,
     progress: bool = False,
 ) -> ShadeResult:
     """Per-vertex outgoing radiance toward the camera with up to ``bounces`` indirect bounces.
@@ -437,6 +467,10 @@ def path_trace(
         How an environment *image* is sampled: BSDF sampling combined with
         importance sampling of the map by MIS (default), or BSDF sampling only.
         A constant environment always uses BSDF sampling.
+    area_lights_block : bool
+        False (default): area lights are not geometry (they neither block nor
+        reflect). True: each is also an opaque, black quad that stops rays, as
+        Mitsuba's ``rectangle`` emitter does.
     progress : bool
         Show a tqdm bar over vertex chunks.
 
@@ -466,7 +500,7 @@ def path_trace(
     n_samples = _check_int(n_samples, "n_samples", 2)
     rng = _check_rng(rng)
     t0 = time.perf_counter()
-    data = _SceneData(scene, env_sampling)
+    data = _SceneData(scene, env_sampling, area_lights_block)
     shaded = [o for o in scene.objects if not o.portal]
     counts = [o.n_vertices for o in shaded]
     pos = np.concatenate([o.world_vertices() for o in shaded]) if shaded else np.zeros((0, 3))
@@ -498,7 +532,13 @@ def path_trace(
 
 
 def direct(
-    scene, n_samples: int, rng: np.random.Generator, *, env_sampling: str = "mis", progress: bool = False
+    scene,
+    n_samples: int,
+    rng: np.random.Generator,
+    *,
+    env_sampling: str = "mis",
+    area_lights_block: bool = False,
+    progress: bool = False,
 ) -> ShadeResult:
     """Direct light only: :func:`path_trace` with ``bounces=0`` (``indirect`` is zero).
 
@@ -508,11 +548,20 @@ def direct(
     Diffuse vertices give ``albedo / pi * E``; Phong vertices the normalised
     Phong BRDF toward the camera.
     """
-    return path_trace(scene, 0, n_samples, rng, env_sampling=env_sampling, progress=progress)
+    return path_trace(
+        scene, 0, n_samples, rng, env_sampling=env_sampling, area_lights_block=area_lights_block, progress=progress
+    )
 
 
 def shade_reference(
-    scene, bounces: int = 1, n_samples: int = 256, seed: int = 0, progress: bool = True, *, env_sampling: str = "mis"
+    scene,
+    bounces: int = 1,
+    n_samples: int = 256,
+    seed: int = 0,
+    progress: bool = True,
+    *,
+    env_sampling: str = "mis",
+    area_lights_block: bool = False,
 ) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="reference", ...)``: :func:`path_trace` seeded by ``seed``.
 
@@ -529,6 +578,8 @@ def shade_reference(
         tqdm bar over vertex chunks.
     env_sampling : {"mis", "bsdf"}
         See :func:`path_trace`.
+    area_lights_block : bool
+        See :func:`path_trace`.
 
     Returns
     -------
@@ -538,7 +589,8 @@ def shade_reference(
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise TypeError(f"seed must be an integer, got {type(seed).__name__}")
     return path_trace(
-        scene, bounces, n_samples, np.random.default_rng(seed), env_sampling=env_sampling, progress=progress
+        scene, bounces, n_samples, np.random.default_rng(seed), env_sampling=env_sampling,
+        area_lights_block=area_lights_block, progress=progress,
     )
 
 
@@ -553,6 +605,7 @@ def radiance_at(
     material: Material | None = None,
     bounces: int = 0,
     env_sampling: str = "mis",
+    area_lights_block: bool = False,
 ) -> Estimate:
     """Outgoing radiance toward ``view_dirs`` at any points, with shadows and up to ``bounces`` bounces.
 
@@ -570,6 +623,8 @@ def radiance_at(
         The surface at the points; default white Lambert (albedo 1).
     bounces : int >= 0
     env_sampling : {"mis", "bsdf"}
+        As in :func:`path_trace`.
+    area_lights_block : bool
         As in :func:`path_trace`.
 
     Returns
@@ -591,7 +646,7 @@ def radiance_at(
     batch = points.shape[:-1]
     pos = points.reshape(-1, 3)
     v = len(pos)
-    data = _SceneData(scene, env_sampling)
+    data = _SceneData(scene, env_sampling, area_lights_block)
     out = _estimate(
         data, pos, _unit(normals.reshape(-1, 3)), _unit(view_dirs.reshape(-1, 3)),
         np.tile(kd, (v, 1)), np.tile(ks, (v, 1)), np.full(v, ex), bounces, n_samples, rng,
@@ -602,7 +657,15 @@ def radiance_at(
 
 
 def irradiance_at(
-    scene, points, normals, n_samples: int, rng: np.random.Generator, *, bounces: int = 0, env_sampling: str = "mis"
+    scene,
+    points,
+    normals,
+    n_samples: int,
+    rng: np.random.Generator,
+    *,
+    bounces: int = 0,
+    env_sampling: str = "mis",
+    area_lights_block: bool = False,
 ) -> Estimate:
     """Irradiance ``E = int L_i cos`` at any points on the side of ``normals``, with shadows.
 
@@ -617,6 +680,8 @@ def irradiance_at(
         the scene up to ``B`` times (``indirect``).
     env_sampling : {"mis", "bsdf"}
         As in :func:`path_trace`.
+    area_lights_block : bool
+        As in :func:`path_trace`.
 
     Returns
     -------
@@ -626,5 +691,5 @@ def irradiance_at(
     """
     normals_arr = np.asarray(normals, dtype=np.float64)
     est = radiance_at(scene, points, normals_arr, normals_arr, n_samples, rng, bounces=bounces,
-                      env_sampling=env_sampling)
+                      env_sampling=env_sampling, area_lights_block=area_lights_block)
     return Estimate(*(np.pi * x for x in est))

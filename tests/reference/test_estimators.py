@@ -173,6 +173,35 @@ def test_area_light_lambert_formula_and_one_sided(rng):
     np.testing.assert_array_equal(e.total, 0.0)
 
 
+def test_light_lying_on_a_ceiling_is_not_shadowed_by_it(rng):
+    # the light is exactly in the ceiling's plane; grazing shadow rays must still reach it
+    ceiling = grid_plane(size=8.0, res=4, y=1.0, flip=True)
+    light = AreaLight(center=np.array([0.0, 1.0, 0.0]), u=np.array([0.3, 0.0, 0.0]), v=np.array([0.0, 0.0, 0.3]),
+                      radiance=np.ones(3))
+    scene = Scene([SceneObject("ceiling", ceiling, material=diffuse(0.5))], [light])
+    pts = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.5], [3.5, 0.0, -1.0]])
+    nrm = np.tile([0.0, 1.0, 0.0], (3, 1))
+    e = irradiance_at(scene, pts, nrm, 2000, rng)
+    corners = light.center + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) @ np.stack([light.u, light.v])
+    assert_within(e.total, e.stderr, polygon_irradiance(pts, nrm, corners, light.radiance))
+
+
+@pytest.mark.parametrize("block", [False, True])
+def test_area_light_as_opaque_quad_or_not(rng, block):
+    light = AreaLight(center=np.array([0.2, 1.0, 0.0]), u=np.array([0.5, 0.0, 0.0]), v=np.array([0.0, 0.0, 0.4]),
+                      radiance=np.array([3.0, 2.0, 1.0]))
+    sky = np.array([0.5, 0.5, 1.0])
+    scene = Scene([], [light, EnvironmentLight(constant=sky)])
+    pts = np.array([[0.0, 0.0, 0.0], [0.9, 0.0, -0.4], [3.0, 0.0, 0.0]])
+    nrm = np.tile([0.0, 1.0, 0.0], (3, 1))
+    e = irradiance_at(scene, pts, nrm, 4000, rng, area_lights_block=block)
+    corners = light.center + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) @ np.stack([light.u, light.v])
+    truth = np.pi * sky + polygon_irradiance(pts, nrm, corners, light.radiance)
+    if block:  # the black quad hides its patch of sky
+        truth -= polygon_irradiance(pts, nrm, corners, sky)
+    assert_within(e.total, e.stderr, truth)
+
+
 def test_sky_occluded_by_roof(rng):
     # a square roof (single sheet) of half size a at height h over the floor blocks the sky
     a, h = 1.0, 1.0
@@ -521,5 +550,7 @@ def test_errors(rng):
         irradiance_at(scene, np.zeros((2, 3)), np.full((2, 3), np.nan), 4, rng)
     with pytest.raises(ValueError, match="env_sampling must be 'mis'"):
         direct(scene, 4, rng, env_sampling="nee")
+    with pytest.raises(TypeError, match="area_lights_block must be True or False"):
+        direct(scene, 4, rng, area_lights_block="yes")
     with pytest.raises(ValueError, match="view_dirs of shape"):
         radiance_at(scene, np.zeros((2, 3)), np.ones((2, 3)), np.ones((3, 3)), 4, rng)
