@@ -600,6 +600,9 @@ def exp(f, method: str = "hyb", *, channels=None) -> np.ndarray:
 
     HYB: ``k = max(0, ceil(log2(|fh| / 0.125)))``; ``v = OL(fh / 2^k)``; then
     ``v <- v * v`` (:func:`product` truncated to order ``n``) ``k`` times.
+    The threshold 0.125 was chosen by measurement on the ensemble below
+    (mean error 0.080 at 0.5, 0.073 at 0.25, 0.069 at 0.125, 0.067 at
+    0.0625, each halving costing one more squaring).
 
     Accuracy for what the papers accumulate (order 4; sums of 1..20 blocker
     logs of angular radius 5..60 degrees at uniform random directions),
