@@ -12,7 +12,7 @@ from ._meshes import (
     subdivide,
 )
 from ._room import ROOM_SURFACES, WINDOW_WALLS, room_with_windows, window_quad
-from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RayCaster, RayHits, offset_origins
+from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RAY_TNEAR_SCALE, RayCaster, RayHits, offset_origins
 from ._sampling import (
     MeshSamples,
     cosine_hemisphere,
@@ -43,6 +43,7 @@ from ._spheremaps import (
 __all__ = [
     "RAY_CHUNK",
     "RAY_EPSILON_SCALE",
+    "RAY_TNEAR_SCALE",
     "RayCaster",
     "RayHits",
     "offset_origins",

@@ -27,6 +27,16 @@ Self-intersection offset
     (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
     per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
 
+Ray start (emulated ``tnear``)
+    With ``tnear = 0`` Embree reports hits at ``t = 0`` (even ``-0``) for an
+    origin lying exactly on a triangle, whatever the direction. Every ray
+    therefore starts ``RayCaster.tnear = RAY_TNEAR_SCALE * diagonal`` (``1e-6``,
+    about 16 float32 ulps of a unit scene) along its direction, and searches
+    ``(tnear, tmax]``; reported distances are still measured from the
+    (offset) origin. So a ray leaving a point that lies on *another* surface
+    (a floor vertex on a wall's plane, at a room corner) is not blocked by that
+    surface at distance 0, in either direction, as with the float64 tier.
+
 Precision (float32)
     Embree stores vertices, origins, directions and distances in float32. The
     world vertices are computed in float64 and rounded once; distances carry a
@@ -50,10 +60,13 @@ from typing import Sequence
 import numba
 import numpy as np
 
-__all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_CHUNK", "offset_origins"]
+__all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_TNEAR_SCALE", "RAY_CHUNK", "offset_origins"]
 
 #: Self-intersection offset, as a fraction of the world bounding-box diagonal.
 RAY_EPSILON_SCALE = 1e-4
+
+#: Start of every ray (an emulated Embree ``tnear``), as a fraction of the bounding-box diagonal.
+RAY_TNEAR_SCALE = 1e-6
 
 #: Rays per call into Embree (bounds the float32 staging buffers).
 RAY_CHUNK = 1 << 19
@@ -120,8 +133,9 @@ def _as_rays(origins, dirs, normals=None):
 
 
 @numba.njit(cache=True, parallel=True)
-def _stage_rays(origins, dirs, normals, epsilon, o32, d32):
-    """Unit float32 directions and (offset) float32 origins; returns (#non-finite, #zero dirs)."""
+def _stage_rays(origins, dirs, normals, epsilon, tnear, o32, d32):
+    """Unit float32 directions and float32 origins, offset off their surface and then ``tnear``
+    along the ray; returns (#non-finite, #zero dirs)."""
     n = origins.shape[0]
     bad = np.zeros(n, dtype=np.int64)
     has_normals = normals.shape[0] == n
@@ -147,7 +161,7 @@ def _stage_rays(origins, dirs, normals, epsilon, o32, d32):
             ox += side * nx
             oy += side * ny
             oz += side * nz
-        o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
+        o32[i, 0], o32[i, 1], o32[i, 2] = ox + tnear * dx, oy + tnear * dy, oz + tnear * dz
         d32[i, 0], d32[i, 1], d32[i, 2] = dx, dy, dz
     n_nonfinite = 0
     n_zero = 0
@@ -374,6 +388,12 @@ class RayCaster:
         diag = float(np.linalg.norm(self._bounds[1] - self._bounds[0]))
         return RAY_EPSILON_SCALE * (diag if diag > 0 else 1.0)
 
+    @property
+    def tnear(self) -> float:
+        """Start of every ray along its direction: ``RAY_TNEAR_SCALE * |bounds[1] - bounds[0]|``."""
+        diag = float(np.linalg.norm(self._bounds[1] - self._bounds[0]))
+        return RAY_TNEAR_SCALE * (diag if diag > 0 else 1.0)
+
     def world_vertices(self, index: int) -> np.ndarray:
         """(n_vertices, 3) float64 world vertices of object ``index`` in the current pose."""
         return self._world_vertices[index]
@@ -427,7 +447,9 @@ class RayCaster:
         o, d, n, batch = _as_rays(origins, dirs, normals)
         o32 = np.empty(o.shape, dtype=np.float32)
         d32 = np.empty(d.shape, dtype=np.float32)
-        nonfinite, zero = _stage_rays(o, d, np.zeros((0, 3)) if n is None else n, self.epsilon, o32, d32)
+        nonfinite, zero = _stage_rays(
+            o, d, np.zeros((0, 3)) if n is None else n, self.epsilon, self.tnear, o32, d32
+        )
         if nonfinite:
             raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
         if zero:
@@ -482,6 +504,7 @@ class RayCaster:
         e1 = self._all_vertices[faces[:, 1]] - a
         e2 = self._all_vertices[faces[:, 2]] - a
         owner = np.searchsorted(self._face_offset, np.arange(len(faces)), side="right") - 1
+        tnear = self.tnear
         step = max(1, (1 << 22) // len(faces))
         for s in range(0, n, step):
             oo, dd = o[s : s + step, None, :], d[s : s + step, None, :]
@@ -494,7 +517,7 @@ class RayCaster:
             q = np.cross(sv, e1)
             v = np.sum(dd * q, axis=-1) * inv
             tt = np.sum(e2 * q, axis=-1) * inv
-            hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt > 0) & (tt <= t[s : s + step, None])
+            hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (tt > tnear) & (tt <= t[s : s + step, None])
             tt = np.where(hit, tt, np.inf)
             k = np.argmin(tt, axis=1)
             rows = np.arange(len(k))
@@ -508,7 +531,7 @@ class RayCaster:
         return geom, prim, uv, dist
 
     def closest_hit(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> RayHits:
-        """First surface hit along each ray within ``(0, tmax]``.
+        """First surface hit along each ray within ``(tnear, tmax]``.
 
         Parameters
         ----------
@@ -535,6 +558,7 @@ class RayCaster:
             return self._hits(geom, prim, uv, dist, batch)
         o, d, batch = self._prepare(origins, dirs, normals)
         n = len(o)
+        tnear = self.tnear
         t = self._tmax(tmax, batch, n)
         geom = np.full(n, -1, dtype=np.int64)
         prim = np.full(n, -1, dtype=np.int64)
@@ -542,9 +566,14 @@ class RayCaster:
         dist = np.full(n, np.inf)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            out = self._scene.run(o[s:e], d[s:e], dists=np.asarray(t[s:e], dtype=np.float32).copy(), output=1)
+            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
+            live = ts > 0
+            ts = np.where(live, ts, 1e-30).astype(np.float32)
+            out = self._scene.run(o[s:e], d[s:e], dists=ts, output=1)
+            out["geomID"][~live] = -1
             _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
                           geom[s:e], prim[s:e], uv[s:e], dist[s:e])
+        dist += tnear  # distances from the (offset) origin, not from the tnear start
         return self._hits(geom, prim, uv, dist, batch)
 
     def _hits(self, geom, prim, uv, dist, batch) -> RayHits:
@@ -565,7 +594,7 @@ class RayCaster:
         )
 
     def occluded(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> np.ndarray:
-        """Whether any surface lies along each ray within ``(0, tmax)`` (any-hit query).
+        """Whether any surface lies along each ray within ``(tnear, tmax)`` (any-hit query).
 
         Parameters
         ----------
@@ -592,14 +621,15 @@ class RayCaster:
         o, d, batch = self._prepare(origins, dirs, normals)
         n = len(o)
         t = self._tmax(tmax, batch, n)
+        tnear = self.tnear
         result = np.zeros(n, dtype=bool)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = np.asarray(t[s:e], dtype=np.float32).copy()
+            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
             live = ts > 0
             if not np.any(live):
                 continue
-            ts[~live] = np.float32(1e-30)
+            ts = np.where(live, ts, 1e-30).astype(np.float32)
             ids = self._scene.run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
             result[s:e] = (ids != -1) & live
         return result.reshape(batch)

@@ -88,6 +88,20 @@ def test_offset_prevents_self_intersection(rng, method):
     np.testing.assert_allclose(hits.distance, 2 * cos * 0.99, rtol=0.03)
 
 
+@METHODS
+def test_origin_on_another_surface_is_not_blocked_by_it(method):
+    # Embree alone reports t = 0 hits for such origins in every direction
+    wall = (np.array([[0, 0, -1], [0, 2, -1], [0, 2, 1], [0, 0, 1.0]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    caster = RayCaster([wall])
+    o = np.array([[0.0, 0.5, 0.2]] * 2)
+    d = np.array([[1.0, 0.3, 0.1], [-1.0, 0.3, 0.1]])
+    np.testing.assert_array_equal(caster.occluded(o, d, method=method), [False, False])
+    assert not caster.closest_hit(o, d, method=method).hit.any()
+    # a ray from just in front still hits it, at the right distance
+    hits = caster.closest_hit([[0.5, 0.5, 0.2]], [[-1.0, 0.0, 0.0]], method=method)
+    assert hits.hit[0] and hits.distance[0] == pytest.approx(0.5, abs=1e-6)
+
+
 def test_epsilon_scales_with_scene():
     caster = RayCaster([trimesh.creation.box(extents=[2.0, 2.0, 2.0])])
     assert caster.epsilon == pytest.approx(RAY_EPSILON_SCALE * 2.0 * np.sqrt(3.0))
