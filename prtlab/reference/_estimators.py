@@ -33,6 +33,10 @@ Conventions
   luminance``) by multiple importance sampling with the power heuristic.
 * **Portals** (``portal: true`` objects) are openings: they are neither
   shaded nor cast into the ray caster.
+* **Vertices on another surface** (a floor vertex on a wall's plane at a room
+  corner): their rays are not blocked by that surface at distance 0, in
+  either direction (``RayCaster.tnear``); the radiance there is ill-defined
+  (it jumps across the corner), so comparisons should use other vertices.
 * **Vertices without a normal** (zero-length vertex normals, e.g. vertices no
   face uses) get zero radiance with a standard error of zero.
 * **Bounces.** A path starts at the shaded vertex (depth 0). Light that
@@ -527,6 +531,7 @@ def path_trace(
         "seconds": time.perf_counter() - t0,
         "ray_epsilon": data.epsilon,
         "env_importance_sampling": data.env_sampler is not None,
+        "area_lights_block": bool(area_lights_block),
     }
     return result
 
