@@ -168,7 +168,7 @@ class Phong:
         arrays["normal"] = np.array([0.0, 0.0, 1.0]) if normal is None else _as_dirs(normal, "normal")
         wi_b, wo_b, n_b = _broadcast(arrays)
         batch = wi_b.shape[:-1]
-        flat = [np.ascontiguousarray(a.reshape(-1, 3)) for a in (wi_b, wo_b, n_b)]
+        flat = [np.array(a.reshape(-1, 3), dtype=np.float64, order="C") for a in (wi_b, wo_b, n_b)]
         e = float(self.exponent)
         if method == "reference":
             out = _kernels.phong_eval_numpy(*flat, self.kd, self.ks, e)
@@ -262,7 +262,7 @@ def phong(kd, ks, exponent) -> Phong:
     kd_arr = _as_reflectance(kd, "kd")
     ks_arr = _as_reflectance(ks, "ks")
     try:
-        kd_arr, ks_arr = (np.ascontiguousarray(a) for a in np.broadcast_arrays(kd_arr, ks_arr))
+        kd_arr, ks_arr = (np.array(a, dtype=np.float64) for a in np.broadcast_arrays(kd_arr, ks_arr))
     except ValueError:
         raise ValueError(
             f"kd has {kd_arr.shape[0]} channels and ks {ks_arr.shape[0]}; pass the same number (or a scalar)"

@@ -227,7 +227,7 @@ class SeparableBRDF:
         method = _check_method(method)
         d = _as_dirs(dirs, name)
         batch = d.shape[:-1]
-        flat = np.ascontiguousarray(d.reshape(-1, 3))
+        flat = np.array(d.reshape(-1, 3), dtype=np.float64, order="C")
         nodes, values = self._ext(theta, radial, theta_max)
         if method == "reference":
             out = _kernels.factor_eval_numpy(nodes, values, self.freq, self.parity, flat)
@@ -561,6 +561,7 @@ def relative_error_table(
     parameterisation: str = "plain",
     kd: float = 0.0,
     ks: float = 1.0,
+    order: int | None = None,
 ) -> ErrorTable:
     """Relative L2 error of the separable approximation against exponent and K.
 
@@ -575,11 +576,15 @@ def relative_error_table(
     kd, ks : float
         Reflectances of the (grey) Phong BRDF; default the pure lobe
         (``kd = 0``), the hardest case.
+    order : int, optional
+        If given, tabulate :func:`transfer_error` (the error seen by order-n
+        SH lighting) instead of the L2 error of the BRDF itself.
 
     Returns
     -------
     ErrorTable
-        Grid errors (:meth:`SeparableBRDF.relative_error` with ``"grid"``).
+        Grid errors (:meth:`SeparableBRDF.relative_error` with ``"grid"``), or
+        transfer errors when ``order`` is given.
 
     References
     ----------
@@ -601,11 +606,28 @@ def relative_error_table(
         if brdf.channels != 1:
             raise ValueError("kd and ks must be scalars (the table is for a grey BRDF)")
         wd, ws = _grey_weights(brdf)
+        if order is not None:
+            from ._project import transfer_error
+
+            sep = separable(brdf, max(ks_list), resolution=(n_theta, n_phi), parameterisation=parameterisation)
+            for j, k in enumerate(ks_list):
+                error[i, j] = transfer_error(_truncate(sep, k), order)[0]
+            continue
         fac = _factorise(wd, ws, brdf.exponent, n_theta, n_phi, parameterisation)
         for j, k in enumerate(ks_list):
             k = _check_k(k, len(fac.entries))
             error[i, j] = np.sqrt((fac.nyquist + fac.tail[k]) / fac.norm2) if fac.norm2 > 0 else 0.0
     return ErrorTable(exps, ks_list, error, parameterisation, (n_theta, n_phi))
+
+
+def _truncate(sep: SeparableBRDF, K: int) -> SeparableBRDF:
+    """The first K terms of ``sep`` (grid residual not tracked: NaN)."""
+    from dataclasses import replace
+
+    return replace(
+        sep, K=K, g_radial=sep.g_radial[:K], h_radial=sep.h_radial[:K], freq=sep.freq[:K], parity=sep.parity[:K],
+        sigma=sep.sigma[:K], colour=sep.colour[:K], _residual2=np.full(sep.channels, np.nan),
+    )
 
 
 from ._models import phong  # noqa: E402  (after the definitions that phong does not need)

@@ -232,3 +232,12 @@ def test_errors():
         relative_error_table(exponents=(4,), K=(1,), kd=[0.1, 0.2], ks=0.5, resolution=SMALL)
     with pytest.raises(ValueError, match="parameterisation must be"):
         relative_error_table(parameterisation="x")
+
+
+def test_relative_error_table_of_transfer_error():
+    from prtlab.brdf import transfer_error
+
+    table = relative_error_table(exponents=(10,), K=(2, 4), resolution=(12, 24), order=3)
+    for j, k in enumerate((2, 4)):
+        sep = separable(phong(0.0, 1.0, 10.0), k, resolution=(12, 24))
+        assert table.error[0, j] == pytest.approx(transfer_error(sep, 3)[0], rel=1e-12)
