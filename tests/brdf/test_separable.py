@@ -241,3 +241,11 @@ def test_relative_error_table_of_transfer_error():
     for j, k in enumerate((2, 4)):
         sep = separable(phong(0.0, 1.0, 10.0), k, resolution=(12, 24))
         assert table.error[0, j] == pytest.approx(transfer_error(sep, 3)[0], rel=1e-12)
+
+
+@pytest.mark.slow
+def test_default_table_is_converged_in_resolution():
+    coarse = relative_error_table(resolution=(48, 96))
+    fine = relative_error_table()  # (64, 128)
+    np.testing.assert_allclose(fine.error, coarse.error, atol=1e-3)
+    assert np.all(np.diff(fine.error, axis=0) > 0) and np.all(np.diff(fine.error, axis=1) < 0)
