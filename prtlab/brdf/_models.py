@@ -258,6 +258,15 @@ def phong(kd, ks, exponent) -> Phong:
     ----------
     E. Lafortune, Y. Willems, "Using the modified Phong reflectance model
     for physically based rendering", Tech. Rep. CW197, KU Leuven, 1994.
+
+    Examples
+    --------
+    >>> from prtlab.brdf import phong
+    >>> b = phong(0.2, 0.5, 10)
+    >>> b.eval([0, 0, 1], [0, 0, 1]).round(4)  # kd/pi + ks (e+2)/(2 pi)
+    array([1.0186])
+    >>> b.directional_albedo(1.0).round(12)  # exactly kd + ks at normal incidence
+    array([0.7])
     """
     kd_arr = _as_reflectance(kd, "kd")
     ks_arr = _as_reflectance(ks, "ks")

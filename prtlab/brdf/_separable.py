@@ -387,6 +387,16 @@ def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") ->
     K. Iwasaki, Y. Dobashi, F. Yoshimoto, T. Nishita, "Precomputed radiance
     transfer for dynamic scenes taking into account light interreflection",
     EGSR 2007, Eq. (6)-(8) and (11)-(13).
+
+    Examples
+    --------
+    >>> from prtlab.brdf import lambert, phong, separable
+    >>> sep = separable(lambert(0.5), 1, resolution=(8, 16))
+    >>> [round(float(x), 12) for x in (sep.g_radial[0, 0] * 3.141592653589793, sep.h_radial[0, 0], sep.colour[0, 0])]
+    [1.0, 1.0, 0.5]
+    >>> glossy = separable(phong(0.0, 1.0, 16), 4, resolution=(32, 64))
+    >>> round(float(glossy.relative_error()[0]), 2)
+    0.8
     """
     if not isinstance(brdf, Phong):
         raise TypeError(f"brdf must be a prtlab.brdf Lambert or Phong (see lambert(), phong()), got {type(brdf).__name__}")
