@@ -20,11 +20,12 @@ Conventions
   normalised Phong of :class:`prtlab.scene.Material`.
 * **Area lights** are parallelograms emitting ``radiance`` on the side of
   ``cross(u, v)`` only, reached only by next-event estimation (NEE). By
-  default they are not geometry (they neither reflect nor block, and sampled
-  rays never hit them); with ``area_lights_block=True`` each is also an
-  opaque black quad that ends any ray that hits it (Mitsuba's ``rectangle``
-  emitter: a shadow ray toward a light stops ``epsilon`` short of it, so a
-  light never shadows itself).
+  default (``area_lights_block=True``) each is also an opaque black quad that
+  ends any ray that hits it, as Mitsuba's ``rectangle`` emitter is, so the two
+  references see the same scene (a shadow ray toward a light stops
+  ``epsilon`` short of it, so a light never shadows itself). With
+  ``area_lights_block=False`` lights are not geometry: they neither reflect
+  nor block, and sampled rays never hit them.
 * **Point lights**: exact shadow ray, irradiance ``I cos / r^2``.
 * **Environment**: ``EnvironmentLight.radiance(dirs)`` for rays that escape
   the scene. For a constant environment the estimator uses BSDF sampling only;
@@ -119,7 +120,7 @@ def _material_arrays(material: Material):
 class _SceneData:
     """World-space arrays of one pose of a scene: the ray caster, normals, materials, lights."""
 
-    def __init__(self, scene, env_sampling: str = "mis", area_lights_block: bool = False):
+    def __init__(self, scene, env_sampling: str = "mis", area_lights_block: bool = True):
         if env_sampling not in ("mis", "bsdf"):
             raise ValueError(
                 f"env_sampling must be 'mis' (BSDF and map importance sampling) or 'bsdf', got {env_sampling!r}"
@@ -454,7 +455,7 @@ def path_trace(
     rng: np.random.Generator,
     *,
     env_sampling: str = "mis",
-    area_lights_block: bool = False,
+    area_lights_block: bool = True,
     progress: bool = False,
 ) -> ShadeResult:
     """Per-vertex outgoing radiance toward the camera with up to ``bounces`` indirect bounces.
@@ -472,9 +473,9 @@ def path_trace(
         importance sampling of the map by MIS (default), or BSDF sampling only.
         A constant environment always uses BSDF sampling.
     area_lights_block : bool
-        False (default): area lights are not geometry (they neither block nor
-        reflect). True: each is also an opaque, black quad that stops rays, as
-        Mitsuba's ``rectangle`` emitter does.
+        True (default): each area light is also an opaque, black quad that
+        stops rays, as Mitsuba's ``rectangle`` emitter does. False: area lights
+        are not geometry (they neither block nor reflect).
     progress : bool
         Show a tqdm bar over vertex chunks.
 
@@ -542,7 +543,7 @@ def direct(
     rng: np.random.Generator,
     *,
     env_sampling: str = "mis",
-    area_lights_block: bool = False,
+    area_lights_block: bool = True,
     progress: bool = False,
 ) -> ShadeResult:
     """Direct light only: :func:`path_trace` with ``bounces=0`` (``indirect`` is zero).
@@ -566,7 +567,7 @@ def shade_reference(
     progress: bool = True,
     *,
     env_sampling: str = "mis",
-    area_lights_block: bool = False,
+    area_lights_block: bool = True,
 ) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="reference", ...)``: :func:`path_trace` seeded by ``seed``.
 
@@ -610,7 +611,7 @@ def radiance_at(
     material: Material | None = None,
     bounces: int = 0,
     env_sampling: str = "mis",
-    area_lights_block: bool = False,
+    area_lights_block: bool = True,
 ) -> Estimate:
     """Outgoing radiance toward ``view_dirs`` at any points, with shadows and up to ``bounces`` bounces.
 
@@ -670,7 +671,7 @@ def irradiance_at(
     *,
     bounces: int = 0,
     env_sampling: str = "mis",
-    area_lights_block: bool = False,
+    area_lights_block: bool = True,
 ) -> Estimate:
     """Irradiance ``E = int L_i cos`` at any points on the side of ``normals``, with shadows.
 
