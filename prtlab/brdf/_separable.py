@@ -179,10 +179,12 @@ class SeparableBRDF:
         Singular values of the grey reference BRDF kept, descending (the L2
         norms of the terms ``g_k h_k``).
     colour : (K, C) float64
-        Per-channel weights, the least-squares fit of each channel onto the
-        fixed product terms.
+        Per-channel weights of the terms: ``kd + ks`` for every term when
+        ``kd`` and ``ks`` have the same hue, else ``kd`` for the diffuse term 0
+        and ``ks`` for the lobe terms (see :func:`separable`).
     singular_values : (R,) float64
-        The whole spectrum of the grey reference on the grid (``m >= 1``
+        The whole spectrum, on the grid, of the separated function (the grey
+        reference, or the lobe ``L`` when term 0 is the diffuse part; ``m >= 1``
         values listed twice).
     """
 
