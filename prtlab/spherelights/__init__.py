@@ -1,6 +1,14 @@
-"""Guerrero et al. 2008 spherical-lights pipeline (issue 6).
+"""Guerrero, Jeschke, Wimmer 2008: spherical lights (issue 6).
 
-Not implemented yet: this subpackage is reserved by ../shared/DESIGN.md.
+Sphere-set fitting (Sec. 4.1) and the direct soft shadows of Ren et al. 2006
+that the method builds on (Sec. 5.1, Eqs. 3-8).
 """
 
-__all__: list[str] = []
+from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
+
+__all__ = [
+    "SphereFit",
+    "fit_spheres",
+    "sphere_set_coverage",
+    "sphere_set_figure",
+]
