@@ -1,0 +1,168 @@
+"""Tests of prtlab.pca._basis: PCA basis functions from point-light renders (Iwasaki 2007, Sec. 4.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from prtlab.geometry import builtin_mesh
+from prtlab.pca import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity
+from prtlab.scene import Material, SceneObject
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return builtin_mesh("icosphere", subdivisions=2)
+
+
+@pytest.fixture(scope="module")
+def bunny_pca():
+    return fit_pca_basis(builtin_mesh("bunny"), n_basis=16, n_lights=64)
+
+
+# --------------------------------------------------------------------------- known answers
+
+
+def test_point_light_on_sphere_closed_form(sphere):
+    light = np.array([[0.0, 3.0, 0.0]])
+    got = point_light_intensity(sphere, light, albedo=0.5)[0]
+    x = np.asarray(sphere.vertices)
+    n = np.asarray(sphere.vertex_normals)
+    d = light[0] - x
+    r2 = np.sum(d * d, 1)
+    cos = np.sum(n * d, 1) / np.sqrt(r2)
+    expected = np.where(cos > 0, 0.5 / np.pi * cos / r2, 0.0)
+    # a convex object never shadows a vertex that faces the light
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-15)
+
+
+def test_self_shadowing_on_concave_object():
+    # two parallel plates: the lower one is shadowed by the upper one from a light above
+    lower = trimesh.creation.box(extents=[1, 0.1, 1])
+    upper = trimesh.creation.box(extents=[1, 0.1, 1])
+    upper.apply_translation([0, 1, 0])
+    both = trimesh.util.concatenate([lower, upper])
+    light = np.array([[0.0, 5.0, 0.0]])
+    lit = point_light_intensity(both, light, shadows=False)[0]
+    shadowed = point_light_intensity(both, light)[0]
+    top_of_lower = np.flatnonzero(np.isclose(both.vertices[:, 1], 0.05))
+    assert np.all(lit[top_of_lower] > 0) and np.all(shadowed[top_of_lower] == 0)
+    top_of_upper = np.flatnonzero(np.isclose(both.vertices[:, 1], 1.05))
+    np.testing.assert_allclose(shadowed[top_of_upper], lit[top_of_upper])
+
+
+def test_kernel_matches_reference(rng):
+    mesh = builtin_mesh("bunny")
+    lights = pca_light_positions(mesh, 16)
+    np.testing.assert_allclose(
+        point_light_intensity(mesh, lights), point_light_intensity(mesh, lights, method="reference"),
+        rtol=1e-12, atol=1e-15,
+    )
+
+
+def test_light_positions_sphere_and_plane(sphere):
+    p = pca_light_positions(sphere, 100)
+    np.testing.assert_allclose(np.linalg.norm(p, axis=1), 2.0, rtol=1e-9)  # twice the bounding radius 1
+    np.testing.assert_allclose(np.linalg.norm(pca_light_positions(sphere, 10, 1.5), axis=1), 1.5)
+    plane = builtin_mesh("plane", size=[4, 2], resolution=[4, 4])
+    g = pca_light_positions(plane, 256, plane=True)
+    assert g.shape == (256, 3)
+    np.testing.assert_allclose(g[:, 1], 2.0)  # half the larger extent above the plane
+    assert g[:, 0].min() > -2 and g[:, 0].max() < 2 and g[:, 2].min() > -1 and g[:, 2].max() < 1
+    assert len(np.unique(g[:, 0])) == 16 and len(np.unique(g[:, 2])) == 16
+
+
+def test_basis_structure(bunny_pca):
+    pca = bunny_pca
+    assert isinstance(pca, PCABasis) and pca.basis.shape == (16, 1839) and pca.n_basis == 16
+    comps = pca.basis[1:]
+    np.testing.assert_allclose(comps @ comps.T, np.eye(15), atol=1e-10)  # orthonormal components
+    training = point_light_intensity(builtin_mesh("bunny"), pca.light_positions).T
+    np.testing.assert_allclose(pca.basis[0], training.mean(axis=1), rtol=1e-12)
+    assert np.all(np.diff(pca.energy) >= 0) and pca.energy[0] == 0 and 0.8 < pca.energy[-1] <= 1
+    assert np.all(np.diff(pca.singular_values) <= 0)
+    assert np.isfinite(pca.condition_number) and pca.a_inverse.shape == (16, 16)
+
+
+def test_training_residual_equals_discarded_energy(bunny_pca):
+    """Projecting a centred training column on the components leaves exactly the discarded singular values."""
+    pca = bunny_pca
+    training = point_light_intensity(builtin_mesh("bunny"), pca.light_positions).T
+    centred = training - pca.basis[0][:, None]
+    comps = pca.basis[1:]
+    residual = centred - comps.T @ (comps @ centred)
+    s = pca.singular_values
+    np.testing.assert_allclose(np.sum(residual**2), np.sum(s[15:] ** 2), rtol=1e-8)
+    # least squares over mean+components does at least as well as the PCA projection
+    approx = pca.approximate(training.T)
+    assert np.sum((approx - training.T) ** 2) <= np.sum(s[15:] ** 2) * (1 + 1e-9)
+
+
+def test_weights_exact_in_span_and_subset_samples():
+    mesh = builtin_mesh("icosphere", subdivisions=2)
+    pca = fit_pca_basis(mesh, n_basis=6, n_lights=32, n_samples=60, seed=3)
+    assert pca.samples.shape == (60,) and np.all(np.diff(pca.samples) > 0)
+    w = np.random.default_rng(1).normal(size=(2, 6, 3))
+    full = pca.reconstruct(w)  # (2, n_vertices, 3)
+    np.testing.assert_allclose(pca.weights(full), w, atol=1e-9)  # full-vertex input picks the samples
+    np.testing.assert_allclose(pca.weights(full[:, pca.samples]), w, atol=1e-9)
+    np.testing.assert_allclose(pca.weights(full, method="reference"), w, atol=1e-9)
+    t = pca.truncated(3)
+    assert t.basis.shape == (3, len(mesh.vertices)) and t.solver.n_samples == 60
+
+
+def test_reproducible_and_scene_object(sphere):
+    a = fit_pca_basis(sphere, n_basis=4, n_lights=16)
+    obj = SceneObject(name="s", mesh=sphere, material=Material())
+    b = fit_pca_basis(obj, n_basis=4, n_lights=16)
+    np.testing.assert_array_equal(a.basis, b.basis)
+    c = fit_pca_basis(sphere, n_basis=4, n_lights=16, albedo=2.0)
+    np.testing.assert_allclose(c.basis[0], 2 * a.basis[0])
+    np.testing.assert_allclose(np.abs(c.basis[1:]), np.abs(a.basis[1:]), atol=1e-9)
+
+
+def test_plane_basis():
+    plane = builtin_mesh("plane", size=[2, 2], resolution=[8, 8])
+    pca = fit_pca_basis(plane, n_basis=8, n_lights=64, plane=True)
+    assert pca.energy[-1] > 0.95
+
+
+# --------------------------------------------------------------------------- errors
+
+
+def test_errors(sphere):
+    with pytest.raises(TypeError, match="trimesh.Trimesh or a SceneObject"):
+        fit_pca_basis(np.zeros(3))
+    with pytest.raises(ValueError, match="n_basis - 1 <= min"):
+        fit_pca_basis(sphere, n_basis=20, n_lights=8)
+    with pytest.raises(ValueError, match="n_basis must be >= 1"):
+        fit_pca_basis(sphere, n_basis=0)
+    with pytest.raises(TypeError, match="n_lights must be an integer"):
+        fit_pca_basis(sphere, n_lights=2.5)
+    with pytest.raises(ValueError, match="light_distance must be a finite number > 0"):
+        fit_pca_basis(sphere, n_basis=2, n_lights=4, light_distance=-1)
+    with pytest.raises(TypeError, match="light_distance must be a number"):
+        pca_light_positions(sphere, 4, "far")
+    with pytest.raises(TypeError, match="seed must be an integer"):
+        fit_pca_basis(sphere, n_basis=2, n_lights=4, seed=0.5)
+    with pytest.raises(ValueError, match="n_samples must be <= n_vertices"):
+        fit_pca_basis(sphere, n_basis=2, n_lights=4, n_samples=10_000)
+    with pytest.raises(ValueError, match="n_samples must be >= 3"):
+        fit_pca_basis(sphere, n_basis=3, n_lights=4, n_samples=2)
+    with pytest.raises(ValueError, match="has no faces"):
+        fit_pca_basis(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)))
+    with pytest.raises(ValueError, match=r"light_positions must have shape \(n_lights, 3\)"):
+        point_light_intensity(sphere, np.zeros(3))
+    with pytest.raises(ValueError, match="light_positions contains NaN"):
+        point_light_intensity(sphere, np.full((1, 3), np.nan))
+    with pytest.raises(ValueError, match="albedo must be"):
+        point_light_intensity(sphere, np.ones((1, 3)) * 3, albedo=-1)
+    with pytest.raises(ValueError, match="method must be one of"):
+        point_light_intensity(sphere, np.ones((1, 3)) * 3, method="gpu")
+    with pytest.raises(ValueError, match="normals summing to 0"):
+        two = trimesh.util.concatenate([builtin_mesh("plane"), builtin_mesh("plane").apply_scale([1, -1, 1])])
+        pca_light_positions(trimesh.Trimesh(two.vertices, two.faces, process=False), 4, plane=True)
+    pca = fit_pca_basis(sphere, n_basis=4, n_lights=16)
+    with pytest.raises(ValueError, match="n_basis must be <= 4"):
+        pca.truncated(5)
