@@ -1,0 +1,101 @@
+"""Numba kernels of the shadow fields: trilinear lookups of sphere-sampled fields, visibility projection.
+
+Kernels take only arrays and scalars and check nothing; the public functions
+in ``_grid.py`` / ``_occlusion.py`` validate and coerce.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, parallel=True)
+def trilinear_kernel(values, rpos, face, s, t, out):
+    """Trilinear interpolation of a field sampled on concentric cubemap-gridded spheres.
+
+    values : (n_r, 6, res, res, F) float64, C-contiguous
+    rpos : (Q,) float64, fractional sphere index in [0, n_r - 1]
+    face : (Q,) int64; s, t : (Q,) float64 in [0, 1] (cubemap face coordinates)
+    out : (Q, F) float64
+    """
+    n_r = values.shape[0]
+    res = values.shape[2]
+    n_f = values.shape[4]
+    for q in numba.prange(rpos.shape[0]):
+        r = rpos[q]
+        r0 = int(np.floor(r))
+        if r0 >= n_r - 1:
+            r0 = n_r - 1
+        if r0 < 0:
+            r0 = 0
+        fr = r - r0
+        r1 = r0 + 1 if r0 + 1 < n_r else r0
+        x = s[q] * res - 0.5
+        y = t[q] * res - 0.5
+        if x < 0.0:
+            x = 0.0
+        if x > res - 1.0:
+            x = res - 1.0
+        if y < 0.0:
+            y = 0.0
+        if y > res - 1.0:
+            y = res - 1.0
+        j0 = int(np.floor(x))
+        i0 = int(np.floor(y))
+        fj = x - j0
+        fi = y - i0
+        j1 = j0 + 1 if j0 + 1 < res else j0
+        i1 = i0 + 1 if i0 + 1 < res else i0
+        f = face[q]
+        for k in range(n_f):
+            acc = 0.0
+            for a in range(2):
+                rr = r0 if a == 0 else r1
+                wr = (1.0 - fr) if a == 0 else fr
+                if wr == 0.0:
+                    continue
+                v00 = values[rr, f, i0, j0, k]
+                v01 = values[rr, f, i0, j1, k]
+                v10 = values[rr, f, i1, j0, k]
+                v11 = values[rr, f, i1, j1, k]
+                acc += wr * ((1.0 - fi) * ((1.0 - fj) * v00 + fj * v01) + fi * ((1.0 - fj) * v10 + fj * v11))
+            out[q, k] = acc
+
+
+def trilinear_numpy(values, rpos, face, s, t):
+    """The float64 numpy specification of :func:`trilinear_kernel`; returns (Q, F)."""
+    n_r, _, res = values.shape[:3]
+    r0 = np.clip(np.floor(rpos).astype(np.int64), 0, n_r - 1)
+    fr = rpos - r0
+    r1 = np.minimum(r0 + 1, n_r - 1)
+    x = np.clip(s * res - 0.5, 0.0, res - 1.0)
+    y = np.clip(t * res - 0.5, 0.0, res - 1.0)
+    j0 = np.floor(x).astype(np.int64)
+    i0 = np.floor(y).astype(np.int64)
+    fj, fi = (x - j0)[:, None], (y - i0)[:, None]
+    j1 = np.minimum(j0 + 1, res - 1)
+    i1 = np.minimum(i0 + 1, res - 1)
+
+    def bilinear(rr):
+        return (1 - fi) * ((1 - fj) * values[rr, face, i0, j0] + fj * values[rr, face, i0, j1]) + fi * (
+            (1 - fj) * values[rr, face, i1, j0] + fj * values[rr, face, i1, j1]
+        )
+
+    return (1 - fr)[:, None] * bilinear(r0) + fr[:, None] * bilinear(r1)
+
+
+@numba.njit(cache=True, parallel=True)
+def project_visibility_kernel(blocked, wy, out):
+    """SH of visibility: ``out[p] = sum_d (1 - blocked[p, d]) wy[d]``.
+
+    blocked : (P, D) bool; wy : (D, n2) float64 (quadrature weight times basis); out : (P, n2)
+    """
+    n2 = wy.shape[1]
+    for p in numba.prange(blocked.shape[0]):
+        for k in range(n2):
+            out[p, k] = 0.0
+        for d in range(blocked.shape[1]):
+            if not blocked[p, d]:
+                for k in range(n2):
+                    out[p, k] += wy[d, k]

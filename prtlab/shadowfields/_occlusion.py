@@ -1,0 +1,265 @@
+"""Object occlusion fields (OOF) and per-vertex self-visibility, in SH (Zhou et al. 2005, Sec. 3-4).
+
+The occlusion field of an object stores, at every point ``p`` of its sample
+spheres (:mod:`._grid`), the SH projection of the object's visibility seen
+from ``p``::
+
+    O_i(p) = int_S2 V(p, w) Y_i(w) dw,   V(p, w) = 0 if the ray p + t w (t > 0) hits the object, else 1
+
+in the object's own frame. At run time it is looked up (trilinear) at a
+receiver point, in the object's frame, and turned to the world frame by SH
+rotation (:func:`prtlab.sh.rotate`) when the object is rotated:
+``V_world(w) = V_obj(R^T w)``. Uniform scale leaves visibility unchanged once
+the point is mapped to object space. Points beyond the outermost sphere are
+unoccluded (``O = sqrt(4 pi) Y_00``, the SH of the constant 1).
+
+Projection
+    ``V`` is sampled by any-hit rays over a Gauss-Legendre x uniform-azimuth
+    product rule (:func:`prtlab.sh.quadrature` with ``degree``; default 47:
+    24 x 48 = 1152 rays per point) and projected with its weights. The rule is
+    exact for band-limited functions up to that degree; for the step function
+    ``V`` its error is that of integrating a discontinuity, about one ring of
+    the rule (measured in the tests: the projected cap of a sphere blocker
+    against its closed form, :func:`prtlab.sh.blocker_zh`).
+
+Self-visibility ``V_self(x_j, w)`` of a vertex is the same projection from
+the vertex (the ray origin offset off the surface on the side of the ray,
+:mod:`prtlab.geometry._raycast`), against its own object only.
+
+Measured errors (``tests/shadowfields/test_occlusion.py``), as the SH distance
+relative to the norm of the shadow ``||1 - V||`` of a unit sphere blocker, at
+random points 1.5..6 radii from it:
+
+* quadrature of the step ``V`` against the closed-form cap
+  (:func:`prtlab.sh.blocker_zh`), points 1.5..4 radii: rms 0.09 (degree 31),
+  0.046 (47), 0.030 (63), 0.018 (95);
+* trilinear interpolation against the direct projection (same rule): rms
+  0.10, 95th percentile 0.19 with the default grid (16 radii, ``6 x 16 x 16``);
+  rms 0.24, p95 0.48 with ``n_radii=8, resolution=8``. The maximum is a heavy
+  tail (far points whose small cap falls between neighbouring samples).
+
+References
+----------
+K. Zhou, Y. Hu, S. Lin, B. Guo, H.-Y. Shum, "Precomputed shadow fields for
+dynamic scenes", SIGGRAPH 2005, Sec. 3 (object occlusion fields, sampling on
+concentric spheres), Sec. 4 (run-time visibility products).
+K. Iwasaki et al., EGSR 2007, Sec. 3.1 and 6 (16 spheres x 6 x 16 x 16 points).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from prtlab import sh
+from prtlab.geometry import RayCaster
+
+from ._grid import SphereGrid, interpolate_field, sphere_grid
+from ._kernels import project_visibility_kernel
+
+__all__ = ["OcclusionField", "occlusion_field", "self_visibility", "project_visibility", "DEFAULT_DEGREE"]
+
+#: Default degree of the visibility quadrature (24 x 48 rays per point).
+DEFAULT_DEGREE = 47
+#: Rays cast per batch (points x directions).
+_RAYS_PER_BATCH = 1 << 20
+_SQRT4PI = np.sqrt(4.0 * np.pi)
+
+
+def _check_order(order) -> int:
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)):
+        raise TypeError(f"order must be an int (number of SH bands), got {type(order).__name__}")
+    if order < 1:
+        raise ValueError(f"order must be >= 1 (order n means bands l = 0..n-1), got {order}")
+    return int(order)
+
+
+def _check_degree(degree, order: int) -> int:
+    if degree is None:
+        return max(DEFAULT_DEGREE, 2 * order - 2)
+    if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)) or degree < 2 * order - 2:
+        raise ValueError(f"degree must be an int >= 2 * order - 2 = {2 * order - 2}, got {degree!r}")
+    return int(degree)
+
+
+def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, degree: int | None = None,
+                       method: str = "embree") -> np.ndarray:
+    """SH of the visibility seen from points: ``int V(p, w) Y_i(w) dw`` by ray casting.
+
+    Parameters
+    ----------
+    caster : prtlab.geometry.RayCaster
+        The occluding geometry.
+    origins : (..., 3) float
+        Points.
+    order : int
+        SH order n.
+    normals : (..., 3) float, optional
+        Surface normals at the points: each ray then leaves from the surface
+        offset on its side (:class:`RayCaster`).
+    degree : int, optional
+        Degree of the product quadrature (default :data:`DEFAULT_DEGREE`).
+    method : {"embree", "numpy"}
+        Ray-casting tier of :class:`RayCaster`.
+
+    Returns
+    -------
+    coeffs : (..., n*n) float64
+    """
+    order = _check_order(order)
+    degree = _check_degree(degree, order)
+    origins = np.asarray(origins, dtype=np.float64)
+    if origins.ndim == 0 or origins.shape[-1] != 3:
+        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
+    if not np.all(np.isfinite(origins)):
+        raise ValueError("origins contain NaN or inf; pass finite points")
+    batch = origins.shape[:-1]
+    flat = origins.reshape(-1, 3)
+    nflat = None
+    if normals is not None:
+        nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)
+    dirs, weights = sh.quadrature(order, degree)
+    wy = np.ascontiguousarray(weights[:, None] * sh.basis(dirs, order))
+    out = np.empty((len(flat), order * order))
+    step = max(1, _RAYS_PER_BATCH // len(dirs))
+    for a in range(0, len(flat), step):
+        b = min(len(flat), a + step)
+        o = flat[a:b, None, :]
+        blocked = caster.occluded(o, dirs[None], np.inf, method=method,
+                                  normals=None if nflat is None else nflat[a:b, None, :])
+        project_visibility_kernel(np.ascontiguousarray(blocked), wy, out[a:b])
+    return out.reshape(batch + (order * order,))
+
+
+@dataclass
+class OcclusionField:
+    """The SH visibility of one object sampled on concentric spheres around it (object space).
+
+    Attributes
+    ----------
+    grid : SphereGrid
+    order : int
+    coeffs : (n_r, 6, res, res, order**2) float64
+        ``int V(p, w) Y_i(w) dw`` at every grid point ``p``.
+    """
+
+    grid: SphereGrid
+    order: int
+    coeffs: np.ndarray
+
+    def lookup(self, points, transform=None, method: str = "numba") -> np.ndarray:
+        """SH visibility of the object seen from world points, in the world frame.
+
+        Parameters
+        ----------
+        points : (..., 3) float
+            World points.
+        transform : prtlab.scene.Transform, optional
+            The object's pose (default: identity).
+        method : {"numba", "reference"}
+            Interpolation tier (:func:`interpolate_field`).
+
+        Returns
+        -------
+        coeffs : (..., order**2) float64
+            Beyond the outermost sphere: the constant 1 (unoccluded).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim == 0 or points.shape[-1] != 3:
+            raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+        R = None
+        local = points
+        if transform is not None:
+            R = np.asarray(transform.rotation, dtype=np.float64)
+            local = ((points - transform.translate) @ R) / float(transform.scale)
+        out, beyond = interpolate_field(self.grid, self.coeffs, local, method=method)
+        if R is not None and not np.allclose(R, np.eye(3), rtol=0.0, atol=1e-15) and out.size:
+            out = sh.rotate(out, R, channels=False)
+        if np.any(beyond):
+            out[beyond] = 0.0
+            out[beyond, 0] = _SQRT4PI
+        return out
+
+    def to_arrays(self) -> dict:
+        return {"grid": self.grid.to_arrays(), "order": np.int64(self.order), "coeffs": self.coeffs}
+
+    @classmethod
+    def from_arrays(cls, d) -> "OcclusionField":
+        return cls(SphereGrid.from_arrays(d["grid"]), int(d["order"]), np.asarray(d["coeffs"], float))
+
+
+def _mesh_pair(mesh):
+    if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+        return np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        return np.asarray(mesh[0], float), np.asarray(mesh[1])
+    raise TypeError(f"mesh must be a trimesh.Trimesh or a (vertices, faces) pair, got {type(mesh).__name__}")
+
+
+def occlusion_field(mesh, order: int = 4, *, n_radii: int = 16, resolution: int = 16, r_min: float = 0.2,
+                    r_max: float = 8.0, spacing: str = "geometric", degree: int | None = None,
+                    method: str = "embree") -> OcclusionField:
+    """Precompute the object occlusion field of a mesh (Zhou et al. 2005, Sec. 3).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh or (vertices, faces)
+        The object in object space.
+    order : int
+        SH order n (4 in the papers: 16 coefficients).
+    n_radii, resolution, r_min, r_max, spacing
+        The sample spheres, see :func:`sphere_grid` (defaults: 16 spheres of
+        ``6 x 16 x 16`` points, 0.2..8 bounding radii, geometric).
+    degree : int, optional
+        Visibility quadrature degree (default :data:`DEFAULT_DEGREE`).
+    method : {"embree", "numpy"}
+        Ray-casting tier.
+
+    Returns
+    -------
+    OcclusionField
+
+    Examples
+    --------
+    >>> from prtlab.geometry import builtin_mesh
+    >>> oof = occlusion_field(builtin_mesh("icosphere", subdivisions=2), 2, n_radii=2, resolution=2)
+    >>> oof.coeffs.shape
+    (2, 6, 2, 2, 4)
+    """
+    order = _check_order(order)
+    vertices, faces = _mesh_pair(mesh)
+    grid = sphere_grid((vertices, faces), n_radii, resolution, r_min, r_max, spacing)
+    caster = RayCaster([(vertices, faces)])
+    coeffs = project_visibility(caster, grid.points(), order, degree=degree, method=method)
+    return OcclusionField(grid, order, coeffs)
+
+
+def self_visibility(mesh, order: int = 4, *, normals=None, degree: int | None = None,
+                    method: str = "embree") -> np.ndarray:
+    """SH of each vertex's visibility against its own object (object space).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh or (vertices, faces)
+    order : int
+    normals : (n_vertices, 3) float, optional
+        Vertex normals (default ``mesh.vertex_normals``) for the ray offsets.
+    degree : int, optional
+    method : {"embree", "numpy"}
+
+    Returns
+    -------
+    coeffs : (n_vertices, order**2) float64
+    """
+    order = _check_order(order)
+    vertices, faces = _mesh_pair(mesh)
+    if normals is None:
+        if not hasattr(mesh, "vertex_normals"):
+            raise ValueError("normals are required when mesh is a (vertices, faces) pair")
+        normals = np.asarray(mesh.vertex_normals, float)
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != vertices.shape:
+        raise ValueError(f"normals must be {vertices.shape} (one per vertex), got {normals.shape}")
+    caster = RayCaster([(vertices, faces)])
+    return project_visibility(caster, vertices, order, normals=normals, degree=degree, method=method)
