@@ -1,6 +1,42 @@
-"""Yue et al. 2009 portals pipeline (issue 7).
+"""Yue et al. 2009: interiors lit through portals by a dynamic environment.
 
-Not implemented yet: this subpackage is reserved by ../shared/DESIGN.md.
+Portals and shells (Section 3.1), the direct transfer as 8-bit pulse/Haar
+cubemaps per vertex (Section 4.1.2), the indirect transfer as SH vectors by
+photon tracing from the portal and final gathering (Section 4.1.1), run-time
+passes (Section 5), portal materials (Section 3.3) and the validity criteria
+of dynamic exteriors (Section 6).
 """
 
-__all__: list[str] = []
+from ._direct import direct_transfer
+from ._indirect import PhotonMap, final_gather, radiance_estimate, trace_photons
+from ._pipeline import Portals, PortalsOptions, shade_scene
+from ._shade import direct_pass, indirect_pass
+from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
+from ._validity import PortalValidityWarning, check_interior_solid_angle, check_shell_distance
+
+__all__ = [
+    # portals and shells
+    "Portal",
+    "find_portals",
+    "shell_light",
+    "shell_sh",
+    "tint",
+    "frosted",
+    # precomputation
+    "direct_transfer",
+    "PhotonMap",
+    "trace_photons",
+    "radiance_estimate",
+    "final_gather",
+    # run time
+    "direct_pass",
+    "indirect_pass",
+    # pipeline
+    "Portals",
+    "PortalsOptions",
+    "shade_scene",
+    # validity (Section 6)
+    "PortalValidityWarning",
+    "check_shell_distance",
+    "check_interior_solid_angle",
+]

@@ -1,0 +1,243 @@
+"""Indirect component of the portal transfer (Yue et al. 2009, Section 4.1.1).
+
+Photons leave the portal and carry, instead of an energy, the *light
+transport response* of every SH basis function at once (one trace for all
+bases): a photon emitted from portal point ``p`` into the interior along
+``d`` brings the shell light arriving at ``p`` from ``omega = -d``, so its
+response to basis ``Y_lm`` is
+
+.. math::
+
+    \\Phi_{lm} = Y_{lm}(-d) \\, \\frac{A \\pi}{N} \\, \\beta,
+
+with ``A`` the portal area, ``N`` the photons emitted (uniform by area,
+cosine-weighted direction: pdf ``cos / (pi A)``) and ``beta`` (RGB) the
+product of the albedos met so far. A photon whose backward ray (from ``p``
+along ``-d``) hits the scene is discarded (backward occlusion, Fig. 4(b)).
+Photons are stored at every diffuse hit up to depth ``B - 1`` (``B``
+indirect bounces); records keep the emission direction and ``beta`` only,
+and ``Y_lm(-d)`` is evaluated when estimating.
+
+Radiance estimates at the vertices (Christensen 1999): the ``k`` nearest
+photons whose surface normal agrees with the vertex normal (``n_p . n_v >
+cos 45 deg``) give the irradiance response
+``E_lm(v) = sum Phi_lm / (pi r^2)`` and the exitance ``B_lm(v) = rho_v / pi
+E_lm(v)``. Final gathering at vertex ``v`` casts ``M`` cosine-weighted rays;
+a ray hitting the front side of a triangle reads ``B`` interpolated
+(barycentrically) from the triangle's vertices; the transfer vector is
+
+.. math::
+
+    t_{lm}(v) = \\rho_v \\frac{1}{M} \\sum_{j=1}^{M} B_{lm}(h_j),
+    \\qquad L_{ind}(v) = \\sum_{lm} t_{lm}(v) \\, c_{lm},
+
+with ``c_lm`` the shell light's SH coefficients (:func:`prtlab.portals.shell_sh`).
+
+Errors: the SH truncation of the shell light (Section 4.2), Monte Carlo noise
+of the gather (``M`` rays) and of the photons, and the bias of density
+estimation: the estimate is the irradiance averaged over a disc of radius
+``r`` (``O(r^2 |Laplacian E|)``), plus the linear interpolation of ``B`` between
+vertices. The gather averages these over the hemisphere, so they shrink in
+the result; the bias we measured on the unit-test box is stated in
+``tests/portals/test_indirect.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from prtlab.geometry import RayCaster, cosine_hemisphere, sample_mesh_area
+
+from ._shell import Portal
+
+__all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "final_gather"]
+
+_NORMAL_AGREEMENT = np.cos(np.radians(45.0))
+
+
+class PhotonMap:
+    """Stored photons: ``position (P, 3)``, ``normal (P, 3)`` (the side hit),
+    ``throughput (P, 3)`` (``A pi / N`` times the albedos met, RGB),
+    ``emit_dir (P, 3)`` (the direction the shell light came *from*, ``-d``),
+    ``depth (P,)`` (0 = first hit)."""
+
+    def __init__(self, position, normal, throughput, emit_dir, depth, n_emitted):
+        self.position = position
+        self.normal = normal
+        self.throughput = throughput
+        self.emit_dir = emit_dir
+        self.depth = depth
+        self.n_emitted = n_emitted
+
+    def __len__(self):
+        return len(self.position)
+
+
+def trace_photons(
+    caster: RayCaster,
+    albedo,
+    portal: Portal,
+    n_photons: int,
+    bounces: int,
+    rng: np.random.Generator,
+    batch: int = 1 << 17,
+) -> PhotonMap:
+    """Trace photons from a portal (Section 4.1.1, step 1a) for all SH bases at once.
+
+    Parameters
+    ----------
+    caster : RayCaster
+        The interior geometry (portals left out).
+    albedo : (n_objects, 3) float
+        Diffuse albedo of each caster object.
+    portal : Portal
+    n_photons : int
+        Photons emitted (the paper: 2M per basis; here one set serves every basis).
+    bounces : int >= 1
+        Indirect bounces ``B``: photons are stored at depths ``0 .. B-1``.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    PhotonMap
+    """
+    if isinstance(n_photons, bool) or not isinstance(n_photons, (int, np.integer)) or n_photons < 1:
+        raise ValueError(f"n_photons must be an int >= 1, got {n_photons!r}")
+    if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)) or bounces < 1:
+        raise ValueError(f"bounces must be an int >= 1 for photon tracing, got {bounces!r}")
+    albedo = np.asarray(albedo, dtype=np.float64).reshape(-1, 3)
+    records = {k: [] for k in ("position", "normal", "throughput", "emit_dir", "depth")}
+    w0 = portal.area * np.pi / n_photons
+    mesh = (portal.vertices, portal.faces)
+    for start in range(0, n_photons, batch):
+        m = min(batch, n_photons - start)
+        s = sample_mesh_area(mesh, m, rng)
+        d = cosine_hemisphere(1, rng, s.normals)[0][:, 0, :]
+        keep = ~caster.occluded(s.points, -d, normals=s.normals)  # backward occlusion
+        o, d, n_o, emit = s.points[keep], d[keep], s.normals[keep], -d[keep]
+        beta = np.full((len(o), 3), w0)
+        for depth in range(int(bounces)):
+            if len(o) == 0:
+                break
+            hits = caster.closest_hit(o, d, normals=n_o)
+            h = hits.hit
+            o, d, beta, emit = hits.point[h], d[h], beta[h], emit[h]
+            n = hits.normal[h]
+            n = np.where((np.sum(n * d, axis=-1) > 0)[:, None], -n, n)  # the side facing the photon
+            records["position"].append(o)
+            records["normal"].append(n)
+            records["throughput"].append(beta)
+            records["emit_dir"].append(emit)
+            records["depth"].append(np.full(len(o), depth, dtype=np.int64))
+            beta = beta * albedo[hits.object[h]]
+            d = cosine_hemisphere(1, rng, n)[0][:, 0, :]
+            n_o = n
+    cat = {k: (np.concatenate(v) if v else np.zeros((0,) if k == "depth" else (0, 3))) for k, v in records.items()}
+    return PhotonMap(cat["position"], cat["normal"], cat["throughput"], cat["emit_dir"],
+                     cat["depth"].astype(np.int64), int(n_photons))
+
+
+def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 64,
+                      chunk: int = 4096) -> np.ndarray:
+    """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
+
+    Parameters
+    ----------
+    photons : PhotonMap
+    points, normals : (V, 3) float
+    albedo : (V, 3) float
+    order : int
+        SH order ``n`` (``n*n`` coefficients).
+    k : int
+        Photons per estimate.
+
+    Returns
+    -------
+    (V, n*n, 3) float64
+    """
+    import prtlab.sh as sh
+
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    n_coeffs = order * order
+    out = np.zeros((len(points), n_coeffs, 3))
+    if len(photons) == 0 or len(points) == 0:
+        return out
+    tree = cKDTree(photons.position)
+    y = sh.basis(photons.emit_dir, order)
+    q = min(len(photons), 4 * k)
+    for start in range(0, len(points), chunk):
+        x = points[start : start + chunk]
+        nv = normals[start : start + chunk]
+        dist, idx = tree.query(x, q)
+        dist = dist.reshape(len(x), q)
+        idx = idx.reshape(len(x), q)
+        ok = np.einsum("vqk,vk->vq", photons.normal[idx], nv) > _NORMAL_AGREEMENT
+        # radius: distance of the k-th agreeing photon (or of the last one found)
+        rank = np.cumsum(ok, axis=1)
+        have = rank[:, -1]
+        kth = np.argmax(rank >= np.minimum(k, np.maximum(have, 1))[:, None], axis=1)
+        radius = dist[np.arange(len(x)), kth]
+        use = ok & (rank <= k) & (have[:, None] > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            area = np.where(radius > 0, np.pi * radius**2, np.inf)
+        w = use / area[:, None]  # (v, q)
+        e = np.einsum("vq,vqc,vqi->vic", w, photons.throughput[idx], y[idx], optimize=True)
+        out[start : start + chunk] = e * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, :]
+    return out
+
+
+def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_offset, vertex_normals,
+                 n_rays: int, rng: np.random.Generator, chunk: int = 512) -> np.ndarray:
+    """Transfer vectors ``t(v) = rho_v mean_j B(h_j)`` by final gathering (Section 4.1.1, step 2).
+
+    Parameters
+    ----------
+    caster : RayCaster
+    points, normals : (V, 3) float
+        Gather points and their shaded-side normals.
+    albedo : (V, 3) float
+    exitance : (N, n*n, 3) float
+        ``B`` at every vertex of every caster object, concatenated in caster order.
+    vertex_offset : (n_objects + 1,) int
+        Start of each caster object's vertices in ``exitance``.
+    vertex_normals : (N, 3) float
+        World vertex normals in the same order (the side ``B`` was estimated for).
+    n_rays : int
+        Gather rays per vertex (the paper: 4096).
+
+    Returns
+    -------
+    (V, n*n, 3) float64
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    out = np.zeros((len(points),) + exitance.shape[1:])
+    faces_all = [caster.faces(i) for i in range(caster.n_objects)]
+    for start in range(0, len(points), chunk):
+        x = points[start : start + chunk]
+        nv = normals[start : start + chunk]
+        nc = len(x)
+        dirs, _ = cosine_hemisphere(n_rays, rng, nv)  # (nc, M, 3)
+        org = np.broadcast_to(x[:, None, :], dirs.shape)
+        nrm = np.broadcast_to(nv[:, None, :], dirs.shape)
+        hits = caster.closest_hit(org.reshape(-1, 3), dirs.reshape(-1, 3), normals=nrm.reshape(-1, 3))
+        sel = np.nonzero(hits.hit)[0]
+        obj = hits.object[sel]
+        tri = hits.triangle[sel]
+        u, v = hits.barycentric[sel, 0], hits.barycentric[sel, 1]
+        vid = np.empty((len(sel), 3), dtype=np.int64)
+        for i in np.unique(obj):
+            m = obj == i
+            vid[m] = faces_all[i][tri[m]] + vertex_offset[i]
+        bw = np.stack([1.0 - u - v, u, v], axis=-1)
+        n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
+        front = np.einsum("rc,rc->r", n_hit, dirs.reshape(-1, 3)[sel]) < 0
+        bw = bw * front[:, None]
+        gathered = np.einsum("rk,rkic->ric", bw, exitance[vid])
+        owner = sel // n_rays
+        acc = np.zeros((nc,) + exitance.shape[1:])
+        np.add.at(acc, owner, gathered)
+        out[start : start + nc] = acc / n_rays * np.asarray(albedo[start : start + nc])[:, None, :]
+    return out

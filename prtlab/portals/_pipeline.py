@@ -1,0 +1,217 @@
+"""The portals pipeline as a :class:`prtlab.pipeline.Precomputation` (Yue et al. 2009).
+
+Precomputation, per portal (Section 4): the direct transfer cubemaps
+(:func:`direct_transfer`), 8-bit encoded in pulse or Haar per vertex
+(:func:`prtlab.wavelet.encode_transfer`), and the indirect SH transfer
+vectors by photon tracing, radiance estimates and final gathering
+(:mod:`prtlab.portals._indirect`). Per frame (Section 5): the shell light of
+each portal as a cubemap (direct pass) and its SH projection (indirect pass).
+
+Scope here: Lambertian vertices (Phong materials with ``ks > 0`` are refused:
+the glossy transfer of Section 4.1.2 / Appendix is not implemented), distant
+environments or user-given shell cubemaps (:meth:`Portals.shade_shells`),
+``bounces`` fixed at precomputation (the transfer stores light with
+``1..bounces`` indirect bounces).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from prtlab.geometry import RayCaster
+from prtlab.pipeline import FrameState, Precomputation
+from prtlab.scene import EnvironmentLight, Scene, ShadeResult
+from prtlab.wavelet import SparseTransfer, encode_transfer
+
+from ._direct import direct_transfer
+from ._indirect import final_gather, radiance_estimate, trace_photons
+from ._shade import direct_pass, indirect_pass
+from ._shell import find_portals, shell_light, shell_sh
+
+__all__ = ["PortalsOptions", "Portals", "shade_scene"]
+
+
+@dataclass
+class PortalsOptions:
+    """Options of the portals precomputation (the paper's values in brackets).
+
+    res : cubemap face resolution of the direct transfer [32].
+    direct_samples : portal points per vertex [4096].
+    n_photons : photons emitted per portal, shared by all SH bases [2M per basis].
+    gather_rays : final-gather rays per vertex [4096].
+    order : SH order of the indirect transfer [4].
+    photon_k : photons per radiance estimate.
+    bounces : indirect bounces stored [9].
+    direct_basis : "auto" (pulse or Haar, whichever is smaller per vertex), "pulse" or "haar".
+    seed : random seed.
+    """
+
+    res: int = 32
+    direct_samples: int = 1024
+    n_photons: int = 200_000
+    gather_rays: int = 256
+    order: int = 4
+    photon_k: int = 64
+    bounces: int = 2
+    direct_basis: str = "auto"
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < (0 if name == "seed" else 1):
+                raise ValueError(f"option {name} must be a positive int, got {value!r}")
+        if self.res & (self.res - 1):
+            raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
+        if isinstance(self.bounces, bool) or not isinstance(self.bounces, (int, np.integer)) or self.bounces < 0:
+            raise ValueError(f"option bounces must be an int >= 0, got {self.bounces!r}")
+        if self.direct_basis not in ("auto", "pulse", "haar"):
+            raise ValueError(f"option direct_basis must be 'auto', 'pulse' or 'haar', got {self.direct_basis!r}")
+
+
+def _shaded(scene: Scene):
+    objs = [o for o in scene.objects if not o.portal]
+    for o in objs:
+        if o.material.type == "phong" and np.any(np.asarray(o.material.ks) > 0):
+            raise ValueError(
+                f"object {o.name!r} is glossy (phong, ks > 0): the portals pipeline handles Lambertian vertices "
+                "only so far (glossy transfer matrices are not implemented); use method='reference' or a diffuse material"
+            )
+    return objs
+
+
+class Portals(Precomputation):
+    """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
+
+    method = "portals"
+    format_version = 1
+    max_bounces = None
+    options_type = PortalsOptions
+
+    @classmethod
+    def compute(cls, scene: Scene, options: PortalsOptions, progress: bool) -> dict:
+        objs = _shaded(scene)
+        portals = find_portals(scene)
+        if not portals:
+            raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
+        caster = RayCaster(scene)
+        points = np.concatenate([o.world_vertices() for o in objs])
+        normals = np.concatenate([o.world_normals() for o in objs])
+        albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
+        obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
+        offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
+        rng = np.random.default_rng(options.seed)
+        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo}
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(portals) * len(points) * 2, desc="portals precompute", unit="vertex")
+        chunk = 2048
+        for k, portal in enumerate(portals):
+            t0 = time.perf_counter()
+            parts = []
+            for s in range(0, len(points), chunk):
+                parts.append(direct_transfer(caster, points[s : s + chunk], normals[s : s + chunk], portal,
+                                             options.direct_samples, options.res, rng))
+                if bar is not None:
+                    bar.update(len(parts[-1]))
+            dense = np.concatenate(parts) if parts else np.zeros((0, 6, options.res, options.res))
+            sparse = encode_transfer(dense, options.direct_basis)
+            t1 = time.perf_counter()
+            entry = {
+                "indptr": sparse.indptr, "indices": sparse.indices, "codes": sparse.codes,
+                "scale": sparse.scale, "basis": sparse.basis, "res": np.array(sparse.res),
+                "seconds_direct": np.array(t1 - t0),
+            }
+            if options.bounces > 0:
+                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng)
+                exitance = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k)
+                transfer = np.zeros((len(points), options.order**2, 3), dtype=np.float32)
+                for s in range(0, len(points), chunk):
+                    transfer[s : s + chunk] = final_gather(
+                        caster, points[s : s + chunk], normals[s : s + chunk], albedo[s : s + chunk], exitance,
+                        offsets, normals, options.gather_rays, rng)
+                    if bar is not None:
+                        bar.update(len(transfer[s : s + chunk]))
+                entry["indirect"] = transfer
+                entry["n_photons_stored"] = np.array(len(photons))
+            elif bar is not None:
+                bar.update(len(points))
+            entry["seconds_indirect"] = np.array(time.perf_counter() - t1)
+            data[f"portal{k}"] = entry
+        if bar is not None:
+            bar.close()
+        return data
+
+    # ------------------------------------------------------------------ run time
+
+    def direct_transfer(self, k: int = 0) -> SparseTransfer:
+        """The 8-bit sparse direct transfer of portal ``k``."""
+        e = self.data[f"portal{k}"]
+        return SparseTransfer(np.asarray(e["indptr"], np.int64), e["indices"], e["codes"], e["scale"], e["basis"],
+                              int(e["res"]))
+
+    @property
+    def n_portals(self) -> int:
+        return int(self.data["n_portals"])
+
+    def shade_shells(self, shells, bounces: int | None = None, method: str = "numba") -> ShadeResult:
+        """Per-vertex radiance from given shell lights, one ``(6, r, r, 3)`` cubemap per portal.
+
+        Use it for a dynamic exterior (cubemaps rendered from each portal
+        centre) or portal materials: ``tint(cube, colour)``, ``frosted(cube, sigma_deg)``.
+        """
+        if bounces is None:
+            bounces = self.options.bounces
+        if bounces not in (0, self.options.bounces):
+            raise ValueError(
+                f"the transfer was precomputed with bounces={self.options.bounces}; shade with bounces=0 or "
+                f"{self.options.bounces}, or precompute again with the bounces option set to {bounces}"
+            )
+        shells = list(shells)
+        if len(shells) != self.n_portals:
+            raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
+        objs = _shaded(self.scene)
+        albedo = np.asarray(self.data["albedo"], dtype=np.float64)
+        n = len(albedo)
+        direct = np.zeros((n, 3))
+        indirect = np.zeros((n, 3))
+        for k, cube in enumerate(shells):
+            cube = np.asarray(cube, dtype=np.float64)
+            direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            if bounces > 0:
+                indirect += indirect_pass(self.data[f"portal{k}"]["indirect"], shell_sh(cube, self.options.order),
+                                          method=method)
+        result = ShadeResult()
+        offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
+        for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
+            result.direct[o.name] = direct[a:b]
+            result.indirect[o.name] = indirect[a:b]
+            result.total[o.name] = direct[a:b] + indirect[a:b]
+        result.info = {"method": "portals", "bounces": bounces}
+        return result
+
+    def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
+        envs = [light for light in state.lights if isinstance(light, EnvironmentLight)]
+        if len(envs) != 1 or len(envs) != len(state.lights):
+            raise ValueError(
+                "the portals pipeline is lit by exactly one environment light seen through the portals; "
+                f"got lights {[type(x).__name__ for x in state.lights]}"
+            )
+        cube = shell_light(envs[0], self.options.res)
+        return self.shade_shells([cube] * self.n_portals, bounces)
+
+    @classmethod
+    def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
+        """``prtlab.shade(scene, method="portals", bounces=B)``: precompute ``B`` bounces, shade."""
+        options.setdefault("bounces", bounces)
+        return cls.precompute(scene, options, cache=cache, progress=progress).shade(bounces=bounces)
+
+
+def shade_scene(scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
+    """Entry point of ``prtlab.shade(scene, method="portals", ...)``; see :class:`Portals`."""
+    return Portals.shade_scene(scene, bounces=bounces, cache=cache, progress=progress, **options)
