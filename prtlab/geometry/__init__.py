@@ -13,6 +13,7 @@ from ._meshes import (
 )
 from ._room import ROOM_SURFACES, WINDOW_WALLS, room_with_windows, window_quad
 from ._raycast import RAY_CHUNK, RAY_EPSILON_SCALE, RAY_TNEAR_SCALE, RayCaster, RayHits, offset_origins
+from ._shading import SHADING_POINT_FRACTION, shading_points
 from ._sampling import (
     MeshSamples,
     cosine_hemisphere,
@@ -47,6 +48,8 @@ __all__ = [
     "RayCaster",
     "RayHits",
     "offset_origins",
+    "SHADING_POINT_FRACTION",
+    "shading_points",
     "MeshSamples",
     "cosine_hemisphere",
     "cosine_hemisphere_pdf",

@@ -27,15 +27,17 @@ Self-intersection offset
     (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
     per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
 
-Ray start (emulated ``tnear``)
-    With ``tnear = 0`` Embree reports hits at ``t = 0`` (even ``-0``) for an
-    origin lying exactly on a triangle, whatever the direction. Every ray
-    therefore starts ``RayCaster.tnear = RAY_TNEAR_SCALE * diagonal`` (``1e-6``,
-    about 16 float32 ulps of a unit scene) along its direction, and searches
-    ``(tnear, tmax]``; reported distances are still measured from the
-    (offset) origin. So a ray leaving a point that lies on *another* surface
-    (a floor vertex on a wall's plane, at a room corner) is not blocked by that
-    surface at distance 0, in either direction, as with the float64 tier.
+Ray start (``tnear``)
+    Rays start at their (offset) origin: ``RAY_TNEAR_SCALE = 0``, and
+    ``RayCaster.tnear = RAY_TNEAR_SCALE * diagonal`` is kept as the one place to
+    change that. A positive start skips every surface closer than it, and a path
+    vertex near an edge (a ray from a wall point a few float32 ulps below the
+    ceiling) then leaks light through room corners. The price of 0 is that an
+    origin lying *exactly* on another surface is blocked by it (Embree reports
+    ``t = 0`` hits for such origins, in every direction); the vertices where
+    that happens by construction (a floor vertex at a room corner lies in the
+    wall's plane) are shaded at :func:`prtlab.geometry.shading_points`, a hair
+    inside their own faces, so it never happens there.
 
 Precision (float32)
     Embree stores vertices, origins, directions and distances in float32. The
@@ -65,8 +67,9 @@ __all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_TNEAR_SCALE", "RAY_
 #: Self-intersection offset, as a fraction of the world bounding-box diagonal.
 RAY_EPSILON_SCALE = 1e-4
 
-#: Start of every ray (an emulated Embree ``tnear``), as a fraction of the bounding-box diagonal.
-RAY_TNEAR_SCALE = 1e-6
+#: Start of every ray (an emulated Embree ``tnear``), as a fraction of the bounding-box diagonal;
+#: 0, so that no surface next to an origin is skipped (see the module docstring).
+RAY_TNEAR_SCALE = 0.0
 
 #: Rays per call into Embree (bounds the float32 staging buffers).
 RAY_CHUNK = 1 << 19

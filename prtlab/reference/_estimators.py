@@ -508,7 +508,7 @@ def path_trace(
     data = _SceneData(scene, env_sampling, area_lights_block)
     shaded = [o for o in scene.objects if not o.portal]
     counts = [o.n_vertices for o in shaded]
-    pos = np.concatenate([o.world_vertices() for o in shaded]) if shaded else np.zeros((0, 3))
+    pos = np.concatenate([o.world_shading_points() for o in shaded]) if shaded else np.zeros((0, 3))
     normals = np.concatenate([o.world_normals() for o in shaded]) if shaded else np.zeros((0, 3))
     mats = [_material_arrays(o.material) for o in shaded]
     kd = np.concatenate([np.tile(m[0], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))

@@ -437,7 +437,7 @@ def _vertex_data(scene):
     cam = np.asarray(scene.camera.position, dtype=np.float64)
     pos, nrm, kd, ks, ex, counts = [], [], [], [], [], []
     for obj in _shaded_objects(scene):
-        p = obj.world_vertices()
+        p = obj.world_shading_points()
         n = obj.world_normals()
         n = n / np.linalg.norm(n, axis=1, keepdims=True)
         m = obj.material

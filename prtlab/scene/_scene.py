@@ -169,6 +169,15 @@ class SceneObject:
         """(n_vertices, 3) unit vertex normals in world space."""
         return (transform or self.transform).apply_normals(self.mesh.vertex_normals)
 
+    def world_shading_points(self, transform: Transform | None = None) -> np.ndarray:
+        """(n_vertices, 3) where each vertex is shaded: its world position moved a hair
+        into its own faces (:func:`prtlab.geometry.shading_points`; ``docs/DECISIONS.md``)."""
+        from prtlab.geometry import shading_points
+
+        return shading_points(
+            self.world_vertices(transform), np.asarray(self.mesh.faces), self.world_normals(transform)
+        )
+
     def world_mesh(self, transform: Transform | None = None):
         """A trimesh copy in world space (same vertex order and faces)."""
         import trimesh

@@ -112,7 +112,7 @@ def test_point_light_exact_diffuse_and_phong(rng):
     for material in (diffuse([0.5, 0.6, 0.7]), phong):
         scene = Scene([SceneObject("floor", plane, material=material)], [light], camera=cam)
         res = path_trace(scene, 0, 2, rng)
-        x, n = plane.vertices, plane.vertex_normals
+        x, n = scene.objects[0].world_shading_points(), plane.vertex_normals  # where vertices are shaded
         d = light.position - x
         r2 = np.sum(d * d, axis=1)
         wi = d / np.sqrt(r2)[:, None]
@@ -139,7 +139,7 @@ def test_point_light_shadow_half_plane(rng):
         [SceneObject("floor", plane, material=diffuse(1.0)), SceneObject("roof", roof, material=diffuse(0.5))], [light]
     )
     res = direct(scene, 2, rng)
-    x = plane.vertices
+    x = scene.objects[0].world_shading_points()
     # the shadow of the roof edge (z = 0 at y = 1) from y = 3 falls at z = 0 * 3/2 = 0 on the floor
     shadowed = x[:, 2] < -0.01
     lit = x[:, 2] > 0.01

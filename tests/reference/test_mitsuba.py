@@ -304,7 +304,7 @@ def test_point_light_on_a_plane(mi_dr):
     albedo, intensity, pos = np.array([0.6, 0.6, 0.6]), np.array([5.0, 4.0, 3.0]), np.array([0.3, 1.5, 0.2])
     scene = _plane_scene(Material(albedo=albedo), [PointLight(pos, intensity)])
     res = shade_mitsuba(scene, bounces=0, spp=4, seed=7)
-    p = scene.objects[0].world_vertices()
+    p = scene.objects[0].world_shading_points()
     d = pos - p
     r2 = np.sum(d * d, axis=1)
     truth = albedo / np.pi * intensity * (d[:, 1] / np.sqrt(r2) / r2)[:, None]
