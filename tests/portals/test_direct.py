@@ -1,0 +1,119 @@
+"""Direct transfer through a window onto floor points, against closed forms and prtlab.reference."""
+
+import numpy as np
+import pytest
+
+from prtlab.geometry import RayCaster, cubemap_directions, equirect_lookup
+from prtlab.portals import direct_pass, direct_transfer, find_portals, shell_light
+from prtlab.reference import radiance_at
+from prtlab.scene import Scene
+from prtlab.wavelet import encode_transfer, haar2d
+
+from ..conftest import MC_SIGMAS
+from .conftest import SKY, window_box
+
+FLOOR = np.array([[0.3, 0.0, -0.8], [-0.4, 0.0, 0.6]])
+UP = np.array([[0.0, 1.0, 0.0]] * 2)
+
+
+def _window_form_factor(x, m=1000):
+    """(1/pi) int cos_v cos_p / d^2 dA over the 1 x 1 window at z = -1.5 (midpoint rule, 1e6 cells)."""
+    a = (np.arange(m) + 0.5) / m
+    gx, gy = np.meshgrid(-0.5 + a, 0.9 + a)
+    p = np.stack([gx, gy, np.full_like(gx, -1.5)], -1)
+    d = p - x
+    r = np.linalg.norm(d, axis=-1)
+    return float((d[..., 1] / r * (x[2] - p[..., 2]) / r / r**2).sum() / m / m / np.pi)
+
+
+def _repeats(scene, points, normals, n_samples, res, n_rep=6, seed=1):
+    caster = RayCaster(scene)
+    (portal,) = find_portals(scene)
+    rng = np.random.default_rng(seed)
+    return np.stack([direct_transfer(caster, points, normals, portal, n_samples, res, rng) for _ in range(n_rep)])
+
+
+def test_known_answer_constant_sky(constant_box):
+    """sum_k T_k = (1/pi) int_window cos cos / d^2: the unoccluded form factor."""
+    reps = _repeats(constant_box, FLOOR, UP, 4096, 8).sum(axis=(2, 3, 4))  # (rep, V)
+    mean, se = reps.mean(0), reps.std(0, ddof=1) / np.sqrt(len(reps))
+    exact = np.array([_window_form_factor(x) for x in FLOOR])
+    assert np.all(np.abs(mean - exact) <= MC_SIGMAS * se + 1e-6 * exact)
+
+
+def test_against_reference_under_sky(sky_box, rng):
+    """Direct radiance under a sky vs the reference path tracer (bounces=0).
+
+    Bound: MC_SIGMAS * sqrt(se_ref^2 + se_ours^2) plus the cubemap-resolution bound
+    ``sum_k T_k (max_{texel k} L - min_{texel k} L)`` (max/min over 8x8 sub-texel directions),
+    plus the 8-bit quantisation bound ``scale / 510 * sum |L coefficients|``.
+    """
+    res = 16
+    albedo = 0.7
+    reps = _repeats(sky_box, FLOOR, UP, 4096, res)
+    cube = shell_light(sky_box.environment, res)
+    values = np.einsum("rvfij,fijc->rvc", reps, cube) * albedo
+    ours, se_ours = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
+    fine = equirect_lookup(sky_box.environment.image, cubemap_directions(res * 8)).reshape(6, res, 8, res, 8, 3)
+    spread = fine.max(axis=(2, 4)) - fine.min(axis=(2, 4))
+    t_mean = reps.mean(0)
+    resolution_bound = albedo * np.einsum("vfij,fijc->vc", t_mean, spread)
+    sparse = encode_transfer(t_mean)
+    quant = albedo * sparse.scale[:, None] / 510 * np.maximum(np.abs(cube).sum((0, 1, 2)),
+                                                            np.abs(haar2d(cube, channels=True)).sum((0, 1, 2)))
+    encoded = direct_pass(sparse, np.full((2, 3), albedo), cube)
+    assert np.all(np.abs(encoded - ours) <= quant + 1e-12)
+    ref = radiance_at(sky_box, FLOOR, UP, UP, 16384, rng, material=sky_box.objects[0].material)
+    bound = MC_SIGMAS * np.sqrt(ref.direct_stderr**2 + se_ours**2) + resolution_bound + quant
+    assert np.all(np.abs(encoded - ref.direct) <= bound), (encoded, ref.direct, bound)
+
+
+def test_backward_occlusion():
+    """A slab outside the window blocks part of the sky: the backward rays see it (Fig. 4(b))."""
+    base = window_box()
+    scene = Scene.from_dict({
+        "objects": [o.to_dict() for o in base.objects] + [{
+            "name": "slab", "mesh": {"builtin": "plane", "size": [3, 3], "resolution": [1, 1]},
+            "transform": {"translate": [0, 2.0, -3.2]}, "material": {"type": "diffuse", "albedo": [0, 0, 0]}}],
+        "lights": [{"type": "environment", "constant": [1.0, 1.0, 1.0]}],
+        "camera": base.camera.to_dict(),
+    })
+    reps = _repeats(scene, FLOOR[:1], UP[:1], 4096, 8).sum(axis=(2, 3, 4))[:, 0]
+    mean, se = reps.mean(), reps.std(ddof=1) / np.sqrt(len(reps))
+    unblocked = _window_form_factor(FLOOR[0])
+    assert mean < 0.9 * unblocked - MC_SIGMAS * se  # the slab (z < -1.7) is outside the room
+    ref = radiance_at(scene, FLOOR[:1], UP[:1], UP[:1], 32768, np.random.default_rng(5),
+                      material=scene.objects[0].material)
+    ours = 0.7 * mean
+    assert abs(ours - ref.direct[0, 0]) <= MC_SIGMAS * np.hypot(ref.direct_stderr[0, 0], 0.7 * se)
+
+
+def test_direct_pass_tiers(rng):
+    transfer = np.where(rng.random((20, 6, 4, 4)) < 0.2, rng.random((20, 6, 4, 4)), 0.0)
+    sparse = encode_transfer(transfer)
+    albedo = rng.random((20, 3))
+    cube = rng.random((6, 4, 4, 3))
+    np.testing.assert_allclose(direct_pass(sparse, albedo, cube), direct_pass(sparse, albedo, cube, "reference"),
+                               rtol=1e-10)
+    with pytest.raises(ValueError, match=r"albedo must have shape \(20, 3\)"):
+        direct_pass(sparse, albedo[:3], cube)
+    with pytest.raises(ValueError, match="'numba' or 'reference'"):
+        direct_pass(sparse, albedo, cube, "fast")
+
+
+def test_direct_transfer_errors(constant_box):
+    caster = RayCaster(constant_box)
+    (portal,) = find_portals(constant_box)
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match=r"points must have shape \(V, 3\)"):
+        direct_transfer(caster, np.zeros(3), UP[:1], portal, 4, 4, rng)
+    with pytest.raises(ValueError, match="normals must have the shape"):
+        direct_transfer(caster, FLOOR, UP[:1], portal, 4, 4, rng)
+    with pytest.raises(ValueError, match="finite"):
+        direct_transfer(caster, FLOOR * np.nan, UP, portal, 4, 4, rng)
+    with pytest.raises(ValueError, match="n_samples"):
+        direct_transfer(caster, FLOOR, UP, portal, 0, 4, rng)
+    with pytest.raises(TypeError, match="RayCaster"):
+        direct_transfer(None, FLOOR, UP, portal, 4, 4, rng)
+    empty = direct_transfer(caster, np.zeros((0, 3)), np.zeros((0, 3)), portal, 4, 4, rng)
+    assert empty.shape == (0, 6, 4, 4)

@@ -1,0 +1,126 @@
+"""The portals pipeline end to end: precompute, shade, dispatch, errors, validity criteria."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from prtlab.pipeline import FrameState
+from prtlab.portals import (
+    Portals,
+    PortalValidityWarning,
+    check_interior_solid_angle,
+    check_shell_distance,
+    frosted,
+    indirect_pass,
+    shell_light,
+    tint,
+)
+from prtlab.scene import Scene
+
+from .conftest import window_box
+
+QUICK = {"res": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32, "order": 3, "bounces": 1}
+
+
+@pytest.fixture(scope="module")
+def pre():
+    return Portals.precompute(window_box(cell=0.5), QUICK, cache=False, progress=False)
+
+
+def test_shade_shapes_and_linearity(pre):
+    res = pre.shade(bounces=1)
+    n = pre.scene.objects[0].n_vertices
+    for part in (res.direct, res.indirect, res.total):
+        assert part["room"].shape == (n, 3)
+        assert "window" not in part
+    np.testing.assert_allclose(res.total["room"], res.direct["room"] + res.indirect["room"])
+    assert res.direct["room"].max() > 0 and res.indirect["room"].max() > 0
+    # the transfer is linear in the shell light: tinting scales each channel
+    cube = shell_light(pre.scene.environment, 8)
+    tinted = pre.shade_shells([tint(cube, [0.5, 1.0, 2.0])])
+    np.testing.assert_allclose(tinted.total["room"], res.total["room"] * [0.5, 1.0, 2.0], rtol=1e-5, atol=1e-12)
+    # a constant sky is unchanged by frosting
+    np.testing.assert_allclose(pre.shade_shells([frosted(cube, 15.0)]).total["room"], res.total["room"], rtol=1e-6)
+    assert np.all(pre.shade(bounces=0).indirect["room"] == 0)
+
+
+def test_shade_frame_environment_changes(pre):
+    state = FrameState.from_scene(pre.scene)
+    brighter = window_box({"type": "environment", "constant": [2.0, 2.0, 2.0]}, cell=0.5)
+    state.lights = list(brighter.lights)
+    np.testing.assert_allclose(pre.shade(state).total["room"], 2 * pre.shade().total["room"], rtol=1e-6)
+
+
+def test_shade_scene_entry_point():
+    import prtlab
+    from prtlab.api import METHODS
+    from prtlab.portals import shade_scene
+
+    opts = {k: v for k, v in QUICK.items() if k != "bounces"}
+    scene = window_box(cell=0.5)
+    res = shade_scene(scene, bounces=1, cache=False, progress=False, **opts)
+    assert res.info["bounces"] == 1 and res.total["room"].shape == (scene.objects[0].n_vertices, 3)
+    if METHODS["portals"] == ("prtlab.portals", "shade_scene"):
+        again = prtlab.shade(scene, method="portals", bounces=1, cache=False, progress=False, **opts)
+        np.testing.assert_array_equal(again.total["room"], res.total["room"])
+
+
+def test_errors(pre):
+    with pytest.raises(ValueError, match="precomputed with bounces=1"):
+        pre.shade(bounces=2)
+    with pytest.raises(ValueError, match="one shell cubemap per portal"):
+        pre.shade_shells([])
+    with pytest.raises(ValueError, match="power of two"):
+        Portals.make_options({"res": 12})
+    with pytest.raises(ValueError, match="option n_photons"):
+        Portals.make_options({"n_photons": 0})
+    with pytest.raises(ValueError, match="option direct_basis"):
+        Portals.make_options({"direct_basis": "dct"})
+    with pytest.raises(ValueError, match="option bounces"):
+        Portals.make_options({"bounces": -1})
+    state = FrameState.from_scene(pre.scene)
+    state.lights = []
+    with pytest.raises(ValueError, match="exactly one environment"):
+        pre.shade(state)
+    scene = window_box(cell=1.0)
+    no_portal = Scene(objects=[scene.objects[0]], lights=scene.lights, camera=scene.camera)
+    with pytest.raises(ValueError, match="no portal"):
+        Portals.precompute(no_portal, QUICK, cache=False, progress=False)
+    d = scene.objects[0].to_dict()
+    d["material"] = {"type": "phong", "kd": [0.3, 0.3, 0.3], "ks": [0.2, 0.2, 0.2], "exponent": 10}
+    glossy = Scene.from_dict({"objects": [d, scene.objects[1].to_dict()],
+                              "lights": [{"type": "environment", "constant": [1, 1, 1]}],
+                              "camera": scene.camera.to_dict()})
+    with pytest.raises(ValueError, match="glossy"):
+        Portals.precompute(glossy, QUICK, cache=False, progress=False)
+
+
+def test_indirect_pass_tiers(rng):
+    t = rng.normal(size=(30, 16, 3)).astype(np.float32)
+    c = rng.normal(size=(16, 3))
+    np.testing.assert_allclose(indirect_pass(t, c), indirect_pass(t, c, "reference"), rtol=1e-10, atol=1e-12)
+    assert indirect_pass(t[:0], c).shape == (0, 3)
+    with pytest.raises(ValueError, match=r"transfer must have shape \(V, n\*n, 3\)"):
+        indirect_pass(t[..., 0], c)
+    with pytest.raises(ValueError, match="light_sh must have shape"):
+        indirect_pass(t, c[:4])
+    with pytest.raises(ValueError, match="NaN"):
+        indirect_pass(t, c * np.nan)
+    with pytest.raises(ValueError, match="'numba' or 'reference'"):
+        indirect_pass(t, c, "gpu")
+
+
+def test_validity_criteria():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert check_shell_distance(0.5, 3.0)          # the paper: 50 cm window, objects beyond 3 m, 5 deg
+        assert check_interior_solid_angle(2.0, 2.9)    # the paper: 2 m^2 sedan, d > 2.8 m for R = 0.02
+    with pytest.warns(PortalValidityWarning, match="split the portal"):
+        assert not check_shell_distance(0.5, 2.0)
+    with pytest.warns(PortalValidityWarning, match="not negligible"):
+        assert not check_interior_solid_angle(2.0, 2.7)
+    with pytest.raises(ValueError, match="distance must be a positive"):
+        check_shell_distance(0.5, -1.0)
+    with pytest.raises(ValueError, match="interior_area must be a positive"):
+        check_interior_solid_angle(np.nan, 1.0)
