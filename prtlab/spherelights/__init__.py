@@ -5,7 +5,10 @@ that the method builds on (Sec. 5.1, Eqs. 3-8).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
+from ._passes import accumulate_blockers, first_pass, second_pass
+from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
+from ._tables import average_radiance_weight, voronoi_cell_sums, w_theta_zh
 
 __all__ = [
     "SphereFit",
@@ -17,4 +20,16 @@ __all__ = [
     "blocker_log_sum",
     "direct_irradiance",
     "environment_transfer",
+    # precomputed tables (Eqs. 10, 16-17)
+    "average_radiance_weight",
+    "voronoi_cell_sums",
+    "w_theta_zh",
+    # surface samples and albedo (Sec. 4.2)
+    "segment_of",
+    "surface_albedo_sh",
+    "surface_samples",
+    # run-time passes (Secs. 5-7)
+    "accumulate_blockers",
+    "first_pass",
+    "second_pass",
 ]

@@ -1,0 +1,321 @@
+"""The two run-time passes of Guerrero et al. 2008 (Secs. 5-7), as batched CPU loops.
+
+First pass (:func:`first_pass`, Eqs. 3-11): diffuse reflection at every
+surface sample point under the environment with visibility
+``exp(sum of blocker logs)``, projection to each light's SH with the
+Voronoi-cell sums, product with the surface-albedo SH.
+
+Second pass (:func:`second_pass`, Eqs. 12-24): at every receiver, the direct
+soft shadow (Eq. 8) and the indirect light of every spherical light,
+``sum_i L~_i V~_i`` (Eq. 14) with the average radiance ``L~_i = w'_theta .
+L^c_i`` (Eq. 18; ``w_theta`` rotated to the receiver direction in the
+light's own frame, which is how rotations of lights are handled, Sec. 7.1)
+and the average visibility ``V~_i = (exp(G_front) - exp(G_front + G_i)) .
+rho_n`` (Eqs. 23-24), where ``G_front`` sums the logs of the blockers in
+front of light ``i``:
+
+* per-sphere blocking: every adjusted sphere closer to ``p`` than ``i``
+  (centre distance), except the spheres of ``i``'s object that intersect
+  ``i`` (their occlusion is precomputed in the samples, Sec. 6.2);
+* per-object blocking (Sec. 7.2): all spheres of the objects closer to
+  ``p`` (object-centre distance), plus the closer non-intersecting spheres
+  of ``i``'s own object.
+
+Every light is used with the per-receiver adjustment of
+:func:`prtlab.spherelights.adjust_blockers`, as emitter and as blocker.
+
+The blocker accumulation (the paper's dominant cost) is one numba kernel,
+``_accumulate_blockers``, parallel over receivers, with a numpy reference
+tier; the exponentials run in :func:`prtlab.sh.exp`'s batched kernels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from prtlab import sh
+
+from ._shadows import _add_rotated_zh, _adjust, _lookup_log, blocker_log_table, environment_transfer
+from ._tables import w_theta_zh
+
+__all__ = ["first_pass", "second_pass", "accumulate_blockers"]
+
+
+@numba.njit(cache=True, parallel=True)
+def _accumulate_blockers(points, normals, centres, radii, sl_object, obj_centres, intersect, table, order,
+                         per_object, g_sphere, g_front, theta, axis):
+    """Per receiver: rotated blocker logs g_sphere (B, S, n2), front sums g_front (B, S, n2),
+    angular radii theta (B, S) (-1: culled) and unit directions p -> c' axis (B, S, 3)."""
+    n_recv = points.shape[0]
+    n_sph = centres.shape[0]
+    n_obj = obj_centres.shape[0]
+    n2 = order * order
+    for b in numba.prange(n_recv):
+        ybuf = np.empty((1, n2))
+        g = np.empty(order)
+        dist = np.empty(n_sph)
+        px, py, pz = points[b, 0], points[b, 1], points[b, 2]
+        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
+        for s in range(n_sph):
+            for k in range(n2):
+                g_sphere[b, s, k] = 0.0
+                g_front[b, s, k] = 0.0
+            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
+            dx, dy, dz = cx - px, cy - py, cz - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dist[s] = d
+            if r <= 0.0 or d <= 0.0:
+                theta[b, s] = -1.0
+                axis[b, s, 0] = 0.0
+                axis[b, s, 1] = 0.0
+                axis[b, s, 2] = 0.0
+                continue
+            sin_t = r / d
+            th = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
+            theta[b, s] = th
+            axis[b, s, 0] = dx / d
+            axis[b, s, 1] = dy / d
+            axis[b, s, 2] = dz / d
+            _lookup_log(th, table, order, g)
+            _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, g_sphere[b, s])
+        if per_object:
+            od = np.empty(n_obj)
+            for o in range(n_obj):
+                ex = obj_centres[o, 0] - px
+                ey = obj_centres[o, 1] - py
+                ez = obj_centres[o, 2] - pz
+                od[o] = ex * ex + ey * ey + ez * ez
+            acc = np.zeros(n2)
+            for o in np.argsort(od):
+                for i in range(n_sph):
+                    if sl_object[i] != o:
+                        continue
+                    for k in range(n2):
+                        g_front[b, i, k] = acc[k]
+                    for j in range(n_sph):
+                        if j != i and sl_object[j] == o and dist[j] < dist[i] and not intersect[i, j]:
+                            for k in range(n2):
+                                g_front[b, i, k] += g_sphere[b, j, k]
+                for j in range(n_sph):
+                    if sl_object[j] == o:
+                        for k in range(n2):
+                            acc[k] += g_sphere[b, j, k]
+        else:
+            for i in range(n_sph):
+                for j in range(n_sph):
+                    if j != i and dist[j] < dist[i] and not intersect[i, j]:
+                        for k in range(n2):
+                            g_front[b, i, k] += g_sphere[b, j, k]
+
+
+def _accumulate_reference(points, normals, centres, radii, sl_object, obj_centres, intersect, order, per_object):
+    """numpy specification of ``_accumulate_blockers``."""
+    from ._shadows import adjust_blockers
+
+    n_recv, n_sph = points.shape[0], centres.shape[0]
+    ca, ra = adjust_blockers(points, normals, centres, radii)
+    d = ca - points[:, None, :]
+    dist = np.linalg.norm(d, axis=-1)
+    live = (ra > 0) & (dist > 0)
+    theta = np.where(live, np.arcsin(np.minimum(np.where(live, ra / np.where(dist > 0, dist, 1), 0), 1.0)), -1.0)
+    axis = np.where(live[..., None], d / np.where(dist > 0, dist, 1.0)[..., None], 0.0)
+    g_sphere = np.zeros((n_recv, n_sph, order * order))
+    if live.any():
+        g = sh.blocker_log_zh(theta[live], order)
+        g_sphere[live] = sh.zh_rotate(g, axis[live], method="reference")
+    g_front = np.zeros_like(g_sphere)
+    for b in range(n_recv):
+        if per_object:
+            od = np.sum((obj_centres - points[b]) ** 2, axis=1)
+            acc = np.zeros(order * order)
+            for o in np.argsort(od, kind="stable"):
+                members = np.nonzero(sl_object == o)[0]
+                for i in members:
+                    mask = (sl_object == o) & (dist[b] < dist[b, i]) & ~intersect[i]
+                    mask[i] = False
+                    g_front[b, i] = acc + g_sphere[b, mask].sum(axis=0)
+                acc = acc + g_sphere[b, members].sum(axis=0)
+        else:
+            for i in range(n_sph):
+                mask = (dist[b] < dist[b, i]) & ~intersect[i]
+                mask[i] = False
+                g_front[b, i] = g_sphere[b, mask].sum(axis=0)
+    return g_sphere, g_front, theta, axis
+
+
+def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, order: int, *,
+                        blocking: str = "object", method: str = "numba"):
+    """Blocker logs of every light at every receiver and the sums in front of each (Eqs. 21-23, Sec. 7.2).
+
+    Parameters
+    ----------
+    points, normals : (B, 3) float
+    centres : (S, 3) float
+    radii : (S,) float
+        Spherical lights in world space.
+    sl_object : (S,) int
+        Object of each light (``0..O-1``).
+    intersect : (S, S) bool
+        Lights whose occlusion is precomputed (same object, intersecting).
+    order : int
+    blocking : {"object", "sphere"}
+    method : {"numba", "reference"}
+
+    Returns
+    -------
+    g_sphere : (B, S, n*n) float64
+        Rotated log of each adjusted light (0 where culled).
+    g_front : (B, S, n*n) float64
+        Sum of the logs in front of each light.
+    theta : (B, S) float64
+        Angular radius of each adjusted light (-1 where culled).
+    axis : (B, S, 3) float64
+        Unit direction from the receiver to the adjusted centre.
+
+    References
+    ----------
+    Guerrero et al. 2008, Eqs. 20-23 and Sec. 7.2; Ren et al. 2006.
+    """
+    if blocking not in ("object", "sphere"):
+        raise ValueError(f"blocking must be 'object' or 'sphere', got {blocking!r}")
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
+    c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
+    r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
+    obj = np.ascontiguousarray(sl_object, dtype=np.int64).reshape(-1)
+    inter = np.ascontiguousarray(intersect, dtype=np.bool_)
+    if r.shape[0] != c.shape[0] or obj.shape[0] != c.shape[0] or inter.shape != (c.shape[0], c.shape[0]):
+        raise ValueError("centres (S, 3), radii (S,), sl_object (S,) and intersect (S, S) must agree in S")
+    n_obj = int(obj.max()) + 1 if obj.size else 0
+    obj_centres = np.zeros((n_obj, 3))
+    for o in range(n_obj):
+        obj_centres[o] = c[obj == o].mean(axis=0)
+    if method == "reference":
+        return _accumulate_reference(p, n, c, r, obj, obj_centres, inter, order, blocking == "object")
+    B, S, n2 = p.shape[0], c.shape[0], order * order
+    g_sphere = np.empty((B, S, n2))
+    g_front = np.empty((B, S, n2))
+    theta = np.empty((B, S))
+    axis = np.empty((B, S, 3))
+    if B and S:
+        _accumulate_blockers(p, n, c, r, obj, obj_centres, inter, blocker_log_table(order), order,
+                             blocking == "object", g_sphere, g_front, theta, axis)
+    return g_sphere, g_front, theta, axis
+
+
+def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
+               exp_method: str = "hyb") -> np.ndarray:
+    """Light intensity distributions of the spherical lights (Eqs. 3-11).
+
+    Parameters
+    ----------
+    sample_points, sample_normals : (S, m, 3) float
+        Surface sample points of each light, world space.
+    sample_valid : (S, m) bool
+    centres : (S_all, 3) float
+    radii : (S_all,) float
+        Every light of the scene as a blocker (world space).
+    env_sh : (n*n, 3) float
+        Environment radiance.
+    cell_sums : (m, n*n) float
+        Voronoi-cell sums ``(4 pi / N) Y_j`` (:func:`voronoi_cell_sums`), in the light's own frame.
+    albedo_sh : (S, n*n, 3) float
+        Surface-albedo SH of each light, own frame.
+    exp_method : {"hyb", "ol", "exact"}
+
+    Returns
+    -------
+    emission : (S, n*n, 3) float64
+        ``L^c_S = (sum_j L_{p_j} (4 pi / N) Y_j) * c_S`` (Eqs. 10-11) with
+        ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
+        (Eq. 8; the albedo enters through ``c_S``); own frame of each light.
+    """
+    from ._shadows import direct_irradiance
+
+    S, m = sample_valid.shape
+    order = math.isqrt(np.asarray(env_sh).shape[0])
+    radiance = np.zeros((S, m, 3))
+    if sample_valid.any():
+        e = direct_irradiance(sample_points[sample_valid], sample_normals[sample_valid], centres, radii, env_sh,
+                              exp_method=exp_method)
+        radiance[sample_valid] = e / np.pi
+    light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
+    out = np.empty_like(light)
+    for ch in range(3):  # Eq. 11, channel by channel
+        out[:, :, ch] = sh.product(np.ascontiguousarray(light[:, :, ch]), np.ascontiguousarray(albedo_sh[:, :, ch]),
+                                   order, channels=False)
+    return out
+
+
+def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
+                blocking: str = "object", exp_method: str = "hyb", indirect: bool = True,
+                method: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+    """Direct and indirect irradiance at receivers (Eqs. 8, 12-24).
+
+    Parameters
+    ----------
+    points, normals : (B, 3) float
+    centres, radii, sl_object, intersect
+        As :func:`accumulate_blockers`.
+    sl_rotation : (S, 3, 3) float
+        World-from-light rotation of each light (its object's rotation).
+    emission : (S, n*n, 3) float
+        ``L^c`` of each light in its own frame (:func:`first_pass`).
+    env_sh : (n*n, 3) float
+    blocking : {"object", "sphere"}
+    exp_method : {"hyb", "ol", "exact"}
+    indirect : bool
+        False: shadows only (the ``shadows only`` column of Sec. 8.5).
+    method : {"numba", "reference"}
+        Tier of the blocker accumulation.
+
+    Returns
+    -------
+    direct : (B, 3) float64
+        ``E = V_p . T_n`` (Eq. 8 times pi).
+    indirect : (B, 3) float64
+        ``sum_i L~_i V~_i`` (Eq. 14, irradiance): ``L~_i = w'_theta . L^c_i``
+        (Eq. 18), ``V~_i = (exp(G_front) - exp(G_front + G_i)) . rho_n``
+        (Eqs. 23-24), ``rho_n`` the clamped cosine about ``n``.
+        Exit radiance of a Lambertian receiver: ``albedo / pi`` times these.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    env = np.asarray(env_sh, dtype=np.float64)
+    order = math.isqrt(env.shape[0])
+    B, S, n2 = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0], order * order
+    if B == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
+                                                         blocking=blocking, method=method)
+    # direct (Eq. 8): all blockers
+    vis = sh.exp(g_sphere.sum(axis=1), method=exp_method, channels=False)
+    direct = np.einsum("bk,bkc->bc", vis, environment_transfer(n, env))
+    ind = np.zeros((B, 3))
+    if not indirect or S == 0:
+        return direct, ind
+    live = theta >= 0
+    rows_b, rows_s = np.nonzero(live)
+    if rows_b.size == 0:
+        return direct, ind
+    gf = g_front[rows_b, rows_s]
+    stacked = np.concatenate([gf, gf + g_sphere[rows_b, rows_s]], axis=0)
+    e = sh.exp(stacked, method=exp_method, channels=False)
+    v_sl = e[: rows_b.size] - e[rows_b.size :]  # Eq. 23
+    cos = sh.zh_rotate(sh.clamped_cosine_zh(order), n)
+    v_avg = np.einsum("tk,tk->t", v_sl, cos[rows_b])  # Eq. 24
+    # Eq. 18: w_theta about the direction light -> receiver, in the light's own frame (Sec. 7.1)
+    rot = np.asarray(sl_rotation, dtype=np.float64)
+    to_recv = -axis[rows_b, rows_s]
+    local = np.einsum("tji,tj->ti", rot[rows_s], to_recv)
+    w = sh.zh_rotate(w_theta_zh(theta[rows_b, rows_s], order), local)
+    l_avg = np.einsum("tk,tkc->tc", w, np.asarray(emission, dtype=np.float64)[rows_s])
+    np.add.at(ind, rows_b, l_avg * v_avg[:, None])  # Eq. 14
+    return direct, ind
