@@ -138,7 +138,7 @@ def trace_photons(
                      cat["depth"].astype(np.int64), int(n_photons))
 
 
-def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 64,
+def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 32,
                       chunk: int = 4096) -> np.ndarray:
     """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
 

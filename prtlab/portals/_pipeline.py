@@ -54,7 +54,7 @@ class PortalsOptions:
     n_photons: int = 200_000
     gather_rays: int = 256
     order: int = 4
-    photon_k: int = 64
+    photon_k: int = 32
     bounces: int = 2
     direct_basis: str = "auto"
     seed: int = 0
