@@ -6,7 +6,9 @@ the sample-sphere grid of its basis radiance fields.
 """
 
 from ._grid import SphereGrid, bounding_sphere, interpolate_field, sphere_grid
+from ._direct import direct_pass, occluder_order, visibility_pass
 from ._occlusion import DEFAULT_DEGREE, OcclusionField, occlusion_field, project_visibility, self_visibility
+from ._scene import direct_environment, precompute_scene, scene_visibility, separable_brdfs
 
 __all__ = [
     # sample spheres
@@ -20,4 +22,13 @@ __all__ = [
     "occlusion_field",
     "project_visibility",
     "self_visibility",
+    # run-time passes
+    "occluder_order",
+    "visibility_pass",
+    "direct_pass",
+    # whole scenes
+    "precompute_scene",
+    "scene_visibility",
+    "separable_brdfs",
+    "direct_environment",
 ]
