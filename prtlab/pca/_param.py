@@ -115,7 +115,7 @@ def surface_uv(mesh, *, plane: bool = False, resolution: int = 512) -> SurfacePa
     --------
     >>> from prtlab.geometry import builtin_mesh
     >>> p = surface_uv(builtin_mesh("plane", resolution=[2, 2]), plane=True)
-    >>> p.uv.min(), p.uv.max(), p.n_charts
+    >>> float(p.uv.min()), float(p.uv.max()), p.n_charts
     (0.0, 1.0, 1)
     """
     mesh = getattr(mesh, "mesh", mesh)

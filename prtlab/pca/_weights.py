@@ -194,21 +194,20 @@ class WeightSolver:
         _check_method(method)
         v = _as_values(values, "values")
         has_colour = _point_axis(v, self.n_samples, colour, "values")
+        if method == "fast":
+            if not has_colour:  # (..., S) @ (S, N): one GEMM, no copies
+                return v @ self.projector.T
+            return np.matmul(self.projector, v)  # (N, S) @ (..., S, C), batched GEMM
         if not has_colour:
             v = v[..., None]
         batch = v.shape[:-2]
         c = v.shape[-1]
         flat = v.reshape((-1, self.n_samples, c))
-        if method == "fast":
-            # (N, S) @ (S, B*C) in one GEMM
-            rhs = np.ascontiguousarray(flat.transpose(1, 0, 2)).reshape(self.n_samples, -1)
-            w = (self.projector @ rhs).reshape(self.n_basis, flat.shape[0], c).transpose(1, 0, 2)
-        else:
-            w = np.empty((flat.shape[0], self.n_basis, c))
-            for k in range(flat.shape[0]):
-                for ch in range(c):
-                    b = self.basis_at_samples @ flat[k, :, ch]  # b_m = sum_j Psi_m(x_j) L(x_j)
-                    w[k, :, ch] = self.a_inverse @ b  # w = A^{-1} b
+        w = np.empty((flat.shape[0], self.n_basis, c))
+        for k in range(flat.shape[0]):
+            for ch in range(c):
+                b = self.basis_at_samples @ flat[k, :, ch]  # b_m = sum_j Psi_m(x_j) L(x_j)
+                w[k, :, ch] = self.a_inverse @ b  # w = A^{-1} b
         w = w.reshape(batch + (self.n_basis, c))
         return w if has_colour else w[..., 0]
 
