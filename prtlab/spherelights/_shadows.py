@@ -20,7 +20,8 @@ only approximations are the SH truncation of the visibility and the
 exponentiation. Radiance is ``albedo / pi * E``.
 
 Blocker adjustments (Ren et al. 2006; Guerrero et al. Sec. 6.2, "receiver
-points inside SLs"): with height ``h = n . (c - p)``,
+points inside SLs"): a sphere containing ``p`` (``|c - p| < r``) is culled;
+otherwise, with height ``h = n . (c - p)``,
 
 * ``h >= r``: the sphere is above the tangent plane and kept as is;
 * ``h <= -r``: it is below the tangent plane and culled;
@@ -28,11 +29,14 @@ points inside SLs"): with height ``h = n . (c - p)``,
   ``h + r`` and touches the tangent plane: ``r' = (h + r) / 2``,
   ``c' = c + (r' - h) n``.
 
-This is continuous in ``p`` (``r' -> r`` as ``h -> r``, ``r' -> 0`` as
-``h -> -r``) and leaves ``p`` outside the adjusted sphere (it touches the
-tangent plane at the foot of ``c``, not at ``p``, unless they coincide), so a
-receiver is never inside a blocker it uses. A receiver on a sphere's own
-surface has ``h = -r`` and culls it.
+The horizon rule is continuous in ``p`` (``r' -> r`` as ``h -> r``,
+``r' -> 0`` as ``h -> -r``) and keeps ``p`` outside (``|c' - p|^2 = r'^2 +
+|t|^2`` with ``|t|^2 = |c - p|^2 - h^2 >= r^2 - h^2 > 0``), so a receiver is
+never inside a blocker it uses. Culling spheres that contain ``p`` is
+discontinuous where ``p`` crosses a sphere's surface: this is the "culled"
+branch of the paper's rule ("either reduced in size ... or completely
+culled"); receivers on an object's surface normally lie inside its own
+spheres and see them culled.
 """
 
 from __future__ import annotations
@@ -63,7 +67,10 @@ def blocker_log_table(order: int) -> np.ndarray:
 @numba.njit(cache=True, inline="always")
 def _adjust(px, py, pz, nx, ny, nz, cx, cy, cz, r):
     """Adjusted blocker (cx, cy, cz, r) for receiver p, normal n; r = 0 means culled."""
-    h = nx * (cx - px) + ny * (cy - py) + nz * (cz - pz)
+    ex, ey, ez = cx - px, cy - py, cz - pz
+    if ex * ex + ey * ey + ez * ez < r * r:
+        return cx, cy, cz, 0.0
+    h = nx * ex + ny * ey + nz * ez
     if h >= r:
         return cx, cy, cz, r
     if h <= -r:
@@ -200,7 +207,7 @@ def adjust_blockers(points, normals, centres, radii) -> tuple[np.ndarray, np.nda
 
     Notes
     -----
-    See the module docstring: with ``h = n . (c - p)``, kept if ``h >= r``,
+    See the module docstring: culled if ``|c - p| < r``; else, with ``h = n . (c - p)``, kept if ``h >= r``,
     culled if ``h <= -r``, else ``r' = (h + r)/2``, ``c' = c + (r' - h) n``.
 
     References
@@ -212,8 +219,9 @@ def adjust_blockers(points, normals, centres, radii) -> tuple[np.ndarray, np.nda
     c, r = _as_spheres(centres, radii)
     h = np.einsum("...k,sk->...s", n, c) - np.einsum("...k,...k->...", n, p)[..., None]
     rb = np.broadcast_to(r, h.shape)
-    rn = np.where(h >= rb, rb, np.where(h <= -rb, 0.0, 0.5 * (h + rb)))
-    shift = np.where((h < rb) & (h > -rb), rn - h, 0.0)
+    inside = np.sum((c - p[..., None, :]) ** 2, axis=-1) < rb * rb
+    rn = np.where(inside, 0.0, np.where(h >= rb, rb, np.where(h <= -rb, 0.0, 0.5 * (h + rb))))
+    shift = np.where((h < rb) & (h > -rb) & ~inside, rn - h, 0.0)
     cn = c + shift[..., None] * n[..., None, :]
     return cn, rn
 

@@ -101,7 +101,7 @@ def test_kernel_matches_reference_tier(rng):
 def test_adjustment_rules():
     p = np.zeros(3)
     n = np.array([0.0, 1.0, 0.0])
-    c = np.array([[0.5, 2.0, 0.0], [0.5, -2.0, 0.0], [1.0, 0.2, 0.0]])
+    c = np.array([[0.5, 2.0, 0.0], [0.5, -2.0, 0.0], [1.0, 0.2, 0.0]])  # none contains p
     r = np.array([1.0, 1.0, 0.5])
     ca, ra = adjust_blockers(p, n, c, r)
     np.testing.assert_allclose(ca[0], c[0]); assert ra[0] == 1.0       # above: kept
@@ -114,9 +114,12 @@ def test_adjustment_rules():
     rr = rng.uniform(0.01, 2.0, 500)
     ca, ra = adjust_blockers(p, n, cc, rr)
     assert np.all(np.linalg.norm(ca, axis=1) >= ra * (1 - 1e-12))
-    # continuity at h = +-r
-    ca, ra = adjust_blockers(p, n, [[0.3, 1.0 - 1e-9, 0.0], [0.3, -1.0 + 1e-9, 0.0]], [1.0, 1.0])
+    # continuity at h = +-r (spheres not containing p)
+    ca, ra = adjust_blockers(p, n, [[1.3, 1.0 - 1e-9, 0.0], [1.3, -1.0 + 1e-9, 0.0]], [1.0, 1.0])
     assert abs(ra[0] - 1.0) < 1e-8 and ra[1] < 1e-8
+    # a sphere containing the receiver is culled
+    ca, ra = adjust_blockers(p, n, [[0.1, 0.2, 0.0]], [0.5])
+    assert ra[0] == 0.0
 
 
 def test_empty_and_shapes():
