@@ -19,7 +19,7 @@ METHODS: dict[str, tuple[str, str] | str] = {
     "reference": ("prtlab.reference", "shade_reference"),
     "mitsuba": ("prtlab.reference", "shade_mitsuba"),
     "interreflection": "the Iwasaki et al. interreflection pipeline (issue 5)",
-    "spherelights": "the Guerrero et al. spherical-lights pipeline (issue 6)",
+    "spherelights": ("prtlab.spherelights", "shade_scene"),
     "portals": "the Yue et al. portals pipeline (issue 7)",
 }
 

@@ -1,10 +1,14 @@
 """Guerrero, Jeschke, Wimmer 2008: spherical lights (issue 6).
 
-Sphere-set fitting (Sec. 4.1) and the direct soft shadows of Ren et al. 2006
-that the method builds on (Sec. 5.1, Eqs. 3-8).
+Sphere-set fitting (Sec. 4.1), surface samples and albedo (Sec. 4.2), the
+direct soft shadows of Ren et al. 2006 (Sec. 5.1, Eqs. 3-8), the tables
+(Eqs. 10, 16-17), the first and second pass (Eqs. 9-24, per-sphere and
+per-object blocking) and the pipeline ``SphereLights``
+(``prtlab.shade(scene, method="spherelights")``).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
+from ._pipeline import SphereLightOptions, SphereLights, shade_scene
 from ._passes import accumulate_blockers, first_pass, second_pass
 from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
@@ -32,4 +36,8 @@ __all__ = [
     "accumulate_blockers",
     "first_pass",
     "second_pass",
+    # the pipeline (prtlab.shade(scene, method="spherelights"))
+    "SphereLightOptions",
+    "SphereLights",
+    "shade_scene",
 ]
