@@ -8,6 +8,7 @@ the sample-sphere grid of its basis radiance fields.
 from ._grid import SphereGrid, bounding_sphere, interpolate_field, sphere_grid
 from ._direct import direct_pass, occluder_order, visibility_pass
 from ._occlusion import DEFAULT_DEGREE, OcclusionField, occlusion_field, project_visibility, self_visibility
+from ._sources import area_light_sh
 from ._scene import direct_environment, precompute_scene, scene_visibility, separable_brdfs
 
 __all__ = [
@@ -26,6 +27,8 @@ __all__ = [
     "occluder_order",
     "visibility_pass",
     "direct_pass",
+    # local lights
+    "area_light_sh",
     # whole scenes
     "precompute_scene",
     "scene_visibility",
