@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given
+from hypothesis import strategies as st
 
 from prtlab.geometry import builtin_mesh
 from prtlab.pca import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity
@@ -59,6 +61,15 @@ def test_kernel_matches_reference(rng):
         point_light_intensity(mesh, lights), point_light_intensity(mesh, lights, method="reference"),
         rtol=1e-12, atol=1e-15,
     )
+
+
+@given(seed=st.integers(0, 2**31), n=st.integers(0, 6))
+def test_kernel_matches_reference_random_lights(seed, n):
+    mesh = builtin_mesh("icosphere", subdivisions=1)
+    lights = np.random.default_rng(seed).normal(size=(n, 3)) * 3.0
+    fast = point_light_intensity(mesh, lights)
+    assert fast.shape == (n, len(mesh.vertices))
+    np.testing.assert_allclose(fast, point_light_intensity(mesh, lights, method="reference"), rtol=1e-12, atol=1e-14)
 
 
 def test_light_positions_sphere_and_plane(sphere):
