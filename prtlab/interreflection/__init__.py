@@ -1,6 +1,27 @@
-"""Iwasaki et al. 2007 interreflection pipeline (issue 5).
+"""Iwasaki et al. 2007: precomputed radiance transfer for dynamic scenes with interreflections.
 
-Not implemented yet: this subpackage is reserved by ../shared/DESIGN.md.
+Basis radiance fields of every object on its sample spheres (Sec. 4.3), basis
+irradiance per receiver vertex (Eq. 13), weights by the precomputed ``A^{-1}``
+(Eq. 14), first and multiple bounces (Eq. 12, Sec. 5.3), on the shadow fields
+of :mod:`prtlab.shadowfields` for visibility and direct light.
+``prtlab.shade(scene, method="interreflection", bounces=3)`` runs it.
 """
 
-__all__: list[str] = []
+from ._fields import basis_radiance_at, basis_radiance_field
+from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
+from ._pipeline import Interreflection, InterreflectionOptions, shade_scene
+
+__all__ = [
+    # precomputation (Sec. 4.3)
+    "basis_radiance_at",
+    "basis_radiance_field",
+    # per-frame passes (Sec. 5)
+    "basis_irradiance",
+    "reflected_light",
+    "fit_weights",
+    "outgoing_radiance",
+    # the pipeline
+    "Interreflection",
+    "InterreflectionOptions",
+    "shade_scene",
+]

@@ -1,0 +1,74 @@
+"""Numba kernels of the per-frame passes (one per shader pass); the specifications are in ``_passes.py``."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, parallel=True)
+def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
+    """Eq. 13 per receiver vertex: interpolate ``S`` (trilinear) and integrate against ``P_n(V G_k')``.
+
+    field : (n_r, 6, res, res, M, n2) basis radiance field, M = K * N
+    rpos, face, s, t : (V,) location of each vertex on the source's sample spheres
+    transfer : (V, K', n2) ``P_n(V_j G_jk')`` in the source's object frame
+    scale : (V,) factor per vertex (``(r_max / r)^2`` beyond the outermost sphere, else 1)
+    out : (V, K', M)
+    """
+    n_r = field.shape[0]
+    res = field.shape[2]
+    n_m = field.shape[4]
+    n2 = field.shape[5]
+    n_kp = transfer.shape[1]
+    for v in numba.prange(rpos.shape[0]):
+        r0 = int(np.floor(rpos[v]))
+        if r0 > n_r - 1:
+            r0 = n_r - 1
+        if r0 < 0:
+            r0 = 0
+        fr = rpos[v] - r0
+        r1 = r0 + 1 if r0 + 1 < n_r else r0
+        x = min(max(s[v] * res - 0.5, 0.0), res - 1.0)
+        y = min(max(t[v] * res - 0.5, 0.0), res - 1.0)
+        j0 = int(np.floor(x))
+        i0 = int(np.floor(y))
+        fj = x - j0
+        fi = y - i0
+        j1 = j0 + 1 if j0 + 1 < res else j0
+        i1 = i0 + 1 if i0 + 1 < res else i0
+        f = face[v]
+        for kp in range(n_kp):
+            for m in range(n_m):
+                out[v, kp, m] = 0.0
+        for c in range(8):
+            rr = r1 if c & 4 else r0
+            ii = i1 if c & 2 else i0
+            jj = j1 if c & 1 else j0
+            w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
+            if w == 0.0:
+                continue
+            w *= scale[v]
+            for kp in range(n_kp):
+                for m in range(n_m):
+                    acc = 0.0
+                    for i in range(n2):
+                        acc += field[rr, f, ii, jj, m, i] * transfer[v, kp, i]
+                    out[v, kp, m] += w * acc
+
+
+@numba.njit(cache=True, parallel=True)
+def bounce_kernel(irradiance, weights, out):
+    """Eq. 12 before the view factors: ``out[v, k', c] += sum_m irradiance[v, k', m] weights[m, c]``.
+
+    irradiance : (V, K', M) basis irradiance from one source; weights : (M, C) the source's weights
+    """
+    n_v, n_kp, n_m = irradiance.shape
+    n_c = weights.shape[1]
+    for v in numba.prange(n_v):
+        for kp in range(n_kp):
+            for c in range(n_c):
+                acc = 0.0
+                for m in range(n_m):
+                    acc += irradiance[v, kp, m] * weights[m, c]
+                out[v, kp, c] += acc

@@ -1,0 +1,309 @@
+"""The Iwasaki et al. 2007 pipeline: precomputation (cached) and the four per-frame steps.
+
+Precomputation, per (non-portal) object, in object space (:meth:`Interreflection.compute`):
+
+* the occlusion field and the vertices' self-visibility (:mod:`prtlab.shadowfields`);
+* the PCA basis of its surface intensity, ``N`` functions from ``n_lights`` point
+  lights (:func:`prtlab.pca.fit_pca_basis`; lights on a grid for a flat object);
+* the basis radiance field ``S_(k,i)`` on its sample spheres (:mod:`._fields`).
+
+Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
+
+1. **direct**: the visibility of every vertex (self-visibility times the other
+   objects' occlusion fields, nearest first), the transfer ``P_n(V G_k)`` and the
+   direct light ``L_k = < L_in, P_n(V G_k) >`` from the environment and the area
+   lights (:func:`prtlab.shadowfields.area_light_sh`);
+2. **basis irradiance** (Eq. 13) of every source on every other receiver, with the
+   visibility between them (the occluders other than source and receiver);
+   reused from the previous frame when no pose changed;
+3. **weights** (Eq. 14) of every object from its ``L_k``;
+4. **bounces** (Eq. 12, Sec. 5.3): ``L_k'^(b) = sum_s Phi^s w^s(b-1)``, radiance
+   ``sum_k' h_k' colour_k' L_k'^(b)``, new weights; ``bounces`` times.
+
+``direct`` of the result is step 1's radiance, ``indirect`` the sum over the bounces.
+
+Sec. 5.4 (skip small contributions): with ``threshold > 0`` a source's basis
+irradiance on a receiver is not computed when the irradiance it gives a plane
+at the receiver's centre facing the source, ``I_c = max_(k',m) |< S_m(x_c), G_k'(w_c) >|``
+(unoccluded, the receiver's first BRDF term), is below ``threshold``; the
+skipped pairs are counted in ``info["skipped_pairs"]``.
+
+Conventions and limits: vertices are shaded on the side of their normal; a
+source emits only from the side of its vertex normals; inter-object
+visibility takes every object other than source and receiver as an occluder
+(also those behind the source); area lights occlude nothing here (they are
+opaque in the references: keep them away from the objects' line of sight to
+each other); point lights are not supported (a clear error).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from prtlab import brdf, pca, sh
+from prtlab.pipeline import FrameState, Precomputation
+from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
+from prtlab.shadowfields import (
+    OcclusionField,
+    SphereGrid,
+    area_light_sh,
+    occluder_order,
+    occlusion_field,
+    self_visibility,
+    sphere_grid,
+    visibility_pass,
+)
+
+from ._fields import basis_radiance_at, basis_radiance_field
+from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
+
+__all__ = ["InterreflectionOptions", "Interreflection", "shade_scene"]
+
+
+@dataclass
+class InterreflectionOptions:
+    """Options of the interreflection pipeline (defaults as in the paper, Sec. 6).
+
+    order : SH order n (4: 16 coefficients).
+    n_basis : PCA basis functions N (16).
+    n_lights : point lights of the PCA training renders (256).
+    K_glossy : separable-BRDF terms of Phong materials (4; Lambert uses 1).
+    n_radii, resolution, r_min, r_max, spacing : sample spheres (16 x 6 x 16 x 16, see
+        :func:`prtlab.shadowfields.sphere_grid`).
+    degree : quadrature degree of the visibility and basis radiance projections (None: 47).
+    threshold : Sec. 5.4 skip threshold for source/receiver pairs (0: compute all).
+    """
+
+    order: int = 4
+    n_basis: int = 16
+    n_lights: int = 256
+    K_glossy: int = 4
+    n_radii: int = 16
+    resolution: int = 16
+    r_min: float = 0.2
+    r_max: float = 8.0
+    spacing: str = "geometric"
+    degree: int | None = None
+    threshold: float = 0.0
+
+    def __post_init__(self):
+        for name in ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"option {name} must be an int >= 1, got {value!r}")
+        if not (np.isfinite(self.threshold) and self.threshold >= 0):
+            raise ValueError(f"option threshold must be a finite number >= 0, got {self.threshold!r}")
+
+
+def _is_flat(mesh) -> bool:
+    v = np.asarray(mesh.vertices, float)
+    if len(v) < 4:
+        return True
+    s = np.linalg.svd(v - v.mean(axis=0), compute_uv=False)
+    return bool(s[-1] <= 1e-9 * max(s[0], 1e-300))
+
+
+def _separable(material, K_glossy: int):
+    model = brdf.from_material(material)
+    return brdf.separable(model, 1 if material.type == "diffuse" else K_glossy)
+
+
+class Interreflection(Precomputation):
+    """Iwasaki et al. 2007: PRT for dynamic scenes with interreflections (module docstring)."""
+
+    method = "interreflection"
+    format_version = 1
+    max_bounces = None
+    options_type = InterreflectionOptions
+
+    @classmethod
+    def compute(cls, scene, options: InterreflectionOptions, progress: bool) -> dict:
+        objs = [o for o in scene.objects if not o.portal]
+        if progress:
+            from tqdm.auto import tqdm
+
+            objs = tqdm(objs, desc="interreflection precompute", unit="object")
+        data = {}
+        for obj in objs:
+            mesh = obj.mesh
+            oof = occlusion_field(mesh, options.order, n_radii=options.n_radii, resolution=options.resolution,
+                                  r_min=options.r_min, r_max=options.r_max, spacing=options.spacing,
+                                  degree=options.degree)
+            vis = self_visibility(mesh, options.order, degree=options.degree)
+            n_basis = min(options.n_basis, len(mesh.vertices), options.n_lights + 1)
+            basis = pca.fit_pca_basis(mesh, n_basis, options.n_lights, plane=_is_flat(mesh))
+            sep = _separable(obj.material, options.K_glossy)
+            field = basis_radiance_field(mesh, basis.basis, sep, oof.grid, options.order, options.degree)
+            data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
+                              "pca_samples": basis.samples, "basis_radiance": field}
+        return data
+
+    def __init__(self, scene, options, data):
+        super().__init__(scene, options, data)
+        self.objects = [o for o in scene.objects if not o.portal]
+        self.fields = {o.name: OcclusionField.from_arrays(data[o.name]["oof"]) for o in self.objects}
+        self.bases = {}
+        for o in self.objects:
+            b = np.asarray(data[o.name]["pca_basis"], float)
+            self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), np.asarray(data[o.name]["pca_samples"]),
+                                              np.zeros((0, 3)), pca.WeightSolver.from_basis(b, data[o.name]["pca_samples"]))
+        self.seps = {o.name: _separable(o.material, options.K_glossy) for o in self.objects}
+        self._phi_cache: dict = {}
+
+    # ------------------------------------------------------------------ per-frame passes
+
+    def _frame_geometry(self, state: FrameState):
+        order = self.options.order
+        geo = {}
+        camera = state.camera or self.scene.camera
+        for o in self.objects:
+            T = state.transforms.get(o.name, o.transform)
+            x, n = o.world_vertices(T), o.world_normals(T)
+            sep = self.seps[o.name]
+            wo = np.asarray(camera.position, float) - x
+            wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-300)
+            own = np.asarray(self.data[o.name]["self_visibility"], float)
+            if len(own):
+                own = sh.rotate(own, T.rotation, channels=False)
+            geo[o.name] = {"T": T, "x": x, "n": n, "self": own, "g_cos": brdf.project_g_cos(sep, n, order),
+                           "h": brdf.project_h(sep, wo, n), "center": T.apply_points(self.fields[o.name].grid.center)}
+        return geo
+
+    def _occlusion(self, geo):
+        """occ[r][o]: the occlusion field of object o looked up at the vertices of r (world frame)."""
+        occ = {}
+        for r in self.objects:
+            occ[r.name] = {o.name: self.fields[o.name].lookup(geo[r.name]["x"], geo[o.name]["T"])
+                           for o in self.objects if o.name != r.name}
+        return occ
+
+    def _transfer(self, visibility, g_cos):
+        order = self.options.order
+        if len(visibility) == 0:
+            return np.zeros(g_cos.shape)
+        return sh.product(np.broadcast_to(visibility[:, None, :], g_cos.shape), g_cos, order, channels=False)
+
+    def direct_step(self, state: FrameState, geo, occ):
+        """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
+        order = self.options.order
+        lights = state.lights
+        for light in lights:
+            if isinstance(light, PointLight):
+                raise ValueError("the interreflection pipeline supports environment and area lights, not point "
+                                 "lights; replace the point light by a small area light")
+        env = [light for light in lights if isinstance(light, EnvironmentLight)]
+        env_sh = environment_sh(env[0], order) if env else None
+        areas = [light for light in lights if isinstance(light, AreaLight)]
+        light_k, radiance = {}, {}
+        for r in self.objects:
+            g = geo[r.name]
+            others = [o.name for o in self.objects if o.name != r.name]
+            idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
+            vis = visibility_pass(g["self"], [occ[r.name][others[i]] for i in idx])
+            transfer = self._transfer(vis, g["g_cos"])  # (V, K, n2)
+            lk = np.zeros(transfer.shape[:2] + (3,))
+            if env_sh is not None:
+                lk += np.einsum("vki,ic->vkc", transfer, env_sh)
+            for light in areas:
+                lk += np.einsum("vki,vic->vkc", transfer, area_light_sh(light, g["x"], order))
+            light_k[r.name] = lk
+            radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
+        return light_k, radiance
+
+    def _pair_skipped(self, geo, r, s) -> bool:
+        if self.options.threshold <= 0:
+            return False
+        gs, gr = geo[s.name], geo[r.name]
+        wc = gs["center"] - gr["center"]
+        dist = np.linalg.norm(wc)
+        if dist == 0:
+            return False
+        wc /= dist
+        g_c = brdf.project_g_cos(self.seps[r.name], wc, self.options.order)  # (K', n2)
+        local = ((gr["center"] - gs["T"].translate) @ gs["T"].rotation) / float(gs["T"].scale)
+        s_c = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[None],
+                                self.options.order, self.options.degree)[0]  # (K, N, n2)
+        g_obj = sh.rotate(g_c, gs["T"].rotation.T, channels=False)
+        return float(np.max(np.abs(np.einsum("kni,pi->pkn", s_c, g_obj)))) < self.options.threshold
+
+    def basis_irradiance_step(self, geo, occ):
+        """Step 2: ``Phi[r][s]`` (V_r, K'_r, K_s, N_s) for every ordered pair, reusing unchanged poses."""
+        poses = tuple((o.name, tuple(geo[o.name]["T"].matrix().ravel())) for o in self.objects)
+        phi, computed, skipped, reused = {}, 0, 0, 0
+        for r in self.objects:
+            phi[r.name] = {}
+            g = geo[r.name]
+            for s in self.objects:
+                if s.name == r.name:
+                    continue
+                key = (r.name, s.name)
+                cached = self._phi_cache.get(key)
+                if cached is not None and cached[0] == poses:
+                    phi[r.name][s.name] = cached[1]
+                    reused += 1
+                    continue
+                if self._pair_skipped(geo, r, s):
+                    skipped += 1
+                    continue
+                others = [o.name for o in self.objects if o.name not in (r.name, s.name)]
+                idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
+                vis = visibility_pass(g["self"], [occ[r.name][others[i]] for i in idx])
+                transfer = self._transfer(vis, g["g_cos"])
+                field = self.data[s.name]["basis_radiance"]
+                grid = self.fields[s.name].grid
+                value = basis_irradiance(field, grid, g["x"], transfer, geo[s.name]["T"])
+                phi[r.name][s.name] = value
+                self._phi_cache[key] = (poses, value)
+                computed += 1
+        return phi, {"computed_pairs": computed, "skipped_pairs": skipped, "reused_pairs": reused}
+
+    def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
+        times = {}
+        t0 = time.perf_counter()
+        geo = self._frame_geometry(state)
+        occ = self._occlusion(geo)
+        light_k, direct = self.direct_step(state, geo, occ)
+        times["direct"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},
+                                                                            {})
+        times["basis_irradiance"] = time.perf_counter() - t0
+        indirect = {o.name: np.zeros((o.n_vertices, 3)) for o in self.objects}
+        times["weights"] = times["bounces"] = 0.0
+        for _ in range(bounces):
+            t0 = time.perf_counter()
+            weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
+                       for o in self.objects}
+            times["weights"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            new_light = {}
+            for r in self.objects:
+                sources = list(phi[r.name])
+                g = geo[r.name]
+                if sources:
+                    lk = reflected_light([phi[r.name][s] for s in sources], [weights[s] for s in sources])
+                else:
+                    lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                new_light[r.name] = lk
+                indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
+            light_k = new_light
+            times["bounces"] += time.perf_counter() - t0
+        result = ShadeResult()
+        for o in self.objects:
+            result.direct[o.name] = direct[o.name]
+            result.indirect[o.name] = indirect[o.name]
+            result.total[o.name] = direct[o.name] + indirect[o.name]
+        result.info = {"method": self.method, "bounces": bounces, "seconds": times, **counts}
+        return result
+
+
+def shade_scene(scene, bounces: int = 3, cache=True, progress: bool = True, **options) -> ShadeResult:
+    """Entry point of ``prtlab.shade(scene, method="interreflection", bounces=..., **options)``.
+
+    Options are the fields of :class:`InterreflectionOptions`; ``cache`` as in
+    :meth:`prtlab.pipeline.Precomputation.precompute`.
+    """
+    return Interreflection.shade_scene(scene, bounces=bounces, cache=cache, progress=progress, **options)
