@@ -1,0 +1,86 @@
+"""Benchmarks of prtlab.portals: one relighting frame of the window box at the paper's size (about 45k
+vertices, Table 1: 70 fps), per pass and whole, and the memory of the 8-bit direct transfer.
+
+The transfer of the box scene (``data/scenes/box_window_sky.yaml``, 2,058 vertices) is precomputed with small
+sample counts and its vertices are repeated to the paper's 44,763 (the per-frame cost depends on the vertex
+count and on the stored entries per vertex, not on where the vertices are). Peers: the float64 reference tiers.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+import prtlab
+from prtlab.bench import case
+from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
+from prtlab.scene import load_scene
+from prtlab.wavelet import SparseTransfer
+
+PAPER_VERTICES = 44_763
+SCENE = Path(prtlab.__file__).resolve().parents[1] / "data" / "scenes" / "box_window_sky.yaml"
+
+
+def _tile(sparse: SparseTransfer, n: int) -> SparseTransfer:
+    reps = -(-n // sparse.n_vertices)
+    counts = np.tile(np.diff(sparse.indptr), reps)[:n]
+    indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    e = int(indptr[-1])
+    return SparseTransfer(indptr, np.tile(sparse.indices, reps)[:e], np.tile(sparse.codes, reps)[:e],
+                          np.tile(sparse.scale, reps)[:n], np.tile(sparse.basis, reps)[:n], sparse.res)
+
+
+@lru_cache(maxsize=1)
+def _frame_data():
+    scene = load_scene(SCENE)
+    pre = Portals.precompute(scene, {"direct_samples": 256, "n_photons": 50_000, "gather_rays": 32, "order": 4},
+                             progress=False)
+    reps = -(-PAPER_VERTICES // len(pre.data["albedo"]))
+    sparse = _tile(pre.direct_transfer(0), PAPER_VERTICES)
+    transfer = np.ascontiguousarray(np.tile(pre.data["portal0"]["indirect"], (reps, 1, 1))[:PAPER_VERTICES])
+    albedo = np.tile(pre.data["albedo"], (reps, 1))[:PAPER_VERTICES]
+    return scene, sparse, transfer, albedo
+
+
+@case("portals.frame.45k")
+def frame(quick: bool) -> dict:
+    scene, sparse, transfer, albedo = _frame_data()
+    env = scene.environment
+
+    def run(method="numba"):
+        cube = shell_light(env, 32)
+        return direct_pass(sparse, albedo, cube, method) + indirect_pass(transfer, shell_sh(cube, 4), method)
+
+    entries = len(sparse.codes)
+    return {"run": run, "gflop": (2 * entries * 3 + 2 * transfer.size) / 1e9, "items": PAPER_VERTICES,
+            "peer": ("float64 reference tiers", lambda: run("reference"))}
+
+
+@case("portals.direct_pass.45k")
+def direct(quick: bool) -> dict:
+    scene, sparse, _, albedo = _frame_data()
+    cube = shell_light(scene.environment, 32)
+    return {"run": lambda: direct_pass(sparse, albedo, cube), "gflop": 2 * len(sparse.codes) * 3 / 1e9,
+            "items": PAPER_VERTICES, "peer": ("dense float64 reference", lambda: direct_pass(sparse, albedo, cube,
+                                                                                             "reference"))}
+
+
+@case("portals.indirect_pass.45k")
+def indirect(quick: bool) -> dict:
+    scene, _, transfer, _ = _frame_data()
+    c = shell_sh(shell_light(scene.environment, 32), 4)
+    return {"run": lambda: indirect_pass(transfer, c), "gflop": 2 * transfer.size / 1e9, "items": PAPER_VERTICES,
+            "peer": ("numpy einsum float64", lambda: indirect_pass(transfer, c, "reference"))}
+
+
+def direct_transfer_memory() -> dict:
+    """Bytes of the 8-bit direct transfer at the paper's vertex count (and per vertex)."""
+    _, sparse, transfer, _ = _frame_data()
+    return {"direct_bytes": sparse.nbytes, "direct_bytes_per_vertex": sparse.nbytes / sparse.n_vertices,
+            "entries_per_vertex": len(sparse.codes) / sparse.n_vertices, "indirect_bytes_float32": transfer.nbytes}
+
+
+if __name__ == "__main__":  # pragma: no cover
+    print(direct_transfer_memory())
