@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab.cache import Cache, cache_key
 from prtlab.geometry import RayCaster
 from prtlab.pipeline import FrameState, Precomputation
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
@@ -72,6 +73,11 @@ class PortalsOptions:
             raise ValueError(f"option direct_basis must be 'auto', 'pulse' or 'haar', got {self.direct_basis!r}")
 
 
+def _concatenate_chunks(chunks: list[dict]) -> dict:
+    """Chunk dicts ``{portal: {name: array}}`` concatenated along axis 0 (as the cache assembles them)."""
+    return {p: {name: np.concatenate([c[p][name] for c in chunks]) for name in chunks[0][p]} for p in chunks[0]}
+
+
 def _shaded(scene: Scene):
     objs = [o for o in scene.objects if not o.portal]
     for o in objs:
@@ -91,8 +97,33 @@ class Portals(Precomputation):
     max_bounces = None
     options_type = PortalsOptions
 
+    #: vertices per precomputation chunk (one resumable cache part each)
+    chunk_vertices: int = 2048
+
     @classmethod
-    def compute(cls, scene: Scene, options: PortalsOptions, progress: bool) -> dict:
+    def precompute(cls, scene: Scene, options=None, cache=True, progress: bool = True, map_fn=None):
+        """Run (or load) the precomputation; with a cache, in resumable chunks of vertices.
+
+        Photon maps and their radiance estimates (one per portal) are cached as
+        their own entries; the per-vertex work (direct transfer, final gathering)
+        runs in chunks of :attr:`chunk_vertices` vertices, each stored as soon as it
+        finishes, so an interrupted run resumes from the missing chunks.
+        ``map_fn`` (see :meth:`prtlab.cache.Cache.get_or_compute_chunks`) runs
+        chunks in parallel, e.g. on Dask. Every chunk draws from its own seeded
+        generator, so the result does not depend on the order or on resuming.
+        """
+        options = cls.make_options(options)
+        if not cache:
+            return cls(scene, options, cls.compute(scene, options, progress))
+        store = Cache(progress=progress) if cache is True else cache
+        key = cache_key(*cls.cache_key_parts(scene, options))
+        data = store.get_or_compute(
+            key, lambda: cls.compute(scene, options, progress, store=store, key=key, map_fn=map_fn), name=cls.method)
+        return cls(scene, options, data)
+
+    @classmethod
+    def compute(cls, scene: Scene, options: PortalsOptions, progress: bool, store=None, key=None,
+                map_fn=None) -> dict:
         objs = _shaded(scene)
         portals = find_portals(scene)
         if not portals:
@@ -103,48 +134,72 @@ class Portals(Precomputation):
         albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
         obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
-        rng = np.random.default_rng(options.seed)
-        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo}
-        bar = None
-        if progress:
+        n_vertices = len(points)
+
+        # photons and radiance estimates: one per portal (Section 4.1.1, steps 1a-1b)
+        exitance, photon_seconds, n_stored = [], [], []
+        for k, portal in enumerate(portals):
+            def estimate(k=k, portal=portal):
+                t0 = time.perf_counter()
+                rng = np.random.default_rng([options.seed, k, 1])
+                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng)
+                b = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k)
+                return {"exitance": b, "seconds": np.array(time.perf_counter() - t0),
+                        "n_photons_stored": np.array(len(photons))}
+
+            if options.bounces == 0:
+                entry = {"exitance": None, "seconds": np.array(0.0), "n_photons_stored": np.array(0)}
+            elif store is not None:
+                entry = store.get_or_compute(cache_key(key, "exitance", k), estimate, name="portals-photons")
+            else:
+                entry = estimate()
+            exitance.append(entry["exitance"])
+            photon_seconds.append(float(entry["seconds"]))
+            n_stored.append(int(entry["n_photons_stored"]))
+
+        # per-vertex work in chunks (Section 4.1.2 and 4.1.1 step 2)
+        size = cls.chunk_vertices
+        n_chunks = max(1, -(-n_vertices // size))
+
+        def chunk_fn(i):
+            sl = slice(i * size, min(n_vertices, (i + 1) * size))
+            out = {}
+            for k, portal in enumerate(portals):
+                rng = np.random.default_rng([options.seed, k, 2, i])
+                t0 = time.perf_counter()
+                dense = direct_transfer(caster, points[sl], normals[sl], portal, options.direct_samples,
+                                        options.res, rng)
+                sparse = encode_transfer(dense, options.direct_basis)
+                t1 = time.perf_counter()
+                entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
+                         "scale": sparse.scale, "basis": sparse.basis, "seconds_direct": np.array([t1 - t0])}
+                if options.bounces > 0:
+                    entry["indirect"] = final_gather(caster, points[sl], normals[sl], albedo[sl], exitance[k],
+                                                     offsets, normals, options.gather_rays, rng).astype(np.float32)
+                entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
+                out[f"portal{k}"] = entry
+            return out
+
+        if store is not None:
+            chunks = store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
+                                                 name="portals-chunks", map_fn=map_fn)
+        else:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=len(portals) * len(points) * 2, desc="portals precompute", unit="vertex")
-        chunk = 2048
-        for k, portal in enumerate(portals):
-            t0 = time.perf_counter()
-            parts = []
-            for s in range(0, len(points), chunk):
-                parts.append(direct_transfer(caster, points[s : s + chunk], normals[s : s + chunk], portal,
-                                             options.direct_samples, options.res, rng))
-                if bar is not None:
-                    bar.update(len(parts[-1]))
-            dense = np.concatenate(parts) if parts else np.zeros((0, 6, options.res, options.res))
-            sparse = encode_transfer(dense, options.direct_basis)
-            t1 = time.perf_counter()
-            entry = {
-                "indptr": sparse.indptr, "indices": sparse.indices, "codes": sparse.codes,
-                "scale": sparse.scale, "basis": sparse.basis, "res": np.array(sparse.res),
-                "seconds_direct": np.array(t1 - t0),
-            }
+            chunks = _concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc="portals precompute",
+                                                                    unit="chunk", disable=not progress)])
+        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo}
+        for k in range(len(portals)):
+            c = chunks[f"portal{k}"]
+            indptr = np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64)
+            entry = {"indptr": indptr, "indices": c["indices"], "codes": c["codes"], "scale": c["scale"],
+                     "basis": c["basis"], "res": np.array(options.res),
+                     "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
+                     "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + photon_seconds[k]),
+                     "n_photons_stored": np.array(n_stored[k])}
             if options.bounces > 0:
-                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng)
-                exitance = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k)
-                transfer = np.zeros((len(points), options.order**2, 3), dtype=np.float32)
-                for s in range(0, len(points), chunk):
-                    transfer[s : s + chunk] = final_gather(
-                        caster, points[s : s + chunk], normals[s : s + chunk], albedo[s : s + chunk], exitance,
-                        offsets, normals, options.gather_rays, rng)
-                    if bar is not None:
-                        bar.update(len(transfer[s : s + chunk]))
-                entry["indirect"] = transfer
-                entry["n_photons_stored"] = np.array(len(photons))
-            elif bar is not None:
-                bar.update(len(points))
-            entry["seconds_indirect"] = np.array(time.perf_counter() - t1)
+                entry["indirect"] = c["indirect"]
             data[f"portal{k}"] = entry
-        if bar is not None:
-            bar.close()
         return data
 
     # ------------------------------------------------------------------ run time

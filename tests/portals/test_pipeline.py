@@ -124,3 +124,36 @@ def test_validity_criteria():
         check_shell_distance(0.5, -1.0)
     with pytest.raises(ValueError, match="interior_area must be a positive"):
         check_interior_solid_angle(np.nan, 1.0)
+
+
+def test_chunked_cache_resumes(tmp_path, monkeypatch):
+    from prtlab.cache import Cache
+
+    scene = window_box(cell=0.5)
+    monkeypatch.setattr(Portals, "chunk_vertices", 40)
+    fresh = Portals.precompute(scene, QUICK, cache=False, progress=False)
+    store = Cache(tmp_path, progress=False)
+    calls = []
+
+    def interrupted(fn, indices):
+        for i in indices[:2]:
+            calls.append(i)
+            yield i, fn(i)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=interrupted)
+
+    def counting(fn, indices):
+        for i in indices:
+            calls.append(i)
+            yield i, fn(i)
+
+    resumed = Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=counting)
+    n_chunks = -(-scene.objects[0].n_vertices // 40)
+    assert sorted(calls) == list(range(n_chunks))  # the two finished chunks were not recomputed
+    for name in ("indptr", "indices", "codes", "scale", "basis", "indirect"):
+        np.testing.assert_array_equal(resumed.data["portal0"][name], fresh.data["portal0"][name])
+    again = Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=counting)
+    assert len(calls) == n_chunks  # a hit: nothing recomputed
+    np.testing.assert_array_equal(again.shade().total["room"], fresh.shade().total["room"])
