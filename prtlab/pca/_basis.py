@@ -251,6 +251,28 @@ class PCABasis:
         """Condition number of ``A`` at :attr:`samples`."""
         return self.solver.condition_number
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays (for the HDF5 cache; no pickle): basis, singular_values, energy, samples, light_positions."""
+        return {
+            "basis": self.basis,
+            "singular_values": self.singular_values,
+            "energy": self.energy,
+            "samples": self.samples,
+            "light_positions": self.light_positions,
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "PCABasis":
+        """Rebuild from :meth:`to_arrays` output (``A^{-1}`` is recomputed from the basis and samples)."""
+        missing = {"basis", "singular_values", "energy", "samples", "light_positions"} - set(arrays)
+        if missing:
+            raise ValueError(f"arrays lacks {sorted(missing)}; pass the dict written by PCABasis.to_arrays")
+        basis = np.asarray(arrays["basis"], dtype=np.float64)
+        samples = _as_samples(np.asarray(arrays["samples"]).astype(np.int64), basis.shape[1])
+        return cls(basis, np.asarray(arrays["singular_values"], dtype=np.float64),
+                   np.asarray(arrays["energy"], dtype=np.float64), samples,
+                   np.asarray(arrays["light_positions"], dtype=np.float64), WeightSolver.from_basis(basis, samples))
+
     def truncated(self, n_basis: int, samples=None) -> "PCABasis":
         """The first ``n_basis`` functions (mean + ``n_basis - 1`` components), samples kept unless given."""
         n = _count(n_basis, "n_basis", 1)

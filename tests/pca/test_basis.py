@@ -133,6 +133,16 @@ def test_reproducible_and_scene_object(sphere):
     np.testing.assert_allclose(np.abs(c.basis[1:]), np.abs(a.basis[1:]), atol=1e-9)
 
 
+def test_arrays_round_trip(sphere):
+    a = fit_pca_basis(sphere, n_basis=4, n_lights=16, n_samples=50)
+    b = PCABasis.from_arrays(a.to_arrays())
+    for key, value in a.to_arrays().items():
+        np.testing.assert_array_equal(getattr(b, key), value)
+    np.testing.assert_allclose(b.a_inverse, a.a_inverse)
+    with pytest.raises(ValueError, match="arrays lacks"):
+        PCABasis.from_arrays({"basis": a.basis})
+
+
 def test_plane_basis():
     plane = builtin_mesh("plane", size=[2, 2], resolution=[8, 8])
     pca = fit_pca_basis(plane, n_basis=8, n_lights=64, plane=True)
