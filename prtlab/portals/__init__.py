@@ -8,6 +8,7 @@ of dynamic exteriors (Section 6).
 """
 
 from ._direct import direct_transfer
+from ._exterior import exterior_shell
 from ._indirect import PhotonMap, final_gather, radiance_estimate, trace_photons
 from ._pipeline import Portals, PortalsOptions, shade_scene
 from ._shade import direct_pass, indirect_pass
@@ -22,6 +23,7 @@ __all__ = [
     "shell_sh",
     "tint",
     "frosted",
+    "exterior_shell",
     # precomputation
     "direct_transfer",
     "PhotonMap",
