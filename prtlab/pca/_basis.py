@@ -50,6 +50,9 @@ __all__ = ["PCABasis", "fit_pca_basis", "point_light_intensity", "pca_light_posi
 
 _METHODS = ("fast", "reference")
 
+#: Shadow rays per RayCaster call when rendering the training lights (bounds memory).
+_SHADOW_RAYS_PER_CHUNK = 1 << 21
+
 
 @numba.njit(cache=True, parallel=True)
 def _point_light_kernel(points, normals, lights, visible, albedo, out):
@@ -187,16 +190,20 @@ def point_light_intensity(mesh, light_positions, *, albedo: float = 1.0, shadows
         raise ValueError(f"albedo must be a finite number >= 0, got {albedo!r}")
     points = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
     normals = np.ascontiguousarray(mesh.vertex_normals, dtype=np.float64)
+    visible = np.ones((len(lights), len(points)), dtype=bool)
     if shadows and len(lights):
         caster = RayCaster([mesh])
         eps = caster.epsilon
-        d = lights[:, None, :] - points[None, :, :]
-        o = offset_origins(points[None], normals[None], d, eps)
-        d = lights[:, None, :] - o
-        r = np.linalg.norm(d, axis=-1)
-        visible = ~caster.occluded(o, d, tmax=np.maximum(r - eps, 0.0))
-    else:
-        visible = np.ones((len(lights), len(points)), dtype=bool)
+        step = max(1, _SHADOW_RAYS_PER_CHUNK // len(points))
+        for s in range(0, len(lights), step):  # bounded memory; rays only where the light is in front
+            d = lights[s : s + step, None, :] - points[None, :, :]
+            facing = np.sum(normals[None] * d, axis=-1) > 0
+            li, vi = np.nonzero(facing)
+            o = offset_origins(points[vi], normals[vi], d[li, vi], eps)
+            dd = lights[s + li] - o
+            r = np.linalg.norm(dd, axis=-1)
+            blocked = caster.occluded(o, dd, tmax=np.maximum(r - eps, 0.0))
+            visible[s + li[blocked], vi[blocked]] = False
     if method == "reference":
         return _point_light_reference(points, normals, lights, visible, rho)
     out = np.empty((len(lights), len(points)))
@@ -296,6 +303,10 @@ class PCABasis:
             Whether there is a trailing colour axis (inferred if omitted).
         method : {"fast", "reference"}
             ``w = P L`` with the precomputed projector, or ``A^{-1} (Psi L)`` per distribution.
+
+        Returns
+        -------
+        weights : (..., N) or (..., N, C) float64
         """
         v = np.asarray(intensity)
         ns, nv = self.solver.n_samples, self.n_vertices
