@@ -18,7 +18,7 @@ class MethodUnavailable(NotImplementedError):
 METHODS: dict[str, tuple[str, str] | str] = {
     "reference": ("prtlab.reference", "shade_reference"),
     "mitsuba": ("prtlab.reference", "shade_mitsuba"),
-    "interreflection": "the Iwasaki et al. interreflection pipeline (issue 5)",
+    "interreflection": ("prtlab.interreflection", "shade_scene"),
     "spherelights": ("prtlab.spherelights", "shade_scene"),
     "portals": "the Yue et al. portals pipeline (issue 7)",
 }
