@@ -47,6 +47,8 @@ class PortalsOptions:
     photon_k : photons per radiance estimate.
     bounces : indirect bounces stored [9].
     direct_basis : "auto" (pulse or Haar, whichever is smaller per vertex), "pulse" or "haar".
+    merge_portals : one portal (and shell) for all portal objects (Section 3.1: windows of one material under a
+        distant environment), instead of one per portal object.
     seed : random seed.
     """
 
@@ -58,6 +60,7 @@ class PortalsOptions:
     photon_k: int = 32
     bounces: int = 2
     direct_basis: str = "auto"
+    merge_portals: bool = False
     seed: int = 0
 
     def __post_init__(self):
@@ -69,6 +72,8 @@ class PortalsOptions:
             raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
         if isinstance(self.bounces, bool) or not isinstance(self.bounces, (int, np.integer)) or self.bounces < 0:
             raise ValueError(f"option bounces must be an int >= 0, got {self.bounces!r}")
+        if not isinstance(self.merge_portals, (bool, np.bool_)):
+            raise ValueError(f"option merge_portals must be True or False, got {self.merge_portals!r}")
         if self.direct_basis not in ("auto", "pulse", "haar"):
             raise ValueError(f"option direct_basis must be 'auto', 'pulse' or 'haar', got {self.direct_basis!r}")
 
@@ -125,7 +130,8 @@ class Portals(Precomputation):
     def compute(cls, scene: Scene, options: PortalsOptions, progress: bool, store=None, key=None,
                 map_fn=None) -> dict:
         objs = _shaded(scene)
-        portals = find_portals(scene)
+        names = [o.name for o in scene.objects if o.portal]
+        portals = find_portals(scene, [names] if options.merge_portals and names else None)
         if not portals:
             raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
         caster = RayCaster(scene)

@@ -157,3 +157,18 @@ def test_chunked_cache_resumes(tmp_path, monkeypatch):
     again = Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=counting)
     assert len(calls) == n_chunks  # a hit: nothing recomputed
     np.testing.assert_array_equal(again.shade().total["room"], fresh.shade().total["room"])
+
+
+def test_merge_portals():
+    base = window_box(cell=0.5)
+    d = {"objects": [o.to_dict() for o in base.objects], "lights": [{"type": "environment", "constant": [1, 1, 1]}],
+         "camera": base.camera.to_dict()}
+    second = dict(d["objects"][1], name="window2")
+    d["objects"].append(second)  # the same opening twice: two portals, or one merged portal of twice the area
+    scene = Scene.from_dict(d)
+    opts = dict(QUICK, bounces=0)
+    separate = Portals.precompute(scene, opts, cache=False, progress=False)
+    merged = Portals.precompute(scene, dict(opts, merge_portals=True), cache=False, progress=False)
+    assert separate.n_portals == 2 and merged.n_portals == 1
+    with pytest.raises(ValueError, match="merge_portals"):
+        Portals.make_options({"merge_portals": "yes"})
