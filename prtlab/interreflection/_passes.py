@@ -121,18 +121,21 @@ def reflected_light(irradiance, weights, method: str = "numba") -> np.ndarray:
         raise ValueError("reflected_light needs at least one source")
     n_v, n_kp = np.shape(irradiance[0])[:2]
     n_c = np.shape(weights[0])[-1]
-    out = np.zeros((n_v, n_kp, n_c))
+    flat_phi, flat_w = [], []
     for phi, w in zip(irradiance, weights):
         phi = np.asarray(phi, dtype=np.float64)
         w = np.asarray(w, dtype=np.float64)
         if phi.ndim != 4 or phi.shape[:2] != (n_v, n_kp) or w.shape != phi.shape[2:] + (n_c,):
             raise ValueError(f"irradiance (V, K', K, N) {phi.shape} and weights (K, N, C) {w.shape} do not match")
-        flat_phi = phi.reshape(n_v, n_kp, -1)
-        flat_w = w.reshape(-1, n_c)
-        if method == "reference":
-            out += np.einsum("vkm,mc->vkc", flat_phi, flat_w)
-        elif n_v:
-            bounce_kernel(np.ascontiguousarray(flat_phi), np.ascontiguousarray(flat_w), out)
+        flat_phi.append(phi.reshape(n_v, n_kp, -1))
+        flat_w.append(w.reshape(-1, n_c))
+    all_phi = np.concatenate(flat_phi, axis=2)  # every source's (k, i) side by side: one pass
+    all_w = np.concatenate(flat_w, axis=0)
+    if method == "reference":
+        return np.einsum("vkm,mc->vkc", all_phi, all_w)
+    out = np.zeros((n_v, n_kp, n_c))
+    if n_v:
+        bounce_kernel(all_phi, np.ascontiguousarray(all_w), out)
     return out
 
 

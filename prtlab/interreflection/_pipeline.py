@@ -152,6 +152,7 @@ class Interreflection(Precomputation):
                                               np.zeros((0, 3)), pca.WeightSolver.from_basis(b, data[o.name]["pca_samples"]))
         self.seps = {o.name: _separable(o.material, options.K_glossy) for o in self.objects}
         self._phi_cache: dict = {}
+        self._pose_cache = None
 
     # ------------------------------------------------------------------ per-frame passes
 
@@ -186,7 +187,18 @@ class Interreflection(Precomputation):
             return np.zeros(g_cos.shape)
         return sh.product(np.broadcast_to(visibility[:, None, :], g_cos.shape), g_cos, order, channels=False)
 
-    def direct_step(self, state: FrameState, geo, occ):
+    def direct_transfer(self, geo, occ):
+        """``P_n(V_j G_jk)`` (V, K, n2) per object, with the visibility toward every other object."""
+        transfer = {}
+        for r in self.objects:
+            g = geo[r.name]
+            others = [o.name for o in self.objects if o.name != r.name]
+            idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
+            vis = visibility_pass(g["self"], [occ[r.name][others[i]] for i in idx])
+            transfer[r.name] = self._transfer(vis, g["g_cos"])
+        return transfer
+
+    def direct_step(self, state: FrameState, geo, transfer):
         """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
         order = self.options.order
         lights = state.lights
@@ -200,15 +212,12 @@ class Interreflection(Precomputation):
         light_k, radiance = {}, {}
         for r in self.objects:
             g = geo[r.name]
-            others = [o.name for o in self.objects if o.name != r.name]
-            idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
-            vis = visibility_pass(g["self"], [occ[r.name][others[i]] for i in idx])
-            transfer = self._transfer(vis, g["g_cos"])  # (V, K, n2)
-            lk = np.zeros(transfer.shape[:2] + (3,))
+            t = transfer[r.name]  # (V, K, n2)
+            lk = np.zeros(t.shape[:2] + (3,))
             if env_sh is not None:
-                lk += np.einsum("vki,ic->vkc", transfer, env_sh)
+                lk += np.einsum("vki,ic->vkc", t, env_sh)
             for light in areas:
-                lk += np.einsum("vki,vic->vkc", transfer, area_light_sh(light, g["x"], order))
+                lk += np.einsum("vki,vic->vkc", t, area_light_sh(light, g["x"], order))
             light_k[r.name] = lk
             radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
         return light_k, radiance
@@ -260,12 +269,24 @@ class Interreflection(Precomputation):
                 computed += 1
         return phi, {"computed_pairs": computed, "skipped_pairs": skipped, "reused_pairs": reused}
 
+    def _pose_key(self, state: FrameState):
+        camera = state.camera or self.scene.camera
+        poses = tuple((o.name, tuple(state.transforms.get(o.name, o.transform).matrix().ravel()))
+                      for o in self.objects)
+        return poses, tuple(np.asarray(camera.position, float))
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
         t0 = time.perf_counter()
-        geo = self._frame_geometry(state)
-        occ = self._occlusion(geo)
-        light_k, direct = self.direct_step(state, geo, occ)
+        key = self._pose_key(state)
+        if self._pose_cache is not None and self._pose_cache[0] == key:
+            geo, occ, transfer = self._pose_cache[1]
+        else:  # poses or camera changed: look the fields up again
+            geo = self._frame_geometry(state)
+            occ = self._occlusion(geo)
+            transfer = self.direct_transfer(geo, occ)
+            self._pose_cache = (key, (geo, occ, transfer))
+        light_k, direct = self.direct_step(state, geo, transfer)
         times["direct"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},

@@ -19,6 +19,8 @@ Sec. 3 (source radiance fields) and Sec. 4.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from prtlab import sh
@@ -26,6 +28,11 @@ from prtlab import sh
 from ._occlusion import _check_order
 
 __all__ = ["area_light_sh"]
+
+
+@functools.lru_cache(maxsize=8)
+def _gauss_legendre(n: int):
+    return np.polynomial.legendre.leggauss(n)
 
 
 def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
@@ -67,7 +74,7 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
         raise ValueError("points contain NaN or inf; pass finite points")
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
-    x, w = np.polynomial.legendre.leggauss(int(n_nodes))
+    x, w = _gauss_legendre(int(n_nodes))
     u, v = np.asarray(light.u, float), np.asarray(light.v, float)
     ys = np.asarray(light.center, float) + x[:, None, None] * u + x[None, :, None] * v
     ys = ys.reshape(-1, 3)
