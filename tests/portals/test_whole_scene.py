@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 import prtlab
-from prtlab.portals import Portals
+from prtlab.geometry import cubemap_directions, equirect_lookup
+from prtlab.portals import Portals, shell_light
 from prtlab.scene import load_scene
+from prtlab.wavelet import haar2d
 
 from ..conftest import MC_SIGMAS
 from .test_indirect import MEASURED_BIAS
@@ -30,11 +32,24 @@ def test_box_window_sky_against_reference():
     v = scene.objects[0].world_vertices()
     lo, hi = v.min(0), v.max(0)
     interior = ((np.abs(v - lo) < 1e-9) | (np.abs(v - hi) < 1e-9)).sum(1) == 1
+    # direct: the room's mean within the reference's error plus the per-vertex cubemap-resolution bound
+    # sum_k T_k (max - min of L over texel k) (test_direct.py) and the 8-bit bound scale / 510 * |L|_1.
+    # (Per-vertex z-scores are not used: vertices lit only through grazing, rare paths get a reference standard
+    # error of 0 or far too small at this sample count; see prtlab.reference.)
+    sparse = pre.direct_transfer(0)
+    res = sparse.res
+    fine = equirect_lookup(scene.environment.image, cubemap_directions(res * 8)).reshape(6, res, 8, res, 8, 3)
+    spread = fine.max(axis=(2, 4)) - fine.min(axis=(2, 4))
+    cube = shell_light(scene.environment, res)
+    albedo = pre.data["albedo"]
+    bound = albedo * (np.einsum("vfij,fijc->vc", sparse.to_dense(), spread)
+                      + sparse.scale[:, None] / 510 * np.abs(haar2d(cube, channels=True)).sum((0, 1, 2))
+                      + sparse.scale[:, None] / 510 * np.abs(cube).sum((0, 1, 2)))
     a, e, se = (x["room"][interior] for x in (ours.direct, ref.direct, ref.stderr["direct"]))
-    # direct: per-vertex z-scores against the reference alone (our noise only adds): mean z^2 near 1
-    z2 = np.mean(((a - e) / np.maximum(se, 1e-12)) ** 2)
-    assert z2 <= 1.0 + MC_SIGMAS * np.sqrt(2.0 / a.size), z2
+    diff = np.abs(a.mean(0) - e.mean(0))
+    assert np.all(diff <= MC_SIGMAS * np.sqrt((se**2).sum(0)) / len(a) + bound[interior].mean(0)), (a.mean(0), e.mean(0))
     # total: the room's mean radiance within the reference's error plus the measured photon-density bias
     a, e, se = (x["room"][interior] for x in (ours.total, ref.total, ref.stderr["total"]))
-    diff = abs(a.mean() - e.mean())
-    assert diff <= MC_SIGMAS * np.sqrt((se**2).sum()) / a.size + MEASURED_BIAS * e.mean(), (a.mean(), e.mean())
+    diff = np.abs(a.mean(0) - e.mean(0))
+    assert np.all(diff <= MC_SIGMAS * np.sqrt((se**2).sum(0)) / len(a) + bound[interior].mean(0)
+                  + MEASURED_BIAS * e.mean(0)), (a.mean(0), e.mean(0))
