@@ -15,7 +15,8 @@ Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
    lights (:func:`prtlab.shadowfields.area_light_sh`);
 2. **basis irradiance** (Eq. 13) of every source on every other receiver, with the
    visibility between them (the occluders other than source and receiver);
-   reused from the previous frame when no pose changed;
+   a pair is recomputed only when the pose of its source or receiver, or of an
+   occluder whose field reaches the receiver, changed since it was last computed;
 3. **weights** (Eq. 14) of every object from its ``L_k``;
 4. **bounces** (Eq. 12, Sec. 5.3): ``L_k'^(b) = sum_s Phi^s w^s(b-1)``, radiance
    ``sum_k' h_k' colour_k' L_k'^(b)``, new weights; ``bounces`` times.
@@ -238,9 +239,16 @@ class Interreflection(Precomputation):
         g_obj = sh.rotate(g_c, gs["T"].rotation.T, channels=False)
         return float(np.max(np.abs(np.einsum("kni,pi->pkn", s_c, g_obj)))) < self.options.threshold
 
+    def _reaches(self, geo, o, r) -> bool:
+        """Whether the occlusion field of ``o`` can reach a vertex of ``r`` (else its lookup is 1 there)."""
+        go, gr = geo[o.name], geo[r.name]
+        reach = self.fields[o.name].grid.radii[-1] * float(go["T"].scale)
+        extent = self.fields[r.name].grid.radius * float(gr["T"].scale)
+        return bool(np.linalg.norm(go["center"] - gr["center"]) <= reach + extent)
+
     def basis_irradiance_step(self, geo, occ):
         """Step 2: ``Phi[r][s]`` (V_r, K'_r, K_s, N_s) for every ordered pair, reusing unchanged poses."""
-        poses = tuple((o.name, tuple(geo[o.name]["T"].matrix().ravel())) for o in self.objects)
+        pose = {o.name: tuple(geo[o.name]["T"].matrix().ravel()) for o in self.objects}
         phi, computed, skipped, reused = {}, 0, 0, 0
         for r in self.objects:
             phi[r.name] = {}
@@ -249,8 +257,12 @@ class Interreflection(Precomputation):
                 if s.name == r.name:
                     continue
                 key = (r.name, s.name)
+                # what Phi_rs depends on: the poses of r and s and of the occluders whose fields reach r
+                depends = (pose[r.name], pose[s.name],
+                           tuple((o.name, pose[o.name]) for o in self.objects
+                                 if o.name not in (r.name, s.name) and self._reaches(geo, o, r)))
                 cached = self._phi_cache.get(key)
-                if cached is not None and cached[0] == poses:
+                if cached is not None and cached[0] == depends:
                     phi[r.name][s.name] = cached[1]
                     reused += 1
                     continue
@@ -265,7 +277,7 @@ class Interreflection(Precomputation):
                 grid = self.fields[s.name].grid
                 value = basis_irradiance(field, grid, g["x"], transfer, geo[s.name]["T"])
                 phi[r.name][s.name] = value
-                self._phi_cache[key] = (poses, value)
+                self._phi_cache[key] = (depends, value)
                 computed += 1
         return phi, {"computed_pairs": computed, "skipped_pairs": skipped, "reused_pairs": reused}
 

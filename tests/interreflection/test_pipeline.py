@@ -88,6 +88,27 @@ def test_moving_an_object_equals_a_from_scratch_shade(pre):
     np.testing.assert_allclose(relit.total["ball"], 2.0 * fresh.total["ball"], rtol=1e-10)
 
 
+def test_moving_an_object_recomputes_only_the_pairs_it_touches(pre):
+    """Three objects: a far third ball moves; pairs not involving it (and out of its field's reach) are
+    reused, and the result equals a from-scratch shade."""
+    from prtlab.scene import SceneObject
+
+    base = pre.scene
+    far = SceneObject("far", base.object("ball").mesh, Transform(translate=np.array([30.0, 0.7, 0.0])),
+                      base.object("ball").material)
+    sc = type(base)(objects=[*base.objects, far], lights=base.lights, camera=base.camera)
+    data = {**pre.data, "far": pre.data["ball"]}
+    ir = Interreflection(sc, pre.options, data)
+    state = FrameState.from_scene(sc)
+    ir.shade(state, bounces=1)
+    state.transforms["far"] = Transform(translate=np.array([31.0, 0.7, 0.0]))
+    moved = ir.shade(state, bounces=1)
+    assert moved.info["reused_pairs"] == 2 and moved.info["computed_pairs"] == 4
+    fresh = Interreflection(sc, pre.options, data).shade(state, bounces=1)
+    for name in ("floor", "ball", "far"):
+        np.testing.assert_allclose(moved.total[name], fresh.total[name], rtol=1e-12, atol=1e-15)
+
+
 def test_threshold_skips_pairs(pre):
     opts = InterreflectionOptions(**QUICK, threshold=1e9)
     res = Interreflection(pre.scene, opts, pre.data).shade(bounces=1)
