@@ -114,3 +114,37 @@ def test_no_environment_gives_zero(shaded):
     dark = Scene(objects=scene.objects, lights=[], camera=scene.camera)
     out = direct_environment(dark, vis, separable_brdfs(dark), ORDER)
     assert all(np.all(v == 0) for v in out.values())
+
+
+def dense_direct_glossy(scene, obj, degree=127):
+    """Deterministic ground truth of direct light on one object with its exact BRDF toward the camera."""
+    from prtlab import brdf
+
+    caster = RayCaster(scene)
+    dirs, w = sh.quadrature(1, degree)
+    radiance = scene.environment.radiance(dirs)
+    x, n = obj.world_vertices(), obj.world_normals()
+    occ = caster.occluded(x[:, None, :], dirs[None], np.inf, normals=n[:, None, :])
+    wo = scene.camera.position - x
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    f = brdf.from_material(obj.material).eval(dirs[None], wo[:, None], n[:, None])
+    return np.einsum("vd,d,dc,vdc->vc", ~occ * np.maximum(n @ dirs.T, 0.0), w, radiance, f)
+
+
+def test_glossy_receiver_through_the_separable_brdf():
+    """A Phong floor (kd 0.3, ks 0.5, exponent 10) toward the camera. Measured relative RMS against the
+    dense quadrature with the exact BRDF: 0.185 with K = 1 and 0.081 with K = 4 (0.157 / 0.049 at
+    exponent 4); the order-4 transfer error of the K-term BRDF (:func:`prtlab.brdf.transfer_error`) is
+    0.63 / 0.34. Bound: K = 4 within 0.12 and better than K = 1; the reference agrees with the dense
+    truth (mean squared z-score 1.02 measured)."""
+    scene = ball_over_floor({"type": "phong", "kd": [0.3, 0.3, 0.3], "ks": [0.5, 0.5, 0.5], "exponent": 10.0})
+    vis = scene_visibility(scene, precompute_scene(scene, ORDER, **QUICK))
+    truth = dense_direct_glossy(scene, scene.object("floor"))
+    err = {}
+    for K in (1, 4):
+        ours = direct_environment(scene, vis, separable_brdfs(scene, K_glossy=K), ORDER)["floor"]
+        err[K] = np.sqrt(np.mean((ours - truth) ** 2)) / np.sqrt(np.mean(truth**2))
+    assert err[4] < 0.12 and err[4] < 0.7 * err[1]
+    ref = direct(scene, 64, np.random.default_rng(1))
+    z = (ref.direct["floor"] - truth) / ref.stderr["direct"]["floor"]
+    assert np.mean(z**2) < 2.0
