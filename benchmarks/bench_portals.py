@@ -84,3 +84,59 @@ def direct_transfer_memory() -> dict:
 
 if __name__ == "__main__":  # pragma: no cover
     print(direct_transfer_memory())
+
+
+@lru_cache(maxsize=1)
+def _precompute_inputs():
+    from prtlab.geometry import RayCaster
+    from prtlab.portals import find_portals, radiance_estimate, trace_photons
+
+    scene = load_scene(SCENE)
+    room = scene.object("room")
+    caster = RayCaster(scene)
+    (portal,) = find_portals(scene)
+    points, normals = room.world_vertices(), room.world_normals()
+    albedo = np.tile(room.material.albedo, (len(points), 1))
+    photons = trace_photons(caster, albedo[:1], portal, 100_000, 3, np.random.default_rng(0))
+    exitance = radiance_estimate(photons, points, normals, albedo, 4)
+    return caster, portal, points, normals, albedo, exitance
+
+
+@case("portals.precompute.direct.4096rays")
+def precompute_direct(quick: bool) -> dict:
+    """Direct transfer of 64 (quick: 16) vertices at the paper's 4096 portal samples; x 44,763 / items = Table 1."""
+    from prtlab.portals import direct_transfer
+
+    caster, portal, points, normals, _, _ = _precompute_inputs()
+    n = 16 if quick else 64
+    sel = np.random.default_rng(1).choice(len(points), n, replace=False)
+    rng = np.random.default_rng(2)
+    return {"run": lambda: direct_transfer(caster, points[sel], normals[sel], portal, 4096, 32, rng),
+            "gflop": None, "items": n, "peer": None}
+
+
+@case("portals.precompute.gather.4096rays")
+def precompute_gather(quick: bool) -> dict:
+    """Final gathering of 64 (quick: 16) vertices at the paper's 4096 rays, order 4."""
+    from prtlab.portals import final_gather
+
+    caster, _, points, normals, albedo, exitance = _precompute_inputs()
+    n = 16 if quick else 64
+    sel = np.random.default_rng(1).choice(len(points), n, replace=False)
+    rng = np.random.default_rng(3)
+    offsets = np.array([0, len(points)])
+    return {"run": lambda: final_gather(caster, points[sel], normals[sel], albedo[sel], exitance, offsets, normals,
+                                        4096, rng),
+            "gflop": None, "items": n, "peer": None}
+
+
+@case("portals.precompute.photons.200k")
+def precompute_photons(quick: bool) -> dict:
+    """Photon tracing from the window (3 bounces) for all SH bases at once: 200k (quick: 50k) photons."""
+    from prtlab.portals import trace_photons
+
+    caster, portal, _, _, albedo, _ = _precompute_inputs()
+    n = 50_000 if quick else 200_000
+    rng = np.random.default_rng(4)
+    return {"run": lambda: trace_photons(caster, albedo[:1], portal, n, 3, rng), "gflop": None, "items": n,
+            "peer": None}
