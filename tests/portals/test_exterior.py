@@ -35,3 +35,11 @@ def test_close_object_warns():
         exterior_shell(_exterior(1.0), portal, res=2, n_samples=4, rng=np.random.default_rng(0))
     with pytest.raises(TypeError, match="prtlab.Scene"):
         exterior_shell(None, portal)
+
+
+def test_exterior_needs_environment():
+    (portal,) = find_portals(window_box())
+    scene = _exterior(-10.0)
+    scene.lights = []
+    with pytest.raises(ValueError, match="needs an environment light"):
+        exterior_shell(scene, portal)

@@ -67,3 +67,10 @@ def test_tint_and_frosted(sky_box):
         frosted(cube, 0.0)
     with pytest.raises(ValueError, match=r"\(6, r, r, 3\)"):
         frosted(np.ones(3), 1.0)
+
+
+def test_portal_without_area():
+    from prtlab.portals._shell import _make_portal
+
+    with pytest.raises(ValueError, match="has no area"):
+        _make_portal(("flat",), [(np.zeros((3, 3)), np.array([[0, 1, 2]]))])
