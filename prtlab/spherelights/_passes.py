@@ -37,9 +37,12 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab.sh._explog import _HYB_THRESHOLD, _ol_table
+from prtlab.sh._gaunt import _gaunt_block
+from prtlab.sh._product_kernels import _ol_one, _tile_product
 
-from ._shadows import _add_rotated_zh, _adjust, _lookup_log, blocker_log_table, environment_transfer
-from ._tables import w_theta_zh
+from ._shadows import _add_rotated_zh, _adjust, _lookup_log, blocker_log_table, environment_transfer, transfer_matrix
+from ._tables import _w_theta_table, w_theta_zh
 
 __all__ = ["first_pass", "second_pass", "accumulate_blockers"]
 
@@ -255,7 +258,7 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
                 blocking: str = "object", exp_method: str = "hyb", indirect: bool = True,
-                method: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+                method: str = "fused") -> tuple[np.ndarray, np.ndarray]:
     """Direct and indirect irradiance at receivers (Eqs. 8, 12-24).
 
     Parameters
@@ -272,8 +275,12 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     exp_method : {"hyb", "ol", "exact"}
     indirect : bool
         False: shadows only (the ``shadows only`` column of Sec. 8.5).
-    method : {"numba", "reference"}
-        Tier of the blocker accumulation.
+    method : {"fused", "numba", "reference"}
+        ``"fused"``: one numba loop over receivers doing the whole pass
+        (``_second_pass_fused``; OL and HYB; ``exp_method="exact"`` falls back
+        to ``"numba"``); ``"numba"``: the accumulation kernel, then batched
+        :func:`prtlab.sh.exp` and numpy (the specification of the fused tier);
+        ``"reference"``: the same with the numpy accumulation.
 
     Returns
     -------
@@ -293,6 +300,12 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     B, S, n2 = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0], order * order
     if B == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
+    if method not in ("numba", "reference", "fused"):
+        raise ValueError(f"method must be 'fused', 'numba' or 'reference', got {method!r}")
+    if method == "fused" and exp_method in ("hyb", "ol"):
+        return _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env,
+                                       blocking, exp_method, indirect)
+    method = "numba" if method == "fused" else method
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
                                                          blocking=blocking, method=method)
     # direct (Eq. 8): all blockers
@@ -319,3 +332,201 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     l_avg = np.einsum("tk,tkc->tc", w, np.asarray(emission, dtype=np.float64)[rows_s])
     np.add.at(ind, rows_b, l_avg * v_avg[:, None])  # Eq. 14
     return direct, ind
+
+
+# --------------------------------------------------------------------------- fused second pass (the fast tier)
+
+
+def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
+                            exp_method, indirect):
+    order = math.isqrt(env.shape[0])
+    c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
+    r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
+    obj = np.ascontiguousarray(sl_object, dtype=np.int64).reshape(-1)
+    inter = np.ascontiguousarray(intersect, dtype=np.bool_)
+    if r.shape[0] != c.shape[0] or obj.shape[0] != c.shape[0] or inter.shape != (c.shape[0], c.shape[0]):
+        raise ValueError("centres (S, 3), radii (S,), sl_object (S,) and intersect (S, S) must agree in S")
+    n_obj = int(obj.max()) + 1 if obj.size else 0
+    obj_centres = np.zeros((n_obj, 3))
+    for o in range(n_obj):
+        obj_centres[o] = c[obj == o].mean(axis=0)
+    transfer = np.ascontiguousarray(transfer_matrix(env))
+    r_max, tab_a, tab_b = _ol_table(order)
+    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    direct = np.empty((p.shape[0], 3))
+    ind = np.empty((p.shape[0], 3))
+    # writeable C copies: one compiled signature whatever the caller passes
+    rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (c.shape[0], 3, 3)), order="C")
+    em = np.array(np.asarray(emission, dtype=np.float64).reshape(c.shape[0], order * order, 3), order="C")
+    _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
+                       obj_centres, np.array(inter),
+                       blocker_log_table(order), order, blocking == "object", transfer,
+                       np.ascontiguousarray(sh.clamped_cosine_zh(2 * order - 1)),
+                       np.ascontiguousarray(sh.clamped_cosine_zh(order)), np.ascontiguousarray(_w_theta_table(order)),
+                       rot, em, bool(indirect and c.shape[0] > 0), exp_method == "hyb", r_max, tab_a, tab_b,
+                       _HYB_THRESHOLD, gi, gj, gk, gv, direct, ind)
+    return direct, ind
+
+
+
+#: Receivers per task of the fused kernel (scratch arrays are allocated once per task).
+_CHUNK = 256
+
+
+@numba.njit(cache=True)
+def _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, out):
+    """exp* of one vector x (n2, 1) into out (n2, 1): OL, or HYB (scaling and squaring over OL), as prtlab.sh."""
+    n2 = x.shape[0]
+    if not hyb:
+        _ol_one(x, r_max, tab_a, tab_b, out)
+        return
+    norm2 = 0.0
+    for i in range(1, n2):
+        norm2 += x[i, 0] * x[i, 0]
+    norm = math.sqrt(norm2)
+    k = 0
+    if norm > threshold:
+        k = max(0, int(math.ceil(math.log2(norm / threshold))))
+        while norm / 2.0**k > threshold:
+            k += 1
+    scale = 1.0 / 2.0**k
+    h[0, 0] = 0.0
+    for i in range(1, n2):
+        h[i, 0] = x[i, 0] * scale
+    _ol_one(h, r_max, tab_a, tab_b, v)
+    for _ in range(k):
+        _tile_product(v, v, gi, gj, gk, gv, w)
+        for i in range(n2):
+            v[i, 0] = w[i, 0]
+    dc = math.exp(x[0, 0] / math.sqrt(4.0 * math.pi))
+    for i in range(n2):
+        out[i, 0] = dc * v[i, 0]
+
+
+@numba.njit(cache=True, parallel=True)
+def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, intersect, table, order, per_object,
+                       transfer, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb, r_max, tab_a, tab_b,
+                       threshold, gi, gj, gk, gv, direct_out, indirect_out):
+    """Second pass per receiver (Eqs. 8, 14, 18, 21-24), one loop: blocker logs, front sums, exponentials,
+    average visibility and average radiance. Same quantities as the composed numpy/batched tier."""
+    n_recv = points.shape[0]
+    n_sph = centres.shape[0]
+    n_obj = obj_centres.shape[0]
+    n2 = order * order
+    n_theta = w_table.shape[0] - 1
+    hi = 2 * order - 1
+    n_chunks = (n_recv + _CHUNK - 1) // _CHUNK
+    for chunk in numba.prange(n_chunks):
+      ybuf = np.empty((1, hi * hi))
+      g = np.empty(order)
+      gs = np.zeros((n_sph, n2))
+      dist = np.empty(n_sph)
+      theta = np.empty(n_sph)
+      axis = np.empty((n_sph, 3))
+      x = np.empty((n2, 1))
+      e1 = np.empty((n2, 1))
+      e2 = np.empty((n2, 1))
+      h = np.empty((n2, 1))
+      v = np.empty((n2, 1))
+      w = np.empty((n2, 1))
+      total = np.zeros(n2)
+      cosr = np.zeros(n2)
+      cos_hi = np.zeros(hi * hi)
+      wrot = np.zeros(n2)
+      wz = np.empty(order)
+      od = np.empty(n_obj)
+      for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
+        px, py, pz = points[b, 0], points[b, 1], points[b, 2]
+        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
+        for k in range(n2):
+            total[k] = 0.0
+        for s in range(n_sph):
+            for k in range(n2):
+                gs[s, k] = 0.0
+            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
+            dx, dy, dz = cx - px, cy - py, cz - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dist[s] = d
+            if r <= 0.0 or d <= 0.0:
+                theta[s] = -1.0
+                continue
+            sin_t = r / d
+            th = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
+            theta[s] = th
+            axis[s, 0] = dx / d
+            axis[s, 1] = dy / d
+            axis[s, 2] = dz / d
+            _lookup_log(th, table, order, g)
+            _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
+            for k in range(n2):
+                total[k] += gs[s, k]
+        # direct (Eq. 8)
+        for k in range(n2):
+            x[k, 0] = total[k]
+        _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
+        # T_n = cos_{2n-1}(n) @ M (exact projection of L cos, see environment_transfer)
+        for k in range(hi * hi):
+            cos_hi[k] = 0.0
+        _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
+        for c in range(3):
+            acc = 0.0
+            for k in range(n2):
+                t = 0.0
+                for q in range(hi * hi):
+                    t += cos_hi[q] * transfer[q, k * 3 + c]
+                acc += e1[k, 0] * t
+            direct_out[b, c] = acc
+            indirect_out[b, c] = 0.0
+        if not indirect:
+            continue
+        for k in range(n2):
+            cosr[k] = 0.0
+        _add_rotated_zh(cos_zh, nx, ny, nz, order, ybuf, 1.0, cosr)
+        for o in range(n_obj):
+            ex = obj_centres[o, 0] - px
+            ey = obj_centres[o, 1] - py
+            ez = obj_centres[o, 2] - pz
+            od[o] = ex * ex + ey * ey + ez * ez
+        for i in range(n_sph):
+            if theta[i] < 0.0:
+                continue
+            # front sum (Eq. 23): per object or per sphere (Sec. 7.2)
+            for k in range(n2):
+                x[k, 0] = 0.0
+            for j in range(n_sph):
+                if j == i:
+                    continue
+                if per_object:
+                    oi = sl_object[i]
+                    oj = sl_object[j]
+                    front = (oj != oi and (od[oj] < od[oi] or (od[oj] == od[oi] and oj < oi))) or \
+                            (oj == oi and dist[j] < dist[i] and not intersect[i, j])
+                else:
+                    front = dist[j] < dist[i] and not intersect[i, j]
+                if front:
+                    for k in range(n2):
+                        x[k, 0] += gs[j, k]
+            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
+            for k in range(n2):
+                x[k, 0] += gs[i, k]
+            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e2)
+            v_avg = 0.0
+            for k in range(n2):
+                v_avg += (e1[k, 0] - e2[k, 0]) * cosr[k]  # Eqs. 23-24
+            # Eq. 18: w_theta about light -> receiver in the light's frame
+            lx = -(rot[i, 0, 0] * axis[i, 0] + rot[i, 1, 0] * axis[i, 1] + rot[i, 2, 0] * axis[i, 2])
+            ly = -(rot[i, 0, 1] * axis[i, 0] + rot[i, 1, 1] * axis[i, 1] + rot[i, 2, 1] * axis[i, 2])
+            lz = -(rot[i, 0, 2] * axis[i, 0] + rot[i, 1, 2] * axis[i, 1] + rot[i, 2, 2] * axis[i, 2])
+            u = theta[i] * (n_theta / (0.5 * math.pi))
+            jt = min(int(math.floor(u)), n_theta - 1)
+            st = u - jt
+            for l in range(order):
+                wz[l] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
+            for k in range(n2):
+                wrot[k] = 0.0
+            _add_rotated_zh(wz, lx, ly, lz, order, ybuf, 1.0, wrot)
+            for c in range(3):
+                l_avg = 0.0
+                for k in range(n2):
+                    l_avg += wrot[k] * emission[i, k, c]
+                indirect_out[b, c] += l_avg * v_avg

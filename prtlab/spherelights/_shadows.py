@@ -99,7 +99,7 @@ def _lookup_log(theta, table, order, g):
         g[l] = (1.0 - s) * table[j, l] + s * table[j + 1, l]
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _add_rotated_zh(g, ax, ay, az, order, ybuf, scale, out_row):
     """out_row += scale * zh_rotate(g, axis) (axis unit)."""
     _low_bands(ax, ay, az, order, ybuf, 0)
@@ -304,10 +304,22 @@ def environment_transfer(normals, env_sh) -> np.ndarray:
     if order * order != env.shape[0]:
         raise ValueError(f"env_sh must have n*n rows, got {env.shape[0]}")
     # P_n(L cos) only sees bands <= 2n - 2 of the clamped cosine: projecting with the
-    # cosine truncated to order 2n - 1 is exact
-    cos = sh.zh_rotate(sh.clamped_cosine_zh(2 * order - 1), nrm)
-    channels = [sh.product(cos, np.ascontiguousarray(env[:, ch]), order, channels=False) for ch in range(env.shape[1])]
-    return np.stack(channels, axis=-1)
+    # cosine truncated to order 2n - 1 is exact.
+    hi = 2 * order - 1
+    cos = sh.zh_rotate(sh.clamped_cosine_zh(hi), nrm)
+    return (cos @ transfer_matrix(env)).reshape(cos.shape[:-1] + (order * order, env.shape[1]))
+
+
+def transfer_matrix(env: np.ndarray) -> np.ndarray:
+    """``M ((2n-1)^2, n*n*C)`` with ``T_n = cos_{2n-1}(n) @ M``: ``M[i, (k, c)] = sum_j G_ijk env_jc``."""
+    from prtlab.sh._gaunt import _gaunt_block
+
+    order = math.isqrt(env.shape[0])
+    hi = 2 * order - 1
+    gi, gj, gk, gv = _gaunt_block(hi, order, order)
+    a = np.zeros((hi * hi, order * order, env.shape[1]))
+    np.add.at(a, (gi, gk), gv[:, None] * env[gj])
+    return a.reshape(hi * hi, -1)
 
 
 def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: str = "hyb",

@@ -161,3 +161,24 @@ def test_errors():
                             method="gpu")
     with pytest.raises(ValueError, match="must agree in S"):
         accumulate_blockers(np.zeros((1, 3)), np.ones((1, 3)), [[0, 1, 0]], [1.0, 2.0], [0], np.zeros((1, 1), bool), 4)
+
+
+@pytest.mark.parametrize("blocking", ["object", "sphere"])
+def test_fused_second_pass_matches_composed_tier(blocking, rng):
+    p = rng.uniform(-2, 2, size=(60, 3))
+    n = random_directions(rng, 60)
+    c = rng.normal(size=(6, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, 6)
+    obj = np.array([0, 0, 0, 1, 2, 2])
+    inter = np.zeros((6, 6), dtype=bool)
+    inter[0, 1] = inter[1, 0] = True
+    rot = np.stack([np.eye(3)] * 3 + [np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])] * 3)
+    em = rng.normal(size=(6, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    env = _env_sh()
+    for exp_method in ("ol", "hyb"):
+        args = (p, n, c, r, obj, inter, rot, em, env)
+        d1, i1 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="fused")
+        d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba")
+        np.testing.assert_allclose(d1, d2, atol=1e-11)
+        np.testing.assert_allclose(i1, i2, atol=1e-11)
