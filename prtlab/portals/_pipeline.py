@@ -212,9 +212,12 @@ class Portals(Precomputation):
 
     def direct_transfer(self, k: int = 0) -> SparseTransfer:
         """The 8-bit sparse direct transfer of portal ``k``."""
-        e = self.data[f"portal{k}"]
-        return SparseTransfer(np.asarray(e["indptr"], np.int64), e["indices"], e["codes"], e["scale"], e["basis"],
-                              int(e["res"]))
+        cached = self.__dict__.setdefault("_direct_cache", {})
+        if k not in cached:
+            e = self.data[f"portal{k}"]
+            cached[k] = SparseTransfer(np.asarray(e["indptr"], np.int64), e["indices"], e["codes"], e["scale"],
+                                       e["basis"], int(e["res"]))
+        return cached[k]
 
     @property
     def n_portals(self) -> int:

@@ -15,6 +15,7 @@ Portal orientation: the interior is on the side of the portal's face normals
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -168,16 +169,24 @@ def shell_sh(cube, order: int) -> np.ndarray:
     averages times the basis at the centre: exact for a light constant per texel
     up to the basis variation within a texel).
     """
-    import prtlab.sh as sh
-
     cube = np.asarray(cube, dtype=np.float64)
     if cube.ndim != 4 or cube.shape[0] != 6 or cube.shape[-1] != 3 or cube.shape[1] != cube.shape[2]:
         raise ValueError(f"cube must have shape (6, r, r, 3), got {cube.shape}; build it with shell_light")
-    res = cube.shape[1]
+    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
+        raise ValueError(f"order must be an int >= 1, got {order!r}")
+    return _projection(cube.shape[1], int(order)) @ cube.reshape(-1, 3)
+
+
+@lru_cache(maxsize=16)
+def _projection(res: int, order: int) -> np.ndarray:
+    """(order**2, 6 res**2) quadrature matrix ``Y_lm(w_k) dw_k`` over texel centres (cached per frame size)."""
+    import prtlab.sh as sh
+
     dirs = cubemap_directions(res).reshape(-1, 3)
     w = cubemap_solid_angles(res).reshape(-1)
-    y = sh.basis(dirs, order)
-    return y.T @ (w[:, None] * cube.reshape(-1, 3))
+    out = np.ascontiguousarray(sh.basis(dirs, order).T * w[None, :])
+    out.setflags(write=False)
+    return out
 
 
 def tint(cube, colour) -> np.ndarray:

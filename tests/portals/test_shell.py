@@ -74,3 +74,16 @@ def test_portal_without_area():
 
     with pytest.raises(ValueError, match="has no area"):
         _make_portal(("flat",), [(np.zeros((3, 3)), np.array([[0, 1, 2]]))])
+
+
+def test_shell_sh_against_reference_quadrature(sky_box):
+    import prtlab.sh as sh
+    from prtlab.geometry import cubemap_directions, cubemap_solid_angles
+
+    cube = shell_light(sky_box.environment, 8)
+    dirs = cubemap_directions(8).reshape(-1, 3)
+    w = cubemap_solid_angles(8).reshape(-1)
+    expected = sh.basis_reference(dirs, 4).T @ (w[:, None] * cube.reshape(-1, 3))
+    np.testing.assert_allclose(shell_sh(cube, 4), expected, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="order must be an int"):
+        shell_sh(cube, 0)
