@@ -11,7 +11,26 @@ Scope here: Lambertian vertices (Phong materials with ``ks > 0`` are refused:
 the glossy transfer of Section 4.1.2 / Appendix is not implemented), distant
 environments or user-given shell cubemaps (:meth:`Portals.shade_shells`),
 ``bounces`` fixed at precomputation (the transfer stores light with
-``1..bounces`` indirect bounces).
+``1..bounces`` indirect bounces). A dynamic exterior: pass per-frame shells
+from :func:`prtlab.portals.exterior_shell`; portal materials:
+:func:`prtlab.portals.tint`, :func:`prtlab.portals.frosted`.
+
+Accuracy measured on ``data/scenes/box_window_sky.yaml`` (B = 3, 2048 portal
+samples, 2M photons, 1024 gather rays; reference 8192 paths per vertex with
+3.7% relative standard error; vertices on two walls left out): average
+relative difference of the total 3.9%, 3.0% with the reference's noise
+removed at SH order 4 (1.7% at order 8: most of the rest is the SH
+truncation of the sky seen through the window, Section 4.2); signed mean -0.2%.
+
+Examples
+--------
+>>> import prtlab
+>>> from prtlab.portals import Portals
+>>> scene = prtlab.load_scene(prtlab.api.Path(prtlab.__file__).parents[1] / "data/scenes/box_window_sky.yaml")
+>>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8, "res": 8},
+...                          cache=False, progress=False)
+>>> pre.shade(bounces=2).total["room"].shape
+(2058, 3)
 """
 
 from __future__ import annotations
