@@ -1,6 +1,7 @@
 """The spherical-lights pipeline as a :class:`prtlab.pipeline.Precomputation` (Guerrero et al. 2008).
 
-Precomputation (Sec. 4), per *source* object (a watertight mesh; open meshes
+Precomputation (Sec. 4), per *source* object (a closed mesh once coincident
+vertices are merged; open meshes
 such as ground planes and walls only receive, as in the paper's scenes, and
 neither block nor reflect):
 
@@ -81,8 +82,18 @@ class SphereLightOptions:
             raise ValueError(f"order must be an int in 1..8, got {self.order!r}")
 
 
+def _closed_mesh(mesh):
+    """The mesh with coincident vertices merged (built-in boxes split their corners per side), or None if
+    it is not closed: only closed objects carry spherical lights."""
+    import trimesh
+
+    merged = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=True)
+    merged.merge_vertices()
+    return merged if merged.is_watertight else None
+
+
 def _is_source(obj) -> bool:
-    return bool(obj.mesh.is_watertight) and not obj.portal
+    return not obj.portal and _closed_mesh(obj.mesh) is not None
 
 
 class SphereLights(Precomputation):
@@ -108,13 +119,14 @@ class SphereLights(Precomputation):
         dirs = geodesic_directions(options.n_directions)
         objects = {}
         for obj in scene.objects:
-            if not _is_source(obj):
+            mesh = None if obj.portal else _closed_mesh(obj.mesh)
+            if mesh is None:
                 continue
             n = options.n_spheres.get(obj.name, 8) if isinstance(options.n_spheres, dict) else options.n_spheres
-            n = min(int(n), len(obj.mesh.faces))
-            fit = fit_spheres(obj.mesh, n, grid_resolution=options.grid_resolution)
-            pts, nrm, valid = surface_samples(obj.mesh, fit.centres, fit.radii, dirs)
-            albedo = surface_albedo_sh(obj.mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
+            n = min(int(n), len(mesh.faces))
+            fit = fit_spheres(mesh, n, grid_resolution=options.grid_resolution)
+            pts, nrm, valid = surface_samples(mesh, fit.centres, fit.radii, dirs)
+            albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
                                        options.cube_resolution)
             d = np.linalg.norm(fit.centres[:, None] - fit.centres[None], axis=2)
             inter = d < (fit.radii[:, None] + fit.radii[None])
@@ -160,8 +172,7 @@ class SphereLights(Precomputation):
             s = len(p[1])
             inter[i : i + s, i : i + s] = p[3]
             i += s
-        cat = [np.concatenate([p[j] for p in parts]) for j in range(9)]
-        cat[3] = inter
+        cat = [inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)]
         return tuple(cat)
 
     def _environment(self, state: FrameState) -> np.ndarray:

@@ -102,3 +102,12 @@ def test_errors(pre):
     p = SphereLights(scene, pre.options, pre.data)
     with pytest.raises(ValueError, match="environment lighting only"):
         p.shade(bounces=1)
+
+
+def test_objects_with_different_sphere_counts():
+    pre = SphereLights.precompute(_scene(), {"n_spheres": {"ball": 1, "box": 3}, "grid_resolution": 12},
+                                  cache=False, progress=False)
+    centres, radii, sl_object, inter, *_ = pre.world_lights(FrameState.from_scene(pre.scene))
+    assert radii.shape == (4,) and inter.shape == (4, 4)
+    assert not inter[:1, 1:].any()  # lights of different objects never count as intersecting
+    assert np.all(np.isfinite(pre.shade(bounces=1).total["plane"]))
