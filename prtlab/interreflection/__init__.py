@@ -9,7 +9,7 @@ of :mod:`prtlab.shadowfields` for visibility and direct light.
 
 from ._fields import basis_radiance_at, basis_radiance_field
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
-from ._pipeline import Interreflection, InterreflectionOptions, shade_scene
+from ._pipeline import Interreflection, InterreflectionOptions, precompute, shade_scene
 
 __all__ = [
     # precomputation (Sec. 4.3)
@@ -23,5 +23,6 @@ __all__ = [
     # the pipeline
     "Interreflection",
     "InterreflectionOptions",
+    "precompute",
     "shade_scene",
 ]

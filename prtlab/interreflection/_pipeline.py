@@ -61,7 +61,7 @@ from prtlab.shadowfields import (
 from ._fields import basis_radiance_at, basis_radiance_field
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
 
-__all__ = ["InterreflectionOptions", "Interreflection", "shade_scene"]
+__all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
 
 @dataclass
@@ -331,6 +331,11 @@ class Interreflection(Precomputation):
             result.total[o.name] = direct[o.name] + indirect[o.name]
         result.info = {"method": self.method, "bounces": bounces, "seconds": times, **counts}
         return result
+
+
+def precompute(scene, options=None, cache=True, progress: bool = True) -> Interreflection:
+    """``Interreflection.precompute``: the slow, cached phase; then ``.shade(state, bounces)`` per frame."""
+    return Interreflection.precompute(scene, options, cache=cache, progress=progress)
 
 
 def shade_scene(scene, bounces: int = 3, cache=True, progress: bool = True, **options) -> ShadeResult:

@@ -135,3 +135,11 @@ def test_errors(pre):
     state.lights = [PointLight(position=np.array([0, 3.0, 0]), intensity=np.ones(3))]
     with pytest.raises(ValueError, match="not point lights"):
         pre.shade(state, bounces=1)
+
+
+def test_module_level_precompute(pre, cache_root):
+    from prtlab.cache import Cache
+    from prtlab.interreflection import precompute
+
+    again = precompute(pre.scene, QUICK, cache=Cache(cache_root, progress=False), progress=False)  # a cache hit
+    np.testing.assert_allclose(again.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
