@@ -7,7 +7,7 @@ passes (Section 5), portal materials (Section 3.3) and the validity criteria
 of dynamic exteriors (Section 6).
 """
 
-from ._direct import direct_transfer
+from ._direct import direct_transfer, glossy_direct_transfer
 from ._exterior import exterior_shell
 from ._indirect import PhotonMap, final_gather, radiance_estimate, trace_photons
 from ._pipeline import Portals, PortalsOptions, shade_scene
@@ -26,6 +26,7 @@ __all__ = [
     "exterior_shell",
     # precomputation
     "direct_transfer",
+    "glossy_direct_transfer",
     "PhotonMap",
     "trace_photons",
     "radiance_estimate",

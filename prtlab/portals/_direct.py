@@ -44,7 +44,7 @@ from prtlab.geometry import RayCaster, direction_to_cubemap, sample_mesh_area
 
 from ._shell import Portal
 
-__all__ = ["direct_transfer"]
+__all__ = ["direct_transfer", "glossy_direct_transfer"]
 
 
 def _check_points(points, normals):
@@ -129,3 +129,83 @@ def direct_transfer(
         flat = vi * n_texels + face * res * res + i * res + j
         out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_texels).reshape(nc, n_texels)
     return out.reshape(n_vertices, 6, res, res)
+
+
+def glossy_direct_transfer(
+    caster: RayCaster,
+    points,
+    normals,
+    portal: Portal,
+    view_dirs,
+    exponent: float,
+    n_samples: int,
+    res: int,
+    rng: np.random.Generator,
+    chunk: int = 8,
+) -> np.ndarray:
+    """Specular direct transfer of Phong vertices, one cubemap per discretised view direction (Section 4.1.2).
+
+    Parameters
+    ----------
+    caster, points, normals, portal, n_samples, res, rng
+        As in :func:`direct_transfer`.
+    view_dirs : (J, 3) float
+        The discretised outgoing directions ``w_o`` (toward the viewer), e.g. the
+        texel centres of a small cubemap (:func:`prtlab.geometry.cubemap_directions`).
+    exponent : float
+        Phong exponent ``e``.
+
+    Returns
+    -------
+    S : (V, J, 6, res, res) float64
+        ``S_jk = int_{Omega_k} (e + 2) / (2 pi) max(0, r(w) . w_oj)^e V max(0, n . w) dw`` with
+        ``r(w) = 2 (n . w) n - w``; the specular radiance toward ``w_oj`` is ``ks sum_k S_jk L_k`` (the
+        Lambertian part ``kd`` comes from :func:`direct_transfer`). At run time the view direction picks
+        the nearest ``w_oj``.
+    """
+    points, normals = _check_points(points, normals)
+    view_dirs = np.asarray(view_dirs, dtype=np.float64)
+    if view_dirs.ndim != 2 or view_dirs.shape[1] != 3 or not np.all(np.isfinite(view_dirs)):
+        raise ValueError(f"view_dirs must be a finite (J, 3) array of directions, got shape {view_dirs.shape}")
+    view_dirs = view_dirs / np.linalg.norm(view_dirs, axis=1, keepdims=True)
+    if not (np.isfinite(exponent) and exponent >= 0):
+        raise ValueError(f"exponent must be a finite number >= 0, got {exponent!r}")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
+        raise ValueError(f"n_samples must be an int >= 1, got {n_samples!r}")
+    n_texels = 6 * res * res
+    n_views = len(view_dirs)
+    out = np.zeros((len(points), n_views * n_texels))
+    mesh = (portal.vertices, portal.faces)
+    norm = (exponent + 2.0) / (2.0 * np.pi)
+    for start in range(0, len(points), chunk):
+        x = points[start : start + chunk]
+        n = normals[start : start + chunk]
+        nc = len(x)
+        samples = sample_mesh_area(mesh, nc * n_samples, rng)
+        p = samples.points.reshape(nc, n_samples, 3)
+        n_p = samples.normals.reshape(nc, n_samples, 3)
+        d = p - x[:, None, :]
+        dist = np.linalg.norm(d, axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = d / dist[..., None]
+        cos_v = np.einsum("vsk,vk->vs", d, n)
+        cos_p = -np.einsum("vsk,vsk->vs", d, n_p)
+        live = (cos_v > 0) & (cos_p > 0) & (dist > 0)
+        vi, si = np.nonzero(live)
+        if len(vi) == 0:
+            continue
+        dl = d[vi, si]
+        blocked = caster.occluded(x[vi], dl, dist[vi, si] - caster.epsilon, normals=n[vi])
+        blocked |= caster.occluded(p[vi, si], dl, normals=n_p[vi, si])
+        keep = ~blocked
+        vi, si, dl = vi[keep], si[keep], dl[keep]
+        cv = cos_v[vi, si]
+        weight = cv * cos_p[vi, si] * portal.area / (n_samples * dist[vi, si] ** 2)  # cos dw / pdf, no 1/pi
+        mirror = 2.0 * cv[:, None] * n[vi] - dl
+        lobe = norm * np.maximum(mirror @ view_dirs.T, 0.0) ** exponent  # (E, J)
+        face, _, _, i, j = direction_to_cubemap(dl, res)
+        texel = face * res * res + i * res + j
+        flat = (vi[:, None] * n_views + np.arange(n_views)[None, :]) * n_texels + texel[:, None]
+        out[start : start + nc] = np.bincount(flat.ravel(), weights=(weight[:, None] * lobe).ravel(),
+                                              minlength=nc * n_views * n_texels).reshape(nc, -1)
+    return out.reshape(len(points), n_views, 6, res, res)

@@ -117,3 +117,41 @@ def test_direct_transfer_errors(constant_box):
         direct_transfer(None, FLOOR, UP, portal, 4, 4, rng)
     empty = direct_transfer(caster, np.zeros((0, 3)), np.zeros((0, 3)), portal, 4, 4, rng)
     assert empty.shape == (0, 6, 4, 4)
+
+
+def test_glossy_direct_against_reference(sky_box, rng):
+    """Phong floor points viewed along discretised directions: ks * S . L + kd * T . L vs the reference.
+
+    Bound as in the diffuse test: MC_SIGMAS combined standard errors plus the cubemap-resolution bound.
+    """
+    from prtlab.portals import glossy_direct_transfer
+    from prtlab.scene import Material
+
+    res = 16
+    views = np.array([[0.0, 0.6, 0.8], [0.3, 0.9, -0.3]])
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    material = Material(type="phong", kd=np.full(3, 0.3), ks=np.full(3, 0.5), exponent=10.0)
+    caster = RayCaster(sky_box)
+    (portal,) = find_portals(sky_box)
+    gen = np.random.default_rng(3)
+    cube = shell_light(sky_box.environment, res)
+    fine = equirect_lookup(sky_box.environment.image, cubemap_directions(res * 8)).reshape(6, res, 8, res, 8, 3)
+    spread = fine.max(axis=(2, 4)) - fine.min(axis=(2, 4))
+    values, bounds = [], []
+    for _ in range(6):
+        spec = glossy_direct_transfer(caster, FLOOR, UP, portal, views, 10.0, 2048, res, gen)  # (V, J, 6, r, r)
+        diff = direct_transfer(caster, FLOOR, UP, portal, 2048, res, gen)
+        # vertex v viewed along views[v]
+        s = spec[np.arange(2), np.arange(2)]
+        transfer = 0.5 * s + 0.3 * diff
+        values.append(np.einsum("vfij,fijc->vc", transfer, cube))
+        bounds.append(np.einsum("vfij,fijc->vc", transfer, spread))
+    values = np.array(values)
+    ours, se_ours = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
+    ref = radiance_at(sky_box, FLOOR, UP, views, 16384, rng, material=material)
+    bound = MC_SIGMAS * np.sqrt(ref.direct_stderr**2 + se_ours**2) + np.mean(bounds, axis=0)
+    assert np.all(np.abs(ours - ref.direct) <= bound), (ours, ref.direct, bound)
+    with pytest.raises(ValueError, match=r"view_dirs must be a finite \(J, 3\)"):
+        glossy_direct_transfer(caster, FLOOR, UP, portal, np.zeros(3), 10.0, 4, 4, gen)
+    with pytest.raises(ValueError, match="exponent"):
+        glossy_direct_transfer(caster, FLOOR, UP, portal, views, -1.0, 4, 4, gen)
