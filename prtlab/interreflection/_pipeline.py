@@ -155,6 +155,35 @@ class Interreflection(Precomputation):
         self._phi_cache: dict = {}
         self._pose_cache = None
 
+    def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
+        """The same precomputation with fewer basis functions and/or SH bands, without recomputing.
+
+        SH projections are orthogonal, so the first ``order**2`` coefficients of an order-n
+        projection are the lower-order projection; the first ``n_basis`` PCA functions (mean
+        first) are the smaller basis, their weights solved with their own ``A^{-1}``. Used for
+        error-versus-N and error-versus-order studies.
+        """
+        import dataclasses
+
+        n = self.options.n_basis if n_basis is None else int(n_basis)
+        o = self.options.order if order is None else int(order)
+        if not (1 <= o <= self.options.order):
+            raise ValueError(f"order must be in [1, {self.options.order}] (the precomputed order), got {order!r}")
+        if n < 1:
+            raise ValueError(f"n_basis must be >= 1, got {n_basis!r}")
+        n2 = o * o
+        data = {}
+        for obj in self.objects:
+            d = self.data[obj.name]
+            oof = dict(d["oof"])
+            oof["coeffs"] = np.asarray(oof["coeffs"])[..., :n2]
+            oof["order"] = np.int64(o)
+            data[obj.name] = {"oof": oof, "self_visibility": np.asarray(d["self_visibility"])[:, :n2],
+                              "pca_basis": np.asarray(d["pca_basis"])[:n], "pca_samples": d["pca_samples"],
+                              "basis_radiance": np.asarray(d["basis_radiance"])[..., :n, :n2]}
+        options = dataclasses.replace(self.options, order=o, n_basis=min(n, self.options.n_basis))
+        return type(self)(self.scene, options, data)
+
     # ------------------------------------------------------------------ per-frame passes
 
     def _frame_geometry(self, state: FrameState):

@@ -143,3 +143,16 @@ def test_module_level_precompute(pre, cache_root):
 
     again = precompute(pre.scene, QUICK, cache=Cache(cache_root, progress=False), progress=False)  # a cache hit
     np.testing.assert_allclose(again.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
+
+
+def test_truncated_precomputation(pre):
+    small = pre.truncated(n_basis=4, order=3)
+    assert small.data["ball"]["basis_radiance"].shape[-2:] == (4, 9)
+    res = small.shade(bounces=1)
+    assert np.all(np.isfinite(res.total["ball"])) and res.indirect["ball"].mean() > 0
+    same = pre.truncated()
+    np.testing.assert_allclose(same.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
+    with pytest.raises(ValueError, match="the precomputed order"):
+        pre.truncated(order=5)
+    with pytest.raises(ValueError, match="n_basis must be >= 1"):
+        pre.truncated(n_basis=0)
