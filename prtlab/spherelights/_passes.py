@@ -417,116 +417,116 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
     hi = 2 * order - 1
     n_chunks = (n_recv + _CHUNK - 1) // _CHUNK
     for chunk in numba.prange(n_chunks):
-      ybuf = np.empty((1, hi * hi))
-      g = np.empty(order)
-      gs = np.zeros((n_sph, n2))
-      dist = np.empty(n_sph)
-      theta = np.empty(n_sph)
-      axis = np.empty((n_sph, 3))
-      x = np.empty((n2, 1))
-      e1 = np.empty((n2, 1))
-      e2 = np.empty((n2, 1))
-      h = np.empty((n2, 1))
-      v = np.empty((n2, 1))
-      w = np.empty((n2, 1))
-      total = np.zeros(n2)
-      cosr = np.zeros(n2)
-      cos_hi = np.zeros(hi * hi)
-      wrot = np.zeros(n2)
-      wz = np.empty(order)
-      od = np.empty(n_obj)
-      for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
-        px, py, pz = points[b, 0], points[b, 1], points[b, 2]
-        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
-        for k in range(n2):
-            total[k] = 0.0
-        for s in range(n_sph):
+        ybuf = np.empty((1, hi * hi))
+        g = np.empty(order)
+        gs = np.zeros((n_sph, n2))
+        dist = np.empty(n_sph)
+        theta = np.empty(n_sph)
+        axis = np.empty((n_sph, 3))
+        x = np.empty((n2, 1))
+        e1 = np.empty((n2, 1))
+        e2 = np.empty((n2, 1))
+        h = np.empty((n2, 1))
+        v = np.empty((n2, 1))
+        w = np.empty((n2, 1))
+        total = np.zeros(n2)
+        cosr = np.zeros(n2)
+        cos_hi = np.zeros(hi * hi)
+        wrot = np.zeros(n2)
+        wz = np.empty(order)
+        od = np.empty(n_obj)
+        for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
+            px, py, pz = points[b, 0], points[b, 1], points[b, 2]
+            nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
             for k in range(n2):
-                gs[s, k] = 0.0
-            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
-            dx, dy, dz = cx - px, cy - py, cz - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            dist[s] = d
-            if r <= 0.0 or d <= 0.0:
-                theta[s] = -1.0
-                continue
-            sin_t = r / d
-            th = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
-            theta[s] = th
-            axis[s, 0] = dx / d
-            axis[s, 1] = dy / d
-            axis[s, 2] = dz / d
-            _lookup_log(th, table, order, g)
-            _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
-            for k in range(n2):
-                total[k] += gs[s, k]
-        # direct (Eq. 8)
-        for k in range(n2):
-            x[k, 0] = total[k]
-        _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
-        # T_n = cos_{2n-1}(n) @ M (exact projection of L cos, see environment_transfer)
-        for k in range(hi * hi):
-            cos_hi[k] = 0.0
-        _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
-        for c in range(3):
-            acc = 0.0
-            for k in range(n2):
-                t = 0.0
-                for q in range(hi * hi):
-                    t += cos_hi[q] * transfer[q, k * 3 + c]
-                acc += e1[k, 0] * t
-            direct_out[b, c] = acc
-            indirect_out[b, c] = 0.0
-        if not indirect:
-            continue
-        for k in range(n2):
-            cosr[k] = 0.0
-        _add_rotated_zh(cos_zh, nx, ny, nz, order, ybuf, 1.0, cosr)
-        for o in range(n_obj):
-            ex = obj_centres[o, 0] - px
-            ey = obj_centres[o, 1] - py
-            ez = obj_centres[o, 2] - pz
-            od[o] = ex * ex + ey * ey + ez * ez
-        for i in range(n_sph):
-            if theta[i] < 0.0:
-                continue
-            # front sum (Eq. 23): per object or per sphere (Sec. 7.2)
-            for k in range(n2):
-                x[k, 0] = 0.0
-            for j in range(n_sph):
-                if j == i:
-                    continue
-                if per_object:
-                    oi = sl_object[i]
-                    oj = sl_object[j]
-                    front = (oj != oi and (od[oj] < od[oi] or (od[oj] == od[oi] and oj < oi))) or \
-                            (oj == oi and dist[j] < dist[i] and not intersect[i, j])
-                else:
-                    front = dist[j] < dist[i] and not intersect[i, j]
-                if front:
-                    for k in range(n2):
-                        x[k, 0] += gs[j, k]
-            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
-            for k in range(n2):
-                x[k, 0] += gs[i, k]
-            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e2)
-            v_avg = 0.0
-            for k in range(n2):
-                v_avg += (e1[k, 0] - e2[k, 0]) * cosr[k]  # Eqs. 23-24
-            # Eq. 18: w_theta about light -> receiver in the light's frame
-            lx = -(rot[i, 0, 0] * axis[i, 0] + rot[i, 1, 0] * axis[i, 1] + rot[i, 2, 0] * axis[i, 2])
-            ly = -(rot[i, 0, 1] * axis[i, 0] + rot[i, 1, 1] * axis[i, 1] + rot[i, 2, 1] * axis[i, 2])
-            lz = -(rot[i, 0, 2] * axis[i, 0] + rot[i, 1, 2] * axis[i, 1] + rot[i, 2, 2] * axis[i, 2])
-            u = theta[i] * (n_theta / (0.5 * math.pi))
-            jt = min(int(math.floor(u)), n_theta - 1)
-            st = u - jt
-            for l in range(order):
-                wz[l] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
-            for k in range(n2):
-                wrot[k] = 0.0
-            _add_rotated_zh(wz, lx, ly, lz, order, ybuf, 1.0, wrot)
-            for c in range(3):
-                l_avg = 0.0
+                total[k] = 0.0
+            for s in range(n_sph):
                 for k in range(n2):
-                    l_avg += wrot[k] * emission[i, k, c]
-                indirect_out[b, c] += l_avg * v_avg
+                    gs[s, k] = 0.0
+                cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
+                dx, dy, dz = cx - px, cy - py, cz - pz
+                d = math.sqrt(dx * dx + dy * dy + dz * dz)
+                dist[s] = d
+                if r <= 0.0 or d <= 0.0:
+                    theta[s] = -1.0
+                    continue
+                sin_t = r / d
+                th = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
+                theta[s] = th
+                axis[s, 0] = dx / d
+                axis[s, 1] = dy / d
+                axis[s, 2] = dz / d
+                _lookup_log(th, table, order, g)
+                _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
+                for k in range(n2):
+                    total[k] += gs[s, k]
+            # direct (Eq. 8)
+            for k in range(n2):
+                x[k, 0] = total[k]
+            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
+            # T_n = cos_{2n-1}(n) @ M (exact projection of L cos, see environment_transfer)
+            for k in range(hi * hi):
+                cos_hi[k] = 0.0
+            _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
+            for c in range(3):
+                acc = 0.0
+                for k in range(n2):
+                    t = 0.0
+                    for q in range(hi * hi):
+                        t += cos_hi[q] * transfer[q, k * 3 + c]
+                    acc += e1[k, 0] * t
+                direct_out[b, c] = acc
+                indirect_out[b, c] = 0.0
+            if not indirect:
+                continue
+            for k in range(n2):
+                cosr[k] = 0.0
+            _add_rotated_zh(cos_zh, nx, ny, nz, order, ybuf, 1.0, cosr)
+            for o in range(n_obj):
+                ex = obj_centres[o, 0] - px
+                ey = obj_centres[o, 1] - py
+                ez = obj_centres[o, 2] - pz
+                od[o] = ex * ex + ey * ey + ez * ez
+            for i in range(n_sph):
+                if theta[i] < 0.0:
+                    continue
+                # front sum (Eq. 23): per object or per sphere (Sec. 7.2)
+                for k in range(n2):
+                    x[k, 0] = 0.0
+                for j in range(n_sph):
+                    if j == i:
+                        continue
+                    if per_object:
+                        oi = sl_object[i]
+                        oj = sl_object[j]
+                        front = (oj != oi and (od[oj] < od[oi] or (od[oj] == od[oi] and oj < oi))) or \
+                                (oj == oi and dist[j] < dist[i] and not intersect[i, j])
+                    else:
+                        front = dist[j] < dist[i] and not intersect[i, j]
+                    if front:
+                        for k in range(n2):
+                            x[k, 0] += gs[j, k]
+                _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
+                for k in range(n2):
+                    x[k, 0] += gs[i, k]
+                _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e2)
+                v_avg = 0.0
+                for k in range(n2):
+                    v_avg += (e1[k, 0] - e2[k, 0]) * cosr[k]  # Eqs. 23-24
+                # Eq. 18: w_theta about light -> receiver in the light's frame
+                lx = -(rot[i, 0, 0] * axis[i, 0] + rot[i, 1, 0] * axis[i, 1] + rot[i, 2, 0] * axis[i, 2])
+                ly = -(rot[i, 0, 1] * axis[i, 0] + rot[i, 1, 1] * axis[i, 1] + rot[i, 2, 1] * axis[i, 2])
+                lz = -(rot[i, 0, 2] * axis[i, 0] + rot[i, 1, 2] * axis[i, 1] + rot[i, 2, 2] * axis[i, 2])
+                u = theta[i] * (n_theta / (0.5 * math.pi))
+                jt = min(int(math.floor(u)), n_theta - 1)
+                st = u - jt
+                for l in range(order):
+                    wz[l] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
+                for k in range(n2):
+                    wrot[k] = 0.0
+                _add_rotated_zh(wz, lx, ly, lz, order, ybuf, 1.0, wrot)
+                for c in range(3):
+                    l_avg = 0.0
+                    for k in range(n2):
+                        l_avg += wrot[k] * emission[i, k, c]
+                    indirect_out[b, c] += l_avg * v_avg
