@@ -18,7 +18,8 @@ _PRE: dict = {}
 
 
 def _scene(quick: bool) -> Scene:
-    objects = [{"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [12, 12] if quick else [40, 40]},
+    floor = {"builtin": "plane", "size": [4, 4], "resolution": [12, 12] if quick else [40, 40]}
+    objects = [{"name": "floor", "mesh": floor,
                 "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.3]}}]
     if quick:
         objects.append({"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 3},

@@ -116,7 +116,9 @@ def reflected_light(irradiance, weights, method: str = "numba") -> np.ndarray:
     _check_method(method)
     irradiance, weights = list(irradiance), list(weights)
     if len(irradiance) != len(weights):
-        raise ValueError(f"got {len(irradiance)} irradiance arrays for {len(weights)} weight arrays; give one per source")
+        raise ValueError(
+            f"got {len(irradiance)} irradiance arrays for {len(weights)} weight arrays; give one per source"
+        )
     if not irradiance:
         raise ValueError("reflected_light needs at least one source")
     n_v, n_kp = np.shape(irradiance[0])[:2]

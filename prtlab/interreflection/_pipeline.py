@@ -49,12 +49,10 @@ from prtlab.pipeline import FrameState, Precomputation
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
 from prtlab.shadowfields import (
     OcclusionField,
-    SphereGrid,
     area_light_sh,
     occluder_order,
     occlusion_field,
     self_visibility,
-    sphere_grid,
     visibility_pass,
 )
 
@@ -149,8 +147,10 @@ class Interreflection(Precomputation):
         self.bases = {}
         for o in self.objects:
             b = np.asarray(data[o.name]["pca_basis"], float)
-            self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), np.asarray(data[o.name]["pca_samples"]),
-                                              np.zeros((0, 3)), pca.WeightSolver.from_basis(b, data[o.name]["pca_samples"]))
+            samples = np.asarray(data[o.name]["pca_samples"])
+            # the fit's spectrum and training lights are not needed per frame: basis and A^-1 only
+            self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
+                                              pca.WeightSolver.from_basis(b, samples))
         self.seps = {o.name: _separable(o.material, options.K_glossy) for o in self.objects}
         self._phi_cache: dict = {}
         self._pose_cache = None

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from prtlab import brdf, sh
 from prtlab.shadowfields import direct_pass, occluder_order, visibility_pass
-from tests.conftest import FLOAT_TOLERANCE, random_directions
+from tests.conftest import FLOAT_TOLERANCE
 
 ORDER = 3
 N2 = ORDER * ORDER
@@ -58,7 +58,8 @@ def test_empty():
 
 
 def test_errors(rng):
-    light, vis, g, h, col = np.zeros((N2, 3)), np.zeros((2, N2)), np.zeros((2, 1, N2)), np.zeros((2, 1)), np.ones((1, 3))
+    light, vis, g = np.zeros((N2, 3)), np.zeros((2, N2)), np.zeros((2, 1, N2))
+    h, col = np.zeros((2, 1)), np.ones((1, 3))
     with pytest.raises(ValueError, match="visibility must be"):
         direct_pass(light, vis[0], g, h, col)
     with pytest.raises(ValueError, match="n\\*n coefficients"):

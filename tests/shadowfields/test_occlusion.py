@@ -14,7 +14,7 @@ from prtlab import sh
 from prtlab.geometry import RayCaster, builtin_mesh
 from prtlab.scene import Transform
 from prtlab.shadowfields import OcclusionField, occlusion_field, project_visibility, self_visibility
-from tests.conftest import random_directions, random_rotation
+from tests.conftest import random_directions
 
 ORDER = 4
 ONE = np.zeros(ORDER * ORDER)
