@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 
+import numba
 import numpy as np
 
 from prtlab import sh
@@ -30,12 +31,34 @@ from ._occlusion import _check_order
 __all__ = ["area_light_sh"]
 
 
+@numba.njit(cache=True, parallel=True)
+def _light_samples(points, ys, area_w, normal, dirs, weight):
+    """Unit directions to the light points and their solid-angle weights ``dA cos_l / r^2``."""
+    for p in numba.prange(points.shape[0]):
+        for m in range(ys.shape[0]):
+            dx = ys[m, 0] - points[p, 0]
+            dy = ys[m, 1] - points[p, 1]
+            dz = ys[m, 2] - points[p, 2]
+            r2 = dx * dx + dy * dy + dz * dz
+            if r2 > 0.0:
+                r = np.sqrt(r2)
+                dx /= r
+                dy /= r
+                dz /= r
+                cos_l = -(dx * normal[0] + dy * normal[1] + dz * normal[2])
+                weight[p, m] = area_w[m] * cos_l / r2 if cos_l > 0.0 else 0.0
+                dirs[p, m, 0], dirs[p, m, 1], dirs[p, m, 2] = dx, dy, dz
+            else:
+                weight[p, m] = 0.0
+                dirs[p, m, 0], dirs[p, m, 1], dirs[p, m, 2] = normal[0], normal[1], normal[2]
+
+
 @functools.lru_cache(maxsize=8)
 def _gauss_legendre(n: int):
     return np.polynomial.legendre.leggauss(n)
 
 
-def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
+def area_light_sh(light, points, order: int, n_nodes: int = 12, method: str = "numba") -> np.ndarray:
     """SH of the radiance arriving from an area light at points (unoccluded).
 
     Parameters
@@ -45,6 +68,8 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
     order : int
     n_nodes : int
         Gauss-Legendre nodes per edge of the parallelogram (``n_nodes**2`` light points).
+    method : {"numba", "reference"}
+        Light-sample geometry by a parallel kernel or in numpy float64 (the specification).
 
     Returns
     -------
@@ -67,6 +92,8 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
     order = _check_order(order)
     if isinstance(n_nodes, bool) or not isinstance(n_nodes, (int, np.integer)) or n_nodes < 1:
         raise ValueError(f"n_nodes must be an int >= 1, got {n_nodes!r}")
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
     points = np.asarray(points, dtype=np.float64)
     if points.ndim == 0 or points.shape[-1] != 3:
         raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
@@ -83,11 +110,17 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12) -> np.ndarray:
     out = np.zeros((len(flat), order * order))
     step = max(1, (1 << 20) // len(ys))
     for a in range(0, len(flat), step):
-        d = ys[None, :, :] - flat[a : a + step, None, :]
-        r2 = np.sum(d * d, axis=-1)
-        r = np.sqrt(r2)
-        cos_l = np.maximum(-(d @ normal) / np.where(r > 0, r, 1.0), 0.0)
-        weight = np.where(r2 > 0, area_w * cos_l / np.where(r2 > 0, r2, 1.0), 0.0)
-        dirs = np.where(r[..., None] > 0, d, normal)
+        chunk = np.ascontiguousarray(flat[a : a + step])
+        dirs = np.empty((len(chunk), len(ys), 3))
+        weight = np.empty((len(chunk), len(ys)))
+        if method == "reference":
+            d = ys[None, :, :] - chunk[:, None, :]
+            r2 = np.sum(d * d, axis=-1)
+            r = np.sqrt(r2)
+            cos_l = np.maximum(-(d @ normal) / np.where(r > 0, r, 1.0), 0.0)
+            weight = np.where(r2 > 0, area_w * cos_l / np.where(r2 > 0, r2, 1.0), 0.0)
+            dirs = np.where(r[..., None] > 0, d / np.where(r > 0, r, 1.0)[..., None], normal)
+        else:
+            _light_samples(chunk, np.ascontiguousarray(ys), area_w, np.asarray(normal, float), dirs, weight)
         out[a : a + step] = np.einsum("pm,pmi->pi", weight, sh.basis(dirs, order))
     return (out[:, :, None] * np.asarray(light.radiance, float)).reshape(batch + (order * order, 3))
