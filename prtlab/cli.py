@@ -93,13 +93,14 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_precompute(args) -> int:
-    from prtlab.api import METHODS, MethodUnavailable
+    from prtlab import api
 
-    target = METHODS[args.method]
     if args.method in ("reference", "mitsuba"):
         print(f"method {args.method!r} has no precomputation: it estimates radiance directly")
         return 0
-    raise MethodUnavailable(f"method {args.method!r} is not implemented yet: {target}")
+    pre = api.precompute(args.scene, args.method, workers=args.workers, scheduler=args.scheduler)
+    print(f"{args.method}: precomputation of {args.scene} is cached ({type(pre).__name__})")
+    return 0
 
 
 def _cmd_reproduce(args) -> int:

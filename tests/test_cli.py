@@ -19,9 +19,17 @@ def test_help_lists_every_subcommand():
         assert command in proc.stdout
 
 
-@pytest.mark.parametrize("method", ["interreflection", "spherelights", "portals"])
-def test_unimplemented_pipeline_exits_nonzero(method, tmp_path):
-    assert cli.main(["precompute", str(tmp_path / "any.yaml"), "--method", method]) == 2
+def test_unimplemented_method_exits_nonzero(monkeypatch, tmp_path):
+    monkeypatch.setitem(api.METHODS, "radiosity", "a future method (issue 99)")
+    monkeypatch.setattr(cli, "METHOD_NAMES", cli.METHOD_NAMES + ("radiosity",))
+    scene = tmp_path / "scene.yaml"
+    scene.write_text("objects: []\n")
+    assert cli.main(["shade", str(scene), "--method", "radiosity"]) == 2
+
+
+def test_references_have_nothing_to_precompute(tmp_path, capsys):
+    assert cli.main(["precompute", str(tmp_path / "any.yaml"), "--method", "reference"]) == 0
+    assert "has no precomputation" in capsys.readouterr().out
 
 
 def test_unknown_method_is_rejected():
@@ -34,9 +42,15 @@ def test_api_unknown_method_message():
         api._entry_point("radiosity")
 
 
-def test_api_unimplemented_method_message():
-    with pytest.raises(api.MethodUnavailable, match="method 'portals' is not implemented yet"):
-        api._entry_point("portals")
+def test_api_unimplemented_method_message(monkeypatch):
+    monkeypatch.setitem(api.METHODS, "radiosity", "a future method (issue 99)")
+    with pytest.raises(api.MethodUnavailable, match="method 'radiosity' is not implemented yet: a future method"):
+        api._entry_point("radiosity")
+
+
+def test_every_design_method_is_registered():
+    for method in ("reference", "mitsuba", "interreflection", "spherelights", "portals"):
+        assert isinstance(api.METHODS[method], tuple), method
 
 
 def test_api_rejects_bad_bounces():
@@ -49,3 +63,21 @@ def test_api_rejects_bad_bounces():
 def test_api_rejects_bad_scene_type():
     with pytest.raises(TypeError, match="scene must be a prtlab.Scene"):
         api.shade(42, method="reference")
+
+
+def test_api_precompute_rejects_references():
+    with pytest.raises(ValueError, match="method 'mitsuba' has no precomputation"):
+        api.precompute("scene.yaml", "mitsuba")
+
+
+def test_dask_map_runs_chunks_and_yields_each_once():
+    distributed = pytest.importorskip("dask.distributed")
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
+        results = dict(api.dask_map(client=client)(lambda i: {"value": i * i}, [0, 1, 2, 3]))
+    assert results == {i: {"value": i * i} for i in range(4)}
+
+
+def test_dask_map_rejects_bad_workers():
+    pytest.importorskip("dask.distributed")
+    with pytest.raises(ValueError, match="workers must be a positive int"):
+        api.dask_map(workers=0)

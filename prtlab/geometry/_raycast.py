@@ -335,6 +335,21 @@ class RayCaster:
         self._scene = None
         self._build()
 
+    # ------------------------------------------------------------------ pickling
+
+    def __getstate__(self) -> dict:
+        """Everything but the Embree scene (a C object): a caster sent to another
+        process (a Dask worker) rebuilds its acceleration structure there."""
+        state = self.__dict__.copy()
+        state["_scene"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        n_builds = self.n_builds
+        self._build()
+        self.n_builds = n_builds
+
     # ------------------------------------------------------------------ pose
 
     @property

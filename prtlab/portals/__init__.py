@@ -10,7 +10,7 @@ of dynamic exteriors (Section 6).
 from ._direct import direct_transfer, glossy_direct_transfer
 from ._exterior import exterior_shell
 from ._indirect import PhotonMap, final_gather, radiance_estimate, trace_photons
-from ._pipeline import Portals, PortalsOptions, shade_scene
+from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
 from ._shade import direct_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
 from ._validity import PortalValidityWarning, check_interior_solid_angle, check_shell_distance
@@ -37,6 +37,7 @@ __all__ = [
     # pipeline
     "Portals",
     "PortalsOptions",
+    "precompute",
     "shade_scene",
     # validity (Section 6)
     "PortalValidityWarning",

@@ -117,7 +117,7 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 1
+    format_version = 2  # 2: vertices shaded at world_shading_points
     max_bounces = None
     options_type = PortalsOptions
 
@@ -154,7 +154,7 @@ class Portals(Precomputation):
         if not portals:
             raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
         caster = RayCaster(scene)
-        points = np.concatenate([o.world_vertices() for o in objs])
+        points = np.concatenate([o.world_shading_points() for o in objs])
         normals = np.concatenate([o.world_normals() for o in objs])
         albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
         obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
@@ -298,3 +298,9 @@ class Portals(Precomputation):
 def shade_scene(scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="portals", ...)``; see :class:`Portals`."""
     return Portals.shade_scene(scene, bounces=bounces, cache=cache, progress=progress, **options)
+
+
+def precompute(scene: Scene, options=None, cache=True, progress: bool = True, map_fn=None) -> Portals:
+    """``Portals.precompute``: the slow, cached phase (chunks run through ``map_fn``,
+    e.g. :func:`prtlab.api.dask_map`); then ``.shade(state, bounces)`` per frame."""
+    return Portals.precompute(scene, options, cache=cache, progress=progress, map_fn=map_fn)

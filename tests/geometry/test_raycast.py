@@ -236,3 +236,16 @@ def test_errors():
         caster.occluded(np.zeros(3), np.ones(3), normals=[np.nan, 0.0, 1.0], method="numpy")
     with pytest.raises(ValueError, match="epsilon must be a finite number"):
         RayCaster([trimesh.creation.box()], epsilon=-1.0)
+
+
+def test_caster_survives_pickling_for_distributed_workers(rng):
+    import pickle
+
+    caster = RayCaster([trimesh.creation.icosphere(subdivisions=2)])
+    clone = pickle.loads(pickle.dumps(caster))
+    o = random_directions(rng, 64) * 3.0
+    d = -o / 3.0
+    a, b = caster.closest_hit(o, d), clone.closest_hit(o, d)
+    np.testing.assert_array_equal(a.triangle, b.triangle)
+    np.testing.assert_array_equal(a.distance, b.distance)
+    assert clone.n_builds == caster.n_builds
