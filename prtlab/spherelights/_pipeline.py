@@ -63,6 +63,12 @@ class SphereLightOptions:
         Interior grid of the sphere fit.
     cube_resolution : int
         Face resolution of the albedo cubemaps.
+    occluding_ground : bool
+        An extension, off by default (the paper's ground neither blocks nor
+        reflects): hide the lower hemisphere (world ``-Y``) of the environment
+        from the surface samples of the first pass, as an infinite ground plane
+        under the objects would. Without it, objects resting on a ground are lit
+        from below in the first pass and their undersides over-light the ground.
     """
 
     n_spheres: int | dict = 8
@@ -72,6 +78,7 @@ class SphereLightOptions:
     n_directions: int = 92
     grid_resolution: int = 40
     cube_resolution: int = 16
+    occluding_ground: bool = False
 
     def __post_init__(self):
         if self.exp_method not in ("hyb", "ol", "exact"):
@@ -175,11 +182,13 @@ class SphereLights(Precomputation):
         cat = [inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)]
         return tuple(cat)
 
-    def _environment(self, state: FrameState) -> np.ndarray:
+    def _environment(self, state: FrameState, upper_only: bool = False) -> np.ndarray:
         order = self.options.order
         env = np.zeros((order * order, 3))
         for light in state.lights:
-            if isinstance(light, EnvironmentLight):
+            if isinstance(light, EnvironmentLight) and upper_only:
+                env += _upper_hemisphere_sh(light, order)
+            elif isinstance(light, EnvironmentLight):
                 env += environment_sh(light, order)
             else:
                 raise ValueError(
@@ -194,7 +203,8 @@ class SphereLights(Precomputation):
         centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state)
         emission = np.zeros((len(radii), opts.order**2, 3))
         if bounces > 0 and len(radii):
-            emission = first_pass(spts, snrm, svalid, centres, radii, env,
+            env_first = self._environment(state, upper_only=True) if opts.occluding_ground else env
+            emission = first_pass(spts, snrm, svalid, centres, radii, env_first,
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
                                   exp_method=opts.exp_method)
         result = ShadeResult(info={"method": self.method, "n_lights": int(len(radii)),
@@ -211,6 +221,19 @@ class SphereLights(Precomputation):
             result.indirect[obj.name] = indirect * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         return result
+
+
+def _upper_hemisphere_sh(light: EnvironmentLight, order: int) -> np.ndarray:
+    """SH of the environment with its lower hemisphere (``y < 0``) set to zero, ``(order**2, 3)``."""
+    from prtlab import sh
+
+    if light.constant is not None:
+        mask = sh.zh_rotate(sh.blocker_zh(0.5 * np.pi, order), np.array([0.0, -1.0, 0.0]))
+        return mask[:, None] * np.asarray(light.constant, dtype=np.float64)[None, :]
+    image = np.array(light.image, dtype=np.float64)
+    rows = np.arange(image.shape[0]) / (image.shape[0] - 1)  # v = i / (H - 1), y = cos(pi v)
+    image[np.cos(np.pi * rows) < 0] = 0.0
+    return environment_sh(image, order)
 
 
 def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

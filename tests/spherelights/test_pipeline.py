@@ -111,3 +111,21 @@ def test_objects_with_different_sphere_counts():
     assert radii.shape == (4,) and inter.shape == (4, 4)
     assert not inter[:1, 1:].any()  # lights of different objects never count as intersecting
     assert np.all(np.isfinite(pre.shade(bounces=1).total["plane"]))
+
+
+def test_occluding_ground_hides_the_lower_environment(pre):
+    from prtlab.scene import EnvironmentLight
+    from prtlab.spherelights._pipeline import _upper_hemisphere_sh
+
+    # constant environment: the mask is the upper-hemisphere indicator, DC = half the full sphere
+    up = _upper_hemisphere_sh(EnvironmentLight(constant=np.ones(3)), 4)
+    np.testing.assert_allclose(up[0], 0.5 * np.sqrt(4 * np.pi))
+    np.testing.assert_allclose(up[1], np.sqrt(3 * np.pi) / 2)  # int_{y>0} Y_1,-1 = sqrt(3/(4 pi)) pi
+    # an image environment agrees with the constant one (uniform image)
+    img = EnvironmentLight(image=np.ones((65, 128, 3)))
+    np.testing.assert_allclose(_upper_hemisphere_sh(img, 4)[:, 0], up[:, 0], atol=0.05)
+    p = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "grid_resolution": 16,
+                                                           "occluding_ground": True}), pre.data)
+    a, b = p.shade(bounces=1), pre.shade(bounces=1)
+    np.testing.assert_allclose(a.direct["plane"], b.direct["plane"])
+    assert a.indirect["plane"].sum() < b.indirect["plane"].sum()
