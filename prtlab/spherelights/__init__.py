@@ -8,7 +8,7 @@ per-object blocking) and the pipeline ``SphereLights``
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
-from ._pipeline import SphereLightOptions, SphereLights, shade_scene
+from ._pipeline import SphereLightOptions, SphereLights, precompute, shade_scene
 from ._passes import accumulate_blockers, first_pass, second_pass
 from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
@@ -39,5 +39,6 @@ __all__ = [
     # the pipeline (prtlab.shade(scene, method="spherelights"))
     "SphereLightOptions",
     "SphereLights",
+    "precompute",
     "shade_scene",
 ]

@@ -239,3 +239,8 @@ def _upper_hemisphere_sh(light: EnvironmentLight, order: int) -> np.ndarray:
 def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
     """``prtlab.shade(scene, method="spherelights", bounces, **options)``: see :class:`SphereLightOptions`."""
     return SphereLights.shade_scene(scene, bounces=bounces, cache=cache, progress=progress, **options)
+
+
+def precompute(scene, options=None, cache=True, progress: bool = True) -> SphereLights:
+    """``SphereLights.precompute``: the slow, cached phase; then ``.shade(state, bounces)`` per frame."""
+    return SphereLights.precompute(scene, options, cache=cache, progress=progress)
