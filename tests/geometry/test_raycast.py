@@ -176,7 +176,9 @@ def test_matches_brute_force(seed):
     same = both & (hits.triangle == ref.triangle) & (hits.object == ref.object)
     assert same.sum() >= 0.9 * both.sum()
     np.testing.assert_allclose(hits.barycentric[same], ref.barycentric[same], atol=1e-4)
-    np.testing.assert_allclose(hits.point[same], ref.point[same], atol=1e-5)
+    # points are rebuilt from the barycentrics, so they carry the barycentric error times an edge
+    longest_edge = max(mesh.edges_unique_length.max(), box.edges_unique_length.max())
+    np.testing.assert_allclose(hits.point[same], ref.point[same], atol=2e-4 * longest_edge)
     np.testing.assert_array_equal(hits.normal[same], ref.normal[same])
     occ = caster.occluded(origins, dirs, tmax)
     assert np.mean(occ == caster.occluded(origins, dirs, tmax, method="numpy")) >= 0.95
