@@ -59,6 +59,38 @@ def _check_points(points, normals):
     return points, normals
 
 
+def _visible_portal_samples(caster, portal, x, n, n_samples, rng):
+    """Sample ``n_samples`` portal points per vertex and keep the unoccluded pairs.
+
+    A pair (vertex ``v``, portal point ``p``) counts when ``p`` is in front of the
+    vertex and the vertex in front of the portal, nothing blocks the segment, and
+    nothing blocks the ray from ``p`` on toward the shell (backward occlusion).
+
+    Returns
+    -------
+    vi : (E,) int      vertex index within the batch
+    dl : (E, 3) float  unit direction from the vertex to the portal point
+    cos_v, cos_p, dist : (E,) float   cosines at vertex and portal, and distance
+    """
+    nc = len(x)
+    samples = sample_mesh_area((portal.vertices, portal.faces), nc * n_samples, rng)
+    p = samples.points.reshape(nc, n_samples, 3)
+    n_p = samples.normals.reshape(nc, n_samples, 3)
+    d = p - x[:, None, :]
+    dist = np.linalg.norm(d, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = d / dist[..., None]
+    cos_v = np.einsum("vsk,vk->vs", d, n)
+    cos_p = -np.einsum("vsk,vsk->vs", d, n_p)
+    vi, si = np.nonzero((cos_v > 0) & (cos_p > 0) & (dist > 0))
+    dl = d[vi, si]
+    blocked = caster.occluded(x[vi], dl, dist[vi, si] - caster.epsilon, normals=n[vi])
+    blocked |= caster.occluded(p[vi, si], dl, normals=n_p[vi, si])  # backward occlusion, on toward the shell
+    keep = ~blocked
+    vi, si = vi[keep], si[keep]
+    return vi, dl[keep], cos_v[vi, si], cos_p[vi, si], dist[vi, si]
+
+
 def direct_transfer(
     caster: RayCaster,
     points,
@@ -100,31 +132,12 @@ def direct_transfer(
     n_texels = 6 * res * res
     n_vertices = len(points)
     out = np.zeros((n_vertices, n_texels))
-    mesh = (portal.vertices, portal.faces)
     for start in range(0, n_vertices, chunk):
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        samples = sample_mesh_area(mesh, nc * n_samples, rng)
-        p = samples.points.reshape(nc, n_samples, 3)
-        n_p = samples.normals.reshape(nc, n_samples, 3)
-        d = p - x[:, None, :]
-        dist = np.linalg.norm(d, axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = d / dist[..., None]
-        cos_v = np.einsum("vsk,vk->vs", d, n)
-        cos_p = -np.einsum("vsk,vsk->vs", d, n_p)
-        live = (cos_v > 0) & (cos_p > 0) & (dist > 0)
-        vi, si = np.nonzero(live)
-        if len(vi) == 0:
-            continue
-        dl = d[vi, si]
-        blocked = caster.occluded(x[vi], dl, dist[vi, si] - caster.epsilon, normals=n[vi])
-        # backward occlusion: from the portal point on toward the shell
-        blocked |= caster.occluded(p[vi, si], dl, normals=n_p[vi, si])
-        keep = ~blocked
-        vi, si, dl = vi[keep], si[keep], dl[keep]
-        weight = cos_v[vi, si] * cos_p[vi, si] * portal.area / (np.pi * n_samples * dist[vi, si] ** 2)
+        vi, dl, cos_v, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng)
+        weight = cos_v * cos_p * portal.area / (np.pi * n_samples * dist**2)
         face, _, _, i, j = direction_to_cubemap(dl, res)
         flat = vi * n_texels + face * res * res + i * res + j
         out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_texels).reshape(nc, n_texels)
@@ -175,32 +188,13 @@ def glossy_direct_transfer(
     n_texels = 6 * res * res
     n_views = len(view_dirs)
     out = np.zeros((len(points), n_views * n_texels))
-    mesh = (portal.vertices, portal.faces)
     norm = (exponent + 2.0) / (2.0 * np.pi)
     for start in range(0, len(points), chunk):
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        samples = sample_mesh_area(mesh, nc * n_samples, rng)
-        p = samples.points.reshape(nc, n_samples, 3)
-        n_p = samples.normals.reshape(nc, n_samples, 3)
-        d = p - x[:, None, :]
-        dist = np.linalg.norm(d, axis=-1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = d / dist[..., None]
-        cos_v = np.einsum("vsk,vk->vs", d, n)
-        cos_p = -np.einsum("vsk,vsk->vs", d, n_p)
-        live = (cos_v > 0) & (cos_p > 0) & (dist > 0)
-        vi, si = np.nonzero(live)
-        if len(vi) == 0:
-            continue
-        dl = d[vi, si]
-        blocked = caster.occluded(x[vi], dl, dist[vi, si] - caster.epsilon, normals=n[vi])
-        blocked |= caster.occluded(p[vi, si], dl, normals=n_p[vi, si])
-        keep = ~blocked
-        vi, si, dl = vi[keep], si[keep], dl[keep]
-        cv = cos_v[vi, si]
-        weight = cv * cos_p[vi, si] * portal.area / (n_samples * dist[vi, si] ** 2)  # cos dw / pdf, no 1/pi
+        vi, dl, cv, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng)
+        weight = cv * cos_p * portal.area / (n_samples * dist**2)  # cos dw / pdf, no 1/pi
         mirror = 2.0 * cv[:, None] * n[vi] - dl
         lobe = norm * np.maximum(mirror @ view_dirs.T, 0.0) ** exponent  # (E, J)
         face, _, _, i, j = direction_to_cubemap(dl, res)
