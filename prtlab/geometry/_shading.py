@@ -67,11 +67,12 @@ def shading_points(vertices, faces, normals, fraction: float = SHADING_POINT_FRA
     tri = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     centroid = tri.mean(axis=1)
-    weight = np.zeros(len(vertices))
-    weighted = np.zeros_like(vertices)
-    for corner in range(3):
-        np.add.at(weight, faces[:, corner], area)
-        np.add.at(weighted, faces[:, corner], area[:, None] * centroid)
+    n = len(vertices)
+    corners = faces.ravel()  # each face once per corner
+    weight = np.bincount(corners, weights=np.repeat(area, 3), minlength=n)
+    weighted = np.stack(
+        [np.bincount(corners, weights=np.repeat(area * centroid[:, k], 3), minlength=n) for k in range(3)], axis=1
+    )
     used = weight > 0.0
     delta = np.zeros_like(vertices)
     delta[used] = weighted[used] / weight[used, None] - vertices[used]

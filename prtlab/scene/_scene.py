@@ -174,9 +174,10 @@ class SceneObject:
         into its own faces (:func:`prtlab.geometry.shading_points`; ``docs/DECISIONS.md``)."""
         from prtlab.geometry import shading_points
 
-        return shading_points(
-            self.world_vertices(transform), np.asarray(self.mesh.faces), self.world_normals(transform)
-        )
+        # computed in object space and placed like the vertices: the construction commutes
+        # with rotation, uniform scale and translation
+        local = shading_points(self.mesh.vertices, np.asarray(self.mesh.faces), self.mesh.vertex_normals)
+        return (transform or self.transform).apply_points(local)
 
     def world_mesh(self, transform: Transform | None = None):
         """A trimesh copy in world space (same vertex order and faces)."""

@@ -47,3 +47,12 @@ def test_closed_room_does_not_leak_light_at_its_corners():
                   camera=Camera(position=np.array([0.0, 1.5, 1.0]), look_at=np.array([0.0, 1.0, -1.0])))
     result = shade_reference(scene, bounces=1, n_samples=64, seed=3, progress=False)
     assert np.max(result.total["room"]) == 0.0
+
+
+def test_world_shading_points_commute_with_the_object_transform():
+    from prtlab.scene import Transform
+
+    mesh = builtin_mesh("box", subdivisions=1)
+    obj = SceneObject("box", mesh, transform=Transform(np.array([1.0, 2.0, -0.5]), np.array([10.0, 35.0, -70.0]), 1.7))
+    world = shading_points(obj.world_vertices(), mesh.faces, obj.world_normals())
+    np.testing.assert_allclose(obj.world_shading_points(), world, atol=1e-12)
