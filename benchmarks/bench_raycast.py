@@ -42,35 +42,29 @@ def _peer(spheres):
     return RayMeshIntersector(trimesh.util.concatenate(spheres))
 
 
-@case("raycast.closest_hit.100k_tris")
-def closest_hit_case(quick: bool) -> dict:
+def _ray_case(quick: bool, query: str, peer_query: str) -> dict:
+    """1M rays (quick: 100k) against the ~100k-triangle scene, with trimesh's wrapper as peer."""
     spheres = _scene()
     caster = RayCaster(spheres)
     n = 100_000 if quick else 1_000_000
     origins, dirs = _rays(n)
     peer = _peer(spheres)
     return {
-        "run": lambda: caster.closest_hit(origins, dirs),
+        "run": lambda: getattr(caster, query)(origins, dirs),
         "gflop": None,
         "items": n,
         "peer": None if peer is None else (
-            "trimesh RayMeshIntersector.intersects_first", lambda: peer.intersects_first(origins, dirs)
+            f"trimesh RayMeshIntersector.{peer_query}", lambda: getattr(peer, peer_query)(origins, dirs)
         ),
     }
+
+
+@case("raycast.closest_hit.100k_tris")
+def closest_hit_case(quick: bool) -> dict:
+    return _ray_case(quick, "closest_hit", "intersects_first")
 
 
 @case("raycast.occluded.100k_tris")
 def occluded_case(quick: bool) -> dict:
-    spheres = _scene()
-    caster = RayCaster(spheres)
-    n = 100_000 if quick else 1_000_000
-    origins, dirs = _rays(n)
-    peer = _peer(spheres)
-    return {
-        "run": lambda: caster.occluded(origins, dirs),
-        "gflop": None,
-        "items": n,
-        "peer": None if peer is None else (
-            "trimesh RayMeshIntersector.intersects_any", lambda: peer.intersects_any(origins, dirs)
-        ),
-    }
+    return _ray_case(quick, "occluded", "intersects_any")
+

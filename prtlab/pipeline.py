@@ -38,7 +38,7 @@ import numpy as np
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
-__all__ = ["FrameState", "Precomputation", "scene_geometry_key_parts"]
+__all__ = ["FrameState", "Precomputation", "check_int_options", "scene_geometry_key_parts"]
 
 
 @dataclass
@@ -57,6 +57,14 @@ class FrameState:
             lights=list(scene.lights),
             camera=scene.camera,
         )
+
+
+def check_int_options(options, names, minimum: int = 1) -> None:
+    """The one validator of integer options: each of ``names`` on ``options`` must be an int >= ``minimum``."""
+    for name in names:
+        value = getattr(options, name)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+            raise ValueError(f"option {name} must be an int >= {minimum}, got {value!r}")
 
 
 def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> list:

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import brdf, pca, sh
-from prtlab.pipeline import FrameState, Precomputation
+from prtlab.pipeline import FrameState, Precomputation, check_int_options
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
 from prtlab.shadowfields import (
     OcclusionField,
@@ -89,10 +89,7 @@ class InterreflectionOptions:
     threshold: float = 0.0
 
     def __post_init__(self):
-        for name in ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"option {name} must be an int >= 1, got {value!r}")
+        check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution"))
         if not (np.isfinite(self.threshold) and self.threshold >= 0):
             raise ValueError(f"option threshold must be a finite number >= 0, got {self.threshold!r}")
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from prtlab.cache import Cache, cache_key
 from prtlab.geometry import RayCaster
-from prtlab.pipeline import FrameState, Precomputation
+from prtlab.pipeline import FrameState, Precomputation, check_int_options
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
@@ -83,14 +83,10 @@ class PortalsOptions:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < (0 if name == "seed" else 1):
-                raise ValueError(f"option {name} must be a positive int, got {value!r}")
+        check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k"))
+        check_int_options(self, ("seed", "bounces"), minimum=0)
         if self.res & (self.res - 1):
             raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
-        if isinstance(self.bounces, bool) or not isinstance(self.bounces, (int, np.integer)) or self.bounces < 0:
-            raise ValueError(f"option bounces must be an int >= 0, got {self.bounces!r}")
         if not isinstance(self.merge_portals, (bool, np.bool_)):
             raise ValueError(f"option merge_portals must be True or False, got {self.merge_portals!r}")
         if self.direct_basis not in ("auto", "pulse", "haar"):
