@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
+from prtlab._validate import check_int
 from prtlab.scene import Scene, ShadeResult
 
 __all__ = ["METHODS", "MethodUnavailable", "shade", "precompute", "render_image", "dask_map"]
@@ -54,8 +55,7 @@ def shade(scene, method: str = "reference", bounces: int = 1, **options) -> Shad
         ``direct[name]``, ``indirect[name]``, ``total[name]``: (n_vertices, 3).
     """
     entry_point = _entry_point(method)  # before any work: unknown or unavailable methods fail first
-    if isinstance(bounces, bool) or not isinstance(bounces, int) or bounces < 0:
-        raise ValueError(f"bounces must be a non-negative int, got {bounces!r}")
+    check_int(bounces, "bounces", 0)
     if isinstance(scene, (str, Path)):
         from prtlab.scene import load_scene
 

@@ -41,6 +41,8 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
+from prtlab._validate import check_int
+
 __all__ = ["FORMAT_VERSION", "Cache", "CacheWarning", "cache_key", "default_cache_root"]
 
 #: Bump when the layout of cached data changes: every old entry then misses.
@@ -342,7 +344,8 @@ class Cache:
 
     def finished_chunks(self, key: str, n_chunks: int, name: str = "data") -> list[int]:
         """Indices of the chunks already stored (and valid) for ``key``."""
-        return [i for i in range(_check_n(n_chunks)) if self.load_chunk(key, i, name, quiet=True) is not None]
+        n_chunks = check_int(n_chunks, "n_chunks", 1)
+        return [i for i in range(n_chunks) if self.load_chunk(key, i, name, quiet=True) is not None]
 
     def missing_chunks(self, key: str, n_chunks: int, name: str = "data") -> list[int]:
         """Indices of the chunks still to compute (e.g. to submit to Dask workers)."""
@@ -415,7 +418,7 @@ class Cache:
         dict
             The assembled result, as read back from the entry file.
         """
-        n_chunks = _check_n(n_chunks)
+        n_chunks = check_int(n_chunks, "n_chunks", 1)
         cached = self.load(key, name)
         if cached is not None:
             return cached
@@ -441,12 +444,6 @@ class Cache:
         self.store(key, result, name)
         shutil.rmtree(self._parts_dir(key, name), ignore_errors=True)
         return self.load(key, name)
-
-
-def _check_n(n_chunks: Any) -> int:
-    if isinstance(n_chunks, bool) or not isinstance(n_chunks, (int, np.integer)) or n_chunks < 1:
-        raise ValueError(f"n_chunks must be an integer >= 1, got {n_chunks!r}")
-    return int(n_chunks)
 
 
 def _concatenate(chunks: list[dict]) -> dict:

@@ -35,6 +35,7 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
@@ -63,8 +64,7 @@ def check_int_options(options, names, minimum: int = 1) -> None:
     """The one validator of integer options: each of ``names`` on ``options`` must be an int >= ``minimum``."""
     for name in names:
         value = getattr(options, name)
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-            raise ValueError(f"option {name} must be an int >= {minimum}, got {value!r}")
+        check_int(value, f"option {name}", minimum)
 
 
 def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> list:
@@ -147,14 +147,13 @@ class Precomputation:
 
     def shade(self, state: FrameState | None = None, bounces: int = 1) -> ShadeResult:
         """Per-vertex radiance for one frame (``state`` defaults to the scene as loaded)."""
-        if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)) or bounces < 0:
-            raise ValueError(f"bounces must be a non-negative int, got {bounces!r}")
+        bounces = check_int(bounces, "bounces", 0)
         if self.max_bounces is not None and bounces > self.max_bounces:
             raise ValueError(
                 f"method {self.method!r} computes at most {self.max_bounces} indirect bounce(s), "
                 f"got bounces={bounces}; use method='reference' for more"
             )
-        return self.shade_frame(state or FrameState.from_scene(self.scene), int(bounces))
+        return self.shade_frame(state or FrameState.from_scene(self.scene), bounces)
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

@@ -244,7 +244,7 @@ def test_chunks_with_external_map_and_custom_assembly(cache):
 
 
 def test_chunk_count_is_validated(cache):
-    with pytest.raises(ValueError, match="n_chunks must be an integer >= 1"):
+    with pytest.raises(ValueError, match="n_chunks must be an int >= 1"):
         cache.get_or_compute_chunks(cache_key("n"), 0, _chunk)
 
 

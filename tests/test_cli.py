@@ -56,7 +56,7 @@ def test_every_design_method_is_registered():
 def test_api_rejects_bad_bounces():
     from prtlab.scene import Scene
 
-    with pytest.raises(ValueError, match="bounces must be a non-negative int"):
+    with pytest.raises(ValueError, match="bounces must be an int >= 0"):
         api.shade(Scene(), method="reference", bounces=-1)
 
 

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import as_directions, check_choice, check_int
+
 from ..geometry import tangent_frame
 from . import _kernels
 
@@ -28,25 +30,7 @@ _METHODS = ("numba", "reference")
 
 
 def _check_method(method) -> str:
-    if method not in _METHODS:
-        raise ValueError(f"method must be one of {', '.join(repr(m) for m in _METHODS)}, got {method!r}")
-    return method
-
-
-def _as_dirs(dirs, name: str) -> np.ndarray:
-    """Coerce to finite float64 ``(..., 3)`` and normalise; zero vectors are an error."""
-    arr = np.asarray(dirs)
-    if arr.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must be a real (..., 3) array of directions, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if arr.ndim == 0 or arr.shape[-1] != 3:
-        raise ValueError(f"{name} must be a (..., 3) array of unit directions, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; every direction must be a finite unit vector")
-    length = np.linalg.norm(arr, axis=-1, keepdims=True)
-    if np.any(length == 0.0):
-        raise ValueError(f"{name} contains a zero vector; every direction must be a unit vector")
-    return arr / length
+    return check_choice(method, "method", _METHODS)
 
 
 def _broadcast(arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
@@ -84,21 +68,21 @@ def local_frame(normal) -> np.ndarray:
     separable approximation is too unless it splits an azimuthal
     ``cos(m phi) / sin(m phi)`` pair (see :class:`SeparableBRDF`).
     """
-    n = _as_dirs(normal, "normal")
+    n = as_directions(normal, "normal")
     t, b = tangent_frame(n)
     return np.stack([t, b, n], axis=-1)
 
 
 def to_local(dirs, normal) -> np.ndarray:
     """World directions ``(..., 3)`` to the local frame of ``normal`` (z = normal); batch axes broadcast."""
-    d = _as_dirs(dirs, "dirs")
+    d = as_directions(dirs, "dirs")
     R = local_frame(normal)
     return np.einsum("...ji,...j->...i", R, d)
 
 
 def to_world(dirs_local, normal) -> np.ndarray:
     """Local directions ``(..., 3)`` (z = normal) to world directions; the inverse of :func:`to_local`."""
-    d = _as_dirs(dirs_local, "dirs_local")
+    d = as_directions(dirs_local, "dirs_local")
     R = local_frame(normal)
     return np.einsum("...ij,...j->...i", R, d)
 
@@ -164,8 +148,8 @@ class Phong:
         agree whenever ``wi`` and ``wo`` are on the normal's side.
         """
         method = _check_method(method)
-        arrays = {"wi": _as_dirs(wi, "wi"), "wo": _as_dirs(wo, "wo")}
-        arrays["normal"] = np.array([0.0, 0.0, 1.0]) if normal is None else _as_dirs(normal, "normal")
+        arrays = {"wi": as_directions(wi, "wi"), "wo": as_directions(wo, "wo")}
+        arrays["normal"] = np.array([0.0, 0.0, 1.0]) if normal is None else as_directions(normal, "normal")
         wi_b, wo_b, n_b = _broadcast(arrays)
         batch = wi_b.shape[:-1]
         flat = [np.array(a.reshape(-1, 3), dtype=np.float64, order="C") for a in (wi_b, wo_b, n_b)]
@@ -201,8 +185,7 @@ class Phong:
         mu = np.asarray(cos_theta, dtype=np.float64)
         if not np.all(np.isfinite(mu)) or np.any(mu <= 0.0) or np.any(mu > 1.0):
             raise ValueError("cos_theta must lie in (0, 1]; directions at or below the horizon have no albedo")
-        if isinstance(n_nodes, bool) or not isinstance(n_nodes, (int, np.integer)) or n_nodes < 2:
-            raise ValueError(f"n_nodes must be an int >= 2, got {n_nodes!r}")
+        check_int(n_nodes, "n_nodes", 2)
         t, w = np.polynomial.legendre.leggauss(int(n_nodes))
         theta = 0.25 * np.pi * (t + 1.0)
         w_theta = 0.25 * np.pi * w * np.sin(theta) * np.cos(theta)

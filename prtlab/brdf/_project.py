@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from prtlab._validate import as_directions, check_order
+
 from .. import sh
-from ._models import _as_dirs, _check_method, local_frame, to_local
+from ._models import _check_method, local_frame, to_local
 from ._separable import SeparableBRDF
 
 __all__ = ["project_g_cos", "project_h", "transfer_error"]
@@ -27,14 +29,6 @@ def _check_sep(sep) -> SeparableBRDF:
             "leave the integral over wi (Iwasaki et al. Eq. 7); build it with parameterisation='plain'"
         )
     return sep
-
-
-def _check_order(order) -> int:
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)):
-        raise TypeError(f"order must be an int (number of SH bands), got {type(order).__name__}")
-    if order < 1:
-        raise ValueError(f"order must be >= 1 (order n means bands l = 0..n-1), got {order}")
-    return int(order)
 
 
 def _local_samples(sep: SeparableBRDF, order: int):
@@ -95,9 +89,9 @@ def project_g_cos(sep, normals, order: int, method: str = "numba") -> np.ndarray
     rotated with the object by SH rotation).
     """
     sep = _check_sep(sep)
-    order = _check_order(order)
+    order = check_order(order)
     method = _check_method(method)
-    n = _as_dirs(normals, "normals")
+    n = as_directions(normals, "normals")
     batch = n.shape[:-1]
     flat = n.reshape(-1, 3)
     n_c = order * order
@@ -140,7 +134,7 @@ def project_h(sep, wo_dirs, normals=None, method: str = "numba") -> np.ndarray:
         as given there).
     """
     sep = _check_sep(sep)
-    local = _as_dirs(wo_dirs, "wo_dirs") if normals is None else to_local(wo_dirs, normals)
+    local = as_directions(wo_dirs, "wo_dirs") if normals is None else to_local(wo_dirs, normals)
     return sep.h(local, method=method)
 
 
@@ -183,7 +177,7 @@ def transfer_error(sep, order: int) -> np.ndarray:
     from ._separable import _tables
 
     sep = _check_sep(sep)
-    order = _check_order(order)
+    order = check_order(order)
     n_theta, n_phi = sep.resolution
     _, w_i, theta_o, w_o, diffuse, lobe = _tables(sep.brdf.exponent, n_theta, n_phi, "plain")
     theta_i = sep.theta_in

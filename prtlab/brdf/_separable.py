@@ -38,8 +38,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from prtlab._validate import as_directions, check_int
+
 from . import _kernels
-from ._models import Phong, _as_dirs, _broadcast, _check_method, to_local
+from ._models import Phong, _broadcast, _check_method, to_local
 
 __all__ = ["SeparableBRDF", "separable", "ErrorTable", "relative_error_table"]
 
@@ -227,7 +229,7 @@ class SeparableBRDF:
 
     def _eval_factor(self, dirs, name, theta, radial, theta_max, method) -> np.ndarray:
         method = _check_method(method)
-        d = _as_dirs(dirs, name)
+        d = as_directions(dirs, name)
         batch = d.shape[:-1]
         flat = np.array(d.reshape(-1, 3), dtype=np.float64, order="C")
         nodes, values = self._ext(theta, radial, theta_max)
@@ -265,8 +267,8 @@ class SeparableBRDF:
         Two-sided: the normal is flipped to the side of ``wo``, and ``wi``
         strictly on the other side gives 0.
         """
-        arrays = {"wi": _as_dirs(wi, "wi"), "wo": _as_dirs(wo, "wo")}
-        arrays["normal"] = np.array([0.0, 0.0, 1.0]) if normal is None else _as_dirs(normal, "normal")
+        arrays = {"wi": as_directions(wi, "wi"), "wo": as_directions(wo, "wo")}
+        arrays["normal"] = np.array([0.0, 0.0, 1.0]) if normal is None else as_directions(normal, "normal")
         wi_b, wo_b, n_b = _broadcast(arrays)
         side = np.where(np.sum(n_b * wo_b, axis=-1, keepdims=True) < 0.0, -1.0, 1.0)
         n_b = n_b * side
@@ -308,8 +310,7 @@ class SeparableBRDF:
         if method != "quadrature":
             raise ValueError(f"method must be 'grid' or 'quadrature', got {method!r}")
         n = self.resolution[0] + 7 if n_nodes is None else n_nodes
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-            raise ValueError(f"n_nodes must be an int >= 2, got {n_nodes!r}")
+        check_int(n, "n_nodes", 2)
         theta, w = _gauss_theta(int(n), 0.5 * np.pi)
         n_phi = 2 * int(n)
         phi = 2.0 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
@@ -329,12 +330,8 @@ class SeparableBRDF:
 
 
 def _check_k(K, limit: int | None = None) -> int:
-    if isinstance(K, bool) or not isinstance(K, (int, np.integer)):
-        raise TypeError(f"K must be an int (number of separable terms), got {type(K).__name__}")
-    if K < 1 or (limit is not None and K > limit):
-        bound = "" if limit is None else f" and <= {limit} (the rank of the grid table; raise resolution)"
-        raise ValueError(f"K must be >= 1{bound}, got {K}")
-    return int(K)
+    meaning = "number of separable terms" + ("" if limit is None else "; at most the rank of the grid table: raise resolution")
+    return check_int(K, "K", 1, limit, meaning=meaning)
 
 
 def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") -> SeparableBRDF:

@@ -19,6 +19,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from prtlab._validate import check_int
+
 __all__ = [
     "fibonacci_sphere",
     "geodesic_sphere",
@@ -36,14 +38,6 @@ __all__ = [
 ]
 
 _GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
-
-
-def _check_count(n, name="n") -> int:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer sample count, got {type(n).__name__}")
-    if n < 0:
-        raise ValueError(f"{name} must be >= 0, got {n}")
-    return int(n)
 
 
 def _check_rng(rng) -> np.random.Generator:
@@ -137,7 +131,7 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     ----------
     Keinert et al., "Spherical Fibonacci Mapping", ACM TOG 34(6), 2015, Eq. 2.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     i = np.arange(n, dtype=np.float64)
     z = 1.0 - (2.0 * i + 1.0) / max(n, 1)
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
@@ -185,9 +179,7 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
     count of ``s`` four-way subdivisions (trimesh's ``icosphere(s)``), but the
     points differ for ``s >= 2`` (here the flat face is cut once, then projected).
     """
-    if isinstance(frequency, bool) or not isinstance(frequency, (int, np.integer)) or frequency < 1:
-        raise ValueError(f"frequency must be an integer >= 1, got {frequency!r}")
-    f = int(frequency)
+    f = check_int(frequency, "frequency", 1)
     ico_v, ico_f = _icosahedron()
     points, tris = list(ico_v), []  # icosahedron vertices first, in their order
     offset = len(points)
@@ -238,7 +230,7 @@ def geodesic_directions(n: int) -> np.ndarray:
     icosahedron vertices plus the 80 face centres of the once-subdivided
     icosahedron only in count, not in position).
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     f = int(round(np.sqrt(max(n - 2, 0) / 10.0)))
     if f < 1 or 10 * f * f + 2 != n:
         raise ValueError(
@@ -260,7 +252,7 @@ def uniform_sphere(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.nda
     pdf : (n,) float64
         ``1 / (4 pi)`` per steradian.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     u = _check_rng(rng).random((n, 2))
     return _sphere_from_unit_square(u[:, 0], u[:, 1]), np.full(n, 1.0 / (4.0 * np.pi))
 
@@ -274,7 +266,7 @@ def uniform_hemisphere(n: int, rng: np.random.Generator, normal=None) -> tuple[n
     pdf : (n,) or (..., n) float64
         ``1 / (2 pi)``.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     normal = _check_normal(normal)
     batch = () if normal is None else normal.shape[:-1]
     u = _check_rng(rng).random(batch + (n, 2))
@@ -301,7 +293,7 @@ def cosine_hemisphere(n: int, rng: np.random.Generator, normal=None) -> tuple[np
     -----
     Malley's method: a uniform point on the unit disc lifted to the hemisphere.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     normal = _check_normal(normal)
     batch = () if normal is None else normal.shape[:-1]
     u = _check_rng(rng).random(batch + (n, 2))
@@ -363,7 +355,7 @@ def stratified_sphere(n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.
     variance of stratified samples overestimates the estimator's variance, so
     error bars from it are conservative.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0)
     u = _stratified_unit_square(n, _check_rng(rng))
@@ -389,7 +381,7 @@ def stratified_hemisphere(
     dirs : (n, 3) or (..., n, 3) float64
     pdf : (n,) or (..., n) float64
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     normal = _check_normal(normal)
     rng = _check_rng(rng)
     batch = () if normal is None else normal.shape[:-1]
@@ -439,7 +431,7 @@ def sample_mesh_area(mesh, n: int, rng: np.random.Generator) -> MeshSamples:
     ----------
     Pharr, Jakob, Humphreys, *Physically Based Rendering*, 3rd ed., Sec. 13.6.5.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     rng = _check_rng(rng)
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
         vertices, faces = mesh.vertices, mesh.faces
@@ -486,7 +478,7 @@ def sample_parallelogram(center, u, v, n: int, rng: np.random.Generator) -> tupl
     pdf : (n,) float64
         ``1 / A`` with ``A = 4 |u x v|``.
     """
-    n = _check_count(n)
+    n = check_int(n, "n", 0, meaning="sample count")
     rng = _check_rng(rng)
     arrays = []
     for name, x in (("center", center), ("u", u), ("v", v)):

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from prtlab._validate import as_directions
+
 __all__ = [
     "equirect_directions",
     "equirect_solid_angles",
@@ -38,13 +40,6 @@ __all__ = [
 ]
 
 CUBE_FACES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
-
-
-def _as_dirs(dirs) -> np.ndarray:
-    dirs = np.asarray(dirs, dtype=np.float64)
-    if dirs.ndim == 0 or dirs.shape[-1] != 3:
-        raise ValueError(f"dirs must be a (..., 3) array of directions, got shape {dirs.shape}")
-    return dirs
 
 
 def _check_equirect_shape(height: int, width: int) -> None:
@@ -115,7 +110,7 @@ def direction_to_equirect(dirs) -> tuple[np.ndarray, np.ndarray]:
     u : (...) float64 in [0, 1)
     v : (...) float64 in [0, 1]
     """
-    dirs = _as_dirs(dirs)
+    dirs = as_directions(dirs, normalize=False)
     u = np.arctan2(dirs[..., 0], -dirs[..., 2]) / (2.0 * np.pi)
     u = u - np.floor(u)
     u = np.where(u >= 1.0, 0.0, u)
@@ -232,7 +227,7 @@ def direction_to_cubemap(dirs, res: int | None = None):
     i, j : (...) int64, only if ``res`` is given
         Texel row ``floor(t * res)`` and column ``floor(s * res)``, clamped.
     """
-    d = _as_dirs(dirs)
+    d = as_directions(dirs, normalize=False)
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     ax, ay, az = np.abs(x), np.abs(y), np.abs(z)
     xmajor = (ax >= ay) & (ax >= az)

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from prtlab._validate import check_int
 from ..geometry import RayCaster, fibonacci_sphere, offset_origins
 from ._weights import WeightSolver, _as_samples, reconstruct
 
@@ -101,14 +102,6 @@ def _positive(value, name) -> float:
     return v
 
 
-def _count(value, name, minimum) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return int(value)
-
-
 def pca_light_positions(mesh, n_lights: int = 256, light_distance=None, *, plane: bool = False) -> np.ndarray:
     """Point-light positions used to fit a PCA basis (object space).
 
@@ -127,7 +120,7 @@ def pca_light_positions(mesh, n_lights: int = 256, light_distance=None, *, plane
     positions : (n_lights, 3) float64
     """
     mesh = _as_mesh(mesh)
-    n = _count(n_lights, "n_lights", 1)
+    n = check_int(n_lights, "n_lights", 1)
     v = np.asarray(mesh.vertices, dtype=np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre = 0.5 * (lo + hi)
@@ -282,7 +275,7 @@ class PCABasis:
 
     def truncated(self, n_basis: int, samples=None) -> "PCABasis":
         """The first ``n_basis`` functions (mean + ``n_basis - 1`` components), samples kept unless given."""
-        n = _count(n_basis, "n_basis", 1)
+        n = check_int(n_basis, "n_basis", 1)
         if n > self.n_basis:
             raise ValueError(f"n_basis must be <= {self.n_basis} (the fitted basis), got {n}")
         s = self.samples if samples is None else _as_samples(samples, self.n_vertices)
@@ -386,16 +379,15 @@ def fit_pca_basis(
     (4, 42)
     """
     mesh = _as_mesh(mesh_or_object)
-    n = _count(n_basis, "n_basis", 1)
-    m = _count(n_lights, "n_lights", 1)
+    n = check_int(n_basis, "n_basis", 1)
+    m = check_int(n_lights, "n_lights", 1)
     nv = len(mesh.vertices)
     if n - 1 > min(m, nv):
         raise ValueError(
             f"n_basis = {n} needs n_basis - 1 <= min(n_lights, n_vertices) = {min(m, nv)}; "
             "use more lights or fewer basis functions"
         )
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise TypeError(f"seed must be an integer, got {type(seed).__name__}")
+    check_int(seed, "seed")
     lights = pca_light_positions(mesh, m, light_distance, plane=plane)
     training = point_light_intensity(mesh, lights, albedo=albedo, shadows=shadows).T  # (N_v, N_light)
     mean = training.mean(axis=1)
@@ -409,7 +401,7 @@ def fit_pca_basis(
     if n_samples is None:
         samples = np.arange(nv)
     else:
-        k = _count(n_samples, "n_samples", n)
+        k = check_int(n_samples, "n_samples", n)
         if k > nv:
             raise ValueError(f"n_samples must be <= n_vertices = {nv}, got {k}")
         samples = np.sort(np.random.default_rng(seed).choice(nv, size=k, replace=False))

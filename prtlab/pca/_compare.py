@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from prtlab._validate import check_int
 from ..sh import basis as sh_basis
 from ._param import SurfaceParam
 from ._weights import WeightSolver
@@ -61,14 +62,6 @@ __all__ = [
 COMPARISON_BASES = ("sh", "haar", "fourier", "pca")
 
 
-def _check_terms(n_terms) -> int:
-    if isinstance(n_terms, bool) or not isinstance(n_terms, (int, np.integer)):
-        raise TypeError(f"n_terms must be an integer, got {type(n_terms).__name__}")
-    if n_terms < 1:
-        raise ValueError(f"n_terms must be >= 1, got {n_terms}")
-    return int(n_terms)
-
-
 def _check_uv(uv) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim < 1 or uv.shape[-1] != 2:
@@ -82,7 +75,7 @@ def _check_uv(uv) -> np.ndarray:
 
 def fourier_cosine_indices(n_terms: int) -> np.ndarray:
     """Frequencies ``(a, b)`` of the first ``n_terms`` Fourier cosine terms, ``(n_terms, 2)`` int."""
-    n = _check_terms(n_terms)
+    n = check_int(n_terms, "n_terms", 1)
     k = int(np.ceil(np.sqrt(n)))
     a, b = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
     a, b = a.ravel(), b.ravel()
@@ -136,7 +129,7 @@ def uv_basis(kind: str, uv, n_terms: int) -> np.ndarray:
     ``"sh"`` is orthonormal for ``2 pi^2 sin(pi v) du dv`` (the sphere's measure).
     Definitions in the module docstring.
     """
-    n = _check_terms(n_terms)
+    n = check_int(n_terms, "n_terms", 1)
     uv = _check_uv(uv)
     if kind == "fourier":
         ab = fourier_cosine_indices(n)
@@ -239,7 +232,7 @@ def compare_bases(
         raise ValueError(f"intensity must have shape ({param.n_vertices},) (one value per vertex), got {L.shape}")
     if not np.all(np.isfinite(L)):
         raise ValueError("intensity contains NaN or inf")
-    terms = tuple(_check_terms(n) for n in terms)
+    terms = tuple(check_int(n, "n_terms", 1) for n in terms)
     bases = tuple(bases)
     for b in bases:
         if b not in COMPARISON_BASES:
@@ -313,8 +306,7 @@ def area_light_intensity(meshes, light, receiver: int = 0, *, albedo: float = 1.
     from ..geometry import RayCaster
 
     caster = meshes if isinstance(meshes, RayCaster) else RayCaster(meshes)
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    check_int(n, "n", 1)
     if not 0 <= receiver < caster.n_objects:
         raise ValueError(f"receiver must be in [0, {caster.n_objects}), got {receiver}")
     pts = caster.world_vertices(receiver)

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import check_int
+
 __all__ = ["SurfaceParam", "surface_uv"]
 
 
@@ -125,8 +127,7 @@ def surface_uv(mesh, *, plane: bool = False, resolution: int = 512) -> SurfacePa
         raise ValueError("mesh has no faces; a parameterisation needs a surface")
     if plane:
         return _plane_uv(mesh)
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 16:
-        raise ValueError(f"resolution must be an integer >= 16, got {resolution!r}")
+    check_int(resolution, "resolution", 16)
     import xatlas
 
     atlas = xatlas.Atlas()

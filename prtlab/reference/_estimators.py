@@ -81,6 +81,7 @@ import numpy as np
 from prtlab.geometry import RayCaster, direction_to_equirect, offset_origins
 from prtlab.scene import Material, ShadeResult
 
+from prtlab._validate import check_int
 from ._kernels import bsdf_eval_kernel, bsdf_sample_kernel, hit_frame_kernel
 
 __all__ = [
@@ -417,12 +418,6 @@ def _check_scene(scene):
         raise TypeError(f"scene must be a prtlab.Scene, got {type(scene).__name__}")
 
 
-def _check_int(value, name, minimum):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
 def _check_rng(rng):
     if not isinstance(rng, np.random.Generator):
         raise TypeError(
@@ -501,8 +496,8 @@ def path_trace(
     with ``c`` the camera position.
     """
     _check_scene(scene)
-    bounces = _check_int(bounces, "bounces", 0)
-    n_samples = _check_int(n_samples, "n_samples", 2)
+    bounces = check_int(bounces, "bounces", 0)
+    n_samples = check_int(n_samples, "n_samples", 2)
     rng = _check_rng(rng)
     t0 = time.perf_counter()
     data = _SceneData(scene, env_sampling, area_lights_block)
@@ -592,8 +587,7 @@ def shade_reference(
     ShadeResult
         Per object ``(n_vertices, 3)`` direct, indirect, total and their ``stderr``.
     """
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise TypeError(f"seed must be an integer, got {type(seed).__name__}")
+    check_int(seed, "seed")
     return path_trace(
         scene, bounces, n_samples, np.random.default_rng(seed), env_sampling=env_sampling,
         area_lights_block=area_lights_block, progress=progress,
@@ -643,8 +637,8 @@ def radiance_at(
     points = _check_points(points, "points")
     normals = _check_points(normals, "normals", points.shape)
     view_dirs = _check_points(view_dirs, "view_dirs", points.shape)
-    bounces = _check_int(bounces, "bounces", 0)
-    n_samples = _check_int(n_samples, "n_samples", 2)
+    bounces = check_int(bounces, "bounces", 0)
+    n_samples = check_int(n_samples, "n_samples", 2)
     rng = _check_rng(rng)
     if material is None:
         material = Material(type="diffuse", albedo=np.ones(3))

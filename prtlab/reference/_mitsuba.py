@@ -28,6 +28,7 @@ import warnings
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, Scene, ShadeResult
 
 __all__ = [
@@ -414,17 +415,7 @@ def _load(mi, scene, **kwargs):
 
 
 def _check_bounces(bounces) -> int:
-    if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)):
-        raise TypeError(f"bounces must be an int >= 0 (indirect bounces; 0 = direct only), got {bounces!r}")
-    if bounces < 0:
-        raise ValueError(f"bounces must be >= 0 (indirect bounces; 0 = direct only), got {bounces}")
-    return int(bounces)
-
-
-def _check_count(name, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 2:
-        raise ValueError(f"{name} must be an int >= 2 (standard errors need two samples), got {value!r}")
-    return int(value)
+    return check_int(bounces, "bounces", 0, meaning="indirect bounces; 0 = direct only")
 
 
 def _shaded_objects(scene):
@@ -680,7 +671,7 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
     bounces = _check_bounces(bounces)
     if n_samples is not None:
         spp = n_samples
-    spp = _check_count("spp (n_samples)", spp)
+    spp = check_int(spp, "spp (n_samples)", 2, meaning="standard errors need two samples")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int, got {seed!r}")
     if int(chunk_rays) < 1:
@@ -775,8 +766,7 @@ def render_mitsuba(scene, spp: int = 64, bounces: int = 1, seed: int = 0, *, var
     """
     _check_scene(scene)
     bounces = _check_bounces(bounces)
-    if isinstance(spp, bool) or not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ValueError(f"spp must be an int >= 1, got {spp!r}")
+    check_int(spp, "spp", 1)
     mi, _ = _import_mitsuba(variant)
     mscene = _load(mi, scene, bounces=bounces, spp=int(spp), sensor=True)
     image = mi.render(mscene, spp=int(spp), seed=int(seed))

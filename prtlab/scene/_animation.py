@@ -38,6 +38,7 @@ import dataclasses
 
 import numpy as np
 
+from prtlab._validate import check_int
 from ._scene import AreaLight, EnvironmentLight, PointLight, Scene, euler_to_matrix
 from ._validate import Validator, child, index, show
 
@@ -311,9 +312,7 @@ def _environment_at(light: EnvironmentLight, values: dict, scene: Scene, build_e
 
 def scene_at_frame(scene: Scene, i: int, n_frames: int) -> Scene:
     """Frame ``i`` of ``n_frames``: ``scene_at_time(scene, duration * i / (n_frames - 1))`` (time 0 if one frame)."""
-    if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
-        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
-    if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not 0 <= i < n_frames:
-        raise ValueError(f"frame index i must be an integer in [0, {n_frames - 1}], got {i!r}")
+    n_frames = check_int(n_frames, "n_frames", 1)
+    i = check_int(i, "frame index i", 0, n_frames - 1)
     t = 0.0 if n_frames == 1 else scene.duration * i / (n_frames - 1)
     return scene_at_time(scene, t)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prtlab._validate import check_int, check_order
 from prtlab.geometry import (
     cubemap_directions,
     cubemap_lookup,
@@ -58,14 +59,6 @@ def _as_image(image, name: str = "image") -> np.ndarray:
     if not np.all(np.isfinite(image)):
         raise ValueError(f"{name} contains NaN or inf; radiance must be finite")
     return image
-
-
-def _check_size(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    if int(value) < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 # --------------------------------------------------------------------------- files
@@ -553,8 +546,8 @@ def preetham_sky(
     Daylight", SIGGRAPH 1999, Sec. 3 and Appendix A.2 (Perez model, zenith
     values and turbidity-dependent coefficients).
     """
-    height = _check_size("height", height, 2)
-    width = _check_size("width", width, 1)
+    height = check_int(height, "height", 2)
+    width = check_int(width, "width", 1)
     dirs = equirect_directions(height, width)
     image = preetham_sky_radiance(dirs, sun_elevation_deg, sun_azimuth_deg, turbidity)
     if sun:
@@ -641,8 +634,8 @@ def constant_envmap(rgb, height: int = 8, width: int = 16) -> np.ndarray:
     rgb = np.asarray(rgb, dtype=np.float64)
     if rgb.shape != (3,) or not np.all(np.isfinite(rgb)):
         raise ValueError(f"rgb must be 3 finite numbers, got {rgb!r}")
-    height = _check_size("height", height, 2)
-    width = _check_size("width", width, 1)
+    height = check_int(height, "height", 2)
+    width = check_int(width, "width", 1)
     return np.broadcast_to(rgb, (height, width, 3)).copy()
 
 
@@ -676,10 +669,10 @@ def equirect_to_cubemap(image, res: int, supersample: int | None = None) -> np.n
         Order +X, -X, +Y, -Y, +Z, -Z, OpenGL orientation.
     """
     image = _as_image(image)
-    res = _check_size("res", res, 1)
+    res = check_int(res, "res", 1)
     if supersample is None:
         supersample = max(2, math.ceil(image.shape[1] / (4 * res)))
-    s = _check_size("supersample", supersample, 1)
+    s = check_int(supersample, "supersample", 1)
     fine = res * s
     dirs = cubemap_directions(fine)
     weights = cubemap_solid_angles(fine)[..., None]
@@ -715,12 +708,12 @@ def cubemap_to_equirect(faces, height: int, width: int, supersample: int | None 
         raise ValueError(f"faces must be a (6, res, res, 3) cubemap, got shape {faces.shape}")
     if not np.all(np.isfinite(faces)):
         raise ValueError("faces contains NaN or inf; radiance must be finite")
-    height = _check_size("height", height, 2)
-    width = _check_size("width", width, 1)
+    height = check_int(height, "height", 2)
+    width = check_int(width, "width", 1)
     res = faces.shape[1]
     if supersample is None:
         supersample = max(2, math.ceil(4 * res / width))
-    s = _check_size("supersample", supersample, 1)
+    s = check_int(supersample, "supersample", 1)
     # Sub-sample offsets (in units of a cell) inside [-1/2, 1/2]: midpoints of s equal parts.
     offsets = (np.arange(s) + 0.5) / s - 0.5
     h = np.pi / (height - 1)
@@ -770,9 +763,7 @@ def environment_sh(env, order: int) -> np.ndarray:
 
     from ._scene import EnvironmentLight
 
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or int(order) < 1:
-        raise ValueError(f"order must be an integer >= 1, got {order!r}")
-    order = int(order)
+    order = check_order(order)
     if isinstance(env, EnvironmentLight):
         if env.constant is not None:
             out = np.zeros((order * order, 3))

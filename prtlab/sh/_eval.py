@@ -21,6 +21,8 @@ import math
 
 import numpy as np
 
+from prtlab._validate import as_directions, check_choice, check_order
+
 from . import _kernels
 
 __all__ = ["basis", "basis_reference", "evaluate", "index", "n_coeffs"]
@@ -34,32 +36,8 @@ _CHUNK = 1 << 16
 # --------------------------------------------------------------------------- validators
 
 
-def _check_order(order, name: str = "order") -> int:
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)):
-        raise TypeError(f"{name} must be an int (number of bands), got {type(order).__name__}")
-    order = int(order)
-    if order < 1:
-        raise ValueError(f"{name} must be >= 1 ({name} n means bands l = 0..n-1), got {order}")
-    return order
-
-
 def _check_method(method, allowed=_METHODS) -> str:
-    if method not in allowed:
-        raise ValueError(f"method must be one of {', '.join(repr(m) for m in allowed)}, got {method!r}")
-    return method
-
-
-def _as_unit_dirs(dirs, name: str = "dirs") -> np.ndarray:
-    """Coerce to a float64 ``(..., 3)`` array with finite entries (not yet normalised)."""
-    dirs = np.asarray(dirs)
-    if dirs.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must be a real array, got dtype {dirs.dtype}")
-    dirs = dirs.astype(np.float64, copy=False)
-    if dirs.ndim == 0 or dirs.shape[-1] != 3:
-        raise ValueError(f"{name} must be a (..., 3) array of unit directions, got shape {dirs.shape}")
-    if not np.all(np.isfinite(dirs)):
-        raise ValueError(f"{name} contains NaN or inf; every direction must be a finite unit vector")
-    return dirs
+    return check_choice(method, "method", allowed)
 
 
 def _raise_bad_dirs(dirs: np.ndarray, name: str = "dirs") -> None:
@@ -133,7 +111,7 @@ def _band_of_coeff(order: int) -> np.ndarray:
 
 def n_coeffs(order: int) -> int:
     """Number of coefficients ``n*n`` of an order-``n`` SH vector (bands ``0..n-1``)."""
-    order = _check_order(order)
+    order = check_order(order)
     return order * order
 
 
@@ -181,8 +159,8 @@ def basis_reference(dirs, order: int) -> np.ndarray:
     -------
     y : (..., order**2) float64
     """
-    order = _check_order(order)
-    dirs = _as_unit_dirs(dirs)
+    order = check_order(order)
+    dirs = as_directions(dirs, normalize=False)
     norm = np.linalg.norm(dirs, axis=-1, keepdims=True)
     if np.any(norm == 0.0):
         _raise_bad_dirs(dirs)
@@ -269,18 +247,16 @@ def basis(dirs, order: int, method: str = "numba") -> np.ndarray:
 
 def _basis(dirs, order, method: str, name: str) -> np.ndarray:
     """:func:`basis` with the directions' parameter name used in error messages."""
-    order = _check_order(order)
+    order = check_order(order)
     method = _check_method(method)
     if method == "reference":
-        arr = _as_unit_dirs(dirs, name)
+        arr = as_directions(dirs, name, normalize=False)
         if np.any(np.all(arr == 0.0, axis=-1)):
             _raise_bad_dirs(arr, name)
         return basis_reference(arr, order)
     arr = np.asarray(dirs)
-    if arr.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
-    if arr.ndim == 0 or arr.shape[-1] != 3:
-        raise ValueError(f"{name} must be a (..., 3) array of unit directions, got shape {arr.shape}")
+    if arr.dtype.kind not in "fiu" or arr.ndim == 0 or arr.shape[-1] != 3:
+        as_directions(arr, name, normalize=False)  # raises the shared message; NaN is left to the kernel
     flat = _kernels.kernel_array(arr.reshape(-1, 3))
     out = np.empty((flat.shape[0], order * order))
     if flat.shape[0]:

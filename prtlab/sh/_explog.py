@@ -30,7 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._eval import _check_order, basis_reference
+from prtlab._validate import check_int, check_order
+
+from ._eval import basis_reference
 from ._gaunt import _gaunt_block
 from ._product import _as_coeffs, _check_method, _from_bnc, _layout, _product_bnc, _to_bnc
 from ._product_kernels import _exp_hyb, _exp_ol
@@ -189,7 +191,7 @@ def blocker_zh(angular_radius, order: int) -> np.ndarray:
     Ren et al. 2006, Sec. 5 (blocker visibility of a sphere); Guerrero et
     al. 2008, Eq. 19.
     """
-    order = _check_order(order)
+    order = check_order(order)
     theta = _as_radii(angular_radius)
     c = np.cos(theta)
     p = _legendre(c, order)
@@ -371,7 +373,7 @@ def blocker_log_zh(angular_radius, order: int, *, method: str = "table") -> np.n
     (ZH rotation).
     """
     method = _check_method(method, ("table", "solve"))
-    order = _check_order(order)
+    order = check_order(order)
     theta = _as_radii(angular_radius)
     if method == "solve":
         return _blocker_log_solve(theta, order).reshape(theta.shape + (order,))
@@ -705,8 +707,7 @@ def log(f, *, channels=None, tol: float = 1e-12, max_iter: int = 100) -> np.ndar
     f, order, coloured = _as_coeffs(f, "f", channels)
     if not (isinstance(tol, (float, int)) and tol > 0):
         raise ValueError(f"tol must be a positive float, got {tol!r}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
+    check_int(max_iter, "max_iter", 1)
     batch, n_chan, _ = _layout((f,), (coloured,))
     x = _to_bnc(f, coloured, batch, n_chan)
     rows = np.ascontiguousarray(np.moveaxis(x, 2, 1).reshape(-1, order * order))

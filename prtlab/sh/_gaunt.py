@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._eval import _check_order, basis_reference
+from prtlab._validate import check_order
+
+from ._eval import basis_reference
 from ._project import quadrature
 
 __all__ = ["GauntTensor", "gaunt_tensor"]
@@ -139,7 +141,7 @@ def gaunt_tensor(order: int) -> GauntTensor:
     >>> g.nnz, round(float(g.value[0] * np.sqrt(4 * np.pi)), 12)
     (10, 1.0)
     """
-    return _gaunt_cached(_check_order(order))
+    return _gaunt_cached(check_order(order))
 
 
 @functools.lru_cache(maxsize=None)

@@ -24,7 +24,8 @@ import math
 
 import numpy as np
 
-from ._eval import _check_order
+from prtlab._validate import check_order
+
 from ._gaunt import _gaunt_block, _gaunt_cached
 from ._product_kernels import _sparse_product, _sparse_product_matrix
 
@@ -166,7 +167,7 @@ def product(a, b, order=None, *, method="sparse", channels=None) -> np.ndarray:
     method = _check_method(method, _PRODUCT_METHODS)
     a, na, ca = _as_coeffs(a, "a", channels)
     b, nb, cb = _as_coeffs(b, "b", channels)
-    nc = na if order is None else _check_order(order)
+    nc = na if order is None else check_order(order)
     batch, n_chan, coloured = _layout((a, b), (ca, cb))
     out = _product_bnc(_to_bnc(a, ca, batch, n_chan), _to_bnc(b, cb, batch, n_chan), nc, method)
     return _from_bnc(out, batch, coloured)
@@ -224,7 +225,7 @@ def product_matrix(f, order=None, *, method="sparse") -> np.ndarray:
     """
     method = _check_method(method, _PRODUCT_METHODS)
     f, nf, _ = _as_coeffs(f, "f", False)
-    n = nf if order is None else _check_order(order)
+    n = nf if order is None else check_order(order)
     batch = f.shape[:-1]
     flat = _read_only(np.ascontiguousarray(f.reshape(-1, nf * nf)))
     if method == "dense":

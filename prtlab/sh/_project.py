@@ -10,8 +10,10 @@ from functools import lru_cache
 
 import numpy as np
 
+from prtlab._validate import as_directions, check_int, check_order
+
 from ..geometry import cubemap_directions, cubemap_solid_angles, equirect_directions, equirect_solid_angles
-from ._eval import _CHUNK, _as_unit_dirs, _check_method, _check_order, basis
+from ._eval import _CHUNK, _check_method, basis
 
 __all__ = ["project", "project_cubemap", "project_equirect", "project_function", "quadrature"]
 
@@ -67,15 +69,11 @@ def quadrature(order: int, degree: int | None = None) -> tuple[np.ndarray, np.nd
     exactly and under the rule, and the ``m = 0`` terms are polynomials of
     degree ``l <= D`` in ``cos t``, so the rule is exact.
     """
-    order = _check_order(order)
+    order = check_order(order)
     if degree is None:
         degree = 2 * order - 2
     else:
-        if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)):
-            raise TypeError(f"degree must be an int, got {type(degree).__name__}")
-        degree = int(degree)
-        if degree < 0:
-            raise ValueError(f"degree must be >= 0, got {degree}")
+        degree = check_int(degree, "degree", 0)
     return _quadrature_cached(degree)
 
 
@@ -109,9 +107,9 @@ def project(values, dirs, weights, order: int, method: str = "numba") -> np.ndar
     -------
     coeffs : (n*n,) or (n*n, C) float64
     """
-    order = _check_order(order)
+    order = check_order(order)
     _check_method(method)
-    dirs = _as_unit_dirs(dirs)
+    dirs = as_directions(dirs, normalize=False)
     if dirs.ndim != 2:
         raise ValueError(f"dirs must be an (N, 3) array, got shape {dirs.shape}")
     n = dirs.shape[0]
@@ -206,7 +204,7 @@ def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
     the coefficient norm; ``tests/sh/test_project.py`` bounds it by
     ``1e-4 |c|`` at ``256 x 512`` and checks the second-order rate).
     """
-    order = _check_order(order)
+    order = check_order(order)
     arr = _as_image(image, "image")
     if arr.ndim not in (2, 3) or arr.shape[0] < 2 or arr.shape[1] < 1:
         raise ValueError(f"image must be (H, W) or (H, W, C) with H >= 2, got shape {arr.shape}")
@@ -242,7 +240,7 @@ def project_cubemap(faces, order: int, method: str = "numba") -> np.ndarray:
     ``res = 128`` (``tests/sh/test_project.py`` bounds it by ``5e-5 |c|`` at
     ``res = 128`` and checks the second-order rate).
     """
-    order = _check_order(order)
+    order = check_order(order)
     arr = _as_image(faces, "faces")
     if arr.ndim not in (3, 4) or arr.shape[0] != 6 or arr.shape[1] != arr.shape[2] or arr.shape[1] < 1:
         raise ValueError(f"faces must be (6, res, res) or (6, res, res, C), got shape {arr.shape}")

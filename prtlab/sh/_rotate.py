@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from prtlab._validate import check_order
+
 from . import _kernels
-from ._eval import _as_coeffs, _check_method, _check_order, basis_reference
+from ._eval import _as_coeffs, _check_method, basis_reference
 
 __all__ = ["rotate", "rotation_matrices", "rotation_matrix"]
 
@@ -76,7 +78,7 @@ def _quadrature_blocks(rot_flat: np.ndarray, order: int) -> np.ndarray:
 
 
 def _blocks(R, order: int, method: str):
-    order = _check_order(order)
+    order = check_order(order)
     method = _check_method(method)
     rot = _as_rotations(R)
     flat = rot.reshape(-1, 3, 3)

@@ -11,7 +11,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from ._eval import _as_coeffs, _band_of_coeff, _check_order, basis
+from prtlab._validate import check_int, check_order
+
+from ._eval import _as_coeffs, _band_of_coeff, basis
 
 __all__ = ["apply_window", "is_nonnegative", "min_value", "nonnegative_window", "window"]
 
@@ -48,7 +50,7 @@ def window(order: int, kind: str = "hanning", width: float | None = None) -> np.
     P.-P. Sloan, "Stupid spherical harmonics (SH) tricks", GDC 2008,
     section "Windowing" (Hanning and Lanczos windows, sigma factors).
     """
-    order = _check_order(order)
+    order = check_order(order)
     if kind not in WINDOW_KINDS:
         raise ValueError(f"kind must be one of {', '.join(repr(k) for k in WINDOW_KINDS)}, got {kind!r}")
     if width is None:
@@ -126,9 +128,7 @@ def _min_core(coeffs: np.ndarray, order: int, has_channels: bool, n_dirs: int) -
 def _check_n_dirs(n_dirs, order: int) -> int:
     if n_dirs is None:
         return _default_n_dirs(order)
-    if isinstance(n_dirs, bool) or not isinstance(n_dirs, (int, np.integer)) or n_dirs < 1:
-        raise ValueError(f"n_dirs must be a positive int (number of sample directions), got {n_dirs!r}")
-    return int(n_dirs)
+    return check_int(n_dirs, "n_dirs", 1, meaning="number of sample directions")
 
 
 def min_value(coeffs, n_dirs: int | None = None, channels: bool | None = None) -> np.ndarray:

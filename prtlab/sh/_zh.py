@@ -12,7 +12,9 @@ from fractions import Fraction
 
 import numpy as np
 
-from ._eval import _as_coeffs, _band_of_coeff, _basis, _check_method, _check_order
+from prtlab._validate import check_int, check_order
+
+from ._eval import _as_coeffs, _band_of_coeff, _basis, _check_method
 
 __all__ = ["clamped_cosine_zh", "convolve", "irradiance", "zh_project", "zh_rotate"]
 
@@ -162,7 +164,7 @@ def clamped_cosine_zh(order: int) -> np.ndarray:
     R. Ramamoorthi, P. Hanrahan, "An efficient representation for irradiance
     environment maps", SIGGRAPH 2001, eq. (8) and (9).
     """
-    order = _check_order(order)
+    order = check_order(order)
     return np.array(
         [2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * float(_half_moment(l)) for l in range(order)]
     )
@@ -208,13 +210,12 @@ def zh_project(g, order: int, n_nodes: int | None = None) -> np.ndarray:
     zh : (n,) or (n, C) float64
         ``z_l = 2 pi int_-1^1 g(t) sqrt((2l+1)/(4 pi)) P_l(t) dt``.
     """
-    order = _check_order(order)
+    order = check_order(order)
     if not callable(g):
         raise TypeError(f"g must be a callable of cos(theta), got {type(g).__name__}")
     if n_nodes is None:
         n_nodes = max(2 * order, 64)
-    if isinstance(n_nodes, bool) or not isinstance(n_nodes, (int, np.integer)) or n_nodes < 1:
-        raise ValueError(f"n_nodes must be a positive int, got {n_nodes!r}")
+    check_int(n_nodes, "n_nodes", 1)
     t, w = np.polynomial.legendre.leggauss(int(n_nodes))
     values = np.asarray(g(t.copy()))
     if values.dtype.kind not in "fiu" or values.ndim not in (1, 2) or values.shape[0] != t.shape[0]:

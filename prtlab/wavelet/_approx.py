@@ -11,18 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from prtlab._validate import check_int
 from ._haar import _as_cubemaps, _as_real, _check_finite
 
 __all__ = ["keep_largest", "energy_kept"]
 
 
 def _as_count(k, name: str = "k") -> int:
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
-        raise TypeError(f"{name} must be an int (number of coefficients to keep), got {type(k).__name__}")
-    k = int(k)
-    if k < 0:
-        raise ValueError(f"{name} must be >= 0, got {k}")
-    return k
+    return check_int(k, name, 0, meaning="number of coefficients to keep")
 
 
 def _order(coeffs, weights):

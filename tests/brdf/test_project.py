@@ -153,7 +153,7 @@ def test_errors():
         project_h(refl, [0, 0, 1])
     with pytest.raises(TypeError, match="sep must be a SeparableBRDF"):
         project_g_cos(phong(0.2, 0.7, 10.0), [0, 0, 1], 3)
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         project_g_cos(sep, [0, 0, 1], 0)
     with pytest.raises(TypeError, match="order must be an int"):
         project_g_cos(sep, [0, 0, 1], 2.5)
@@ -165,5 +165,5 @@ def test_errors():
         project_g_cos(sep, [0, 0, 1], 3, method="fast")
     with pytest.raises(ValueError, match="wo_dirs contains a zero vector"):
         project_h(sep, [0, 0, 0])
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         transfer_error(sep, 0)

@@ -201,7 +201,7 @@ def test_relative_error_table():
 
 def test_errors():
     b = phong(0.2, 0.7, 10.0)
-    with pytest.raises(ValueError, match="K must be >= 1"):
+    with pytest.raises(ValueError, match="K must be an int >= 1"):
         separable(b, 0, resolution=SMALL)
     with pytest.raises(ValueError, match="rank of the grid table"):
         separable(b, 10_000, resolution=SMALL)

@@ -157,19 +157,19 @@ def test_errors(sphere):
         fit_pca_basis(np.zeros(3))
     with pytest.raises(ValueError, match="n_basis - 1 <= min"):
         fit_pca_basis(sphere, n_basis=20, n_lights=8)
-    with pytest.raises(ValueError, match="n_basis must be >= 1"):
+    with pytest.raises(ValueError, match="n_basis must be an int >= 1"):
         fit_pca_basis(sphere, n_basis=0)
-    with pytest.raises(TypeError, match="n_lights must be an integer"):
+    with pytest.raises(TypeError, match="n_lights must be an int"):
         fit_pca_basis(sphere, n_lights=2.5)
     with pytest.raises(ValueError, match="light_distance must be a finite number > 0"):
         fit_pca_basis(sphere, n_basis=2, n_lights=4, light_distance=-1)
     with pytest.raises(TypeError, match="light_distance must be a number"):
         pca_light_positions(sphere, 4, "far")
-    with pytest.raises(TypeError, match="seed must be an integer"):
+    with pytest.raises(TypeError, match="seed must be an int"):
         fit_pca_basis(sphere, n_basis=2, n_lights=4, seed=0.5)
     with pytest.raises(ValueError, match="n_samples must be <= n_vertices"):
         fit_pca_basis(sphere, n_basis=2, n_lights=4, n_samples=10_000)
-    with pytest.raises(ValueError, match="n_samples must be >= 3"):
+    with pytest.raises(ValueError, match="n_samples must be an int >= 3"):
         fit_pca_basis(sphere, n_basis=3, n_lights=4, n_samples=2)
     with pytest.raises(ValueError, match="has no faces"):
         fit_pca_basis(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)))

@@ -197,9 +197,9 @@ def test_errors():
         uv_basis("sh", np.full((1, 2), 2.0), 4)
     with pytest.raises(ValueError, match="uv contains NaN"):
         uv_basis("sh", np.full((1, 2), np.nan), 4)
-    with pytest.raises(TypeError, match="n_terms must be an integer"):
+    with pytest.raises(TypeError, match="n_terms must be an int"):
         uv_basis("sh", np.zeros((1, 2)), 4.0)
-    with pytest.raises(ValueError, match="n_terms must be >= 1"):
+    with pytest.raises(ValueError, match="n_terms must be an int >= 1"):
         uv_basis("sh", np.zeros((1, 2)), 0)
     with pytest.raises(TypeError, match="param must be a SurfaceParam"):
         compare_bases(L, None)
@@ -220,12 +220,12 @@ def test_errors():
         compare_bases(L, p, bases=("sh",), terms=(1,), scored=np.ones(3, bool))
     with pytest.raises(TypeError, match="mesh must be a trimesh"):
         surface_uv(3)
-    with pytest.raises(ValueError, match="resolution must be an integer"):
+    with pytest.raises(ValueError, match="resolution must be an int"):
         surface_uv(plane, resolution=4)
     with pytest.raises(ValueError, match=r"values must have shape \(\.\.\., 9"):
         p.to_param(np.zeros(5))
     light = AreaLight(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, 1.0]), np.ones(3))
-    with pytest.raises(ValueError, match="n must be an integer >= 1"):
+    with pytest.raises(ValueError, match="n must be an int >= 1"):
         area_light_intensity([plane], light, 0, n=0)
     with pytest.raises(ValueError, match=r"receiver must be in \[0, 1\)"):
         area_light_intensity([plane], light, 1)

@@ -536,13 +536,13 @@ def test_errors(rng):
     scene = Scene([], [EnvironmentLight(constant=np.ones(3))])
     with pytest.raises(TypeError, match="scene must be a prtlab.Scene"):
         path_trace("scene.yaml", 1, 4, rng)
-    with pytest.raises(ValueError, match="bounces must be an integer >= 0"):
+    with pytest.raises(ValueError, match="bounces must be an int >= 0"):
         path_trace(scene, -1, 4, rng)
-    with pytest.raises(ValueError, match="n_samples must be an integer >= 2"):
+    with pytest.raises(ValueError, match="n_samples must be an int >= 2"):
         direct(scene, 1, rng)
     with pytest.raises(TypeError, match="rng must be a numpy.random.Generator"):
         path_trace(scene, 0, 4, 42)
-    with pytest.raises(TypeError, match="seed must be an integer"):
+    with pytest.raises(TypeError, match="seed must be an int"):
         shade_reference(scene, seed="x")
     with pytest.raises(ValueError, match=r"points must be a \(\.\.\., 3\) array"):
         irradiance_at(scene, np.zeros((2, 2)), np.zeros((2, 3)), 4, rng)

@@ -381,7 +381,7 @@ def test_errors(mi_dr):
         to_mitsuba({"objects": []})
     with pytest.raises(ValueError, match="scene has no objects"):
         shade_mitsuba(Scene())
-    with pytest.raises(ValueError, match="bounces must be >= 0"):
+    with pytest.raises(ValueError, match="bounces must be an int >= 0"):
         shade_mitsuba(scene, bounces=-1)
     with pytest.raises(TypeError, match="bounces must be an int"):
         shade_mitsuba(scene, bounces=1.5)

@@ -145,8 +145,8 @@ def test_sun_disk_adds_its_power():
         ({"turbidity": 1.0}, ValueError, r"turbidity must be in \[1.7, 10\]"),
         ({"sun_azimuth_deg": float("nan")}, ValueError, "sun_azimuth_deg must be finite"),
         ({"turbidity": "3"}, TypeError, "turbidity must be a number"),
-        ({"height": 1}, ValueError, "height must be an integer >= 2"),
-        ({"width": 2.5}, TypeError, "width must be an integer >= 1"),
+        ({"height": 1}, ValueError, "height must be an int >= 2"),
+        ({"width": 2.5}, TypeError, "width must be an int >= 1"),
     ],
 )
 def test_sky_parameter_errors(kwargs, exc, match):
@@ -197,7 +197,7 @@ def test_environment_sh_of_linear_map():
 
 
 def test_environment_sh_order_error():
-    with pytest.raises(ValueError, match="order must be an integer >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         environment_sh(constant_envmap([1.0, 1.0, 1.0]), 0)
 
 
@@ -351,7 +351,7 @@ def test_resampling_errors():
         cubemap_to_equirect(np.zeros((6, 4, 5, 3)), 8, 16)
     with pytest.raises(ValueError, match="faces contains NaN or inf"):
         cubemap_to_equirect(np.full((6, 2, 2, 3), np.nan), 8, 16)
-    with pytest.raises(ValueError, match="res must be an integer >= 1"):
+    with pytest.raises(ValueError, match="res must be an int >= 1"):
         equirect_to_cubemap(np.zeros((4, 8, 3)), 0)
     with pytest.raises(ValueError, match=r"image must be an \(H, W, 3\) RGB image"):
         equirect_to_cubemap(np.zeros((4, 8)), 4)

@@ -281,7 +281,7 @@ def test_errors():
         log(np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 10.0, 0.0, 0.0]]), max_iter=30)
     with pytest.raises(ValueError, match="tol must be a positive float"):
         log(np.ones(4), tol=0)
-    with pytest.raises(ValueError, match="max_iter must be a positive int"):
+    with pytest.raises(ValueError, match="max_iter must be an int >= 1"):
         log(np.ones(4), max_iter=0)
     with pytest.raises(ValueError, match=r"angular_radius must lie in \[0, pi/2\]"):
         blocker_log_zh(2.0, 4)
@@ -293,7 +293,7 @@ def test_errors():
         blocker_zh("wide", 4)
     with pytest.raises(ValueError, match="method must be one of 'table', 'solve'"):
         blocker_log_zh(0.2, 4, method="lookup")
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         blocker_zh(0.2, 0)
 
 

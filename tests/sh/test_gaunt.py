@@ -143,7 +143,7 @@ def test_quadrature_is_exact_for_its_degree(rng):
 
 
 def test_errors():
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         gaunt_tensor(0)
     with pytest.raises(TypeError, match="order must be an int"):
         gaunt_tensor(2.0)

@@ -196,7 +196,7 @@ def test_errors(rng):
         product(good, good, channels="rgb")
     with pytest.raises(TypeError, match="a must be a real numeric array"):
         product(np.array(["x"] * 4), good)
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         product(good, good, 0)
     with pytest.raises(ValueError, match="do not broadcast"):
         product(np.zeros((3, 4)), np.zeros((2, 4)))

@@ -48,7 +48,7 @@ def test_quadrature_exact_to_its_degree(degree):
 def test_quadrature_errors():
     with pytest.raises(TypeError, match="degree must be an int"):
         quadrature(3, degree=2.5)
-    with pytest.raises(ValueError, match="degree must be >= 0"):
+    with pytest.raises(ValueError, match="degree must be an int >= 0"):
         quadrature(3, degree=-1)
     with pytest.raises(TypeError, match="order must be an int"):
         quadrature("3")

@@ -200,7 +200,7 @@ def test_errors(rng):
         rotate(np.ones(8), np.eye(3))
     with pytest.raises(ValueError, match="coeffs contains NaN"):
         rotate(np.full(4, np.nan), np.eye(3))
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         rotation_matrices(np.eye(3), 0)
     with pytest.raises(ValueError, match="method must be one of"):
         rotate(c, np.eye(3), method="wigner")

@@ -83,7 +83,7 @@ def test_min_value_known_function():
 
 
 def test_min_value_errors():
-    with pytest.raises(ValueError, match="n_dirs must be a positive int"):
+    with pytest.raises(ValueError, match="n_dirs must be an int >= 1"):
         min_value(np.ones(4), n_dirs=0)
     with pytest.raises(ValueError, match="tol must be >= 0"):
         is_nonnegative(np.ones(4), tol=-1.0)

@@ -166,5 +166,5 @@ def test_convolve_shapes_and_errors(rng):
         zh_project(lambda t: np.ones(2), 3)
     with pytest.raises(ValueError, match="g returned NaN"):
         zh_project(lambda t: np.full_like(t, np.nan), 3)
-    with pytest.raises(ValueError, match="n_nodes must be a positive int"):
+    with pytest.raises(ValueError, match="n_nodes must be an int >= 1"):
         zh_project(lambda t: t, 3, n_nodes=0)

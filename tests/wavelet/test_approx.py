@@ -131,11 +131,11 @@ def test_empty_batches():
 
 def test_errors():
     c = np.zeros((6, 4, 4))
-    with pytest.raises(ValueError, match="k must be >= 0"):
+    with pytest.raises(ValueError, match="k must be an int >= 0"):
         keep_largest(c, -1)
     with pytest.raises(TypeError, match="k must be an int"):
         keep_largest(c, 2.5)
-    with pytest.raises(ValueError, match="k must be >= 0"):
+    with pytest.raises(ValueError, match="k must be an int >= 0"):
         energy_kept(c, [3, -2])
     with pytest.raises(ValueError, match="weights must be non-negative"):
         keep_largest(c, 2, weights=-np.ones((6, 4, 4)))
