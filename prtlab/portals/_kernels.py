@@ -21,3 +21,52 @@ def indirect_pass_kernel(transfer, light_sh, out):
         out[v, 0] += a0
         out[v, 1] += a1
         out[v, 2] += a2
+
+
+@numba.njit(cache=True)
+def shell_resample_kernel(image, taps, weights, out):
+    """out[t, c] = sum_s weights[t, s] * image[taps[t, s], c]: equirect pixels to cubemap texel averages.
+
+    Serial on purpose: ~3e5 multiply-adds per frame (32^2 texels x 16 taps x 3), well under a millisecond,
+    where a parallel region's start-up and a descheduled worker thread on a shared machine cost more.
+    """
+    n_texels, n_taps = taps.shape
+    n_channels = image.shape[1]
+    for t in range(n_texels):
+        for c in range(n_channels):
+            acc = 0.0
+            for s in range(n_taps):
+                acc += weights[t, s] * image[taps[t, s], c]
+            out[t, c] = acc
+
+
+@numba.njit(cache=True, parallel=True)
+def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, albedo, out):
+    """Sparse 8-bit direct transfer times the shell light, times the albedo (3 channels).
+
+    ``light (2 N, 3)``: rows ``0..N-1`` the shell texels (pulse coefficients), rows ``N..2N-1`` its Haar
+    coefficients; ``basis[v]`` (0 pulse, 1 Haar) picks the half. ``indices`` carry the sign in ``sign_bit``::
+
+        out[v, c] = albedo[v, c] * scale[v] / 255 * sum_e (+-codes[e]) light[basis[v] N + index(e), c]
+    """
+    n_vertices = indptr.shape[0] - 1
+    low = sign_bit - 1
+    n = light.shape[0] // 2
+    for v in numba.prange(n_vertices):
+        offset = n * np.int64(basis[v])
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for e in range(indptr[v], indptr[v + 1]):
+            raw = np.int64(indices[e])
+            k = (raw & low) + offset
+            w = np.float64(codes[e])
+            if raw >= sign_bit:
+                w = -w
+            a0 += w * light[k, 0]
+            a1 += w * light[k, 1]
+            a2 += w * light[k, 2]
+        s = np.float64(scale[v]) / 255.0
+        out[v, 0] = a0 * s * albedo[v, 0]
+        out[v, 1] = a1 * s * albedo[v, 1]
+        out[v, 2] = a2 * s * albedo[v, 2]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.wavelet import SparseTransfer
+from prtlab.wavelet import SparseTransfer, haar2d
 
 from . import _kernels
 
@@ -29,8 +29,9 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
     shell_cube : (6, r, r, 3) float
         Texel averages of the shell light (:func:`prtlab.portals.shell_light`).
     method : {"numba", "reference"}
-        ``"numba"``: sparse dot over the stored entries (``prange`` over
-        vertices); ``"reference"``: dense float64 coefficients.
+        ``"numba"``: one fused kernel (``prange`` over vertices) reading only the
+        stored 8-bit entries, the albedo folded in; ``"reference"``: dense float64
+        coefficients (:meth:`prtlab.wavelet.SparseTransfer.dot`).
 
     Returns
     -------
@@ -46,7 +47,25 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
     albedo = np.asarray(albedo, dtype=np.float64)
     if albedo.shape != (direct.n_vertices, 3):
         raise ValueError(f"albedo must have shape ({direct.n_vertices}, 3), got {albedo.shape}")
-    return direct.dot(np.asarray(shell_cube, dtype=np.float64), method=method) * albedo
+    cube = np.asarray(shell_cube, dtype=np.float64)
+    want = (6, direct.res, direct.res, 3)
+    if cube.shape != want:
+        raise ValueError(f"shell_cube must have shape {want} to match the transfer (r = {direct.res}), got "
+                         f"{cube.shape}; build it with shell_light(source, {direct.res})")
+    if not np.all(np.isfinite(cube)):
+        raise ValueError("shell_cube has NaN or infinite values")
+    if method == "reference":
+        return direct.dot(cube, method="reference") * albedo
+    n = 6 * direct.res * direct.res
+    light = np.zeros((2 * n, 3))
+    light[:n] = cube.reshape(n, 3)
+    if np.any(direct.basis == direct.HAAR):  # the Haar coefficients only when some vertex stores Haar
+        light[n:] = haar2d(cube, channels=True).reshape(n, 3)
+    out = np.empty((direct.n_vertices, 3))
+    if direct.n_vertices:
+        _kernels.direct_pass_kernel(direct.indptr, direct.indices, direct.codes, direct.scale, direct.basis,
+                                    np.int64(direct.sign_bit), light, np.ascontiguousarray(albedo), out)
+    return out
 
 
 def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:

@@ -19,8 +19,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from prtlab.geometry import cubemap_directions, cubemap_solid_angles
+from prtlab.geometry import cubemap_directions, cubemap_solid_angles, direction_to_equirect
 from prtlab.scene import EnvironmentLight, Scene, equirect_to_cubemap
+
+from . import _kernels
 
 __all__ = ["Portal", "find_portals", "shell_light", "shell_sh", "tint", "frosted"]
 
@@ -121,7 +123,7 @@ def find_portals(scene: Scene, groups=None) -> list[Portal]:
     return [_make_portal(g, [(objs[n].world_vertices(), np.asarray(objs[n].mesh.faces)) for n in g]) for g in groups]
 
 
-def shell_light(source, res: int = 32) -> np.ndarray:
+def shell_light(source, res: int = 32, method: str = "numba") -> np.ndarray:
     """The shell's light ``L_s`` as a cubemap of texel-average radiance.
 
     Parameters
@@ -131,12 +133,26 @@ def shell_light(source, res: int = 32) -> np.ndarray:
         portal centre of a dynamic exterior).
     res : int
         Face resolution (32 in the paper).
+    method : {"numba", "reference"}
+        For an equirect source: ``"reference"`` is
+        :func:`prtlab.scene.equirect_to_cubemap`; ``"numba"`` applies the same
+        linear map as a table of taps (equirect pixel index and weight, built once
+        per image size and ``res``) in a parallel kernel: the per-frame path.
 
     Returns
     -------
     (6, res, res, 3) float64
         ``L_s`` averaged over each texel's solid angle (faces +X, -X, +Y, -Y, +Z, -Z).
+
+    Notes
+    -----
+    With ``s x s`` sub-texels ``d_q`` of solid angle ``w_q`` per texel and the
+    bilinear interpolant ``L(d) = sum_p b_p(d) I_p`` of the equirect pixels,
+    ``C_t = sum_q w_q L(d_q) / sum_q w_q = sum_p (sum_q w_q b_p(d_q) / sum_q w_q) I_p``:
+    the taps are the pixels ``p`` and their bracketed weights.
     """
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
     if isinstance(res, bool) or not isinstance(res, (int, np.integer)) or res < 1 or (res & (res - 1)):
         raise ValueError(f"res must be a power of two >= 1 (Haar on the faces), got {res!r}")
     res = int(res)
@@ -155,11 +171,51 @@ def shell_light(source, res: int = 32) -> np.ndarray:
             raise ValueError(f"a cubemap source must have shape (6, {res}, {res}, 3), got {arr.shape}")
         return arr.copy()
     if arr.ndim == 3 and arr.shape[-1] == 3:
-        return equirect_to_cubemap(arr, res)
+        if method == "reference" or arr.shape[0] < 2:
+            return equirect_to_cubemap(arr, res)
+        taps, weights = _resampling_taps(arr.shape[0], arr.shape[1], res)
+        out = np.empty((6 * res * res, 3))
+        _kernels.shell_resample_kernel(np.ascontiguousarray(arr.reshape(-1, 3)), taps, weights, out)
+        return out.reshape(6, res, res, 3)
     raise ValueError(
         "source must be an EnvironmentLight, an (H, W, 3) equirect image, a (6, r, r, 3) cubemap or a (3,) "
         f"constant, got shape {arr.shape}"
     )
+
+
+@lru_cache(maxsize=8)
+def _resampling_taps(height: int, width: int, res: int) -> tuple[np.ndarray, np.ndarray]:
+    """Taps ``(6 res^2, 4 s^2)`` (flat pixel indices, weights) of :func:`prtlab.scene.equirect_to_cubemap`.
+
+    The sub-texel count ``s = max(2, ceil(W / (4 res)))`` and the bilinear rule
+    are those of :func:`prtlab.scene.equirect_to_cubemap` and
+    :func:`prtlab.geometry.equirect_lookup` (held to them by the tests).
+    """
+    s = max(2, -(-width // (4 * res)))
+    fine = res * s
+    u, v = direction_to_equirect(cubemap_directions(fine))
+    w = cubemap_solid_angles(fine)
+    fx = u * width - 0.5
+    fy = v * (height - 1)
+    x0 = np.floor(fx)
+    y0 = np.clip(np.floor(fy), 0, height - 2)
+    ax, ay = fx - x0, fy - y0
+    x0 = x0.astype(np.int64) % width
+    x1 = (x0 + 1) % width
+    y0 = y0.astype(np.int64)
+    y1 = y0 + 1
+    idx = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], axis=-1)
+    bil = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=-1) * w[..., None]
+
+    def per_texel(a):  # (6, fine, fine, 4) -> (6 res^2, 4 s^2), sub-texels of one texel together
+        return np.ascontiguousarray(a.reshape(6, res, s, res, s, 4).transpose(0, 1, 3, 2, 4, 5).reshape(6 * res * res, -1))
+
+    taps = per_texel(idx)
+    weights = per_texel(bil)
+    weights /= per_texel(np.broadcast_to(w[..., None], idx.shape)).sum(axis=1, keepdims=True) / 4.0
+    for a in (taps, weights):
+        a.setflags(write=False)
+    return taps, weights
 
 
 def shell_sh(cube, order: int) -> np.ndarray:

@@ -34,3 +34,16 @@ def test_indirect_pass_tiers(n, order, seed):
     fast = indirect_pass(t, c)
     assert fast.shape == (n, 3)
     np.testing.assert_allclose(fast, indirect_pass(t, c, "reference"), rtol=1e-9, atol=1e-9)
+
+
+def test_direct_pass_errors(rng):
+    import pytest
+
+    transfer = rng.random((3, 6, 4, 4))
+    sparse = encode_transfer(transfer)
+    albedo = np.ones((3, 3))
+    with pytest.raises(ValueError, match=r"shell_cube must have shape \(6, 4, 4, 3\)"):
+        direct_pass(sparse, albedo, np.ones((6, 8, 8, 3)))
+    with pytest.raises(ValueError, match="shell_cube has NaN"):
+        direct_pass(sparse, albedo, np.full((6, 4, 4, 3), np.nan))
+    assert direct_pass(encode_transfer(transfer[:0]), albedo[:0], np.ones((6, 4, 4, 3))).shape == (0, 3)

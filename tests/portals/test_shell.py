@@ -87,3 +87,16 @@ def test_shell_sh_against_reference_quadrature(sky_box):
     np.testing.assert_allclose(shell_sh(cube, 4), expected, rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="order must be an int"):
         shell_sh(cube, 0)
+
+
+def test_shell_light_tiers(sky_box, rng):
+    """The tap-table kernel reproduces equirect_to_cubemap (the reference tier) for any image size."""
+    env = sky_box.environment
+    for res in (4, 8):
+        np.testing.assert_allclose(shell_light(env, res), shell_light(env, res, method="reference"),
+                                   rtol=1e-12, atol=1e-14)
+    for shape in ((9, 20, 3), (32, 64, 3), (16, 200, 3)):
+        img = rng.random(shape)
+        np.testing.assert_allclose(shell_light(img, 8), shell_light(img, 8, method="reference"), rtol=1e-12)
+    with pytest.raises(ValueError, match="'numba' or 'reference'"):
+        shell_light(env, 8, method="gpu")
