@@ -9,6 +9,27 @@ from ._grid import SphereGrid, bounding_sphere, interpolate_field, sphere_grid
 from ._direct import direct_pass, occluder_order, visibility_pass
 from ._occlusion import DEFAULT_DEGREE, OcclusionField, occlusion_field, project_visibility, self_visibility
 from ._sources import area_light_sh
+from ._haar import (
+    DEFAULT_HAAR_RESOLUTION,
+    DEFAULT_KEEP,
+    HaarOcclusionField,
+    SparseCubemaps,
+    cubemap_frames,
+    encode_sparse,
+    haar_occlusion_field,
+    haar_self_visibility,
+    rotation_texel_map,
+    visibility_cubemaps,
+)
+from ._haar_direct import (
+    edge_bound,
+    environment_cubemap,
+    haar_direct,
+    haar_direct_pass,
+    haar_visibility_pass,
+    light_pieces,
+    texel_moments,
+)
 from ._scene import direct_environment, precompute_scene, scene_visibility, separable_brdfs
 
 __all__ = [
@@ -29,6 +50,24 @@ __all__ = [
     "direct_pass",
     # local lights
     "area_light_sh",
+    # all-frequency (Haar cubemap) shadow fields
+    "DEFAULT_HAAR_RESOLUTION",
+    "DEFAULT_KEEP",
+    "SparseCubemaps",
+    "HaarOcclusionField",
+    "encode_sparse",
+    "visibility_cubemaps",
+    "haar_occlusion_field",
+    "haar_self_visibility",
+    "rotation_texel_map",
+    "cubemap_frames",
+    "light_pieces",
+    "texel_moments",
+    "environment_cubemap",
+    "haar_visibility_pass",
+    "haar_direct_pass",
+    "haar_direct",
+    "edge_bound",
     # whole scenes
     "precompute_scene",
     "scene_visibility",

@@ -1,0 +1,322 @@
+"""Numba kernels of the all-frequency (Haar) shadow fields.
+
+Kernels take only arrays and scalars and check nothing; the public functions in
+``_haar.py`` / ``_haar_direct.py`` validate and coerce. Cubemap texels and Haar
+coefficients are addressed by one flat index ``f r^2 + i r + j`` (face, row,
+column; the layout of :func:`prtlab.wavelet.haar2d` for coefficients).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+# --------------------------------------------------------------------------- Haar synthesis
+
+
+@numba.njit(cache=True)
+def haar_point_value(dense, texel, res):
+    """Value at one texel of the cubemap whose Haar coefficients are ``dense`` (flat, ``6 r^2``).
+
+    The basis functions of :func:`prtlab.wavelet.haar2d` in texel space: the scaling
+    function is ``1 / r`` on the face; the wavelets of a node with blocks of ``m x m``
+    texels are ``+-1 / m`` on it ("01" changes sign between column halves, "10"
+    between row halves, "11" is their product).
+    """
+    rr = res * res
+    f = texel // rr
+    i = (texel // res) % res
+    j = texel % res
+    base = f * rr
+    val = dense[base] / res
+    h = 1
+    while h < res:
+        m = res // h
+        p = i // m
+        q = j // m
+        half = m // 2
+        sr = 1.0 if i - p * m < half else -1.0
+        sc = 1.0 if j - q * m < half else -1.0
+        d01 = dense[base + p * res + h + q]
+        d10 = dense[base + (h + p) * res + q]
+        d11 = dense[base + (h + p) * res + h + q]
+        val += (sc * d01 + sr * d10 + sr * sc * d11) / m
+        h *= 2
+    return val
+
+
+@numba.njit(cache=True)
+def haar_synthesis(dense, res, out, work):
+    """All texel values (flat ``6 r^2``) of the Haar coefficients ``dense``: the inverse of ``haar2d``.
+
+    ``work`` is scratch of ``r^2``. Per level, the ``h x h`` scaling block ``S`` and the
+    node's wavelets give the ``2h x 2h`` block ``a, b, c, d = (S +- d01 +- d10 +- d11) / 2``.
+    """
+    rr = res * res
+    for f in range(6):
+        base = f * rr
+        out[base] = dense[base]
+        h = 1
+        while h < res:
+            # current scaling (h x h) sits in out[base + p * res + q]; build 2h x 2h in work
+            for p in range(h):
+                for q in range(h):
+                    s = out[base + p * res + q]
+                    d01 = dense[base + p * res + h + q]
+                    d10 = dense[base + (h + p) * res + q]
+                    d11 = dense[base + (h + p) * res + h + q]
+                    work[2 * p * res + 2 * q] = 0.5 * (s + d01 + d10 + d11)
+                    work[2 * p * res + 2 * q + 1] = 0.5 * (s - d01 + d10 - d11)
+                    work[(2 * p + 1) * res + 2 * q] = 0.5 * (s + d01 - d10 - d11)
+                    work[(2 * p + 1) * res + 2 * q + 1] = 0.5 * (s - d01 - d10 + d11)
+            for a in range(2 * h):
+                for b in range(2 * h):
+                    out[base + a * res + b] = work[a * res + b]
+            h *= 2
+
+
+# --------------------------------------------------------------------------- visibility pass
+
+
+@numba.njit(cache=True, parallel=True)
+def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, vis):
+    """Multiply one factor's visibility into ``vis`` at each vertex's query texels.
+
+    tab_idx, tab_val : (P, keep) int32, float64 -- sparse Haar coefficients of the P samples
+    corners, weights : (V, 8) int64, float64 -- samples blended at each vertex (all weights 0: V = 1)
+    texel_map : (6 r^2,) int64 -- world texel -> texel of the factor's own frame (rotation)
+    query : (V, T) int64 world texels; count : (V,) int64 used entries; vis : (V, T) in/out
+    """
+    n = 6 * res * res
+    keep = tab_idx.shape[1]
+    for v in numba.prange(corners.shape[0]):
+        wsum = 0.0
+        for c in range(8):
+            wsum += abs(weights[v, c])
+        if wsum == 0.0:
+            continue
+        dense = np.zeros(n)
+        for c in range(8):
+            w = weights[v, c]
+            if w == 0.0:
+                continue
+            p = corners[v, c]
+            for k in range(keep):
+                dense[tab_idx[p, k]] += w * tab_val[p, k]
+        m = count[v]
+        if 4 * m > n:
+            tex = np.empty(n)
+            work = np.empty(res * res)
+            haar_synthesis(dense, res, tex, work)
+            for q in range(m):
+                vis[v, q] *= tex[texel_map[query[v, q]]]
+        else:
+            for q in range(m):
+                vis[v, q] *= haar_point_value(dense, texel_map[query[v, q]], res)
+
+
+# --------------------------------------------------------------------------- area-light rasterisation
+
+
+@numba.njit(cache=True)
+def _clip(poly, n, a, out):
+    """Sutherland-Hodgman: the part of polygon ``poly[:n]`` (3D, rows) with ``a . x >= 0``; returns its size."""
+    m = 0
+    for k in range(n):
+        x0 = poly[k]
+        x1 = poly[(k + 1) % n]
+        d0 = a[0] * x0[0] + a[1] * x0[1] + a[2] * x0[2]
+        d1 = a[0] * x1[0] + a[1] * x1[1] + a[2] * x1[2]
+        if d0 >= 0.0:
+            out[m, 0], out[m, 1], out[m, 2] = x0[0], x0[1], x0[2]
+            m += 1
+        if (d0 >= 0.0) != (d1 >= 0.0):
+            t = d0 / (d0 - d1)
+            for c in range(3):
+                out[m, c] = x0[c] + t * (x1[c] - x0[c])
+            m += 1
+    return m
+
+
+@numba.njit(cache=True)
+def _solid_angle_moment(poly, n, mom):
+    """Solid angle of the convex spherical polygon spanned by ``poly[:n]`` (seen from the origin),
+    and its moment ``int w dw`` written to ``mom`` (Lambert's edge formula ``1/2 sum theta_e u_e``)."""
+    mom[0] = mom[1] = mom[2] = 0.0
+    if n < 3:
+        return 0.0
+    omega = 0.0
+    a = poly[0]
+    la = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    cen0 = cen1 = cen2 = 0.0
+    for k in range(n):
+        x0 = poly[k]
+        x1 = poly[(k + 1) % n]
+        l0 = np.sqrt(x0[0] * x0[0] + x0[1] * x0[1] + x0[2] * x0[2])
+        l1 = np.sqrt(x1[0] * x1[0] + x1[1] * x1[1] + x1[2] * x1[2])
+        if l0 == 0.0 or l1 == 0.0:
+            continue
+        cen0 += x0[0] / l0
+        cen1 += x0[1] / l0
+        cen2 += x0[2] / l0
+        cx = x0[1] * x1[2] - x0[2] * x1[1]
+        cy = x0[2] * x1[0] - x0[0] * x1[2]
+        cz = x0[0] * x1[1] - x0[1] * x1[0]
+        lc = np.sqrt(cx * cx + cy * cy + cz * cz)
+        dot = x0[0] * x1[0] + x0[1] * x1[1] + x0[2] * x1[2]
+        if lc > 0.0:
+            theta = np.arctan2(lc, dot)
+            mom[0] += 0.5 * theta * cx / lc
+            mom[1] += 0.5 * theta * cy / lc
+            mom[2] += 0.5 * theta * cz / lc
+        if 1 <= k <= n - 2 and la > 0.0:
+            b = x0
+            c = x1
+            trip = a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (
+                b[0] * c[1] - b[1] * c[0])
+            ab = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+            ac = a[0] * c[0] + a[1] * c[1] + a[2] * c[2]
+            bc = b[0] * c[0] + b[1] * c[1] + b[2] * c[2]
+            omega += 2.0 * np.arctan2(trip, la * l0 * l1 + ab * l1 + ac * l0 + bc * la)
+    if mom[0] * cen0 + mom[1] * cen1 + mom[2] * cen2 < 0.0:
+        mom[0], mom[1], mom[2] = -mom[0], -mom[1], -mom[2]
+    return abs(omega)
+
+
+@numba.njit(cache=True)
+def _face_range(poly, n, axis, s_ax, t_ax, res):
+    """Texel row/column range covered by a polygon already clipped to a face's pyramid."""
+    j0, j1, i0, i1 = res, -1, res, -1
+    for k in range(n):
+        x = poly[k]
+        depth = x[0] * axis[0] + x[1] * axis[1] + x[2] * axis[2]
+        if depth <= 0.0:
+            return 0, res - 1, 0, res - 1
+        sc = (x[0] * s_ax[0] + x[1] * s_ax[1] + x[2] * s_ax[2]) / depth
+        tc = (x[0] * t_ax[0] + x[1] * t_ax[1] + x[2] * t_ax[2]) / depth
+        j = min(max(int(np.floor(0.5 * (sc + 1.0) * res)), 0), res - 1)
+        i = min(max(int(np.floor(0.5 * (tc + 1.0) * res)), 0), res - 1)
+        j0, j1, i0, i1 = min(j0, j), max(j1, j), min(i0, i), max(i1, i)
+    return j0, j1, i0, i1
+
+
+@numba.njit(cache=True)
+def _light_polygon(point, normal, corners, light_normal, poly, tmp):
+    """The light quad seen from ``point``, clipped to the upper hemisphere of ``normal``; returns its size."""
+    side = 0.0
+    for c in range(3):
+        side += (point[c] - corners[0, c]) * light_normal[c]
+    if side <= 0.0:
+        return 0
+    for k in range(4):
+        for c in range(3):
+            tmp[k, c] = corners[k, c] - point[c]
+    return _clip(tmp, 4, normal, poly)
+
+
+@numba.njit(cache=True)
+def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b):
+    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a``."""
+    plane = np.empty(3)
+    for c in range(3):
+        plane[c] = s_ax[c] - s0 * axis[c]
+    m = _clip(poly, n, plane, buf_a)
+    if m == 0:
+        return 0
+    for c in range(3):
+        plane[c] = s1 * axis[c] - s_ax[c]
+    m = _clip(buf_a, m, plane, buf_b)
+    if m == 0:
+        return 0
+    for c in range(3):
+        plane[c] = t_ax[c] - t0 * axis[c]
+    m = _clip(buf_b, m, plane, buf_a)
+    if m == 0:
+        return 0
+    for c in range(3):
+        plane[c] = t1 * axis[c] - t_ax[c]
+    m = _clip(buf_a, m, plane, buf_b)
+    for k in range(m):
+        for c in range(3):
+            buf_a[k, c] = buf_b[k, c]
+    return m
+
+
+@numba.njit(cache=True, parallel=True)
+def area_light_count_kernel(points, normals, corners, light_normal, frames, res, count):
+    """Upper bound of the texels an area light covers at each point (bounding texel ranges per face)."""
+    for v in numba.prange(points.shape[0]):
+        poly = np.empty((16, 3))
+        tmp = np.empty((16, 3))
+        buf = np.empty((16, 3))
+        n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
+        total = 0
+        if n > 0:
+            for f in range(6):
+                m = _clip_to_cell(poly, n, frames[f, 0], frames[f, 1], frames[f, 2], -1.0, 1.0, -1.0, 1.0, tmp, buf)
+                if m >= 3:
+                    j0, j1, i0, i1 = _face_range(tmp, m, frames[f, 0], frames[f, 1], frames[f, 2], res)
+                    total += (j1 - j0 + 1) * (i1 - i0 + 1)
+        count[v] = total
+
+
+@numba.njit(cache=True, parallel=True)
+def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res, texel, omega, moment, count):
+    """Exact partial coverage of the texels by an area light at each point.
+
+    For every texel the light's quad (clipped to the point's upper hemisphere) meets,
+    the piece ``texel pyramid x light``: its world texel, solid angle and moment
+    ``int w dw`` (exact for a convex polygon). ``texel, omega, moment`` are
+    ``(V, T_max)``, ``(V, T_max)``, ``(V, T_max, 3)``; ``count`` (V,) gets the pieces found.
+    """
+    rr = res * res
+    for v in numba.prange(points.shape[0]):
+        poly = np.empty((16, 3))
+        tmp = np.empty((16, 3))
+        buf = np.empty((16, 3))
+        cell = np.empty((16, 3))
+        mom = np.empty(3)
+        n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
+        k = 0
+        if n > 0:
+            for f in range(6):
+                axis, s_ax, t_ax = frames[f, 0], frames[f, 1], frames[f, 2]
+                m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf)
+                if m < 3:
+                    continue
+                j0, j1, i0, i1 = _face_range(tmp, m, axis, s_ax, t_ax, res)
+                for i in range(i0, i1 + 1):
+                    t0 = 2.0 * i / res - 1.0
+                    t1 = 2.0 * (i + 1) / res - 1.0
+                    for j in range(j0, j1 + 1):
+                        s0 = 2.0 * j / res - 1.0
+                        s1 = 2.0 * (j + 1) / res - 1.0
+                        mc = _clip_to_cell(tmp, m, axis, s_ax, t_ax, s0, s1, t0, t1, cell, buf)
+                        if mc < 3:
+                            continue
+                        om = _solid_angle_moment(cell, mc, mom)
+                        if om <= 0.0:
+                            continue
+                        texel[v, k] = f * rr + i * res + j
+                        omega[v, k] = om
+                        moment[v, k, 0], moment[v, k, 1], moment[v, k, 2] = mom[0], mom[1], mom[2]
+                        k += 1
+        count[v] = k
+
+
+# --------------------------------------------------------------------------- direct pass
+
+
+@numba.njit(cache=True, parallel=True)
+def direct_kernel(vis, g_weight, radiance, count, out):
+    """``out[v, k, c] = sum_p vis[v, p] g_weight[v, p, k] radiance[v, p, c]`` over the first ``count[v]`` pieces."""
+    n_k = g_weight.shape[2]
+    n_c = radiance.shape[2]
+    for v in numba.prange(vis.shape[0]):
+        for k in range(n_k):
+            for c in range(n_c):
+                acc = 0.0
+                for p in range(count[v]):
+                    acc += vis[v, p] * g_weight[v, p, k] * radiance[v, p, c]
+                out[v, k, c] += acc
