@@ -39,7 +39,7 @@ def _frame_data():
                              progress=False)
     reps = -(-PAPER_VERTICES // len(pre.data["albedo"]))
     sparse = _tile(pre.direct_transfer(0), PAPER_VERTICES)
-    transfer = np.ascontiguousarray(np.tile(pre.data["portal0"]["indirect"], (reps, 1, 1))[:PAPER_VERTICES])
+    transfer = np.ascontiguousarray(np.tile(pre.indirect_transfer(0), (reps, 1, 1))[:PAPER_VERTICES])
     albedo = np.tile(pre.data["albedo"], (reps, 1))[:PAPER_VERTICES]
     return scene, sparse, transfer, albedo
 

@@ -44,7 +44,7 @@ from prtlab.geometry import RayCaster, direction_to_cubemap, sample_mesh_area
 
 from ._shell import Portal
 
-__all__ = ["direct_transfer", "glossy_direct_transfer"]
+__all__ = ["direct_transfer", "glossy_direct_transfer", "view_interpolation", "phong_lipschitz"]
 
 
 def _check_points(points, normals):
@@ -203,3 +203,67 @@ def glossy_direct_transfer(
         out[start : start + nc] = np.bincount(flat.ravel(), weights=(weight[:, None] * lobe).ravel(),
                                               minlength=nc * n_views * n_texels).reshape(nc, -1)
     return out.reshape(len(points), n_views, 6, res, res)
+
+
+def view_interpolation(view_dirs, view_res: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear weights over the discretised outgoing directions of glossy vertices (Section 4.1.2).
+
+    The outgoing directions ``w_oj`` are the texel centres of a ``view_res`` cubemap
+    (:func:`prtlab.geometry.cubemap_directions`, ``J = 6 view_res^2``). A direction
+    picks the four texel centres around it on its face (bilinear in the face
+    coordinates, clamped at the face's border texels, so near an edge it falls
+    back to the nearest texel along that axis).
+
+    Parameters
+    ----------
+    view_dirs : (N, 3) float
+        Directions toward the viewer.
+    view_res : int
+
+    Returns
+    -------
+    index : (N, 4) int64
+        Flat texel indices ``face * view_res^2 + i * view_res + j``.
+    weight : (N, 4) float64
+        Non-negative, summing to 1.
+
+    Notes
+    -----
+    Error bound used by the tests: the Phong lobe ``g(r . w_o)`` moves by at most
+    ``Lip(g) * angle(w_o, w_oj)`` when ``w_o`` moves to ``w_oj`` (``Lip(g) = max |dg /
+    d alpha|``, :func:`phong_lipschitz`), so the interpolated specular radiance is off
+    by at most ``ks Lip(g) sum_q weight_q angle_q * int L V cos dw``.
+    """
+    view_dirs = np.asarray(view_dirs, dtype=np.float64)
+    if view_dirs.ndim != 2 or view_dirs.shape[1] != 3 or not np.all(np.isfinite(view_dirs)):
+        raise ValueError(f"view_dirs must be a finite (N, 3) array of directions, got shape {view_dirs.shape}")
+    r = int(view_res)
+    face, s, t = direction_to_cubemap(view_dirs)
+    fx = np.clip(s * r - 0.5, 0.0, r - 1.0)
+    fy = np.clip(t * r - 0.5, 0.0, r - 1.0)
+    j0 = np.minimum(np.floor(fx).astype(np.int64), max(r - 2, 0))
+    i0 = np.minimum(np.floor(fy).astype(np.int64), max(r - 2, 0))
+    ax, ay = fx - j0, fy - i0
+    j1 = np.minimum(j0 + 1, r - 1)
+    i1 = np.minimum(i0 + 1, r - 1)
+    base = face * r * r
+    index = np.stack([base + i0 * r + j0, base + i0 * r + j1, base + i1 * r + j0, base + i1 * r + j1], axis=-1)
+    weight = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=-1)
+    return index.astype(np.int64), weight
+
+
+def phong_lipschitz(exponent: float) -> float:
+    """``max_alpha |d/d alpha (e + 2) / (2 pi) cos^e alpha|`` (radians), the lobe's Lipschitz constant.
+
+    The maximum of ``cos^(e-1) sin`` is at ``tan^2 alpha = 1 / (e - 1)`` (``e > 1``); ``e = 1`` gives
+    ``3 / (2 pi)`` at the horizon, and ``0 < e < 1`` an unbounded slope there (``inf``); ``e = 0`` is constant.
+    """
+    e = float(exponent)
+    if e == 0.0:
+        return 0.0
+    if e < 1.0:
+        return float("inf")
+    if e == 1.0:
+        return 3.0 / (2.0 * np.pi)
+    a = np.arctan(1.0 / np.sqrt(e - 1.0))
+    return (e + 2.0) / (2.0 * np.pi) * e * np.cos(a) ** (e - 1.0) * np.sin(a)

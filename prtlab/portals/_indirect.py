@@ -139,7 +139,7 @@ def trace_photons(
 
 
 def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 32,
-                      chunk: int = 4096) -> np.ndarray:
+                      chunk: int = 4096, depths: int | None = None) -> np.ndarray:
     """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
 
     Parameters
@@ -151,19 +151,31 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         SH order ``n`` (``n*n`` coefficients).
     k : int
         Photons per estimate.
+    depths : int, optional
+        Split the estimate by photon depth ``0 .. depths-1`` (the same ``k``
+        nearest photons and radius; each photon counts toward its own depth), so
+        the depths sum to the undivided estimate: light that has bounced
+        ``d + 1`` times when it leaves the point.
 
     Returns
     -------
-    (V, n*n, 3) float64
+    (V, n*n, 3) float64, or (V, depths, n*n, 3) with ``depths``
     """
     import prtlab.sh as sh
 
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     n_coeffs = order * order
-    out = np.zeros((len(points), n_coeffs, 3))
+    n_depths = 1 if depths is None else int(depths)
+    out = np.zeros((len(points), n_depths, n_coeffs, 3))
     if len(photons) == 0 or len(points) == 0:
-        return out
+        return out if depths is not None else out[:, 0]
+    onehot = np.zeros((len(photons), n_depths))
+    if depths is None:
+        onehot[:, 0] = 1.0
+    else:
+        keep = photons.depth < n_depths
+        onehot[np.nonzero(keep)[0], photons.depth[keep]] = 1.0
     tree = cKDTree(photons.position)
     y = sh.basis(photons.emit_dir, order)
     q = min(len(photons), 4 * k)
@@ -183,13 +195,34 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         with np.errstate(divide="ignore", invalid="ignore"):
             area = np.where(radius > 0, np.pi * radius**2, np.inf)
         w = use / area[:, None]  # (v, q)
-        e = np.einsum("vq,vqc,vqi->vic", w, photons.throughput[idx], y[idx], optimize=True)
-        out[start : start + chunk] = e * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, :]
-    return out
+        e = np.einsum("vq,vqd,vqc,vqi->vdic", w, onehot[idx], photons.throughput[idx], y[idx], optimize=True)
+        out[start : start + chunk] = e * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, None, :]
+    return out if depths is not None else out[:, 0]
+
+
+def phong_lobe_zh(exponent: float, order: int) -> np.ndarray:
+    """ZH coefficients of the normalised Phong lobe ``g(mu) = (e + 2) / (2 pi) max(0, mu)^e`` about its axis.
+
+    ``z_l = 2 pi int_0^1 g(mu) sqrt((2l+1)/(4 pi)) P_l(mu) dmu`` by Gauss-Legendre on ``[0, 1]`` (exact for an
+    integer ``e``: a polynomial there). Rotated to the mirror direction ``r`` (:func:`prtlab.sh.zh_rotate`) it is
+    the SH projection over ``w_o`` of ``g(r . w_o)``.
+
+    Returns
+    -------
+    (order,) float64
+    """
+    if not (np.isfinite(exponent) and exponent >= 0):
+        raise ValueError(f"exponent must be a finite number >= 0, got {exponent!r}")
+    n_nodes = int(order + np.ceil(exponent) // 2 + 16)
+    t, w = np.polynomial.legendre.leggauss(n_nodes)
+    mu, w = 0.5 * (t + 1.0), 0.5 * w
+    legendre = np.polynomial.legendre.legvander(mu, order - 1) * np.sqrt((2.0 * np.arange(order) + 1) / (4 * np.pi))
+    g = (exponent + 2.0) / (2.0 * np.pi) * mu**exponent
+    return 2.0 * np.pi * (legendre * (w * g)[:, None]).sum(axis=0)
 
 
 def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_offset, vertex_normals,
-                 n_rays: int, rng: np.random.Generator, chunk: int = 512) -> np.ndarray:
+                 n_rays: int, rng: np.random.Generator, chunk: int = 512, glossy=None):
     """Transfer vectors ``t(v) = rho_v mean_j B(h_j)`` by final gathering (Section 4.1.1, step 2).
 
     Parameters
@@ -198,22 +231,44 @@ def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_of
     points, normals : (V, 3) float
         Gather points and their shaded-side normals.
     albedo : (V, 3) float
-    exitance : (N, n*n, 3) float
-        ``B`` at every vertex of every caster object, concatenated in caster order.
+        Lambertian albedo (``kd`` of a Phong vertex).
+    exitance : (N, ..., 3) float
+        ``B`` at every vertex of every caster object, concatenated in caster order
+        (``(N, n*n, 3)``, or ``(N, depths, n*n, 3)`` split by bounce).
     vertex_offset : (n_objects + 1,) int
         Start of each caster object's vertices in ``exitance``.
     vertex_normals : (N, 3) float
         World vertex normals in the same order (the side ``B`` was estimated for).
     n_rays : int
         Gather rays per vertex (the paper: 4096).
+    glossy : tuple (ks (V, 3), exponent (V,), order_out), optional
+        Every point is a Phong vertex: also return its specular transfer *matrix*
+        (Appendix, non-diffuse vertices), from the same gather rays.
 
     Returns
     -------
-    (V, n*n, 3) float64
+    transfer : (V, ..., 3) float64
+        The trailing axes of ``exitance``.
+    matrix : (V, ..., n_out^2, n*n, 3) float64, only with ``glossy``
+        ``M_{j i}(v) = ks (pi / M) sum_r sqrt(4 pi / (2l+1)) z_l Y_j(r_r) B_i(h_r)`` with ``r_r = 2 (n . d_r) n - d_r``
+        the mirror of gather ray ``d_r`` and ``z`` the Phong lobe's ZH (:func:`phong_lobe_zh`), ``l`` the band of
+        ``j``: the SH projection over ``w_o`` of ``L_o(w_o) = int ks g(r(w_i) . w_o) L_i(w_i) cos dw_i`` (cosine
+        sampling, pdf ``cos / pi``). Run time: ``L_o(w_o) = sum_j Y_j(w_o) sum_i M_ji c_i`` (Eq. 6).
     """
+    import prtlab.sh as sh
+
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
-    out = np.zeros((len(points),) + exitance.shape[1:])
+    trailing = exitance.shape[1:]
+    exitance = exitance.reshape(len(exitance), -1)
+    out = np.zeros((len(points),) + trailing)
+    if glossy is not None:
+        ks, exponent, order_out = glossy
+        ks = np.asarray(ks, dtype=np.float64).reshape(len(points), 3)
+        exponent = np.broadcast_to(np.asarray(exponent, dtype=np.float64), (len(points),))
+        lobes = {float(e): phong_lobe_zh(float(e), order_out) for e in np.unique(exponent)}
+        n_out = order_out * order_out
+        matrix = np.zeros((len(points), n_out, exitance.shape[1]))
     faces_all = [caster.faces(i) for i in range(caster.n_objects)]
     for start in range(0, len(points), chunk):
         x = points[start : start + chunk]
@@ -235,9 +290,27 @@ def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_of
         n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
         front = np.einsum("rc,rc->r", n_hit, dirs.reshape(-1, 3)[sel]) < 0
         bw = bw * front[:, None]
-        gathered = np.einsum("rk,rkic->ric", bw, exitance[vid])
+        gathered = np.einsum("rk,rkx->rx", bw, exitance[vid])
         owner = sel // n_rays
-        acc = np.zeros((nc,) + exitance.shape[1:])
-        np.add.at(acc, owner, gathered)
-        out[start : start + nc] = acc / n_rays * np.asarray(albedo[start : start + nc])[:, None, :]
-    return out
+        acc = np.zeros((nc, exitance.shape[1]))
+        if len(owner):  # owner is sorted (rays are in vertex order): sum runs of equal owners
+            first_vertex, first = np.unique(owner, return_index=True)
+            acc[first_vertex] = np.add.reduceat(gathered, first, axis=0)
+        rho = np.asarray(albedo[start : start + nc]).reshape((nc,) + (1,) * (len(trailing) - 1) + (3,))
+        out[start : start + nc] = acc.reshape((nc,) + trailing) / n_rays * rho
+        if glossy is not None and len(owner):
+            d = dirs.reshape(-1, 3)[sel]
+            nr = nv[owner]
+            mirror = 2.0 * np.sum(d * nr, axis=-1, keepdims=True) * nr - d
+            zh = np.stack([lobes[float(e)] for e in exponent[start + owner]]) if len(lobes) > 1 else \
+                next(iter(lobes.values()))
+            a = sh.zh_rotate(zh, mirror)  # (R, n_out)
+            bounds = np.append(first, len(owner))
+            for vtx, lo, hi in zip(first_vertex, bounds[:-1], bounds[1:]):
+                matrix[start + vtx] = a[lo:hi].T @ gathered[lo:hi]
+    if glossy is None:
+        return out
+    # (V, n_out, D * n*n * 3) -> (V, ..., n_out, n*n, 3), ks and pi / M folded in
+    matrix = matrix.reshape((len(points), n_out) + trailing) * (np.pi / n_rays)
+    matrix = np.moveaxis(matrix, 1, -3) * ks.reshape((len(points),) + (1,) * len(trailing) + (3,))
+    return out, matrix

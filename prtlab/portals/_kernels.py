@@ -70,3 +70,66 @@ def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, al
         out[v, 0] = a0 * s * albedo[v, 0]
         out[v, 1] = a1 * s * albedo[v, 1]
         out[v, 2] = a2 * s * albedo[v, 2]
+
+
+@numba.njit(cache=True, parallel=True)
+def glossy_direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, rows, weights, ks, out):
+    """Specular direct radiance of glossy vertices: the sparse rows ``rows[v, q]`` (one per discretised
+    outgoing direction) blended with ``weights[v, q]``, times ``ks[v]``; ``light`` as in :func:`direct_pass_kernel`."""
+    n_vertices, n_rows = rows.shape
+    low = sign_bit - 1
+    n = light.shape[0] // 2
+    for v in numba.prange(n_vertices):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for q in range(n_rows):
+            w_row = weights[v, q]
+            if w_row == 0.0:
+                continue
+            row = rows[v, q]
+            offset = n * np.int64(basis[row])
+            b0 = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            for e in range(indptr[row], indptr[row + 1]):
+                raw = np.int64(indices[e])
+                k = (raw & low) + offset
+                w = np.float64(codes[e])
+                if raw >= sign_bit:
+                    w = -w
+                b0 += w * light[k, 0]
+                b1 += w * light[k, 1]
+                b2 += w * light[k, 2]
+            s = w_row * np.float64(scale[row]) / 255.0
+            a0 += s * b0
+            a1 += s * b1
+            a2 += s * b2
+        out[v, 0] = a0 * ks[v, 0]
+        out[v, 1] = a1 * ks[v, 1]
+        out[v, 2] = a2 * ks[v, 2]
+
+
+@numba.njit(cache=True, parallel=True)
+def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
+    """out[v, c] = sum_j basis_out[v, j] sum_i matrix[v, j, i, c] light_sh[i, c] (Appendix Eq. 6), 3 channels."""
+    n_vertices, n_out, n_in, _ = matrix.shape
+    for v in numba.prange(n_vertices):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for j in range(n_out):
+            y = basis_out[v, j]
+            b0 = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            for i in range(n_in):
+                b0 += matrix[v, j, i, 0] * light_sh[i, 0]
+                b1 += matrix[v, j, i, 1] * light_sh[i, 1]
+                b2 += matrix[v, j, i, 2] * light_sh[i, 2]
+            a0 += y * b0
+            a1 += y * b1
+            a2 += y * b2
+        out[v, 0] = a0
+        out[v, 1] = a1
+        out[v, 2] = a2

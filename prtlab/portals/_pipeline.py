@@ -7,11 +7,20 @@ vectors by photon tracing, radiance estimates and final gathering
 (:mod:`prtlab.portals._indirect`). Per frame (Section 5): the shell light of
 each portal as a cubemap (direct pass) and its SH projection (indirect pass).
 
-Scope here: Lambertian vertices (Phong materials with ``ks > 0`` are refused:
-the glossy transfer of Section 4.1.2 / Appendix is not implemented), distant
-environments or user-given shell cubemaps (:meth:`Portals.shade_shells`),
-``bounces`` fixed at precomputation (the transfer stores light with
-``1..bounces`` indirect bounces). A dynamic exterior: pass per-frame shells
+Glossy (Phong, ``ks > 0``) vertices (Section 4.1.2, Appendix): the Lambertian
+part ``kd`` as above; the specular direct part as one 8-bit cubemap per
+discretised outgoing direction (the texel centres of a ``view_res`` cubemap),
+blended bilinearly toward the camera at run time
+(:func:`prtlab.portals.view_interpolation`); the specular indirect part as an
+SH->SH transfer matrix from the same final-gather rays (matrix-vector product,
+then evaluation at the view direction, Eq. 6). Approximation: photons and
+radiance estimates treat every surface as Lambertian with its ``kd`` (light
+reflected *specularly* by a glossy object onto other surfaces is left out).
+
+Bounces: the indirect transfer is stored per bounce (photon depth), so
+``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
+Distant environments or user-given shell cubemaps (:meth:`Portals.shade_shells`).
+A dynamic exterior: pass per-frame shells
 from :func:`prtlab.portals.exterior_shell`; portal materials:
 :func:`prtlab.portals.tint`, :func:`prtlab.portals.frosted`.
 
@@ -29,7 +38,7 @@ Examples
 >>> scene = prtlab.load_scene(prtlab.api.Path(prtlab.__file__).parents[1] / "data/scenes/box_window_sky.yaml")
 >>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8, "res": 8},
 ...                          cache=False, progress=False)
->>> pre.shade(bounces=2).total["room"].shape
+>>> pre.shade(bounces=1).total["room"].shape
 (2058, 3)
 """
 
@@ -41,14 +50,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab.cache import Cache, cache_key
-from prtlab.geometry import RayCaster
+from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.pipeline import FrameState, Precomputation, check_int_options
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
-from ._direct import direct_transfer
+from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import final_gather, radiance_estimate, trace_photons
-from ._shade import direct_pass, indirect_pass
+from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import find_portals, shell_light, shell_sh
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
@@ -68,6 +77,8 @@ class PortalsOptions:
     direct_basis : "auto" (pulse or Haar, whichever is smaller per vertex), "pulse" or "haar".
     merge_portals : one portal (and shell) for all portal objects (Section 3.1: windows of one material under a
         distant environment), instead of one per portal object.
+    view_res : glossy vertices: face resolution of the cubemap of discretised outgoing directions ``w_o`` (one
+        direct transfer cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
     seed : random seed.
     """
 
@@ -80,10 +91,11 @@ class PortalsOptions:
     bounces: int = 2
     direct_basis: str = "auto"
     merge_portals: bool = False
+    view_res: int = 4
     seed: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k"))
+        check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "view_res"))
         check_int_options(self, ("seed", "bounces"), minimum=0)
         if self.res & (self.res - 1):
             raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
@@ -99,21 +111,22 @@ def _concatenate_chunks(chunks: list[dict]) -> dict:
 
 
 def _shaded(scene: Scene):
-    objs = [o for o in scene.objects if not o.portal]
-    for o in objs:
-        if o.material.type == "phong" and np.any(np.asarray(o.material.ks) > 0):
-            raise ValueError(
-                f"object {o.name!r} is glossy (phong, ks > 0): the portals pipeline handles Lambertian vertices "
-                "only so far (glossy transfer matrices are not implemented); use method='reference' or a diffuse material"
-            )
-    return objs
+    return [o for o in scene.objects if not o.portal]
+
+
+def _is_glossy(obj) -> bool:
+    return obj.material.type == "phong" and bool(np.any(np.asarray(obj.material.ks) > 0))
+
+
+#: glossy vertices per batch of the glossy direct transfer (bounds its dense (batch, J, 6, r, r) memory)
+_GLOSSY_BATCH = 16
 
 
 class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 2  # 2: vertices shaded at world_shading_points
+    format_version = 3  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
     max_bounces = None
     options_type = PortalsOptions
 
@@ -153,6 +166,12 @@ class Portals(Precomputation):
         points = np.concatenate([o.world_shading_points() for o in objs])
         normals = np.concatenate([o.world_normals() for o in objs])
         albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
+        glossy = np.concatenate([np.full(o.n_vertices, _is_glossy(o)) for o in objs])
+        ks = np.concatenate([np.tile(o.material.ks if _is_glossy(o) else np.zeros(3), (o.n_vertices, 1))
+                             for o in objs]).astype(np.float64)
+        exponent = np.concatenate([np.full(o.n_vertices, float(o.material.exponent) if _is_glossy(o) else 0.0)
+                                   for o in objs])
+        view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
         obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
         n_vertices = len(points)
@@ -164,7 +183,8 @@ class Portals(Precomputation):
                 t0 = time.perf_counter()
                 rng = np.random.default_rng([options.seed, k, 1])
                 photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng)
-                b = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k)
+                b = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k,
+                                      depths=options.bounces)
                 return {"exitance": b, "seconds": np.array(time.perf_counter() - t0),
                         "n_photons_stored": np.array(len(photons))}
 
@@ -184,6 +204,7 @@ class Portals(Precomputation):
 
         def chunk_fn(i):
             sl = slice(i * size, min(n_vertices, (i + 1) * size))
+            g = np.nonzero(glossy[sl])[0] + sl.start  # glossy vertices of the chunk
             out = {}
             for k, portal in enumerate(portals):
                 rng = np.random.default_rng([options.seed, k, 2, i])
@@ -191,12 +212,38 @@ class Portals(Precomputation):
                 dense = direct_transfer(caster, points[sl], normals[sl], portal, options.direct_samples,
                                         options.res, rng)
                 sparse = encode_transfer(dense, options.direct_basis)
-                t1 = time.perf_counter()
                 entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
-                         "scale": sparse.scale, "basis": sparse.basis, "seconds_direct": np.array([t1 - t0])}
+                         "scale": sparse.scale, "basis": sparse.basis}
+                # glossy vertices: one 8-bit cubemap per discretised outgoing direction (Section 4.1.2)
+                parts = [encode_transfer(np.zeros((0, 6, options.res, options.res)), options.direct_basis)]
+                for b0 in range(0, len(g), _GLOSSY_BATCH):
+                    gb = g[b0 : b0 + _GLOSSY_BATCH]
+                    spec = np.empty((len(gb), len(view_dirs), 6, options.res, options.res))
+                    for e in np.unique(exponent[gb]):
+                        m = exponent[gb] == e
+                        spec[m] = glossy_direct_transfer(caster, points[gb[m]], normals[gb[m]], portal, view_dirs,
+                                                         float(e), options.direct_samples, options.res, rng)
+                    parts.append(encode_transfer(spec.reshape(-1, 6, options.res, options.res), options.direct_basis))
+                entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
+                for name in ("indices", "codes", "scale", "basis"):
+                    entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
+                t1 = time.perf_counter()
+                entry["seconds_direct"] = np.array([t1 - t0])
                 if options.bounces > 0:
-                    entry["indirect"] = final_gather(caster, points[sl], normals[sl], albedo[sl], exitance[k],
-                                                     offsets, normals, options.gather_rays, rng).astype(np.float32)
+                    n_c = options.order * options.order
+                    indirect = np.zeros((sl.stop - sl.start, options.bounces, n_c, 3))
+                    diffuse = np.nonzero(~glossy[sl])[0] + sl.start
+                    if len(diffuse):
+                        indirect[diffuse - sl.start] = final_gather(
+                            caster, points[diffuse], normals[diffuse], albedo[diffuse], exitance[k], offsets, normals,
+                            options.gather_rays, rng)
+                    matrix = np.zeros((len(g), options.bounces, n_c, n_c, 3))
+                    if len(g):
+                        indirect[g - sl.start], matrix = final_gather(
+                            caster, points[g], normals[g], albedo[g], exitance[k], offsets, normals,
+                            options.gather_rays, rng, glossy=(ks[g], exponent[g], options.order))
+                    entry["indirect"] = indirect.astype(np.float32)
+                    entry["glossy_matrix"] = matrix.astype(np.float32)
                 entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
                 out[f"portal{k}"] = entry
             return out
@@ -209,7 +256,8 @@ class Portals(Precomputation):
 
             chunks = _concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc="portals precompute",
                                                                     unit="chunk", disable=not progress)])
-        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo}
+        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo, "glossy": glossy.astype(np.uint8),
+                      "ks": ks, "exponent": exponent}
         for k in range(len(portals)):
             c = chunks[f"portal{k}"]
             indptr = np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64)
@@ -218,39 +266,79 @@ class Portals(Precomputation):
                      "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
                      "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + photon_seconds[k]),
                      "n_photons_stored": np.array(n_stored[k])}
+            glossy_indptr = np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)
+            entry.update({"glossy_indptr": glossy_indptr, "glossy_indices": c["glossy_indices"],
+                          "glossy_codes": c["glossy_codes"], "glossy_scale": c["glossy_scale"],
+                          "glossy_basis": c["glossy_basis"]})
             if options.bounces > 0:
                 entry["indirect"] = c["indirect"]
+                entry["glossy_matrix"] = c["glossy_matrix"]
             data[f"portal{k}"] = entry
         return data
 
     # ------------------------------------------------------------------ run time
 
-    def direct_transfer(self, k: int = 0) -> SparseTransfer:
-        """The 8-bit sparse direct transfer of portal ``k``."""
+    def direct_transfer(self, k: int = 0, glossy: bool = False) -> SparseTransfer:
+        """The 8-bit sparse direct transfer of portal ``k`` (``glossy``: the specular rows of the glossy
+        vertices, ``J = 6 view_res^2`` per vertex, vertex-major)."""
         cached = self.__dict__.setdefault("_direct_cache", {})
-        if k not in cached:
+        if (k, glossy) not in cached:
             e = self.data[f"portal{k}"]
-            cached[k] = SparseTransfer(np.asarray(e["indptr"], np.int64), e["indices"], e["codes"], e["scale"],
-                                       e["basis"], int(e["res"]))
-        return cached[k]
+            p = "glossy_" if glossy else ""
+            cached[k, glossy] = SparseTransfer(np.asarray(e[p + "indptr"], np.int64), e[p + "indices"],
+                                               e[p + "codes"], e[p + "scale"], e[p + "basis"], int(e["res"]))
+        return cached[k, glossy]
+
+    def indirect_transfer(self, k: int = 0, bounces: int | None = None, glossy: bool = False) -> np.ndarray:
+        """Indirect transfer of portal ``k`` for light that bounced ``1..bounces`` times (default: all stored).
+
+        Returns the diffuse transfer vectors ``(V, n*n, 3)``, or with ``glossy`` the specular transfer
+        matrices of the glossy vertices ``(V_g, n*n, n*n, 3)`` (float32): the sums of the stored per-bounce parts.
+        """
+        bounces = self._check_bounces(bounces)
+        cached = self.__dict__.setdefault("_indirect_cache", {})
+        if (k, bounces, glossy) not in cached:
+            per_bounce = self.data[f"portal{k}"]["glossy_matrix" if glossy else "indirect"]
+            cached[k, bounces, glossy] = np.ascontiguousarray(
+                np.asarray(per_bounce[:, :bounces], dtype=np.float64).sum(axis=1), dtype=np.float32)
+        return cached[k, bounces, glossy]
+
+    def _check_bounces(self, bounces):
+        if bounces is None:
+            return self.options.bounces
+        if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)) or bounces < 0:
+            raise ValueError(f"bounces must be an int >= 0, got {bounces!r}")
+        if bounces > self.options.bounces:
+            raise ValueError(
+                f"the transfer was precomputed with bounces={self.options.bounces}; shade with bounces <= "
+                f"{self.options.bounces}, or precompute again with the bounces option set to {bounces}"
+            )
+        return int(bounces)
 
     @property
     def n_portals(self) -> int:
         return int(self.data["n_portals"])
 
-    def shade_shells(self, shells, bounces: int | None = None, method: str = "numba") -> ShadeResult:
+    def view_directions(self, camera=None) -> np.ndarray:
+        """Unit directions from the glossy vertices toward the camera (``scene.camera`` by default), ``(V_g, 3)``."""
+        camera = camera or self.scene.camera
+        objs = _shaded(self.scene)
+        points = np.concatenate([o.world_shading_points() for o in objs])[self.data["glossy"].astype(bool)]
+        d = np.asarray(camera.position, dtype=np.float64) - points
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        if np.any(norm == 0):
+            raise ValueError("the camera sits on a glossy vertex: its view direction is undefined; move the camera")
+        return d / norm
+
+    def shade_shells(self, shells, bounces: int | None = None, method: str = "numba", camera=None) -> ShadeResult:
         """Per-vertex radiance from given shell lights, one ``(6, r, r, 3)`` cubemap per portal.
 
         Use it for a dynamic exterior (cubemaps rendered from each portal
         centre) or portal materials: ``tint(cube, colour)``, ``frosted(cube, sigma_deg)``.
+        ``bounces``: any ``0 <= bounces <=`` the precomputed number (the transfer is
+        stored per bounce). ``camera``: the viewer of glossy vertices (default the scene's).
         """
-        if bounces is None:
-            bounces = self.options.bounces
-        if bounces not in (0, self.options.bounces):
-            raise ValueError(
-                f"the transfer was precomputed with bounces={self.options.bounces}; shade with bounces=0 or "
-                f"{self.options.bounces}, or precompute again with the bounces option set to {bounces}"
-            )
+        bounces = self._check_bounces(bounces)
         shells = list(shells)
         if len(shells) != self.n_portals:
             raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
@@ -259,12 +347,24 @@ class Portals(Precomputation):
         n = len(albedo)
         direct = np.zeros((n, 3))
         indirect = np.zeros((n, 3))
+        g = np.nonzero(np.asarray(self.data["glossy"]).astype(bool))[0]
+        if len(g):
+            view = self.view_directions(camera)
+            rows, weights = view_interpolation(view, self.options.view_res)
+            rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
+            ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
         for k, cube in enumerate(shells):
             cube = np.asarray(cube, dtype=np.float64)
             direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            if len(g):
+                direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
+                                                method=method)
             if bounces > 0:
-                indirect += indirect_pass(self.data[f"portal{k}"]["indirect"], shell_sh(cube, self.options.order),
-                                          method=method)
+                c = shell_sh(cube, self.options.order)
+                indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
+                if len(g):
+                    indirect[g] += glossy_indirect_pass(self.indirect_transfer(k, bounces, glossy=True), c, view,
+                                                        method=method)
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
         for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
@@ -282,7 +382,7 @@ class Portals(Precomputation):
                 f"got lights {[type(x).__name__ for x in state.lights]}"
             )
         cube = shell_light(envs[0], self.options.res)
-        return self.shade_shells([cube] * self.n_portals, bounces)
+        return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

@@ -8,7 +8,7 @@ from prtlab.wavelet import SparseTransfer, haar2d
 
 from . import _kernels
 
-__all__ = ["direct_pass", "indirect_pass"]
+__all__ = ["direct_pass", "indirect_pass", "glossy_direct_pass", "glossy_indirect_pass"]
 
 _METHODS = ("numba", "reference")
 
@@ -47,13 +47,7 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
     albedo = np.asarray(albedo, dtype=np.float64)
     if albedo.shape != (direct.n_vertices, 3):
         raise ValueError(f"albedo must have shape ({direct.n_vertices}, 3), got {albedo.shape}")
-    cube = np.asarray(shell_cube, dtype=np.float64)
-    want = (6, direct.res, direct.res, 3)
-    if cube.shape != want:
-        raise ValueError(f"shell_cube must have shape {want} to match the transfer (r = {direct.res}), got "
-                         f"{cube.shape}; build it with shell_light(source, {direct.res})")
-    if not np.all(np.isfinite(cube)):
-        raise ValueError("shell_cube has NaN or infinite values")
+    cube = _check_cube(shell_cube, direct.res)
     if method == "reference":
         return direct.dot(cube, method="reference") * albedo
     n = 6 * direct.res * direct.res
@@ -98,4 +92,126 @@ def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:
     if transfer.shape[0]:
         _kernels.indirect_pass_kernel(np.ascontiguousarray(transfer, dtype=np.float32),
                                       np.ascontiguousarray(light_sh), out)
+    return out
+
+
+def _check_cube(cube, res):
+    cube = np.asarray(cube, dtype=np.float64)
+    want = (6, res, res, 3)
+    if cube.shape != want:
+        raise ValueError(f"shell_cube must have shape {want} to match the transfer (r = {res}), got "
+                         f"{cube.shape}; build it with shell_light(source, {res})")
+    if not np.all(np.isfinite(cube)):
+        raise ValueError("shell_cube has NaN or infinite values")
+    return cube
+
+
+def glossy_direct_pass(glossy: SparseTransfer, rows, weights, ks, shell_cube, method: str = "numba") -> np.ndarray:
+    """Specular direct radiance of glossy vertices toward the viewer (Section 4.1.2, Appendix Eq. 7 per ``w_o``).
+
+    ``L_s(v) = ks_v sum_q weights[v, q] sum_k S_{rows[v, q], k} L_s,k``: each glossy vertex stores one 8-bit
+    transfer cubemap per discretised outgoing direction ``w_oj`` (rows of ``glossy``,
+    :func:`prtlab.portals.glossy_direct_transfer`); the view direction blends the rows around it
+    (:func:`prtlab.portals.view_interpolation`).
+
+    Parameters
+    ----------
+    glossy : SparseTransfer
+        ``V_g * J`` rows: vertex ``v``'s direction ``j`` at row ``v J + j``.
+    rows : (V_g, Q) int
+        Rows blended per vertex.
+    weights : (V_g, Q) float
+    ks : (V_g, 3) float
+        Specular albedo.
+    shell_cube : (6, r, r, 3) float
+    method : {"numba", "reference"}
+        ``"numba"``: a fused ``prange`` kernel over vertices reading the stored entries of the blended rows;
+        ``"reference"``: the rows decoded to float64 with numpy, dotted with the light, blended.
+
+    Returns
+    -------
+    (V_g, 3) float64
+    """
+    _check_method(method)
+    rows = np.asarray(rows)
+    weights = np.asarray(weights, dtype=np.float64)
+    ks = np.asarray(ks, dtype=np.float64)
+    if rows.ndim != 2 or weights.shape != rows.shape or rows.dtype.kind not in "iu":
+        raise ValueError(f"rows must be an integer (V_g, Q) array and weights of the same shape, got {rows.shape} "
+                         f"and {weights.shape}")
+    if rows.size and (rows.min() < 0 or rows.max() >= glossy.n_vertices):
+        raise ValueError(f"rows must index the {glossy.n_vertices} rows of the glossy transfer")
+    if ks.shape != (rows.shape[0], 3):
+        raise ValueError(f"ks must have shape ({rows.shape[0]}, 3), got {ks.shape}")
+    cube = _check_cube(shell_cube, glossy.res)
+    n = 6 * glossy.res * glossy.res
+    light = np.zeros((2 * n, 3))
+    light[:n] = cube.reshape(n, 3)
+    if np.any(glossy.basis == glossy.HAAR):
+        light[n:] = haar2d(cube, channels=True).reshape(n, 3)
+    rows = rows.astype(np.int64)
+    if method == "reference":
+        flat = rows.ravel()
+        starts, stops = glossy.indptr[flat], glossy.indptr[flat + 1]
+        owner = np.repeat(np.arange(len(flat)), stops - starts)
+        entry = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)]) if len(flat) else np.zeros(0, int)
+        raw = glossy.indices[entry].astype(np.int64)
+        k = (raw & (glossy.sign_bit - 1)) + n * glossy.basis[flat[owner]].astype(np.int64)
+        value = np.where(raw >= glossy.sign_bit, -1.0, 1.0) * glossy.codes[entry] \
+            * glossy.scale[flat[owner]].astype(np.float64) / 255.0
+        per_row = np.zeros((len(flat), 3))
+        np.add.at(per_row, owner, value[:, None] * light[k])
+        return (per_row.reshape(rows.shape + (3,)) * weights[..., None]).sum(axis=1) * ks
+    out = np.empty((rows.shape[0], 3))
+    if rows.shape[0]:
+        _kernels.glossy_direct_pass_kernel(glossy.indptr, glossy.indices, glossy.codes, glossy.scale, glossy.basis,
+                                           np.int64(glossy.sign_bit), light, np.ascontiguousarray(rows),
+                                           np.ascontiguousarray(weights), np.ascontiguousarray(ks), out)
+    return out
+
+
+def glossy_indirect_pass(matrix, light_sh, view_dirs, method: str = "numba") -> np.ndarray:
+    """Indirect radiance of glossy vertices: matrix-vector product, then evaluation at the view (Appendix Eq. 6).
+
+    ``L_i(v, w_o) = sum_j Y_j(w_o) sum_i M_ji(v) c_i``.
+
+    Parameters
+    ----------
+    matrix : (V_g, n_out^2, n^2, 3) float
+        Specular transfer matrices (``ks`` folded in), :func:`prtlab.portals.final_gather` with ``glossy``.
+    light_sh : (n^2, 3) float
+        SH coefficients of the shell light.
+    view_dirs : (V_g, 3) float
+        Unit directions toward the viewer.
+    method : {"numba", "reference"}
+
+    Returns
+    -------
+    (V_g, 3) float64
+    """
+    import prtlab.sh as sh
+
+    _check_method(method)
+    matrix = np.asarray(matrix)
+    light_sh = np.asarray(light_sh, dtype=np.float64)
+    view_dirs = np.asarray(view_dirs, dtype=np.float64)
+    if matrix.ndim != 4 or matrix.shape[3] != 3:
+        raise ValueError(f"matrix must have shape (V_g, n_out^2, n^2, 3), got {matrix.shape}")
+    if light_sh.shape != matrix.shape[2:]:
+        raise ValueError(f"light_sh must have shape {matrix.shape[2:]} to match the matrix, got {light_sh.shape}")
+    if not np.all(np.isfinite(light_sh)):
+        raise ValueError("light_sh has NaN or infinite values")
+    if view_dirs.shape != (matrix.shape[0], 3) or not np.all(np.isfinite(view_dirs)):
+        raise ValueError(f"view_dirs must be a finite ({matrix.shape[0]}, 3) array, got shape {view_dirs.shape}")
+    order_out = int(round(np.sqrt(matrix.shape[1])))
+    if order_out * order_out != matrix.shape[1]:
+        raise ValueError(f"matrix.shape[1] must be a square (n_out^2), got {matrix.shape[1]}")
+    if method == "reference":
+        y = sh.basis_reference(view_dirs, order_out) if len(view_dirs) else np.zeros((0, matrix.shape[1]))
+        return np.einsum("vj,vjic,ic->vc", y, matrix.astype(np.float64), light_sh)
+    out = np.empty((matrix.shape[0], 3))
+    if matrix.shape[0]:
+        y = sh.basis(view_dirs, order_out)
+        _kernels.glossy_indirect_pass_kernel(np.ascontiguousarray(matrix, dtype=np.float32),
+                                             np.ascontiguousarray(light_sh), np.ascontiguousarray(y), out)
     return out

@@ -87,13 +87,8 @@ def test_errors(pre):
     no_portal = Scene(objects=[scene.objects[0]], lights=scene.lights, camera=scene.camera)
     with pytest.raises(ValueError, match="no portal"):
         Portals.precompute(no_portal, QUICK, cache=False, progress=False)
-    d = scene.objects[0].to_dict()
-    d["material"] = {"type": "phong", "kd": [0.3, 0.3, 0.3], "ks": [0.2, 0.2, 0.2], "exponent": 10}
-    glossy = Scene.from_dict({"objects": [d, scene.objects[1].to_dict()],
-                              "lights": [{"type": "environment", "constant": [1, 1, 1]}],
-                              "camera": scene.camera.to_dict()})
-    with pytest.raises(ValueError, match="glossy"):
-        Portals.precompute(glossy, QUICK, cache=False, progress=False)
+    with pytest.raises(ValueError, match="bounces must be an int >= 0"):
+        pre.shade_shells([shell_light(pre.scene.environment, 8)], bounces=-1)
 
 
 def test_indirect_pass_tiers(rng):
