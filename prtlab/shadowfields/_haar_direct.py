@@ -389,7 +389,7 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
         raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
     normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     if resolution is None:
-        tables = ([self_visibility] if self_visibility is not None else []) + [
+        tables = ([self_visibility] if isinstance(self_visibility, SparseCubemaps) else []) + [
             o[0].visibility for o in occluders if isinstance(o, (tuple, list)) and len(o) == 2
             and isinstance(o[0], HaarOcclusionField)]
         resolution = tables[0].resolution if tables else 32
