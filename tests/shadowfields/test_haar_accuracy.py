@@ -108,7 +108,7 @@ def test_self_shadowing_of_a_torus_under_an_area_light(rng):
 def test_field_interpolation_error_against_the_sh_path(rng):
     """The default occlusion-field grid (16 x 6 x 16 x 16), trilinear: relative RMS error of the irradiance
     over the floor points, Haar against SH order 4, both against Monte Carlo. Measured (area light):
-    Haar 0.06, SH 0.45."""
+    Haar 0.106, SH 0.635 (81 floor points, 2 x 2 units under the ball)."""
     scene = ball_scene(AREA)
     xs = np.linspace(-1.0, 1.0, 9)
     gx, gz = np.meshgrid(xs, xs)

@@ -50,3 +50,76 @@ def test_errors():
         area_light_sh(LIGHT, np.zeros(3), 2, method="gpu")
     with pytest.raises(TypeError, match="order must be an int"):
         area_light_sh(LIGHT, np.zeros(3), 2.0)
+
+
+# --------------------------------------------------------------------------- point lights
+
+
+def test_point_light_direct_is_the_exact_delta_of_the_haar_path(rng):
+    from prtlab import brdf
+    from prtlab.scene import PointLight
+    from prtlab.shadowfields import haar_direct, point_light_direct
+
+    sep = brdf.separable(brdf.phong(0.3, 0.5, 8.0), 3, resolution=(16, 32))
+    light = PointLight(np.array([0.3, 2.0, -0.2]), np.array([1.0, 2.0, 3.0]))
+    x = rng.uniform(-1, 1, size=(6, 3))
+    n = rng.normal(size=(6, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.testing.assert_allclose(point_light_direct(light, x, n, sep), haar_direct(x, n, [light], sep, resolution=4),
+                               rtol=1e-12, atol=1e-15)
+    half = point_light_direct(light, x, n, sep, visibility=np.full(6, 0.5))
+    np.testing.assert_allclose(half, 0.5 * point_light_direct(light, x, n, sep), rtol=1e-12)
+    assert point_light_direct(light, np.zeros((0, 3)), np.zeros((0, 3)), sep).shape == (0, 3, 3)
+
+
+def test_what_the_sh_visibility_costs_a_point_light():
+    """A ball's hard shadow from a point light: visibility toward the light from order-4 SH (clamped) against
+    the shadow ray and against the texel of the Haar cubemap (32^2 per face). Measured: mean absolute
+    visibility error SH 0.35 (0.19..0.26 in the umbra, 0.26..0.37 short in the light), Haar 0 here (a Haar
+    texel is exact unless a shadow edge crosses it)."""
+    from prtlab.geometry import RayCaster, builtin_mesh
+    from prtlab.shadowfields import project_visibility, sh_visibility_toward, visibility_cubemaps
+    from prtlab.geometry import direction_to_cubemap
+
+    ball = builtin_mesh("icosphere", radius=0.5, subdivisions=3)
+    caster = RayCaster([(ball.vertices + [0, 1.0, 0], ball.faces)])
+    xs = np.linspace(-1.2, 1.2, 25)
+    pts = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    light_pos = np.array([0.0, 2.5, 0.0])
+    d = light_pos - pts
+    dist = np.linalg.norm(d, axis=1)
+    exact = ~caster.occluded(pts, d, dist)
+    v_sh = sh_visibility_toward(project_visibility(caster, pts, 4), d)
+    cubes = visibility_cubemaps(caster, pts, 32).reshape(len(pts), -1)
+    face, _, _, i, j = direction_to_cubemap(d, 32)
+    v_haar = cubes[np.arange(len(pts)), face * 1024 + i * 32 + j]
+    err_sh = np.abs(v_sh - exact).mean()
+    err_haar = np.abs(v_haar - exact).mean()
+    assert err_haar == 0.0
+    assert err_sh > 0.1  # the documented cost of the smooth visibility
+
+
+def test_point_light_errors():
+    from prtlab import brdf
+    from prtlab.scene import PointLight
+    from prtlab.shadowfields import point_light_direct, sh_visibility_toward
+
+    sep = brdf.separable(brdf.lambert(1.0), 1)
+    light = PointLight(np.array([0.0, 2.0, 0.0]), np.ones(3))
+    with pytest.raises(TypeError, match="sep must be a SeparableBRDF"):
+        point_light_direct(light, np.zeros((1, 3)), np.ones((1, 3)), "lambert")
+    with pytest.raises(ValueError, match="points and normals must be"):
+        point_light_direct(light, np.zeros((1, 3)), np.ones((2, 3)), sep)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        point_light_direct(light, np.full((1, 3), np.nan), np.ones((1, 3)), sep)
+    with pytest.raises(ValueError, match=r"visibility must be \(V,\)"):
+        point_light_direct(light, np.zeros((1, 3)), np.ones((1, 3)), sep, visibility=np.ones(3))
+    with pytest.raises(ValueError, match=r"visibility must be \(V, n\*n\)"):
+        sh_visibility_toward(np.ones(4), np.ones((1, 3)))
+    with pytest.raises(ValueError, match="n\\*n coefficients"):
+        sh_visibility_toward(np.ones((1, 5)), np.ones((1, 3)))
+    with pytest.raises(ValueError, match="dirs must be"):
+        sh_visibility_toward(np.ones((1, 4)), np.ones((2, 3)))
+    with pytest.raises(ValueError, match="NaN or inf"):
+        sh_visibility_toward(np.full((1, 4), np.nan), np.ones((1, 3)))
+    assert sh_visibility_toward(np.zeros((0, 4)), np.zeros((0, 3))).shape == (0,)
