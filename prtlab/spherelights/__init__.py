@@ -9,10 +9,11 @@ per-object blocking) and the pipeline ``SphereLights``
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
 from ._pipeline import SphereLightOptions, SphereLights, precompute, shade_scene
-from ._passes import accumulate_blockers, first_pass, second_pass
+from ._ground import ground_blocked_transfer, ground_rectangles
+from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
 from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
-from ._tables import average_radiance_weight, voronoi_cell_sums, w_theta_zh
+from ._tables import average_radiance_weight, irradiance_kernel_zh, voronoi_cell_sums, w_theta_zh
 
 __all__ = [
     "SphereFit",
@@ -26,14 +27,19 @@ __all__ = [
     "environment_transfer",
     # precomputed tables (Eqs. 10, 16-17)
     "average_radiance_weight",
+    "irradiance_kernel_zh",
     "voronoi_cell_sums",
     "w_theta_zh",
     # surface samples and albedo (Sec. 4.2)
     "segment_of",
     "surface_albedo_sh",
     "surface_samples",
+    # the ground as an occluder of the first pass (an extension)
+    "ground_blocked_transfer",
+    "ground_rectangles",
     # run-time passes (Secs. 5-7)
     "accumulate_blockers",
+    "emission_times_direction",
     "first_pass",
     "second_pass",
     # the pipeline (prtlab.shade(scene, method="spherelights"))

@@ -42,9 +42,9 @@ from prtlab.sh._gaunt import _gaunt_block
 from prtlab.sh._product_kernels import _ol_one, _tile_product
 
 from ._shadows import _add_rotated_zh, _adjust, _lookup_log, blocker_log_table, environment_transfer, transfer_matrix
-from ._tables import _w_theta_table, w_theta_zh
+from ._tables import N_THETA_K, THETA_MAX_K, _irradiance_kernel_table, _w_theta_table, irradiance_kernel_zh, w_theta_zh
 
-__all__ = ["first_pass", "second_pass", "accumulate_blockers"]
+__all__ = ["first_pass", "second_pass", "accumulate_blockers", "emission_times_direction"]
 
 
 @numba.njit(cache=True, parallel=True)
@@ -213,7 +213,7 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
-               exp_method: str = "hyb") -> np.ndarray:
+               exp_method: str = "hyb", ground=None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -231,6 +231,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     albedo_sh : (S, n*n, 3) float
         Surface-albedo SH of each light, own frame.
     exp_method : {"hyb", "ol", "exact"}
+    ground : (G, 7) float, optional
+        Ground rectangles (:func:`prtlab.spherelights.ground_rectangles`) that hide
+        the environment from the samples (an extension; see ``_ground``).
 
     Returns
     -------
@@ -239,15 +242,22 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
         ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
         (Eq. 8; the albedo enters through ``c_S``); own frame of each light.
     """
-    from ._shadows import direct_irradiance
+    from ._ground import ground_blocked_transfer
+    from ._shadows import blocker_log_sum
 
     S, m = sample_valid.shape
-    order = math.isqrt(np.asarray(env_sh).shape[0])
+    env = np.asarray(env_sh, dtype=np.float64)
+    order = math.isqrt(env.shape[0])
     radiance = np.zeros((S, m, 3))
     if sample_valid.any():
-        e = direct_irradiance(sample_points[sample_valid], sample_normals[sample_valid], centres, radii, env_sh,
-                              exp_method=exp_method)
-        radiance[sample_valid] = e / np.pi
+        pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
+        nrm = np.asarray(sample_normals, dtype=np.float64)[sample_valid]
+        nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+        vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
+        t = environment_transfer(nrm, env)  # Eq. 8
+        if ground is not None and len(ground):
+            t = t - ground_blocked_transfer(pts, nrm, env, ground)
+        radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
     light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     out = np.empty_like(light)
     for ch in range(3):  # Eq. 11, channel by channel
@@ -258,7 +268,7 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
                 blocking: str = "object", exp_method: str = "hyb", indirect: bool = True,
-                method: str = "fused") -> tuple[np.ndarray, np.ndarray]:
+                average: str = "cosine", method: str = "fused") -> tuple[np.ndarray, np.ndarray]:
     """Direct and indirect irradiance at receivers (Eqs. 8, 12-24).
 
     Parameters
@@ -275,6 +285,15 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     exp_method : {"hyb", "ol", "exact"}
     indirect : bool
         False: shadows only (the ``shadows only`` column of Sec. 8.5).
+    average : {"cosine", "paper"}
+        Average radiance of a light. ``"paper"``: Eqs. 15-18, ``L~ = w'_theta .
+        L^c`` (the receiver cosine taken constant over the light and the
+        ``1/d^2`` of the solid angle left out). ``"cosine"`` (default): the
+        receiver-cosine-weighted average ``L~ = E_n / (pi s^2 n . a)`` with the
+        exact unoccluded irradiance ``E_n`` of the light
+        (:func:`irradiance_kernel_zh`); the paper's form underestimates the
+        indirect light of a light near the receiver by up to 20 % (its bright
+        upper part is seen at steeper angles than its dark underside).
     method : {"fused", "numba", "reference"}
         ``"fused"``: one numba loop over receivers doing the whole pass
         (``_second_pass_fused``; OL and HYB; ``exp_method="exact"`` falls back
@@ -302,9 +321,11 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         return np.zeros((0, 3)), np.zeros((0, 3))
     if method not in ("numba", "reference", "fused"):
         raise ValueError(f"method must be 'fused', 'numba' or 'reference', got {method!r}")
+    if average not in ("cosine", "paper"):
+        raise ValueError(f"average must be 'cosine' or 'paper', got {average!r}")
     if method == "fused" and exp_method in ("hyb", "ol"):
         return _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env,
-                                       blocking, exp_method, indirect)
+                                       blocking, exp_method, indirect, average == "cosine")
     method = "numba" if method == "fused" else method
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
                                                          blocking=blocking, method=method)
@@ -326,19 +347,78 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     v_avg = np.einsum("tk,tk->t", v_sl, cos[rows_b])  # Eq. 24
     # Eq. 18: w_theta about the direction light -> receiver, in the light's own frame (Sec. 7.1)
     rot = np.asarray(sl_rotation, dtype=np.float64)
+    em = np.asarray(emission, dtype=np.float64)
     to_recv = -axis[rows_b, rows_s]
     local = np.einsum("tji,tj->ti", rot[rows_s], to_recv)
-    w = sh.zh_rotate(w_theta_zh(theta[rows_b, rows_s], order), local)
-    l_avg = np.einsum("tk,tkc->tc", w, np.asarray(emission, dtype=np.float64)[rows_s])
+    th = theta[rows_b, rows_s]
+    if average == "paper":
+        w = sh.zh_rotate(w_theta_zh(th, order), local)
+        l_avg = np.einsum("tk,tkc->tc", w, em[rows_s])
+    else:
+        # E_n = s n.(Lu . K) - (n.b) L . K in the light's frame, over pi s^2 (n . a)
+        k = sh.zh_rotate(irradiance_kernel_zh(th, order + 1), local)
+        lu = emission_times_direction(em)
+        n_loc = np.einsum("tji,tj->ti", rot[rows_s], n[rows_b])
+        s_t = np.sin(np.minimum(th, THETA_MAX_K))
+        e_n = (s_t[:, None] * np.einsum("tj,tjkc,tk->tc", n_loc, lu[rows_s], k)
+               - np.einsum("tj,tj->t", n_loc, local)[:, None] * np.einsum("tkc,tk->tc", em[rows_s], k[:, :n2]))
+        cos_na = np.einsum("tj,tj->t", n[rows_b], axis[rows_b, rows_s])
+        proj = np.pi * s_t**2 * cos_na
+        l_avg = np.where(proj[:, None] > 0, e_n / np.where(proj > 0, proj, 1.0)[:, None], 0.0)
+        # visible fraction V~ / V~' (both order n): exact for an unoccluded light
+        cz = sh.clamped_cosine_zh(order)
+        v_open = np.array([_cap_visibility(math.cos(a), b_, cz, order) for a, b_ in zip(th, cos_na)])
+        frac = np.where(v_open > 0, np.clip(v_avg / np.where(v_open > 0, v_open, 1.0), 0.0, 1.0), 0.0)
+        v_avg = frac * proj
     np.add.at(ind, rows_b, l_avg * v_avg[:, None])  # Eq. 14
     return direct, ind
+
+
+@numba.njit(cache=True)
+def _cap_visibility(cos_theta, cos_na, cos_zh, order):
+    """``P_n(1 - B) . rho_n``: the order-``n`` unoccluded average visibility of a cap of angular radius
+    ``theta`` at angle ``acos(cos_na)`` from the normal, ``sum_l q_l c_l P_l(n . a)`` with
+    ``q_l = 2 pi K_l int_{cos theta}^1 P_l``."""
+    # Legendre values at cos_theta (up to l = order) and at cos_na (up to order - 1)
+    pc_prev, pc = 1.0, cos_theta  # P_0, P_1 at cos theta
+    pa_prev, pa = 1.0, cos_na
+    total = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi)) * (1.0 - cos_theta) * cos_zh[0]
+    p_lm1 = 1.0  # P_{l-1}(c)
+    for l in range(1, order):
+        pc_next = ((2 * l + 1) * cos_theta * pc - l * pc_prev) / (l + 1)  # P_{l+1}(c)
+        q = 2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * (p_lm1 - pc_next) / (2 * l + 1)
+        total += q * cos_zh[l] * pa
+        p_lm1 = pc
+        pc_prev, pc = pc, pc_next
+        pa_prev, pa = pa, ((2 * l + 1) * cos_na * pa - l * pa_prev) / (l + 1)
+    return total
+
+
+def emission_times_direction(emission) -> np.ndarray:
+    """SH of ``L(u) u_j`` for each light and coordinate ``j`` (x, y, z): ``(S, 3, (n+1)**2, C)``, exact.
+
+    Parameters
+    ----------
+    emission : (S, n*n, C) float
+        Light SH in the light's own frame.
+    """
+    em = np.asarray(emission, dtype=np.float64)
+    order = math.isqrt(em.shape[1])
+    out = np.zeros((em.shape[0], 3, (order + 1) ** 2, em.shape[2]))
+    c1 = math.sqrt(4.0 * math.pi / 3.0)
+    for j, k in enumerate((3, 1, 2)):  # x = c Y_1,1, y = c Y_1,-1, z = c Y_1,0
+        coord = np.zeros(4)
+        coord[k] = c1
+        for ch in range(em.shape[2]):
+            out[:, j, :, ch] = sh.product(np.ascontiguousarray(em[:, :, ch]), coord, order + 1, channels=False)
+    return out
 
 
 # --------------------------------------------------------------------------- fused second pass (the fast tier)
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
-                            exp_method, indirect):
+                            exp_method, indirect, cosine):
     order = math.isqrt(env.shape[0])
     c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
     r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
@@ -358,13 +438,15 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     # writeable C copies: one compiled signature whatever the caller passes
     rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (c.shape[0], 3, 3)), order="C")
     em = np.array(np.asarray(emission, dtype=np.float64).reshape(c.shape[0], order * order, 3), order="C")
+    lu = np.ascontiguousarray(emission_times_direction(em)) if cosine else np.zeros((c.shape[0], 3, (order + 1) ** 2, 3))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
                        obj_centres, np.array(inter),
                        blocker_log_table(order), order, blocking == "object", transfer,
                        np.ascontiguousarray(sh.clamped_cosine_zh(2 * order - 1)),
                        np.ascontiguousarray(sh.clamped_cosine_zh(order)), np.ascontiguousarray(_w_theta_table(order)),
                        rot, em, bool(indirect and c.shape[0] > 0), exp_method == "hyb", r_max, tab_a, tab_b,
-                       _HYB_THRESHOLD, gi, gj, gk, gv, direct, ind)
+                       _HYB_THRESHOLD, gi, gj, gk, gv, bool(cosine), np.ascontiguousarray(_irradiance_kernel_table(order + 1)),
+                       lu, direct, ind)
     return direct, ind
 
 
@@ -406,7 +488,7 @@ def _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, ou
 @numba.njit(cache=True, parallel=True)
 def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, intersect, table, order, per_object,
                        transfer, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb, r_max, tab_a, tab_b,
-                       threshold, gi, gj, gk, gv, direct_out, indirect_out):
+                       threshold, gi, gj, gk, gv, cosine, k_table, lu, direct_out, indirect_out):
     """Second pass per receiver (Eqs. 8, 14, 18, 21-24), one loop: blocker logs, front sums, exponentials,
     average visibility and average radiance. Same quantities as the composed numpy/batched tier."""
     n_recv = points.shape[0]
@@ -417,9 +499,12 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
     hi = 2 * order - 1
     n_chunks = (n_recv + _CHUNK - 1) // _CHUNK
     for chunk in numba.prange(n_chunks):
-        ybuf = np.empty((1, hi * hi))
+        ybuf = np.empty((1, max(hi * hi, (order + 1) * (order + 1))))
         g = np.empty(order)
         gs = np.zeros((n_sph, n2))
+        n1 = (order + 1) * (order + 1)
+        krot = np.zeros(n1)
+        kz = np.empty(order + 1)
         dist = np.empty(n_sph)
         theta = np.empty(n_sph)
         axis = np.empty((n_sph, 3))
@@ -520,6 +605,35 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                 u = theta[i] * (n_theta / (0.5 * math.pi))
                 jt = min(int(math.floor(u)), n_theta - 1)
                 st = u - jt
+                if cosine:
+                    # E_n = s n.(Lu . K) - (n.b) L . K over pi s^2 (n . a), light frame (see irradiance_kernel_zh)
+                    uk = min(theta[i], THETA_MAX_K) * (N_THETA_K / THETA_MAX_K)
+                    jk = min(int(math.floor(uk)), N_THETA_K - 1)
+                    sk = uk - jk
+                    for l in range(order + 1):
+                        kz[l] = (1.0 - sk) * k_table[jk, l] + sk * k_table[jk + 1, l]
+                    for k in range(n1):
+                        krot[k] = 0.0
+                    _add_rotated_zh(kz, lx, ly, lz, order + 1, ybuf, 1.0, krot)
+                    mx = rot[i, 0, 0] * nx + rot[i, 1, 0] * ny + rot[i, 2, 0] * nz
+                    my = rot[i, 0, 1] * nx + rot[i, 1, 1] * ny + rot[i, 2, 1] * nz
+                    mz = rot[i, 0, 2] * nx + rot[i, 1, 2] * ny + rot[i, 2, 2] * nz
+                    s_i = math.sin(min(theta[i], THETA_MAX_K))
+                    nb = mx * lx + my * ly + mz * lz
+                    cos_na = nx * axis[i, 0] + ny * axis[i, 1] + nz * axis[i, 2]
+                    proj = math.pi * s_i * s_i * cos_na
+                    v_open = _cap_visibility(math.cos(theta[i]), cos_na, cos_zh, order)
+                    if proj <= 0.0 or v_open <= 0.0:
+                        continue
+                    frac = min(max(v_avg / v_open, 0.0), 1.0)
+                    for c in range(3):
+                        acc = 0.0
+                        for k in range(n1):
+                            acc += krot[k] * s_i * (mx * lu[i, 0, k, c] + my * lu[i, 1, k, c] + mz * lu[i, 2, k, c])
+                        for k in range(n2):
+                            acc -= nb * krot[k] * emission[i, k, c]
+                        indirect_out[b, c] += acc * frac
+                    continue
                 for l in range(order):
                     wz[l] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
                 for k in range(n2):

@@ -36,6 +36,7 @@ from prtlab.pipeline import FrameState, Precomputation
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
+from ._ground import ground_rectangles
 from ._passes import first_pass, second_pass
 from ._samples import surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
@@ -57,6 +58,10 @@ class SphereLightOptions:
         SH exponentiation (a run-time choice; not part of the cache key's precomputed data).
     blocking : {"object", "sphere"}
         Per-object or per-sphere blocking (Sec. 7.2).
+    average : {"cosine", "paper"}
+        Average radiance of a light at a receiver (a run-time choice): the
+        receiver-cosine-weighted average (default) or the paper's Eqs. 15-18
+        (see :func:`second_pass`).
     n_directions : int
         Sample directions per light (92).
     grid_resolution : int
@@ -64,25 +69,29 @@ class SphereLightOptions:
     cube_resolution : int
         Face resolution of the albedo cubemaps.
     occluding_ground : bool
-        An extension, off by default (the paper's ground neither blocks nor
-        reflects): hide the lower hemisphere (world ``-Y``) of the environment
-        from the surface samples of the first pass, as an infinite ground plane
-        under the objects would. Without it, objects resting on a ground are lit
-        from below in the first pass and their undersides over-light the ground.
+        An extension, on by default: the scene's grounds (flat, horizontal,
+        receiving-only objects) hide the environment from the surface samples of
+        the first pass, as they do in a reference renderer (see ``_ground``). The
+        paper's ground neither blocks nor reflects; then objects resting on a
+        ground are lit from below in the first pass and their undersides
+        over-light the ground. No effect in a scene without a ground.
     """
 
     n_spheres: int | dict = 8
     order: int = 4
     exp_method: str = "hyb"
     blocking: str = "object"
+    average: str = "cosine"
     n_directions: int = 92
     grid_resolution: int = 40
     cube_resolution: int = 16
-    occluding_ground: bool = False
+    occluding_ground: bool = True
 
     def __post_init__(self):
         if self.exp_method not in ("hyb", "ol", "exact"):
             raise ValueError(f"exp_method must be 'hyb', 'ol' or 'exact', got {self.exp_method!r}")
+        if self.average not in ("cosine", "paper"):
+            raise ValueError(f"average must be 'cosine' or 'paper', got {self.average!r}")
         if self.blocking not in ("object", "sphere"):
             raise ValueError(f"blocking must be 'object' or 'sphere', got {self.blocking!r}")
         if isinstance(self.order, bool) or not isinstance(self.order, int) or not 1 <= self.order <= 8:
@@ -116,7 +125,7 @@ class SphereLights(Precomputation):
         # the run-time choices do not change the precomputed data
         from dataclasses import asdict
 
-        opts = {k: v for k, v in asdict(options).items() if k not in ("exp_method", "blocking")}
+        opts = {k: v for k, v in asdict(options).items() if k not in ("exp_method", "blocking", "average")}
         from prtlab.pipeline import scene_geometry_key_parts
 
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=False), opts]
@@ -182,13 +191,11 @@ class SphereLights(Precomputation):
         cat = [inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)]
         return tuple(cat)
 
-    def _environment(self, state: FrameState, upper_only: bool = False) -> np.ndarray:
+    def _environment(self, state: FrameState) -> np.ndarray:
         order = self.options.order
         env = np.zeros((order * order, 3))
         for light in state.lights:
-            if isinstance(light, EnvironmentLight) and upper_only:
-                env += _upper_hemisphere_sh(light, order)
-            elif isinstance(light, EnvironmentLight):
+            if isinstance(light, EnvironmentLight):
                 env += environment_sh(light, order)
             else:
                 raise ValueError(
@@ -203,37 +210,28 @@ class SphereLights(Precomputation):
         centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state)
         emission = np.zeros((len(radii), opts.order**2, 3))
         if bounces > 0 and len(radii):
-            env_first = self._environment(state, upper_only=True) if opts.occluding_ground else env
-            emission = first_pass(spts, snrm, svalid, centres, radii, env_first,
+            ground = None
+            if opts.occluding_ground:
+                ground = ground_rectangles([o for o in self.scene.objects if o.name not in self.data["objects"]],
+                                           state.transforms)
+            emission = first_pass(spts, snrm, svalid, centres, radii, env,
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
-                                  exp_method=opts.exp_method)
+                                  exp_method=opts.exp_method, ground=ground)
         result = ShadeResult(info={"method": self.method, "n_lights": int(len(radii)),
-                                   "exp_method": opts.exp_method, "blocking": opts.blocking})
+                                   "exp_method": opts.exp_method, "blocking": opts.blocking,
+                                   "average": opts.average})
         for obj in self.scene.objects:
             tr = state.transforms.get(obj.name) or obj.transform
             pts = obj.world_shading_points(tr)
             nrm = obj.world_normals(tr)
             direct, indirect = second_pass(pts, nrm, centres, radii, sl_object, inter, rot, emission, env,
                                            blocking=opts.blocking, exp_method=opts.exp_method,
-                                           indirect=bounces > 0 and len(radii) > 0)
+                                           average=opts.average, indirect=bounces > 0 and len(radii) > 0)
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             result.direct[obj.name] = direct * albedo
             result.indirect[obj.name] = indirect * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         return result
-
-
-def _upper_hemisphere_sh(light: EnvironmentLight, order: int) -> np.ndarray:
-    """SH of the environment with its lower hemisphere (``y < 0``) set to zero, ``(order**2, 3)``."""
-    from prtlab import sh
-
-    if light.constant is not None:
-        mask = sh.zh_rotate(sh.blocker_zh(0.5 * np.pi, order), np.array([0.0, -1.0, 0.0]))
-        return mask[:, None] * np.asarray(light.constant, dtype=np.float64)[None, :]
-    image = np.array(light.image, dtype=np.float64)
-    rows = np.arange(image.shape[0]) / (image.shape[0] - 1)  # v = i / (H - 1), y = cos(pi v)
-    image[np.cos(np.pi * rows) < 0] = 0.0
-    return environment_sh(image, order)
 
 
 def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

@@ -108,7 +108,8 @@ def _mc_indirect(p, n, centre, radius, truth_sh, n_samples, rng):
 
 
 def test_one_sphere_indirect_against_monte_carlo(rng):
-    """One diffuse sphere lighting a plane (the paper's optimal case), against exact-up-to-noise MC.
+    """One diffuse sphere lighting a plane (the paper's optimal case), against exact-up-to-noise MC, with the
+    paper's average radiance (Eqs. 15-18).
 
     Derived bound per receiver (``E = L~ V~`` ours, ``E* = Lbar* V*`` the truth):
     ``|E - E*| <= (|w'| |L^c - L*| + (max_cap L* - min_cap L*)) |V~| + max_cap L* |V~ - V*|`` with
@@ -124,7 +125,7 @@ def test_one_sphere_indirect_against_monte_carlo(rng):
     pts = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], -1)
     nrm = np.broadcast_to([0.0, 1.0, 0.0], pts.shape)
     _, ind = second_pass(pts, nrm, c, r, [0], np.zeros((1, 1), bool), np.eye(3)[None], emission, env,
-                         exp_method="exact")
+                         exp_method="exact", average="paper")
     cos_n = sh.zh_rotate(sh.clamped_cosine_zh(ORDER), [0.0, 1.0, 0.0])
     # |(I - P_n) rho|_2 for the clamped cosine: |rho|^2 = 2 pi / 3
     rho_tail = np.sqrt(2 * np.pi / 3 - sh.clamped_cosine_zh(ORDER) @ sh.clamped_cosine_zh(ORDER))
@@ -163,8 +164,8 @@ def test_errors():
         accumulate_blockers(np.zeros((1, 3)), np.ones((1, 3)), [[0, 1, 0]], [1.0, 2.0], [0], np.zeros((1, 1), bool), 4)
 
 
-@pytest.mark.parametrize("blocking", ["object", "sphere"])
-def test_fused_second_pass_matches_composed_tier(blocking, rng):
+@pytest.mark.parametrize("blocking,average", [("object", "cosine"), ("sphere", "cosine"), ("object", "paper")])
+def test_fused_second_pass_matches_composed_tier(blocking, average, rng):
     p = rng.uniform(-2, 2, size=(60, 3))
     n = random_directions(rng, 60)
     c = rng.normal(size=(6, 3)) * 1.5
@@ -178,7 +179,7 @@ def test_fused_second_pass_matches_composed_tier(blocking, rng):
     env = _env_sh()
     for exp_method in ("ol", "hyb"):
         args = (p, n, c, r, obj, inter, rot, em, env)
-        d1, i1 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="fused")
-        d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba")
+        d1, i1 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="fused", average=average)
+        d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba", average=average)
         np.testing.assert_allclose(d1, d2, atol=1e-11)
         np.testing.assert_allclose(i1, i2, atol=1e-11)

@@ -113,19 +113,14 @@ def test_objects_with_different_sphere_counts():
     assert np.all(np.isfinite(pre.shade(bounces=1).total["plane"]))
 
 
-def test_occluding_ground_hides_the_lower_environment(pre):
-    from prtlab.scene import EnvironmentLight
-    from prtlab.spherelights._pipeline import _upper_hemisphere_sh
+def test_occluding_ground_hides_the_environment_from_the_first_pass(pre):
+    from prtlab.spherelights import ground_rectangles
 
-    # constant environment: the mask is the upper-hemisphere indicator, DC = half the full sphere
-    up = _upper_hemisphere_sh(EnvironmentLight(constant=np.ones(3)), 4)
-    np.testing.assert_allclose(up[0], 0.5 * np.sqrt(4 * np.pi))
-    np.testing.assert_allclose(up[1], np.sqrt(3 * np.pi) / 2)  # int_{y>0} Y_1,-1 = sqrt(3/(4 pi)) pi
-    # an image environment agrees with the constant one (uniform image)
-    img = EnvironmentLight(image=np.ones((65, 128, 3)))
-    np.testing.assert_allclose(_upper_hemisphere_sh(img, 4)[:, 0], up[:, 0], atol=0.05)
-    p = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "grid_resolution": 16,
-                                                           "occluding_ground": True}), pre.data)
-    a, b = p.shade(bounces=1), pre.shade(bounces=1)
+    rect = ground_rectangles([pre.scene.object("plane")])
+    np.testing.assert_allclose(rect, [[0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0]], atol=1e-12)  # 4 x 4 plane at y = 0
+    assert ground_rectangles([pre.scene.object("ball")]).shape == (0, 7)  # not flat: no ground
+    off = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "grid_resolution": 16,
+                                                             "occluding_ground": False}), pre.data)
+    a, b = pre.shade(bounces=1), off.shade(bounces=1)
     np.testing.assert_allclose(a.direct["plane"], b.direct["plane"])
     assert a.indirect["plane"].sum() < b.indirect["plane"].sum()
