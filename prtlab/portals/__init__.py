@@ -7,11 +7,11 @@ passes (Section 5), portal materials (Section 3.3) and the validity criteria
 of dynamic exteriors (Section 6).
 """
 
-from ._direct import direct_transfer, glossy_direct_transfer
+from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
 from ._exterior import exterior_shell
-from ._indirect import PhotonMap, final_gather, radiance_estimate, trace_photons
+from ._indirect import PhotonMap, final_gather, phong_lobe_zh, radiance_estimate, trace_photons
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
-from ._shade import direct_pass, indirect_pass
+from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
 from ._validity import PortalValidityWarning, check_interior_solid_angle, check_shell_distance
 
@@ -27,6 +27,9 @@ __all__ = [
     # precomputation
     "direct_transfer",
     "glossy_direct_transfer",
+    "view_interpolation",
+    "phong_lipschitz",
+    "phong_lobe_zh",
     "PhotonMap",
     "trace_photons",
     "radiance_estimate",
@@ -34,6 +37,8 @@ __all__ = [
     # run time
     "direct_pass",
     "indirect_pass",
+    "glossy_direct_pass",
+    "glossy_indirect_pass",
     # pipeline
     "Portals",
     "PortalsOptions",

@@ -189,3 +189,44 @@ def test_parallel_chunks_match_serial(tmp_path, monkeypatch):
                                   map_fn=pool_map)
     for name in ("indptr", "codes", "indirect"):
         np.testing.assert_array_equal(parallel.data["portal0"][name], serial.data["portal0"][name])
+
+
+def _glossy_box_scene():
+    base = window_box(cell=0.5)
+    d = {"objects": [o.to_dict() for o in base.objects] + [{
+        "name": "block", "mesh": {"builtin": "box"}, "transform": {"translate": [0.3, 0.4, 0.2], "scale": 0.8},
+        "material": {"type": "phong", "kd": [0.3, 0.3, 0.3], "ks": [0.4, 0.5, 0.6], "exponent": 10}}],
+        "lights": [{"type": "environment", "constant": [1.0, 1.0, 1.0]}], "camera": base.camera.to_dict()}
+    return Scene.from_dict(d)
+
+
+def test_glossy_and_per_bounce_shading():
+    scene = _glossy_box_scene()
+    pre = Portals.precompute(scene, dict(QUICK, bounces=2, view_res=2), cache=False, progress=False)
+    n_block = scene.object("block").n_vertices
+    assert pre.data["glossy"].sum() == n_block
+    assert pre.direct_transfer(0, glossy=True).n_vertices == n_block * 24
+    assert pre.indirect_transfer(0, 2, glossy=True).shape == (n_block, 9, 9, 3)
+    res = [pre.shade(bounces=b) for b in range(3)]
+    for name in ("room", "block"):
+        np.testing.assert_array_equal(res[0].direct[name], res[2].direct[name])
+        assert np.all(res[0].indirect[name] == 0)
+        # constant sky: each bounce adds non-negative light (band 0 only)
+        assert np.all(res[2].indirect[name] >= res[1].indirect[name] - 1e-12)
+        assert res[2].indirect[name].sum() > res[1].indirect[name].sum() > 0
+    cube = shell_light(scene.environment, 8)
+    ref = pre.shade_shells([cube], 2, method="reference")
+    for name in ("room", "block"):
+        np.testing.assert_allclose(res[2].total[name], ref.total[name], rtol=1e-5, atol=1e-9)
+    # the camera moves: only the glossy block changes, and its ks-coloured highlight with it
+    from prtlab.scene import Camera
+
+    moved = pre.shade_shells([cube], 2, camera=Camera(position=np.array([-1.2, 2.0, -1.0])))
+    np.testing.assert_array_equal(moved.total["room"], res[2].total["room"])
+    assert np.abs(moved.total["block"] - res[2].total["block"]).max() > 1e-3
+    with pytest.raises(ValueError, match=r"precomputed with bounces=2; shade with bounces <= 2"):
+        pre.shade(bounces=3)
+    with pytest.raises(ValueError, match="option view_res"):
+        Portals.make_options({"view_res": 0})
+    with pytest.raises(ValueError, match="camera sits on a glossy vertex"):
+        pre.view_directions(Camera(position=pre.scene.object("block").world_shading_points()[0]))

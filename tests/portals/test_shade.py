@@ -47,3 +47,71 @@ def test_direct_pass_errors(rng):
     with pytest.raises(ValueError, match="shell_cube has NaN"):
         direct_pass(sparse, albedo, np.full((6, 4, 4, 3), np.nan))
     assert direct_pass(encode_transfer(transfer[:0]), albedo[:0], np.ones((6, 4, 4, 3))).shape == (0, 3)
+
+
+@given(n=st.integers(0, 8), views=st.integers(1, 6), density=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1),
+       basis=st.sampled_from(["auto", "pulse", "haar"]))
+def test_glossy_direct_pass_tiers(n, views, density, seed, basis):
+    from prtlab.portals import glossy_direct_pass
+
+    rng = np.random.default_rng(seed)
+    transfer = np.where(rng.random((n * views, 6, 4, 4)) < density, rng.random((n * views, 6, 4, 4)), 0.0)
+    sparse = encode_transfer(transfer, basis)
+    rows = rng.integers(0, max(n * views, 1), size=(n, 4))
+    weights = rng.dirichlet(np.ones(4), size=n) if n else np.zeros((0, 4))
+    ks = rng.random((n, 3))
+    cube = rng.random((6, 4, 4, 3))
+    fast = glossy_direct_pass(sparse, rows, weights, ks, cube)
+    assert fast.shape == (n, 3)
+    np.testing.assert_allclose(fast, glossy_direct_pass(sparse, rows, weights, ks, cube, "reference"),
+                               rtol=1e-9, atol=1e-12)
+    if n:  # the blend of exact (unquantised) rows within the 8-bit bound of the pulse basis
+        exact = np.einsum("vq,vqfij,fijc->vc", weights, transfer[rows], cube) * ks
+        if basis == "pulse":
+            bound = ks * np.einsum("vq,vq->v", weights, sparse.scale[rows])[:, None] / 510 * cube.sum((0, 1, 2))
+            assert np.all(np.abs(fast - exact) <= bound + 1e-12)
+
+
+@given(n=st.integers(0, 10), order=st.integers(1, 4), seed=st.integers(0, 2**32 - 1))
+def test_glossy_indirect_pass_tiers(n, order, seed):
+    from prtlab.portals import glossy_indirect_pass
+
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(n, order**2, order**2, 3)).astype(np.float32)
+    c = rng.normal(size=(order**2, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    fast = glossy_indirect_pass(m, c, d)
+    assert fast.shape == (n, 3)
+    np.testing.assert_allclose(fast, glossy_indirect_pass(m, c, d, "reference"), rtol=1e-9, atol=1e-9)
+
+
+def test_glossy_pass_errors(rng):
+    import pytest
+
+    from prtlab.portals import glossy_direct_pass, glossy_indirect_pass
+
+    sparse = encode_transfer(rng.random((4, 6, 4, 4)))
+    cube = np.ones((6, 4, 4, 3))
+    rows, w, ks = np.zeros((2, 4), int), np.full((2, 4), 0.25), np.ones((2, 3))
+    with pytest.raises(ValueError, match=r"rows must be an integer \(V_g, Q\) array"):
+        glossy_direct_pass(sparse, rows, w[:, :2], ks, cube)
+    with pytest.raises(ValueError, match="rows must index the 4 rows"):
+        glossy_direct_pass(sparse, rows + 4, w, ks, cube)
+    with pytest.raises(ValueError, match=r"ks must have shape \(2, 3\)"):
+        glossy_direct_pass(sparse, rows, w, ks[:1], cube)
+    with pytest.raises(ValueError, match="shell_cube has NaN"):
+        glossy_direct_pass(sparse, rows, w, ks, cube * np.nan)
+    m = np.ones((2, 4, 4, 3), np.float32)
+    c = np.ones((4, 3))
+    d = np.array([[0, 0, 1.0]] * 2)
+    with pytest.raises(ValueError, match=r"matrix must have shape \(V_g, n_out\^2, n\^2, 3\)"):
+        glossy_indirect_pass(m[..., 0], c, d)
+    with pytest.raises(ValueError, match="light_sh must have shape"):
+        glossy_indirect_pass(m, c[:1], d)
+    with pytest.raises(ValueError, match="light_sh has NaN"):
+        glossy_indirect_pass(m, c * np.nan, d)
+    with pytest.raises(ValueError, match=r"view_dirs must be a finite \(2, 3\)"):
+        glossy_indirect_pass(m, c, d[:1])
+    with pytest.raises(ValueError, match="must be a square"):
+        glossy_indirect_pass(np.ones((2, 3, 4, 3)), c, d)
