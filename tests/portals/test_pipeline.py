@@ -53,7 +53,7 @@ def test_shade_frame_environment_changes(pre):
 
 
 def test_shade_scene_entry_point():
-    import prtlab
+    import prtlab.api
     from prtlab.api import METHODS
     from prtlab.portals import shade_scene
 
@@ -230,3 +230,33 @@ def test_glossy_and_per_bounce_shading():
         Portals.make_options({"view_res": 0})
     with pytest.raises(ValueError, match="camera sits on a glossy vertex"):
         pre.view_directions(Camera(position=pre.scene.object("block").world_shading_points()[0]))
+
+
+def test_dask_workers_match_serial(tmp_path, monkeypatch):
+    """``prtlab.api.precompute(scene, method="portals", workers=2)`` (``prtlab precompute --workers 2``): chunks
+    on a Dask LocalCluster give the serial data."""
+    pytest.importorskip("dask.distributed")
+    import prtlab.api
+
+    monkeypatch.setenv("PRTLAB_CACHE", str(tmp_path))
+    monkeypatch.setattr(Portals, "chunk_vertices", 60)  # several chunks (the workers import the class unpatched:
+    scene = _glossy_box_scene()                          # chunk sizes are fixed before chunk_fn is shipped)
+    opts = dict(QUICK, bounces=2, view_res=2)
+    serial = Portals.precompute(scene, opts, cache=False, progress=False)
+    try:
+        distributed = prtlab.api.precompute(scene, method="portals", workers=2, progress=False, **opts)
+    finally:
+        from dask.distributed import default_client
+
+        try:
+            client = default_client()
+        except ValueError:
+            client = None
+        if client is not None:
+            cluster = client.cluster
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    for name in ("indptr", "codes", "indirect", "glossy_indptr", "glossy_codes", "glossy_matrix"):
+        np.testing.assert_array_equal(distributed.data["portal0"][name], serial.data["portal0"][name])
+    np.testing.assert_array_equal(distributed.shade(bounces=2).total["block"], serial.shade(bounces=2).total["block"])
