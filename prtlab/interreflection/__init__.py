@@ -7,7 +7,7 @@ of :mod:`prtlab.shadowfields` for visibility and direct light.
 ``prtlab.shade(scene, method="interreflection", bounces=3)`` runs it.
 """
 
-from ._fields import basis_radiance_at, basis_radiance_field
+from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
 from ._pipeline import Interreflection, InterreflectionOptions, precompute, shade_scene
 
@@ -15,6 +15,7 @@ __all__ = [
     # precomputation (Sec. 4.3)
     "basis_radiance_at",
     "basis_radiance_field",
+    "self_basis_irradiance",
     # per-frame passes (Sec. 5)
     "basis_irradiance",
     "reflected_light",

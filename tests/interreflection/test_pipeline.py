@@ -156,3 +156,70 @@ def test_truncated_precomputation(pre):
         pre.truncated(order=5)
     with pytest.raises(ValueError, match="n_basis must be >= 1"):
         pre.truncated(n_basis=0)
+
+
+def test_vertices_are_shaded_at_the_shading_points(pre):
+    from prtlab.interreflection._pipeline import _local_shading_points
+
+    state = FrameState.from_scene(pre.scene)
+    state.transforms["ball"] = Transform(translate=np.array([0.2, 0.9, 0.1]), rotate_deg=np.array([10.0, 30, 0]))
+    geo = pre._frame_geometry(state)
+    for o in pre.objects:
+        np.testing.assert_allclose(geo[o.name]["x"], o.world_shading_points(state.transforms[o.name]), atol=1e-12)
+    floor = pre.scene.object("floor")
+    assert not np.allclose(_local_shading_points(floor.mesh), floor.mesh.vertices)  # the rim moves inward
+
+
+def test_near_field_receivers_get_the_ray_cast_basis_radiance(pre):
+    """``near_field``: the pair's basis irradiance at near points is <S(x), T> with S cast at x."""
+    import dataclasses
+
+    from prtlab.interreflection import basis_irradiance, basis_radiance_at
+
+    far = Interreflection(pre.scene, dataclasses.replace(pre.options, near_field=0.0), pre.data)
+    near = Interreflection(pre.scene, dataclasses.replace(pre.options, near_field=100.0), pre.data)
+    state = FrameState.from_scene(pre.scene)
+    geo = near._frame_geometry(state)
+    occ = near._occlusion(geo)
+    phi_near, _ = near.basis_irradiance_step(geo, occ)
+    phi_far, _ = far.basis_irradiance_step(geo, occ)
+    g, floor = geo["ball"], pre.scene.object("floor")
+    from prtlab.shadowfields import visibility_pass
+
+    transfer = near._transfer(visibility_pass(g["self"], []), g["g_cos"])
+    s = basis_radiance_at(floor.mesh, near.bases["floor"].basis, near.seps["floor"], g["x"], near.options.order,
+                          near.options.degree)
+    np.testing.assert_allclose(phi_near["ball"]["floor"], np.einsum("vkni,vqi->vqkn", s, transfer), atol=1e-12)
+    interpolated = basis_irradiance(pre.data["floor"]["basis_radiance"], pre.fields["floor"].grid, g["x"], transfer,
+                                    geo["floor"]["T"])
+    np.testing.assert_allclose(phi_far["ball"]["floor"], interpolated, atol=1e-12)
+    with pytest.raises(ValueError, match="option near_field must be"):
+        InterreflectionOptions(near_field=-1.0)
+    with pytest.raises(ValueError, match="option pca_occluders must be True or False"):
+        InterreflectionOptions(pca_occluders=1)
+
+
+def test_pca_basis_with_occluders_spans_their_shadows():
+    """With as many functions as training lights (+ the mean) every training render is in the span: the
+    shadow a box casts on a floor under one of the training lights is reproduced exactly with occluders
+    in the training, and not without."""
+    from prtlab import pca
+    from prtlab.geometry import builtin_mesh
+    from prtlab.interreflection._pipeline import _pca_basis
+
+    floor = builtin_mesh("plane", size=[2.0, 2.0], resolution=[12, 12])
+    box = builtin_mesh("box", size=[0.4, 0.4, 0.4])
+    box_pose = (np.asarray(box.vertices) + [0.0, 0.3, 0.0], np.asarray(box.faces))
+    with_shadow = _pca_basis(floor, 5, 4, True, [box_pose])
+    without = _pca_basis(floor, 5, 4, True, [])
+    import trimesh
+
+    scene_mesh = trimesh.Trimesh(np.concatenate([floor.vertices, box_pose[0]]),
+                                 np.concatenate([floor.faces, box_pose[1] + len(floor.vertices)]),
+                                 vertex_normals=np.concatenate([floor.vertex_normals, box.vertex_normals]),
+                                 process=False)
+    lights = pca.pca_light_positions(floor, 4, plane=True)
+    shadowed = pca.point_light_intensity(scene_mesh, lights)[:, : len(floor.vertices)]  # (4, V)
+    assert np.any(shadowed < pca.point_light_intensity(floor, lights) - 1e-6)  # the box does shadow the floor
+    np.testing.assert_allclose(with_shadow.approximate(shadowed), shadowed, atol=1e-10)
+    assert np.max(np.abs(without.approximate(shadowed) - shadowed)) > 1e-3
