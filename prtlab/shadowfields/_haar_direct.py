@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import functools
 
+import numba
 import numpy as np
 
 from prtlab.geometry import direction_to_cubemap
@@ -138,9 +139,10 @@ def _g_cos(sep, dirs, normals, lengths=None) -> np.ndarray:
     cos = np.maximum(np.einsum("vpi,vi->vp", unit, normals), 0.0)
     if lengths is not None:
         cos = cos * lengths
-    lambert = sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(sep.g_radial) == 0.0
+    # a Lambertian term is constant (to rounding): skip the evaluation of g
+    lambert = sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(sep.g_radial) <= 1e-12 * np.abs(sep.g_radial).max()
     if lambert:
-        return (cos * float(sep.g_radial[0, 0]))[..., None]
+        return (cos * float(np.mean(sep.g_radial)))[..., None]
     R = local_frame(normals)  # world = R local
     local = np.einsum("vji,vpj->vpi", R, unit)
     return sep.g(local) * cos[..., None]
@@ -258,7 +260,8 @@ def haar_visibility_pass(query, factors, resolution: int, method: str = "numba")
         texel_map = np.ascontiguousarray(texel_map, dtype=np.int64)
         if method == "numba":
             if nv and nt:
-                hk.visibility_factor_kernel(idx, val, corners, weights, texel_map, query, count, res, vis)
+                blocks = min(nv, 4 * numba.get_num_threads())
+                hk.visibility_factor_kernel(idx, val, corners, weights, texel_map, query, count, res, blocks, vis)
             continue
         from prtlab.wavelet import ihaar2d
 

@@ -80,40 +80,50 @@ def haar_synthesis(dense, res, out, work):
 
 
 @numba.njit(cache=True, parallel=True)
-def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, vis):
+def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, n_blocks, vis):
     """Multiply one factor's visibility into ``vis`` at each vertex's query texels.
 
     tab_idx, tab_val : (P, keep) int32, float64 -- sparse Haar coefficients of the P samples
     corners, weights : (V, 8) int64, float64 -- samples blended at each vertex (all weights 0: V = 1)
     texel_map : (6 r^2,) int64 -- world texel -> texel of the factor's own frame (rotation)
     query : (V, T) int64 world texels; count : (V,) int64 used entries; vis : (V, T) in/out
+
+    Vertices are split into ``n_blocks`` blocks (a few per thread); each block reuses one dense coefficient
+    buffer, cleared after each vertex at the entries it touched.
     """
     n = 6 * res * res
     keep = tab_idx.shape[1]
-    for v in numba.prange(corners.shape[0]):
-        wsum = 0.0
-        for c in range(8):
-            wsum += abs(weights[v, c])
-        if wsum == 0.0:
-            continue
+    n_v = corners.shape[0]
+    for blk in numba.prange(n_blocks):
         dense = np.zeros(n)
-        for c in range(8):
-            w = weights[v, c]
-            if w == 0.0:
+        tex = np.empty(n)
+        work = np.empty(res * res)
+        for v in range(blk * n_v // n_blocks, (blk + 1) * n_v // n_blocks):
+            wsum = 0.0
+            for c in range(8):
+                wsum += abs(weights[v, c])
+            if wsum == 0.0:
                 continue
-            p = corners[v, c]
-            for k in range(keep):
-                dense[tab_idx[p, k]] += w * tab_val[p, k]
-        m = count[v]
-        if 4 * m > n:
-            tex = np.empty(n)
-            work = np.empty(res * res)
-            haar_synthesis(dense, res, tex, work)
-            for q in range(m):
-                vis[v, q] *= tex[texel_map[query[v, q]]]
-        else:
-            for q in range(m):
-                vis[v, q] *= haar_point_value(dense, texel_map[query[v, q]], res)
+            for c in range(8):
+                w = weights[v, c]
+                if w == 0.0:
+                    continue
+                p = corners[v, c]
+                for k in range(keep):
+                    dense[tab_idx[p, k]] += w * tab_val[p, k]
+            m = count[v]
+            if 4 * m > n:
+                haar_synthesis(dense, res, tex, work)
+                for q in range(m):
+                    vis[v, q] *= tex[texel_map[query[v, q]]]
+            else:
+                for q in range(m):
+                    vis[v, q] *= haar_point_value(dense, texel_map[query[v, q]], res)
+            for c in range(8):
+                if weights[v, c] != 0.0:
+                    p = corners[v, c]
+                    for k in range(keep):
+                        dense[tab_idx[p, k]] = 0.0
 
 
 # --------------------------------------------------------------------------- area-light rasterisation
@@ -216,9 +226,8 @@ def _light_polygon(point, normal, corners, light_normal, poly, tmp):
 
 
 @numba.njit(cache=True)
-def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b):
-    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a``."""
-    plane = np.empty(3)
+def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane):
+    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a`` (``plane``: scratch (3,))."""
     for c in range(3):
         plane[c] = s_ax[c] - s0 * axis[c]
     m = _clip(poly, n, plane, buf_a)
@@ -250,11 +259,13 @@ def area_light_count_kernel(points, normals, corners, light_normal, frames, res,
         poly = np.empty((16, 3))
         tmp = np.empty((16, 3))
         buf = np.empty((16, 3))
+        plane = np.empty(3)
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
         total = 0
         if n > 0:
             for f in range(6):
-                m = _clip_to_cell(poly, n, frames[f, 0], frames[f, 1], frames[f, 2], -1.0, 1.0, -1.0, 1.0, tmp, buf)
+                m = _clip_to_cell(poly, n, frames[f, 0], frames[f, 1], frames[f, 2], -1.0, 1.0, -1.0, 1.0, tmp, buf,
+                                  plane)
                 if m >= 3:
                     j0, j1, i0, i1 = _face_range(tmp, m, frames[f, 0], frames[f, 1], frames[f, 2], res)
                     total += (j1 - j0 + 1) * (i1 - i0 + 1)
@@ -277,12 +288,13 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
         buf = np.empty((16, 3))
         cell = np.empty((16, 3))
         mom = np.empty(3)
+        plane = np.empty(3)
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
         k = 0
         if n > 0:
             for f in range(6):
                 axis, s_ax, t_ax = frames[f, 0], frames[f, 1], frames[f, 2]
-                m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf)
+                m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf, plane)
                 if m < 3:
                     continue
                 j0, j1, i0, i1 = _face_range(tmp, m, axis, s_ax, t_ax, res)
@@ -292,7 +304,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                     for j in range(j0, j1 + 1):
                         s0 = 2.0 * j / res - 1.0
                         s1 = 2.0 * (j + 1) / res - 1.0
-                        mc = _clip_to_cell(tmp, m, axis, s_ax, t_ax, s0, s1, t0, t1, cell, buf)
+                        mc = _clip_to_cell(tmp, m, axis, s_ax, t_ax, s0, s1, t0, t1, cell, buf, plane)
                         if mc < 3:
                             continue
                         om = _solid_angle_moment(cell, mc, mom)
