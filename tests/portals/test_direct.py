@@ -187,7 +187,7 @@ def test_glossy_direct_view_interpolated_against_reference(sky_box, rng):
     from prtlab.portals import glossy_direct_pass, glossy_direct_transfer, phong_lipschitz, view_interpolation
     from prtlab.scene import Material
 
-    res, view_res, e, kd, ks = 16, 4, 10.0, 0.3, 0.5
+    res, view_res, e, kd, ks = 16, 8, 10.0, 0.3, 0.5
     views = np.array([[0.1, 0.6, 0.8], [0.35, 0.9, -0.3]])
     views /= np.linalg.norm(views, axis=1, keepdims=True)
     grid = cubemap_directions(view_res).reshape(-1, 3)
