@@ -132,21 +132,23 @@ def _ground_weights_reference(points, normals, dirs, weights, rects):
 
 
 def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: int = 128, n_elevation: int = 32,
-                            method: str = "numba") -> np.ndarray:
+                            method: str = "numba", order: int | None = None) -> np.ndarray:
     """The part of the environment transfer that the ground hides: ``P_n(L G_q max(0, n_q . w))``.
 
     Parameters
     ----------
     points, normals : (B, 3) float
         Surface samples (world space) and their unit normals.
-    env_sh : (n*n, C) float
-        Environment radiance.
+    env_sh : (N*N, C) float
+        Environment radiance (any order ``N``).
     rectangles : (G, 7) float
         :func:`ground_rectangles`.
     n_azimuth, n_elevation : int
         Product grid of the lower hemisphere.
     method : {"numba", "reference"}
         Tier of the weight matrix ``W``.
+    order : int, optional
+        Order ``n`` of the result (default: ``N``).
 
     Returns
     -------
@@ -165,7 +167,8 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     env = np.asarray(env_sh, dtype=np.float64)
     rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
-    order = math.isqrt(env.shape[0])
+    n_env = math.isqrt(env.shape[0])
+    order = n_env if order is None else int(order)
     out = np.zeros((p.shape[0], order * order, env.shape[1]))
     if p.shape[0] == 0 or rects.shape[0] == 0:
         return out
@@ -174,8 +177,8 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     phi0 = math.atan2(rects[0, 4], rects[0, 3])
     c0, s0 = math.cos(phi0), math.sin(phi0)
     dirs = np.stack([c0 * dirs[:, 0] - s0 * dirs[:, 2], dirs[:, 1], s0 * dirs[:, 0] + c0 * dirs[:, 2]], -1)
-    y = sh.basis(dirs, order)
-    a = (y[:, :, None] * (y @ env)[:, None, :]).reshape(dirs.shape[0], -1)  # L(w_j) y_k(w_j)
+    y = sh.basis(dirs, max(order, n_env))
+    a = (y[:, : order * order, None] * (y[:, : n_env * n_env] @ env)[:, None, :]).reshape(dirs.shape[0], -1)
     if method == "reference":
         w = _ground_weights_reference(p, n, dirs, weights, rects)
     else:

@@ -224,8 +224,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     centres : (S_all, 3) float
     radii : (S_all,) float
         Every light of the scene as a blocker (world space).
-    env_sh : (n*n, 3) float
-        Environment radiance.
+    env_sh : (N*N, 3) float
+        Environment radiance of any order ``N >= n`` (``3n - 2``: the exact
+        transfer, see :func:`prtlab.spherelights.environment_transfer`).
     cell_sums : (m, n*n) float
         Voronoi-cell sums ``(4 pi / N) Y_j`` (:func:`voronoi_cell_sums`), in the light's own frame.
     albedo_sh : (S, n*n, 3) float
@@ -247,16 +248,16 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
 
     S, m = sample_valid.shape
     env = np.asarray(env_sh, dtype=np.float64)
-    order = math.isqrt(env.shape[0])
+    order = math.isqrt(np.asarray(albedo_sh).shape[1])
     radiance = np.zeros((S, m, 3))
     if sample_valid.any():
         pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
         nrm = np.asarray(sample_normals, dtype=np.float64)[sample_valid]
         nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
         vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
-        t = environment_transfer(nrm, env)  # Eq. 8
+        t = environment_transfer(nrm, env, order)  # Eq. 8
         if ground is not None and len(ground):
-            t = t - ground_blocked_transfer(pts, nrm, env, ground)
+            t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
         radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
     light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     out = np.empty_like(light)
@@ -280,7 +281,9 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         World-from-light rotation of each light (its object's rotation).
     emission : (S, n*n, 3) float
         ``L^c`` of each light in its own frame (:func:`first_pass`).
-    env_sh : (n*n, 3) float
+    env_sh : (N*N, 3) float
+        Environment radiance of any order ``N >= n`` (``3n - 2``: exact transfer). The order ``n``
+        is the emission's.
     blocking : {"object", "sphere"}
     exp_method : {"hyb", "ol", "exact"}
     indirect : bool
@@ -315,7 +318,7 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     env = np.asarray(env_sh, dtype=np.float64)
-    order = math.isqrt(env.shape[0])
+    order = math.isqrt(np.asarray(emission).shape[-2])
     B, S, n2 = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0], order * order
     if B == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
@@ -331,7 +334,7 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
                                                          blocking=blocking, method=method)
     # direct (Eq. 8): all blockers
     vis = sh.exp(g_sphere.sum(axis=1), method=exp_method, channels=False)
-    direct = np.einsum("bk,bkc->bc", vis, environment_transfer(n, env))
+    direct = np.einsum("bk,bkc->bc", vis, environment_transfer(n, env, order))
     ind = np.zeros((B, 3))
     if not indirect or S == 0:
         return direct, ind
@@ -419,7 +422,7 @@ def emission_times_direction(emission) -> np.ndarray:
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
                             exp_method, indirect, cosine):
-    order = math.isqrt(env.shape[0])
+    order = math.isqrt(np.asarray(emission).shape[-2])
     c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
     r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
     obj = np.ascontiguousarray(sl_object, dtype=np.int64).reshape(-1)
@@ -430,7 +433,7 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     obj_centres = np.zeros((n_obj, 3))
     for o in range(n_obj):
         obj_centres[o] = c[obj == o].mean(axis=0)
-    transfer = np.ascontiguousarray(transfer_matrix(env))
+    transfer = np.ascontiguousarray(transfer_matrix(env, order))
     r_max, tab_a, tab_b = _ol_table(order)
     gi, gj, gk, gv = _gaunt_block(order, order, order)
     direct = np.empty((p.shape[0], 3))

@@ -192,11 +192,17 @@ class SphereLights(Precomputation):
         return tuple(cat)
 
     def _environment(self, state: FrameState) -> np.ndarray:
-        order = self.options.order
+        """Environment SH of order ``3n - 2``: the transfer ``P_n(L cos)`` is then exact (see
+        :func:`environment_transfer`); projections are cached per light object."""
+        order = 3 * self.options.order - 2
         env = np.zeros((order * order, 3))
+        cache = self.__dict__.setdefault("_env_cache", {})
         for light in state.lights:
             if isinstance(light, EnvironmentLight):
-                env += environment_sh(light, order)
+                key = (id(light), order)
+                if key not in cache or cache[key][0] is not light:
+                    cache[key] = (light, environment_sh(light, order))
+                env += cache[key][1]
             else:
                 raise ValueError(
                     f"method 'spherelights' handles environment lighting only, got a {type(light).__name__}; "

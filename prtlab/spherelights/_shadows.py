@@ -275,22 +275,30 @@ def blocker_log_sum(points, normals, centres, radii, order: int, *, method: str 
     return out.reshape(batch + (order * order,))
 
 
-def environment_transfer(normals, env_sh) -> np.ndarray:
+def environment_transfer(normals, env_sh, order: int | None = None) -> np.ndarray:
     """``T_n = P_n(L_env max(0, n . w))``: lighting times clamped cosine, truncated to order ``n`` (Eq. 8).
 
     Parameters
     ----------
     normals : (..., 3) float
-    env_sh : (n*n, C) float
-        Environment radiance in SH (e.g. :func:`prtlab.scene.environment_sh`).
+    env_sh : (N*N, C) float
+        Environment radiance in SH (e.g. :func:`prtlab.scene.environment_sh`), of any order
+        ``N >= n``; ``N = 3n - 2`` makes ``T_n`` the exact projection of the full environment
+        times the clamped cosine of order ``2n - 1``.
+    order : int, optional
+        ``n`` (default: ``N``).
 
     Returns
     -------
     t : (..., n*n, C) float64
-        The exact order-``n`` projection of ``L_env(w) max(0, n . w)``: the
-        product ``int Y_k L cos`` only involves bands ``<= 2n - 2`` of the
-        clamped cosine, so the product with the cosine of order ``2n - 1``
-        truncated to order ``n`` is exact.
+        ``int y_k(w) L(w) c(n . w) dw`` with ``c`` the clamped cosine truncated
+        to bands ``<= 2n - 2``: a product ``y_k Y_q`` of bands ``k < n``, ``q < 2n - 1``
+        only sees bands ``<= 3n - 3`` of ``L``, so an environment of order
+        ``3n - 2`` gives it exactly. With ``N = n`` (the light truncated to
+        order ``n`` first) the high frequencies of the environment that the
+        visibility would shadow are lost: measured on the Fig. 8 ground under the
+        courtyard map, 7.5 % direct error against Mitsuba with ``N = 4`` and
+        4.9 % with ``N = 10``.
 
     References
     ----------
@@ -299,31 +307,35 @@ def environment_transfer(normals, env_sh) -> np.ndarray:
     nrm = _as_points(normals, "normals")
     env = np.asarray(env_sh, dtype=np.float64)
     if env.ndim != 2:
-        raise ValueError(f"env_sh must be an (n*n, C) array, got shape {env.shape}")
-    order = math.isqrt(env.shape[0])
-    if order * order != env.shape[0]:
-        raise ValueError(f"env_sh must have n*n rows, got {env.shape[0]}")
-    # P_n(L cos) only sees bands <= 2n - 2 of the clamped cosine: projecting with the
-    # cosine truncated to order 2n - 1 is exact.
+        raise ValueError(f"env_sh must be an (N*N, C) array, got shape {env.shape}")
+    n_env = math.isqrt(env.shape[0])
+    if n_env * n_env != env.shape[0]:
+        raise ValueError(f"env_sh must have N*N rows, got {env.shape[0]}")
+    order = n_env if order is None else int(order)
+    if order > n_env:
+        raise ValueError(f"env_sh of order {n_env} cannot give a transfer of order {order}; project the "
+                         "environment to at least that order")
     hi = 2 * order - 1
     cos = sh.zh_rotate(sh.clamped_cosine_zh(hi), nrm)
-    return (cos @ transfer_matrix(env)).reshape(cos.shape[:-1] + (order * order, env.shape[1]))
+    return (cos @ transfer_matrix(env, order)).reshape(cos.shape[:-1] + (order * order, env.shape[1]))
 
 
-def transfer_matrix(env: np.ndarray) -> np.ndarray:
-    """``M ((2n-1)^2, n*n*C)`` with ``T_n = cos_{2n-1}(n) @ M``: ``M[i, (k, c)] = sum_j G_ijk env_jc``."""
+def transfer_matrix(env: np.ndarray, order: int | None = None) -> np.ndarray:
+    """``M ((2n-1)^2, n*n*C)`` with ``T_n = cos_{2n-1}(n) @ M``: ``M[i, (k, c)] = sum_j G_ijk env_jc``
+    (``env`` of any order ``N``; ``j`` runs over it)."""
     from prtlab.sh._gaunt import _gaunt_block
 
-    order = math.isqrt(env.shape[0])
+    n_env = math.isqrt(env.shape[0])
+    order = n_env if order is None else int(order)
     hi = 2 * order - 1
-    gi, gj, gk, gv = _gaunt_block(hi, order, order)
+    gi, gj, gk, gv = _gaunt_block(hi, n_env, order)
     a = np.zeros((hi * hi, order * order, env.shape[1]))
     np.add.at(a, (gi, gk), gv[:, None] * env[gj])
     return a.reshape(hi * hi, -1)
 
 
 def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: str = "hyb",
-                      method: str = "numba") -> np.ndarray:
+                      method: str = "numba", order: int | None = None) -> np.ndarray:
     """Shadowed irradiance from the environment at receivers: ``E = V_p . T_n`` (Eqs. 3-8).
 
     Parameters
@@ -333,12 +345,14 @@ def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: st
     centres : (S, 3) float
     radii : (S,) float
         Blocker spheres (world space).
-    env_sh : (n*n, C) float
-        Environment radiance in SH of order ``n``.
+    env_sh : (N*N, C) float
+        Environment radiance in SH of order ``N >= n`` (see :func:`environment_transfer`).
     exp_method : {"hyb", "ol", "exact"}
         SH exponentiation (:func:`prtlab.sh.exp`).
     method : {"numba", "reference"}
         Tier of the blocker-log accumulation.
+    order : int, optional
+        Order ``n`` of the visibility (default: ``N``).
 
     Returns
     -------
@@ -363,7 +377,7 @@ def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: st
         raise ValueError(f"env_sh must be an (n*n, C) array, got shape {env.shape}")
     if not np.all(np.isfinite(env)):
         raise ValueError("env_sh contains NaN or inf")
-    order = math.isqrt(env.shape[0])
+    order = math.isqrt(env.shape[0]) if order is None else _check_order(order)
     if exp_method not in ("hyb", "ol", "exact"):
         raise ValueError(f"exp_method must be 'hyb', 'ol' or 'exact', got {exp_method!r}")
     g = blocker_log_sum(points, normals, centres, radii, order, method=method)
@@ -372,5 +386,5 @@ def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: st
     if gf.shape[0] == 0:
         return np.zeros(batch + (env.shape[1],))
     vis = sh.exp(gf, method=exp_method, channels=False)
-    t = environment_transfer(np.asarray(normals, dtype=np.float64).reshape(-1, 3), env)
+    t = environment_transfer(np.asarray(normals, dtype=np.float64).reshape(-1, 3), env, order)
     return np.einsum("bk,bkc->bc", vis, t).reshape(batch + (env.shape[1],))

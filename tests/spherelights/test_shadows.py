@@ -187,3 +187,21 @@ def test_one_sphere_over_a_plane_against_monte_carlo(exp_method, rng):
         lc_tail = np.sqrt(np.maximum((w[:, None] * lc * lc).sum(0) - (t * t).sum(0), 0.0))
         bound = exp_err + v_tail * lc_tail
         assert np.all(np.abs(e[k] - ref) <= bound + MC_SIGMAS * se), (k, e[k], ref, bound, se)
+
+
+def test_environment_transfer_of_a_higher_order_environment_is_exact(rng):
+    """With an environment of order 3n - 2 the transfer is the exact projection of L times the clamped cosine of
+    order 2n - 1 (a product y_k Y_q sees bands <= 3n - 3 of L); with the environment cut to order n it is not."""
+    n_env = 3 * ORDER - 2
+    env = rng.normal(size=(n_env * n_env, 2)) / (1 + np.arange(n_env * n_env))[:, None]
+    nrm = random_directions(rng, 5)
+    t = environment_transfer(nrm, env, ORDER)
+    dirs, w = sh.quadrature(1, degree=3 * n_env)
+    hi = 2 * ORDER - 1
+    cos = sh.zh_rotate(sh.clamped_cosine_zh(hi), nrm) @ sh.basis(dirs, hi).T  # (5, Q)
+    ref = np.einsum("q,qk,qc,bq->bkc", w, sh.basis(dirs, ORDER), sh.basis(dirs, n_env) @ env, cos)
+    np.testing.assert_allclose(t, ref, atol=1e-10)
+    cut = environment_transfer(nrm, env[: ORDER * ORDER])
+    assert np.abs(cut - ref).max() > 1e-3
+    with pytest.raises(ValueError, match="cannot give a transfer of order"):
+        environment_transfer(nrm, env[:4], ORDER)
