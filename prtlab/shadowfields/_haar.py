@@ -445,7 +445,7 @@ def haar_occlusion_field(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
 
 
 def haar_self_visibility(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, keep: int = DEFAULT_KEEP,
-                         normals=None, supersample: int = 1, method: str = "embree") -> SparseCubemaps:
+                         normals=None, points=None, supersample: int = 1, method: str = "embree") -> SparseCubemaps:
     """Sparse Haar cubemap of each vertex's visibility against its own object (object space).
 
     Parameters
@@ -455,6 +455,9 @@ def haar_self_visibility(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
         As in :func:`haar_occlusion_field`.
     normals : (n_vertices, 3) float, optional
         Vertex normals (default ``mesh.vertex_normals``) for the ray offsets.
+    points : (n_vertices, 3) float, optional
+        Where each vertex is shaded (object space; default the vertices), e.g.
+        :func:`prtlab.geometry.shading_points`.
     method : {"embree", "numpy"}
 
     Returns
@@ -470,13 +473,18 @@ def haar_self_visibility(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape != vertices.shape:
         raise ValueError(f"normals must be {vertices.shape} (one per vertex), got {normals.shape}")
+    origins = vertices
+    if points is not None:
+        origins = np.asarray(points, dtype=np.float64)
+        if origins.shape != vertices.shape:
+            raise ValueError(f"points must be {vertices.shape} (one per vertex), got {origins.shape}")
     res = _check_resolution(resolution)
     keep = _check_int(keep, "keep", 1, "Haar coefficients kept per cubemap")
     caster = RayCaster([(vertices, faces)])
     chunks = []
     step = max(1, (1 << 22) // (6 * res * res))
-    for a in range(0, len(vertices), step):
-        vis = visibility_cubemaps(caster, vertices[a : a + step], res, normals=normals[a : a + step],
+    for a in range(0, len(origins), step):
+        vis = visibility_cubemaps(caster, origins[a : a + step], res, normals=normals[a : a + step],
                                   supersample=supersample, method=method)
         chunks.append(encode_sparse(vis, keep))
     if not chunks:

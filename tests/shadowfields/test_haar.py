@@ -197,6 +197,8 @@ def test_errors(ball, ball_field):
         visibility_cubemaps(RayCaster([(ball.vertices, ball.faces)]), np.zeros(3), 4, supersample=1.5)
     with pytest.raises(ValueError, match="normals are required"):
         haar_self_visibility((ball.vertices, ball.faces))
-    with pytest.raises(ValueError, match="one per vertex"):
+    with pytest.raises(ValueError, match=r"normals must be .* \(one per vertex\)"):
         haar_self_visibility(ball, normals=np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"points must be .* \(one per vertex\)"):
+        haar_self_visibility(ball, points=np.zeros((2, 3)))
     assert isinstance(HaarOcclusionField.from_arrays(ball_field.to_arrays()), HaarOcclusionField)
