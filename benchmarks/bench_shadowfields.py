@@ -75,7 +75,13 @@ def _sh_peer(quick: bool, n_occ: int):
     """The SH path (order 4) on the bunny vertices: lookups, truncated products, area-light SH, direct pass."""
     from prtlab import brdf
     from prtlab.geometry import RayCaster
-    from prtlab.shadowfields import area_light_sh, direct_pass, occlusion_field, project_visibility, visibility_pass
+    from prtlab.shadowfields import (
+        area_light_sh,
+        direct_pass,
+        occlusion_field,
+        project_visibility,
+        visibility_pass,
+    )
 
     mesh, x, n, _ = _bunny(quick)
     key = ("sh", quick)

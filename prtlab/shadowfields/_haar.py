@@ -57,14 +57,14 @@ from ._occlusion import _mesh_pair
 __all__ = [
     "DEFAULT_HAAR_RESOLUTION",
     "DEFAULT_KEEP",
-    "SparseCubemaps",
     "HaarOcclusionField",
+    "SparseCubemaps",
+    "cubemap_frames",
     "encode_sparse",
-    "visibility_cubemaps",
     "haar_occlusion_field",
     "haar_self_visibility",
     "rotation_texel_map",
-    "cubemap_frames",
+    "visibility_cubemaps",
 ]
 
 #: Texels per cubemap face edge of the visibility (Zhou et al. 2005: 6 x 32 x 32).
@@ -175,7 +175,7 @@ class SparseCubemaps:
                 "energy_lost": self.energy_lost}
 
     @classmethod
-    def from_arrays(cls, d) -> "SparseCubemaps":
+    def from_arrays(cls, d) -> SparseCubemaps:
         return cls(int(d["resolution"]), np.asarray(d["indices"], np.int32), np.asarray(d["values"], np.float64),
                    np.asarray(d["energy_lost"], np.float64))
 
@@ -352,7 +352,7 @@ class HaarOcclusionField:
         return {"grid": self.grid.to_arrays(), "visibility": self.visibility.to_arrays()}
 
     @classmethod
-    def from_arrays(cls, d) -> "HaarOcclusionField":
+    def from_arrays(cls, d) -> HaarOcclusionField:
         return cls(SphereGrid.from_arrays(d["grid"]), SparseCubemaps.from_arrays(d["visibility"]))
 
 

@@ -64,10 +64,23 @@ from prtlab.geometry import direction_to_cubemap
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight
 
 from . import _haar_kernels as hk
-from ._haar import HaarOcclusionField, SparseCubemaps, _check_resolution, cubemap_frames, rotation_texel_map
+from ._haar import (
+    HaarOcclusionField,
+    SparseCubemaps,
+    _check_resolution,
+    cubemap_frames,
+    rotation_texel_map,
+)
 
-__all__ = ["light_pieces", "haar_visibility_pass", "haar_direct_pass", "haar_direct", "environment_cubemap",
-           "edge_bound", "texel_moments"]
+__all__ = [
+    "edge_bound",
+    "environment_cubemap",
+    "haar_direct",
+    "haar_direct_pass",
+    "haar_visibility_pass",
+    "light_pieces",
+    "texel_moments",
+]
 
 _METHODS = ("numba", "reference")
 #: Pieces (vertex x texel) handled per chunk of vertices.

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-
 # --------------------------------------------------------------------------- Haar synthesis
 
 

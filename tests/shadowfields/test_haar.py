@@ -7,7 +7,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from prtlab.geometry import RayCaster, builtin_mesh, cubemap_directions, direction_to_cubemap
+from prtlab.geometry import (
+    RayCaster,
+    builtin_mesh,
+    cubemap_directions,
+    direction_to_cubemap,
+)
 from prtlab.scene import Transform
 from prtlab.shadowfields import (
     HaarOcclusionField,
@@ -21,7 +26,7 @@ from prtlab.shadowfields import (
     visibility_cubemaps,
 )
 from prtlab.shadowfields._haar_kernels import haar_point_value, haar_synthesis
-from prtlab.wavelet import haar2d, ihaar2d, keep_largest
+from prtlab.wavelet import haar2d, keep_largest
 from tests.conftest import FLOAT_TOLERANCE
 
 RES = 8
@@ -131,7 +136,7 @@ def test_trilinear_weights_are_those_of_the_sh_grid(ball_field, rng):
     want, beyond = interpolate_field(grid, field, q)
     np.testing.assert_allclose(np.sum(field.reshape(-1)[corners] * weights, axis=1)[~beyond], want[~beyond],
                                atol=1e-12)
-    near, wn = ball_field.corners(q, interpolation="nearest")
+    _, wn = ball_field.corners(q, interpolation="nearest")
     assert np.all(np.isin(wn.sum(axis=1), [0.0, 1.0]))
 
 

@@ -68,7 +68,7 @@ def test_shadow_of_a_ball_with_exact_visibility_at_the_vertex(light, rng):
     ball = scene.objects[0]
     caster = RayCaster([(ball.world_vertices(), ball.mesh.faces)])
     vis = visibility_cubemaps(caster, pts, RES)
-    texel, gw, rad, count = light_pieces(scene.lights, pts, nrm, LAMBERT, RES)
+    texel, gw, rad, _ = light_pieces(scene.lights, pts, nrm, LAMBERT, RES)
     E = np.pi * np.einsum("vp,vpk,vpc->vkc", np.take_along_axis(vis.reshape(len(pts), -1), texel, 1), gw, rad)[:, 0]
     bound = np.pi * edge_bound(texel, gw, rad, vis, RES)[:, 0]
     _check(E, ref.total, ref.stderr, bound)
@@ -95,7 +95,7 @@ def test_self_shadowing_of_a_torus_under_an_area_light(rng):
     # the bound uses the world visibility cubemaps (ray cast from the same offset points)
     caster = RayCaster([(torus.world_vertices(), torus.mesh.faces)])
     vis = visibility_cubemaps(caster, x, RES, normals=n)
-    texel, gw, rad, count = light_pieces(scene.lights, x, n, LAMBERT, RES)
+    texel, gw, rad, _ = light_pieces(scene.lights, x, n, LAMBERT, RES)
     bound = np.pi * edge_bound(texel, gw, rad, vis, RES)[:, 0]
     # the rotation of the self-visibility (60 deg about x) resamples texels: add the rotation's edge texels,
     # already counted by edge_bound (the resampled texels differ from the ray-cast ones only at edges)

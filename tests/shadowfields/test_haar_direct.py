@@ -8,7 +8,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prtlab import brdf
-from prtlab.geometry import builtin_mesh, cubemap_directions, cubemap_solid_angles, direction_to_cubemap
+from prtlab.geometry import (
+    builtin_mesh,
+    cubemap_directions,
+    cubemap_solid_angles,
+    direction_to_cubemap,
+)
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, Transform
 from prtlab.shadowfields import (
     area_light_sh,
@@ -41,7 +46,7 @@ def corner_form_factor(x, y):
 def test_area_light_pieces_give_the_closed_form_irradiance(res):
     """Exact partial coverage: the pieces' solid angles sum to the rectangle's, their cosines to pi F."""
     h, a, b = 2.0, 0.3, 0.2
-    texel, gw, rad, count = light_pieces([LIGHT], np.zeros((1, 3)), [[0.0, 1, 0]], LAMBERT, res)
+    texel, gw, _, _ = light_pieces([LIGHT], np.zeros((1, 3)), [[0.0, 1, 0]], LAMBERT, res)
     form = 4 * corner_form_factor(a / h, b / h)
     np.testing.assert_allclose(np.pi * gw[0, :, 0].sum(), np.pi * form, rtol=1e-12)  # g = 1 / pi
     lk = haar_direct(np.zeros((1, 3)), [[0.0, 1, 0]], [LIGHT], LAMBERT, resolution=res)
@@ -56,7 +61,7 @@ def test_area_light_moments_match_the_sh_of_the_light(rng):
     normals = np.tile([0.0, 1.0, 0.0], (6, 1))
     sh = area_light_sh(LIGHT, pts, 2, n_nodes=64)[..., 0] / LIGHT.radiance[0]
     for res in (2, 16):
-        texel, gw, rad, count = light_pieces([LIGHT], pts, normals, LAMBERT, res)
+        _, gw, _, _ = light_pieces([LIGHT], pts, normals, LAMBERT, res)
         # moments are recovered from the Lambert weights only along n; use the y component of the SH
         np.testing.assert_allclose(np.pi * gw[:, :, 0].sum(axis=1), sh[:, 1] / np.sqrt(3 / (4 * np.pi)), rtol=1e-9)
 
@@ -65,7 +70,7 @@ def test_area_light_coverage_per_texel_against_sampling():
     """Each piece's solid angle against the fraction of a texel's sub-directions that hit the light."""
     res, sub = 4, 64
     point = np.array([[0.1, 0.2, -0.1]])
-    texel, gw, rad, count = light_pieces([LIGHT], point, [[0.0, 1, 0]], LAMBERT, res)
+    texel, gw, _, _ = light_pieces([LIGHT], point, [[0.0, 1, 0]], LAMBERT, res)
     fine = cubemap_directions(res * sub).reshape(-1, 3)
     w = cubemap_solid_angles(res * sub).reshape(-1)
     # ray / parallelogram intersection

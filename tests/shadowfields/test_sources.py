@@ -77,9 +77,12 @@ def test_what_the_sh_visibility_costs_a_point_light():
     the shadow ray and against the texel of the Haar cubemap (32^2 per face). Measured: mean absolute
     visibility error SH 0.35 (0.19..0.26 in the umbra, 0.26..0.37 short in the light), Haar 0 here (a Haar
     texel is exact unless a shadow edge crosses it)."""
-    from prtlab.geometry import RayCaster, builtin_mesh
-    from prtlab.shadowfields import project_visibility, sh_visibility_toward, visibility_cubemaps
-    from prtlab.geometry import direction_to_cubemap
+    from prtlab.geometry import RayCaster, builtin_mesh, direction_to_cubemap
+    from prtlab.shadowfields import (
+        project_visibility,
+        sh_visibility_toward,
+        visibility_cubemaps,
+    )
 
     ball = builtin_mesh("icosphere", radius=0.5, subdivisions=3)
     caster = RayCaster([(ball.vertices + [0, 1.0, 0], ball.faces)])
