@@ -31,6 +31,7 @@ tier; the exponentials run in :func:`prtlab.sh.exp`'s batched kernels.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -260,11 +261,7 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
         radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
     light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
-    out = np.empty_like(light)
-    for ch in range(3):  # Eq. 11, channel by channel
-        out[:, :, ch] = sh.product(np.ascontiguousarray(light[:, :, ch]), np.ascontiguousarray(albedo_sh[:, :, ch]),
-                                   order, channels=False)
-    return out
+    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(order), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
 
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
@@ -397,6 +394,33 @@ def _cap_visibility(cos_theta, cos_na, cos_zh, order):
     return total
 
 
+@functools.lru_cache(maxsize=None)
+def _coordinate_products(order: int) -> np.ndarray:
+    """``X (3, (n+1)**2, n*n)``: ``X[j] @ f`` is the SH (order n + 1, exact) of ``f(u) u_j`` for an order-n ``f``."""
+    from prtlab.sh._gaunt import _gaunt_block
+
+    gi, gj, gk, gv = _gaunt_block(order, 2, order + 1)
+    out = np.zeros((3, (order + 1) ** 2, order * order))
+    c1 = math.sqrt(4.0 * math.pi / 3.0)
+    for j, idx in enumerate((3, 1, 2)):  # x = c Y_1,1, y = c Y_1,-1, z = c Y_1,0
+        sel = gj == idx
+        np.add.at(out[j], (gk[sel], gi[sel]), c1 * gv[sel])
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _dense_gaunt(order: int) -> np.ndarray:
+    """Dense ``G (n*n, n*n, n*n)`` of the order-``n`` product (``c_k = sum_ij G_ijk a_i b_j``)."""
+    from prtlab.sh._gaunt import _gaunt_block
+
+    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    out = np.zeros((order * order,) * 3)
+    np.add.at(out, (gi, gj, gk), gv)
+    out.setflags(write=False)
+    return out
+
+
 def emission_times_direction(emission) -> np.ndarray:
     """SH of ``L(u) u_j`` for each light and coordinate ``j`` (x, y, z): ``(S, 3, (n+1)**2, C)``, exact.
 
@@ -407,14 +431,7 @@ def emission_times_direction(emission) -> np.ndarray:
     """
     em = np.asarray(emission, dtype=np.float64)
     order = math.isqrt(em.shape[1])
-    out = np.zeros((em.shape[0], 3, (order + 1) ** 2, em.shape[2]))
-    c1 = math.sqrt(4.0 * math.pi / 3.0)
-    for j, k in enumerate((3, 1, 2)):  # x = c Y_1,1, y = c Y_1,-1, z = c Y_1,0
-        coord = np.zeros(4)
-        coord[k] = c1
-        for ch in range(em.shape[2]):
-            out[:, j, :, ch] = sh.product(np.ascontiguousarray(em[:, :, ch]), coord, order + 1, channels=False)
-    return out
+    return np.einsum("jqk,skc->sjqc", _coordinate_products(order), em)
 
 
 # --------------------------------------------------------------------------- fused second pass (the fast tier)
@@ -433,7 +450,8 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     obj_centres = np.zeros((n_obj, 3))
     for o in range(n_obj):
         obj_centres[o] = c[obj == o].mean(axis=0)
-    transfer = np.ascontiguousarray(transfer_matrix(env, order))
+    hi = 2 * order - 1
+    transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3).transpose(0, 2, 1))
     r_max, tab_a, tab_b = _ol_table(order)
     gi, gj, gk, gv = _gaunt_block(order, order, order)
     direct = np.empty((p.shape[0], 3))
@@ -441,7 +459,10 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     # writeable C copies: one compiled signature whatever the caller passes
     rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (c.shape[0], 3, 3)), order="C")
     em = np.array(np.asarray(emission, dtype=np.float64).reshape(c.shape[0], order * order, 3), order="C")
-    lu = np.ascontiguousarray(emission_times_direction(em)) if cosine else np.zeros((c.shape[0], 3, (order + 1) ** 2, 3))
+    if cosine and indirect and c.shape[0]:
+        lu = np.ascontiguousarray(emission_times_direction(em))
+    else:
+        lu = np.zeros((c.shape[0], 3, (order + 1) ** 2, 3))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
                        obj_centres, np.array(inter),
                        blocker_log_table(order), order, blocking == "object", transfer,
@@ -488,9 +509,48 @@ def _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, ou
         out[i, 0] = dc * v[i, 0]
 
 
+@numba.njit(cache=True)
+def _exp_lanes(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, ks, out):
+    """exp* of the columns (lanes) of x (n2, L) into out, as :func:`_exp_row` column by column but with the
+    squarings of HYB batched over the lanes (each lane keeps its own number of squarings)."""
+    n2, n_lanes = x.shape
+    if not hyb:
+        _ol_one(x, r_max, tab_a, tab_b, out)
+        return
+    k_max = 0
+    for q in range(n_lanes):
+        norm2 = 0.0
+        for i in range(1, n2):
+            norm2 += x[i, q] * x[i, q]
+        norm = math.sqrt(norm2)
+        k = 0
+        if norm > threshold:
+            k = max(0, int(math.ceil(math.log2(norm / threshold))))
+            while norm / 2.0**k > threshold:
+                k += 1
+        ks[q] = k
+        k_max = max(k_max, k)
+        scale = 1.0 / 2.0**k
+        h[0, q] = 0.0
+        for i in range(1, n2):
+            h[i, q] = x[i, q] * scale
+    _ol_one(h, r_max, tab_a, tab_b, v)
+    for t in range(k_max):
+        _tile_product(v, v, gi, gj, gk, gv, w)
+        for q in range(n_lanes):
+            if t < ks[q]:
+                for i in range(n2):
+                    v[i, q] = w[i, q]
+    sqrt4pi = math.sqrt(4.0 * math.pi)
+    for q in range(n_lanes):
+        dc = math.exp(x[0, q] / sqrt4pi)
+        for i in range(n2):
+            out[i, q] = dc * v[i, q]
+
+
 @numba.njit(cache=True, parallel=True)
 def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, intersect, table, order, per_object,
-                       transfer, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb, r_max, tab_a, tab_b,
+                       transfer_t, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb, r_max, tab_a, tab_b,
                        threshold, gi, gj, gk, gv, cosine, k_table, lu, direct_out, indirect_out):
     """Second pass per receiver (Eqs. 8, 14, 18, 21-24), one loop: blocker logs, front sums, exponentials,
     average visibility and average radiance. Same quantities as the composed numpy/batched tier."""
@@ -523,6 +583,13 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
         wrot = np.zeros(n2)
         wz = np.empty(order)
         od = np.empty(n_obj)
+        live = np.empty(n_sph, dtype=np.int64)
+        xl = np.empty((n2, 2 * n_sph))
+        hl = np.empty((n2, 2 * n_sph))
+        vl = np.empty((n2, 2 * n_sph))
+        wl = np.empty((n2, 2 * n_sph))
+        el = np.empty((n2, 2 * n_sph))
+        kl = np.empty(2 * n_sph, dtype=np.int64)
         for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
             px, py, pz = points[b, 0], points[b, 1], points[b, 2]
             nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
@@ -556,15 +623,20 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
             for k in range(hi * hi):
                 cos_hi[k] = 0.0
             _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
+            # T_n . e1 = sum_q cos_q (M[q] . e1); the clamped cosine's odd bands > 1 vanish (skipped)
             for c in range(3):
-                acc = 0.0
-                for k in range(n2):
-                    t = 0.0
-                    for q in range(hi * hi):
-                        t += cos_hi[q] * transfer[q, k * 3 + c]
-                    acc += e1[k, 0] * t
-                direct_out[b, c] = acc
+                direct_out[b, c] = 0.0
                 indirect_out[b, c] = 0.0
+            for l in range(hi):
+                if cos_zh_hi[l] == 0.0:
+                    continue
+                for q in range(l * l, (l + 1) * (l + 1)):
+                    cq = cos_hi[q]
+                    for c in range(3):
+                        t = 0.0
+                        for k in range(n2):
+                            t += e1[k, 0] * transfer_t[q, c, k]
+                        direct_out[b, c] += cq * t
             if not indirect:
                 continue
             for k in range(n2):
@@ -575,12 +647,14 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                 ey = obj_centres[o, 1] - py
                 ez = obj_centres[o, 2] - pz
                 od[o] = ex * ex + ey * ey + ez * ez
+            # front sums (Eq. 23), per object or per sphere (Sec. 7.2): lanes 2q (front) and 2q + 1 (front + own)
+            n_live = 0
             for i in range(n_sph):
                 if theta[i] < 0.0:
                     continue
-                # front sum (Eq. 23): per object or per sphere (Sec. 7.2)
+                live[n_live] = i
                 for k in range(n2):
-                    x[k, 0] = 0.0
+                    xl[k, 2 * n_live] = 0.0
                 for j in range(n_sph):
                     if j == i:
                         continue
@@ -593,14 +667,20 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                         front = dist[j] < dist[i] and not intersect[i, j]
                     if front:
                         for k in range(n2):
-                            x[k, 0] += gs[j, k]
-                _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
+                            xl[k, 2 * n_live] += gs[j, k]
                 for k in range(n2):
-                    x[k, 0] += gs[i, k]
-                _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e2)
+                    xl[k, 2 * n_live + 1] = xl[k, 2 * n_live] + gs[i, k]
+                n_live += 1
+            if n_live == 0:
+                continue
+            _exp_lanes(xl[:, : 2 * n_live], hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv,
+                       hl[:, : 2 * n_live], vl[:, : 2 * n_live], wl[:, : 2 * n_live], kl[: 2 * n_live],
+                       el[:, : 2 * n_live])
+            for q in range(n_live):
+                i = live[q]
                 v_avg = 0.0
                 for k in range(n2):
-                    v_avg += (e1[k, 0] - e2[k, 0]) * cosr[k]  # Eqs. 23-24
+                    v_avg += (el[k, 2 * q] - el[k, 2 * q + 1]) * cosr[k]  # Eqs. 23-24
                 # Eq. 18: w_theta about light -> receiver in the light's frame
                 lx = -(rot[i, 0, 0] * axis[i, 0] + rot[i, 1, 0] * axis[i, 1] + rot[i, 2, 0] * axis[i, 2])
                 ly = -(rot[i, 0, 1] * axis[i, 0] + rot[i, 1, 1] * axis[i, 1] + rot[i, 2, 1] * axis[i, 2])
