@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
+import numba
 import numpy as np
 
 from prtlab.wavelet import SparseTransfer, haar2d
@@ -11,6 +14,25 @@ from . import _kernels
 __all__ = ["direct_pass", "indirect_pass", "glossy_direct_pass", "glossy_indirect_pass"]
 
 _METHODS = ("numba", "reference")
+
+#: multiply-adds below which a pass runs its (parallel) kernel on one thread: a parallel region waits for its
+#: slowest thread, which on a shared, busy machine costs a scheduler time slice (measured: ~3 ms of work took a
+#: 58 ms median on 2 threads, 17 ms on 1, with 3 other jobs running); above it the threads pay off.
+PARALLEL_MIN_WORK = 1 << 22
+
+
+@contextmanager
+def _threads_for(work: float):
+    """Run the numba kernels inside on one thread when ``work`` (multiply-adds) is small."""
+    if work >= PARALLEL_MIN_WORK or numba.get_num_threads() == 1:
+        yield
+        return
+    previous = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)
 
 
 def _check_method(method):
@@ -57,8 +79,9 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
         light[n:] = haar2d(cube, channels=True).reshape(n, 3)
     out = np.empty((direct.n_vertices, 3))
     if direct.n_vertices:
-        _kernels.direct_pass_kernel(direct.indptr, direct.indices, direct.codes, direct.scale, direct.basis,
-                                    np.int64(direct.sign_bit), light, np.ascontiguousarray(albedo), out)
+        with _threads_for(3 * len(direct.codes)):
+            _kernels.direct_pass_kernel(direct.indptr, direct.indices, direct.codes, direct.scale, direct.basis,
+                                        np.int64(direct.sign_bit), light, np.ascontiguousarray(albedo), out)
     return out
 
 
@@ -90,8 +113,9 @@ def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:
         return np.einsum("vic,ic->vc", transfer.astype(np.float64), light_sh)
     out = np.zeros((transfer.shape[0], 3))
     if transfer.shape[0]:
-        _kernels.indirect_pass_kernel(np.ascontiguousarray(transfer, dtype=np.float32),
-                                      np.ascontiguousarray(light_sh), out)
+        with _threads_for(transfer.size):
+            _kernels.indirect_pass_kernel(np.ascontiguousarray(transfer, dtype=np.float32),
+                                          np.ascontiguousarray(light_sh), out)
     return out
 
 
@@ -164,9 +188,12 @@ def glossy_direct_pass(glossy: SparseTransfer, rows, weights, ks, shell_cube, me
         return (per_row.reshape(rows.shape + (3,)) * weights[..., None]).sum(axis=1) * ks
     out = np.empty((rows.shape[0], 3))
     if rows.shape[0]:
-        _kernels.glossy_direct_pass_kernel(glossy.indptr, glossy.indices, glossy.codes, glossy.scale, glossy.basis,
-                                           np.int64(glossy.sign_bit), light, np.ascontiguousarray(rows),
-                                           np.ascontiguousarray(weights), np.ascontiguousarray(ks), out)
+        work = 3 * int((glossy.indptr[rows + 1] - glossy.indptr[rows]).sum())
+        with _threads_for(work):
+            _kernels.glossy_direct_pass_kernel(glossy.indptr, glossy.indices, glossy.codes, glossy.scale,
+                                               glossy.basis, np.int64(glossy.sign_bit), light,
+                                               np.ascontiguousarray(rows), np.ascontiguousarray(weights),
+                                               np.ascontiguousarray(ks), out)
     return out
 
 
@@ -211,7 +238,8 @@ def glossy_indirect_pass(matrix, light_sh, view_dirs, method: str = "numba") -> 
         return np.einsum("vj,vjic,ic->vc", y, matrix.astype(np.float64), light_sh)
     out = np.empty((matrix.shape[0], 3))
     if matrix.shape[0]:
-        y = sh.basis(view_dirs, order_out)
-        _kernels.glossy_indirect_pass_kernel(np.ascontiguousarray(matrix, dtype=np.float32),
-                                             np.ascontiguousarray(light_sh), np.ascontiguousarray(y), out)
+        with _threads_for(matrix.size):
+            y = sh.basis(view_dirs, order_out)
+            _kernels.glossy_indirect_pass_kernel(np.ascontiguousarray(matrix, dtype=np.float32),
+                                                 np.ascontiguousarray(light_sh), np.ascontiguousarray(y), out)
     return out

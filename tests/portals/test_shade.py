@@ -115,3 +115,29 @@ def test_glossy_pass_errors(rng):
         glossy_indirect_pass(m, c, d[:1])
     with pytest.raises(ValueError, match="must be a square"):
         glossy_indirect_pass(np.ones((2, 3, 4, 3)), c, d)
+
+
+def test_passes_on_all_threads_match_reference(monkeypatch, rng):
+    """Small batches run on one thread (PARALLEL_MIN_WORK); force the parallel path and compare the tiers."""
+    from prtlab.portals import _shade, glossy_direct_pass, glossy_indirect_pass
+
+    monkeypatch.setattr(_shade, "PARALLEL_MIN_WORK", 0)
+    transfer = np.where(rng.random((40, 6, 4, 4)) < 0.3, rng.random((40, 6, 4, 4)), 0.0)
+    sparse = encode_transfer(transfer)
+    cube = rng.random((6, 4, 4, 3))
+    albedo = rng.random((40, 3))
+    np.testing.assert_allclose(direct_pass(sparse, albedo, cube), direct_pass(sparse, albedo, cube, "reference"),
+                               rtol=1e-9)
+    t = rng.normal(size=(40, 9, 3)).astype(np.float32)
+    c = rng.normal(size=(9, 3))
+    np.testing.assert_allclose(indirect_pass(t, c), indirect_pass(t, c, "reference"), rtol=1e-9, atol=1e-12)
+    rows = rng.integers(0, 40, size=(10, 4))
+    w = rng.dirichlet(np.ones(4), size=10)
+    ks = rng.random((10, 3))
+    np.testing.assert_allclose(glossy_direct_pass(sparse, rows, w, ks, cube),
+                               glossy_direct_pass(sparse, rows, w, ks, cube, "reference"), rtol=1e-9)
+    m = rng.normal(size=(10, 9, 9, 3)).astype(np.float32)
+    d = rng.normal(size=(10, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(glossy_indirect_pass(m, c, d), glossy_indirect_pass(m, c, d, "reference"), rtol=1e-9,
+                               atol=1e-9)
