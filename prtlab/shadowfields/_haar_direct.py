@@ -19,7 +19,11 @@ exactly as they allow:
   formula), and ``int_piece g_k cos = g_k(m_p / |m_p|) (n . m_p)`` — exact for a
   Lambertian term (``g`` constant), a midpoint rule in ``g_k`` for glossy terms;
 * **point lights**: an exact delta, ``I / r^2 g_k(d) max(0, n . d)`` times the
-  visibility of the texel containing the light's direction ``d``;
+  visibility in the light's direction ``d``, read bilinearly between the 4 texel
+  centres around ``d`` on its face (the texels are samples at their centres, so
+  this places a hard shadow edge to a fraction of a texel instead of snapping it
+  to texel borders: measured on a ball's shadow, relative RMS error 0.38 with
+  the nearest texel);
 * **environment maps**: the texel-average cubemap of the map
   (:func:`prtlab.scene.equirect_to_cubemap`), ``g_k cos`` at the texel centres
   times the texel solid angle.
@@ -161,6 +165,22 @@ def _g_cos(sep, dirs, normals, lengths=None) -> np.ndarray:
     return sep.g(local) * cos[..., None]
 
 
+def _bilinear_texels(dirs, res: int):
+    """The 4 texels around each direction on its face and their bilinear weights (clamped at face borders,
+    as the sample-sphere lookups): (V, 4) int64, (V, 4) float64."""
+    face, s, t = direction_to_cubemap(dirs)
+    x = np.clip(s * res - 0.5, 0.0, res - 1.0)
+    y = np.clip(t * res - 0.5, 0.0, res - 1.0)
+    j0 = np.minimum(np.floor(x).astype(np.int64), res - 1)
+    i0 = np.minimum(np.floor(y).astype(np.int64), res - 1)
+    fj, fi = x - j0, y - i0
+    j1, i1 = np.minimum(j0 + 1, res - 1), np.minimum(i0 + 1, res - 1)
+    base = face * res * res
+    texel = np.stack([base + i0 * res + j0, base + i0 * res + j1, base + i1 * res + j0, base + i1 * res + j1], 1)
+    weight = np.stack([(1 - fi) * (1 - fj), (1 - fi) * fj, fi * (1 - fj), fi * fj], axis=1)
+    return texel, weight
+
+
 def light_pieces(lights, points, normals, sep, resolution: int):
     """The lights at each vertex as weighted cubemap texels: ``L_k = sum_p V(texel_p) G_pk radiance_p``.
 
@@ -179,7 +199,8 @@ def light_pieces(lights, points, normals, sep, resolution: int):
     texel : (V, T) int64
         World texels ``f r^2 + i r + j``.
     g_weight : (V, T, K) float64
-        ``int_piece g_k(w) max(0, n . w) dw`` (point lights: ``g_k(d) max(0, n . d) / r^2``).
+        ``int_piece g_k(w) max(0, n . w) dw`` (point lights: ``g_k(d) max(0, n . d) / r^2`` times the
+        bilinear weight of each of the 4 texels around ``d``).
     radiance : (V, T, C) float64
         The piece's radiance (point lights: the intensity).
     count : (V,) int64
@@ -198,10 +219,11 @@ def light_pieces(lights, points, normals, sep, resolution: int):
             r2 = np.einsum("vi,vi->v", d, d)
             safe = np.where(r2 > 0, r2, 1.0)
             dd = np.where(r2[:, None] > 0, d, normals)
-            face, _, _, i, j = direction_to_cubemap(dd, res)
-            texels.append((face * res * res + i * res + j)[:, None])
-            gws.append(_g_cos(sep, dd[:, None, :], normals) * np.where(r2 > 0, 1.0 / safe, 0.0)[:, None, None])
-            rads.append(np.broadcast_to(np.asarray(light.intensity, float), (nv, 1, 3)))
+            texel, weight = _bilinear_texels(dd, res)  # (V, 4)
+            delta = _g_cos(sep, dd[:, None, :], normals) * np.where(r2 > 0, 1.0 / safe, 0.0)[:, None, None]
+            texels.append(texel)
+            gws.append(weight[:, :, None] * delta)
+            rads.append(np.broadcast_to(np.asarray(light.intensity, float), (nv, 4, 3)))
         elif isinstance(light, AreaLight):
             c, u, v = (np.asarray(a, float) for a in (light.center, light.u, light.v))
             corners = np.ascontiguousarray([c - u - v, c + u - v, c + u + v, c - u + v])
@@ -417,7 +439,7 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
         return out
     factors = _factors(points, self_visibility, self_transform, occluders, interpolation, res)
     # pieces per vertex, known before the chunking: bound by a cheap first pass of the lights
-    per_vertex = 1 + sum(6 * res * res if isinstance(li, EnvironmentLight) else 64 for li in lights)
+    per_vertex = 4 + sum(6 * res * res if isinstance(li, EnvironmentLight) else 64 for li in lights)
     step = max(1, _PIECES_PER_CHUNK // per_vertex)
     for a in range(0, nv, step):
         b = min(nv, a + step)
