@@ -15,9 +15,16 @@ same cubemap seen from the vertex against its own object.
 
 Default ``keep = 512`` of the ``6144`` coefficients of a 32-cubemap: the
 visibility of a compact object is 1 with a blocked blob, whose Haar expansion
-needs about 3 coefficients per node its outline crosses per level; 512 hold an
-outline of ~100 texels exactly (measured: see ``tests/shadowfields/test_haar.py``
-and :func:`SparseCubemaps.energy_lost`; a truncation is reported, never hidden).
+needs about 3 coefficients per node its outline crosses per level. Measured
+(non-zero coefficients per sample point, default radii): a sphere mean 70, max
+321; the built-in bunny mean 114, 99th percentile 464, max 491 — so 512 store
+them exactly. A truncation is reported per point (:attr:`SparseCubemaps.energy_lost`),
+never hidden.
+
+Precomputation at the defaults (16 x 6 x 16 x 16 = 24,576 points x 6144 rays =
+151 M rays): 32 s for a 1,280-face sphere on 2 idle cores (150 s with the
+machine shared four ways); storage 151 MB (int32 index + float64 value per kept
+coefficient; ``keep=384`` would still hold the sphere exactly).
 
 Run-time lookup (:meth:`HaarOcclusionField.lookup`)
     A query point is located on the grid exactly as the SH field is
