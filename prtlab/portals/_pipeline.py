@@ -31,6 +31,13 @@ relative difference of the total 3.9%, 3.0% with the reference's noise
 removed at SH order 4 (1.7% at order 8: most of the rest is the SH
 truncation of the sky seen through the window, Section 4.2); signed mean -0.2%.
 
+Glossy, Fig. 11 (``data/scenes/box_window_glossy_bunny_fig11.yaml``, Phong 10
+bunny; B = 2, 512 portal samples, 1M photons, 256 gather rays, view_res 4;
+reference 1024 paths per vertex, 10.1% mean relative standard error; room
+interior and bunny vertices off the floor): average relative difference of
+the total 10.5% (goal 2.1% + 10.1%: met), signed mean -2.3% (room -0.9%,
+bunny -3.3%); see ``tests/portals/test_whole_scene.py``.
+
 Examples
 --------
 >>> import prtlab
@@ -79,6 +86,9 @@ class PortalsOptions:
         distant environment), instead of one per portal object.
     view_res : glossy vertices: face resolution of the cubemap of discretised outgoing directions ``w_o`` (one
         direct transfer cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
+    glossy_order : SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``);
+        0: ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects
+        (exponent 10: the order-4 lobe peaks at half its height, :func:`prtlab.portals.phong_lobe_zh`).
     seed : random seed.
     """
 
@@ -92,11 +102,12 @@ class PortalsOptions:
     direct_basis: str = "auto"
     merge_portals: bool = False
     view_res: int = 4
+    glossy_order: int = 0
     seed: int = 0
 
     def __post_init__(self):
         check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "view_res"))
-        check_int_options(self, ("seed", "bounces"), minimum=0)
+        check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
         if self.res & (self.res - 1):
             raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
         if not isinstance(self.merge_portals, (bool, np.bool_)):
@@ -237,11 +248,12 @@ class Portals(Precomputation):
                         indirect[diffuse - sl.start] = final_gather(
                             caster, points[diffuse], normals[diffuse], albedo[diffuse], exitance[k], offsets, normals,
                             options.gather_rays, rng)
-                    matrix = np.zeros((len(g), options.bounces, n_c, n_c, 3))
+                    order_out = options.glossy_order or options.order
+                    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
                     if len(g):
                         indirect[g - sl.start], matrix = final_gather(
                             caster, points[g], normals[g], albedo[g], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy=(ks[g], exponent[g], options.order))
+                            options.gather_rays, rng, glossy=(ks[g], exponent[g], order_out))
                     entry["indirect"] = indirect.astype(np.float32)
                     entry["glossy_matrix"] = matrix.astype(np.float32)
                 entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
@@ -293,7 +305,7 @@ class Portals(Precomputation):
         """Indirect transfer of portal ``k`` for light that bounced ``1..bounces`` times (default: all stored).
 
         Returns the diffuse transfer vectors ``(V, n*n, 3)``, or with ``glossy`` the specular transfer
-        matrices of the glossy vertices ``(V_g, n*n, n*n, 3)`` (float32): the sums of the stored per-bounce parts.
+        matrices of the glossy vertices ``(V_g, n_out^2, n*n, 3)`` (float32): the sums of the stored per-bounce parts.
         """
         bounces = self._check_bounces(bounces)
         cached = self.__dict__.setdefault("_indirect_cache", {})

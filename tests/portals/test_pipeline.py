@@ -228,6 +228,11 @@ def test_glossy_and_per_bounce_shading():
         pre.shade(bounces=3)
     with pytest.raises(ValueError, match="option view_res"):
         Portals.make_options({"view_res": 0})
+    with pytest.raises(ValueError, match="option glossy_order"):
+        Portals.make_options({"glossy_order": -1})
+    wider = Portals.precompute(scene, dict(QUICK, bounces=1, view_res=1, glossy_order=5), cache=False, progress=False)
+    assert wider.indirect_transfer(0, glossy=True).shape == (n_block, 25, 9, 3)
+    assert np.all(np.isfinite(wider.shade(bounces=1).total["block"]))
     with pytest.raises(ValueError, match="camera sits on a glossy vertex"):
         pre.view_directions(Camera(position=pre.scene.object("block").world_shading_points()[0]))
 
