@@ -79,9 +79,10 @@ class InterreflectionOptions:
         in the scene as given (True), or on the object alone as in the paper (False).
     self_interreflection : include the light an object bounces onto itself (True), or only
         light from the other objects as in the paper (False).
-    near_field : receiver points closer than ``near_field`` bounding radii to a source's centre
-        get that source's basis radiance by ray casting (:func:`basis_radiance_at`) instead of
-        the field's interpolation, when the pair is (re)computed (0: always interpolate, as the paper).
+    near_field : receiver points whose distance to a source's surface (its nearest vertex) is below
+        ``near_field`` times their distance to the source's centre get that source's basis radiance
+        by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation, when the
+        pair is (re)computed (0: always interpolate, as the paper).
     """
 
     order: int = 4
@@ -97,7 +98,7 @@ class InterreflectionOptions:
     threshold: float = 0.0
     pca_occluders: bool = True
     self_interreflection: bool = True
-    near_field: float = 1.0
+    near_field: float = 0.5
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution"))
@@ -145,9 +146,15 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     0.094 (0.22) with the bunny's shadow in it. The mean, SVD and sign convention are those
     of :func:`prtlab.pca.fit_pca_basis`.
     """
-    if not occluders:
+    v = np.asarray(mesh.vertices, float)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    distance = None
+    if not plane and np.mean(np.sum((v - centre) * np.asarray(mesh.vertex_normals), axis=1)) < 0:
+        # normals inward (a room): the training lights go inside it, not around it
+        distance = 0.8 * 0.5 * float(np.min(v.max(axis=0) - v.min(axis=0)))
+    if not occluders and distance is None:
         return pca.fit_pca_basis(mesh, n_basis, n_lights, plane=plane)
-    lights = pca.pca_light_positions(mesh, n_lights, plane=plane)
+    lights = pca.pca_light_positions(mesh, n_lights, distance, plane=plane)
     unshadowed = pca.point_light_intensity(mesh, lights, shadows=False)  # (L, V)
     points = np.asarray(mesh.vertices, float)
     normals = np.asarray(mesh.vertex_normals, float)
@@ -166,12 +173,13 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     training = (unshadowed * visible).T  # (V, L)
     mean = training.mean(axis=1)
     u, sv, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
-    comps = u[:, : n_basis - 1].T.copy()
+    rank = int(np.sum(sv > 1e-12 * max(float(sv[0]) if len(sv) else 0.0, 1e-300)))
+    comps = u[:, : min(n_basis - 1, rank)].T.copy()  # a rank-deficient training set gives fewer functions
     flip = np.sign(comps[np.arange(len(comps)), np.argmax(np.abs(comps), axis=1)])
     comps *= np.where(flip == 0, 1.0, flip)[:, None]
     basis = np.concatenate([mean[None], comps], axis=0)
     total = float(np.sum(sv * sv))
-    energy = np.concatenate([[0.0], np.cumsum(sv[: n_basis - 1] ** 2)]) / (total if total > 0 else 1.0)
+    energy = np.concatenate([[0.0], np.cumsum(sv[: len(comps)] ** 2)]) / (total if total > 0 else 1.0)
     samples = np.arange(len(points))
     return pca.PCABasis(basis, sv, energy, samples, lights, pca.WeightSolver.from_basis(basis, samples))
 
@@ -221,7 +229,7 @@ class Interreflection(Precomputation):
             basis = _pca_basis(mesh, n_basis, options.n_lights, _is_flat(mesh), occluders)
             sep = _separable(obj.material, options.K_glossy)
             field = basis_radiance_field(mesh, basis.basis, sep, oof.grid, options.order, options.degree)
-            own = np.zeros((len(points), sep.K, sep.K, n_basis))
+            own = np.zeros((len(points), sep.K, sep.K, basis.n_basis))
             if options.self_interreflection and not _is_flat(mesh):  # a plane sees none of itself
                 own = self_basis_irradiance(mesh, basis.basis, sep, points, normals, degree=options.degree)
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
@@ -244,6 +252,7 @@ class Interreflection(Precomputation):
         self.self_irradiance = {o.name: np.ascontiguousarray(data[o.name]["self_irradiance"], dtype=float)
                                 for o in self.objects}
         self._phi_cache: dict = {}
+        self._trees: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -340,9 +349,20 @@ class Interreflection(Precomputation):
                 lk += np.einsum("vki,ic->vkc", t, env_sh)
             for light in areas:
                 lk += np.einsum("vki,vic->vkc", t, area_light_sh(light, g["x"], order))
-            light_k[r.name] = lk
+            light_k[r.name] = self._clamp_diffuse(r, lk)
             radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
         return light_k, radiance
+
+    def _clamp_diffuse(self, obj, light):
+        """``max(L, 0)`` for a Lambertian object (K = 1: ``L`` is its irradiance over pi, never negative).
+
+        Order-n SH products of a small area light, a clamped cosine and a visibility ring
+        negative where the light is below a vertex's horizon: on the Fig. 9 bunny's
+        downward faces the order-4 direct light is -0.015 (Monte Carlo: +0.004), and that
+        negative light, reflected onto the floor, made the floor's one-bounce light 2.4x too
+        dark. Glossy terms (K > 1) may be negative by construction and are left alone.
+        """
+        return np.maximum(light, 0.0) if self.seps[obj.name].K == 1 else light
 
     def _pair_skipped(self, geo, r, s) -> bool:
         if self.options.threshold <= 0:
@@ -379,7 +399,12 @@ class Interreflection(Precomputation):
             return 0
         grid = self.fields[s.name].grid
         local = _to_object(x, T)
-        near = np.flatnonzero(np.linalg.norm(local - grid.center, axis=1) < self.options.near_field * grid.radius)
+        if s.name not in self._trees:
+            from scipy.spatial import cKDTree
+
+            self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
+        gap, _ = self._trees[s.name].query(local)  # distance to the source's nearest vertex
+        near = np.flatnonzero(gap < self.options.near_field * np.linalg.norm(local - grid.center, axis=1))
         if len(near) == 0:
             return 0
         order = self.options.order
@@ -469,6 +494,7 @@ class Interreflection(Precomputation):
                     lk = reflected_light(irradiance, source_weights)
                 else:
                     lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
             light_k = new_light
