@@ -38,7 +38,12 @@ Run-time lookup (:meth:`HaarOcclusionField.lookup`)
     interpolation of the integrals at the samples, second order in the grid
     spacing where those vary smoothly; nearest is first order (measured in
     the tests against ray casting). Points beyond the outermost sphere see
-    ``V = 1``; radii below the innermost are clamped to it.
+    ``V = 1``; radii below the innermost are clamped to it. Measured
+    (``tests/shadowfields/test_haar_accuracy.py``, slow test): a
+    ball of radius 0.5 one unit over 81 floor points, the Fig. 9 light, default
+    grid, relative RMS of the irradiance against Monte Carlo: trilinear 0.105,
+    nearest 0.222, the cubemap ray cast at the point itself (no field) 0.045,
+    and the SH path (order 4) 0.637.
 
 Rotation
     A turned object's visibility is ``V_world(w) = V_obj(R^T w)``: each world

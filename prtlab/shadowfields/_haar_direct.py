@@ -50,6 +50,16 @@ visibility differs from one of their 4 neighbours on the face, or is
 fractional), plus the Haar truncation, bounded by Cauchy-Schwarz with the
 stored ``energy_lost`` (exact storage gives 0).
 
+Measured accuracy (relative RMS of the direct light against ``prtlab.reference``)
+
+* ball over 81 floor points, Fig. 9 area light: Haar field 0.105 (ray-cast
+  cubemap at the point 0.045), SH order 4 0.637; point light: Haar field 0.281
+  (ray-cast cubemap 0.218: the hard edge within a texel), SH visibility toward
+  the light 0.631;
+* the interreflection pipeline's direct step on the bunny (1,839 vertices) on a
+  floor under the Fig. 9 light (the pipeline option ``shadows="haar"``):
+  bunny 0.013 against 0.207 with SH, floor 0.055 against 0.145.
+
 References
 ----------
 K. Zhou et al., "Precomputed shadow fields for dynamic scenes", SIGGRAPH 2005, Sec. 5.
