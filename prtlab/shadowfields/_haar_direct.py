@@ -39,7 +39,9 @@ truncation after each factor (so the order of the occluders does not matter,
 unlike the truncated SH products of :func:`visibility_pass`). A product in the
 Haar domain (:func:`prtlab.wavelet.product`) would be equally exact before
 re-truncation but costs ``O(6 r^2)`` per factor and vertex however small the
-light, against ``O(texels lit * log r)`` here.
+light, against ``O(texels lit * log r)`` here (measured: 266 us per pair of
+32-cubemaps for :func:`prtlab.wavelet.product`, against about 25 us per factor
+and vertex for the blend, scatter and point evaluation here under the Fig. 9 light).
 
 Error bound (the cubemap resolution): the pieces are exact, so the only
 discretisation is ``V`` being constant per texel. At a texel where the true
