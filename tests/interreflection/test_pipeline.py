@@ -223,3 +223,58 @@ def test_pca_basis_with_occluders_spans_their_shadows():
     assert np.any(shadowed < pca.point_light_intensity(floor, lights) - 1e-6)  # the box does shadow the floor
     np.testing.assert_allclose(with_shadow.approximate(shadowed), shadowed, atol=1e-10)
     assert np.max(np.abs(without.approximate(shadowed) - shadowed)) > 1e-3
+
+
+# --------------------------------------------------------------------------- whole scenes against Mitsuba 3
+
+#: The issue's goals: relative RMS of per-vertex radiance against Mitsuba at the default settings.
+GOAL = {"indirect": 0.15, "total": 0.05}
+_SCENES = __import__("pathlib").Path(__file__).resolve().parents[2] / "data" / "scenes"
+_DIRECT_SH = "order-4 SH direct light of the small area light (the shadow-field part, to be replaced by Haar)"
+_KNOWN = {  # measured (256 spp) with what limits them; strict: a fix makes them fail loudly
+    ("fig9", "bunny", "total"): f"0.15 (reference noise 0.019): the bunny's direct light is 0.15 off, {_DIRECT_SH}",
+    ("fig9", "floor", "total"): f"0.14 (noise 0.012): the floor's direct light is 0.14 off, {_DIRECT_SH}",
+    ("fig9", "floor", "indirect"): "0.67 (noise 0.50, about 0.43 without it): the bunny's light on the floor "
+                                   f"comes from its lower faces, where the {_DIRECT_SH} is worst",
+}
+
+
+def _whole_scene(name):
+    from prtlab.reference import shade_mitsuba
+
+    pytest.importorskip("mitsuba")
+    scene = prtlab.load_scene(_SCENES / f"interreflection_{name}.yaml")
+    ours = Interreflection.precompute(scene, progress=False).shade(bounces=1)
+    return scene, ours, shade_mitsuba(scene, bounces=1, spp=256, seed=0)
+
+
+@pytest.fixture(scope="module")
+def fig9_scene():
+    return _whole_scene("fig9")
+
+
+def _scored(scene, name):
+    """Vertices with a meaningful radiance: not the bottoms of objects standing on the floor."""
+    obj = scene.object(name)
+    if name.startswith(("floor", "wall")):
+        return np.ones(obj.n_vertices, bool)
+    return obj.world_vertices()[:, 1] > 0.01
+
+
+def _case(scene_name, obj, part):
+    key = (scene_name, obj, part)
+    marks = [pytest.mark.xfail(strict=True, reason=_KNOWN[key])] if key in _KNOWN else []
+    return pytest.param(obj, part, marks=marks, id=f"{obj}-{part}")
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("obj, part", [_case("fig9", o, p) for o in ("bunny", "floor") for p in GOAL])
+def test_fig9_against_mitsuba(fig9_scene, obj, part):
+    """Bound: the goal plus the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
+    scene, ours, ref = fig9_scene
+    m = _scored(scene, obj)
+    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
+    scale = np.sqrt(np.mean(b**2))
+    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
+    assert rms <= GOAL[part] + noise, (rms, noise)
