@@ -237,6 +237,7 @@ def test_glossy_and_per_bounce_shading():
         pre.view_directions(Camera(position=pre.scene.object("block").world_shading_points()[0]))
 
 
+@pytest.mark.slow  # a LocalCluster of 2 processes: 10 s on an idle machine, 35 s on a busy one
 def test_dask_workers_match_serial(tmp_path, monkeypatch):
     """``prtlab.api.precompute(scene, method="portals", workers=2)`` (``prtlab precompute --workers 2``): chunks
     on a Dask LocalCluster give the serial data."""
