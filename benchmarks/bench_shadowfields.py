@@ -3,8 +3,9 @@
 Scenes: a bunny (the first 4,096 vertices of the once-subdivided built-in bunny; quick mode 1,024) under
 a 0.6 x 0.6 area light 2.5 units up (the Fig. 9 light), shadowed by itself and 1 or 3 balls; a
 224 x 224 floor (50,176 vertices; quick mode 64 x 64) under the bunny and 2 balls. Occlusion fields
-are precomputed once per process with a reduced grid (8 spheres x 6 x 8 x 8 points, 32^2-texel faces,
-512 coefficients): the per-frame cost depends on the cubemap resolution and ``keep``, not on the grid.
+are precomputed once per process with a reduced grid (8 spheres x 6 x 8 x 8 points, quick mode 4 x 6 x 4 x 4;
+32^2-texel faces, 512 coefficients): the per-frame cost depends on the cubemap resolution and ``keep``, not
+on the grid.
 The peer of the bunny case is the SH path (order 4: visibility products, area-light SH, triple
 integral) on the same vertices.
 """
@@ -17,7 +18,7 @@ from prtlab.bench import case
 
 _DATA: dict = {}
 LIGHT = {"center": [0.0, 2.5, 0.0], "u": [0.3, 0.0, 0.0], "v": [0.0, 0.0, 0.3], "radiance": [10.0, 10.0, 10.0]}
-GRID = dict(n_radii=8, grid_resolution=8)
+GRID = {True: {"n_radii": 4, "grid_resolution": 4}, False: {"n_radii": 8, "grid_resolution": 8}}
 
 
 def _light():
@@ -26,20 +27,20 @@ def _light():
     return AreaLight(**{k: np.asarray(v, float) for k, v in LIGHT.items()})
 
 
-def _ball_field():
-    if "ball" not in _DATA:
+def _ball_field(quick: bool):
+    if ("ball", quick) not in _DATA:
         from prtlab.geometry import builtin_mesh
         from prtlab.shadowfields import haar_occlusion_field
 
         mesh = builtin_mesh("icosphere", radius=0.3, subdivisions=3)
-        _DATA["ball"] = (mesh, haar_occlusion_field(mesh, **GRID))
-    return _DATA["ball"]
+        _DATA["ball", quick] = (mesh, haar_occlusion_field(mesh, **GRID[quick]))
+    return _DATA["ball", quick]
 
 
-def _balls(n: int):
+def _balls(n: int, quick: bool):
     from prtlab.scene import Transform
 
-    _, field = _ball_field()
+    _, field = _ball_field(quick)
     spots = [(0.0, 1.5, 0.0), (0.8, 0.8, 0.3), (-0.7, 1.2, -0.4)]
     return [(field, Transform(translate=np.array(p))) for p in spots[:n]]
 
@@ -86,11 +87,12 @@ def _sh_peer(quick: bool, n_occ: int):
     mesh, x, n, _ = _bunny(quick)
     key = ("sh", quick)
     if key not in _DATA:
-        ball_mesh, _ = _ball_field()
-        _DATA[key] = (occlusion_field(ball_mesh, 4, n_radii=8, resolution=8),
+        ball_mesh, _ = _ball_field(quick)
+        grid = GRID[quick]
+        _DATA[key] = (occlusion_field(ball_mesh, 4, n_radii=grid["n_radii"], resolution=grid["grid_resolution"]),
                       project_visibility(RayCaster([(mesh.vertices, mesh.faces)]), x, 4, normals=n))
     oof, own = _DATA[key]
-    T = [t for _, t in _balls(n_occ)]
+    T = [t for _, t in _balls(n_occ, quick)]
     sep = brdf.separable(brdf.lambert(np.full(3, 0.7)), 1)
     g = brdf.project_g_cos(sep, n, 4)
     light = _light()
@@ -106,13 +108,13 @@ def _sh_peer(quick: bool, n_occ: int):
 def haar_bunny_one(quick: bool) -> dict:
     """Self-visibility x 1 ball field, area light: per-vertex pieces, point-evaluated Haar products."""
     _, x, n, sv = _bunny(quick)
-    return _haar_case(x, n, sv, _balls(1), [_light()], peer=_sh_peer(quick, 1))
+    return _haar_case(x, n, sv, _balls(1, quick), [_light()], peer=_sh_peer(quick, 1))
 
 
 @case("shadowfields.haar_direct.bunny4k.area.3occluders")
 def haar_bunny_three(quick: bool) -> dict:
     _, x, n, sv = _bunny(quick)
-    return _haar_case(x, n, sv, _balls(3), [_light()], peer=_sh_peer(quick, 3))
+    return _haar_case(x, n, sv, _balls(3, quick), [_light()], peer=_sh_peer(quick, 3))
 
 
 @case("shadowfields.haar_direct.bunny4k.environment.1occluder")
@@ -123,7 +125,7 @@ def haar_bunny_env(quick: bool) -> dict:
     _, x, n, sv = _bunny(quick)
     m = 256 if quick else len(x)
     env = EnvironmentLight(constant=np.ones(3))
-    return _haar_case(x[:m], n[:m], _subset(sv, m), _balls(1), [env])
+    return _haar_case(x[:m], n[:m], _subset(sv, m), _balls(1, quick), [env])
 
 
 def _subset(sv, m):
@@ -141,9 +143,9 @@ def haar_floor(quick: bool) -> dict:
 
     side = 64 if quick else 224
     floor = builtin_mesh("plane", size=[4, 4], resolution=[side - 1, side - 1])
-    if "bunny_field" not in _DATA:
-        _DATA["bunny_field"] = haar_occlusion_field(builtin_mesh("bunny"), **GRID)
-    occ = [(_DATA["bunny_field"], Transform())] + _balls(3)[1:]
+    if ("bunny_field", quick) not in _DATA:
+        _DATA["bunny_field", quick] = haar_occlusion_field(builtin_mesh("bunny"), **GRID[quick])
+    occ = [(_DATA["bunny_field", quick], Transform())] + _balls(3, quick)[1:]
     x = np.asarray(floor.vertices, float)
     n = np.tile([0.0, 1.0, 0.0], (len(x), 1))
     return _haar_case(x, n, None, occ, [_light()])

@@ -159,6 +159,13 @@ def texel_moments(resolution: int) -> np.ndarray:
     return _texel_moments(_check_resolution(resolution))
 
 
+def _lambert_g(sep):
+    """The constant ``g`` of a one-term Lambertian ``sep`` (constant to rounding), else None."""
+    if sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(sep.g_radial) <= 1e-12 * np.abs(sep.g_radial).max():
+        return float(np.mean(sep.g_radial))
+    return None
+
+
 def _g_cos(sep, dirs, normals, lengths=None) -> np.ndarray:
     """``g_k(local(d)) max(0, n . d)`` (times ``lengths``: |m| for moments) for dirs (V, P, 3) -> (V, P, K)."""
     from prtlab.brdf import local_frame
@@ -168,10 +175,9 @@ def _g_cos(sep, dirs, normals, lengths=None) -> np.ndarray:
     cos = np.maximum(np.einsum("vpi,vi->vp", unit, normals), 0.0)
     if lengths is not None:
         cos = cos * lengths
-    # a Lambertian term is constant (to rounding): skip the evaluation of g
-    lambert = sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(sep.g_radial) <= 1e-12 * np.abs(sep.g_radial).max()
-    if lambert:
-        return (cos * float(np.mean(sep.g_radial)))[..., None]
+    g0 = _lambert_g(sep)
+    if g0 is not None:
+        return (cos * g0)[..., None]
     R = local_frame(normals)  # world = R local
     local = np.einsum("vji,vpj->vpi", R, unit)
     return sep.g(local) * cos[..., None]
@@ -450,17 +456,36 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
     if nv == 0:
         return out
     factors = _factors(points, self_visibility, self_transform, occluders, interpolation, res)
-    # pieces per vertex, known before the chunking: bound by a cheap first pass of the lights
-    per_vertex = 4 + sum(6 * res * res if isinstance(li, EnvironmentLight) else 64 for li in lights)
+    # environments take a dense path (every texel lit, the light shared by all vertices) in the fast tier;
+    # the reference tier runs every light through light_pieces and haar_direct_pass (the specification)
+    fast_env = method == "numba"
+    envs = [li for li in lights if isinstance(li, EnvironmentLight)] if fast_env else []
+    local = [li for li in lights if not (fast_env and isinstance(li, EnvironmentLight))]
+    n_tex = 6 * res * res
+    per_vertex = 4 + 64 * len(local) + sum(n_tex for li in lights if isinstance(li, EnvironmentLight))
     step = max(1, _PIECES_PER_CHUNK // per_vertex)
+    cubes = [environment_cubemap(li, res).reshape(n_tex, 3) for li in envs]
+    moments = texel_moments(res) if envs else None
     for a in range(0, nv, step):
         b = min(nv, a + step)
-        texel, gw, rad, count = light_pieces(lights, points[a:b], normals[a:b], sep, res)
-        if texel.shape[1] == 0:
-            continue
         chunk = [(t, c[a:b], w[a:b], m) for t, c, w, m in factors]
-        vis = haar_visibility_pass(texel, chunk, res, method=method)
-        out[a:b] = haar_direct_pass(vis, gw, rad, count, method=method)
+        if local:
+            texel, gw, rad, count = light_pieces(local, points[a:b], normals[a:b], sep, res)
+            if texel.shape[1]:
+                vis = haar_visibility_pass(texel, chunk, res, method=method)
+                out[a:b] += haar_direct_pass(vis, gw, rad, count, method=method)
+        if envs:
+            query = np.ascontiguousarray(np.broadcast_to(np.arange(n_tex), (b - a, n_tex)))
+            vis = haar_visibility_pass(query, chunk, res, method=method)
+            g0 = _lambert_g(sep)
+            if g0 is not None:  # int_texel g cos = g max(0, n . m_t): one matrix product
+                gc = (g0 * np.maximum(normals[a:b] @ moments.T, 0.0))[:, :, None]
+            else:
+                gc = _g_cos(sep, np.broadcast_to(moments, (b - a, n_tex, 3)), normals[a:b],
+                            np.linalg.norm(moments, axis=1)[None, :])  # (v, t, K)
+            for cube in cubes:
+                for k in range(sep.K):
+                    out[a:b, k] += (vis * gc[:, :, k]) @ cube
     return out
 
 
