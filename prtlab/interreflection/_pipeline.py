@@ -58,7 +58,7 @@ from prtlab.shadowfields import (
 )
 
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
-from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
+from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -253,6 +253,7 @@ class Interreflection(Precomputation):
                                 for o in self.objects}
         self._phi_cache: dict = {}
         self._trees: dict = {}
+        self._stack_cache: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -450,6 +451,28 @@ class Interreflection(Precomputation):
                 computed += 1
         return phi, {"computed_pairs": computed, "skipped_pairs": skipped, "reused_pairs": reused}
 
+    def _stacked_irradiance(self, r, phi_r):
+        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r``, rebuilt only when a pair changed.
+
+        The bounce loop then is one matrix product per receiver and bounce
+        (:func:`reflected_light` with ``method="reference"`` is the specification).
+        """
+        sources = list(phi_r)
+        arrays = [phi_r[s] for s in sources]
+        if self.options.self_interreflection:
+            sources.append(r.name)
+            arrays.append(self.self_irradiance[r.name])
+        key = tuple(id(a) for a in arrays)
+        cached = self._stack_cache.get(r.name)
+        if cached is not None and cached[0] == key:
+            return cached[2], sources
+        if not arrays:
+            return None, sources
+        n_v, n_kp = arrays[0].shape[:2]
+        stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2))
+        self._stack_cache[r.name] = (key, arrays, stacked)  # the arrays are kept so that their ids stay theirs
+        return stacked, sources
+
     def _pose_key(self, state: FrameState):
         camera = state.camera or self.scene.camera
         poses = tuple((o.name, tuple(state.transforms.get(o.name, o.transform).matrix().ravel()))
@@ -483,15 +506,12 @@ class Interreflection(Precomputation):
             t0 = time.perf_counter()
             new_light = {}
             for r in self.objects:
-                sources = list(phi[r.name])
                 g = geo[r.name]
-                irradiance = [phi[r.name][s] for s in sources]
-                source_weights = [weights[s] for s in sources]
-                if self.options.self_interreflection:
-                    irradiance.append(self.self_irradiance[r.name])
-                    source_weights.append(weights[r.name])
-                if irradiance:
-                    lk = reflected_light(irradiance, source_weights)
+                stacked, sources = self._stacked_irradiance(r, phi[r.name])
+                if sources:
+                    # Eq. 12 before h: every source's (k, i) side by side, one (V K', M) x (M, C) product
+                    w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                    lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
                 else:
                     lk = np.zeros(g["g_cos"].shape[:2] + (3,))
                 lk = self._clamp_diffuse(r, lk)

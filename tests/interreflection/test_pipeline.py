@@ -278,3 +278,23 @@ def test_fig9_against_mitsuba(fig9_scene, obj, part):
     scale = np.sqrt(np.mean(b**2))
     rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
     assert rms <= GOAL[part] + noise, (rms, noise)
+
+
+def test_bounce_pass_equals_the_reference_tier(pre):
+    """The pipeline's stacked bounce product equals :func:`reflected_light` (reference tier) term by term."""
+    from prtlab.interreflection import fit_weights, outgoing_radiance, reflected_light
+
+    ir = Interreflection(pre.scene, pre.options, pre.data)
+    res = ir.shade(bounces=1)
+    state = FrameState.from_scene(pre.scene)
+    geo = ir._frame_geometry(state)
+    occ = ir._occlusion(geo)
+    light_k, _ = ir.direct_step(state, geo, ir.direct_transfer(geo, occ))
+    phi, _ = ir.basis_irradiance_step(geo, occ)
+    weights = {o.name: fit_weights(ir.bases[o.name], light_k[o.name], ir.seps[o.name].colour) for o in ir.objects}
+    for r in ir.objects:
+        sources = [*phi[r.name], r.name]
+        lk = reflected_light([*phi[r.name].values(), ir.self_irradiance[r.name]], [weights[s] for s in sources],
+                             method="reference")
+        expected = outgoing_radiance(np.maximum(lk, 0.0), geo[r.name]["h"], ir.seps[r.name].colour)
+        np.testing.assert_allclose(res.indirect[r.name], expected, rtol=1e-10, atol=1e-14)
