@@ -254,6 +254,7 @@ class Interreflection(Precomputation):
         self._phi_cache: dict = {}
         self._trees: dict = {}
         self._stack_cache: dict = {}
+        self._area_cache: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -348,9 +349,17 @@ class Interreflection(Precomputation):
             lk = np.zeros(t.shape[:2] + (3,))
             if env_sh is not None:
                 lk += np.einsum("vki,ic->vkc", t, env_sh)
-            for light in areas:
-                lk += np.einsum("vki,vic->vkc", t, area_light_sh(light, g["x"], order))
-            light_k[r.name] = self._clamp_diffuse(r, lk)
+            for i, light in enumerate(areas):
+                # a light that did not change since the last frame of the same poses is not recomputed
+                key = (id(t), *(np.asarray(getattr(light, f), float).tobytes()
+                                for f in ("center", "u", "v", "radiance")))
+                cached = self._area_cache.get((r.name, i))
+                if cached is None or cached[0] != key:
+                    cached = (key, t, np.einsum("vki,vic->vkc", t, area_light_sh(light, g["x"], order)))
+                    self._area_cache[(r.name, i)] = cached  # t is kept so that id(t) stays its own
+                lk += cached[2]
+            lk = self._clamp_diffuse(r, lk)
+            light_k[r.name] = lk
             radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
         return light_k, radiance
 

@@ -298,3 +298,30 @@ def test_bounce_pass_equals_the_reference_tier(pre):
                              method="reference")
         expected = outgoing_radiance(np.maximum(lk, 0.0), geo[r.name]["h"], ir.seps[r.name].colour)
         np.testing.assert_allclose(res.indirect[r.name], expected, rtol=1e-10, atol=1e-14)
+
+
+def test_relighting_reuses_unchanged_area_lights_and_equals_a_fresh_shade(pre):
+    """An area light that did not move is not re-projected; one that moved is, and both equal a fresh shade."""
+    from prtlab.scene import AreaLight
+
+    sc = pre.scene
+    light = AreaLight(center=np.array([0.2, 2.0, 0.1]), u=np.array([0.3, 0, 0]), v=np.array([0, 0, 0.3]),
+                      radiance=np.full(3, 5.0))
+    state = FrameState.from_scene(sc)
+    state.lights = [*sc.lights, light]
+    ir = Interreflection(sc, pre.options, pre.data)
+    ir.shade(state, bounces=1)
+    before = dict(ir._area_cache)
+    state.lights = [type(sc.lights[0])(image=sc.lights[0].image * 0.5), light]
+    again = ir.shade(state, bounces=1)
+    assert all(ir._area_cache[k] is before[k] for k in before)  # reused
+    moved = AreaLight(center=np.array([0.0, 2.2, 0.1]), u=light.u, v=light.v, radiance=light.radiance)
+    state.lights = [state.lights[0], moved]
+    third = ir.shade(state, bounces=1)
+    assert all(ir._area_cache[k] is not before[k] for k in before)  # recomputed
+    for res, lights in ((again, [state.lights[0], light]), (third, state.lights)):
+        fresh_state = FrameState.from_scene(sc)
+        fresh_state.lights = list(lights)
+        fresh = Interreflection(sc, pre.options, pre.data).shade(fresh_state, bounces=1)
+        for name in ("floor", "ball"):
+            np.testing.assert_allclose(res.total[name], fresh.total[name], rtol=1e-12, atol=1e-15)
