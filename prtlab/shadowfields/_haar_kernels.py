@@ -251,6 +251,19 @@ def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane
     return m
 
 
+@numba.njit(cache=True)
+def _clip_slab(poly, n, axis, dir_ax, lo, hi, out, buf, plane):
+    """Clip to the slab ``lo <= (x . dir_ax) / (x . axis) <= hi`` of a face (two planes); result in ``out``."""
+    for c in range(3):
+        plane[c] = dir_ax[c] - lo * axis[c]
+    m = _clip(poly, n, plane, buf)
+    if m == 0:
+        return 0
+    for c in range(3):
+        plane[c] = hi * axis[c] - dir_ax[c]
+    return _clip(buf, m, plane, out)
+
+
 @numba.njit(cache=True, parallel=True)
 def area_light_count_kernel(points, normals, corners, light_normal, frames, res, count):
     """Upper bound of the texels an area light covers at each point (bounding texel ranges per face)."""
@@ -267,7 +280,7 @@ def area_light_count_kernel(points, normals, corners, light_normal, frames, res,
                                   plane)
                 if m >= 3:
                     j0, j1, i0, i1 = _face_range(tmp, m, frames[f, 0], frames[f, 1], frames[f, 2], res)
-                    total += (j1 - j0 + 1) * (i1 - i0 + 1)
+                    total += (j1 - j0 + 3) * (i1 - i0 + 1)  # +2 columns: rows may round outward
         count[v] = total
 
 
@@ -286,6 +299,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
         tmp = np.empty((16, 3))
         buf = np.empty((16, 3))
         cell = np.empty((16, 3))
+        row = np.empty((16, 3))
         mom = np.empty(3)
         plane = np.empty(3)
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
@@ -297,17 +311,21 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                 if m < 3:
                     continue
                 j0, j1, i0, i1 = _face_range(tmp, m, axis, s_ax, t_ax, res)
-                for i in range(i0, i1 + 1):
+                for i in range(i0, i1 + 1):  # one row strip of the face, then its texels
                     t0 = 2.0 * i / res - 1.0
                     t1 = 2.0 * (i + 1) / res - 1.0
-                    for j in range(j0, j1 + 1):
+                    mr = _clip_slab(tmp, m, axis, t_ax, t0, t1, row, buf, plane)
+                    if mr < 3:
+                        continue
+                    r0, r1, _, _ = _face_range(row, mr, axis, s_ax, t_ax, res)
+                    for j in range(r0, r1 + 1):
                         s0 = 2.0 * j / res - 1.0
                         s1 = 2.0 * (j + 1) / res - 1.0
-                        mc = _clip_to_cell(tmp, m, axis, s_ax, t_ax, s0, s1, t0, t1, cell, buf, plane)
+                        mc = _clip_slab(row, mr, axis, s_ax, s0, s1, cell, buf, plane)
                         if mc < 3:
                             continue
                         om = _solid_angle_moment(cell, mc, mom)
-                        if om <= 0.0:
+                        if om <= 0.0 or k >= texel.shape[1]:  # (the count kernel's bound holds every piece)
                             continue
                         texel[v, k] = f * rr + i * res + j
                         omega[v, k] = om
