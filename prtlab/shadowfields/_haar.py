@@ -150,7 +150,7 @@ class SparseCubemaps:
     indices : (..., keep) int32
         Flat coefficient indices ``f r^2 + i r + j`` in the :func:`prtlab.wavelet.haar2d` layout.
     values : (..., keep) float64
-        The coefficients (zero-padded where fewer are non-zero).
+        The coefficients, largest magnitude first (zeros last, where fewer are non-zero).
     energy_lost : (...) float64
         ``sum`` of the squared dropped coefficients (``= sum`` over texels of the
         squared reconstruction error, by Parseval): 0 where the storage is exact.
@@ -205,8 +205,10 @@ def encode_sparse(cubemaps, keep: int = DEFAULT_KEEP) -> SparseCubemaps:
     Returns
     -------
     SparseCubemaps
-        Indices sorted increasingly within each cubemap. The kept set is that of
-        :func:`prtlab.wavelet.keep_largest` (largest ``|c|``; ties may differ).
+        Coefficients in order of decreasing magnitude within each cubemap, so the
+        zero ones (slots not needed) come last and kernels stop at the first zero.
+        The kept set is that of :func:`prtlab.wavelet.keep_largest` (largest ``|c|``;
+        ties may differ).
     """
     keep = _check_int(keep, "keep", 1, "Haar coefficients kept per cubemap")
     cubes = np.asarray(cubemaps, dtype=np.float64)
@@ -223,8 +225,10 @@ def encode_sparse(cubemaps, keep: int = DEFAULT_KEEP) -> SparseCubemaps:
         part = np.argpartition(-np.abs(coeffs), k - 1, axis=1)[:, :k]
     else:
         part = np.broadcast_to(np.arange(n), coeffs.shape)
-    idx = np.sort(part, axis=1)
-    vals = np.take_along_axis(coeffs, idx, axis=1)
+    vals = np.take_along_axis(coeffs, part, axis=1)
+    order = np.argsort(-np.abs(vals), axis=1, kind="stable")  # largest first: zeros (unused slots) last
+    idx = np.take_along_axis(part, order, axis=1)
+    vals = np.take_along_axis(vals, order, axis=1)
     lost = np.maximum(np.einsum("bn,bn->b", coeffs, coeffs) - np.einsum("bk,bk->b", vals, vals), 0.0)
     if k < keep:  # pad so every SparseCubemaps of one `keep` has the same width
         idx = np.concatenate([idx, np.zeros((len(idx), keep - k), dtype=idx.dtype)], axis=1)

@@ -82,7 +82,8 @@ def haar_synthesis(dense, res, out, work):
 def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, n_blocks, vis):
     """Multiply one factor's visibility into ``vis`` at each vertex's query texels.
 
-    tab_idx, tab_val : (P, keep) int32, float64 -- sparse Haar coefficients of the P samples
+    tab_idx, tab_val : (P, keep) int32, float64 -- sparse Haar coefficients of the P samples, largest
+        magnitude first (the loop over a sample's coefficients stops at its first zero)
     corners, weights : (V, 8) int64, float64 -- samples blended at each vertex (all weights 0: V = 1)
     texel_map : (6 r^2,) int64 -- world texel -> texel of the factor's own frame (rotation)
     query : (V, T) int64 world texels; count : (V,) int64 used entries; vis : (V, T) in/out
@@ -109,6 +110,8 @@ def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, quer
                     continue
                 p = corners[v, c]
                 for k in range(keep):
+                    if tab_val[p, k] == 0.0:  # stored largest first: the rest are unused slots
+                        break
                     dense[tab_idx[p, k]] += w * tab_val[p, k]
             m = count[v]
             if 4 * m > n:
@@ -122,6 +125,8 @@ def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, quer
                 if weights[v, c] != 0.0:
                     p = corners[v, c]
                     for k in range(keep):
+                        if tab_val[p, k] == 0.0:
+                            break
                         dense[tab_idx[p, k]] = 0.0
 
 
