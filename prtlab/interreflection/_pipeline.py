@@ -128,7 +128,7 @@ class InterreflectionOptions:
             raise ValueError(f"option near_field must be a finite number >= 0, got {self.near_field!r}")
         for name in ("pca_occluders", "self_interreflection"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"option {name} must be True or False, got {getattr(self, name)!r}")
+                raise TypeError(f"option {name} must be True or False, got {getattr(self, name)!r}")
 
 
 def _is_flat(mesh) -> bool:

@@ -195,7 +195,7 @@ def test_near_field_receivers_get_the_ray_cast_basis_radiance(pre):
     np.testing.assert_allclose(phi_far["ball"]["floor"], interpolated, atol=1e-12)
     with pytest.raises(ValueError, match="option near_field must be"):
         InterreflectionOptions(near_field=-1.0)
-    with pytest.raises(ValueError, match="option pca_occluders must be True or False"):
+    with pytest.raises(TypeError, match="option pca_occluders must be True or False"):
         InterreflectionOptions(pca_occluders=1)
 
 
