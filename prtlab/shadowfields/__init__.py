@@ -1,5 +1,6 @@
 """Zhou et al. 2005 shadow fields: object occlusion fields on concentric spheres, self-visibility,
-run-time visibility products and direct illumination per vertex.
+run-time visibility products and direct illumination per vertex; in SH (low frequency) and as
+sparse Haar cubemaps (all frequency: :func:`haar_direct`, with exact area-light pieces and point lights).
 
 Used by :mod:`prtlab.interreflection` (Iwasaki et al. 2007) for visibility and
 the sample-sphere grid of its basis radiance fields.
