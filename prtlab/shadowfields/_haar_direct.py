@@ -52,6 +52,11 @@ visibility differs from one of their 4 neighbours on the face, or is
 fractional), plus the Haar truncation, bounded by Cauchy-Schwarz with the
 stored ``energy_lost`` (exact storage gives 0).
 
+Cost (``benchmarks/bench_shadowfields.py``, one thread of a shared machine): about 130-150 us per
+vertex under the Fig. 9 light with 1-3 occluders (the SH path: 30), 60 % in the exact clipping of
+the light's pieces and 35 % in the visibility products; 0.5 ms per vertex under an environment
+(every texel lit: one synthesis per factor and vertex).
+
 Measured accuracy (relative RMS of the direct light against ``prtlab.reference``)
 
 * ball over 81 floor points, Fig. 9 area light: Haar field 0.105 (ray-cast
