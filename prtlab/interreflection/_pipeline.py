@@ -395,20 +395,29 @@ class Interreflection(Precomputation):
         return np.maximum(light, 0.0) if self.seps[obj.name].K == 1 else light
 
     def _pair_skipped(self, geo, r, s) -> bool:
-        if self.options.threshold <= 0:
-            return False
+        return self.options.threshold > 0 and self.pair_importance(geo, r, s) < self.options.threshold
+
+    def pair_importance(self, geo, r, s) -> float:
+        """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on receiver ``r``.
+
+        The basis irradiance of a plane at the receiver's bounding-sphere centre facing the
+        source's centre (unoccluded), from the interpolated basis radiance field. A receiver vertex ``x`` at most ``R_r`` from that centre,
+        with the source ``d`` away, sees the source's radiance over a solid angle at most
+        ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
+        (visibility only lowers it), up to the SH truncation of both sides.
+        """
         gs, gr = geo[s.name], geo[r.name]
         wc = gs["center"] - gr["center"]
         dist = np.linalg.norm(wc)
         if dist == 0:
-            return False
+            return np.inf
         wc /= dist
-        g_c = brdf.project_g_cos(self.seps[r.name], wc, self.options.order)  # (K', n2)
-        local = ((gr["center"] - gs["T"].translate) @ gs["T"].rotation) / float(gs["T"].scale)
-        s_c = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[None],
-                                self.options.order, self.options.degree)[0]  # (K, N, n2)
-        g_obj = sh.rotate(g_c, gs["T"].rotation.T, channels=False)
-        return float(np.max(np.abs(np.einsum("kni,pi->pkn", s_c, g_obj)))) < self.options.threshold
+        g_c = brdf.project_g_cos(self.seps[r.name], wc, self.options.order)  # (K', n2), world frame
+        # S at the centre as the basis irradiance sees it: the field's interpolation (with its 1 / r^2
+        # beyond the outermost sphere), not a ray-cast quadrature that may miss a small, far source
+        phi_c = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid,
+                                 gr["center"][None], g_c[None], gs["T"])
+        return float(np.max(np.abs(phi_c)))
 
     def _reaches(self, geo, o, r) -> bool:
         """Whether the occlusion field of ``o`` can reach a vertex of ``r`` (else its lookup is 1 there)."""

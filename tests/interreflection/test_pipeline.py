@@ -352,3 +352,39 @@ def test_room_against_mitsuba(room_scene, obj, part):
     scale = np.sqrt(np.mean(b**2))
     rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
     assert rms <= GOAL[part] + noise, (rms, noise)
+
+
+def test_threshold_skips_a_far_object_and_its_skipped_light_is_below_the_bound(pre):
+    """Sec. 5.4 with a real threshold: a ball 30 units away. Its pairs (both ways) have an ``I_c`` far
+    below the near pairs'; a threshold between them skips exactly those four pairs, and the basis
+    irradiance they would have given is below ``I_c (d / (d - R_r))^2`` at every receiver vertex
+    (:meth:`Interreflection.pair_importance`; 5 % on top for the SH truncation of both sides)."""
+    import dataclasses
+
+    from prtlab.scene import SceneObject
+
+    base = pre.scene
+    far = SceneObject("far", base.object("ball").mesh, Transform(translate=np.array([30.0, 0.7, 0.0])),
+                      base.object("ball").material)
+    sc = type(base)(objects=[*base.objects, far], lights=base.lights, camera=base.camera)
+    data = {**pre.data, "far": pre.data["ball"]}
+    full = Interreflection(sc, pre.options, data)
+    state = FrameState.from_scene(sc)
+    geo = full._frame_geometry(state)
+    occ = full._occlusion(geo)
+    phi, _ = full.basis_irradiance_step(geo, occ)
+    imp = {(r.name, s.name): full.pair_importance(geo, r, s) for r in full.objects for s in full.objects if r is not s}
+    far_pairs = {k for k in imp if "far" in k}
+    assert max(imp[k] for k in far_pairs) < 1e-2 * min(imp[k] for k in imp if k not in far_pairs)
+    threshold = np.sqrt(max(imp[k] for k in far_pairs) * min(imp[k] for k in imp if k not in far_pairs))
+    assert threshold > 0
+    cut = Interreflection(sc, dataclasses.replace(pre.options, threshold=float(threshold)), data)
+    res = cut.shade(state, bounces=1)
+    assert res.info["skipped_pairs"] == 4 and res.info["computed_pairs"] == 2, (res.info, imp, threshold, cut.options)
+    for r_name, s_name in far_pairs:
+        gr, gs = geo[r_name], geo[s_name]
+        d = np.linalg.norm(gs["center"] - gr["center"])
+        radius = np.max(np.linalg.norm(gr["x"] - gr["center"], axis=1))
+        bound = imp[r_name, s_name] * (d / (d - radius)) ** 2
+        assert np.max(np.abs(phi[r_name][s_name])) <= 1.05 * bound
+    np.testing.assert_array_equal(res.indirect["far"], 0.0)
