@@ -155,6 +155,15 @@ def _texel_moments(res: int) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=4)
+def _texel_omega(res: int) -> np.ndarray:
+    from prtlab.geometry import cubemap_solid_angles
+
+    out = np.ascontiguousarray(cubemap_solid_angles(res).reshape(-1))
+    out.setflags(write=False)
+    return out
+
+
 def texel_moments(resolution: int) -> np.ndarray:
     """(6 r^2, 3) exact moments ``int_texel w dw`` of the cubemap texels (Lambert's edge formula).
 
@@ -259,7 +268,8 @@ def light_pieces(lights, points, normals, sep, resolution: int):
             omega = np.zeros((nv, tmax))
             moment = np.zeros((nv, tmax, 3))
             if nv:
-                hk.area_light_pieces_kernel(points, normals, corners, ln, frames, res, texel, omega, moment, count)
+                hk.area_light_pieces_kernel(points, normals, corners, ln, frames, res, _texel_omega(res),
+                                            texel_moments(res), texel, omega, moment, count)
             length = np.linalg.norm(moment, axis=-1)
             texels.append(texel)
             gws.append(_g_cos(sep, moment, normals, length))

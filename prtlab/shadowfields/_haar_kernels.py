@@ -290,16 +290,21 @@ def area_light_count_kernel(points, normals, corners, light_normal, frames, res,
 
 
 @numba.njit(cache=True, parallel=True)
-def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res, texel, omega, moment, count):
+def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res, texel_omega, texel_moment,
+                             texel, omega, moment, count):
     """Exact partial coverage of the texels by an area light at each point.
 
     For every texel the light's quad (clipped to the point's upper hemisphere) meets,
     the piece ``texel pyramid x light``: its world texel, solid angle and moment
-    ``int w dw`` (exact for a convex polygon). ``texel, omega, moment`` are
+    ``int w dw`` (exact for a convex polygon). A texel whose 4 corner directions lie
+    inside the light's cone is whole: its tabulated ``texel_omega`` (6 r^2,) and
+    ``texel_moment`` (6 r^2, 3) are used without clipping. ``texel, omega, moment`` are
     ``(V, T_max)``, ``(V, T_max)``, ``(V, T_max, 3)``; ``count`` (V,) gets the pieces found.
     """
     rr = res * res
     for v in numba.prange(points.shape[0]):
+        edge = np.empty((16, 3))
+        corner = np.empty(3)
         poly = np.empty((16, 3))
         tmp = np.empty((16, 3))
         buf = np.empty((16, 3))
@@ -309,6 +314,23 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
         plane = np.empty(3)
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
         k = 0
+        if n > 0:
+            # inward normals of the light cone's faces (planes through the point and an edge)
+            c0 = c1 = c2 = 0.0
+            for e in range(n):
+                c0 += poly[e, 0]
+                c1 += poly[e, 1]
+                c2 += poly[e, 2]
+            orient = 0.0
+            for e in range(n):
+                a, b = poly[e], poly[(e + 1) % n]
+                edge[e, 0] = a[1] * b[2] - a[2] * b[1]
+                edge[e, 1] = a[2] * b[0] - a[0] * b[2]
+                edge[e, 2] = a[0] * b[1] - a[1] * b[0]
+                orient += edge[e, 0] * c0 + edge[e, 1] * c1 + edge[e, 2] * c2
+            if orient < 0.0:
+                for e in range(n):
+                    edge[e, 0], edge[e, 1], edge[e, 2] = -edge[e, 0], -edge[e, 1], -edge[e, 2]
         if n > 0:
             for f in range(6):
                 axis, s_ax, t_ax = frames[f, 0], frames[f, 1], frames[f, 2]
@@ -326,6 +348,27 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                     for j in range(r0, r1 + 1):
                         s0 = 2.0 * j / res - 1.0
                         s1 = 2.0 * (j + 1) / res - 1.0
+                        whole = True
+                        for q in range(4):
+                            sc = s0 if q % 2 == 0 else s1
+                            tc = t0 if q < 2 else t1
+                            for c in range(3):
+                                corner[c] = axis[c] + sc * s_ax[c] + tc * t_ax[c]
+                            for e in range(n):
+                                if edge[e, 0] * corner[0] + edge[e, 1] * corner[1] + edge[e, 2] * corner[2] < 0.0:
+                                    whole = False
+                                    break
+                            if not whole:
+                                break
+                        if whole:
+                            if k < texel.shape[1]:
+                                t = f * rr + i * res + j
+                                texel[v, k] = t
+                                omega[v, k] = texel_omega[t]
+                                for c in range(3):
+                                    moment[v, k, c] = texel_moment[t, c]
+                                k += 1
+                            continue
                         mc = _clip_slab(row, mr, axis, s_ax, s0, s1, cell, buf, plane)
                         if mc < 3:
                             continue
