@@ -74,12 +74,33 @@ def relight_frame(quick: bool) -> dict:
 
 @case("interreflection.frame.move_one")
 def move_frame(quick: bool) -> dict:
-    """One object moves: every basis irradiance is recomputed (visibility, transfer, Eq. 13), then 3 bounces."""
+    """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
+    source's surface by ray casting, ``near_field``), then 3 bounces."""
     pre = _precomputed(quick)
     state = FrameState.from_scene(pre.scene)
     mover = pre.objects[1]
     base = mover.transform
     poses = iter([Transform(translate=base.translate + [dx, 0, 0]) for dx in np.tile([0.0, 0.1], 10_000)])
+
+    def run():
+        state.transforms[mover.name] = next(poses)
+        return pre.shade(state, bounces=3)
+
+    return {"run": run, "gflop": None, "items": _vertices(pre), "peer": None}
+
+
+@case("interreflection.frame.move_one.paper")
+def move_frame_paper(quick: bool) -> dict:
+    """As ``frame.move_one`` with ``near_field=0`` (every basis radiance interpolated, as the paper)."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+
+    base = _precomputed(quick)
+    pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
+    state = FrameState.from_scene(pre.scene)
+    mover = pre.objects[1]
+    poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0]) for dx in np.tile([0.0, 0.1], 10_000)])
 
     def run():
         state.transforms[mover.name] = next(poses)
