@@ -337,7 +337,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                 m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf, plane)
                 if m < 3:
                     continue
-                j0, j1, i0, i1 = _face_range(tmp, m, axis, s_ax, t_ax, res)
+                _, _, i0, i1 = _face_range(tmp, m, axis, s_ax, t_ax, res)
                 for i in range(i0, i1 + 1):  # one row strip of the face, then its texels
                     t0 = 2.0 * i / res - 1.0
                     t1 = 2.0 * (i + 1) / res - 1.0
