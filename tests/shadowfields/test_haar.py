@@ -207,3 +207,16 @@ def test_errors(ball, ball_field):
     with pytest.raises(ValueError, match=r"points must be .* \(one per vertex\)"):
         haar_self_visibility(ball, points=np.zeros((2, 3)))
     assert isinstance(HaarOcclusionField.from_arrays(ball_field.to_arrays()), HaarOcclusionField)
+
+
+def test_field_survives_the_hdf5_cache(ball_field, tmp_path):
+    from prtlab.cache import Cache, cache_key
+
+    cache = Cache(tmp_path, progress=False)
+    key = cache_key("haar field test")
+    cache.store(key, {"oof": ball_field.to_arrays()})
+    back = HaarOcclusionField.from_arrays(cache.load(key)["oof"])
+    np.testing.assert_array_equal(back.visibility.indices, ball_field.visibility.indices)
+    np.testing.assert_array_equal(back.visibility.values, ball_field.visibility.values)
+    q = np.array([[0.3, 0.7, -0.2], [2.0, 0.1, 0.0]])
+    np.testing.assert_array_equal(back.lookup(q), ball_field.lookup(q))
