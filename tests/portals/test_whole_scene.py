@@ -72,21 +72,31 @@ def fig11_comparison(options, ref_samples, seed=5):
     lo, hi = v.min(0), v.max(0)
     keep = {"room": ((np.abs(v - lo) < 1e-9) | (np.abs(v - hi) < 1e-9)).sum(1) == 1,
             "bunny": scene.object("bunny").world_vertices()[:, 1] > 0.02}
+    def stats(a, e, se):  # average relative difference, reference se, noise removed, signed mean
+        return (np.abs(a - e).mean() / e.mean(), se.mean() / e.mean(),
+                np.sqrt(max(0.0, ((a - e) ** 2).mean() - (se**2).mean())) / e.mean(), (a - e).mean() / e.mean())
+
     rows = {}
     for name, m in keep.items():
-        a, e, se = ours.total[name][m], ref.total[name][m], ref.stderr["total"][name][m]
-        rows[name] = (np.abs(a - e).mean() / e.mean(), se.mean() / e.mean(), (a - e).mean() / e.mean())
-    a = np.concatenate([ours.total[n][m] for n, m in keep.items()])
-    e = np.concatenate([ref.total[n][m] for n, m in keep.items()])
-    se = np.concatenate([ref.stderr["total"][n][m] for n, m in keep.items()])
-    rows["all"] = (np.abs(a - e).mean() / e.mean(), se.mean() / e.mean(), (a - e).mean() / e.mean())
+        rows[name] = stats(ours.total[name][m], ref.total[name][m], ref.stderr["total"][name][m])
+    rows["all"] = stats(*(np.concatenate([x[n][m] for n, m in keep.items()])
+                          for x in (ours.total, ref.total, ref.stderr["total"])))
     return rows
 
 
 @pytest.mark.slow
 def test_fig11_glossy_bunny_against_reference():
-    """Fig. 11: goal 2.1% + the reference's relative standard error (average relative difference of the total)."""
-    rows = fig11_comparison({"direct_samples": 1024, "n_photons": 1_000_000, "gather_rays": 512, "order": 4,
-                             "bounces": 2, "view_res": 4}, ref_samples=1024)
-    avg, se, _ = rows["all"]
+    """Fig. 11: goal 2.1% + the reference's relative standard error (average relative difference of the total).
+
+    Measured (reference 1024 paths per vertex, mean relative standard error 10.1%; 1,696 bunny vertices off the
+    floor and the room's interior vertices): average relative difference of the total 9.5% (goal 12.2%: met),
+    noise removed 7.3%, signed mean -2.4%. By part: bunny direct 6.4% (se 8.1%, noise removed 0.0%; with
+    view_res 4 instead of 8: 9.2%, noise removed 23.5%: the bilinear blend of the per-direction cubemaps flattens
+    the Phong highlights), bunny indirect signed -9.9% (with glossy_order 4 as well: -9.7%, so not the lobe's SH
+    truncation), room total noise removed 5.5% (SH order 4 of the sky seen through the window, photon density
+    bias). Precomputation about 13 min on 2 busy cores (the view_res 8 glossy direct transfer dominates).
+    """
+    rows = fig11_comparison({"direct_samples": 512, "n_photons": 1_000_000, "gather_rays": 256, "order": 4,
+                             "bounces": 2, "view_res": 8, "glossy_order": 8}, ref_samples=1024)
+    avg, se = rows["all"][:2]
     assert avg <= GLOSSY_GOAL + se, rows
