@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.geometry import cubemap_directions, direction_to_cubemap
 
 from ._kernels import trilinear_kernel, trilinear_numpy
@@ -123,14 +124,6 @@ class SphereGrid:
                    int(d["resolution"]))
 
 
-def _check_int(value, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return int(value)
-
-
 def sphere_grid(mesh, n_radii: int = 16, resolution: int = 16, r_min: float = 0.2, r_max: float = 8.0,
                 spacing: str = "geometric") -> SphereGrid:
     """Concentric sample spheres around a mesh (object space).
@@ -152,8 +145,8 @@ def sphere_grid(mesh, n_radii: int = 16, resolution: int = 16, r_min: float = 0.
     SphereGrid
     """
     vertices = mesh.vertices if hasattr(mesh, "vertices") else mesh[0]
-    n_radii = _check_int(n_radii, "n_radii", 1)
-    resolution = _check_int(resolution, "resolution", 1)
+    n_radii = check_int(n_radii, "n_radii", 1)
+    resolution = check_int(resolution, "resolution", 1)
     if spacing not in _SPACINGS:
         raise ValueError(f"spacing must be 'geometric' or 'uniform', got {spacing!r}")
     r_min, r_max = float(r_min), float(r_max)

@@ -60,6 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, cubemap_directions, direction_to_cubemap
 from prtlab.wavelet import haar2d, ihaar2d
 
@@ -86,16 +87,8 @@ DEFAULT_KEEP = 512
 _RAYS_PER_BATCH = 1 << 20
 
 
-def _check_int(value, name: str, minimum: int, meaning: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int ({meaning}), got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum} ({meaning}), got {value}")
-    return int(value)
-
-
 def _check_resolution(res) -> int:
-    res = _check_int(res, "resolution", 1, "texels per cubemap face edge")
+    res = check_int(res, "resolution", 1, meaning="texels per cubemap face edge")
     if res & (res - 1):
         raise ValueError(f"resolution must be a power of two (Haar quadtree), got {res}; use e.g. 16 or 32")
     return res
@@ -210,7 +203,7 @@ def encode_sparse(cubemaps, keep: int = DEFAULT_KEEP) -> SparseCubemaps:
         The kept set is that of :func:`prtlab.wavelet.keep_largest` (largest ``|c|``;
         ties may differ).
     """
-    keep = _check_int(keep, "keep", 1, "Haar coefficients kept per cubemap")
+    keep = check_int(keep, "keep", 1, meaning="Haar coefficients kept per cubemap")
     cubes = np.asarray(cubemaps, dtype=np.float64)
     if cubes.ndim < 3 or cubes.shape[-3] != 6 or cubes.shape[-1] != cubes.shape[-2]:
         raise ValueError(f"cubemaps must be (..., 6, r, r), got shape {cubes.shape}")
@@ -261,7 +254,7 @@ def visibility_cubemaps(caster: RayCaster, origins, resolution: int = DEFAULT_HA
     visibility : (..., 6, r, r) float64 in [0, 1]
     """
     res = _check_resolution(resolution)
-    ss = _check_int(supersample, "supersample", 1, "rays per texel edge")
+    ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
     origins = np.asarray(origins, dtype=np.float64)
     if origins.ndim == 0 or origins.shape[-1] != 3:
         raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
@@ -447,7 +440,7 @@ def haar_occlusion_field(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
     grid = sphere_grid((vertices, faces), n_radii, grid_resolution, r_min, r_max, spacing)
     caster = RayCaster([(vertices, faces)])
     res = _check_resolution(resolution)
-    keep = _check_int(keep, "keep", 1, "Haar coefficients kept per cubemap")
+    keep = check_int(keep, "keep", 1, meaning="Haar coefficients kept per cubemap")
     points = grid.points().reshape(-1, 3)
     chunks = []
     step = max(1, (1 << 22) // (6 * res * res))  # bounded memory for the dense cubemaps
@@ -495,7 +488,7 @@ def haar_self_visibility(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
         if origins.shape != vertices.shape:
             raise ValueError(f"points must be {vertices.shape} (one per vertex), got {origins.shape}")
     res = _check_resolution(resolution)
-    keep = _check_int(keep, "keep", 1, "Haar coefficients kept per cubemap")
+    keep = check_int(keep, "keep", 1, meaning="Haar coefficients kept per cubemap")
     caster = RayCaster([(vertices, faces)])
     chunks = []
     step = max(1, (1 << 22) // (6 * res * res))

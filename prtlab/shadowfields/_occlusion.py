@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import sh
+from prtlab._validate import check_int, check_order
 from prtlab.geometry import RayCaster
 
 from ._grid import SphereGrid, interpolate_field, sphere_grid
@@ -67,20 +68,10 @@ _RAYS_PER_BATCH = 1 << 20
 _SQRT4PI = np.sqrt(4.0 * np.pi)
 
 
-def _check_order(order) -> int:
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)):
-        raise TypeError(f"order must be an int (number of SH bands), got {type(order).__name__}")
-    if order < 1:
-        raise ValueError(f"order must be >= 1 (order n means bands l = 0..n-1), got {order}")
-    return int(order)
-
-
 def _check_degree(degree, order: int) -> int:
     if degree is None:
         return max(DEFAULT_DEGREE, 2 * order - 2)
-    if isinstance(degree, bool) or not isinstance(degree, (int, np.integer)) or degree < 2 * order - 2:
-        raise ValueError(f"degree must be an int >= 2 * order - 2 = {2 * order - 2}, got {degree!r}")
-    return int(degree)
+    return check_int(degree, "degree", 2 * order - 2, meaning="at least 2 * order - 2")
 
 
 def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, degree: int | None = None,
@@ -107,7 +98,7 @@ def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, 
     -------
     coeffs : (..., n*n) float64
     """
-    order = _check_order(order)
+    order = check_order(order)
     degree = _check_degree(degree, order)
     origins = np.asarray(origins, dtype=np.float64)
     if origins.ndim == 0 or origins.shape[-1] != 3:
@@ -227,7 +218,7 @@ def occlusion_field(mesh, order: int = 4, *, n_radii: int = 16, resolution: int 
     >>> oof.coeffs.shape
     (2, 6, 2, 2, 4)
     """
-    order = _check_order(order)
+    order = check_order(order)
     vertices, faces = _mesh_pair(mesh)
     grid = sphere_grid((vertices, faces), n_radii, resolution, r_min, r_max, spacing)
     caster = RayCaster([(vertices, faces)])
@@ -252,7 +243,7 @@ def self_visibility(mesh, order: int = 4, *, normals=None, degree: int | None = 
     -------
     coeffs : (n_vertices, order**2) float64
     """
-    order = _check_order(order)
+    order = check_order(order)
     vertices, faces = _mesh_pair(mesh)
     if normals is None:
         if not hasattr(mesh, "vertex_normals"):

@@ -33,8 +33,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
-
-from ._occlusion import _check_order
+from prtlab._validate import check_int, check_order
 
 __all__ = ["area_light_sh", "point_light_direct", "sh_visibility_toward"]
 
@@ -97,9 +96,8 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12, method: str = "n
     of any angular size except for points within about an edge / ``n_nodes``
     of the light.
     """
-    order = _check_order(order)
-    if isinstance(n_nodes, bool) or not isinstance(n_nodes, (int, np.integer)) or n_nodes < 1:
-        raise ValueError(f"n_nodes must be an int >= 1, got {n_nodes!r}")
+    order = check_order(order)
+    check_int(n_nodes, "n_nodes", 1)
     if method not in ("numba", "reference"):
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
     points = np.asarray(points, dtype=np.float64)

@@ -91,7 +91,7 @@ def test_errors():
         sphere_grid(MESH, spacing="log")
     with pytest.raises(ValueError, match="0 < r_min <= r_max"):
         sphere_grid(MESH, r_min=2.0, r_max=1.0)
-    with pytest.raises(ValueError, match="n_radii must be >= 1"):
+    with pytest.raises(ValueError, match="n_radii must be an int >= 1"):
         sphere_grid(MESH, n_radii=0)
     with pytest.raises(TypeError, match="resolution must be an int"):
         sphere_grid(MESH, resolution=2.5)

@@ -182,7 +182,7 @@ def test_errors(ball, ball_field):
         haar_occlusion_field(ball, resolution=12)
     with pytest.raises(TypeError, match="keep must be an int"):
         encode_sparse(np.ones((6, 4, 4)), 2.5)
-    with pytest.raises(ValueError, match="keep must be >= 1"):
+    with pytest.raises(ValueError, match="keep must be an int >= 1"):
         encode_sparse(np.ones((6, 4, 4)), 0)
     with pytest.raises(ValueError, match="cubemaps must be"):
         encode_sparse(np.ones((5, 4, 4)), 3)

@@ -147,7 +147,7 @@ def test_errors(sphere_oof):
     caster = RayCaster([SPHERE])
     with pytest.raises(TypeError, match="order must be an int"):
         occlusion_field(SPHERE, 2.0)
-    with pytest.raises(ValueError, match="order must be >= 1"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         project_visibility(caster, np.zeros((1, 3)), 0)
     with pytest.raises(ValueError, match="degree must be an int >= "):
         project_visibility(caster, np.zeros((1, 3)), 4, degree=3)
