@@ -30,6 +30,7 @@ _API = {
     "ShadeResult": "prtlab.scene",
     "shade": "prtlab.api",
     "render_image": "prtlab.api",
+    "precompute": "prtlab.api",
 }
 
 __all__ = sorted(_SUBPACKAGES | set(_API))
