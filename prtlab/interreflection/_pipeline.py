@@ -275,6 +275,7 @@ class Interreflection(Precomputation):
         self._trees: dict = {}
         self._stack_cache: dict = {}
         self._area_cache: dict = {}
+        self._near_cache: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -438,17 +439,28 @@ class Interreflection(Precomputation):
             return 0
         grid = self.fields[s.name].grid
         local = _to_object(x, T)
+        key = (s.name, local.shape, local.tobytes())  # the receiver points relative to the source
+        cached = self._near_cache.get(key)
+        if cached is not None:  # only an occluder moved: the cast S stands, the transfer changed
+            near, S = cached
+            if len(near):
+                phi[near] = np.einsum("vkni,vqi->vqkn", S, sh.rotate(transfer[near], T.rotation.T, channels=False))
+            return len(near)
         if s.name not in self._trees:
             from scipy.spatial import cKDTree
 
             self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
         gap, _ = self._trees[s.name].query(local)  # distance to the source's nearest vertex
         near = np.flatnonzero(gap < self.options.near_field * np.linalg.norm(local - grid.center, axis=1))
+        S = np.zeros((0,))
+        if len(near):
+            S = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[near],
+                                  self.options.order, self.options.degree)  # (v, K, N, n2), object frame
+        if len(self._near_cache) >= 4 * len(self.objects) ** 2:  # bounded: poses come and go
+            self._near_cache.clear()
+        self._near_cache[key] = (near, S)
         if len(near) == 0:
             return 0
-        order = self.options.order
-        S = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[near], order,
-                              self.options.degree)  # (v, K, N, n2), object frame
         t_obj = sh.rotate(transfer[near], T.rotation.T, channels=False)  # <S_world, T> = <S_obj, R^T T>
         phi[near] = np.einsum("vkni,vqi->vqkn", S, t_obj)
         return len(near)

@@ -388,3 +388,29 @@ def test_threshold_skips_a_far_object_and_its_skipped_light_is_below_the_bound(p
         bound = imp[r_name, s_name] * (d / (d - radius)) ** 2
         assert np.max(np.abs(phi[r_name][s_name])) <= 1.05 * bound
     np.testing.assert_array_equal(res.indirect["far"], 0.0)
+
+
+def test_moving_an_occluder_reuses_the_near_field_basis_radiance(pre):
+    """A second ball near the first moves: the pairs whose visibility it touches are recomputed, but the
+    basis radiance cast at the first ball's vertices from the floor (their relative pose is unchanged) is
+    reused; the result equals a from-scratch shade."""
+    from prtlab.scene import SceneObject
+
+    base = pre.scene
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([1.3, 0.7, 0.0])),
+                        base.object("ball").material)
+    sc = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    data = {**pre.data, "other": pre.data["ball"]}
+    ir = Interreflection(sc, pre.options, data)
+    state = FrameState.from_scene(sc)
+    ir.shade(state, bounces=1)
+    before = dict(ir._near_cache)
+    assert any(len(near) for near, _ in before.values())
+    state.transforms["other"] = Transform(translate=np.array([1.4, 0.7, 0.2]))
+    moved = ir.shade(state, bounces=1)
+    assert moved.info["computed_pairs"] == 6  # every pair: "other" reaches both receivers
+    kept = [k for k in before if ir._near_cache.get(k) is before[k]]
+    assert any(k[0] == "floor" and len(before[k][0]) for k in kept)  # the ball's near points under the floor
+    fresh = Interreflection(sc, pre.options, data).shade(state, bounces=1)
+    for name in ("floor", "ball", "other"):
+        np.testing.assert_allclose(moved.total[name], fresh.total[name], rtol=1e-12, atol=1e-15)
