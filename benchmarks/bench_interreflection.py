@@ -75,12 +75,12 @@ def relight_frame(quick: bool) -> dict:
 @case("interreflection.frame.move_one")
 def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
-    source's surface by ray casting, ``near_field``), then 3 bounces."""
+    source's surface by ray casting, ``near_field``), then 3 bounces. Every frame is a new pose."""
     pre = _precomputed(quick)
     state = FrameState.from_scene(pre.scene)
     mover = pre.objects[1]
     base = mover.transform
-    poses = iter([Transform(translate=base.translate + [dx, 0, 0]) for dx in np.tile([0.0, 0.1], 10_000)])
+    poses = iter([Transform(translate=base.translate + [dx, 0, 0]) for dx in np.linspace(0.0, 0.1, 10_000)])
 
     def run():
         state.transforms[mover.name] = next(poses)
@@ -100,7 +100,7 @@ def move_frame_paper(quick: bool) -> dict:
     pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
     state = FrameState.from_scene(pre.scene)
     mover = pre.objects[1]
-    poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0]) for dx in np.tile([0.0, 0.1], 10_000)])
+    poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0]) for dx in np.linspace(0.0, 0.1, 10_000)])
 
     def run():
         state.transforms[mover.name] = next(poses)
