@@ -183,3 +183,91 @@ def test_fused_second_pass_matches_composed_tier(blocking, average, rng):
         d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba", average=average)
         np.testing.assert_allclose(d1, d2, atol=1e-11)
         np.testing.assert_allclose(i1, i2, atol=1e-11)
+
+
+def _cosine_directions(n, count, rng):
+    """(count, 3) cosine-distributed directions about the unit normal ``n``."""
+    u1, u2 = rng.random(count), rng.random(count)
+    rr, ph = np.sqrt(u1), 2 * np.pi * u2
+    local = np.stack([rr * np.cos(ph), rr * np.sin(ph), np.sqrt(1 - u1)], -1)
+    t = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t /= np.linalg.norm(t)
+    return local @ np.stack([t, np.cross(n, t), n])
+
+
+def _first_hit_is(p, dirs, centres, radii, k):
+    """Rays from p hitting sphere ``k`` before every other sphere."""
+    def dist(c, r):
+        oc = p - c
+        bq = dirs @ oc
+        disc = bq * bq - (oc @ oc - r * r)
+        t = -bq - np.sqrt(np.maximum(disc, 0.0))
+        return np.where((disc > 0) & (t > 0), t, np.inf)
+
+    ts = np.stack([dist(c, r) for c, r in zip(centres, radii)])
+    return np.isfinite(ts[k]) & (np.argmin(ts, axis=0) == k)
+
+
+@pytest.mark.parametrize("blocking", ["object", "sphere"])
+def test_light_behind_another_against_monte_carlo(blocking, rng):
+    """A lit far sphere seen past a dark near one (Eqs. 21-24, Sec. 7.2) from ground receivers, against MC of
+    the same quantity (the irradiance carried by rays whose first hit is the far sphere).
+
+    The far light emits a constant ``L0`` (exact at order 4, so only visibility is approximated) and the near
+    light nothing. Ours: ``E = E_n clip(V~ / V~')`` (``average="cosine"``), ``E_n`` the unoccluded irradiance
+    of the far light, ``V~ = (exp G_near - exp(G_near + G_far)) . rho_n``, ``V~' = P_n(cap) . rho_n``. With
+    the truth ``E* = L0 V*``, ``V* = int v* rho`` (``v*`` the indicator of far-but-not-near directions),
+    ``V*' = pi s^2 cos`` (both caps above the horizon), ``e1 = V~ - V*``, ``e2 = V~' - V*'``:
+    ``|E - E*| <= E_n (|e1| + |e2|) / V~' + |E_n - L0 V*'|`` (clip is 1-Lipschitz onto [0, 1], which holds
+    ``V*/V*'``), and by Cauchy-Schwarz (the documented order-4 visibility bound of
+    ``test_one_sphere_indirect_against_monte_carlo``)
+    ``|e1| <= |v - P_n v*| |rho_n| + |(I - P_n) v*|_2 |(I - P_n) rho|_2``, ``|e2| <= |(I - P_n) cap|_2
+    |(I - P_n) rho|_2``. ``P_n v*`` and ``|v*|^2`` by a degree-600 product quadrature (its error on the
+    indicator is O(1e-3) sr, inside the MC term).
+
+    Measured (order 4, HYB): the bound is of the size of the light itself; where the near sphere hides the far
+    one completely (x = -0.8, truth 0) ours keeps 75 % of the unoccluded light (0.064 of 0.086): an order-4
+    product of two blockers cannot resolve one cap inside another.
+    """
+    near_c, near_r = np.array([0.0, 0.9, 0.0]), 0.35
+    far_c, far_r = np.array([1.0, 1.8, 0.0]), 0.5
+    c, r = np.stack([near_c, far_c]), np.array([near_r, far_r])
+    xs = np.array([-2.0, -0.8, -0.3, 0.6])
+    pts = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], -1)
+    up = np.array([0.0, 1.0, 0.0])
+    nrm = np.broadcast_to(up, pts.shape)
+    L0 = np.array([1.0, 0.7, 0.4])
+    em = np.zeros((2, ORDER * ORDER, 3))
+    em[1, 0] = L0 * np.sqrt(4 * np.pi)
+    inter = np.zeros((2, 2), dtype=bool)
+    rot = np.stack([np.eye(3)] * 2)
+    _, ind = second_pass(pts, nrm, c, r, [0, 1], inter, rot, em, _env_sh(), blocking=blocking)
+    _, e_n = second_pass(pts, nrm, c[1:], r[1:], [0], inter[:1, :1], rot[:1], em[1:], _env_sh())
+    gs, gf, th, ax = accumulate_blockers(pts, nrm, c, r, [0, 1], inter, ORDER, blocking=blocking)
+    cos_n = sh.zh_rotate(sh.clamped_cosine_zh(ORDER), up)
+    rho_tail = np.sqrt(2 * np.pi / 3 - sh.clamped_cosine_zh(ORDER) @ sh.clamped_cosine_zh(ORDER))
+    qd, qw = sh.quadrature(1, degree=600)
+    yq = sh.basis(qd, ORDER)
+    partial = 0
+    for k, p in enumerate(pts):
+        v = sh.exp(gf[k, 1]) - sh.exp(gf[k, 1] + gs[k, 1])  # ours, Eq. 23 (default exp)
+        v_tilde = v @ cos_n
+        d = far_c - p
+        s = far_r / np.linalg.norm(d)
+        v_open_true = np.pi * s * s * d[1] / np.linalg.norm(d)
+        cap_sh = sh.zh_rotate(sh.blocker_zh(np.arcsin(s), ORDER), d / np.linalg.norm(d))
+        cap_sh = -cap_sh
+        cap_sh[0] += np.sqrt(4 * np.pi)
+        v_open = cap_sh @ cos_n
+        e2 = np.sqrt(max(2 * np.pi * (1 - np.sqrt(1 - s * s)) - cap_sh @ cap_sh, 0.0)) * rho_tail
+        ind_q = _first_hit_is(p, qd, c, r, 1).astype(float)
+        proj = (qw * ind_q) @ yq
+        e1 = np.linalg.norm(v - proj) * np.linalg.norm(cos_n) + np.sqrt(max(qw @ ind_q - proj @ proj, 0)) * rho_tail
+        bound = e_n[k] * (e1 + e2) / v_open + np.abs(e_n[k] - L0 * v_open_true)
+        dirs = _cosine_directions(up, 200_000, rng)
+        f = np.pi * _first_hit_is(p, dirs, c, r, 1)[:, None] * L0
+        ref, se = f.mean(0), f.std(0, ddof=1) / np.sqrt(len(f))
+        partial += 0.1 < ref[0] / (L0[0] * v_open_true) < 0.9
+        assert np.all(np.abs(ind[k] - ref) <= bound + MC_SIGMAS * se), (k, ind[k], ref, bound, se)
+        assert np.all(ind[k] < e_n[k])  # every receiver here has the far light partly hidden: it darkens
+    assert partial >= 2  # the near sphere hides part of the far one from some receivers
