@@ -214,7 +214,7 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
-               exp_method: str = "hyb", ground=None) -> np.ndarray:
+               exp_method: str = "hyb", ground=None, extra_irradiance=None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -236,6 +236,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     ground : (G, 7) float, optional
         Ground rectangles (:func:`prtlab.spherelights.ground_rectangles`) that hide
         the environment from the samples (an extension; see ``_ground``).
+    extra_irradiance : (S, m, 3) float, optional
+        Irradiance at the samples from other sources, added to the environment's
+        (the local lights of Sec. 7.3, computed by :func:`second_pass` at the samples).
 
     Returns
     -------
@@ -260,6 +263,11 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
         if ground is not None and len(ground):
             t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
         radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
+    if extra_irradiance is not None:
+        extra = np.asarray(extra_irradiance, dtype=np.float64)
+        if extra.shape != (S, m, 3):
+            raise ValueError(f"extra_irradiance must have shape {(S, m, 3)} (lights, samples, RGB), got {extra.shape}")
+        radiance += np.where(sample_valid[..., None], extra, 0.0) / np.pi
     light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(order), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
 

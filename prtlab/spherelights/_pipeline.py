@@ -11,7 +11,9 @@ neither block nor reflect):
   directions (:func:`surface_samples`);
 * ``albedo_sh`` per light (:func:`surface_albedo_sh`);
 * ``intersect``: pairs of lights of the object that overlap (their mutual
-  occlusion is precomputed in the samples, Sec. 6.2).
+  occlusion is precomputed in the samples, Sec. 6.2);
+* ``vertex_light``: the light each vertex of the object's mesh was fitted to
+  (the fit's face assignment, carried to the vertices), for soft deformations.
 
 Per frame (Secs. 5-7), with the object transforms of the frame state
 (translation, uniform scale, rotation; Sec. 7.1): the sphere centres,
@@ -68,6 +70,9 @@ class SphereLightOptions:
         Interior grid of the sphere fit.
     cube_resolution : int
         Face resolution of the albedo cubemaps.
+    local_lights : sequence of (centre (3,), radius, radiance (3,))
+        Local lights (Sec. 7.3): opaque spheres in world space emitting a
+        constant RGB radiance (a run-time choice). Their light is direct light.
     occluding_ground : bool
         An extension, on by default: the scene's grounds (flat, horizontal,
         receiving-only objects) hide the environment from the surface samples of
@@ -86,8 +91,10 @@ class SphereLightOptions:
     grid_resolution: int = 40
     cube_resolution: int = 16
     occluding_ground: bool = True
+    local_lights: tuple = ()
 
     def __post_init__(self):
+        object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
         if self.exp_method not in ("hyb", "ol", "exact"):
             raise ValueError(f"exp_method must be 'hyb', 'ol' or 'exact', got {self.exp_method!r}")
         if self.average not in ("cosine", "paper"):
@@ -96,6 +103,47 @@ class SphereLightOptions:
             raise ValueError(f"blocking must be 'object' or 'sphere', got {self.blocking!r}")
         if isinstance(self.order, bool) or not isinstance(self.order, int) or not 1 <= self.order <= 8:
             raise ValueError(f"order must be an int in 1..8, got {self.order!r}")
+
+
+def _check_local_lights(lights) -> tuple:
+    """``local_lights`` as a tuple of ``(centre tuple(3), radius float, radiance tuple(3))``."""
+    msg = ("local_lights must be a sequence of (centre (3,), radius > 0, radiance RGB (3,) >= 0) with finite "
+           "values, e.g. [((0, 2, 0), 0.3, (5, 5, 5))]")
+    if isinstance(lights, (str, bytes)) or not hasattr(lights, "__iter__"):
+        raise ValueError(f"{msg}; got {lights!r}")
+    out = []
+    for item in lights:
+        try:
+            centre, radius, radiance = item
+            centre = np.asarray(centre, dtype=np.float64)
+            radius = float(radius)
+            radiance = np.asarray(radiance, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{msg}; got {item!r}") from None
+        if (centre.shape != (3,) or radiance.shape != (3,) or not np.all(np.isfinite(centre))
+                or not np.all(np.isfinite(radiance)) or not math.isfinite(radius) or radius <= 0
+                or np.any(radiance < 0)):
+            raise ValueError(f"{msg}; got {item!r}")
+        out.append((tuple(centre.tolist()), radius, tuple(radiance.tolist())))
+    return tuple(out)
+
+
+def _vertex_light(mesh, merged, face_sphere, centres, radii) -> np.ndarray:
+    """(V,) the light of each vertex of ``mesh``: the light of a face of the merged mesh at that vertex (the
+    fit's assignment); a vertex on no face takes the light it is deepest inside."""
+    from scipy.spatial import cKDTree
+
+    per_merged = np.full(len(merged.vertices), -1, dtype=np.int64)
+    faces = np.asarray(merged.faces)
+    per_merged[faces.reshape(-1)] = np.repeat(np.asarray(face_sphere, dtype=np.int64), 3)
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    _, idx = cKDTree(np.asarray(merged.vertices)).query(verts)
+    out = per_merged[idx]
+    lost = out < 0
+    if lost.any():
+        depth = np.linalg.norm(verts[lost, None] - centres[None], axis=2) - radii[None]
+        out[lost] = np.argmin(depth, axis=1)
+    return out
 
 
 def _closed_mesh(mesh):
@@ -116,7 +164,7 @@ class SphereLights(Precomputation):
     """Guerrero et al. 2008: soft shadows and one-bounce diffuse indirect light from spherical lights."""
 
     method = "spherelights"
-    format_version = 1
+    format_version = 2
     max_bounces = 1
     options_type = SphereLightOptions
 
@@ -125,7 +173,7 @@ class SphereLights(Precomputation):
         # the run-time choices do not change the precomputed data
         from dataclasses import asdict
 
-        opts = {k: v for k, v in asdict(options).items() if k not in ("exp_method", "blocking", "average")}
+        opts = {k: v for k, v in asdict(options).items() if k not in ("exp_method", "blocking", "average", "local_lights")}
         from prtlab.pipeline import scene_geometry_key_parts
 
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=False), opts]
@@ -157,29 +205,41 @@ class SphereLights(Precomputation):
                 "intersect": inter,
                 "outside_volume": np.array(fit.outside_volume),
                 "coverage": np.array(fit.coverage),
+                "vertex_light": _vertex_light(obj.mesh, mesh, fit.face_sphere, fit.centres, fit.radii),
             }
         return {"objects": objects}
 
     # ------------------------------------------------------------------ per frame
 
-    def world_lights(self, state: FrameState):
+    def world_lights(self, state: FrameState, deformed=None):
         """World-space lights of a frame: centres (S, 3), radii (S,), object index (S,),
-        intersect (S, S), rotations (S, 3, 3), and the samples (S, m, 3) x 2 with validity (S, m)."""
+        intersect (S, S), rotations (S, 3, 3), and the samples (S, m, 3) x 2 with validity (S, m).
+        ``deformed``: ``{name: (V, 3)}`` object-space vertex positions; each light of such an object
+        (centre and samples) moves by the mean displacement of its vertices (Sec. 7.1)."""
         parts = []
+        deformed = deformed or {}
         for k, (name, data) in enumerate(sorted(self.data["objects"].items())):
             tr = state.transforms.get(name) or self.scene.object(name).transform
             rot = np.asarray(tr.rotation)
             s = len(data["radii"])
+            centres = np.asarray(data["centres"], dtype=np.float64)
+            samples = np.asarray(data["sample_points"], dtype=np.float64)
+            if name in deformed:
+                shift = _light_shifts(deformed[name], self.scene.object(name).mesh.vertices,
+                                      np.asarray(data["vertex_light"]), s)
+                centres = centres + shift
+                samples = samples + shift[:, None, :]
             parts.append((
-                tr.apply_points(data["centres"]), np.asarray(data["radii"]) * float(tr.scale), np.full(s, k),
+                tr.apply_points(centres), np.asarray(data["radii"]) * float(tr.scale), np.full(s, k),
                 np.asarray(data["intersect"], dtype=bool), np.broadcast_to(rot, (s, 3, 3)),
-                tr.apply_points(data["sample_points"]), tr.apply_normals(data["sample_normals"]),
+                tr.apply_points(samples), tr.apply_normals(data["sample_normals"]),
                 np.asarray(data["sample_valid"], dtype=bool), np.asarray(data["albedo_sh"]),
             ))
         if not parts:
             order = self.options.order
+            m = self.options.n_directions
             return (np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
-                    np.zeros((0, 3, 3)), np.zeros((0, 92, 3)), np.zeros((0, 92, 3)), np.zeros((0, 92), bool),
+                    np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
                     np.zeros((0, order * order, 3)))
         s_total = sum(len(p[1]) for p in parts)
         inter = np.zeros((s_total, s_total), dtype=bool)
@@ -210,34 +270,120 @@ class SphereLights(Precomputation):
                 )
         return env
 
+    def shade(self, state: FrameState | None = None, bounces: int = 1, *, deformed=None) -> ShadeResult:
+        """Per-vertex radiance of one frame; ``deformed``: ``{object name: (V, 3) object-space vertex
+        positions}`` of softly deformed objects (Sec. 7.1; see the module docstring)."""
+        if deformed is None:
+            return super().shade(state, bounces)
+        if not isinstance(deformed, dict):
+            raise TypeError(f"deformed must be a dict {{object name: (V, 3) vertex positions}}, got "
+                            f"{type(deformed).__name__}")
+        checked = {}
+        for name, verts in deformed.items():
+            names = [o.name for o in self.scene.objects]
+            if name not in names:
+                raise ValueError(f"deformed names an unknown object {name!r}; objects: {names}")
+            v = np.asarray(verts, dtype=np.float64)
+            n_v = self.scene.object(name).n_vertices
+            if v.shape != (n_v, 3) or not np.all(np.isfinite(v)):
+                raise ValueError(f"deformed[{name!r}] must be finite object-space vertex positions of shape "
+                                 f"({n_v}, 3), got shape {v.shape}")
+            checked[name] = v
+        self._deformed = checked
+        try:
+            return super().shade(state, bounces)
+        finally:
+            self._deformed = None
+
+    def _local_lights(self):
+        """The option's local lights: centres (L, 3), radii (L,), emission SH (L, n*n, 3) (constant radiance)."""
+        ll = self.options.local_lights
+        n2 = self.options.order ** 2
+        centres = np.array([x[0] for x in ll], dtype=np.float64).reshape(-1, 3)
+        radii = np.array([x[1] for x in ll], dtype=np.float64).reshape(-1)
+        emission = np.zeros((len(ll), n2, 3))
+        if ll:
+            emission[:, 0] = np.array([x[2] for x in ll]) * math.sqrt(4.0 * math.pi)
+        return centres, radii, emission
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         opts = self.options
+        deformed = getattr(self, "_deformed", None) or {}
         env = self._environment(state)
-        centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state)
-        emission = np.zeros((len(radii), opts.order**2, 3))
-        if bounces > 0 and len(radii):
+        centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state, deformed)
+        n_sl = len(radii)
+        # local lights (Sec. 7.3) join as lights of their own objects with a given emission
+        l_c, l_r, l_em = self._local_lights()
+        n_loc = len(l_r)
+        n_obj = int(sl_object.max()) + 1 if n_sl else 0
+        all_c = np.concatenate([centres, l_c])
+        all_r = np.concatenate([radii, l_r])
+        all_obj = np.concatenate([sl_object, n_obj + np.arange(n_loc)]).astype(np.int64)
+        all_inter = np.zeros((n_sl + n_loc, n_sl + n_loc), dtype=bool)
+        all_inter[:n_sl, :n_sl] = inter
+        all_rot = np.concatenate([rot, np.broadcast_to(np.eye(3), (n_loc, 3, 3))])
+        local_only = np.concatenate([np.zeros((n_sl, opts.order**2, 3)), l_em])
+        emission = np.zeros((n_sl, opts.order**2, 3))
+        if bounces > 0 and n_sl:
             ground = None
             if opts.occluding_ground:
                 ground = ground_rectangles([o for o in self.scene.objects if o.name not in self.data["objects"]],
                                            state.transforms)
-            emission = first_pass(spts, snrm, svalid, centres, radii, env,
+            extra = None
+            if n_loc and svalid.any():
+                # the second pass's computation at the surface samples, local lights only (Sec. 7.3)
+                extra = np.zeros(svalid.shape + (3,))
+                _, extra[svalid] = second_pass(spts[svalid], snrm[svalid], all_c, all_r, all_obj, all_inter, all_rot,
+                                               local_only, env, blocking=opts.blocking, exp_method=opts.exp_method,
+                                               average=opts.average, indirect=True)
+            emission = first_pass(spts, snrm, svalid, all_c, all_r, env,
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
-                                  exp_method=opts.exp_method, ground=ground)
-        result = ShadeResult(info={"method": self.method, "n_lights": int(len(radii)),
+                                  exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
+        emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
+        result = ShadeResult(info={"method": self.method, "n_lights": int(n_sl), "n_local_lights": int(n_loc),
                                    "exp_method": opts.exp_method, "blocking": opts.blocking,
                                    "average": opts.average})
         for obj in self.scene.objects:
             tr = state.transforms.get(obj.name) or obj.transform
-            pts = obj.world_shading_points(tr)
-            nrm = obj.world_normals(tr)
-            direct, indirect = second_pass(pts, nrm, centres, radii, sl_object, inter, rot, emission, env,
+            if obj.name in deformed:
+                pts, nrm = _deformed_receivers(obj, deformed[obj.name], tr)
+            else:
+                pts = obj.world_shading_points(tr)
+                nrm = obj.world_normals(tr)
+            direct, indirect = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, emission, env,
                                            blocking=opts.blocking, exp_method=opts.exp_method,
-                                           average=opts.average, indirect=bounces > 0 and len(radii) > 0)
+                                           average=opts.average, indirect=bounces > 0 and n_sl > 0)
+            if n_loc:
+                _, from_local = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, local_only, env,
+                                            blocking=opts.blocking, exp_method=opts.exp_method,
+                                            average=opts.average, indirect=True)
+                direct = direct + from_local
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             result.direct[obj.name] = direct * albedo
             result.indirect[obj.name] = indirect * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         return result
+
+
+def _light_shifts(verts, rest, vertex_light, n_lights) -> np.ndarray:
+    """(S, 3) mean displacement of the vertices of each light (0 for a light with none), object space."""
+    disp = np.asarray(verts, dtype=np.float64) - np.asarray(rest, dtype=np.float64)
+    sums = np.zeros((n_lights, 3))
+    np.add.at(sums, vertex_light, disp)
+    counts = np.bincount(vertex_light, minlength=n_lights)[:, None]
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+
+
+def _deformed_receivers(obj, verts, transform):
+    """World shading points and normals of an object's deformed mesh (object-space ``verts``)."""
+    import trimesh
+
+    from prtlab.geometry import shading_points
+
+    mesh = trimesh.Trimesh(verts, np.asarray(obj.mesh.faces), process=False)
+    normals = np.asarray(mesh.vertex_normals)
+    local = shading_points(verts, np.asarray(obj.mesh.faces), normals)
+    return transform.apply_points(local), transform.apply_normals(normals)
 
 
 def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

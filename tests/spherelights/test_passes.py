@@ -244,30 +244,61 @@ def test_light_behind_another_against_monte_carlo(blocking, rng):
     _, ind = second_pass(pts, nrm, c, r, [0, 1], inter, rot, em, _env_sh(), blocking=blocking)
     _, e_n = second_pass(pts, nrm, c[1:], r[1:], [0], inter[:1, :1], rot[:1], em[1:], _env_sh())
     gs, gf, th, ax = accumulate_blockers(pts, nrm, c, r, [0, 1], inter, ORDER, blocking=blocking)
-    cos_n = sh.zh_rotate(sh.clamped_cosine_zh(ORDER), up)
-    rho_tail = np.sqrt(2 * np.pi / 3 - sh.clamped_cosine_zh(ORDER) @ sh.clamped_cosine_zh(ORDER))
-    qd, qw = sh.quadrature(1, degree=600)
-    yq = sh.basis(qd, ORDER)
     partial = 0
     for k, p in enumerate(pts):
-        v = sh.exp(gf[k, 1]) - sh.exp(gf[k, 1] + gs[k, 1])  # ours, Eq. 23 (default exp)
-        v_tilde = v @ cos_n
-        d = far_c - p
-        s = far_r / np.linalg.norm(d)
-        v_open_true = np.pi * s * s * d[1] / np.linalg.norm(d)
-        cap_sh = sh.zh_rotate(sh.blocker_zh(np.arcsin(s), ORDER), d / np.linalg.norm(d))
-        cap_sh = -cap_sh
-        cap_sh[0] += np.sqrt(4 * np.pi)
-        v_open = cap_sh @ cos_n
-        e2 = np.sqrt(max(2 * np.pi * (1 - np.sqrt(1 - s * s)) - cap_sh @ cap_sh, 0.0)) * rho_tail
-        ind_q = _first_hit_is(p, qd, c, r, 1).astype(float)
-        proj = (qw * ind_q) @ yq
-        e1 = np.linalg.norm(v - proj) * np.linalg.norm(cos_n) + np.sqrt(max(qw @ ind_q - proj @ proj, 0)) * rho_tail
-        bound = e_n[k] * (e1 + e2) / v_open + np.abs(e_n[k] - L0 * v_open_true)
-        dirs = _cosine_directions(up, 200_000, rng)
-        f = np.pi * _first_hit_is(p, dirs, c, r, 1)[:, None] * L0
-        ref, se = f.mean(0), f.std(0, ddof=1) / np.sqrt(len(f))
-        partial += 0.1 < ref[0] / (L0[0] * v_open_true) < 0.9
+        ref, se, bound, open_true, frac = _behind_check(p, up, c, r, 1, gf[k, 1], gs[k, 1], e_n[k], L0, rng)
+        partial += 0.1 < frac < 0.9
         assert np.all(np.abs(ind[k] - ref) <= bound + MC_SIGMAS * se), (k, ind[k], ref, bound, se)
         assert np.all(ind[k] < e_n[k])  # every receiver here has the far light partly hidden: it darkens
     assert partial >= 2  # the near sphere hides part of the far one from some receivers
+
+
+def _behind_check(p, n, centres, radii, k, g_front, g_light, e_n, L0, rng, n_mc=200_000):
+    """MC and derived bound for the light ``k`` of constant radiance ``L0`` seen past the other spheres from
+    ``(p, n)`` (see :func:`test_light_behind_another_against_monte_carlo`): ``(ref, se, bound, V*' L0,
+    visible fraction)``. ``g_front, g_light``: our blocker logs (Eq. 23); ``e_n``: our unoccluded irradiance."""
+    v = sh.exp(g_front) - sh.exp(g_front + g_light)
+    cos_n = sh.zh_rotate(sh.clamped_cosine_zh(ORDER), n)
+    rho_tail = np.sqrt(2 * np.pi / 3 - sh.clamped_cosine_zh(ORDER) @ sh.clamped_cosine_zh(ORDER))
+    d = centres[k] - p
+    dist = np.linalg.norm(d)
+    s = radii[k] / dist
+    v_open_true = np.pi * s * s * (d @ n) / dist
+    cap_sh = -sh.zh_rotate(sh.blocker_zh(np.arcsin(s), ORDER), d / dist)
+    cap_sh[0] += np.sqrt(4 * np.pi)
+    v_open = cap_sh @ cos_n
+    e2 = np.sqrt(max(2 * np.pi * (1 - np.sqrt(1 - s * s)) - cap_sh @ cap_sh, 0.0)) * rho_tail
+    qd, qw = sh.quadrature(1, degree=600)
+    ind_q = _first_hit_is(p, qd, centres, radii, k).astype(float)
+    proj = (qw * ind_q) @ sh.basis(qd, ORDER)
+    e1 = np.linalg.norm(v - proj) * np.linalg.norm(cos_n) + np.sqrt(max(qw @ ind_q - proj @ proj, 0)) * rho_tail
+    bound = e_n * (e1 + e2) / v_open + np.abs(e_n - L0 * v_open_true)
+    f = np.pi * _first_hit_is(p, _cosine_directions(n, n_mc, rng), centres, radii, k)[:, None] * L0
+    ref, se = f.mean(0), f.std(0, ddof=1) / np.sqrt(n_mc)
+    return ref, se, bound, L0 * v_open_true, ref[0] / (L0[0] * v_open_true)
+
+
+def test_first_pass_extra_irradiance():
+    """Irradiance from other sources (local lights) adds ``E / pi`` to every valid sample's radiance; a wrong
+    shape raises."""
+    env = np.zeros((16, 3))
+    c, r, zero = _one_sphere_light([0.0, 1.0, 0.0], 0.5, np.array([0.8, 0.5, 0.3]), env)
+    assert np.all(zero == 0)
+    mesh = builtin_mesh("icosphere", subdivisions=4)
+    mesh.apply_scale(0.5)
+    mesh.apply_translation([0.0, 1.0, 0.0])
+    pts, nrm, valid = surface_samples(mesh, c, r, geodesic_directions(92))
+    alb = surface_albedo_sh(mesh, c, r, np.array([0.8, 0.5, 0.3]), ORDER)
+    extra = np.full(valid.shape + (3,), np.pi)  # E = pi: radiance 1 before the albedo
+    em = first_pass(pts, nrm, valid, c, r, env, voronoi_cell_sums(ORDER), alb, extra_irradiance=extra)
+    const = first_pass(pts, nrm, valid, c, r, _const_env(), voronoi_cell_sums(ORDER), alb)
+    np.testing.assert_allclose(em, const, atol=1e-12)
+    with pytest.raises(ValueError, match="extra_irradiance must have shape"):
+        first_pass(pts, nrm, valid, c, r, env, voronoi_cell_sums(ORDER), alb, extra_irradiance=extra[:, :5])
+
+
+def _const_env():
+    """The order-4 constant environment whose unoccluded irradiance is pi (radiance 1)."""
+    env = np.zeros((16, 3))
+    env[0] = np.sqrt(4 * np.pi)
+    return env

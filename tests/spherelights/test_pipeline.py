@@ -7,6 +7,7 @@ import prtlab
 from prtlab.pipeline import FrameState
 from prtlab.scene import Scene, Transform
 from prtlab.spherelights import SphereLights
+from tests.conftest import MC_SIGMAS
 
 
 def _scene(constant=(1.0, 0.9, 0.8), lights=None):
@@ -124,3 +125,110 @@ def test_occluding_ground_hides_the_environment_from_the_first_pass(pre):
     a, b = pre.shade(bounces=1), off.shade(bounces=1)
     np.testing.assert_allclose(a.direct["plane"], b.direct["plane"])
     assert a.indirect["plane"].sum() < b.indirect["plane"].sum()
+
+
+# ------------------------------------------------------------------ local lights (Sec. 7.3)
+
+
+def _plane_and(objects=(), lights=()):
+    return Scene.from_dict({
+        "objects": [{"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [6, 6]},
+                     "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}}, *objects],
+        "lights": list(lights),
+    })
+
+
+def test_local_light_over_a_plane_is_the_closed_form():
+    """A uniform spherical emitter wholly above every receiver's horizon: ``E* = pi L sin^2(a) cos(t)``.
+
+    Ours: ``E = E_n min(1, V~ / V~')`` with ``V~ = (1 - exp* G) . rho_n`` and ``V~' = P_n(cap) . rho_n``,
+    so ``|E - E*| <= E* |v - P_n cap| |rho_n| / V~' + |E_n - E*|``; for a constant light
+    ``E_n = L (s K_1 - sqrt(4 pi) K_0) (n . b)`` (``b`` light -> receiver), whose only error is the kernel
+    table's interpolation: ``|E_n - E*| <= L |n . b| (s |dK_1| + sqrt(4 pi) |dK_0|)``, ``dK`` table minus
+    the direct quadrature (:func:`irradiance_kernel_zh`).
+    """
+    from prtlab import sh
+    from prtlab.spherelights import accumulate_blockers, irradiance_kernel_zh
+
+    centre, radius, L = np.array([0.3, 1.0, -0.2]), 0.25, np.array([5.0, 4.0, 3.0])
+    pre = SphereLights.precompute(_plane_and(), {"local_lights": [(centre, radius, L)]}, cache=False,
+                                  progress=False)
+    res = pre.shade(bounces=1)
+    plane = pre.scene.object("plane")
+    p, n = plane.world_shading_points(), plane.world_normals()
+    d = centre - p
+    dist = np.linalg.norm(d, axis=1)
+    s, cos_t = radius / dist, np.einsum("bk,bk->b", d, n) / dist
+    truth = np.pi * L * (s * s * cos_t)[:, None]
+    ours = res.direct["plane"] / (0.7 / np.pi)
+    np.testing.assert_array_equal(res.indirect["plane"], 0.0)
+    gs, _, th, ax = accumulate_blockers(p, n, centre[None], [radius], [0], np.zeros((1, 1), bool), 4)
+    v = sh.exp(np.zeros(16)) - sh.exp(gs[:, 0])
+    cos_n = sh.zh_rotate(sh.clamped_cosine_zh(4), n)
+    cap = -sh.zh_rotate(sh.blocker_zh(th[:, 0], 4), ax[:, 0])
+    cap[:, 0] += np.sqrt(4 * np.pi)
+    v_open = np.einsum("bk,bk->b", cap, cos_n)
+    dk = irradiance_kernel_zh(th[:, 0], 5) - irradiance_kernel_zh(th[:, 0], 5, method="direct")
+    k_err = np.abs(cos_t) * (s * np.abs(dk[:, 1]) + np.sqrt(4 * np.pi) * np.abs(dk[:, 0]))
+    bound = (truth * (np.linalg.norm(v - cap, axis=1) * np.linalg.norm(cos_n, axis=1) / v_open)[:, None]
+             + L * k_err[:, None])
+    assert np.all(np.abs(ours - truth) <= bound + 1e-12), np.max(np.abs(ours - truth) / truth)
+    assert np.all(bound <= 0.05 * truth)  # the order-4 exp* of one cap costs at most a few per cent here
+
+
+def test_local_light_behind_a_blocker_against_monte_carlo(rng):
+    """The local light seen past a black ball (its fitted sphere; its own light is zero): the
+    test_passes MC of rays whose first hit is the emitter, with that test's derived order-4 bound."""
+    from prtlab.spherelights import accumulate_blockers, second_pass
+    from tests.spherelights.test_passes import _behind_check
+
+    ball = {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2},
+            "transform": {"translate": [0.0, 0.7, 0.0]}, "material": {"type": "diffuse", "albedo": [0.0, 0.0, 0.0]}}
+    centre, radius, L = np.array([0.9, 1.7, 0.0]), 0.4, np.array([5.0, 4.0, 3.0])
+    pre = SphereLights.precompute(_plane_and([ball]), {"n_spheres": 1, "grid_resolution": 16,
+                                                       "local_lights": [(centre, radius, L)]},
+                                  cache=False, progress=False)
+    res = pre.shade(bounces=1)
+    c_b, r_b, *_ = pre.world_lights(FrameState.from_scene(pre.scene))
+    c, r = np.concatenate([c_b, centre[None]]), np.concatenate([r_b, [radius]])
+    plane = pre.scene.object("plane")
+    pts, nrm = plane.world_shading_points(), plane.world_normals()
+    pick = np.argsort(np.abs(pts[:, 2]) + np.abs(pts[:, 0] + 0.6))[:4]  # receivers near the ball's shadow
+    pts, nrm = pts[pick], nrm[pick]
+    inter = np.zeros((2, 2), bool)
+    gs, gf, *_ = accumulate_blockers(pts, nrm, c, r, [0, 1], inter, 4)
+    em = np.zeros((1, 16, 3))
+    em[0, 0] = L * np.sqrt(4 * np.pi)
+    _, e_n = second_pass(pts, nrm, c[1:], r[1:], [0], inter[:1, :1], np.eye(3)[None], em, np.zeros((16, 3)))
+    ours = res.direct["plane"][pick] / (0.7 / np.pi)
+    np.testing.assert_allclose(res.indirect["plane"], 0.0, atol=1e-12)
+    partial = 0
+    for k in range(len(pts)):
+        ref, se, bound, open_true, frac = _behind_check(pts[k], nrm[k], c, r, 1, gf[k, 1], gs[k, 1], e_n[k], L, rng)
+        partial += 0.1 < frac < 0.9
+        assert np.all(np.abs(ours[k] - ref) <= bound + MC_SIGMAS * se), (k, ours[k], ref, bound, se)
+        assert np.all(ours[k] < e_n[k])
+    assert partial >= 1
+
+
+def test_local_light_lights_objects_through_the_first_pass():
+    """An object lit only by a local light beside it reflects it onto the plane (indirect light, mostly on the
+    lit side), and nothing without bounces."""
+    ball = {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2},
+            "transform": {"translate": [0.0, 0.5, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}
+    opts = {"n_spheres": 1, "grid_resolution": 16, "local_lights": [((1.0, 0.6, 0.0), 0.2, (5.0, 5.0, 5.0))]}
+    pre = SphereLights.precompute(_plane_and([ball]), opts, cache=False, progress=False)
+    res = pre.shade(bounces=1)
+    ind = res.indirect["plane"][:, 0]
+    x = pre.scene.object("plane").world_vertices()[:, 0]
+    assert ind.sum() > 0 and ind[x > 0].sum() > 2 * abs(ind[x < 0].sum())
+    assert res.direct["ball"].max() > 0  # the top of the ball is lit
+    np.testing.assert_array_equal(pre.shade(bounces=0).indirect["plane"], 0.0)
+    np.testing.assert_allclose(pre.shade(bounces=0).direct["plane"], res.direct["plane"])
+
+
+def test_local_light_errors():
+    for bad in (5, [((0, 1, 0), 0.0, (1, 1, 1))], [((0, 1), 0.3, (1, 1, 1))], [((0, 1, 0), 0.3, (-1, 1, 1))],
+                [((0, 1, 0), 0.3)], [((0, np.nan, 0), 0.3, (1, 1, 1))]):
+        with pytest.raises(ValueError, match="local_lights must be a sequence"):
+            SphereLights.make_options({"local_lights": bad})
