@@ -52,9 +52,21 @@ source emits only from the side of its vertex normals; inter-object
 visibility takes every object other than source and receiver as an occluder
 (also those behind the source); area lights occlude nothing here (they are
 opaque in the references: keep them away from the objects' line of sight to
-each other); point lights are not supported (a clear error). An object that
+each other); point lights need ``shadows="haar"`` (else a clear error). An object that
 encloses a light (a closed room) blocks it everywhere: a shadow field holds one
 visibility per point, not per distance; build rooms from separate walls.
+
+Direct shadows (``shadows``): ``"sh"`` (default, the paper) takes ``L_k = < L_in, P_n(V G_k) >``
+with order-n SH visibility products; ``"haar"`` takes the all-frequency path of
+:func:`prtlab.shadowfields.haar_direct` for step 1 only: per object a sparse Haar occlusion field
+(``haar_resolution``-texel cubemap faces, ``haar_keep`` coefficients per sample point, on the same
+sample spheres) and a Haar self-visibility at its shading points, precomputed and cached with the
+rest; per frame the texel-wise visibility product and the lights as exact texel pieces (area lights
+with partial coverage, point lights as deltas, environments as texel averages). Basis irradiance
+(Eq. 13) keeps the SH visibility. Measured against ``prtlab.reference.direct`` (512 paths) on the
+built-in bunny (1,839 vertices) on a 3 x 3 floor (625 vertices) under the Fig. 9 light (0.6 x 0.6,
+2.5 up), default sample spheres: relative RMS of the direct radiance, bunny 0.013 (Haar) against
+0.207 (SH order 4), floor 0.055 against 0.145; direct step 1.07 s against 0.88 s (2 busy cores).
 """
 
 from __future__ import annotations
@@ -73,6 +85,11 @@ from prtlab.shadowfields import (
     area_light_sh,
     occluder_order,
     occlusion_field,
+    HaarOcclusionField,
+    SparseCubemaps,
+    haar_direct,
+    haar_occlusion_field,
+    haar_self_visibility,
     project_visibility,
     visibility_pass,
 )
@@ -103,6 +120,10 @@ class InterreflectionOptions:
         ``near_field`` times their distance to the source's centre get that source's basis radiance
         by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation, when the
         pair is (re)computed (0: always interpolate, as the paper).
+    shadows : ``"sh"`` (order-n SH visibility, the paper) or ``"haar"`` (all-frequency direct
+        shadows and point lights, :func:`prtlab.shadowfields.haar_direct`) for the direct light.
+    haar_resolution, haar_keep : cubemap texels per face edge (32) and Haar coefficients kept per
+        visibility cubemap (512) of ``shadows="haar"``.
     """
 
     order: int = 4
@@ -119,9 +140,17 @@ class InterreflectionOptions:
     pca_occluders: bool = True
     self_interreflection: bool = True
     near_field: float = 0.5
+    shadows: str = "sh"
+    haar_resolution: int = 32
+    haar_keep: int = 512
 
     def __post_init__(self):
-        check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution"))
+        check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
+                                 "haar_resolution", "haar_keep"))
+        if self.shadows not in ("sh", "haar"):
+            raise ValueError(f"option shadows must be 'sh' or 'haar', got {self.shadows!r}")
+        if self.haar_resolution & (self.haar_resolution - 1):
+            raise ValueError(f"option haar_resolution must be a power of two, got {self.haar_resolution}")
         if not (np.isfinite(self.threshold) and self.threshold >= 0):
             raise ValueError(f"option threshold must be a finite number >= 0, got {self.threshold!r}")
         if not (np.isfinite(self.near_field) and self.near_field >= 0):
@@ -254,6 +283,13 @@ class Interreflection(Precomputation):
                 own = self_basis_irradiance(mesh, basis.basis, sep, points, normals, degree=options.degree)
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
                               "pca_samples": basis.samples, "basis_radiance": field, "self_irradiance": own}
+            if options.shadows == "haar":
+                haar = {"resolution": options.haar_resolution, "keep": options.haar_keep}
+                data[obj.name]["haar_oof"] = haar_occlusion_field(
+                    mesh, n_radii=options.n_radii, grid_resolution=options.resolution, r_min=options.r_min,
+                    r_max=options.r_max, spacing=options.spacing, **haar).to_arrays()
+                data[obj.name]["haar_self"] = haar_self_visibility(mesh, points=points, normals=normals,
+                                                                   **haar).to_arrays()
         return data
 
     def __init__(self, scene, options, data):
@@ -271,6 +307,11 @@ class Interreflection(Precomputation):
         self.local_points = {o.name: _local_shading_points(o.mesh) for o in self.objects}
         self.self_irradiance = {o.name: np.ascontiguousarray(data[o.name]["self_irradiance"], dtype=float)
                                 for o in self.objects}
+        haar = options.shadows == "haar"
+        self.haar_fields = {o.name: HaarOcclusionField.from_arrays(data[o.name]["haar_oof"])
+                            for o in self.objects} if haar else {}
+        self.haar_self = {o.name: SparseCubemaps.from_arrays(data[o.name]["haar_self"])
+                          for o in self.objects} if haar else {}
         self._phi_cache: dict = {}
         self._trees: dict = {}
         self._stack_cache: dict = {}
@@ -305,6 +346,9 @@ class Interreflection(Precomputation):
                               "pca_basis": np.asarray(d["pca_basis"])[:n], "pca_samples": d["pca_samples"],
                               "basis_radiance": np.asarray(d["basis_radiance"])[..., :n, :n2],
                               "self_irradiance": np.asarray(d["self_irradiance"])[..., :n]}
+            for key in ("haar_oof", "haar_self"):  # the all-frequency direct shadows do not depend on n, N
+                if key in d:
+                    data[obj.name][key] = d[key]
         options = dataclasses.replace(self.options, order=o, n_basis=min(n, self.options.n_basis))
         return type(self)(self.scene, options, data)
 
@@ -354,12 +398,15 @@ class Interreflection(Precomputation):
 
     def direct_step(self, state: FrameState, geo, transfer):
         """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
+        if self.options.shadows == "haar":
+            return self.direct_step_haar(state, geo)
         order = self.options.order
         lights = state.lights
         for light in lights:
             if isinstance(light, PointLight):
-                raise ValueError("the interreflection pipeline supports environment and area lights, not point "
-                                 "lights; replace the point light by a small area light")
+                raise ValueError("the interreflection pipeline with shadows='sh' supports environment and area "
+                                 "lights, not point lights; pass shadows='haar' (or replace the point light by "
+                                 "a small area light)")
         env = [light for light in lights if isinstance(light, EnvironmentLight)]
         env_sh = environment_sh(env[0], order) if env else None
         areas = [light for light in lights if isinstance(light, AreaLight)]
@@ -382,6 +429,19 @@ class Interreflection(Precomputation):
             lk = self._clamp_diffuse(r, lk)
             light_k[r.name] = lk
             radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
+        return light_k, radiance
+
+    def direct_step_haar(self, state: FrameState, geo):
+        """Step 1 with all-frequency shadows: ``L_k`` (V, K, C) per object from every light (Zhou et al. 2005
+        Sec. 5: Haar visibility products; lights as exact cubemap pieces), and the radiance."""
+        light_k, radiance = {}, {}
+        for r in self.objects:
+            g = geo[r.name]
+            occluders = [(self.haar_fields[o.name], geo[o.name]["T"]) for o in self.objects if o.name != r.name]
+            lk = haar_direct(g["x"], g["n"], state.lights, self.seps[r.name], self_visibility=self.haar_self[r.name],
+                             self_transform=g["T"], occluders=occluders)
+            light_k[r.name] = self._clamp_diffuse(r, lk)
+            radiance[r.name] = outgoing_radiance(light_k[r.name], g["h"], self.seps[r.name].colour)
         return light_k, radiance
 
     def _clamp_diffuse(self, obj, light):
