@@ -232,3 +232,58 @@ def test_local_light_errors():
                 [((0, 1, 0), 0.3)], [((0, np.nan, 0), 0.3, (1, 1, 1))]):
         with pytest.raises(ValueError, match="local_lights must be a sequence"):
             SphereLights.make_options({"local_lights": bad})
+
+
+# ------------------------------------------------------------------ soft deformations (Sec. 7.1)
+
+
+def test_rigid_translation_as_a_deformation_is_the_translated_object(pre):
+    t = np.array([0.3, 0.2, -0.4])
+    ball = pre.scene.object("ball")
+    deformed = pre.shade(bounces=1, deformed={"ball": np.asarray(ball.mesh.vertices) + t})
+    state = FrameState.from_scene(pre.scene)
+    state.transforms["ball"] = Transform(translate=ball.transform.translate + t, rotate_deg=ball.transform.rotate_deg,
+                                         scale=ball.transform.scale)
+    moved = pre.shade(state, bounces=1)
+    for name in moved.total:
+        np.testing.assert_allclose(deformed.direct[name], moved.direct[name], atol=1e-10)
+        np.testing.assert_allclose(deformed.indirect[name], moved.indirect[name], atol=1e-10)
+    # and the identity deformation is the rest pose
+    rest = pre.shade(bounces=1, deformed={"ball": ball.mesh.vertices})
+    np.testing.assert_allclose(rest.total["plane"], pre.shade(bounces=1).total["plane"], atol=1e-12)
+
+
+def test_bend_moves_each_light_with_its_vertices():
+    """A bar bent upward at its ends (y += k x^2): every light moves by the mean displacement of the vertices
+    it was fitted to (which lie in it), the end lights rise, the middle ones barely."""
+    bar = {"name": "bar", "mesh": {"builtin": "box", "size": [2.0, 0.3, 0.3], "subdivisions": 3},
+           "transform": {"translate": [0.0, 0.6, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}
+    scene = _plane_and([bar], [{"type": "environment", "constant": [1.0, 1.0, 1.0]}])
+    pre = SphereLights.precompute(scene, {"n_spheres": 4, "grid_resolution": 24}, cache=False, progress=False)
+    data = pre.data["objects"]["bar"]
+    verts = np.asarray(scene.object("bar").mesh.vertices)
+    owner = np.asarray(data["vertex_light"])
+    dist = np.linalg.norm(verts - data["centres"][owner], axis=1)
+    assert np.all(dist <= data["radii"][owner] * (1 + 1e-6))  # each vertex lies in the light it was fitted to
+    bent = verts + np.stack([0 * verts[:, 0], 0.2 * verts[:, 0] ** 2, 0 * verts[:, 0]], -1)
+    state = FrameState.from_scene(scene)
+    c0 = pre.world_lights(state)[0]
+    c1 = pre.world_lights(state, {"bar": bent})[0]
+    shift = c1 - c0
+    np.testing.assert_allclose(shift[:, [0, 2]], 0.0, atol=1e-12)
+    for i in range(len(c0)):
+        np.testing.assert_allclose(shift[i, 1], 0.2 * np.mean(verts[owner == i, 0] ** 2), rtol=1e-12)
+    order = np.argsort(c0[:, 0])
+    assert shift[order[0], 1] > 2 * shift[order[1], 1] and shift[order[-1], 1] > 2 * shift[order[-2], 1]
+    # shading follows: the bent bar's ends rise, so less shadow right under them
+    res0, res1 = pre.shade(bounces=1), pre.shade(bounces=1, deformed={"bar": bent})
+    assert np.all(np.isfinite(res1.total["bar"])) and not np.allclose(res0.total["plane"], res1.total["plane"])
+
+
+def test_deformed_errors(pre):
+    with pytest.raises(TypeError, match="deformed must be a dict"):
+        pre.shade(bounces=1, deformed=[1, 2])
+    with pytest.raises(ValueError, match="unknown object 'teapot'"):
+        pre.shade(bounces=1, deformed={"teapot": np.zeros((3, 3))})
+    with pytest.raises(ValueError, match="must be finite object-space vertex positions of shape"):
+        pre.shade(bounces=1, deformed={"ball": np.zeros((3, 3))})
