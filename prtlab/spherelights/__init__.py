@@ -3,8 +3,9 @@
 Sphere-set fitting (Sec. 4.1), surface samples and albedo (Sec. 4.2), the
 direct soft shadows of Ren et al. 2006 (Sec. 5.1, Eqs. 3-8), the tables
 (Eqs. 10, 16-17), the first and second pass (Eqs. 9-24, per-sphere and
-per-object blocking) and the pipeline ``SphereLights``
-(``prtlab.shade(scene, method="spherelights")``).
+per-object blocking), local lights (Sec. 7.3, option ``local_lights``), soft
+deformations (Sec. 7.1, ``SphereLights.shade(..., deformed=...)``) and the
+pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure

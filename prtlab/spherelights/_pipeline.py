@@ -266,7 +266,8 @@ class SphereLights(Precomputation):
             else:
                 raise ValueError(
                     f"method 'spherelights' handles environment lighting only, got a {type(light).__name__}; "
-                    "remove area/point lights or use method='reference'"
+                    "remove area/point lights (a spherical emitter can be given as the option local_lights) or use "
+                    "method='reference'"
                 )
         return env
 
