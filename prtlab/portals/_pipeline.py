@@ -14,8 +14,14 @@ blended bilinearly toward the camera at run time
 (:func:`prtlab.portals.view_interpolation`); the specular indirect part as an
 SH->SH transfer matrix from the same final-gather rays (matrix-vector product,
 then evaluation at the view direction, Eq. 6). Approximation: photons and
-radiance estimates treat every surface as Lambertian with its ``kd`` (light
-reflected *specularly* by a glossy object onto other surfaces is left out).
+photons reflect off glossy objects by their Phong lobe, and the radiance estimate at
+a glossy vertex has a specular part (an SH->SH exitance response over the
+outgoing direction at the light's SH order, :func:`radiance_estimate`), which
+gather rays reaching it read toward the gathering point. (Before, photons and
+estimates treated every surface as Lambertian with its ``kd``: the Fig. 11
+bunny's indirect light was 9.9% low; of that about 4% was its own specular
+light reflected onto itself, 1% its specular light reflected via the walls,
+the rest the order-4 SH truncation of the shell light.)
 
 Bounces: the indirect transfer is stored per bounce (photon depth), so
 ``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
@@ -140,7 +146,8 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 3  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    format_version = 4  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    # 4: photons reflect off glossy objects by their Phong lobe too
     max_bounces = None
     options_type = PortalsOptions
 
@@ -187,28 +194,38 @@ class Portals(Precomputation):
                                    for o in objs])
         view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
         obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
+        obj_ks = np.array([o.material.ks if _is_glossy(o) else np.zeros(3) for o in objs],
+                          dtype=np.float64).reshape(-1, 3)
+        obj_exponent = np.array([float(o.material.exponent) if _is_glossy(o) else 0.0 for o in objs])
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
         n_vertices = len(points)
 
         # photons and radiance estimates: one per portal (Section 4.1.1, steps 1a-1b)
-        exitance, photon_seconds, n_stored = [], [], []
+        exitance, glossy_exitance, photon_seconds, n_stored = [], [], [], []
+        glossy_row = np.full(n_vertices, -1, dtype=np.int64)
+        glossy_row[glossy] = np.arange(int(glossy.sum()))
         for k, portal in enumerate(portals):
             def estimate(k=k, portal=portal):
                 t0 = time.perf_counter()
                 rng = np.random.default_rng([options.seed, k, 1])
-                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng)
-                b = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k,
-                                      depths=options.bounces)
-                return {"exitance": b, "seconds": np.array(time.perf_counter() - t0),
+                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng,
+                                        ks=obj_ks, exponent=obj_exponent)
+                g_all = np.nonzero(glossy)[0]
+                b, spec = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k,
+                                            depths=options.bounces,
+                                            glossy=(g_all, ks[g_all], exponent[g_all], options.order))
+                return {"exitance": b, "glossy_exitance": spec, "seconds": np.array(time.perf_counter() - t0),
                         "n_photons_stored": np.array(len(photons))}
 
             if options.bounces == 0:
-                entry = {"exitance": None, "seconds": np.array(0.0), "n_photons_stored": np.array(0)}
+                entry = {"exitance": None, "glossy_exitance": None, "seconds": np.array(0.0),
+                         "n_photons_stored": np.array(0)}
             elif store is not None:
                 entry = store.get_or_compute(cache_key(key, "exitance", k), estimate, name="portals-photons")
             else:
                 entry = estimate()
             exitance.append(entry["exitance"])
+            glossy_exitance.append(entry["glossy_exitance"])
             photon_seconds.append(float(entry["seconds"]))
             n_stored.append(int(entry["n_photons_stored"]))
 
@@ -250,13 +267,14 @@ class Portals(Precomputation):
                     if len(diffuse):
                         indirect[diffuse - sl.start] = final_gather(
                             caster, points[diffuse], normals[diffuse], albedo[diffuse], exitance[k], offsets, normals,
-                            options.gather_rays, rng)
+                            options.gather_rays, rng, glossy_exitance=(glossy_row, glossy_exitance[k]))
                     order_out = options.glossy_order or options.order
                     matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
                     if len(g):
                         indirect[g - sl.start], matrix = final_gather(
                             caster, points[g], normals[g], albedo[g], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy=(ks[g], exponent[g], order_out))
+                            options.gather_rays, rng, glossy=(ks[g], exponent[g], order_out),
+                            glossy_exitance=(glossy_row, glossy_exitance[k]))
                     entry["indirect"] = indirect.astype(np.float32)
                     entry["glossy_matrix"] = matrix.astype(np.float32)
                 entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
