@@ -9,7 +9,7 @@ of dynamic exteriors (Section 6).
 
 from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
 from ._exterior import exterior_shell
-from ._indirect import PhotonMap, final_gather, phong_lobe_zh, radiance_estimate, trace_photons
+from ._indirect import PhotonMap, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate, trace_photons
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
@@ -30,6 +30,7 @@ __all__ = [
     "view_interpolation",
     "phong_lipschitz",
     "phong_lobe_zh",
+    "phong_lobe_sample",
     "PhotonMap",
     "trace_photons",
     "radiance_estimate",

@@ -51,7 +51,7 @@ from prtlab.geometry import RayCaster, cosine_hemisphere, sample_mesh_area
 
 from ._shell import Portal
 
-__all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "final_gather"]
+__all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "final_gather", "phong_lobe_sample"]
 
 _NORMAL_AGREEMENT = np.cos(np.radians(45.0))
 
