@@ -241,3 +241,32 @@ def test_glossy_room_interreflection_against_reference(constant_box):
     bound = MC_SIGMAS * np.sqrt(ref.indirect_stderr**2 + se_ours**2 + (MEASURED_RUN_SE * ref.indirect) ** 2) \
         + MEASURED_BIAS * ref.indirect + ks * t * np.pi * (1 + kd + ks * (e + 2) / (e + 1))
     assert np.all(np.abs(ours - ref.indirect) <= bound), (ours, ref.indirect, bound)
+
+
+def test_glossy_gather_white_furnace(constant_box):
+    """A glossy vertex under uniform incident radiance 1 (every gather ray reads B = 1): the diffuse transfer is
+    exactly ``kd``, the specular one seen along the normal is ``ks`` times ``2 pi int_0^1 g_n(mu) mu dmu`` (the
+    lobe's ZH truncated to ``n`` bands; 1 without truncation: the normalised Phong reflects all of a uniform
+    light toward the normal), within MC_SIGMAS of its cosine-sampling standard error."""
+    from prtlab.portals import phong_lobe_zh
+    from prtlab.sh import basis
+
+    room = constant_box.objects[0]
+    caster = RayCaster(constant_box)
+    verts, vnormals = room.world_vertices(), room.world_normals()
+    points = np.array([[0.0, 1.2, 0.0], [0.5, 0.8, -0.3]])
+    normals = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])  # facing away from the window (-z wall): all rays hit
+    kd, ks, e, order_out, m = np.array([0.3, 0.2, 0.1]), np.array([0.5, 0.4, 0.6]), 10.0, 8, 4096
+    t, mat = final_gather(caster, points, normals, np.tile(kd, (2, 1)), np.ones((len(verts), 1, 3)),
+                          np.array([0, len(verts)]), vnormals, m, np.random.default_rng(4),
+                          glossy=(np.tile(ks, (2, 1)), np.full(2, e), order_out))
+    np.testing.assert_allclose(t[:, 0], np.tile(kd, (2, 1)), rtol=1e-12)
+    along_normal = np.einsum("vj,vjc->vc", basis(normals, order_out), mat[:, :, 0])
+    mu, w = np.polynomial.legendre.leggauss(64)
+    mu, w = 0.5 * (mu + 1), 0.5 * w
+    g = np.polynomial.legendre.legvander(mu, order_out - 1) * np.sqrt((2 * np.arange(order_out) + 1) / (4 * np.pi)) \
+        @ phong_lobe_zh(e, order_out)
+    mean = 2 * np.pi * np.sum(w * g * mu)  # E[pi g(mu)] under cos / pi
+    var = 2 * np.pi**2 * np.sum(w * g**2 * mu) - mean**2
+    assert np.all(np.abs(along_normal - ks * mean) <= MC_SIGMAS * ks * np.sqrt(var / m)), (along_normal, ks * mean)
+    assert abs(mean - 1.0) < 0.05  # 8 bands of the exponent-10 lobe keep nearly all of its energy along the normal
