@@ -65,7 +65,7 @@ from prtlab.geometry import RayCaster, cubemap_directions, direction_to_cubemap
 from prtlab.wavelet import haar2d, ihaar2d
 
 from ._grid import SphereGrid, sphere_grid
-from ._occlusion import _mesh_pair
+from ._occlusion import _blocked_batches, _flat_origins, _mesh_pair
 
 __all__ = [
     "DEFAULT_HAAR_RESOLUTION",
@@ -84,7 +84,6 @@ __all__ = [
 DEFAULT_HAAR_RESOLUTION = 32
 #: Haar coefficients kept per visibility cubemap.
 DEFAULT_KEEP = 512
-_RAYS_PER_BATCH = 1 << 20
 
 
 def _check_resolution(res) -> int:
@@ -255,16 +254,7 @@ def visibility_cubemaps(caster: RayCaster, origins, resolution: int = DEFAULT_HA
     """
     res = _check_resolution(resolution)
     ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
-    origins = np.asarray(origins, dtype=np.float64)
-    if origins.ndim == 0 or origins.shape[-1] != 3:
-        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
-    if not np.all(np.isfinite(origins)):
-        raise ValueError("origins contain NaN or inf; pass finite points")
-    batch = origins.shape[:-1]
-    flat = origins.reshape(-1, 3)
-    nflat = None
-    if normals is not None:
-        nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)
+    batch, flat, nflat = _flat_origins(origins, normals)
     fine = res * ss
     dirs = cubemap_directions(fine).reshape(-1, 3)
     out = np.empty((len(flat), 6, res, res))
@@ -273,11 +263,7 @@ def visibility_cubemaps(caster: RayCaster, origins, resolution: int = DEFAULT_HA
 
         w = cubemap_solid_angles(fine).reshape(6, res, ss, res, ss)
         wsum = w.sum(axis=(2, 4))
-    step = max(1, _RAYS_PER_BATCH // len(dirs))
-    for a in range(0, len(flat), step):
-        b = min(len(flat), a + step)
-        blocked = caster.occluded(flat[a:b, None, :], dirs[None], np.inf, method=method,
-                                  normals=None if nflat is None else nflat[a:b, None, :])
+    for a, b, blocked in _blocked_batches(caster, flat, nflat, dirs, method):
         vis = 1.0 - blocked.reshape(b - a, 6, fine, fine).astype(np.float64)
         if ss > 1:
             vis = (vis.reshape(b - a, 6, res, ss, res, ss) * w).sum(axis=(3, 5)) / wsum

@@ -74,6 +74,29 @@ def _check_degree(degree, order: int) -> int:
     return check_int(degree, "degree", 2 * order - 2, meaning="at least 2 * order - 2")
 
 
+def _flat_origins(origins, normals):
+    """``origins`` (..., 3) checked and flattened: ``(batch shape, (P, 3), (P, 3) normals or None)``."""
+    origins = np.asarray(origins, dtype=np.float64)
+    if origins.ndim == 0 or origins.shape[-1] != 3:
+        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
+    if not np.all(np.isfinite(origins)):
+        raise ValueError("origins contain NaN or inf; pass finite points")
+    nflat = None
+    if normals is not None:
+        nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)
+    return origins.shape[:-1], origins.reshape(-1, 3), nflat
+
+
+def _blocked_batches(caster: RayCaster, flat, nflat, dirs, method: str):
+    """Yield ``(a, b, blocked)``: any-hit results ``(b - a, D)`` of the rays from points ``a..b`` toward every
+    direction (offset along ``nflat`` when given), at most about ``_RAYS_PER_BATCH`` rays at a time."""
+    step = max(1, _RAYS_PER_BATCH // len(dirs))
+    for a in range(0, len(flat), step):
+        b = min(len(flat), a + step)
+        yield a, b, caster.occluded(flat[a:b, None, :], dirs[None], np.inf, method=method,
+                                    normals=None if nflat is None else nflat[a:b, None, :])
+
+
 def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, degree: int | None = None,
                        method: str = "embree") -> np.ndarray:
     """SH of the visibility seen from points: ``int V(p, w) Y_i(w) dw`` by ray casting.
@@ -100,25 +123,11 @@ def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, 
     """
     order = check_order(order)
     degree = _check_degree(degree, order)
-    origins = np.asarray(origins, dtype=np.float64)
-    if origins.ndim == 0 or origins.shape[-1] != 3:
-        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
-    if not np.all(np.isfinite(origins)):
-        raise ValueError("origins contain NaN or inf; pass finite points")
-    batch = origins.shape[:-1]
-    flat = origins.reshape(-1, 3)
-    nflat = None
-    if normals is not None:
-        nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)
+    batch, flat, nflat = _flat_origins(origins, normals)
     dirs, weights = sh.quadrature(order, degree)
     wy = np.ascontiguousarray(weights[:, None] * sh.basis(dirs, order))
     out = np.empty((len(flat), order * order))
-    step = max(1, _RAYS_PER_BATCH // len(dirs))
-    for a in range(0, len(flat), step):
-        b = min(len(flat), a + step)
-        o = flat[a:b, None, :]
-        blocked = caster.occluded(o, dirs[None], np.inf, method=method,
-                                  normals=None if nflat is None else nflat[a:b, None, :])
+    for a, b, blocked in _blocked_batches(caster, flat, nflat, dirs, method):
         project_visibility_kernel(np.ascontiguousarray(blocked), wy, out[a:b])
     return out.reshape(batch + (order * order,))
 
