@@ -38,6 +38,7 @@ from ._spheremaps import (
     direction_to_equirect,
     equirect_directions,
     equirect_lookup,
+    equirect_taps,
     equirect_solid_angles,
 )
 
@@ -84,5 +85,6 @@ __all__ = [
     "direction_to_equirect",
     "equirect_directions",
     "equirect_lookup",
+    "equirect_taps",
     "equirect_solid_angles",
 ]

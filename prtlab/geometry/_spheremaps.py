@@ -32,6 +32,7 @@ __all__ = [
     "equirect_solid_angles",
     "direction_to_equirect",
     "equirect_lookup",
+    "equirect_taps",
     "cubemap_directions",
     "cubemap_solid_angles",
     "direction_to_cubemap",
@@ -118,6 +119,38 @@ def direction_to_equirect(dirs) -> tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+def equirect_taps(dirs, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The four texels and bilinear weights of :func:`equirect_lookup` in the given directions.
+
+    Parameters
+    ----------
+    dirs : (..., 3) float
+    height, width : int
+        Size of the equirectangular map.
+
+    Returns
+    -------
+    index : (..., 4) int64
+        Flat texel indices ``y W + x`` (the map's rows wrap in ``x``; ``y`` is clamped).
+    weight : (..., 4) float64
+        Bilinear weights, summing to 1.
+    """
+    _check_equirect_shape(height, width)
+    u, v = direction_to_equirect(dirs)
+    fx = u * width - 0.5
+    fy = v * (height - 1)
+    x0 = np.floor(fx)
+    y0 = np.clip(np.floor(fy), 0, height - 2)
+    ax, ay = fx - x0, fy - y0
+    x0 = x0.astype(np.int64) % width
+    x1 = (x0 + 1) % width
+    y0 = y0.astype(np.int64)
+    y1 = y0 + 1
+    index = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], axis=-1)
+    weight = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=-1)
+    return index, weight
+
+
 def equirect_lookup(image, dirs) -> np.ndarray:
     """Bilinear lookup of an equirectangular map in the given directions.
 
@@ -134,22 +167,11 @@ def equirect_lookup(image, dirs) -> np.ndarray:
     if image.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {image.shape}")
     height, width = image.shape[:2]
-    _check_equirect_shape(height, width)
-    u, v = direction_to_equirect(dirs)
-    fx = u * width - 0.5
-    fy = v * (height - 1)
-    x0 = np.floor(fx)
-    y0 = np.clip(np.floor(fy), 0, height - 2)
-    ax, ay = fx - x0, fy - y0
-    x0 = x0.astype(np.int64) % width
-    x1 = (x0 + 1) % width
-    y0 = y0.astype(np.int64)
-    y1 = y0 + 1
+    index, weight = equirect_taps(dirs, height, width)
+    texels = image.reshape((height * width,) + image.shape[2:])[index]  # (..., 4) or (..., 4, C)
     if image.ndim == 3:
-        ax, ay = ax[..., None], ay[..., None]
-    top = (1.0 - ax) * image[y0, x0] + ax * image[y0, x1]
-    bottom = (1.0 - ax) * image[y1, x0] + ax * image[y1, x1]
-    return (1.0 - ay) * top + ay * bottom
+        weight = weight[..., None]
+    return np.sum(weight * texels, axis=-2 if image.ndim == 3 else -1)
 
 
 # --------------------------------------------------------------------------- cubemap

@@ -12,6 +12,7 @@ from prtlab.geometry import (
     direction_to_equirect,
     equirect_directions,
     equirect_lookup,
+    equirect_taps,
     equirect_solid_angles,
 )
 from tests.conftest import random_directions
@@ -90,6 +91,17 @@ def test_equirect_lookup_interpolates_samples_exactly(rng):
     image[0] = image[0, 0]  # a valid map is single-valued at the poles
     image[-1] = image[-1, 0]
     np.testing.assert_allclose(equirect_lookup(image, equirect_directions(9, 16)), image, atol=1e-12)
+
+
+def test_equirect_taps_are_the_lookup_as_weights(rng):
+    image = rng.random((7, 12, 3))
+    dirs = random_directions(rng, 50)
+    index, weight = equirect_taps(dirs, 7, 12)
+    assert index.shape == weight.shape == (50, 4)
+    np.testing.assert_allclose(weight.sum(axis=-1), 1.0, atol=1e-12)
+    assert np.all((index >= 0) & (index < 7 * 12)) and np.all(weight >= -1e-15)
+    np.testing.assert_allclose(np.einsum("dk,dkc->dc", weight, image.reshape(-1, 3)[index]),
+                               equirect_lookup(image, dirs), atol=1e-12)
 
 
 def test_equirect_lookup_is_bilinear_between_samples():
