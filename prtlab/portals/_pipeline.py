@@ -41,10 +41,14 @@ Glossy, Fig. 11 (``data/scenes/box_window_glossy_bunny_fig11.yaml``, Phong 10
 bunny; B = 2, 512 portal samples, 1M photons, 256 gather rays, view_res 8,
 glossy_order 8; reference 1024 paths per vertex, 10.1% mean relative standard
 error; room interior and bunny vertices off the floor): average relative
-difference of the total 9.5% (goal 2.1% + 10.1%: met), 7.3% with the noise
-removed, signed mean -2.4%; the bunny's indirect part is 9.9% low (Mitsuba 3
-agrees with the own reference there, so the bias is ours; not the lobe's SH
-truncation);
+difference of the total 9.1% (goal 2.1% + 10.1%: met), 5.0% with the noise
+removed, signed mean -0.2%; the bunny's indirect part -3.4% (signed; it was
+-9.9% with the kd-only photon map, against both the own reference and
+Mitsuba 3); at small sizes (300k photons, 512 gather rays, 800 bunny
+vertices against 1024 reference paths each) the bunny's indirect is -3.3% to
+-6.5% over three photon seeds at SH order 4, of which about 4% is the order-4
+truncation of the shell light (a diffuse bunny: -3.5% at order 4, +0.6% at
+order 8), and +0.3% / +3.2% at order 8;
 see ``tests/portals/test_whole_scene.py``.
 
 Examples
