@@ -270,3 +270,14 @@ def test_glossy_gather_white_furnace(constant_box):
     var = 2 * np.pi**2 * np.sum(w * g**2 * mu) - mean**2
     assert np.all(np.abs(along_normal - ks * mean) <= MC_SIGMAS * ks * np.sqrt(var / m)), (along_normal, ks * mean)
     assert abs(mean - 1.0) < 0.05  # 8 bands of the exponent-10 lobe keep nearly all of its energy along the normal
+
+
+def test_glossy_estimate_needs_photon_directions():
+    from prtlab.portals import PhotonMap
+
+    z = np.zeros((1, 3))
+    photons = PhotonMap(z, np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3)), np.array([[0.0, 0.0, -1.0]]),
+                        np.zeros(1, dtype=np.int64), 1)
+    with pytest.raises(ValueError, match="no photon directions"):
+        radiance_estimate(photons, z, np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3)), 1,
+                          glossy=(np.array([0]), np.ones((1, 3)), 10.0, 2))
