@@ -19,7 +19,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from prtlab.geometry import cubemap_directions, cubemap_solid_angles, direction_to_equirect
+from prtlab._validate import check_order
+from prtlab.geometry import cubemap_directions, cubemap_solid_angles, equirect_taps
 from prtlab.scene import EnvironmentLight, Scene, equirect_to_cubemap
 
 from . import _kernels
@@ -193,19 +194,9 @@ def _resampling_taps(height: int, width: int, res: int) -> tuple[np.ndarray, np.
     """
     s = max(2, -(-width // (4 * res)))
     fine = res * s
-    u, v = direction_to_equirect(cubemap_directions(fine))
+    idx, bil = equirect_taps(cubemap_directions(fine), height, width)
     w = cubemap_solid_angles(fine)
-    fx = u * width - 0.5
-    fy = v * (height - 1)
-    x0 = np.floor(fx)
-    y0 = np.clip(np.floor(fy), 0, height - 2)
-    ax, ay = fx - x0, fy - y0
-    x0 = x0.astype(np.int64) % width
-    x1 = (x0 + 1) % width
-    y0 = y0.astype(np.int64)
-    y1 = y0 + 1
-    idx = np.stack([y0 * width + x0, y0 * width + x1, y1 * width + x0, y1 * width + x1], axis=-1)
-    bil = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], axis=-1) * w[..., None]
+    bil = bil * w[..., None]
 
     def per_texel(a):  # (6, fine, fine, 4) -> (6 res^2, 4 s^2), sub-texels of one texel together
         return np.ascontiguousarray(a.reshape(6, res, s, res, s, 4).transpose(0, 1, 3, 2, 4, 5).reshape(6 * res * res, -1))
@@ -228,9 +219,7 @@ def shell_sh(cube, order: int) -> np.ndarray:
     cube = np.asarray(cube, dtype=np.float64)
     if cube.ndim != 4 or cube.shape[0] != 6 or cube.shape[-1] != 3 or cube.shape[1] != cube.shape[2]:
         raise ValueError(f"cube must have shape (6, r, r, 3), got {cube.shape}; build it with shell_light")
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-        raise ValueError(f"order must be an int >= 1, got {order!r}")
-    return _projection(cube.shape[1], int(order)) @ cube.reshape(-1, 3)
+    return _projection(cube.shape[1], check_order(order)) @ cube.reshape(-1, 3)
 
 
 @lru_cache(maxsize=16)
