@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, direction_to_cubemap, sample_mesh_area
 
 from ._shell import Portal
@@ -127,8 +128,7 @@ def direct_transfer(
     points, normals = _check_points(points, normals)
     if not isinstance(caster, RayCaster):
         raise TypeError(f"caster must be a prtlab.geometry.RayCaster, got {type(caster).__name__}")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-        raise ValueError(f"n_samples must be an int >= 1, got {n_samples!r}")
+    check_int(n_samples, "n_samples", 1)
     n_texels = 6 * res * res
     n_vertices = len(points)
     out = np.zeros((n_vertices, n_texels))
@@ -183,8 +183,7 @@ def glossy_direct_transfer(
     view_dirs = view_dirs / np.linalg.norm(view_dirs, axis=1, keepdims=True)
     if not (np.isfinite(exponent) and exponent >= 0):
         raise ValueError(f"exponent must be a finite number >= 0, got {exponent!r}")
-    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
-        raise ValueError(f"n_samples must be an int >= 1, got {n_samples!r}")
+    check_int(n_samples, "n_samples", 1)
     n_texels = 6 * res * res
     n_views = len(view_dirs)
     out = np.zeros((len(points), n_views * n_texels))

@@ -57,6 +57,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, cosine_hemisphere, sample_mesh_area
 
 from ._shell import Portal
@@ -131,10 +132,8 @@ def trace_photons(
     Fig. 11 this made the glossy bunny's indirect light 8% low.) Photons are
     stored at every hit, as diffuse flux (the radiance estimate is Lambertian).
     """
-    if isinstance(n_photons, bool) or not isinstance(n_photons, (int, np.integer)) or n_photons < 1:
-        raise ValueError(f"n_photons must be an int >= 1, got {n_photons!r}")
-    if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)) or bounces < 1:
-        raise ValueError(f"bounces must be an int >= 1 for photon tracing, got {bounces!r}")
+    check_int(n_photons, "n_photons", 1)
+    check_int(bounces, "bounces", 1, meaning="photon tracing needs one")
     albedo = np.asarray(albedo, dtype=np.float64).reshape(-1, 3)
     ks = np.zeros_like(albedo) if ks is None else np.asarray(ks, dtype=np.float64).reshape(-1, 3)
     exponent = np.zeros(len(albedo)) if exponent is None else np.asarray(exponent, dtype=np.float64).reshape(-1)

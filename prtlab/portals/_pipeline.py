@@ -69,6 +69,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import check_int
 from prtlab.cache import Cache, cache_key
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.pipeline import FrameState, Precomputation, check_int_options
@@ -343,8 +344,7 @@ class Portals(Precomputation):
     def _check_bounces(self, bounces):
         if bounces is None:
             return self.options.bounces
-        if isinstance(bounces, bool) or not isinstance(bounces, (int, np.integer)) or bounces < 0:
-            raise ValueError(f"bounces must be an int >= 0, got {bounces!r}")
+        check_int(bounces, "bounces", 0)
         if bounces > self.options.bounces:
             raise ValueError(
                 f"the transfer was precomputed with bounces={self.options.bounces}; shade with bounces <= "

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from prtlab._validate import check_int
+
 __all__ = ["SphereFit", "fit_spheres", "sphere_set_figure", "sphere_set_coverage"]
 
 
@@ -168,15 +170,11 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
     from scipy.optimize import minimize
 
     mesh = _check_mesh(mesh)
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n must be a positive int (number of spheres), got {n!r}")
-    n = int(n)
+    n = check_int(n, "n", 1, meaning="number of spheres")
     if n > len(mesh.faces):
         raise ValueError(f"n={n} exceeds the number of faces ({len(mesh.faces)}); subdivide the mesh or use fewer spheres")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise ValueError(f"max_iter must be a positive int, got {max_iter!r}")
-    if isinstance(grid_resolution, bool) or not isinstance(grid_resolution, (int, np.integer)) or grid_resolution < 4:
-        raise ValueError(f"grid_resolution must be an int >= 4, got {grid_resolution!r}")
+    check_int(max_iter, "max_iter", 1)
+    check_int(grid_resolution, "grid_resolution", 4)
 
     rng = np.random.default_rng(seed)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from prtlab import sh
+from prtlab._validate import check_order
 from prtlab.geometry import geodesic_directions
 
 __all__ = ["average_radiance_weight", "irradiance_kernel_zh", "voronoi_cell_sums", "w_theta_zh"]
@@ -116,8 +117,7 @@ def w_theta_zh(theta, order: int, *, method: str = "table") -> np.ndarray:
     """
     if method not in ("table", "direct"):
         raise ValueError(f"method must be 'table' or 'direct', got {method!r}")
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-        raise ValueError(f"order must be a positive int, got {order!r}")
+    check_order(order)
     th = np.asarray(theta, dtype=np.float64)
     if not np.all(np.isfinite(th)) or np.any((th < 0) | (th > 0.5 * np.pi)):
         raise ValueError("theta must be finite angular radii in [0, pi/2] radians")
@@ -176,8 +176,7 @@ def voronoi_cell_sums(order: int, n_directions: int = 92, *, n_strata: int = 128
     ----------
     Guerrero et al. 2008, Eqs. 9-10.
     """
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-        raise ValueError(f"order must be a positive int, got {order!r}")
+    check_order(order)
     return _voronoi_cell_sums(int(order), int(n_directions), int(n_strata), int(seed))
 
 
@@ -262,8 +261,7 @@ def irradiance_kernel_zh(theta, order: int, *, method: str = "table") -> np.ndar
     """
     if method not in ("table", "direct"):
         raise ValueError(f"method must be 'table' or 'direct', got {method!r}")
-    if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-        raise ValueError(f"order must be a positive int, got {order!r}")
+    check_order(order)
     th = np.asarray(theta, dtype=np.float64)
     if not np.all(np.isfinite(th)) or np.any((th < 0) | (th > 0.5 * np.pi)):
         raise ValueError("theta must be finite angular radii in [0, pi/2] radians")

@@ -48,13 +48,13 @@ def test_unpacks_and_shapes(capsule_like):
 
 
 def test_errors(capsule_like):
-    with pytest.raises(ValueError, match="n must be a positive int"):
+    with pytest.raises(ValueError, match="n must be an int >= 1"):
         fit_spheres(capsule_like, 0)
     with pytest.raises(ValueError, match="exceeds the number of faces"):
         fit_spheres(capsule_like, 10**6)
     with pytest.raises(TypeError, match="mesh must be a trimesh.Trimesh"):
         fit_spheres("bunny", 2)
-    with pytest.raises(ValueError, match="max_iter must be a positive int"):
+    with pytest.raises(ValueError, match="max_iter must be an int >= 1"):
         fit_spheres(capsule_like, 2, max_iter=0)
     with pytest.raises(ValueError, match="grid_resolution must be an int >= 4"):
         fit_spheres(capsule_like, 2, grid_resolution=2)

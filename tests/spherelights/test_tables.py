@@ -56,9 +56,9 @@ def test_errors():
         w_theta_zh(2.0, 4)
     with pytest.raises(ValueError, match="method must be 'table' or 'direct'"):
         w_theta_zh(0.1, 4, method="exact")
-    with pytest.raises(ValueError, match="order must be a positive int"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         w_theta_zh(0.1, 0)
-    with pytest.raises(ValueError, match="order must be a positive int"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         voronoi_cell_sums(0)
 
 
@@ -152,7 +152,7 @@ def test_emission_times_direction_is_the_pointwise_product(rng):
 def test_irradiance_kernel_errors():
     with pytest.raises(ValueError, match="method must be"):
         irradiance_kernel_zh(0.3, 4, method="gpu")
-    with pytest.raises(ValueError, match="order must be a positive int"):
+    with pytest.raises(ValueError, match="order must be an int >= 1"):
         irradiance_kernel_zh(0.3, 0)
     with pytest.raises(ValueError, match="theta must be finite"):
         irradiance_kernel_zh(2.0, 4)
