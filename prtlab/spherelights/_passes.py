@@ -459,7 +459,8 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     for o in range(n_obj):
         obj_centres[o] = c[obj == o].mean(axis=0)
     hi = 2 * order - 1
-    transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3).transpose(0, 2, 1))
+    transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3)
+                                    .transpose(0, 2, 1).reshape(hi * hi, 3 * order * order))
     r_max, tab_a, tab_b = _ol_table(order)
     gi, gj, gk, gv = _gaunt_block(order, order, order)
     direct = np.empty((p.shape[0], 3))
@@ -468,9 +469,9 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (c.shape[0], 3, 3)), order="C")
     em = np.array(np.asarray(emission, dtype=np.float64).reshape(c.shape[0], order * order, 3), order="C")
     if cosine and indirect and c.shape[0]:
-        lu = np.ascontiguousarray(emission_times_direction(em))
+        lu = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(c.shape[0], -1, 9))
     else:
-        lu = np.zeros((c.shape[0], 3, (order + 1) ** 2, 3))
+        lu = np.zeros((c.shape[0], (order + 1) ** 2, 9))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
                        obj_centres, np.array(inter),
                        blocker_log_table(order), order, blocking == "object", transfer,
@@ -598,6 +599,14 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
         wl = np.empty((n2, 2 * n_sph))
         el = np.empty((n2, 2 * n_sph))
         kl = np.empty(2 * n_sph, dtype=np.int64)
+        ydir = np.empty(3 * n2)
+        fr = np.empty(n2)
+        run = np.empty(n2)
+        osum = np.empty((n_obj, n2))
+        pre = np.empty((n_obj, n2))
+        oord = np.empty(n_obj, dtype=np.int64)
+        la = np.empty(9)
+        le = np.empty(3)
         for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
             px, py, pz = points[b, 0], points[b, 1], points[b, 2]
             nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
@@ -631,20 +640,23 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
             for k in range(hi * hi):
                 cos_hi[k] = 0.0
             _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
-            # T_n . e1 = sum_q cos_q (M[q] . e1); the clamped cosine's odd bands > 1 vanish (skipped)
-            for c in range(3):
-                direct_out[b, c] = 0.0
-                indirect_out[b, c] = 0.0
+            # T_n . e1 = sum_q cos_q (M[q] . e1) as y = sum_q cos_q M[q] (contiguous axpy over (c, k),
+            # vectorisable without reassociation), then y . e1; the clamped cosine's odd bands > 1 vanish
+            for t in range(3 * n2):
+                ydir[t] = 0.0
             for l in range(hi):
                 if cos_zh_hi[l] == 0.0:
                     continue
                 for q in range(l * l, (l + 1) * (l + 1)):
                     cq = cos_hi[q]
-                    for c in range(3):
-                        t = 0.0
-                        for k in range(n2):
-                            t += e1[k, 0] * transfer_t[q, c, k]
-                        direct_out[b, c] += cq * t
+                    for t in range(3 * n2):
+                        ydir[t] += cq * transfer_t[q, t]
+            for c in range(3):
+                acc = 0.0
+                for k in range(n2):
+                    acc += ydir[c * n2 + k] * e1[k, 0]
+                direct_out[b, c] = acc
+                indirect_out[b, c] = 0.0
             if not indirect:
                 continue
             for k in range(n2):
@@ -655,29 +667,55 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                 ey = obj_centres[o, 1] - py
                 ez = obj_centres[o, 2] - pz
                 od[o] = ex * ex + ey * ey + ez * ez
-            # front sums (Eq. 23), per object or per sphere (Sec. 7.2): lanes 2q (front) and 2q + 1 (front + own)
+            # front sums (Eq. 23), per object or per sphere (Sec. 7.2), into contiguous rows fr[i]: per object,
+            # the prefix sums of the object sums in (distance, index) order plus the closer non-intersecting
+            # lights of i's own object; lanes 2q (front) and 2q + 1 (front + own) of the exponentials
+            if per_object:
+                for o in range(n_obj):
+                    oord[o] = o
+                    for k in range(n2):
+                        osum[o, k] = 0.0
+                for o in range(1, n_obj):  # insertion sort by (od, index): stable, as the other tiers
+                    t = oord[o]
+                    j = o - 1
+                    while j >= 0 and od[oord[j]] > od[t]:
+                        oord[j + 1] = oord[j]
+                        j -= 1
+                    oord[j + 1] = t
+                for s in range(n_sph):
+                    o = sl_object[s]
+                    for k in range(n2):
+                        osum[o, k] += gs[s, k]
+                for k in range(n2):
+                    run[k] = 0.0
+                for q in range(n_obj):
+                    o = oord[q]
+                    for k in range(n2):
+                        pre[o, k] = run[k]
+                        run[k] += osum[o, k]
             n_live = 0
             for i in range(n_sph):
                 if theta[i] < 0.0:
                     continue
                 live[n_live] = i
+                if per_object:
+                    oi = sl_object[i]
+                    for k in range(n2):
+                        fr[k] = pre[oi, k]
+                    for j in range(n_sph):
+                        if j != i and sl_object[j] == oi and dist[j] < dist[i] and not intersect[i, j]:
+                            for k in range(n2):
+                                fr[k] += gs[j, k]
+                else:
+                    for k in range(n2):
+                        fr[k] = 0.0
+                    for j in range(n_sph):
+                        if j != i and dist[j] < dist[i] and not intersect[i, j]:
+                            for k in range(n2):
+                                fr[k] += gs[j, k]
                 for k in range(n2):
-                    xl[k, 2 * n_live] = 0.0
-                for j in range(n_sph):
-                    if j == i:
-                        continue
-                    if per_object:
-                        oi = sl_object[i]
-                        oj = sl_object[j]
-                        front = (oj != oi and (od[oj] < od[oi] or (od[oj] == od[oi] and oj < oi))) or \
-                                (oj == oi and dist[j] < dist[i] and not intersect[i, j])
-                    else:
-                        front = dist[j] < dist[i] and not intersect[i, j]
-                    if front:
-                        for k in range(n2):
-                            xl[k, 2 * n_live] += gs[j, k]
-                for k in range(n2):
-                    xl[k, 2 * n_live + 1] = xl[k, 2 * n_live] + gs[i, k]
+                    xl[k, 2 * n_live] = fr[k]
+                    xl[k, 2 * n_live + 1] = fr[k] + gs[i, k]
                 n_live += 1
             if n_live == 0:
                 continue
@@ -717,12 +755,22 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                     if proj <= 0.0 or v_open <= 0.0:
                         continue
                     frac = min(max(v_avg / v_open, 0.0), 1.0)
+                    # a[j, c] = sum_k krot_k Lu[i, j, k, c] and e[c] = sum_k krot_k L[i, k, c] as axpys over
+                    # the contiguous (j, c) rows of lu (S, n1, 9) and emission (S, n2, 3)
+                    for t in range(9):
+                        la[t] = 0.0
+                    for k in range(n1):
+                        kr = krot[k]
+                        for t in range(9):
+                            la[t] += kr * lu[i, k, t]
                     for c in range(3):
-                        acc = 0.0
-                        for k in range(n1):
-                            acc += krot[k] * s_i * (mx * lu[i, 0, k, c] + my * lu[i, 1, k, c] + mz * lu[i, 2, k, c])
-                        for k in range(n2):
-                            acc -= nb * krot[k] * emission[i, k, c]
+                        le[c] = 0.0
+                    for k in range(n2):
+                        kr = krot[k]
+                        for c in range(3):
+                            le[c] += kr * emission[i, k, c]
+                    for c in range(3):
+                        acc = s_i * (mx * la[c] + my * la[3 + c] + mz * la[6 + c]) - nb * le[c]
                         indirect_out[b, c] += acc * frac
                     continue
                 for l in range(order):
