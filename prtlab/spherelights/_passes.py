@@ -213,6 +213,13 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
     return g_sphere, g_front, theta, axis
 
 
+#: Sample counts below which :func:`first_pass` runs its parallel kernels on one thread. Its kernels
+#: are small (S * 92 samples, a few ms of work); on a loaded machine every parallel region waits for a
+#: descheduled worker (a scheduler time slice), measured at the squirrel scale (1288 samples, load ~4 on
+#: 2 cores): 10 ms on one thread against 37 ms on two.
+_SERIAL_BELOW = 8192
+
+
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
                exp_method: str = "hyb", ground=None, extra_irradiance=None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
@@ -250,25 +257,33 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     from ._ground import ground_blocked_transfer
     from ._shadows import blocker_log_sum
 
-    S, m = sample_valid.shape
-    env = np.asarray(env_sh, dtype=np.float64)
-    order = math.isqrt(np.asarray(albedo_sh).shape[1])
-    radiance = np.zeros((S, m, 3))
-    if sample_valid.any():
-        pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
-        nrm = np.asarray(sample_normals, dtype=np.float64)[sample_valid]
-        nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-        vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
-        t = environment_transfer(nrm, env, order)  # Eq. 8
-        if ground is not None and len(ground):
-            t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
-        radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
-    if extra_irradiance is not None:
-        extra = np.asarray(extra_irradiance, dtype=np.float64)
-        if extra.shape != (S, m, 3):
-            raise ValueError(f"extra_irradiance must have shape {(S, m, 3)} (lights, samples, RGB), got {extra.shape}")
-        radiance += np.where(sample_valid[..., None], extra, 0.0) / np.pi
-    light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
+    # a few thousand samples: the parallel kernels of this pass run on one thread (see _SERIAL_BELOW)
+    threads = numba.get_num_threads()
+    if np.asarray(sample_valid).size < _SERIAL_BELOW:
+        numba.set_num_threads(1)
+    try:
+        S, m = sample_valid.shape
+        env = np.asarray(env_sh, dtype=np.float64)
+        order = math.isqrt(np.asarray(albedo_sh).shape[1])
+        radiance = np.zeros((S, m, 3))
+        if sample_valid.any():
+            pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
+            nrm = np.asarray(sample_normals, dtype=np.float64)[sample_valid]
+            nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+            vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
+            t = environment_transfer(nrm, env, order)  # Eq. 8
+            if ground is not None and len(ground):
+                t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
+            radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
+        if extra_irradiance is not None:
+            extra = np.asarray(extra_irradiance, dtype=np.float64)
+            if extra.shape != (S, m, 3):
+                raise ValueError(f"extra_irradiance must have shape {(S, m, 3)} (lights, samples, RGB), "
+                                 f"got {extra.shape}")
+            radiance += np.where(sample_valid[..., None], extra, 0.0) / np.pi
+        light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
+    finally:
+        numba.set_num_threads(threads)
     return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(order), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
 
 
