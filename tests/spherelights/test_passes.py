@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from prtlab import sh
 from prtlab.geometry import builtin_mesh, geodesic_directions
@@ -183,6 +185,30 @@ def test_fused_second_pass_matches_composed_tier(blocking, average, rng):
         d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba", average=average)
         np.testing.assert_allclose(d1, d2, atol=1e-11)
         np.testing.assert_allclose(i1, i2, atol=1e-11)
+
+
+@given(seed=st.integers(0, 2**31), n_recv=st.integers(0, 24), n_sph=st.integers(1, 7),
+       blocking=st.sampled_from(["object", "sphere"]), exp_method=st.sampled_from(["ol", "hyb"]),
+       average=st.sampled_from(["cosine", "paper"]))
+def test_fused_second_pass_matches_composed_tier_property(seed, n_recv, n_sph, blocking, exp_method, average):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-2, 2, size=(n_recv, 3))
+    n = random_directions(rng, n_recv)
+    c = rng.normal(size=(n_sph, 3)) * 1.5
+    r = rng.uniform(0.1, 0.8, n_sph)
+    obj = np.unique(rng.integers(0, 3, n_sph), return_inverse=True)[1]  # objects 0..O-1, none empty
+    inter = (rng.random((n_sph, n_sph)) < 0.3) & (obj[:, None] == obj[None])
+    inter = inter | inter.T
+    np.fill_diagonal(inter, False)
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(n_sph)])
+    em = rng.normal(size=(n_sph, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    args = (p, n, c, r, obj, inter, rot, em, _env_sh())
+    d1, i1 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="fused", average=average)
+    d2, i2 = second_pass(*args, blocking=blocking, exp_method=exp_method, method="numba", average=average)
+    assert d1.shape == d2.shape == i1.shape == i2.shape == (n_recv, 3)
+    np.testing.assert_allclose(d1, d2, atol=1e-11)
+    np.testing.assert_allclose(i1, i2, atol=1e-11)
 
 
 def _cosine_directions(n, count, rng):
