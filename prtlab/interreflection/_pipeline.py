@@ -35,7 +35,19 @@ bounce, relative RMS of the bunny's indirect light against 256-path Monte Carlo,
 
 * ``pca_occluders`` (default True): the PCA basis of an object is trained with the shadows the
   other objects cast on it at their poses in the scene (:func:`_pca_basis`); a floor's basis
-  trained alone cannot hold the bunny's shadow (fit error of the floor's radiance 0.51 -> 0.08);
+  trained alone cannot hold the bunny's shadow (fit error of the floor's radiance 0.51 -> 0.08).
+  Its shadow rays leave the shading points: from the vertices, a floor's row along a wall (and the
+  wall's row on the floor) lay on the other plane, was dark in every training render and had a
+  basis of exactly 0, so as a source the edge emitted nothing. Diagnosis (format_version 3): a
+  4 x 4 floor and a 4 x 2 wall meeting at a right angle under the room's light, quick options,
+  one bounce against ``prtlab.reference.path_trace`` (256 paths): mean indirect floor 0.855,
+  wall 0.862 of Monte Carlo (edge rows 0.015, the next rows 0.93 / 0.99) with the bug; 1.003 /
+  0.990 after (edge rows 0.70 / 0.85: vertices on another surface, ill-defined). Ruled out on the
+  same scene: ``near_field=0`` (0.93 / 0.94 with the bug, 0.96 / 0.94 after: the interpolated
+  field is slightly darker near the edge, the ray-cast near field is right), N = 16 from 256
+  lights (no change), ``shadows="haar"`` (0.95 / 0.94 after, following its direct light, 0.98 /
+  0.97 of Monte Carlo where SH gives 1.00 / 1.02). This was the "light between the floor and the
+  walls" of the room (20 % too dark before, see ``tests/interreflection/test_pipeline.py``);
 * ``self_interreflection`` (default True): light an object bounces onto itself, precomputed
   (:func:`prtlab.interreflection.self_basis_irradiance`): 14-35 % of the bunny's indirect light;
 * ``near_field`` (default 0.5): receivers close to a source's surface get its basis radiance by
@@ -205,7 +217,10 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
         return pca.fit_pca_basis(mesh, n_basis, n_lights, plane=plane)
     lights = pca.pca_light_positions(mesh, n_lights, distance, plane=plane)
     unshadowed = pca.point_light_intensity(mesh, lights, shadows=False)  # (L, V)
-    points = np.asarray(mesh.vertices, float)
+    # shadow rays leave the shading points, where the pipeline and the references shade: a vertex on
+    # another object's surface (a floor's row along a wall) is moved off it; from the vertex itself
+    # every ray grazes that surface, the row is dark in every training render and the basis is 0 there
+    points = _local_shading_points(mesh)
     normals = np.asarray(mesh.vertex_normals, float)
     caster = RayCaster([mesh, *occluders])
     eps = caster.epsilon
@@ -237,7 +252,7 @@ class Interreflection(Precomputation):
     """Iwasaki et al. 2007: PRT for dynamic scenes with interreflections (module docstring)."""
 
     method = "interreflection"
-    format_version = 2
+    format_version = 3
     max_bounces = None
     options_type = InterreflectionOptions
 
