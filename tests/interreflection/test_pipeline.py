@@ -476,10 +476,14 @@ def test_haar_shadows_light_by_a_point_light_with_a_sharp_shadow():
     np.testing.assert_allclose(res.direct["floor"], res.direct["floor"][:, :1] * [1, 1, 1], rtol=1e-12)
 
 
-def floor_and_wall():
-    """A floor and one wall meeting at a right angle (the room's back corner) under the room's light."""
+def floor_and_wall(left_wall=False):
+    """A floor and one wall meeting at a right angle (the room's back corner) under the room's light;
+    with ``left_wall`` also the room's left wall (a second edge with the floor, one with the wall)."""
     from prtlab.scene import Scene
 
+    left = [{"name": "wall_left", "mesh": {"builtin": "plane", "size": [2, 4], "resolution": [6, 12]},
+             "transform": {"translate": [-2, 1, 0], "rotate_deg": [0, 0, -90]},
+             "material": {"type": "diffuse", "albedo": [0.75, 0.25, 0.2]}}] if left_wall else []
     return Scene.from_dict({
         "objects": [
             {"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [12, 12]},
@@ -487,6 +491,7 @@ def floor_and_wall():
             {"name": "wall", "mesh": {"builtin": "plane", "size": [4, 2], "resolution": [12, 6]},
              "transform": {"translate": [0, 1, -2], "rotate_deg": [90, 0, 0]},
              "material": {"type": "diffuse", "albedo": [0.3, 0.7, 0.3]}},
+            *left,
         ],
         "lights": [{"type": "area", "center": [0, 2.6, 0], "u": [0.4, 0, 0], "v": [0, 0, 0.4],
                     "radiance": [20, 20, 20]}],
@@ -518,3 +523,33 @@ def test_planes_meeting_at_an_edge_get_their_bounce_light(cache_root):
         se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
         err = np.abs(ours.mean(0) - truth.mean(0))
         assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err, truth.mean(0))
+
+
+def test_a_third_plane_darkens_the_bounce_by_its_order_n_visibility(cache_root, monkeypatch):
+    """Documented limit: a plane that blocks nothing between two others still darkens their bounce light.
+
+    A floor, a back wall and a left wall (the room without its objects). The basis irradiance of a
+    pair takes every other object as an occluder (module docstring): the left wall's visibility at a
+    back-wall point is a half-space, and its order-4 SH product with the floor's radiance leaks
+    onto the floor's directions. Measured (128 paths): mean indirect 0.91 (floor), 0.88 (back wall),
+    0.86 (left wall) of Monte Carlo; with no occluders in the basis irradiance (exact here: no plane
+    stands between two others) 1.00 / 1.00 / 1.00 on the room's own planes. The test holds the
+    unoccluded pipeline to Monte Carlo as ``test_one_bounce_between_two_objects_against_monte_carlo``
+    and the leak below 20 % (measured, not derived: 9-14 % here, 8-9 % on the room's finer planes).
+    """
+    import prtlab.interreflection._pipeline as pipeline_module
+    from prtlab.cache import Cache
+
+    pre = Interreflection.precompute(floor_and_wall(left_wall=True), QUICK, cache=Cache(cache_root, progress=False), progress=False)
+    occluded = pre.shade(bounces=1)
+    ref = path_trace(pre.scene, 1, 128, np.random.default_rng(5))
+    unblocked = pipeline_module.visibility_pass
+    monkeypatch.setattr(pipeline_module, "visibility_pass", lambda own, others: unblocked(own, []))
+    free = Interreflection(pre.scene, pre.options, pre.data).shade(bounces=1)
+    for name in ("floor", "wall", "wall_left"):
+        ours, truth = free.indirect[name], ref.indirect[name]
+        se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
+        err = np.abs(ours.mean(0) - truth.mean(0))
+        assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err, truth.mean(0))
+        ratio = occluded.indirect[name].mean(0) / ours.mean(0)
+        assert np.all((ratio > 0.8) & (ratio < 1.0)), (name, ratio)
