@@ -40,9 +40,18 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._explog import _HYB_THRESHOLD, _ol_table
 from prtlab.sh._gaunt import _gaunt_block
+from prtlab.sh._kernels import LOW_BANDS
 from prtlab.sh._product_kernels import _ol_one, _tile_product
 
-from ._shadows import _add_rotated_zh, _adjust, _lookup_log, blocker_log_table, environment_transfer, transfer_matrix
+from ._shadows import (
+    _add_rotated_zh,
+    _add_rotated_zh_low,
+    _adjust,
+    _lookup_log,
+    blocker_log_table,
+    environment_transfer,
+    transfer_matrix,
+)
 from ._tables import N_THETA_K, THETA_MAX_K, _irradiance_kernel_table, _w_theta_table, irradiance_kernel_zh, w_theta_zh
 
 __all__ = ["first_pass", "second_pass", "accumulate_blockers", "emission_times_direction"]
@@ -644,7 +653,10 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                 axis[s, 1] = dy / d
                 axis[s, 2] = dz / d
                 _lookup_log(th, table, order, g)
-                _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
+                if order <= LOW_BANDS:
+                    _add_rotated_zh_low(g, dx / d, dy / d, dz / d, order, ybuf, gs[s])
+                else:
+                    _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
                 for k in range(n2):
                     total[k] += gs[s, k]
             # direct (Eq. 8)

@@ -99,6 +99,10 @@ def _lookup_log(theta, table, order, g):
         g[l] = (1.0 - s) * table[j, l] + s * table[j + 1, l]
 
 
+#: ``sqrt(4 pi / (2l + 1))``, the ZH rotation factor of band ``l`` (tabulated: it is per band, not per receiver).
+_ZH_SCALE = np.sqrt(4.0 * np.pi / (2.0 * np.arange(16) + 1.0))
+
+
 @numba.njit(cache=True)
 def _add_rotated_zh(g, ax, ay, az, order, ybuf, scale, out_row):
     """out_row += scale * zh_rotate(g, axis) (axis unit)."""
@@ -106,9 +110,20 @@ def _add_rotated_zh(g, ax, ay, az, order, ybuf, scale, out_row):
     if order > LOW_BANDS:
         _high_bands(ax, ay, az, order, _PMM, _A, _B, ybuf, 0)
     for l in range(order):
-        f = scale * math.sqrt(4.0 * math.pi / (2 * l + 1)) * g[l]
-        for m in range(-l, l + 1):
-            k = l * l + l + m
+        f = scale * _ZH_SCALE[l] * g[l]
+        for k in range(l * l, (l + 1) * (l + 1)):
+            out_row[k] += f * ybuf[0, k]
+
+
+@numba.njit(cache=True, inline="always")
+def _add_rotated_zh_low(g, ax, ay, az, order, ybuf, out_row):
+    """out_row += zh_rotate(g, axis) for ``order <= LOW_BANDS`` (closed-form bands only). Inlined into the
+    per-receiver-and-light loops, where the call of :func:`_add_rotated_zh` cost as much as its ~50 flops;
+    straight-line code, so inlining it costs little compile time (the recurrence of higher bands is not)."""
+    _low_bands(ax, ay, az, order, ybuf, 0)
+    for l in range(order):
+        f = _ZH_SCALE[l] * g[l]
+        for k in range(l * l, (l + 1) * (l + 1)):
             out_row[k] += f * ybuf[0, k]
 
 
