@@ -75,16 +75,22 @@ def _hyb_flops(order: int = ORDER, squarings: float = 4.0) -> float:
     return 3 * order * order + 35 + squarings * 3 * gaunt_tensor(order).nnz
 
 
-def _frame_flops(n_recv: int, blocking: str, indirect: bool) -> float:
+def _ol_flops(order: int = ORDER) -> float:
+    """One OL exponential: the norm, the table lookup, the exp of the DC and one scaled copy (~3 n2 + 35)."""
+    return 3 * order * order + 35
+
+
+def _frame_flops(n_recv: int, blocking: str, indirect: bool, exp_method: str = "hyb") -> float:
     """Counted work of one frame (dominant terms): per receiver, S rotated blocker logs (~3 n2 + 40 each),
     the front sums (S^2 / 2 or ~S n_l / 2 vector adds of n2), 1 + 2S exponentials, dot products."""
     n2 = ORDER * ORDER
     s = N_LIGHTS
-    per = s * (3 * n2 + 40) + _hyb_flops() + 2 * n2 * 3
+    exp_flops = _hyb_flops() if exp_method == "hyb" else _ol_flops()
+    per = s * (3 * n2 + 40) + exp_flops + 2 * n2 * 3
     if indirect:
         adds = s * s / 2 if blocking == "sphere" else s * 8 / 2 + s
-        per += adds * n2 + 2 * s * _hyb_flops() + s * (2 * n2 + 3 * n2 * 2 + 40)
-    samples = N_LIGHTS * 92 * (per - (0 if not indirect else 2 * s * _hyb_flops())) if indirect else 0
+        per += adds * n2 + 2 * s * exp_flops + s * (2 * n2 + 3 * n2 * 2 + 40)
+    samples = N_LIGHTS * 92 * (per - (0 if not indirect else 2 * s * exp_flops)) if indirect else 0
     return (n_recv * per + samples) / 1e9
 
 
@@ -109,7 +115,8 @@ def frame_per_sphere(quick: bool) -> dict:
 @case("spherelights.frame.per_object_ol.21k")
 def frame_per_object_ol(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
-    return {"run": lambda: _frame(a, "object", exp_method="ol"), "gflop": None, "items": _n(quick),
+    return {"run": lambda: _frame(a, "object", exp_method="ol"),
+            "gflop": _frame_flops(_n(quick), "object", True, exp_method="ol"), "items": _n(quick),
             "peer": ("HYB exponentiation", lambda: _frame(a, "object", exp_method="hyb"))}
 
 
