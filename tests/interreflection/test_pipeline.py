@@ -288,6 +288,15 @@ def _scored(scene, name):
     return obj.world_vertices()[:, 1] > 0.01
 
 
+def _assert_within_goal(scene, ours, ref, obj, part):
+    """Bound: the goal plus the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
+    m = _scored(scene, obj)
+    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
+    scale = np.sqrt(np.mean(b**2))
+    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
+    assert rms <= GOAL[part] + noise, (rms, noise)
+
+
 def _case(scene_name, obj, part):
     key = (scene_name, obj, part)
     marks = [pytest.mark.xfail(strict=True, reason=_KNOWN[key])] if key in _KNOWN else []
@@ -298,13 +307,8 @@ def _case(scene_name, obj, part):
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("obj, part", [_case("fig9", o, p) for o in ("bunny", "floor") for p in GOAL])
 def test_fig9_against_mitsuba(fig9_scene, obj, part):
-    """Bound: the goal plus the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
-    scene, ours, ref = fig9_scene
-    m = _scored(scene, obj)
-    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
-    scale = np.sqrt(np.mean(b**2))
-    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
-    assert rms <= GOAL[part] + noise, (rms, noise)
+    """Fig. 9 at the defaults (the paper's order-4 SH shadows)."""
+    _assert_within_goal(*fig9_scene, obj, part)
 
 
 @pytest.mark.slow
@@ -313,12 +317,7 @@ def test_fig9_against_mitsuba(fig9_scene, obj, part):
 def test_fig9_haar_against_mitsuba(fig9_haar_scene, obj, part):
     """Fig. 9 with all-frequency direct shadows (``shadows="haar"``); measured (256 spp): bunny total 0.031
     (noise 0.019), indirect 0.172 (0.098); floor total 0.059 (0.012), indirect 0.54 (0.50)."""
-    scene, ours, ref = fig9_haar_scene
-    m = _scored(scene, obj)
-    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
-    scale = np.sqrt(np.mean(b**2))
-    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
-    assert rms <= GOAL[part] + noise, (rms, noise)
+    _assert_within_goal(*fig9_haar_scene, obj, part)
 
 
 def test_bounce_pass_equals_the_reference_tier(pre):
@@ -378,12 +377,7 @@ def room_scene():
 @pytest.mark.parametrize("obj, part", [_case("room", o, p) for o in _ROOM_OBJECTS for p in GOAL])
 def test_room_against_mitsuba(room_scene, obj, part):
     """A room of several objects (floor, two walls, box, teapot, bunny), one bounce; bound as for Fig. 9."""
-    scene, ours, ref = room_scene
-    m = _scored(scene, obj)
-    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
-    scale = np.sqrt(np.mean(b**2))
-    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
-    assert rms <= GOAL[part] + noise, (rms, noise)
+    _assert_within_goal(*room_scene, obj, part)
 
 
 def test_threshold_skips_a_far_object_and_its_skipped_light_is_below_the_bound(pre):
