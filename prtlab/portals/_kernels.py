@@ -40,6 +40,25 @@ def shell_resample_kernel(image, taps, weights, out):
             out[t, c] = acc
 
 
+@numba.njit(cache=True, inline="always")
+def _signed_row_dot(indptr, indices, codes, sign_bit, light, row, offset):
+    """``sum_e (+-codes[e]) light[offset + index(e), :3]`` over the entries of one sparse 8-bit row."""
+    low = sign_bit - 1
+    b0 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for e in range(indptr[row], indptr[row + 1]):
+        raw = np.int64(indices[e])
+        k = (raw & low) + offset
+        w = np.float64(codes[e])
+        if raw >= sign_bit:
+            w = -w
+        b0 += w * light[k, 0]
+        b1 += w * light[k, 1]
+        b2 += w * light[k, 2]
+    return b0, b1, b2
+
+
 @numba.njit(cache=True, parallel=True)
 def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, albedo, out):
     """Sparse 8-bit direct transfer times the shell light, times the albedo (3 channels).
@@ -50,22 +69,9 @@ def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, al
         out[v, c] = albedo[v, c] * scale[v] / 255 * sum_e (+-codes[e]) light[basis[v] N + index(e), c]
     """
     n_vertices = indptr.shape[0] - 1
-    low = sign_bit - 1
     n = light.shape[0] // 2
     for v in numba.prange(n_vertices):
-        offset = n * np.int64(basis[v])
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for e in range(indptr[v], indptr[v + 1]):
-            raw = np.int64(indices[e])
-            k = (raw & low) + offset
-            w = np.float64(codes[e])
-            if raw >= sign_bit:
-                w = -w
-            a0 += w * light[k, 0]
-            a1 += w * light[k, 1]
-            a2 += w * light[k, 2]
+        a0, a1, a2 = _signed_row_dot(indptr, indices, codes, sign_bit, light, v, n * np.int64(basis[v]))
         s = np.float64(scale[v]) / 255.0
         out[v, 0] = a0 * s * albedo[v, 0]
         out[v, 1] = a1 * s * albedo[v, 1]
@@ -77,7 +83,6 @@ def glossy_direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, li
     """Specular direct radiance of glossy vertices: the sparse rows ``rows[v, q]`` (one per discretised
     outgoing direction) blended with ``weights[v, q]``, times ``ks[v]``; ``light`` as in :func:`direct_pass_kernel`."""
     n_vertices, n_rows = rows.shape
-    low = sign_bit - 1
     n = light.shape[0] // 2
     for v in numba.prange(n_vertices):
         a0 = 0.0
@@ -88,19 +93,7 @@ def glossy_direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, li
             if w_row == 0.0:
                 continue
             row = rows[v, q]
-            offset = n * np.int64(basis[row])
-            b0 = 0.0
-            b1 = 0.0
-            b2 = 0.0
-            for e in range(indptr[row], indptr[row + 1]):
-                raw = np.int64(indices[e])
-                k = (raw & low) + offset
-                w = np.float64(codes[e])
-                if raw >= sign_bit:
-                    w = -w
-                b0 += w * light[k, 0]
-                b1 += w * light[k, 1]
-                b2 += w * light[k, 2]
+            b0, b1, b2 = _signed_row_dot(indptr, indices, codes, sign_bit, light, row, n * np.int64(basis[row]))
             s = w_row * np.float64(scale[row]) / 255.0
             a0 += s * b0
             a1 += s * b1
