@@ -35,6 +35,15 @@ def _threads_for(work: float):
         numba.set_num_threads(previous)
 
 
+def _check_light_sh(light_sh, shape, against: str) -> np.ndarray:
+    light_sh = np.asarray(light_sh, dtype=np.float64)
+    if light_sh.shape != shape:
+        raise ValueError(f"light_sh must have shape {shape} to match {against}, got {light_sh.shape}")
+    if not np.all(np.isfinite(light_sh)):
+        raise ValueError("light_sh has NaN or infinite values")
+    return light_sh
+
+
 def _check_method(method):
     if method not in _METHODS:
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
@@ -102,13 +111,9 @@ def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:
     """
     _check_method(method)
     transfer = np.asarray(transfer)
-    light_sh = np.asarray(light_sh, dtype=np.float64)
     if transfer.ndim != 3 or transfer.shape[2] != 3:
         raise ValueError(f"transfer must have shape (V, n*n, 3), got {transfer.shape}")
-    if light_sh.shape != transfer.shape[1:]:
-        raise ValueError(f"light_sh must have shape {transfer.shape[1:]} to match the transfer, got {light_sh.shape}")
-    if not np.all(np.isfinite(light_sh)):
-        raise ValueError("light_sh has NaN or infinite values")
+    light_sh = _check_light_sh(light_sh, transfer.shape[1:], "the transfer")
     if method == "reference":
         return np.einsum("vic,ic->vc", transfer.astype(np.float64), light_sh)
     out = np.zeros((transfer.shape[0], 3))
@@ -220,14 +225,10 @@ def glossy_indirect_pass(matrix, light_sh, view_dirs, method: str = "numba") -> 
 
     _check_method(method)
     matrix = np.asarray(matrix)
-    light_sh = np.asarray(light_sh, dtype=np.float64)
     view_dirs = np.asarray(view_dirs, dtype=np.float64)
     if matrix.ndim != 4 or matrix.shape[3] != 3:
         raise ValueError(f"matrix must have shape (V_g, n_out^2, n^2, 3), got {matrix.shape}")
-    if light_sh.shape != matrix.shape[2:]:
-        raise ValueError(f"light_sh must have shape {matrix.shape[2:]} to match the matrix, got {light_sh.shape}")
-    if not np.all(np.isfinite(light_sh)):
-        raise ValueError("light_sh has NaN or infinite values")
+    light_sh = _check_light_sh(light_sh, matrix.shape[2:], "the matrix")
     if view_dirs.shape != (matrix.shape[0], 3) or not np.all(np.isfinite(view_dirs)):
         raise ValueError(f"view_dirs must be a finite ({matrix.shape[0]}, 3) array, got shape {view_dirs.shape}")
     order_out = int(round(np.sqrt(matrix.shape[1])))
