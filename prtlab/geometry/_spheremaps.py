@@ -254,7 +254,6 @@ def direction_to_cubemap(dirs, res: int | None = None):
     ax, ay, az = np.abs(x), np.abs(y), np.abs(z)
     xmajor = (ax >= ay) & (ax >= az)
     ymajor = ~xmajor & (ay >= az)
-    zmajor = ~xmajor & ~ymajor
     face = np.where(xmajor, np.where(x >= 0, 0, 1), np.where(ymajor, np.where(y >= 0, 2, 3), np.where(z >= 0, 4, 5)))
     ma = np.where(xmajor, ax, np.where(ymajor, ay, az))
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -199,16 +199,7 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
-    c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
-    r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
-    obj = np.ascontiguousarray(sl_object, dtype=np.int64).reshape(-1)
-    inter = np.ascontiguousarray(intersect, dtype=np.bool_)
-    if r.shape[0] != c.shape[0] or obj.shape[0] != c.shape[0] or inter.shape != (c.shape[0], c.shape[0]):
-        raise ValueError("centres (S, 3), radii (S,), sl_object (S,) and intersect (S, S) must agree in S")
-    n_obj = int(obj.max()) + 1 if obj.size else 0
-    obj_centres = np.zeros((n_obj, 3))
-    for o in range(n_obj):
-        obj_centres[o] = c[obj == o].mean(axis=0)
+    c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
     if method == "reference":
         return _accumulate_reference(p, n, c, r, obj, obj_centres, inter, order, blocking == "object")
     B, S, n2 = p.shape[0], c.shape[0], order * order
@@ -469,9 +460,8 @@ def emission_times_direction(emission) -> np.ndarray:
 # --------------------------------------------------------------------------- fused second pass (the fast tier)
 
 
-def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
-                            exp_method, indirect, cosine):
-    order = math.isqrt(np.asarray(emission).shape[-2])
+def _light_arrays(centres, radii, sl_object, intersect):
+    """The spherical lights as contiguous arrays, checked to agree in S, and each object's mean centre."""
     c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
     r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
     obj = np.ascontiguousarray(sl_object, dtype=np.int64).reshape(-1)
@@ -482,6 +472,13 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     obj_centres = np.zeros((n_obj, 3))
     for o in range(n_obj):
         obj_centres[o] = c[obj == o].mean(axis=0)
+    return c, r, obj, inter, obj_centres
+
+
+def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
+                            exp_method, indirect, cosine):
+    order = math.isqrt(np.asarray(emission).shape[-2])
+    c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
     hi = 2 * order - 1
     transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3)
                                     .transpose(0, 2, 1).reshape(hi * hi, 3 * order * order))
@@ -606,7 +603,6 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
         axis = np.empty((n_sph, 3))
         x = np.empty((n2, 1))
         e1 = np.empty((n2, 1))
-        e2 = np.empty((n2, 1))
         h = np.empty((n2, 1))
         v = np.empty((n2, 1))
         w = np.empty((n2, 1))
