@@ -9,7 +9,13 @@ the sample-sphere grid of its basis radiance fields.
 from ._grid import SphereGrid, bounding_sphere, interpolate_field, sphere_grid
 from ._direct import direct_pass, occluder_order, visibility_pass
 from ._occlusion import DEFAULT_DEGREE, OcclusionField, occlusion_field, project_visibility, self_visibility
-from ._sources import area_light_sh, point_light_direct, sh_visibility_toward
+from ._sources import (
+    SourceRadianceField,
+    area_light_sh,
+    point_light_direct,
+    sh_visibility_toward,
+    source_radiance_field,
+)
 from ._haar import (
     DEFAULT_HAAR_RESOLUTION,
     DEFAULT_KEEP,
@@ -51,6 +57,8 @@ __all__ = [
     "direct_pass",
     # local lights
     "area_light_sh",
+    "SourceRadianceField",
+    "source_radiance_field",
     "point_light_direct",
     "sh_visibility_toward",
     # all-frequency (Haar cubemap) shadow fields
