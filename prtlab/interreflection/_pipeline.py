@@ -90,6 +90,14 @@ with partial coverage, point lights as deltas, environments as texel averages). 
 built-in bunny (1,839 vertices) on a 3 x 3 floor (625 vertices) under the Fig. 9 light (0.6 x 0.6,
 2.5 up), default sample spheres: relative RMS of the direct radiance, bunny 0.013 (Haar) against
 0.207 (SH order 4), floor 0.055 against 0.145; direct step 1.07 s against 0.88 s (2 busy cores).
+
+All-frequency basis irradiance (``irradiance="haar"``, needs ``shadows="haar"``): per object a sparse
+Haar basis radiance field (:func:`prtlab.interreflection.haar_basis_radiance_field`: per sample point
+and ``(k, i)`` the ``haar_radiance_keep`` largest coefficients of a ``haar_resolution`` cubemap,
+float32 values and uint16 indices); per pair the receiver's Haar visibility (self-visibility times
+the occluders' Haar fields) times ``g_k' cos`` per texel, Haar-transformed once and dotted with the
+blended sparse ``S`` (:func:`prtlab.interreflection.haar_basis_irradiance`); near-field receivers
+cast ``S`` as a cubemap at the receiver (:meth:`Interreflection._haar_pair`).
 """
 
 from __future__ import annotations
@@ -120,6 +128,8 @@ from prtlab.shadowfields import (
 )
 
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
+from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_cubemaps, haar_basis_radiance_field
+from ._haar_passes import haar_basis_irradiance, haar_transfer, texel_basis_irradiance
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -153,6 +163,11 @@ class InterreflectionOptions:
         (:func:`prtlab.shadowfields.area_light_sh`, a quadrature over the light per vertex) or
         ``"field"`` (the light's source radiance field, Zhou et al. 2005 Sec. 3, built once per light
         shape on the sample spheres and interpolated: 2-3 % relative error, cheaper when lights move).
+    irradiance : ``"sh"`` (order-n SH basis radiance fields, the paper's low-frequency Eq. 13) or
+        ``"haar"`` (all-frequency: sparse Haar basis radiance cubemaps times the Haar visibility,
+        :func:`prtlab.interreflection.haar_basis_irradiance`; needs ``shadows="haar"``).
+    haar_radiance_keep : Haar coefficients kept per (sample point, k, i) basis radiance cubemap (64) of
+        ``irradiance="haar"``.
     """
 
     order: int = 4
@@ -173,10 +188,16 @@ class InterreflectionOptions:
     haar_resolution: int = 32
     haar_keep: int = 512
     area_lights: str = "exact"
+    irradiance: str = "sh"
+    haar_radiance_keep: int = 64
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
-                                 "haar_resolution", "haar_keep"))
+                                 "haar_resolution", "haar_keep", "haar_radiance_keep"))
+        check_choice(self.irradiance, "option irradiance", ("sh", "haar"))
+        if self.irradiance == "haar" and self.shadows != "haar":
+            raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
+                             "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
         if self.shadows not in ("sh", "haar"):
             raise ValueError(f"option shadows must be 'sh' or 'haar', got {self.shadows!r}")
@@ -281,6 +302,8 @@ class Interreflection(Precomputation):
         import dataclasses
 
         run_time = ("threshold", "near_field", "area_lights")  # per-frame options: not part of the precomputed data
+        if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
+            run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
         parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene), opts]
         if options.pca_occluders:
@@ -324,6 +347,9 @@ class Interreflection(Precomputation):
                     r_max=options.r_max, spacing=options.spacing, **haar).to_arrays()
                 data[obj.name]["haar_self"] = haar_self_visibility(mesh, points=points, normals=normals,
                                                                    **haar).to_arrays()
+            if options.irradiance == "haar":
+                data[obj.name]["haar_radiance"] = haar_basis_radiance_field(
+                    mesh, basis.basis, sep, oof.grid, options.haar_resolution, options.haar_radiance_keep).to_arrays()
         return data
 
     def __init__(self, scene, options, data):
@@ -346,6 +372,8 @@ class Interreflection(Precomputation):
                             for o in self.objects} if haar else {}
         self.haar_self = {o.name: SparseCubemaps.from_arrays(data[o.name]["haar_self"])
                           for o in self.objects} if haar else {}
+        self.haar_radiance = {o.name: HaarBasisRadianceField.from_arrays(data[o.name]["haar_radiance"])
+                              for o in self.objects} if options.irradiance == "haar" else {}
         self._phi_cache: dict = {}
         self._trees: dict = {}
         self._stack_cache: dict = {}
@@ -385,6 +413,9 @@ class Interreflection(Precomputation):
             for key in ("haar_oof", "haar_self"):  # the all-frequency direct shadows do not depend on n, N
                 if key in d:
                     data[obj.name][key] = d[key]
+            if "haar_radiance" in d:  # the Haar basis radiance keeps no SH bands: only N is cut
+                data[obj.name]["haar_radiance"] = HaarBasisRadianceField.from_arrays(
+                    d["haar_radiance"]).truncated(n).to_arrays()
         options = dataclasses.replace(self.options, order=o, n_basis=min(n, self.options.n_basis))
         return type(self)(self.scene, options, data)
 
@@ -595,6 +626,42 @@ class Interreflection(Precomputation):
         eps = 1e-9 * max(float(np.ptp(points, axis=0).max()), float(np.ptp(v, axis=0).max()), 1e-300)
         return bool(np.all(side >= -eps) or np.all(side <= eps))
 
+    def _haar_pair(self, geo, r, s, others):
+        """Eq. 13 of one pair with ``irradiance="haar"`` (:func:`haar_basis_irradiance`), by chunks of vertices.
+
+        The transfer is the receiver's Haar self-visibility times the Haar occlusion fields of ``others``
+        times ``g_k' cos`` per texel; receivers near the source (as :meth:`_near_field`) take ``S`` cast at
+        the receiver (:func:`haar_basis_radiance_cubemaps`, not cached: a dense cubemap per basis function).
+        """
+        g, T, res = geo[r.name], geo[s.name]["T"], self.options.haar_resolution
+        field, own = self.haar_radiance[s.name], self.haar_self[r.name]
+        occluders = [(self.haar_fields[o], geo[o]["T"]) for o in others]
+        local = _to_object(g["x"], T)
+        near = np.zeros(len(local), bool)
+        if self.options.near_field > 0 and len(local):
+            if s.name not in self._trees:
+                from scipy.spatial import cKDTree
+
+                self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
+            gap, _ = self._trees[s.name].query(local)
+            near = gap < self.options.near_field * np.linalg.norm(local - field.grid.center, axis=1)
+        out = np.empty((len(local), self.seps[r.name].K) + field.n_terms)
+        step = 256
+        for a in range(0, len(local), step):
+            b = min(len(local), a + step)
+            transfer = haar_transfer(g["x"][a:b], g["n"][a:b], self.seps[r.name], res,
+                                     self_visibility=SparseCubemaps(own.resolution, own.indices[a:b],
+                                                                    own.values[a:b], own.energy_lost[a:b]),
+                                     self_transform=g["T"], occluders=occluders)
+            out[a:b] = haar_basis_irradiance(field, g["x"][a:b], transfer, T)
+            idx = np.flatnonzero(near[a:b])
+            for c in range(0, len(idx), 32):
+                sub = idx[c:c + 32]
+                cubes = haar_basis_radiance_cubemaps(s.mesh, self.bases[s.name].basis, self.seps[s.name],
+                                                     local[a + sub], res)
+                out[a + sub] = texel_basis_irradiance(cubes, transfer[sub], T)
+        return out
+
     def basis_irradiance_step(self, geo, occ):
         """Step 2: ``Phi[r][s]`` (V_r, K'_r, K_s, N_s) for every ordered pair, reusing unchanged poses."""
         pose = {o.name: tuple(geo[o.name]["T"].matrix().ravel()) for o in self.objects}
@@ -621,6 +688,12 @@ class Interreflection(Precomputation):
                 others = [o.name for o in self.objects if o.name not in (r.name, s.name)
                           and not self._plane_separates(geo, o, r, s)]
                 idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
+                if self.options.irradiance == "haar":
+                    value = self._haar_pair(geo, r, s, others)
+                    phi[r.name][s.name] = value
+                    self._phi_cache[key] = (depends, value)
+                    computed += 1
+                    continue
                 vis = visibility_pass(g["self"], [occ[r.name][others[i]] for i in idx])
                 transfer = self._transfer(vis, g["g_cos"])
                 field = self.data[s.name]["basis_radiance"]
