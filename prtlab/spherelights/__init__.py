@@ -3,7 +3,8 @@
 Sphere-set fitting (Sec. 4.1), surface samples and albedo (Sec. 4.2), the
 direct soft shadows of Ren et al. 2006 (Sec. 5.1, Eqs. 3-8), the tables
 (Eqs. 10, 16-17), the first and second pass (Eqs. 9-24, per-sphere and
-per-object blocking), local lights (Sec. 7.3, option ``local_lights``), soft
+per-object blocking), local lights (Sec. 7.3, option ``local_lights``), hierarchies of lights with
+the reflection ratio (Sec. 7.3, option ``hierarchy_children``), soft
 deformations (Sec. 7.1, ``SphereLights.shade(..., deformed=...)``) and the
 pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 """
@@ -11,6 +12,8 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
 from ._pipeline import SphereLightOptions, SphereLights, precompute, shade_scene
 from ._ground import ground_blocked_transfer, ground_rectangles
+from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, receiver_clusters,
+                         reflection_ratio, select_cut)
 from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
 from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
@@ -38,6 +41,14 @@ __all__ = [
     # the ground as an occluder of the first pass (an extension)
     "ground_blocked_transfer",
     "ground_rectangles",
+    # hierarchies of spherical lights and the reflection ratio (Sec. 7.3)
+    "LightHierarchy",
+    "bounding_sphere",
+    "build_hierarchy",
+    "cluster_samples",
+    "receiver_clusters",
+    "reflection_ratio",
+    "select_cut",
     # run-time passes (Secs. 5-7)
     "accumulate_blockers",
     "emission_times_direction",

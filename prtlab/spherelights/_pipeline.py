@@ -33,12 +33,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab import sh
 from prtlab.geometry import geodesic_directions
 from prtlab.pipeline import FrameState, Precomputation
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_rectangles
+from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, receiver_clusters, reflection_ratio,
+                         select_cut)
 from ._passes import first_pass, second_pass
 from ._samples import surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
@@ -73,6 +76,26 @@ class SphereLightOptions:
     local_lights : sequence of (centre (3,), radius, radiance (3,))
         Local lights (Sec. 7.3): opaque spheres in world space emitting a
         constant RGB radiance (a run-time choice). Their light is direct light.
+    hierarchy_children : int
+        Sec. 7.3: 0 (default) shades with every light (the flat pipeline); ``k >= 2`` builds per object a sphere
+        hierarchy with parents bounding ``k`` children and shades the indirect light of each receiver cluster
+        with its own cut (a run-time choice; see ``_hierarchy``). The direct soft shadows keep the leaves
+        (the cheap shadows-only pass), so only the indirect term is approximated.
+    cut_threshold : float
+        In ``[0, 1)``: a parent joins a cluster's cut when its angular size ``r / (d - R_C)`` from the cluster's
+        ball is below this (0: leaves everywhere, the flat result).
+    receiver_clusters : int
+        Receiver clusters per receiving object (k-means on its rest shading points).
+    reflection_ratio : bool
+        Scale each cut node's diffuse reflection by its reflection ratio at the cluster centre (Eqs. 25-26).
+    ratio_samples : int
+        Receivers of a cluster at which the ratio is fitted: 1 is the paper's Eq. 25 at the cluster centre (the
+        centre then gets the flat value exactly); ``k > 1`` adds ``k - 1`` farthest-point receivers and takes the
+        least-squares best scaling (the paper's wording for ``t``), which is steadier where the centre sees a
+        node near its horizon. Default 5: on the test scene (2 closed objects of 8 lights, 8 clusters per
+        object, threshold 0.9) the relative RMS indirect error against the flat pass is 6.7 % without the
+        ratio, 12 % with the paper's centre ratio (curved receivers whose centre sees a node at grazing angles
+        get ratios far off for the rest of the cluster) and 3.4 % with 5 points.
     occluding_ground : bool
         An extension, on by default: the scene's grounds (flat, horizontal,
         receiving-only objects) hide the environment from the surface samples of
@@ -92,8 +115,27 @@ class SphereLightOptions:
     cube_resolution: int = 16
     occluding_ground: bool = True
     local_lights: tuple = ()
+    hierarchy_children: int = 0
+    cut_threshold: float = 0.25
+    receiver_clusters: int = 16
+    reflection_ratio: bool = True
+    ratio_samples: int = 5
 
     def __post_init__(self):
+        hc = self.hierarchy_children
+        if isinstance(hc, bool) or not isinstance(hc, int) or hc < 0 or hc == 1:
+            raise ValueError(f"hierarchy_children must be 0 (no hierarchy) or an int >= 2, got {hc!r}")
+        ct = self.cut_threshold
+        if isinstance(ct, bool) or not isinstance(ct, (int, float)) or not 0.0 <= ct < 1.0:
+            raise ValueError(f"cut_threshold must be a number in [0, 1) (0: leaves everywhere), got {ct!r}")
+        rc = self.receiver_clusters
+        if isinstance(rc, bool) or not isinstance(rc, int) or rc < 1:
+            raise ValueError(f"receiver_clusters must be an int >= 1 (clusters per receiving object), got {rc!r}")
+        rs = self.ratio_samples
+        if isinstance(rs, bool) or not isinstance(rs, int) or rs < 1:
+            raise ValueError(f"ratio_samples must be an int >= 1 (1: the cluster centre, Eq. 25), got {rs!r}")
+        if not isinstance(self.reflection_ratio, bool):
+            raise TypeError(f"reflection_ratio must be a bool, got {type(self.reflection_ratio).__name__}")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
         if self.exp_method not in ("hyb", "ol", "exact"):
             raise ValueError(f"exp_method must be 'hyb', 'ol' or 'exact', got {self.exp_method!r}")
@@ -160,6 +202,11 @@ def _is_source(obj) -> bool:
     return not obj.portal and _closed_mesh(obj.mesh) is not None
 
 
+#: Options that do not change the precomputed data (left out of the cache key).
+_RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
+             "receiver_clusters", "reflection_ratio", "ratio_samples")
+
+
 class SphereLights(Precomputation):
     """Guerrero et al. 2008: soft shadows and one-bounce diffuse indirect light from spherical lights."""
 
@@ -173,7 +220,7 @@ class SphereLights(Precomputation):
         # the run-time choices do not change the precomputed data
         from dataclasses import asdict
 
-        opts = {k: v for k, v in asdict(options).items() if k not in ("exp_method", "blocking", "average", "local_lights")}
+        opts = {k: v for k, v in asdict(options).items() if k not in _RUN_TIME}
         from prtlab.pipeline import scene_geometry_key_parts
 
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=False), opts]
@@ -344,6 +391,7 @@ class SphereLights(Precomputation):
         result = ShadeResult(info={"method": self.method, "n_lights": int(n_sl), "n_local_lights": int(n_loc),
                                    "exp_method": opts.exp_method, "blocking": opts.blocking,
                                    "average": opts.average})
+        nodes = None
         for obj in self.scene.objects:
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in deformed:
@@ -351,9 +399,15 @@ class SphereLights(Precomputation):
             else:
                 pts = obj.world_shading_points(tr)
                 nrm = obj.world_normals(tr)
-            direct, indirect = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, emission, env,
-                                           blocking=opts.blocking, exp_method=opts.exp_method,
-                                           average=opts.average, indirect=bounces > 0 and n_sl > 0)
+            if opts.hierarchy_children and bounces > 0 and n_sl:
+                if nodes is None:
+                    nodes = self._hierarchy_nodes(state, deformed, all_c, all_r, all_obj, all_rot)
+                direct, indirect = self._hierarchical_second_pass(obj, pts, nrm, nodes, all_c, all_r, all_obj,
+                                                                  all_inter, all_rot, emission, env)
+            else:
+                direct, indirect = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, emission, env,
+                                               blocking=opts.blocking, exp_method=opts.exp_method,
+                                               average=opts.average, indirect=bounces > 0 and n_sl > 0)
             if n_loc:
                 _, from_local = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, local_only, env,
                                             blocking=opts.blocking, exp_method=opts.exp_method,
@@ -364,6 +418,148 @@ class SphereLights(Precomputation):
             result.indirect[obj.name] = indirect * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         return result
+
+    # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
+
+    def hierarchies(self) -> dict:
+        """``{object name: LightHierarchy}`` of the source objects (object space, built once per option)."""
+        k = self.options.hierarchy_children
+        cache = self.__dict__.setdefault("_hierarchy_cache", {})
+        if k not in cache:
+            cache[k] = {name: build_hierarchy(data["centres"], data["radii"], k)
+                        for name, data in sorted(self.data["objects"].items())}
+        return cache[k]
+
+    def _clusters(self, obj):
+        """Receiver clusters of an object (labels (V,), medoids (C,)), from its rest shading points."""
+        cache = self.__dict__.setdefault("_cluster_cache", {})
+        key = (obj.name, self.options.receiver_clusters)
+        if key not in cache:
+            cache[key] = receiver_clusters(obj.world_shading_points(obj.transform), self.options.receiver_clusters,
+                                           normals=obj.world_normals(obj.transform))
+        return cache[key]
+
+    def _hierarchy_nodes(self, state, deformed, all_c, all_r, all_obj, all_rot):
+        """Every node of the scene's light forest in world space, leaves first (the lights of the flat pass, local
+        lights as single-leaf trees): centres (N, 3), radii (N,), object (N,), rotation (N, 3, 3), leaf weights
+        (N, S) and per tree (LightHierarchy, global index of each node)."""
+        S = len(all_r)
+        c, r, o, rot, w, trees = [all_c], [all_r], [all_obj], [all_rot], [np.eye(S)], []
+        n_next, off = S, 0
+        for k, (name, h) in enumerate(self.hierarchies().items()):
+            s = h.n_leaves
+            tr = state.transforms.get(name) or self.scene.object(name).transform
+            n_par = len(h.radii) - s
+            gmap = np.concatenate([off + np.arange(s), n_next + np.arange(n_par)])
+            # a parent follows the mean displacement of its leaves (soft deformations; 0 for a rigid object)
+            shift = all_c[off:off + s] - tr.apply_points(h.centres[:s])
+            par_w = h.weights[s:]
+            c.append(tr.apply_points(h.centres[s:]) + (par_w > 0) @ shift / np.maximum((par_w > 0).sum(1), 1)[:, None])
+            r.append(h.radii[s:] * float(tr.scale))
+            o.append(np.full(n_par, all_obj[off]))
+            rot.append(np.broadcast_to(np.asarray(tr.rotation, dtype=np.float64), (n_par, 3, 3)))
+            wk = np.zeros((n_par, S))
+            wk[:, off:off + s] = par_w
+            w.append(wk)
+            trees.append((h, gmap))
+            off += s
+            n_next += n_par
+        for i in range(off, S):  # local lights
+            trees.append((LightHierarchy(all_c[i:i + 1], all_r[i:i + 1], ((),), np.ones((1, 1)), (0,)),
+                          np.array([i])))
+        return (np.concatenate(c), np.concatenate(r), np.concatenate(o).astype(np.int64),
+                np.concatenate(rot), np.concatenate(w), trees)
+
+    def _node_emission(self, nodes, cut, emission):
+        """(K, n*n, 3) light of the cut's nodes: ``sum_j w_Pj L_j`` (see ``_hierarchy``), each leaf's SH turned
+        from its own frame into the node's first."""
+        _, _, _, rot, w, _ = nodes
+        out = np.empty((len(cut),) + emission.shape[1:])
+        for i, k in enumerate(cut):
+            leaves = np.nonzero(w[k])[0]
+            if len(leaves) == 1 and leaves[0] == k:
+                out[i] = emission[k]
+                continue
+            em = emission[leaves]
+            rel = np.einsum("ji,ljk->lik", rot[k], rot[leaves])  # node-from-leaf: R_P^T R_j
+            turn = ~np.all(np.abs(rel - np.eye(3)) < 1e-14, axis=(1, 2))
+            if turn.any():
+                em = em.copy()
+                em[turn] = sh.rotate(em[turn], rel[turn], channels=True)
+            out[i] = np.einsum("l,lkc->kc", w[k, leaves], em)
+        return out
+
+    def _hierarchical_second_pass(self, obj, pts, nrm, nodes, all_c, all_r, all_obj, all_inter, all_rot, emission,
+                                  env):
+        """Direct and indirect irradiance of one receiving object with a hierarchy cut per receiver cluster and the
+        reflection ratio (Sec. 7.3, Eqs. 25-26; see ``_hierarchy``). Clusters whose cut is all leaves are the flat
+        pass exactly; the others take their direct light from the leaves (shadows-only pass) and their indirect
+        light from their cut."""
+        opts = self.options
+        kw = dict(blocking=opts.blocking, exp_method=opts.exp_method, average=opts.average)
+        node_c, node_r, node_o, node_rot, node_w, trees = nodes
+        S = len(all_r)
+        labels, medoid = self._clusters(obj)
+        cuts = []
+        for k, m in enumerate(medoid):
+            radius = float(np.max(np.linalg.norm(pts[labels == k] - pts[m], axis=1)))
+            cut = []
+            for h, gmap in trees:
+                cut.extend(gmap[select_cut(h, node_c[gmap], node_r[gmap], pts[m], radius, opts.cut_threshold)])
+            cuts.append(tuple(sorted(int(i) for i in cut)))
+        coarse = np.array([max(cut) >= S for cut in cuts], dtype=bool)
+        direct, ind = np.zeros((len(pts), 3)), np.zeros((len(pts), 3))
+        flat = ~coarse[labels]
+        if flat.any():
+            direct[flat], ind[flat] = second_pass(pts[flat], nrm[flat], all_c, all_r, all_obj, all_inter, all_rot,
+                                                  emission, env, indirect=True, **kw)
+        if not coarse.any():
+            return direct, ind
+        rough = ~flat
+        direct[rough], _ = second_pass(pts[rough], nrm[rough], all_c, all_r, all_obj, all_inter, all_rot, emission,
+                                       env, indirect=False, **kw)
+        coarse_ids = np.nonzero(coarse)[0]
+        if opts.reflection_ratio:
+            # the flat pass's per-light values at the centres of the coarse clusters (linear in each emission)
+            samples = cluster_samples(pts, labels, medoid, opts.ratio_samples)  # (C, P)
+            centres = samples[coarse_ids].reshape(-1)
+            leaf_values = np.zeros((len(centres), S, 3))
+            for j in np.nonzero(np.any(emission != 0, axis=(1, 2)))[0]:
+                one = np.zeros_like(emission)
+                one[j] = emission[j]
+                leaf_values[:, j] = second_pass(pts[centres], nrm[centres], all_c, all_r, all_obj, all_inter,
+                                                all_rot, one, env, **kw)[1]
+        by_cut = {}
+        for i, k in enumerate(coarse_ids):
+            by_cut.setdefault(cuts[k], []).append((i, k))
+        for cut, members in by_cut.items():
+            cut = np.array(cut)
+            cc, cr, co, crot = node_c[cut], node_r[cut], node_o[cut], node_rot[cut]
+            d = np.linalg.norm(cc[:, None] - cc[None], axis=2)
+            inter = (d < cr[:, None] + cr[None]) & (co[:, None] == co[None])
+            np.fill_diagonal(inter, False)
+            leaf = cut < S
+            inter[np.ix_(leaf, leaf)] = all_inter[np.ix_(cut[leaf], cut[leaf])]
+            em = self._node_emission(nodes, cut, emission)
+            t = np.ones((len(members), len(cut), 3))
+            if opts.reflection_ratio:
+                centres = samples[[k for _, k in members]].reshape(-1)
+                node_values = np.zeros((len(centres), len(cut), 3))
+                for q in np.nonzero(np.any(em != 0, axis=(1, 2)))[0]:
+                    one = np.zeros_like(em)
+                    one[q] = em[q]
+                    node_values[:, q] = second_pass(pts[centres], nrm[centres], cc, cr, co, inter, crot, one, env,
+                                                    **kw)[1]
+                under = (node_w[cut] > 0).astype(np.float64)  # (K, S) leaves under each node
+                P = samples.shape[1]
+                rows = leaf_values.reshape(-1, P, S, 3)[[i for i, _ in members]]
+                flat_sums = np.einsum("ks,mpsc->mpkc", under, rows)
+                t = reflection_ratio(flat_sums, node_values.reshape(len(members), P, len(cut), 3))
+            for (_, k), tk in zip(members, t):
+                sel = labels == k
+                _, ind[sel] = second_pass(pts[sel], nrm[sel], cc, cr, co, inter, crot, em * tk[:, None, :], env,
+                                          indirect=True, **kw)
+        return direct, ind
 
 
 def _light_shifts(verts, rest, vertex_light, n_lights) -> np.ndarray:
