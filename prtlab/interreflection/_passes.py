@@ -86,7 +86,7 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
         local = ((points - source_transform.translate) @ R) / float(source_transform.scale)
         transfer = sh.rotate(transfer, R.T, channels=False)  # <S_world, T> = <S_obj, R^T T>
     r = np.linalg.norm(local - grid.center, axis=1)
-    scale = np.where(r > grid.radii[-1], (grid.radii[-1] / np.maximum(r, 1e-300)) ** 2, 1.0)
+    scale = (grid.radii[-1] / np.maximum(r, grid.radii[-1])) ** 2  # 1 inside the outermost sphere
     if method == "reference":
         s_at, _ = interpolate_field(grid, field.reshape(grid.shape + (n_k * n_b, n2)), local, method="reference")
         phi = np.einsum("vmi,vki->vkm", s_at, transfer) * scale[:, None, None]

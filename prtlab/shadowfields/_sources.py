@@ -214,10 +214,10 @@ class SourceRadianceField:
             raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
         frame, shape = _canonical(light)
         local = (points - np.asarray(light.center, dtype=np.float64)) @ frame / (shape[0] / self.shape[0])
-        out, beyond = interpolate_field(self.grid, self.coeffs, local, method=method)
+        out, _ = interpolate_field(self.grid, self.coeffs, local, method=method)
         if out.size:
             r = np.linalg.norm(local - self.grid.center, axis=-1)
-            out *= np.where(beyond, (self.grid.radii[-1] / np.maximum(r, 1e-300)) ** 2, 1.0)[..., None]
+            out *= ((self.grid.radii[-1] / np.maximum(r, self.grid.radii[-1])) ** 2)[..., None]
             out = sh.rotate(out.reshape(-1, out.shape[-1]), frame, channels=False).reshape(out.shape)
         return out[..., None] * np.asarray(light.radiance, dtype=np.float64)
 
