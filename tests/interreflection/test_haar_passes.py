@@ -304,3 +304,42 @@ def test_errors():
         haar_basis_irradiance(field, p, t * np.nan)
     with pytest.raises(ValueError, match="radiance_cubemaps must be"):
         texel_basis_irradiance(np.zeros((1, 6, RES, RES)), t)
+
+
+# --------------------------------------------------------------------------- the pipeline option
+
+_TINY = dict(n_radii=6, resolution=4, degree=31, n_lights=64, n_basis=8, haar_resolution=8, haar_keep=128,
+             haar_radiance_keep=32, shadows="haar")
+
+
+def test_pipeline_irradiance_option_needs_haar_shadows():
+    from prtlab.interreflection import InterreflectionOptions
+
+    with pytest.raises(ValueError, match="irradiance='haar' needs the Haar visibility of shadows='haar'"):
+        InterreflectionOptions(irradiance="haar")
+    with pytest.raises(ValueError, match="option irradiance"):
+        InterreflectionOptions(irradiance="wavelet", shadows="haar")
+
+
+def test_pipeline_one_bounce_against_monte_carlo(tmp_path):
+    """The ball over a red floor (``tests/interreflection/test_pipeline.py``), one bounce, tiny fields: the
+    per-object mean indirect light of ``irradiance="haar"`` within ``MC_SIGMAS`` standard errors plus
+    ``TAU_MEAN`` of Monte Carlo (the bound of the SH pipeline's test)."""
+    from prtlab.cache import Cache
+    from prtlab.interreflection import Interreflection
+    from prtlab.reference import path_trace
+    from tests.interreflection.test_pipeline import TAU_MEAN, scene
+
+    cache = Cache(tmp_path, progress=False)
+    pre = Interreflection.precompute(scene(), dict(_TINY, irradiance="haar"), cache=cache, progress=False)
+    res = pre.shade(bounces=1)
+    ref = path_trace(pre.scene, 1, 64, np.random.default_rng(11))
+    for name in ("floor", "ball"):
+        ours, truth = res.indirect[name], ref.indirect[name]
+        se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
+        err = np.abs(ours.mean(0) - truth.mean(0))
+        assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err)
+    # the cached field comes back as it was, and truncating N cuts it
+    again = Interreflection.precompute(scene(), dict(_TINY, irradiance="haar"), cache=cache, progress=False)
+    np.testing.assert_array_equal(again.haar_radiance["ball"].values, pre.haar_radiance["ball"].values)
+    assert pre.truncated(n_basis=4).haar_radiance["ball"].n_terms == (1, 4)
