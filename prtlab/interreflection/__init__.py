@@ -10,7 +10,13 @@ of :mod:`prtlab.shadowfields` for visibility and direct light.
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_cubemaps, haar_basis_radiance_field
-from ._haar_passes import haar_basis_irradiance, haar_irradiance_bound, haar_transfer, texel_basis_irradiance
+from ._haar_passes import (
+    haar_basis_irradiance,
+    haar_irradiance_bound,
+    haar_transfer,
+    near_basis_irradiance,
+    texel_basis_irradiance,
+)
 from ._pipeline import Interreflection, InterreflectionOptions, precompute, shade_scene
 
 __all__ = [
@@ -30,6 +36,7 @@ __all__ = [
     "haar_transfer",
     "haar_basis_irradiance",
     "texel_basis_irradiance",
+    "near_basis_irradiance",
     "haar_irradiance_bound",
     # the pipeline
     "Interreflection",

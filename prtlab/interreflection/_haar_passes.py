@@ -40,8 +40,8 @@ cosine integral (error at most ``int_t |min(0, n . w)| dw``). The Haar truncatio
 
 Interpolation between sample points blends 8 sharp cubemaps (a soft, doubled
 silhouette); near a large source the sampling of the spheres dominates, and the
-pipeline's near field casts ``S`` at the receiver instead
-(:func:`haar_basis_radiance_cubemaps` with :func:`texel_basis_irradiance`).
+pipeline's near field casts ``S`` at the receiver instead (:func:`near_basis_irradiance`, the sum of
+:func:`texel_basis_irradiance` over :func:`haar_basis_radiance_cubemaps` gathered hit by hit).
 
 Kernels live in this module (``@numba.njit(cache=True)``); the ``"reference"`` tiers
 are the float64 numpy specifications.
@@ -69,7 +69,8 @@ from prtlab.shadowfields import (
 
 from ._haar_fields import HaarBasisRadianceField, _check_resolution
 
-__all__ = ["haar_transfer", "haar_basis_irradiance", "texel_basis_irradiance", "haar_irradiance_bound"]
+__all__ = ["haar_transfer", "haar_basis_irradiance", "texel_basis_irradiance", "near_basis_irradiance",
+           "haar_irradiance_bound"]
 
 _METHODS = ("numba", "reference")
 #: Transfer texels (vertex x k' x texel) per chunk of vertices.
@@ -403,6 +404,79 @@ def texel_basis_irradiance(radiance_cubemaps, transfer, source_transform=None) -
     n = 6 * res * res
     w_obj = transfer.reshape(nv, -1, n)[:, :, rotation_texel_map(R.T, res)]
     return np.einsum("vknt,vqt->vqkn", s.reshape(nv, s.shape[1], s.shape[2], n), w_obj)
+
+
+def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=None, caster=None) -> np.ndarray:
+    """``Phi_(k',k,i) = sum_t S_(k,i)(x, t) W_k'(t)`` with ``S`` cast at the receivers themselves (the near field).
+
+    The same sum as :func:`texel_basis_irradiance` of :func:`haar_basis_radiance_cubemaps` (the same
+    texel-centre rays), gathered hit by hit without the dense cubemaps, and casting only the texels
+    where the transfer is non-zero (above the receiver's horizon, not blocked).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The source in object space.
+    basis : (N, n_vertices) float
+    sep : prtlab.brdf.SeparableBRDF
+        The source's separable BRDF (``h_k``).
+    points : (V, 3) float
+        Receiver points in the source's object space.
+    transfer : (V, K', 6, r, r) float
+        :func:`haar_transfer` of the receivers (world frame).
+    source_transform : prtlab.scene.Transform, optional
+        The source's pose (its rotation turns the transfer into the object frame).
+    caster : prtlab.geometry.RayCaster, optional
+        A caster of ``mesh`` to reuse (default: built here).
+
+    Returns
+    -------
+    phi : (V, K', K, N) float64
+    """
+    from prtlab.geometry import RayCaster, cubemap_directions
+
+    basis = np.asarray(basis, dtype=np.float64)
+    points = _as_points(points, "points")
+    nv = len(points)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if basis.ndim != 2 or basis.shape[1] != len(vertices):
+        raise ValueError(f"basis must be (N, n_vertices) = (N, {len(vertices)}), got shape {basis.shape}")
+    transfer = np.asarray(transfer, dtype=np.float64)
+    res = transfer.shape[-1] if transfer.ndim == 5 else 0
+    transfer = _check_transfer(transfer, nv, res)
+    n_kp, n_k, n_b = transfer.shape[1], sep.K, basis.shape[0]
+    out = np.zeros((nv, n_kp, n_k, n_b))
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if nv == 0 or len(faces) == 0:
+        return out
+    R = np.eye(3) if source_transform is None else np.asarray(source_transform.rotation, dtype=np.float64)
+    n = 6 * res * res
+    w_obj = transfer.reshape(nv, n_kp, n)[:, :, rotation_texel_map(R.T, res)]  # (V, K', n) source frame
+    dirs = cubemap_directions(res).reshape(-1, 3)
+    normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+    caster = RayCaster([(vertices, faces)]) if caster is None else caster
+    rv, rt = np.nonzero(np.any(w_obj != 0.0, axis=1))  # row-major: sorted by receiver
+    step = 1 << 18
+    for a in range(0, len(rv), step):
+        v, t = rv[a:a + step], rt[a:a + step]
+        hits = caster.closest_hit(points[v], dirs[t])
+        sel = np.flatnonzero(hits.hit)
+        if not len(sel):
+            continue
+        tri = faces[hits.triangle[sel]]
+        uv = hits.barycentric[sel]
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        shading_n = np.einsum("hc,hcx->hx", bary, normals[tri])
+        shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
+        w_in = dirs[t[sel]]
+        front = np.sum(shading_n * w_in, axis=1) < 0.0
+        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
+        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+        w = w_obj[v[sel], :, t[sel]]  # (H, K')
+        contrib = np.einsum("hq,hk,hn->hqkn", w, h, psi).reshape(len(sel), -1)
+        rows, starts = np.unique(v[sel], return_index=True)
+        out[rows] += np.add.reduceat(contrib, starts, axis=0).reshape(len(rows), n_kp, n_k, n_b)
+    return out
 
 
 def haar_irradiance_bound(radiance_cubemaps, transfer, g_abs=None) -> np.ndarray:

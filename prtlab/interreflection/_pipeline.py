@@ -128,8 +128,8 @@ from prtlab.shadowfields import (
 )
 
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
-from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_cubemaps, haar_basis_radiance_field
-from ._haar_passes import haar_basis_irradiance, haar_transfer, texel_basis_irradiance
+from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
+from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -631,7 +631,7 @@ class Interreflection(Precomputation):
 
         The transfer is the receiver's Haar self-visibility times the Haar occlusion fields of ``others``
         times ``g_k' cos`` per texel; receivers near the source (as :meth:`_near_field`) take ``S`` cast at
-        the receiver (:func:`haar_basis_radiance_cubemaps`, not cached: a dense cubemap per basis function).
+        the receiver (:func:`near_basis_irradiance`, not cached).
         """
         g, T, res = geo[r.name], geo[s.name]["T"], self.options.haar_resolution
         field, own = self.haar_radiance[s.name], self.haar_self[r.name]
@@ -647,6 +647,7 @@ class Interreflection(Precomputation):
             near = gap < self.options.near_field * np.linalg.norm(local - field.grid.center, axis=1)
         out = np.empty((len(local), self.seps[r.name].K) + field.n_terms)
         step = 256
+        caster = None
         for a in range(0, len(local), step):
             b = min(len(local), a + step)
             transfer = haar_transfer(g["x"][a:b], g["n"][a:b], self.seps[r.name], res,
@@ -655,11 +656,10 @@ class Interreflection(Precomputation):
                                      self_transform=g["T"], occluders=occluders)
             out[a:b] = haar_basis_irradiance(field, g["x"][a:b], transfer, T)
             idx = np.flatnonzero(near[a:b])
-            for c in range(0, len(idx), 32):
-                sub = idx[c:c + 32]
-                cubes = haar_basis_radiance_cubemaps(s.mesh, self.bases[s.name].basis, self.seps[s.name],
-                                                     local[a + sub], res)
-                out[a + sub] = texel_basis_irradiance(cubes, transfer[sub], T)
+            if len(idx):
+                caster = caster or RayCaster([(np.asarray(s.mesh.vertices, float), np.asarray(s.mesh.faces))])
+                out[a + idx] = near_basis_irradiance(s.mesh, self.bases[s.name].basis, self.seps[s.name],
+                                                     local[a + idx], transfer[idx], T, caster=caster)
         return out
 
     def basis_irradiance_step(self, geo, occ):
