@@ -28,9 +28,13 @@ reconstruction error by Parseval) and of the whole cubemap (``energy``) are kept
 cubemap, so the truncation is reported, never hidden: the pass bounds its effect by
 Cauchy-Schwarz (:func:`prtlab.interreflection.haar_basis_irradiance`).
 
-Measured (the Fig. 9 bunny and floor, default grid, r = 32, ``keep = 64``): see
-:func:`haar_basis_radiance_field` and the report of the Fig. 9 test
-(``tests/interreflection/test_pipeline.py``).
+Measured (``data/scenes/interreflection_fig9.yaml``: the bunny, 1,839 vertices, and the floor, 2,401;
+default grid 16 x 6 x 16 x 16, r = 32, ``keep = 64``, N = 16, K = 1): 151 MB per object (the order-4 SH
+field: 50 MB in float64); build 368 s (bunny) and 405 s (floor) on the 2-core machine shared with a
+load of 5-9 (the whole precomputation 1,115 s); relative truncation ``sqrt(sum energy_lost / sum
+energy)`` 0.28 (bunny) and 0.32 (floor): the dropped coefficients are the fine silhouette and texture
+detail of near, large sources, which the pipeline's near field casts exactly instead
+(:func:`prtlab.interreflection.near_basis_irradiance`).
 
 References
 ----------

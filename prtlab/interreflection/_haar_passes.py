@@ -171,6 +171,27 @@ def haar_basis_irradiance_kernel(tab_idx, tab_val, corners, weights, transfer, t
                     out[v, kp, m] += w * acc
 
 
+@numba.njit(cache=True, parallel=True)
+def near_gather_kernel(rows, starts, hit_texel, w_obj, h, psi, out):
+    """``out[rows[u], q, k, i] += sum_hits w_obj[rows[u], q, t] h[hit, k] psi[hit, i]`` over the hits of each
+    receiver ``rows[u]`` (``starts[u]:starts[u + 1]``, hits sorted by receiver; ``hit_texel`` their texels)."""
+    n_kp = w_obj.shape[1]
+    n_k = h.shape[1]
+    n_b = psi.shape[1]
+    for u in numba.prange(rows.shape[0]):
+        v = rows[u]
+        for e in range(starts[u], starts[u + 1]):
+            t = hit_texel[e]
+            for q in range(n_kp):
+                w = w_obj[v, q, t]
+                if w == 0.0:
+                    continue
+                for k in range(n_k):
+                    wh = w * h[e, k]
+                    for i in range(n_b):
+                        out[v, q, k, i] += wh * psi[e, i]
+
+
 # --------------------------------------------------------------------------- transfer
 
 
@@ -406,7 +427,8 @@ def texel_basis_irradiance(radiance_cubemaps, transfer, source_transform=None) -
     return np.einsum("vknt,vqt->vqkn", s.reshape(nv, s.shape[1], s.shape[2], n), w_obj)
 
 
-def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=None, caster=None) -> np.ndarray:
+def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=None, caster=None,
+                          method: str = "numba") -> np.ndarray:
     """``Phi_(k',k,i) = sum_t S_(k,i)(x, t) W_k'(t)`` with ``S`` cast at the receivers themselves (the near field).
 
     The same sum as :func:`texel_basis_irradiance` of :func:`haar_basis_radiance_cubemaps` (the same
@@ -428,6 +450,8 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
         The source's pose (its rotation turns the transfer into the object frame).
     caster : prtlab.geometry.RayCaster, optional
         A caster of ``mesh`` to reuse (default: built here).
+    method : {"numba", "reference"}
+        The gather of the hits: a parallel kernel over receivers, or numpy ``einsum`` and ``reduceat``.
 
     Returns
     -------
@@ -435,6 +459,7 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
     """
     from prtlab.geometry import RayCaster, cubemap_directions
 
+    method = _check_method(method)
     basis = np.asarray(basis, dtype=np.float64)
     points = _as_points(points, "points")
     nv = len(points)
@@ -451,7 +476,7 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
         return out
     R = np.eye(3) if source_transform is None else np.asarray(source_transform.rotation, dtype=np.float64)
     n = 6 * res * res
-    w_obj = transfer.reshape(nv, n_kp, n)[:, :, rotation_texel_map(R.T, res)]  # (V, K', n) source frame
+    w_obj = np.ascontiguousarray(transfer.reshape(nv, n_kp, n)[:, :, rotation_texel_map(R.T, res)])  # source frame
     dirs = cubemap_directions(res).reshape(-1, 3)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     caster = RayCaster([(vertices, faces)]) if caster is None else caster
@@ -472,9 +497,13 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
         front = np.sum(shading_n * w_in, axis=1) < 0.0
         psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
         h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+        rows, starts = np.unique(v[sel], return_index=True)  # hits sorted by receiver
+        if method == "numba":
+            near_gather_kernel(rows, np.append(starts, len(sel)), np.ascontiguousarray(t[sel]), w_obj,
+                               np.ascontiguousarray(h), np.ascontiguousarray(psi), out)
+            continue
         w = w_obj[v[sel], :, t[sel]]  # (H, K')
         contrib = np.einsum("hq,hk,hn->hqkn", w, h, psi).reshape(len(sel), -1)
-        rows, starts = np.unique(v[sel], return_index=True)
         out[rows] += np.add.reduceat(contrib, starts, axis=0).reshape(len(rows), n_kp, n_k, n_b)
     return out
 
