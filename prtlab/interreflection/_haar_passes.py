@@ -46,6 +46,24 @@ pipeline's near field casts ``S`` at the receiver instead (:func:`near_basis_irr
 Kernels live in this module (``@numba.njit(cache=True)``); the ``"reference"`` tiers
 are the float64 numpy specifications.
 
+Measured
+
+* one source, one receiver point, against ``prtlab.reference.irradiance_at`` (16,384 paths;
+  ``tests/interreflection/test_haar_passes.py``): a side-lit floor seen from 0.6 above (smooth),
+  Haar 0.429, SH order 4 0.427, Monte Carlo 0.460 +- 0.007 (Haar: -3.7 % texel-centre sampling of
+  the floor's edges, which run along texel rows, and -2.6 % truncation to 64 coefficients); with a
+  black 0.3 x 0.3 plate half-way (sharp), Haar 0.336, SH 0.275 (-23 %), Monte Carlo 0.357 +- 0.007;
+* Fig. 9 (bunny on a floor, one bounce, against Mitsuba 3 at 256 spp, relative RMS; reference noise
+  in brackets): bunny indirect 0.177 (0.098), total 0.032 (0.019); floor indirect 0.528 (0.499),
+  total 0.059 (0.012); with SH irradiance and the same Haar shadows 0.172, 0.031, 0.543, 0.059.
+  The indirect light of this scene is smooth (a diffuse floor and bunny under one small light), so
+  the all-frequency irradiance changes nothing measurable; it pays where the visibility between
+  source and receiver is sharp (the plate above: SH 23 % off);
+* speed: :func:`haar_basis_irradiance` (K N = 16, keep 64, r = 32) runs about 21 times faster than its
+  reference tier, and 4-57 times slower than the order-4 SH :func:`basis_irradiance` (same run, a
+  loaded machine: 280-340 us against 5-80 us per vertex): the Haar transform of the transfer,
+  ``6 r^2`` texels per vertex and ``k'``, dominates.
+
 References
 ----------
 K. Iwasaki et al., EGSR 2007, Sec. 5.1-5.2, Eq. (13).
