@@ -10,10 +10,10 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
-from ._pipeline import SphereLightOptions, SphereLights, precompute, shade_scene
+from ._pipeline import SphereLightOptions, SphereLights, light_motions, precompute, shade_scene
 from ._ground import ground_blocked_transfer, ground_rectangles
-from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, receiver_clusters,
-                         reflection_ratio, select_cut)
+from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
+                         receiver_clusters, reflection_ratio, select_cut)
 from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
 from ._samples import segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
@@ -46,6 +46,7 @@ __all__ = [
     "bounding_sphere",
     "build_hierarchy",
     "cluster_samples",
+    "per_light_indirect",
     "receiver_clusters",
     "reflection_ratio",
     "select_cut",
@@ -57,6 +58,7 @@ __all__ = [
     # the pipeline (prtlab.shade(scene, method="spherelights"))
     "SphereLightOptions",
     "SphereLights",
+    "light_motions",
     "precompute",
     "shade_scene",
 ]

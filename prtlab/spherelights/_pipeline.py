@@ -20,10 +20,22 @@ Per frame (Secs. 5-7), with the object transforms of the frame state
 radii and samples move with their object; the lights' SH stay in object
 space and the receiver direction is rotated into it instead (``w_theta``
 rotated by the inverse rotation). Then :func:`first_pass` and
-:func:`second_pass`. The environment is the only light source handled
-(area and point lights raise: local lights as spherical lights with a
-user intensity are not implemented). Soft deformations (Sec. 7.1) are not
-implemented.
+:func:`second_pass`. The environment is the only scene light handled (area
+and point lights raise); local lights are spherical lights with a user
+radiance (option ``local_lights``, Sec. 7.3).
+
+Soft deformations (Sec. 7.1, ``shade(..., deformed=)``): each light of a
+deformed object turns and moves with the best-fit rotation and the mean
+translation of its vertices (:func:`light_motions`): its centre and surface
+samples move rigidly with them and its frame (the rotation its ``w_theta``
+is turned by) is the object's rotation times that turn, so a rigid motion
+given as a deformation is the moved object.
+
+Hierarchies (Sec. 7.3, option ``hierarchy_children``): see ``_hierarchy``;
+per receiving object, clusters whose cut is all leaves are shaded by the flat
+pass, the others take their direct light from the leaves' shadows-only pass
+and their indirect light from their cut, each node's emission scaled by its
+reflection ratio.
 """
 
 from __future__ import annotations
@@ -40,13 +52,13 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_rectangles
-from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, receiver_clusters, reflection_ratio,
-                         select_cut)
+from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
+                         reflection_ratio, select_cut)
 from ._passes import first_pass, second_pass
 from ._samples import surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
 
-__all__ = ["SphereLightOptions", "SphereLights", "shade_scene"]
+__all__ = ["SphereLightOptions", "SphereLights", "light_motions", "shade_scene"]
 
 
 @dataclass(frozen=True)
@@ -262,7 +274,8 @@ class SphereLights(Precomputation):
         """World-space lights of a frame: centres (S, 3), radii (S,), object index (S,),
         intersect (S, S), rotations (S, 3, 3), and the samples (S, m, 3) x 2 with validity (S, m).
         ``deformed``: ``{name: (V, 3)}`` object-space vertex positions; each light of such an object
-        (centre and samples) moves by the mean displacement of its vertices (Sec. 7.1)."""
+        (centre, samples and its frame) follows the average rotation and translation of its vertices
+        (:func:`light_motions`, Sec. 7.1)."""
         parts = []
         deformed = deformed or {}
         for k, (name, data) in enumerate(sorted(self.data["objects"].items())):
@@ -271,15 +284,19 @@ class SphereLights(Precomputation):
             s = len(data["radii"])
             centres = np.asarray(data["centres"], dtype=np.float64)
             samples = np.asarray(data["sample_points"], dtype=np.float64)
+            normals = np.asarray(data["sample_normals"], dtype=np.float64)
+            rots = np.broadcast_to(rot, (s, 3, 3))
             if name in deformed:
-                shift = _light_shifts(deformed[name], self.scene.object(name).mesh.vertices,
-                                      np.asarray(data["vertex_light"]), s)
-                centres = centres + shift
-                samples = samples + shift[:, None, :]
+                turn, rest_mean, moved_mean = light_motions(deformed[name], self.scene.object(name).mesh.vertices,
+                                                            np.asarray(data["vertex_light"]), s)
+                centres = np.einsum("sij,sj->si", turn, centres - rest_mean) + moved_mean
+                samples = np.einsum("sij,smj->smi", turn, samples - rest_mean[:, None]) + moved_mean[:, None]
+                normals = np.einsum("sij,smj->smi", turn, normals)
+                rots = np.einsum("ij,sjk->sik", rot, turn)  # the light's frame turns with its vertices (Sec. 7.1)
             parts.append((
                 tr.apply_points(centres), np.asarray(data["radii"]) * float(tr.scale), np.full(s, k),
-                np.asarray(data["intersect"], dtype=bool), np.broadcast_to(rot, (s, 3, 3)),
-                tr.apply_points(samples), tr.apply_normals(data["sample_normals"]),
+                np.asarray(data["intersect"], dtype=bool), rots,
+                tr.apply_points(samples), tr.apply_normals(normals),
                 np.asarray(data["sample_valid"], dtype=bool), np.asarray(data["albedo_sh"]),
             ))
         if not parts:
@@ -431,12 +448,15 @@ class SphereLights(Precomputation):
         return cache[k]
 
     def _clusters(self, obj):
-        """Receiver clusters of an object (labels (V,), medoids (C,)), from its rest shading points."""
+        """Receiver clusters of an object: labels (V,), medoids (C,) and the ratio points (C, P), from its rest
+        shading points (fixed for the object: the same receivers whatever its motion or deformation)."""
         cache = self.__dict__.setdefault("_cluster_cache", {})
-        key = (obj.name, self.options.receiver_clusters)
+        key = (obj.name, self.options.receiver_clusters, self.options.ratio_samples)
         if key not in cache:
-            cache[key] = receiver_clusters(obj.world_shading_points(obj.transform), self.options.receiver_clusters,
-                                           normals=obj.world_normals(obj.transform))
+            pts = obj.world_shading_points(obj.transform)
+            labels, medoid = receiver_clusters(pts, self.options.receiver_clusters,
+                                               normals=obj.world_normals(obj.transform))
+            cache[key] = labels, medoid, cluster_samples(pts, labels, medoid, self.options.ratio_samples)
         return cache[key]
 
     def _hierarchy_nodes(self, state, deformed, all_c, all_r, all_obj, all_rot):
@@ -451,13 +471,23 @@ class SphereLights(Precomputation):
             tr = state.transforms.get(name) or self.scene.object(name).transform
             n_par = len(h.radii) - s
             gmap = np.concatenate([off + np.arange(s), n_next + np.arange(n_par)])
-            # a parent follows the mean displacement of its leaves (soft deformations; 0 for a rigid object)
-            shift = all_c[off:off + s] - tr.apply_points(h.centres[:s])
-            par_w = h.weights[s:]
-            c.append(tr.apply_points(h.centres[s:]) + (par_w > 0) @ shift / np.maximum((par_w > 0).sum(1), 1)[:, None])
+            par_c = h.centres[s:]
+            par_rot = np.broadcast_to(np.asarray(tr.rotation, dtype=np.float64), (n_par, 3, 3))
+            if name in deformed and n_par:
+                # a parent follows the average rotation and translation of its leaves' vertices (Sec. 7.1)
+                rest = np.asarray(self.scene.object(name).mesh.vertices, dtype=np.float64)
+                owner = np.asarray(self.data["objects"][name]["vertex_light"])
+                par_c, par_rot = par_c.copy(), par_rot.copy()
+                for q in range(n_par):
+                    mask = np.isin(owner, h.leaves_under(s + q))
+                    turn, m0, m1 = light_motions(deformed[name][mask], rest[mask], np.zeros(mask.sum(), int), 1)
+                    par_c[q] = turn[0] @ (par_c[q] - m0[0]) + m1[0]
+                    par_rot[q] = np.asarray(tr.rotation) @ turn[0]
+            c.append(tr.apply_points(par_c))
             r.append(h.radii[s:] * float(tr.scale))
             o.append(np.full(n_par, all_obj[off]))
-            rot.append(np.broadcast_to(np.asarray(tr.rotation, dtype=np.float64), (n_par, 3, 3)))
+            rot.append(par_rot)
+            par_w = h.weights[s:]
             wk = np.zeros((n_par, S))
             wk[:, off:off + s] = par_w
             w.append(wk)
@@ -499,7 +529,7 @@ class SphereLights(Precomputation):
         kw = dict(blocking=opts.blocking, exp_method=opts.exp_method, average=opts.average)
         node_c, node_r, node_o, node_rot, node_w, trees = nodes
         S = len(all_r)
-        labels, medoid = self._clusters(obj)
+        labels, medoid, samples = self._clusters(obj)
         cuts = []
         for k, m in enumerate(medoid):
             radius = float(np.max(np.linalg.norm(pts[labels == k] - pts[m], axis=1)))
@@ -520,15 +550,11 @@ class SphereLights(Precomputation):
                                        env, indirect=False, **kw)
         coarse_ids = np.nonzero(coarse)[0]
         if opts.reflection_ratio:
-            # the flat pass's per-light values at the centres of the coarse clusters (linear in each emission)
-            samples = cluster_samples(pts, labels, medoid, opts.ratio_samples)  # (C, P)
-            centres = samples[coarse_ids].reshape(-1)
-            leaf_values = np.zeros((len(centres), S, 3))
-            for j in np.nonzero(np.any(emission != 0, axis=(1, 2)))[0]:
-                one = np.zeros_like(emission)
-                one[j] = emission[j]
-                leaf_values[:, j] = second_pass(pts[centres], nrm[centres], all_c, all_r, all_obj, all_inter,
-                                                all_rot, one, env, **kw)[1]
+            # every leaf's value at the ratio points of the coarse clusters, in one batched evaluation
+            samples = samples[coarse_ids]  # (Cc, P)
+            P = samples.shape[1]
+            flat_values = per_light_indirect(pts[samples.reshape(-1)], nrm[samples.reshape(-1)], all_c, all_r,
+                                             all_obj, all_inter, all_rot, emission, env, **kw).reshape(-1, P, S, 3)
         by_cut = {}
         for i, k in enumerate(coarse_ids):
             by_cut.setdefault(cuts[k], []).append((i, k))
@@ -541,34 +567,76 @@ class SphereLights(Precomputation):
             leaf = cut < S
             inter[np.ix_(leaf, leaf)] = all_inter[np.ix_(cut[leaf], cut[leaf])]
             em = self._node_emission(nodes, cut, emission)
-            t = np.ones((len(members), len(cut), 3))
-            if opts.reflection_ratio:
-                centres = samples[[k for _, k in members]].reshape(-1)
-                node_values = np.zeros((len(centres), len(cut), 3))
-                for q in np.nonzero(np.any(em != 0, axis=(1, 2)))[0]:
-                    one = np.zeros_like(em)
-                    one[q] = em[q]
-                    node_values[:, q] = second_pass(pts[centres], nrm[centres], cc, cr, co, inter, crot, one, env,
-                                                    **kw)[1]
-                under = (node_w[cut] > 0).astype(np.float64)  # (K, S) leaves under each node
-                P = samples.shape[1]
-                rows = leaf_values.reshape(-1, P, S, 3)[[i for i, _ in members]]
-                flat_sums = np.einsum("ks,mpsc->mpkc", under, rows)
-                t = reflection_ratio(flat_sums, node_values.reshape(len(members), P, len(cut), 3))
-            for (_, k), tk in zip(members, t):
+            if not opts.reflection_ratio:  # one call for every cluster with this cut
+                sel = np.isin(labels, [k for _, k in members])
+                _, ind[sel] = second_pass(pts[sel], nrm[sel], cc, cr, co, inter, crot, em, env, indirect=True, **kw)
+                continue
+            rows = [i for i, _ in members]
+            at = samples[rows].reshape(-1)
+            node_values = per_light_indirect(pts[at], nrm[at], cc, cr, co, inter, crot, em, env, **kw)
+            under = (node_w[cut] > 0).astype(np.float64)  # (K, S) leaves under each node
+            flat_sums = np.einsum("ks,mpsc->mpkc", under, flat_values[rows])
+            t = reflection_ratio(flat_sums, node_values.reshape(len(members), P, len(cut), 3))  # Eq. 25
+            for (_, k), tk in zip(members, t):  # Eq. 26: each node's reflection scaled by its ratio
                 sel = labels == k
                 _, ind[sel] = second_pass(pts[sel], nrm[sel], cc, cr, co, inter, crot, em * tk[:, None, :], env,
                                           indirect=True, **kw)
         return direct, ind
 
 
-def _light_shifts(verts, rest, vertex_light, n_lights) -> np.ndarray:
-    """(S, 3) mean displacement of the vertices of each light (0 for a light with none), object space."""
-    disp = np.asarray(verts, dtype=np.float64) - np.asarray(rest, dtype=np.float64)
-    sums = np.zeros((n_lights, 3))
-    np.add.at(sums, vertex_light, disp)
-    counts = np.bincount(vertex_light, minlength=n_lights)[:, None]
-    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+def light_motions(verts, rest, vertex_light, n_lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average rotation and translation of each light's vertices under a soft deformation (Sec. 7.1).
+
+    Parameters
+    ----------
+    verts, rest : (V, 3) float
+        Deformed and rest vertex positions (object space).
+    vertex_light : (V,) int
+        The light of each vertex.
+    n_lights : int
+
+    Returns
+    -------
+    rotation : (S, 3, 3) float64
+        The best-fit rotation of each light's vertices about their centroids (Kabsch: the proper rotation
+        minimising ``sum |R (x - m) - (x' - m')|^2``). A light with fewer than 3 vertices or collinear ones
+        (its turn about their line is undetermined) takes the best-fit rotation of all the vertices.
+    rest_mean, moved_mean : (S, 3) float64
+        Centroids of each light's vertices before and after (of all the vertices for a light without any). A
+        point ``q`` of the light moves to ``R (q - m) + m'``: exactly the rigid motion when the deformation is
+        rigid.
+    """
+    x1 = np.asarray(verts, dtype=np.float64)
+    x0 = np.asarray(rest, dtype=np.float64)
+    lab = np.asarray(vertex_light, dtype=np.int64)
+    rotation, m0, m1, ok = _kabsch(x1, x0, lab, n_lights)
+    if not ok.all():
+        whole, w0, w1, _ = _kabsch(x1, x0, np.zeros(len(lab), dtype=np.int64), 1)
+        rotation[~ok] = whole[0]
+        empty = np.bincount(lab, minlength=n_lights) == 0
+        m0[empty], m1[empty] = w0[0], w1[0]
+    return rotation, m0, m1
+
+
+def _kabsch(x1, x0, lab, n_lights):
+    """Per label: best-fit rotation (identity where undetermined), centroids, and whether it was determined."""
+    counts = np.bincount(lab, minlength=n_lights)[:, None]
+    sums0, sums1 = np.zeros((n_lights, 3)), np.zeros((n_lights, 3))
+    np.add.at(sums0, lab, x0)
+    np.add.at(sums1, lab, x1)
+    m0 = np.where(counts > 0, sums0 / np.maximum(counts, 1), 0.0)
+    m1 = np.where(counts > 0, sums1 / np.maximum(counts, 1), 0.0)
+    cov = np.zeros((n_lights, 3, 3))  # sum (x0 - m0)(x1 - m1)^T
+    np.add.at(cov, lab, np.einsum("vi,vj->vij", x0 - m0[lab], x1 - m1[lab]))
+    u, sv, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(np.einsum("sji,skj->sik", vt, u)))
+    d = np.where(d == 0, 1.0, d)
+    fix = np.ones((n_lights, 3))
+    fix[:, 2] = d
+    rotation = np.einsum("sji,sj,skj->sik", vt, fix, u)  # V diag(1, 1, d) U^T
+    ok = (counts[:, 0] >= 3) & (sv[:, 1] > 1e-9 * np.maximum(sv[:, 0], 1e-300))
+    rotation[~ok] = np.eye(3)
+    return rotation, m0, m1, ok
 
 
 def _deformed_receivers(obj, verts, transform):

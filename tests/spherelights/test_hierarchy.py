@@ -148,3 +148,38 @@ def test_errors():
         receiver_clusters(c, 2, normals=np.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"one shape \(..., P, K, 3\)"):
         reflection_ratio(np.zeros((1, 2, 3)), np.zeros((1, 3, 3)))
+
+
+@pytest.mark.parametrize("blocking,average,exp_method", [("object", "cosine", "hyb"), ("sphere", "paper", "ol")])
+def test_per_light_values_sum_to_the_second_pass(blocking, average, exp_method):
+    """The terms of Eq. 14 kept apart add up to the second pass's indirect light (both tiers); a light's term is
+    the second pass with only that light emitting (linearity in the emission)."""
+    from prtlab.spherelights import per_light_indirect, second_pass
+
+    g = np.random.default_rng(5)
+    S, order = 5, 4
+    centres = g.normal(size=(S, 3)) * 0.8 + [0, 1.5, 0]
+    radii = g.uniform(0.1, 0.4, S)
+    obj = np.array([0, 0, 1, 1, 2])
+    d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    inter = (d < radii[:, None] + radii[None]) & (obj[:, None] == obj[None])
+    np.fill_diagonal(inter, False)
+    rot = np.stack([np.linalg.qr(g.normal(size=(3, 3)))[0] for _ in range(S)])
+    rot *= np.sign(np.linalg.det(rot))[:, None, None]
+    emission = g.normal(size=(S, order * order, 3)) * 0.1
+    emission[:, 0] += 1.0
+    env = g.normal(size=(100, 3)) * 0.1
+    pts = np.concatenate([g.uniform(-2, 2, (12, 3)) * [1, 0, 1], np.zeros((1, 3))])
+    nrm = np.tile([0.0, 1.0, 0.0], (13, 1))
+    args = (pts, nrm, centres, radii, obj, inter, rot, emission, env)
+    kw = dict(blocking=blocking, average=average, exp_method=exp_method)
+    values = per_light_indirect(*args, **kw)
+    assert values.shape == (13, S, 3) and np.abs(values).max() > 1e-3
+    for method in ("numba", "fused"):
+        np.testing.assert_allclose(values.sum(axis=1), second_pass(*args, method=method, **kw)[1], atol=1e-11)
+    one = np.zeros_like(emission)
+    one[2] = emission[2]
+    np.testing.assert_allclose(values[:, 2], second_pass(*args[:7], one, env, **kw)[1], atol=1e-11)
+    assert per_light_indirect(pts[:0], nrm[:0], *args[2:], **kw).shape == (0, S, 3)
+    with pytest.raises(ValueError, match="average must be 'cosine' or 'paper'"):
+        per_light_indirect(*args, average="mean")

@@ -253,9 +253,62 @@ def test_rigid_translation_as_a_deformation_is_the_translated_object(pre):
     np.testing.assert_allclose(rest.total["plane"], pre.shade(bounces=1).total["plane"], atol=1e-12)
 
 
+@pytest.mark.parametrize("hierarchy", [0, 2])
+def test_rigid_rotation_as_a_deformation_is_the_rotated_object(pre, hierarchy):
+    """Sec. 7.1: each light turns with the best-fit rotation of its vertices, so a rigid rotation (about a point
+    off the object, plus a translation) given as a deformation equals the object turned by its transform
+    (the box has its own rotation, composed on the left); with a hierarchy, the parents turn too."""
+    from prtlab.scene import matrix_to_euler
+    from tests.conftest import random_rotation
+
+    R = random_rotation(np.random.default_rng(11))
+    b = np.array([0.2, 0.15, -0.1])
+    box = pre.scene.object("box")
+    other = _with(pre, hierarchy_children=hierarchy, cut_threshold=0.9, receiver_clusters=4) if hierarchy else pre
+    verts = np.asarray(box.mesh.vertices) @ R.T + b
+    deformed = other.shade(bounces=1, deformed={"box": verts})
+    state = FrameState.from_scene(pre.scene)
+    tr = box.transform
+    state.transforms["box"] = Transform(translate=tr.translate + tr.scale * tr.rotation @ b,
+                                        rotate_deg=matrix_to_euler(tr.rotation @ R), scale=tr.scale)
+    moved = other.shade(state, bounces=1)
+    assert not np.allclose(moved.total["plane"], other.shade(bounces=1).total["plane"], atol=1e-4)
+    for name in moved.total:
+        np.testing.assert_allclose(deformed.direct[name], moved.direct[name], atol=1e-10)
+        np.testing.assert_allclose(deformed.indirect[name], moved.indirect[name], atol=1e-10)
+
+
+def test_light_motions_of_a_rigid_motion_and_degenerate_lights():
+    from prtlab.spherelights import light_motions
+    from tests.conftest import random_rotation
+
+    g = np.random.default_rng(3)
+    rest = g.normal(size=(20, 3))
+    R = random_rotation(g)
+    owner = np.repeat([0, 1, 2, 3], [10, 6, 2, 2])
+    rest[18:] = [[0.0, 0, 0], [1.0, 0, 0]]
+    verts = rest @ R.T + [1.0, 2.0, 3.0]
+    turn, m0, m1 = light_motions(verts, rest, owner, 5)
+    # lights 2 and 3 have 2 vertices, light 4 none: they take the rotation of all the vertices
+    np.testing.assert_allclose(turn, np.broadcast_to(R, (5, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(m1, m0 @ R.T + [1.0, 2.0, 3.0], atol=1e-12)
+    np.testing.assert_allclose(m0[4], rest.mean(axis=0), atol=1e-15)
+    # a bend leaves a collinear light's rotation to the whole object's, not to chance
+    bent = rest.copy()
+    bent[10:16] += [0.0, 0.3, 0.0]
+    turn, _, _ = light_motions(bent, rest, owner, 5)
+    np.testing.assert_allclose(turn[0], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(turn[3], turn[4], atol=1e-15)
+    # a reflection is fitted by the nearest proper rotation
+    mirror = rest * [1.0, 1.0, -1.0]
+    assert np.linalg.det(light_motions(mirror, rest, owner, 5)[0][0]) == pytest.approx(1.0)
+
+
 def test_bend_moves_each_light_with_its_vertices():
-    """A bar bent upward at its ends (y += k x^2): every light moves by the mean displacement of the vertices
-    it was fitted to (which lie in it), the end lights rise, the middle ones barely."""
+    """A bar bent upward at its ends (y += k x^2): every light moves and turns with the vertices it was fitted
+    to (which lie in it): its centre goes to ``R (c - m) + m'`` with the best-fit rotation ``R``, a turn about
+    z, up on the right half and down on the left (y' = 2 k x); the end lights rise most, and the bent bar's
+    shading changes."""
     bar = {"name": "bar", "mesh": {"builtin": "box", "size": [2.0, 0.3, 0.3], "subdivisions": 3},
            "transform": {"translate": [0.0, 0.6, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}
     scene = _plane_and([bar], [{"type": "environment", "constant": [1.0, 1.0, 1.0]}])
@@ -268,13 +321,27 @@ def test_bend_moves_each_light_with_its_vertices():
     bent = verts + np.stack([0 * verts[:, 0], 0.2 * verts[:, 0] ** 2, 0 * verts[:, 0]], -1)
     state = FrameState.from_scene(scene)
     c0 = pre.world_lights(state)[0]
-    c1 = pre.world_lights(state, {"bar": bent})[0]
+    lights = pre.world_lights(state, {"bar": bent})
+    c1, rot1 = lights[0], lights[4]
     shift = c1 - c0
-    np.testing.assert_allclose(shift[:, [0, 2]], 0.0, atol=1e-12)
-    for i in range(len(c0)):
-        np.testing.assert_allclose(shift[i, 1], 0.2 * np.mean(verts[owner == i, 0] ** 2), rtol=1e-12)
     order = np.argsort(c0[:, 0])
-    assert shift[order[0], 1] > 2 * shift[order[1], 1] and shift[order[-1], 1] > 2 * shift[order[-2], 1]
+    assert shift[order[0], 1] > shift[order[1], 1] > 0 and shift[order[-1], 1] > shift[order[-2], 1] > 0
+    angles = np.arctan2(rot1[:, 1, 0], rot1[:, 0, 0])  # the turn about z, the bend's axis
+    for i in range(len(c0)):
+        x0 = verts[owner == i]
+        x1 = bent[owner == i]
+        m0, m1 = x0.mean(axis=0), x1.mean(axis=0)
+        np.testing.assert_allclose(c1[i], rot1[i] @ (data["centres"][i] - m0) + m1 + [0.0, 0.6, 0.0], atol=1e-12)
+
+        def residual(R):
+            return np.sum(((x0 - m0) @ R.T - (x1 - m1)) ** 2)
+
+        # the best-fit rotation: no worse than the best turn about z alone (2D Kabsch) nor than none
+        a, b = x0[:, :2] - m0[:2], x1[:, :2] - m1[:2]
+        best_z = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
+        rz = np.array([[np.cos(best_z), -np.sin(best_z), 0], [np.sin(best_z), np.cos(best_z), 0], [0, 0, 1]])
+        assert residual(rot1[i]) <= residual(rz) + 1e-12 < residual(np.eye(3))
+        assert np.sign(angles[i]) == np.sign(m0[0])  # y' = 2 k x: the right half turns up, the left down
     # shading follows: the bent bar's ends rise, so less shadow right under them
     res0, res1 = pre.shade(bounces=1), pre.shade(bounces=1, deformed={"bar": bent})
     assert np.all(np.isfinite(res1.total["bar"])) and not np.allclose(res0.total["plane"], res1.total["plane"])
@@ -331,7 +398,7 @@ def test_reflection_ratio_gives_the_cluster_centre_the_leaves_value(pre8, flat8)
     res = h.shade(bounces=1)
     n_coarse = 0
     for obj in pre8.scene.objects:
-        _, medoid = h._clusters(obj)
+        _, medoid, _ = h._clusters(obj)
         np.testing.assert_allclose(res.indirect[obj.name][medoid], flat8.indirect[obj.name][medoid],
                                    rtol=1e-9, atol=1e-14)
         np.testing.assert_array_equal(res.direct[obj.name], flat8.direct[obj.name])
