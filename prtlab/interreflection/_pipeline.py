@@ -124,7 +124,6 @@ from prtlab.shadowfields import (
     haar_self_visibility,
     project_visibility,
     source_radiance_field,
-    visibility_pass,
 )
 
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
@@ -398,6 +397,7 @@ class Interreflection(Precomputation):
         self._transfer_cache: dict = {}
         self._near_cache: dict = {}
         self._flat: dict = {}
+        self._separates: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -698,6 +698,13 @@ class Interreflection(Precomputation):
             flat = self._flat[o.name] = _is_flat(o.mesh)
         if not flat:
             return False
+        poses = (geo[o.name]["pose"], geo[r.name]["pose"], geo[s.name]["pose"])
+        cached = self._separates.get((o.name, r.name, s.name))
+        if cached is None or cached[0] != poses:
+            cached = self._separates[(o.name, r.name, s.name)] = (poses, self._one_side(geo, o, r, s))
+        return cached[1]
+
+    def _one_side(self, geo, o, r, s) -> bool:
         go = geo[o.name]
         v = go["T"].apply_points(np.asarray(o.mesh.vertices, float))
         normal = np.mean(go["n"], axis=0)

@@ -434,7 +434,9 @@ def test_moving_an_occluder_reuses_the_near_field_basis_radiance(pre):
     assert any(len(near) for near, _ in before.values())
     state.transforms["other"] = Transform(translate=np.array([1.4, 0.7, 0.2]))
     moved = ir.shade(state, bounces=1)
-    assert moved.info["computed_pairs"] == 6  # every pair: "other" reaches both receivers
+    # the four pairs of "other" are recomputed; between floor and ball only the points it may shadow
+    assert moved.info["computed_pairs"] == 4 and moved.info["updated_pairs"] == 2
+    assert 0 < moved.info["updated_rows"] < sum(o.n_vertices for o in sc.objects if o.name != "other")
     kept = [k for k in before if ir._near_cache.get(k) is before[k]]
     assert any(k[0] == "floor" and len(before[k][0]) for k in kept)  # the ball's near points under the floor
     fresh = Interreflection(sc, pre.options, data).shade(state, bounces=1)
@@ -533,7 +535,6 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
     Monte Carlo as ``test_one_bounce_between_two_objects_against_monte_carlo``. A plane between the two
     still blocks.
     """
-    import prtlab.interreflection._pipeline as pipeline_module
     from prtlab.cache import Cache
 
     pre = Interreflection.precompute(floor_and_wall(left_wall=True), QUICK, cache=Cache(cache_root, progress=False),
@@ -542,8 +543,7 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
     ref = path_trace(pre.scene, 1, 128, np.random.default_rng(5))
     geo = pre._frame_geometry(FrameState.from_scene(pre.scene))
     phi, _ = Interreflection(pre.scene, pre.options, pre.data).basis_irradiance_step(geo, pre._occlusion(geo))
-    unblocked = pipeline_module.visibility_pass
-    monkeypatch.setattr(pipeline_module, "visibility_pass", lambda own, others: unblocked(own, []))
+    monkeypatch.setattr(Interreflection, "_blockers", lambda self, geo, r, s: [])
     free, _ = Interreflection(pre.scene, pre.options, pre.data).basis_irradiance_step(geo, pre._occlusion(geo))
     for name in ("floor", "wall", "wall_left"):
         for source in phi[name]:
@@ -555,9 +555,9 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
     floor, wall, left = (pre.scene.object(n) for n in ("floor", "wall", "wall_left"))
     assert pre._plane_separates(geo, left, wall, floor) and pre._plane_separates(geo, wall, left, floor)
     # a plane between receiver and source: the floor's plane with the wall's half below it
-    geo["wall"]["T"] = Transform(translate=np.array([0.0, 0.0, -2.0]), rotate_deg=np.array([90.0, 0.0, 0.0]))
-    geo["wall"]["x"] = geo["wall"]["T"].apply_points(pre.local_points["wall"])
-    assert not pre._plane_separates(geo, floor, wall, left)
+    state = FrameState.from_scene(pre.scene)
+    state.transforms["wall"] = Transform(translate=np.array([0.0, 0.0, -2.0]), rotate_deg=np.array([90.0, 0.0, 0.0]))
+    assert not pre._plane_separates(pre._frame_geometry(state), floor, wall, left)
 
 
 def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre):
