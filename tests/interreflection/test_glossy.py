@@ -267,3 +267,77 @@ def test_one_bounce_with_many_separable_terms_is_the_diffuse_machinery(which, ca
     err, bound = _mean_bound(res.indirect["ball"][m], ref.indirect["ball"][m], ref.stderr["indirect"]["ball"][m],
                              TAU_MEAN["indirect"])
     assert np.all(err <= bound), (err, bound)
+
+
+# --------------------------------------------------------------------------- Fig. 7, reduced, against Mitsuba 3
+
+#: The issue's goals (relative RMS of per-vertex radiance against Mitsuba), as test_pipeline.py.
+GOAL = {"indirect": 0.15, "total": 0.05}
+TEAPOTS = ("floor", "wall_back", "wall_left", "teapot_glossy", "teapot_purple", "teapot_yellow")
+#: Measured at the defaults (one bounce, Mitsuba 256 spp) with what limits them; strict: a fix fails loudly.
+_SH_DIRECT = "the order-4 SH direct light of the small area light (as the diffuse room, test_pipeline.py)"
+_SEPARABLE = ("the K = 4 separable Phong (exponent 10; +13-16 % on a glossy plane under smooth light, "
+              "test_glossy_direct_is_the_separable_brdf_against_monte_carlo)")
+TEAPOTS_KNOWN: dict = {
+    ("floor", "total"): f"0.178 (noise 0.015): its direct light is 0.186 off (mean -3 %), {_SH_DIRECT}",
+    ("wall_back", "total"): f"0.137 (noise 0.025): its direct light is 0.160 off, {_SH_DIRECT}",
+    ("wall_left", "total"): f"0.132 (noise 0.025): its direct light is 0.152 off, {_SH_DIRECT}",
+    ("teapot_yellow", "total"): f"0.188 (noise 0.023): its direct light is 0.196 off (mean +17 %), {_SH_DIRECT}",
+    ("teapot_glossy", "total"): f"0.476 (noise 0.027): direct 0.512 (mean +21 %), {_SEPARABLE} and {_SH_DIRECT}",
+    ("teapot_glossy", "indirect"): f"0.372 (noise 0.077, mean +24 %): {_SEPARABLE}; the receiver sees the "
+                                   "coloured walls near its horizon, where K = 4 errs most",
+    ("teapot_purple", "total"): f"0.431 (noise 0.025): direct 0.467 (mean +23 %), {_SEPARABLE} and {_SH_DIRECT}",
+    ("teapot_purple", "indirect"): f"0.268 (noise 0.083, mean +8 %): {_SEPARABLE}",
+}
+# passing (measured): indirect floor 0.186 (noise 0.111), back wall 0.130 (0.101), left wall 0.124 (0.097),
+# yellow teapot 0.217 (0.070; bound 0.220), means 0.97-1.04 of Mitsuba
+
+
+def scored_vertices(scene, name):
+    """Vertices an image shows and whose radiance is well defined: not the bottoms of objects standing on
+    the floor (``docs/DECISIONS.md``) and, for glossy objects, facing the camera (module docstring)."""
+    obj = scene.object(name)
+    keep = np.ones(obj.n_vertices, bool)
+    if not name.startswith(("floor", "wall")):
+        keep &= obj.world_vertices()[:, 1] > 0.01
+    if obj.material.type == "phong":
+        keep &= _facing(scene, name)
+    return keep
+
+
+def relative_rms(scene, ours, ref, name, part):
+    """``(rms(ours - ref), rms(stderr))`` over the scored vertices, both relative to ``rms(ref)``."""
+    m = scored_vertices(scene, name)
+    a, b, se = getattr(ours, part)[name][m], getattr(ref, part)[name][m], ref.stderr[part][name][m]
+    scale = np.sqrt(np.mean(b**2))
+    return np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
+
+
+@pytest.fixture(scope="module")
+def teapots_scene():
+    import pathlib
+
+    import prtlab
+    from prtlab.reference import shade_mitsuba
+
+    pytest.importorskip("mitsuba")
+    scene = prtlab.load_scene(pathlib.Path(__file__).resolve().parents[2] / "data/scenes/interreflection_teapots.yaml")
+    ref = shade_mitsuba(scene, bounces=1, spp=256, seed=0)
+    ours = Interreflection.precompute(scene, {}, progress=False).shade(bounces=1)
+    return scene, ours, ref
+
+
+def _teapots_case(obj, part):
+    key = (obj, part)
+    marks = [pytest.mark.xfail(strict=True, reason=TEAPOTS_KNOWN[key])] if key in TEAPOTS_KNOWN else []
+    return pytest.param(obj, part, marks=marks, id=f"{obj}-{part}")
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("obj, part", [_teapots_case(o, p) for o in TEAPOTS for p in GOAL])
+def test_fig7_teapots_against_mitsuba(teapots_scene, obj, part):
+    """Fig. 7 reduced (``data/scenes/interreflection_teapots.yaml``), one bounce, defaults: the goal plus
+    the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
+    rms, noise = relative_rms(*teapots_scene, obj, part)
+    assert rms <= GOAL[part] + noise, (rms, noise)
