@@ -264,7 +264,7 @@ def test_rigid_rotation_as_a_deformation_is_the_rotated_object(pre, hierarchy):
     R = random_rotation(np.random.default_rng(11))
     b = np.array([0.2, 0.15, -0.1])
     box = pre.scene.object("box")
-    other = _with(pre, hierarchy_children=hierarchy, cut_threshold=0.9, receiver_clusters=4) if hierarchy else pre
+    other = _with(pre, hierarchy_children=hierarchy, cut_threshold=0.9, cluster_size=48) if hierarchy else pre
     verts = np.asarray(box.mesh.vertices) @ R.T + b
     deformed = other.shade(bounces=1, deformed={"box": verts})
     state = FrameState.from_scene(pre.scene)
@@ -385,7 +385,7 @@ def _relative_rms(res, flat):
 
 
 def test_hierarchy_with_leaf_cuts_is_the_flat_pipeline(pre8, flat8):
-    res = _with(pre8, hierarchy_children=2, cut_threshold=0.0, receiver_clusters=4).shade(bounces=1)
+    res = _with(pre8, hierarchy_children=2, cut_threshold=0.0, cluster_size=48).shade(bounces=1)
     for name in flat8.total:
         np.testing.assert_array_equal(res.direct[name], flat8.direct[name])
         np.testing.assert_array_equal(res.indirect[name], flat8.indirect[name])
@@ -394,7 +394,7 @@ def test_hierarchy_with_leaf_cuts_is_the_flat_pipeline(pre8, flat8):
 def test_reflection_ratio_gives_the_cluster_centre_the_leaves_value(pre8, flat8):
     """Eq. 25 by construction: with one ratio point (the paper's form) every cluster centre gets the flat
     pipeline's indirect light, whatever its cut; the direct light keeps the leaves."""
-    h = _with(pre8, hierarchy_children=2, cut_threshold=0.9, receiver_clusters=8, ratio_samples=1)
+    h = _with(pre8, hierarchy_children=2, cut_threshold=0.9, cluster_size=16, ratio_samples=1)
     res = h.shade(bounces=1)
     n_coarse = 0
     for obj in pre8.scene.objects:
@@ -406,24 +406,27 @@ def test_reflection_ratio_gives_the_cluster_centre_the_leaves_value(pre8, flat8)
     assert n_coarse >= 2  # the cuts are coarse somewhere
 
 
-@pytest.mark.parametrize("threshold", [0.5, 0.9])
+@pytest.mark.parametrize("threshold", [0.5, 0.7])
 def test_reflection_ratio_reduces_the_error_of_coarse_cuts(pre8, flat8, threshold):
-    """Relative RMS indirect error over all receivers against the flat pass, measured (test scene, 8 clusters
-    per object): threshold 0.5: 1.5 % without the ratio, 1.2 % with it (5 points); 0.9: 6.7 % and 3.4 %.
-    On the plane (a flat receiver) the paper's centre ratio also helps: 1.1 -> 0.5 %, 4.9 -> 2.1 %."""
-    kw = dict(hierarchy_children=2, cut_threshold=threshold, receiver_clusters=8)
+    """Relative RMS indirect error over all receivers against the flat pass, measured (test scene, clusters of
+    16 receivers): threshold 0.5: 1.6 % without the ratio, 0.9 % with it (5 points), 3.4 % with the paper's
+    centre ratio; 0.7: 2.9 %, 2.2 % and 6.4 %. The centre ratio fails on the curved receivers (a centre that
+    sees a node at a grazing angle gives the rest of its cluster a wrong ratio); on the plane (flat) it
+    helps at 0.7: 1.9 -> 1.0 % (at 0.5 it changes nothing: 0.36 -> 0.38 %)."""
+    kw = dict(hierarchy_children=2, cut_threshold=threshold, cluster_size=16)
     without = _with(pre8, reflection_ratio=False, **kw).shade(bounces=1)
     ratio = _with(pre8, **kw).shade(bounces=1)
     e_without, e_ratio = _relative_rms(without, flat8), _relative_rms(ratio, flat8)
     assert 0 < e_ratio < e_without
-    assert e_ratio < {0.5: 0.015, 0.9: 0.04}[threshold]  # the measured errors (1.2 %, 3.4 %) with a margin
-    centre = _with(pre8, ratio_samples=1, **kw).shade(bounces=1)
-    plane = {k: {"plane": v.indirect["plane"]} for k, v in (("c", centre), ("w", without), ("f", flat8))}
+    assert e_ratio < {0.5: 0.012, 0.7: 0.028}[threshold]  # the measured errors (0.94 %, 2.2 %) with a margin
+    if threshold == 0.7:
+        centre = _with(pre8, ratio_samples=1, **kw).shade(bounces=1)
 
-    def err(d):
-        return float(np.sqrt(np.sum((d["plane"] - plane["f"]["plane"]) ** 2) / np.sum(plane["f"]["plane"] ** 2)))
+        def plane_error(res):
+            d = res.indirect["plane"] - flat8.indirect["plane"]
+            return float(np.sqrt(np.sum(d**2) / np.sum(flat8.indirect["plane"] ** 2)))
 
-    assert err(plane["c"]) < 0.6 * err(plane["w"])
+        assert plane_error(centre) < 0.6 * plane_error(without)
 
 
 def test_hierarchy_option_errors():
@@ -433,8 +436,8 @@ def test_hierarchy_option_errors():
         SphereLightOptions(hierarchy_children=1)
     with pytest.raises(ValueError, match=r"cut_threshold must be a number in \[0, 1\)"):
         SphereLightOptions(cut_threshold=1.0)
-    with pytest.raises(ValueError, match="receiver_clusters must be an int >= 1"):
-        SphereLightOptions(receiver_clusters=0)
+    with pytest.raises(ValueError, match="cluster_size must be an int >= 1"):
+        SphereLightOptions(cluster_size=0)
     with pytest.raises(ValueError, match="ratio_samples must be an int >= 1"):
         SphereLightOptions(ratio_samples=0)
     with pytest.raises(TypeError, match="reflection_ratio must be a bool"):
