@@ -451,7 +451,8 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
 
     The same sum as :func:`texel_basis_irradiance` of :func:`haar_basis_radiance_cubemaps` (the same
     texel-centre rays), gathered hit by hit without the dense cubemaps, and casting only the texels
-    where the transfer is non-zero (above the receiver's horizon, not blocked).
+    where the transfer is non-zero (above the receiver's horizon, not blocked) and whose centre
+    direction lies in the cone of the source's bounding sphere.
 
     Parameters
     ----------
@@ -476,6 +477,7 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
     phi : (V, K', K, N) float64
     """
     from prtlab.geometry import RayCaster, cubemap_directions
+    from prtlab.shadowfields import bounding_sphere
 
     method = _check_method(method)
     basis = np.asarray(basis, dtype=np.float64)
@@ -498,7 +500,18 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
     dirs = cubemap_directions(res).reshape(-1, 3)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     caster = RayCaster([(vertices, faces)]) if caster is None else caster
-    rv, rt = np.nonzero(np.any(w_obj != 0.0, axis=1))  # row-major: sorted by receiver
+    # a texel can see the source only inside the cone of its bounding sphere (outside it: no hit, skip the ray)
+    center, radius = bounding_sphere(vertices)
+    to_c = center - points
+    dist = np.linalg.norm(to_c, axis=1)
+    cos_cone = np.where(dist > radius, np.sqrt(np.maximum(1.0 - (radius / np.maximum(dist, 1e-300)) ** 2, 0.0)),
+                        -2.0)
+    inside = (dirs @ to_c.T).T >= (cos_cone * dist)[:, None] - 1e-9 * np.maximum(dist, 1.0)[:, None]  # (V, n)
+    rv, rt = np.nonzero(np.any(w_obj != 0.0, axis=1) & inside)  # row-major: sorted by receiver
+    h_radial = np.asarray(sep.h_radial)
+    h_const = None  # a Lambertian source: h = const on its front side (psi is 0 on the back)
+    if sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(h_radial) <= 1e-12 * np.abs(h_radial).max():
+        h_const = float(np.mean(h_radial))
     step = 1 << 18
     for a in range(0, len(rv), step):
         v, t = rv[a:a + step], rt[a:a + step]
@@ -514,7 +527,7 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
         w_in = dirs[t[sel]]
         front = np.sum(shading_n * w_in, axis=1) < 0.0
         psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
-        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+        h = np.full((len(sel), 1), h_const) if h_const is not None else brdf.project_h(sep, -w_in, shading_n)
         rows, starts = np.unique(v[sel], return_index=True)  # hits sorted by receiver
         if method == "numba":
             near_gather_kernel(rows, np.append(starts, len(sel)), np.ascontiguousarray(t[sel]), w_obj,
