@@ -1,8 +1,9 @@
 """Benchmarks of prtlab.interreflection: per-frame times (relighting, a moving object) and the Eq. 13 kernel.
 
-The scenes are smaller than the paper's room (50k vertices, 12 objects): quick mode a ball over a floor
-(~800 vertices) with quick fields; full mode four objects on a floor (~8k vertices) with the paper's
-sample spheres (16 x 6 x 16 x 16) and N = 16. The precomputation is cached (``$PRTLAB_CACHE``), so only
+Full mode is the paper's room scale (Sec. 6: about 50k vertices, 12 objects): a floor, two walls and
+nine objects (teapots, bunnies, balls, a box), 46.8k vertices, with the paper's sample spheres
+(16 x 6 x 16 x 16), N = 16 and 3 bounces; quick mode a ball over a floor (~800 vertices) with quick
+fields. The precomputation is cached (``$PRTLAB_CACHE``), so only
 the first run pays for it.
 """
 
@@ -17,18 +18,43 @@ from prtlab.scene import Scene, Transform
 _PRE: dict = {}
 
 
+def _room_objects() -> list:
+    """The paper's room scale (Sec. 6): 12 objects, about 47k vertices (floor, two walls, 9 objects)."""
+    objects = [
+        {"name": "floor", "mesh": {"builtin": "plane", "size": [5, 5], "resolution": [90, 90]},
+         "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+        {"name": "wall_back", "mesh": {"builtin": "plane", "size": [5, 2.5], "resolution": [80, 40]},
+         "transform": {"translate": [0, 1.25, -2.5], "rotate_deg": [90, 0, 0]},
+         "material": {"type": "diffuse", "albedo": [0.3, 0.7, 0.3]}},
+        {"name": "wall_left", "mesh": {"builtin": "plane", "size": [2.5, 5], "resolution": [40, 80]},
+         "transform": {"translate": [-2.5, 1.25, 0], "rotate_deg": [0, 0, -90]},
+         "material": {"type": "diffuse", "albedo": [0.75, 0.25, 0.2]}},
+    ]
+    things = [("teapot", {"builtin": "teapot", "resolution": 12}, 0.45, 0.0),
+              ("bunny", {"builtin": "bunny"}, 0.7, 0.0),
+              ("ball", {"builtin": "icosphere", "radius": 0.35, "subdivisions": 4}, 1.0, 0.35),
+              ("teapot", {"builtin": "teapot", "resolution": 12}, 0.45, 0.0),
+              ("box", {"builtin": "box", "size": [0.6, 0.6, 0.6], "subdivisions": 5}, 1.0, 0.3),
+              ("ball", {"builtin": "icosphere", "radius": 0.35, "subdivisions": 4}, 1.0, 0.35),
+              ("bunny", {"builtin": "bunny"}, 0.7, 0.0),
+              ("teapot", {"builtin": "teapot", "resolution": 12}, 0.45, 0.0),
+              ("ball", {"builtin": "icosphere", "radius": 0.35, "subdivisions": 4}, 1.0, 0.35)]
+    for i, (kind, mesh, scale, lift) in enumerate(things):
+        x, z = -1.4 + 1.4 * (i % 3), -1.4 + 1.4 * (i // 3)
+        objects.append({"name": f"{kind}{i}", "mesh": mesh, "dynamic": True,
+                        "transform": {"translate": [x, lift, z], "rotate_deg": [0, 40 * i, 0], "scale": scale},
+                        "material": {"type": "diffuse", "albedo": [0.3 + 0.05 * i, 0.7, 0.8 - 0.05 * i]}})
+    return objects
+
+
 def _scene(quick: bool) -> Scene:
-    floor = {"builtin": "plane", "size": [4, 4], "resolution": [12, 12] if quick else [40, 40]}
-    objects = [{"name": "floor", "mesh": floor,
-                "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.3]}}]
     if quick:
-        objects.append({"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 3},
-                        "transform": {"translate": [0, 0.7, 0]}, "material": {"type": "diffuse", "albedo": [0.7] * 3}})
+        objects = [{"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [12, 12]},
+                    "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.3]}},
+                   {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 3},
+                    "transform": {"translate": [0, 0.7, 0]}, "material": {"type": "diffuse", "albedo": [0.7] * 3}}]
     else:
-        for i, (x, z) in enumerate([(-1, -1), (1, -1), (-1, 1), (1, 1)]):
-            objects.append({"name": f"ball{i}", "mesh": {"builtin": "icosphere", "radius": 0.45, "subdivisions": 4},
-                            "transform": {"translate": [x, 0.6, z]},
-                            "material": {"type": "diffuse", "albedo": [0.2 + 0.2 * i, 0.7, 0.9 - 0.2 * i]}})
+        objects = _room_objects()
     return Scene.from_dict({
         "objects": objects,
         "lights": [{"type": "environment", "sky": {"sun_elevation_deg": 40, "sun_azimuth_deg": 30, "turbidity": 3},
@@ -56,6 +82,53 @@ def _vertices(pre) -> int:
     return sum(o.n_vertices for o in pre.objects)
 
 
+def _product_flop(order: int) -> int:
+    """One order-n SH product truncated to order n: ``a_i b_j G_ijk`` summed, 3 flops a Gaunt non-zero."""
+    from prtlab.sh import gaunt_tensor
+
+    return 3 * len(gaunt_tensor(order).value)
+
+
+def _bounce_gflop(pre, bounces: int) -> float:
+    """Weights (Eq. 14: ``A^-1 Psi`` at the samples) and bounces (Eq. 12: ``(V K', M) x (M, 3)`` per receiver,
+    radiance by ``h``) of ``bounces`` bounces, from the shapes of the stacked basis irradiance."""
+    flop = 0.0
+    for o in pre.objects:
+        n_k, n_b = pre.seps[o.name].K, pre.bases[o.name].n_basis
+        n_s = len(pre.bases[o.name].samples)
+        flop += n_k * 3 * (2 * n_b * n_s + 2 * n_b * n_b)  # weights
+        stacked = pre._stack_cache.get(o.name)
+        if stacked is not None:
+            v, kp, m = stacked[2].shape
+            flop += 2 * v * kp * m * 3 + 2 * v * kp * 3  # Eq. 12, then sum_k' h_k' colour L_k'
+    return bounces * flop / 1e9
+
+
+def _direct_gflop(pre) -> float:
+    """Step 1 with the transfer kept: ``< L_env, P_n(V G_k) >`` per vertex, term and colour."""
+    n2 = pre.options.order ** 2
+    return sum(2 * o.n_vertices * pre.seps[o.name].K * n2 * 3 for o in pre.objects) / 1e9
+
+
+def _pose_gflop(pre, recomputed) -> float:
+    """A pose change: every occlusion-field lookup (8 corners), every receiver's visibility and transfer
+    products (step 1), and for the recomputed pairs their visibility, transfer and Eq. 13 (8 corners of
+    ``K' x K N`` coefficient vectors). SH rotations and ray casting (``near_field``) are not counted."""
+    n2, prod = pre.options.order ** 2, _product_flop(pre.options.order)
+    n_obj = len(pre.objects)
+    flop = 0.0
+    for r in pre.objects:
+        v, kp = r.n_vertices, pre.seps[r.name].K
+        flop += v * (n_obj - 1) * 8 * n2 * 2  # lookups
+        flop += v * ((n_obj - 1) + kp) * prod  # step 1: visibility and transfer
+    for r_name, s_name in recomputed:
+        r = next(o for o in pre.objects if o.name == r_name)
+        v, kp = r.n_vertices, pre.seps[r_name].K
+        m = pre.seps[s_name].K * pre.bases[s_name].n_basis
+        flop += v * ((n_obj - 2) + kp) * prod + v * kp * m * n2 * 8 * 2
+    return flop / 1e9
+
+
 @case("interreflection.frame.relight")
 def relight_frame(quick: bool) -> dict:
     """Light changes, poses do not: direct + weights + 3 bounces (basis irradiance reused)."""
@@ -69,24 +142,33 @@ def relight_frame(quick: bool) -> dict:
         state.lights = [type(env)(image=env.image * next(scales)), *state.lights[1:]]
         return pre.shade(state, bounces=3)
 
-    return {"run": run, "gflop": None, "items": _vertices(pre), "peer": None}
+    return {"run": run, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3), "items": _vertices(pre), "peer": None}
+
+
+def _moving(pre):
+    """A run() moving the last object (a ball) by a new small step each call, and the work of one call in GFLOP."""
+    state = FrameState.from_scene(pre.scene)
+    mover = pre.objects[-1]
+    poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0], rotate_deg=mover.transform.rotate_deg,
+                            scale=mover.transform.scale) for dx in np.linspace(0.0, 0.1, 10_000)])
+
+    def run():
+        state.transforms[mover.name] = next(poses)
+        return pre.shade(state, bounces=3)
+
+    run()
+    before = {k: v[1] for k, v in pre._phi_cache.items()}
+    run()
+    recomputed = [k for k, v in pre._phi_cache.items() if before.get(k) is not v[1]]
+    return run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3)
 
 
 @case("interreflection.frame.move_one")
 def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
     source's surface by ray casting, ``near_field``), then 3 bounces. Every frame is a new pose."""
-    pre = _precomputed(quick)
-    state = FrameState.from_scene(pre.scene)
-    mover = pre.objects[1]
-    base = mover.transform
-    poses = iter([Transform(translate=base.translate + [dx, 0, 0]) for dx in np.linspace(0.0, 0.1, 10_000)])
-
-    def run():
-        state.transforms[mover.name] = next(poses)
-        return pre.shade(state, bounces=3)
-
-    return {"run": run, "gflop": None, "items": _vertices(pre), "peer": None}
+    run, gflop = _moving(_precomputed(quick))
+    return {"run": run, "gflop": gflop, "items": _vertices(_precomputed(quick)), "peer": None}
 
 
 @case("interreflection.frame.move_one.paper")
@@ -98,15 +180,34 @@ def move_frame_paper(quick: bool) -> dict:
 
     base = _precomputed(quick)
     pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
-    state = FrameState.from_scene(pre.scene)
-    mover = pre.objects[1]
-    poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0]) for dx in np.linspace(0.0, 0.1, 10_000)])
+    run, gflop = _moving(pre)
+    return {"run": run, "gflop": gflop, "items": _vertices(pre), "peer": None}
 
-    def run():
-        state.transforms[mover.name] = next(poses)
-        return pre.shade(state, bounces=3)
 
-    return {"run": run, "gflop": None, "items": _vertices(pre), "peer": None}
+@case("interreflection.frame.move_light")
+def move_light_frame(quick: bool) -> dict:
+    """The area light moves (poses do not): its SH radiance at every vertex from its source radiance field
+    (``area_lights="field"``), then 3 bounces; peer: the exact per-vertex projection (the default)."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+
+    base = _precomputed(quick)
+
+    def mover(area_lights):
+        pre = Interreflection(base.scene, dataclasses.replace(base.options, area_lights=area_lights), base.data)
+        state = FrameState.from_scene(pre.scene)
+        light = state.lights[1]
+        centres = iter([light.center + [dx, 0.0, 0.0] for dx in np.linspace(0.0, 0.5, 10_000)])
+
+        def run():
+            state.lights[1] = type(light)(center=next(centres), u=light.u, v=light.v, radiance=light.radiance)
+            return pre.shade(state, bounces=3)
+
+        return run
+
+    return {"run": mover("field"), "gflop": None, "items": _vertices(base), "peer": ("exact area_light_sh",
+                                                                                    mover("exact"))}
 
 
 @case("interreflection.basis_irradiance.kernel")

@@ -53,7 +53,8 @@ __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance"]
 _RAYS_PER_BATCH = 1 << 19
 
 
-def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None) -> np.ndarray:
+def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
+                      caster: RayCaster | None = None) -> np.ndarray:
     """SH of the basis radiance ``S_(k,i)(p, .)`` of a source object at points (object space).
 
     Parameters
@@ -68,6 +69,8 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     order : int
     degree : int, optional
         Quadrature degree (default :data:`prtlab.shadowfields.DEFAULT_DEGREE`).
+    caster : prtlab.geometry.RayCaster, optional
+        A caster of ``mesh`` alone, kept by callers that cast often (building one takes milliseconds).
 
     Returns
     -------
@@ -87,7 +90,7 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
-    caster = RayCaster([(vertices, faces)])
+    caster = RayCaster([(vertices, faces)]) if caster is None else caster
     dirs, weights = sh.quadrature(order, degree)
     y = sh.basis(dirs, order)  # (D, n2)
     n_b, n_k, n2 = basis.shape[0], sep.K, order * order

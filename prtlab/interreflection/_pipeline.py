@@ -398,6 +398,7 @@ class Interreflection(Precomputation):
         self._near_cache: dict = {}
         self._flat: dict = {}
         self._separates: dict = {}
+        self._casters: dict = {}
         self._pose_cache = None
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -560,14 +561,17 @@ class Interreflection(Precomputation):
             if env_sh is not None:
                 lk += np.einsum("vki,ic->vkc", t, env_sh)
             for i, light in enumerate(areas):
-                # a light that did not change since the last frame of the same poses is not recomputed
-                key = (id(t), *(np.asarray(getattr(light, f), float).tobytes()
-                                for f in ("center", "u", "v", "radiance")))
+                # the light's SH at the vertices stands while it and the receiver stand; its product with
+                # the transfer while the transfer does too
+                key = (g["pose"], *(np.asarray(getattr(light, f), float).tobytes()
+                                    for f in ("center", "u", "v", "radiance")))
                 cached = self._area_cache.get((r.name, i))
                 if cached is None or cached[0] != key:
-                    cached = (key, t, np.einsum("vki,vic->vkc", t, self._area_light_sh(light, g["x"])))
-                    self._area_cache[(r.name, i)] = cached  # t is kept so that id(t) stays its own
-                lk += cached[2]
+                    cached = (key, self._area_light_sh(light, g["x"]), None, None)
+                if cached[2] is not t:
+                    cached = self._area_cache[(r.name, i)] = (key, cached[1], t,
+                                                              np.einsum("vki,vic->vkc", t, cached[1]))
+                lk += cached[3]
             lk = self._clamp_diffuse(r, lk)
             light_k[r.name] = lk
             radiance[r.name] = outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
@@ -681,8 +685,11 @@ class Interreflection(Precomputation):
         near = np.flatnonzero(gap < self.options.near_field * np.linalg.norm(local - grid.center, axis=1))
         S = np.zeros((0,))
         if len(near):
+            if s.name not in self._casters:
+                self._casters[s.name] = RayCaster([(np.asarray(s.mesh.vertices, float), np.asarray(s.mesh.faces))])
             S = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[near],
-                                  self.options.order, self.options.degree)  # (v, K, N, n2), object frame
+                                  self.options.order, self.options.degree,
+                                  caster=self._casters[s.name])  # (v, K, N, n2), object frame
         return near, S
 
     def _plane_separates(self, geo, o, r, s) -> bool:
