@@ -292,8 +292,9 @@ TEAPOTS_KNOWN: dict = {
 # Diagnosis (quick fields: 8 radii x 6 x 8 x 8, N = 8 from 64 lights; same Mitsuba run), direct light rel. RMS
 # (mean) of glossy / purple / yellow teapot: K = 4 0.510 (+20 %) / 0.472 (+24 %) / 0.188 (+16 %); K = 16
 # 0.422 (+27 %) / 0.327 (+8 %) / 0.188; K = 16 with shadows="haar" (16-texel faces) 0.167 (-12 %) / 0.131 /
-# 0.027, and with shadows="haar" at K = 4 0.463 (-11 %) / 0.415 (+14 %) / 0.027: a Phong lobe of exponent 10 under a small area light needs more than 4 SH bands, and beyond order-4
-# light the K-term separation errs more than brdf.transfer_error(sep, 4) says (relative_error() at K = 8: 0.40).
+# 0.027, and with shadows="haar" at K = 4 0.463 (-11 %) / 0.415 (+14 %) / 0.027: a Phong lobe of exponent 10
+# under a small area light needs more than 4 SH bands, and beyond order-4 light the K-term separation errs
+# more than brdf.transfer_error(sep, 4) says (relative_error() of this BRDF: 0.59 at K = 4, 0.21 at K = 16).
 # passing (measured): indirect floor 0.186 (noise 0.111), back wall 0.130 (0.101), left wall 0.124 (0.097),
 # yellow teapot 0.217 (0.070; bound 0.220), means 0.97-1.04 of Mitsuba
 
