@@ -28,6 +28,12 @@ re-seeded at the face worst covered in the Eq. 2 measure. The iteration
 stops when the outside volume stops decreasing (relative change below
 ``tol``) or after ``max_iter`` rounds; the best set seen is returned.
 
+Speed: the objective of the centre update is evaluated some 30k times per
+fit (Nelder-Mead); it runs as a numba loop (``method="numba"``) held to its
+numpy specification (``method="reference"``): the bunny (3674 faces) with 16
+or 32 spheres fits about 10x faster (39.1 -> 3.4 s and 37.3 -> 3.8 s,
+measured in one run on a loaded 2-core machine) with the same spheres.
+
 This is a simplification of Wang et al.'s method (their assignment uses
 the outside-volume increment and a medial-axis initialisation); the
 contract is the same: a bounding set, tight in outside volume.
@@ -44,6 +50,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 import trimesh
 
@@ -111,9 +118,31 @@ def _interior_grid(mesh: trimesh.Trimesh, resolution: int) -> tuple[np.ndarray, 
 
 
 def _outside_volume_one(c, verts, interior, cell) -> float:
+    """Reference tier: ``4/3 pi R^3 - cell * #(interior points in the sphere)``, ``R = max |v - c|``."""
     r = np.sqrt(np.max(np.sum((verts - c) ** 2, axis=1)))
     inner = np.count_nonzero(np.sum((interior - c) ** 2, axis=1) <= r * r) * cell
     return 4.0 / 3.0 * np.pi * r**3 - inner
+
+
+@numba.njit(cache=True)
+def _outside_volume_kernel(c, verts, interior, cell):
+    """:func:`_outside_volume_one` as one loop (the same float64 operations in the same order, so the same
+    value): the objective Nelder-Mead evaluates some 30k times per fit of the bunny."""
+    cx, cy, cz = c[0], c[1], c[2]
+    r2 = -np.inf
+    for k in range(verts.shape[0]):
+        dx, dy, dz = verts[k, 0] - cx, verts[k, 1] - cy, verts[k, 2] - cz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > r2:
+            r2 = d2
+    r = np.sqrt(r2)
+    rr = r * r
+    count = 0
+    for k in range(interior.shape[0]):
+        dx, dy, dz = interior[k, 0] - cx, interior[k, 1] - cy, interior[k, 2] - cz
+        if dx * dx + dy * dy + dz * dz <= rr:
+            count += 1
+    return 4.0 / 3.0 * np.pi * r**3 - count * cell
 
 
 def _radius(c, verts) -> float:
@@ -121,7 +150,7 @@ def _radius(c, verts) -> float:
 
 
 def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, tol: float = 1e-3,
-                n_coverage_samples: int = 20000, seed: int = 0) -> SphereFit:
+                n_coverage_samples: int = 20000, seed: int = 0, method: str = "numba") -> SphereFit:
     """Fit a bounding set of ``n`` spheres with small outside volume to a closed mesh.
 
     Parameters
@@ -142,6 +171,10 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
         Uniform surface samples for the reported coverage.
     seed : int
         Seed of the initialisation and the coverage samples.
+    method : {"numba", "reference"}
+        Tier of the outside-volume objective (the hot part: about 30k evaluations per fit): a numba loop,
+        or the numpy specification. Both compute the same float64 operations in the same order, so the fits
+        agree.
 
     Returns
     -------
@@ -175,6 +208,9 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
         raise ValueError(f"n={n} exceeds the number of faces ({len(mesh.faces)}); subdivide the mesh or use fewer spheres")
     check_int(max_iter, "max_iter", 1)
     check_int(grid_resolution, "grid_resolution", 4)
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
+    objective = _outside_volume_kernel if method == "numba" else _outside_volume_one
 
     rng = np.random.default_rng(seed)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -215,15 +251,16 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
             lo = verts.min(axis=0)
             hi = verts.max(axis=0)
             span = float(np.max(hi - lo)) + 1e-12
-            near = interior[np.all((interior > lo - span) & (interior < hi + span), axis=1)]
-            x0 = centres[i] if it > 0 else 0.5 * (lo + hi)
+            near = np.ascontiguousarray(interior[np.all((interior > lo - span) & (interior < hi + span), axis=1)])
+            verts = np.ascontiguousarray(verts)
+            x0 = np.array(centres[i] if it > 0 else 0.5 * (lo + hi))
             simplex = x0 + np.vstack([np.zeros(3), 0.25 * span * np.eye(3)])
-            res = minimize(_outside_volume_one, x0, args=(verts, near, cell), method="Nelder-Mead",
+            res = minimize(objective, x0, args=(verts, near, cell), method="Nelder-Mead",
                            options={"initial_simplex": simplex, "xatol": 1e-4 * span, "fatol": 1e-9, "maxiter": 200})
-            c = res.x if res.fun <= _outside_volume_one(x0, verts, near, cell) else x0
+            c = res.x if res.fun <= objective(x0, verts, near, cell) else x0
             centres[i] = c
             radii[i] = max(_radius(c, verts), 1e-12)
-            total += _outside_volume_one(c, verts, near, cell)
+            total += objective(c, verts, near, cell)
         history.append(total)
         if best is None or total < best[0]:
             best = (total, centres.copy(), radii.copy(), assign.copy())
