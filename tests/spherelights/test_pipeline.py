@@ -429,6 +429,17 @@ def test_reflection_ratio_reduces_the_error_of_coarse_cuts(pre8, flat8, threshol
         assert plane_error(centre) < 0.6 * plane_error(without)
 
 
+def test_hierarchy_through_the_api():
+    res = prtlab.shade(_scene(), method="spherelights", bounces=1, cache=False, progress=False, n_spheres=2,
+                       grid_resolution=16, hierarchy_children=2, cut_threshold=0.6, cluster_size=32)
+    flat = prtlab.shade(_scene(), method="spherelights", bounces=1, cache=False, progress=False, n_spheres=2,
+                        grid_resolution=16)
+    for name in flat.total:
+        np.testing.assert_array_equal(res.direct[name], flat.direct[name])
+        assert np.all(np.isfinite(res.indirect[name]))
+    assert any(not np.array_equal(res.indirect[n], flat.indirect[n]) for n in flat.total)
+
+
 def test_hierarchy_option_errors():
     from prtlab.spherelights import SphereLightOptions
 
