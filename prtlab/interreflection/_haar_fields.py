@@ -15,6 +15,11 @@ Texel values: the ray ``p + t d_t`` through texel ``t``'s centre hits the source
 ``x~``; ``S = h_k(-d_t) Psi_i(x~)`` (barycentric ``Psi_i``, ``h_k`` in the frame of the
 interpolated shading normal), 0 on a miss or a back-face hit: exactly the integrand of
 :func:`prtlab.interreflection.basis_radiance_at`, sampled instead of projected.
+With ``supersample = s > 1`` a texel holds the solid-angle average of ``s x s`` such samples.
+Measured on a floor seen from 0.6 above (its edges run along texel rows, the worst case for
+point samples), the basis irradiance against 8 x 8 samples per texel: -3.7 % with ``s = 1``,
++1.2 % with ``s = 2`` and 4 (still first order for an edge parallel to the rows), -0.07 % at 8.
+The pipeline uses ``s = 1``, as the Haar occlusion fields do.
 
 Storage (:class:`HaarBasisRadianceField`): per sample point and ``(k, i)`` ``keep``
 (index, value) pairs, largest ``|value|`` first, unused slots 0 at the end;
@@ -79,7 +84,7 @@ def _check_source(mesh, basis):
     return basis, vertices
 
 
-def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32) -> np.ndarray:
+def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32, supersample: int = 1) -> np.ndarray:
     """Texel cubemaps of the basis radiance ``S_(k,i)(p, .)`` of a source at points (object space).
 
     Parameters
@@ -94,14 +99,19 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32)
         Object-space points.
     resolution : int
         Texels per cubemap face edge (a power of two).
+    supersample : int >= 1
+        ``supersample**2`` rays per texel through the texel centres of a ``resolution * supersample``
+        cubemap, averaged with their exact solid angles (1: the texel centre only).
 
     Returns
     -------
     S : (..., K, N, 6, r, r) float64
-        ``S_(k,i)`` at the texel centres (:func:`prtlab.geometry.cubemap_directions`).
+        ``S_(k,i)`` at the texel centres (:func:`prtlab.geometry.cubemap_directions`), or its
+        texel average with ``supersample > 1``.
     """
     basis, vertices = _check_source(mesh, basis)
     res = _check_resolution(resolution)
+    ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
     points = np.asarray(points, dtype=np.float64)
     if points.ndim == 0 or points.shape[-1] != 3:
         raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
@@ -111,11 +121,11 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32)
     flat = points.reshape(-1, 3)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     n_b, n_k = basis.shape[0], sep.K
-    dirs = cubemap_directions(res).reshape(-1, 3)
+    dirs = cubemap_directions(res * ss).reshape(-1, 3)
     n_t = len(dirs)
     out = np.zeros((len(flat), n_k, n_b, n_t))
     if len(flat) == 0 or len(faces) == 0:
-        return out.reshape(batch + (n_k, n_b, 6, res, res))
+        return out.reshape(batch + (n_k, n_b, 6, res, res)) if ss == 1 else np.zeros(batch + (n_k, n_b, 6, res, res))
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     caster = RayCaster([(vertices, faces)])
     step = max(1, _RAYS_PER_BATCH // n_t)
@@ -135,6 +145,12 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32)
         psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
         h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
         out[a + sel[0], :, :, sel[1]] = h[:, :, None] * psi[:, None, :]
+    if ss > 1:
+        from prtlab.geometry import cubemap_solid_angles
+
+        w = cubemap_solid_angles(res * ss).reshape(6, res, ss, res, ss)
+        fine = out.reshape(len(flat), n_k, n_b, 6, res, ss, res, ss)
+        out = np.einsum("pknfiajb,fiajb->pknfij", fine, w) / w.sum(axis=(2, 4))
     return out.reshape(batch + (n_k, n_b, 6, res, res))
 
 
@@ -208,7 +224,7 @@ def _index_dtype(res: int):
 
 
 def haar_basis_radiance_field(mesh, basis, sep, grid: SphereGrid, resolution: int = 32,
-                              keep: int = DEFAULT_RADIANCE_KEEP) -> HaarBasisRadianceField:
+                              keep: int = DEFAULT_RADIANCE_KEEP, supersample: int = 1) -> HaarBasisRadianceField:
     """The all-frequency basis radiance field of a source on its sample spheres (Sec. 4.3).
 
     Parameters
@@ -225,6 +241,9 @@ def haar_basis_radiance_field(mesh, basis, sep, grid: SphereGrid, resolution: in
         Cubemap texels per face edge (32, as the visibility of ``shadows="haar"``).
     keep : int
         Haar coefficients kept per (sample point, k, i).
+    supersample : int >= 1
+        Rays per texel edge (:func:`haar_basis_radiance_cubemaps`): texel averages instead of
+        texel-centre samples, at ``supersample**2`` times the rays.
 
     Returns
     -------
@@ -232,7 +251,7 @@ def haar_basis_radiance_field(mesh, basis, sep, grid: SphereGrid, resolution: in
 
     Notes
     -----
-    Cost: ``grid.n_points * 6 r^2`` rays (151 M at the defaults, the same as the Haar
+    Cost: ``grid.n_points * 6 r^2 supersample^2`` rays (151 M at the defaults, the same as the Haar
     occlusion field) and one Haar transform per cubemap; storage ``6 keep K N`` bytes per
     sample point.
 
@@ -262,10 +281,11 @@ def haar_basis_radiance_field(mesh, basis, sep, grid: SphereGrid, resolution: in
     values = np.zeros((len(points), n_k, n_b, keep), dtype=np.float32)
     lost = np.zeros((len(points), n_k, n_b))
     energy = np.zeros((len(points), n_k, n_b))
-    step = max(1, (1 << 22) // (n_t * n_k * n_b))  # bounded memory for the dense cubemaps
+    ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
+    step = max(1, (1 << 22) // (n_t * ss * ss * n_k * n_b))  # bounded memory for the dense cubemaps
     for a in range(0, len(points), step):
         b = min(len(points), a + step)
-        cubes = haar_basis_radiance_cubemaps(mesh, basis, sep, points[a:b], res)
+        cubes = haar_basis_radiance_cubemaps(mesh, basis, sep, points[a:b], res, ss)
         sparse = encode_sparse(cubes, keep)
         indices[a:b] = sparse.indices
         values[a:b] = sparse.values

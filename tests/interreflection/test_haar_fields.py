@@ -44,6 +44,20 @@ def test_cubemap_of_a_plane_is_h_psi_where_the_texel_ray_hits_its_front(floor, l
     assert np.all(s[1] == 0)  # the back of the plane emits nothing
 
 
+def test_supersampled_cubemap_is_the_solid_angle_average_of_the_finer_one(floor, lambert, rng):
+    from prtlab.geometry import cubemap_solid_angles
+
+    basis = rng.normal(size=(2, len(floor.vertices)))
+    p = np.array([[0.13, 0.5, -0.21], [0.4, 1.5, 0.3]])
+    coarse = haar_basis_radiance_cubemaps(floor, basis, lambert, p, 4, supersample=2)
+    fine = haar_basis_radiance_cubemaps(floor, basis, lambert, p, 8)
+    w = cubemap_solid_angles(8).reshape(6, 4, 2, 4, 2)
+    expected = np.einsum("pknfiajb,fiajb->pknfij", fine.reshape(2, 1, 2, 6, 4, 2, 4, 2), w) / w.sum(axis=(2, 4))
+    np.testing.assert_allclose(coarse, expected, rtol=1e-12, atol=1e-15)
+    assert haar_basis_radiance_field(floor, basis, lambert, sphere_grid(floor, n_radii=1, resolution=1), 4, keep=96,
+                                     supersample=2).relative_truncation() < 1e-6
+
+
 def test_field_at_the_sample_points_is_the_sparse_cubemap(floor, lambert, rng):
     """Every sample point holds the Haar coefficients of its cubemap (float32), the dropped energy by Parseval."""
     basis = rng.normal(size=(2, len(floor.vertices)))
@@ -112,5 +126,7 @@ def test_errors(floor, lambert):
     with pytest.raises(TypeError, match="grid must be a SphereGrid"):
         haar_basis_radiance_field(floor, psi, lambert, "grid")
     grid = SphereGrid(np.zeros(3), 1.0, np.array([1.0]), 1)
+    with pytest.raises(ValueError, match="supersample"):
+        haar_basis_radiance_cubemaps(floor, psi, lambert, p, 4, supersample=0)
     with pytest.raises(ValueError, match="keep"):
         haar_basis_radiance_field(floor, psi, lambert, grid, 4, keep=0)
