@@ -530,12 +530,19 @@ class Interreflection(Precomputation):
             g = geo[r.name]
             others = [o.name for o in self.objects if o.name != r.name and self._reaches(geo, o, r)]
             key = (g["pose"], tuple((o, geo[o]["pose"]) for o in others))
+            now = {o: geo[o] for o in others}
             cached = self._transfer_cache.get(r.name)
             if cached is None or cached[0] != key:
                 idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
                 factors = [(others[i], self._within_reach(g["x"], geo[others[i]])) for i in idx]
-                vis = self._visibility(g, occ[r.name], factors, np.arange(len(g["x"])))
-                cached = self._transfer_cache[r.name] = (key, self._transfer(vis, g["g_cos"]))
+                if cached is None or cached[0][0] != g["pose"]:
+                    rows = np.arange(len(g["x"]))
+                    value = self._transfer(self._visibility(g, occ[r.name], factors, rows), g["g_cos"])
+                else:  # only occluders moved, came or went: the points their fields reach, before or now
+                    rows = self._changed_rows(g["x"], cached[2], now, self._within_reach)
+                    value = cached[1].copy()
+                    value[rows] = self._transfer(self._visibility(g, occ[r.name], factors, rows), g["g_cos"][rows])
+                cached = self._transfer_cache[r.name] = (key, value, now)
             transfer[r.name] = cached[1]
         return transfer
 
@@ -780,8 +787,10 @@ class Interreflection(Precomputation):
         idx = occluder_order(gr["center"], [geo[o]["center"] for o in names]) if names else []
         return [names[i] for i in idx]
 
-    def _changed_rows(self, x, gs, before: dict, now: dict) -> np.ndarray:
-        """Receiver rows whose visibility toward ``gs`` an occluder that moved, came or went may have changed."""
+    @staticmethod
+    def _changed_rows(x, before: dict, now: dict, affects) -> np.ndarray:
+        """Receiver rows that an occluder that moved, came or went may affect (``affects(x, geo_o)``, (V,) bool)
+        at its old or its new pose."""
         mask = np.zeros(len(x), bool)
         for name in set(before) | set(now):
             old, new = before.get(name), now.get(name)
@@ -789,7 +798,7 @@ class Interreflection(Precomputation):
                 continue
             for go in (old, new):
                 if go is not None:
-                    mask |= self._may_block(x, go, gs)
+                    mask |= affects(x, go)
         return np.flatnonzero(mask)
 
     def _pair_irradiance(self, geo, occ, r, s, blockers, rows):
@@ -830,7 +839,8 @@ class Interreflection(Precomputation):
                         counts["reused_pairs"] += 1
                         continue
                     if self.options.irradiance != "haar":
-                        rows = self._changed_rows(g["x"], geo[s.name], cached[2], now)
+                        rows = self._changed_rows(g["x"], cached[2], now,
+                                                  lambda x, go: self._may_block(x, go, geo[s.name]))
                 if rows is None and self._pair_skipped(geo, r, s):
                     counts["skipped_pairs"] += 1
                     continue
