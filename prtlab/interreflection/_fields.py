@@ -48,13 +48,15 @@ from prtlab import brdf, sh
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
+from ._kernels import project_hits_kernel
+
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance"]
 
 _RAYS_PER_BATCH = 1 << 19
 
 
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
-                      caster: RayCaster | None = None) -> np.ndarray:
+                      caster: RayCaster | None = None, method: str = "numba") -> np.ndarray:
     """SH of the basis radiance ``S_(k,i)(p, .)`` of a source object at points (object space).
 
     Parameters
@@ -71,6 +73,9 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
         Quadrature degree (default :data:`prtlab.shadowfields.DEFAULT_DEGREE`).
     caster : prtlab.geometry.RayCaster, optional
         A caster of ``mesh`` alone, kept by callers that cast often (building one takes milliseconds).
+    method : {"numba", "reference"}
+        Projection of the hit rays' radiance: a parallel kernel summing over the hits only, or the
+        float64 specification (a dense ``(points, K N, directions) x (directions, n*n)`` product).
 
     Returns
     -------
@@ -83,6 +88,8 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
         raise ValueError(f"basis must be (N, n_vertices) = (N, {len(vertices)}), got shape {basis.shape}")
     if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
         raise ValueError(f"order must be an int >= 1, got {order!r}")
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
     degree = max(DEFAULT_DEGREE, 2 * order - 2) if degree is None else int(degree)
     points = np.asarray(points, dtype=np.float64)
     if points.ndim == 0 or points.shape[-1] != 3:
@@ -110,12 +117,16 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
         shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
         w_in = dirs[sel[1]]
         front = np.sum(shading_n * w_in, axis=1) < 0.0
-        psi = np.zeros((b - a, len(dirs), n_b))
-        psi[sel] = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]
-        h = np.zeros((b - a, len(dirs), n_k))
-        h[sel] = brdf.project_h(sep, -w_in, shading_n)
-        value = (h[:, :, :, None] * psi[:, :, None, :]).reshape(b - a, len(dirs), n_k * n_b)
-        out[a:b] = np.matmul(value.transpose(0, 2, 1), wy)
+        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
+        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+        value = (h[:, :, None] * psi[:, None, :]).reshape(len(psi), n_k * n_b)  # (H, K N)
+        if method == "reference":
+            dense = np.zeros((b - a, len(dirs), n_k * n_b))
+            dense[sel] = value
+            out[a:b] = np.matmul(dense.transpose(0, 2, 1), wy)
+        else:
+            starts = np.searchsorted(sel[0], np.arange(b - a + 1))  # hits come sorted by point
+            project_hits_kernel(starts, np.ascontiguousarray(sel[1]), np.ascontiguousarray(value), wy, out[a:b])
     return out.reshape(batch + (n_k, n_b, n2))
 
 

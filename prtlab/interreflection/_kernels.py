@@ -72,3 +72,25 @@ def bounce_kernel(irradiance, weights, out):
                 for m in range(n_m):
                     acc += irradiance[v, kp, m] * weights[m, c]
                 out[v, kp, c] += acc
+
+
+@numba.njit(cache=True, parallel=True)
+def project_hits_kernel(starts, d_idx, value, wy, out):
+    """SH projection of a radiance known on the rays that hit: ``out[p, m, i] = sum_h value[h, m] wy[d_h, i]``.
+
+    starts : (P + 1,) the hits of point p are ``starts[p]:starts[p + 1]`` (hits sorted by point)
+    d_idx : (H,) quadrature direction of each hit
+    value : (H, M) radiance of each hit per (k, i)
+    wy : (D, n2) quadrature weight times ``Y_i`` per direction
+    out : (P, M, n2), zeroed by the caller
+    """
+    n_m = value.shape[1]
+    n2 = wy.shape[1]
+    for p in numba.prange(out.shape[0]):
+        for h in range(starts[p], starts[p + 1]):
+            d = d_idx[h]
+            for m in range(n_m):
+                v = value[h, m]
+                if v != 0.0:
+                    for i in range(n2):
+                        out[p, m, i] += v * wy[d, i]

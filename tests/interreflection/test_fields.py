@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from prtlab import brdf
 from prtlab.geometry import builtin_mesh
@@ -14,6 +16,7 @@ from prtlab.shadowfields import area_light_sh, sphere_grid
 ORDER = 4
 PLANE = builtin_mesh("plane", size=[2.0, 2.0], resolution=[4, 4])  # y = 0, normals +y
 LAMBERT = brdf.separable(brdf.lambert(np.ones(3)), 1, resolution=(8, 16))
+GLOSSY = brdf.separable(brdf.phong(0.3, 0.5, 8.0), 2, resolution=(8, 16))
 
 
 @pytest.mark.parametrize("degree, rms_bound", [(63, 0.07), (127, 0.035)])
@@ -128,3 +131,20 @@ def test_self_basis_irradiance_against_monte_carlo():
     truth, se = ref.indirect["box"][inner, 0], ref.stderr["indirect"]["box"][inner, 0]
     # piecewise-linear vertex radiance on a 0.5 grid vs the exact radiance: 5 % of the value
     assert truth.mean() > 0.05 and np.all(np.abs(ours - truth) <= MC_SIGMAS * se + 0.05 * truth), np.c_[ours, truth, se]
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_points=st.integers(0, 6))
+def test_projection_over_the_hits_equals_the_dense_reference_tier(seed, n_points):
+    """The hit-only numba projection and the dense float64 specification agree on a closed mesh seen from
+    inside and outside (some rays miss), for a glossy source (K = 2)."""
+    rng = np.random.default_rng(seed)
+    mesh = builtin_mesh("icosphere", subdivisions=1)
+    psi = rng.normal(size=(3, len(mesh.vertices)))
+    points = rng.normal(size=(n_points, 3)) * rng.uniform(0.3, 3.0, size=(n_points, 1))
+    fast = basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, degree=15)
+    ref = basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, degree=15, method="reference")
+    assert fast.shape == (n_points, 2, 3, 16)
+    np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="method must be 'numba' or 'reference'"):
+        basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, method="gpu")
