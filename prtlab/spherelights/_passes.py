@@ -40,19 +40,27 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._explog import _HYB_THRESHOLD, _ol_table
 from prtlab.sh._gaunt import _gaunt_block
-from prtlab.sh._kernels import LOW_BANDS
-from prtlab.sh._product_kernels import _ol_one, _tile_product
 
 from ._shadows import (
+    _ZH_SCALE,
     _add_rotated_zh,
-    _add_rotated_zh_low,
     _adjust,
+    _basis_lanes,
+    _blocker_lanes,
+    _blocker_log_knots,
     _lookup_log,
     blocker_log_table,
     environment_transfer,
     transfer_matrix,
 )
-from ._tables import N_THETA_K, THETA_MAX_K, _irradiance_kernel_table, _w_theta_table, irradiance_kernel_zh, w_theta_zh
+from ._tables import (
+    N_THETA_K,
+    THETA_MAX_K,
+    _irradiance_kernel_table,
+    _w_theta_table,
+    irradiance_kernel_zh,
+    w_theta_zh,
+)
 
 __all__ = ["first_pass", "second_pass", "accumulate_blockers", "emission_times_direction"]
 
@@ -475,6 +483,40 @@ def _light_arrays(centres, radii, sl_object, intersect):
     return c, r, obj, inter, obj_centres
 
 
+#: Receivers per SIMD block of the fused second pass: the lanes of its innermost loops.
+_LANES = 32
+#: Blocks per parallel task (the scratch arrays are allocated once per task).
+_BLOCKS_PER_TASK = 8
+
+
+@functools.lru_cache(maxsize=None)
+def _symmetric_gaunt(order: int):
+    """Gaunt entries of the order-``n`` square ``v * v`` with ``i <= j`` (value doubled where ``i < j``),
+    sorted by output ``k``: ``(pi, pj, pk, pv)``, about half the entries of the full product."""
+    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    keep = gi <= gj
+    val = np.where(gi < gj, 2.0, 1.0) * gv
+    sel = np.nonzero(keep)[0]
+    sel = sel[np.argsort(gk[sel], kind="stable")]
+    out = tuple(np.ascontiguousarray(a[sel]) for a in (gi, gj, gk, val))
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def _front_lists(sl_object, intersect, per_object):
+    """CSR lists of the lights each light may have in front (besides whole closer objects): ``(ptr (S+1,),
+    idx)``; per object the non-intersecting other lights of its object, per sphere every non-intersecting other
+    light, in index order. Which of them are in front is decided per receiver (centre distance)."""
+    n_sph = sl_object.shape[0]
+    cand = ~intersect & ~np.eye(n_sph, dtype=bool)
+    if per_object:
+        cand &= sl_object[:, None] == sl_object[None, :]
+    ptr = np.zeros(n_sph + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum(cand.sum(axis=1))
+    return ptr, np.ascontiguousarray(np.nonzero(cand)[1], dtype=np.int64)
+
+
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
                             exp_method, indirect, cosine):
     order = math.isqrt(np.asarray(emission).shape[-2])
@@ -483,7 +525,8 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3)
                                     .transpose(0, 2, 1).reshape(hi * hi, 3 * order * order))
     r_max, tab_a, tab_b = _ol_table(order)
-    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    pi_, pj, pk, pv = _symmetric_gaunt(order)
+    front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
     # writeable C copies: one compiled signature whatever the caller passes
@@ -494,315 +537,454 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     else:
         lu = np.zeros((c.shape[0], (order + 1) ** 2, 9))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
-                       obj_centres, np.array(inter),
-                       blocker_log_table(order), order, blocking == "object", transfer,
-                       np.ascontiguousarray(sh.clamped_cosine_zh(2 * order - 1)),
+                       obj_centres, front_ptr, front_idx, blocker_log_table(order), _blocker_log_knots(), order,
+                       blocking == "object", transfer, np.ascontiguousarray(sh.clamped_cosine_zh(hi)),
                        np.ascontiguousarray(sh.clamped_cosine_zh(order)), np.ascontiguousarray(_w_theta_table(order)),
                        rot, em, bool(indirect and c.shape[0] > 0), exp_method == "hyb", r_max, tab_a, tab_b,
-                       _HYB_THRESHOLD, gi, gj, gk, gv, bool(cosine), np.ascontiguousarray(_irradiance_kernel_table(order + 1)),
-                       lu, direct, ind)
+                       _HYB_THRESHOLD, pi_, pj, pk, pv, bool(cosine),
+                       np.ascontiguousarray(_irradiance_kernel_table(order + 1)), lu, _LANES, direct, ind)
     return direct, ind
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _ol_coefficients(r, r_max, tab_a, tab_b):
+    """``(a, b)`` of the optimal-linear exponential at ``|f^| = r`` (as ``prtlab.sh``'s ``_ol_one``)."""
+    n_tab = tab_a.shape[0]
+    if r >= r_max:
+        return tab_a[n_tab - 1], tab_b[n_tab - 1]
+    j = min(int(math.sqrt(r / r_max) * (n_tab - 1)), n_tab - 2)
+    r0 = r_max * (j / (n_tab - 1)) ** 2
+    r1 = r_max * ((j + 1) / (n_tab - 1)) ** 2
+    s = (r - r0) / (r1 - r0)
+    return (1.0 - s) * tab_a[j] + s * tab_a[j + 1], (1.0 - s) * tab_b[j] + s * tab_b[j + 1]
 
-#: Receivers per task of the fused kernel (scratch arrays are allocated once per task).
-_CHUNK = 256
 
-
-@numba.njit(cache=True)
-def _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, out):
-    """exp* of one vector x (n2, 1) into out (n2, 1): OL, or HYB (scaling and squaring over OL), as prtlab.sh."""
-    n2 = x.shape[0]
-    if not hyb:
-        _ol_one(x, r_max, tab_a, tab_b, out)
-        return
-    norm2 = 0.0
+@numba.njit(cache=True, error_model="numpy")
+def _exp_hyb_columns(x, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, h, v, w, col, ks, perm, out):
+    """HYB ``exp*`` of the columns of ``x (n2, M)`` into ``out`` (as ``prtlab.sh``'s ``_exp_hyb``: ``k`` halvings
+    to ``|f^| <= threshold``, OL, ``k`` squarings, the DC factor). The columns are ordered by ``k``
+    (descending), so squaring ``t`` runs over the prefix of columns that still need it; a square uses the
+    symmetric Gaunt pairs ``(pi, pj, pk, pv)``. ``h, v, w (n2, M)``, ``col (2, M)``, ``ks, perm (M,)``: scratch."""
+    n2, m = x.shape
+    sqrt4pi = math.sqrt(4.0 * math.pi)
+    for p in range(m):
+        col[0, p] = 0.0
     for i in range(1, n2):
-        norm2 += x[i, 0] * x[i, 0]
-    norm = math.sqrt(norm2)
-    k = 0
-    if norm > threshold:
-        k = max(0, int(math.ceil(math.log2(norm / threshold))))
-        while norm / 2.0**k > threshold:
-            k += 1
-    scale = 1.0 / 2.0**k
-    h[0, 0] = 0.0
-    for i in range(1, n2):
-        h[i, 0] = x[i, 0] * scale
-    _ol_one(h, r_max, tab_a, tab_b, v)
-    for _ in range(k):
-        _tile_product(v, v, gi, gj, gk, gv, w)
-        for i in range(n2):
-            v[i, 0] = w[i, 0]
-    dc = math.exp(x[0, 0] / math.sqrt(4.0 * math.pi))
-    for i in range(n2):
-        out[i, 0] = dc * v[i, 0]
-
-
-@numba.njit(cache=True)
-def _exp_lanes(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, ks, out):
-    """exp* of the columns (lanes) of x (n2, L) into out, as :func:`_exp_row` column by column but with the
-    squarings of HYB batched over the lanes (each lane keeps its own number of squarings)."""
-    n2, n_lanes = x.shape
-    if not hyb:
-        _ol_one(x, r_max, tab_a, tab_b, out)
-        return
+        for p in range(m):
+            col[0, p] += x[i, p] * x[i, p]
     k_max = 0
-    for q in range(n_lanes):
-        norm2 = 0.0
-        for i in range(1, n2):
-            norm2 += x[i, q] * x[i, q]
-        norm = math.sqrt(norm2)
+    for p in range(m):
+        norm = math.sqrt(col[0, p])
         k = 0
         if norm > threshold:
             k = max(0, int(math.ceil(math.log2(norm / threshold))))
-            while norm / 2.0**k > threshold:
+            while norm / 2.0**k > threshold:  # guard against rounding in log2, as prtlab.sh
                 k += 1
-        ks[q] = k
+        ks[p] = k
         k_max = max(k_max, k)
-        scale = 1.0 / 2.0**k
-        h[0, q] = 0.0
+    pos = 0
+    for kk in range(k_max, -1, -1):
+        for p in range(m):
+            if ks[p] == kk:
+                perm[pos] = p
+                pos += 1
+    for t in range(m):
+        p = perm[t]
+        scale = 1.0 / 2.0 ** ks[p]
+        h[0, t] = 0.0
         for i in range(1, n2):
-            h[i, q] = x[i, q] * scale
-    _ol_one(h, r_max, tab_a, tab_b, v)
-    for t in range(k_max):
-        _tile_product(v, v, gi, gj, gk, gv, w)
-        for q in range(n_lanes):
-            if t < ks[q]:
-                for i in range(n2):
-                    v[i, q] = w[i, q]
-    sqrt4pi = math.sqrt(4.0 * math.pi)
-    for q in range(n_lanes):
-        dc = math.exp(x[0, q] / sqrt4pi)
+            h[i, t] = x[i, p] * scale
+    # OL of the scaled columns (DC 0: its factor exp(0) = 1)
+    for t in range(m):
+        col[0, t] = 0.0
+    for i in range(1, n2):
+        for t in range(m):
+            col[0, t] += h[i, t] * h[i, t]
+    for t in range(m):
+        a, b = _ol_coefficients(math.sqrt(col[0, t]), r_max, tab_a, tab_b)
+        v[0, t] = a * sqrt4pi
+        col[1, t] = b
+    for i in range(1, n2):
+        for t in range(m):
+            v[i, t] = col[1, t] * h[i, t]
+    n_act = m
+    for step in range(k_max):
+        while n_act > 0 and ks[perm[n_act - 1]] <= step:
+            n_act -= 1
+        for k in range(n2):
+            for t in range(n_act):
+                w[k, t] = 0.0
+        for e in range(pv.shape[0]):
+            i = pi_[e]
+            j = pj[e]
+            k = pk[e]
+            val = pv[e]
+            for t in range(n_act):
+                w[k, t] += val * v[i, t] * v[j, t]
+        for k in range(n2):
+            for t in range(n_act):
+                v[k, t] = w[k, t]
+    for t in range(m):
+        p = perm[t]
+        dc = math.exp(x[0, p] / sqrt4pi)
         for i in range(n2):
-            out[i, q] = dc * v[i, q]
+            out[i, p] = dc * v[i, t]
 
 
-@numba.njit(cache=True, parallel=True)
-def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, intersect, table, order, per_object,
-                       transfer_t, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb, r_max, tab_a, tab_b,
-                       threshold, gi, gj, gk, gv, cosine, k_table, lu, direct_out, indirect_out):
-    """Second pass per receiver (Eqs. 8, 14, 18, 21-24), one loop: blocker logs, front sums, exponentials,
-    average visibility and average radiance. Same quantities as the composed numpy/batched tier."""
+@numba.njit(cache=True, error_model="numpy")
+def _cap_visibility_lanes(cos_t, i, lane, cos_zh, order, tmp):
+    """:func:`_cap_visibility` of the lanes: ``lane[8, q]`` for ``cos theta = cos_t[i, q]`` and ``cos_na =
+    lane[7, q]``; ``tmp (5, L)`` scratch (rows: P_(l-1), P_l at cos theta, P_(l-1), P_l at cos_na, P_(l-1))."""
+    n_lanes = lane.shape[1]
+    k0 = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi))
+    for q in range(n_lanes):
+        tmp[0, q] = 1.0
+        tmp[1, q] = cos_t[i, q]
+        tmp[2, q] = 1.0
+        tmp[3, q] = lane[7, q]
+        tmp[4, q] = 1.0
+        lane[8, q] = k0 * (1.0 - cos_t[i, q]) * cos_zh[0]
+    for l in range(1, order):
+        kl = 2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi))
+        czl = cos_zh[l]
+        for q in range(n_lanes):
+            pc = tmp[1, q]
+            pc_next = ((2 * l + 1) * cos_t[i, q] * pc - l * tmp[0, q]) / (l + 1)
+            pa = tmp[3, q]
+            lane[8, q] += kl * (tmp[4, q] - pc_next) / (2 * l + 1) * czl * pa
+            tmp[4, q] = pc
+            tmp[0, q] = pc
+            tmp[1, q] = pc_next
+            tmp[3, q] = ((2 * l + 1) * lane[7, q] * pa - l * tmp[2, q]) / (l + 1)
+            tmp[2, q] = pa
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, front_ptr, front_idx, table, u_knots,
+                       order, per_object, transfer_t, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb,
+                       r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, cosine, k_table, lu, n_lanes, direct_out,
+                       indirect_out):
+    """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``n_lanes`` receivers, the receivers of a block as the
+    SIMD lanes of the inner loops: blocker logs, front sums, exponentials, average visibility and average
+    radiance. Same quantities, to rounding, as the composed tier (``method="numba"``). ``n_lanes`` is an
+    argument, not a compile-time constant: LLVM fully unrolls constant 16-trip loops into scalar code
+    instead of vectorising them."""
     n_recv = points.shape[0]
     n_sph = centres.shape[0]
     n_obj = obj_centres.shape[0]
     n2 = order * order
-    n_theta = w_table.shape[0] - 1
+    n1 = (order + 1) * (order + 1)
     hi = 2 * order - 1
-    n_chunks = (n_recv + _CHUNK - 1) // _CHUNK
-    for chunk in numba.prange(n_chunks):
-        ybuf = np.empty((1, max(hi * hi, (order + 1) * (order + 1))))
-        g = np.empty(order)
-        gs = np.zeros((n_sph, n2))
-        n1 = (order + 1) * (order + 1)
-        krot = np.zeros(n1)
-        kz = np.empty(order + 1)
-        dist = np.empty(n_sph)
-        theta = np.empty(n_sph)
-        axis = np.empty((n_sph, 3))
-        x = np.empty((n2, 1))
-        e1 = np.empty((n2, 1))
-        h = np.empty((n2, 1))
-        v = np.empty((n2, 1))
-        w = np.empty((n2, 1))
-        total = np.zeros(n2)
-        cosr = np.zeros(n2)
-        cos_hi = np.zeros(hi * hi)
-        wrot = np.zeros(n2)
-        wz = np.empty(order)
-        od = np.empty(n_obj)
-        live = np.empty(n_sph, dtype=np.int64)
-        xl = np.empty((n2, 2 * n_sph))
-        hl = np.empty((n2, 2 * n_sph))
-        vl = np.empty((n2, 2 * n_sph))
-        wl = np.empty((n2, 2 * n_sph))
-        el = np.empty((n2, 2 * n_sph))
-        kl = np.empty(2 * n_sph, dtype=np.int64)
-        ydir = np.empty(3 * n2)
-        fr = np.empty(n2)
+    n_theta = w_table.shape[0] - 1
+    sqrt4pi = math.sqrt(4.0 * math.pi)
+    sin_k_max = math.sin(THETA_MAX_K)
+    n_blocks = (n_recv + n_lanes - 1) // n_lanes
+    n_tasks = (n_blocks + _BLOCKS_PER_TASK - 1) // _BLOCKS_PER_TASK
+    for task in numba.prange(n_tasks):
+        recv = np.empty((6, n_lanes))
+        ynrm = np.empty((hi * hi, n_lanes))
+        ybuf = np.empty((max(n1, n2), n_lanes))
+        tmp = np.empty((7, n_lanes))
+        glog = np.empty((order + 1, n_lanes))
+        gs = np.empty((n_sph, n2, n_lanes))
+        dist = np.empty((n_sph, n_lanes))
+        theta = np.empty((n_sph, n_lanes))
+        sin_t = np.empty((n_sph, n_lanes))
+        cos_t = np.empty((n_sph, n_lanes))
+        axis = np.empty((n_sph, 3, n_lanes))
+        total = np.empty((n2, n_lanes))
+        trans = np.empty((3 * n2, n_lanes))
+        cosr = np.empty((n2, n_lanes))
+        lane = np.empty((12, n_lanes))
+        dsum = np.empty((3, n_lanes))
+        isum = np.empty((3, n_lanes))
+        od = np.empty((n_obj, n_lanes))
+        oidx = np.empty(n_obj, dtype=np.int64)
+        osum = np.empty((n_obj, n2, n_lanes))
+        pre = np.empty((n_obj, n2, n_lanes))
         run = np.empty(n2)
-        osum = np.empty((n_obj, n2))
-        pre = np.empty((n_obj, n2))
-        oord = np.empty(n_obj, dtype=np.int64)
-        la = np.empty(9)
-        le = np.empty(3)
-        for b in range(chunk * _CHUNK, min(n_recv, (chunk + 1) * _CHUNK)):
-            px, py, pz = points[b, 0], points[b, 1], points[b, 2]
-            nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
+        fr = np.empty((n2, n_lanes))
+        vavg = np.empty((n_sph, n_lanes))
+        krot = np.empty((n1, n_lanes))
+        la = np.empty((9, n_lanes))
+        le = np.empty((3, n_lanes))
+        # HYB columns: the direct exponentials of a block (L), or one light's front and front + own (2 L)
+        xd, hd, vd, wd, ed = (np.empty((n2, n_lanes)), np.empty((n2, n_lanes)), np.empty((n2, n_lanes)),
+                              np.empty((n2, n_lanes)), np.empty((n2, n_lanes)))
+        xl, hl, vl, wl, el = (np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)),
+                              np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)))
+        cold = np.empty((2, n_lanes))
+        coll = np.empty((2, 2 * n_lanes))
+        ksd = np.empty(n_lanes, dtype=np.int64)
+        permd = np.empty(n_lanes, dtype=np.int64)
+        ksl = np.empty(2 * n_lanes, dtype=np.int64)
+        perml = np.empty(2 * n_lanes, dtype=np.int64)
+        for blk in range(task * _BLOCKS_PER_TASK, min(n_blocks, (task + 1) * _BLOCKS_PER_TASK)):
+            b0 = blk * n_lanes
+            nb = min(n_lanes, n_recv - b0)
+            for q in range(n_lanes):  # a partial block repeats its last receiver
+                b = b0 + min(q, nb - 1)
+                for t in range(3):
+                    recv[t, q] = points[b, t]
+                    recv[3 + t, q] = normals[b, t]
+            # blocker logs of every light (Eqs. 6-7, 20-22)
             for k in range(n2):
-                total[k] = 0.0
+                for q in range(n_lanes):
+                    total[k, q] = 0.0
             for s in range(n_sph):
+                _blocker_lanes(recv, s, centres[s, 0], centres[s, 1], centres[s, 2], radii[s], table, u_knots, order,
+                               glog, ybuf, tmp, gs, dist, theta, sin_t, cos_t, axis)
                 for k in range(n2):
-                    gs[s, k] = 0.0
-                cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
-                dx, dy, dz = cx - px, cy - py, cz - pz
-                d = math.sqrt(dx * dx + dy * dy + dz * dz)
-                dist[s] = d
-                if r <= 0.0 or d <= 0.0:
-                    theta[s] = -1.0
-                    continue
-                sin_t = r / d
-                th = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
-                theta[s] = th
-                axis[s, 0] = dx / d
-                axis[s, 1] = dy / d
-                axis[s, 2] = dz / d
-                _lookup_log(th, table, order, g)
-                if order <= LOW_BANDS:
-                    _add_rotated_zh_low(g, dx / d, dy / d, dz / d, order, ybuf, gs[s])
-                else:
-                    _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, gs[s])
-                for k in range(n2):
-                    total[k] += gs[s, k]
-            # direct (Eq. 8)
-            for k in range(n2):
-                x[k, 0] = total[k]
-            _exp_row(x, hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv, h, v, w, e1)
-            # T_n = cos_{2n-1}(n) @ M (exact projection of L cos, see environment_transfer)
-            for k in range(hi * hi):
-                cos_hi[k] = 0.0
-            _add_rotated_zh(cos_zh_hi, nx, ny, nz, hi, ybuf, 1.0, cos_hi)
-            # T_n . e1 = sum_q cos_q (M[q] . e1) as y = sum_q cos_q M[q] (contiguous axpy over (c, k),
-            # vectorisable without reassociation), then y . e1; the clamped cosine's odd bands > 1 vanish
+                    for q in range(n_lanes):
+                        total[k, q] += gs[s, k, q]
+            # direct (Eq. 8): T_n = cos_{2n-1}(n) @ M per lane (exact projection of L cos, see
+            # environment_transfer; the clamped cosine's odd bands > 1 vanish), then T_n . exp*(total)
+            _basis_lanes(recv, 3, hi, ynrm, tmp)
             for t in range(3 * n2):
-                ydir[t] = 0.0
+                for q in range(n_lanes):
+                    trans[t, q] = 0.0
             for l in range(hi):
                 if cos_zh_hi[l] == 0.0:
                     continue
-                for q in range(l * l, (l + 1) * (l + 1)):
-                    cq = cos_hi[q]
+                f = _ZH_SCALE[l] * cos_zh_hi[l]
+                for qq in range(l * l, (l + 1) * (l + 1)):
+                    for q in range(n_lanes):
+                        lane[0, q] = f * ynrm[qq, q]
                     for t in range(3 * n2):
-                        ydir[t] += cq * transfer_t[q, t]
-            for c in range(3):
-                acc = 0.0
+                        m = transfer_t[qq, t]
+                        for q in range(n_lanes):
+                            trans[t, q] += lane[0, q] * m
+            if hyb:
                 for k in range(n2):
-                    acc += ydir[c * n2 + k] * e1[k, 0]
-                direct_out[b, c] = acc
-                indirect_out[b, c] = 0.0
+                    for q in range(n_lanes):
+                        xd[k, q] = total[k, q]
+                _exp_hyb_columns(xd, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, hd, vd, wd, cold, ksd, permd,
+                                 ed)
+                for c in range(3):
+                    for q in range(n_lanes):
+                        dsum[c, q] = 0.0
+                    for k in range(n2):
+                        for q in range(n_lanes):
+                            dsum[c, q] += trans[c * n2 + k, q] * ed[k, q]
+            else:
+                for q in range(n_lanes):
+                    lane[1, q] = 0.0
+                for k in range(1, n2):
+                    for q in range(n_lanes):
+                        lane[1, q] += total[k, q] * total[k, q]
+                for c in range(3):
+                    for q in range(n_lanes):
+                        dsum[c, q] = 0.0
+                    for k in range(1, n2):
+                        for q in range(n_lanes):
+                            dsum[c, q] += trans[c * n2 + k, q] * total[k, q]
+                for q in range(n_lanes):
+                    a, b = _ol_coefficients(math.sqrt(lane[1, q]), r_max, tab_a, tab_b)
+                    dc = math.exp(total[0, q] / sqrt4pi)
+                    for c in range(3):
+                        dsum[c, q] = dc * (a * sqrt4pi * trans[c * n2, q] + b * dsum[c, q])
+            for q in range(nb):
+                for c in range(3):
+                    direct_out[b0 + q, c] = dsum[c, q]
+                    indirect_out[b0 + q, c] = 0.0
             if not indirect:
                 continue
-            for k in range(n2):
-                cosr[k] = 0.0
-            _add_rotated_zh(cos_zh, nx, ny, nz, order, ybuf, 1.0, cosr)
-            for o in range(n_obj):
-                ex = obj_centres[o, 0] - px
-                ey = obj_centres[o, 1] - py
-                ez = obj_centres[o, 2] - pz
-                od[o] = ex * ex + ey * ey + ez * ez
-            # front sums (Eq. 23), per object or per sphere (Sec. 7.2), into contiguous rows fr[i]: per object,
-            # the prefix sums of the object sums in (distance, index) order plus the closer non-intersecting
-            # lights of i's own object; lanes 2q (front) and 2q + 1 (front + own) of the exponentials
+            for l in range(order):
+                f = _ZH_SCALE[l] * cos_zh[l]
+                for k in range(l * l, (l + 1) * (l + 1)):
+                    for q in range(n_lanes):
+                        cosr[k, q] = f * ynrm[k, q]
+            # front sums (Eq. 23), per object or per sphere (Sec. 7.2): per object, the prefix sums of the object
+            # sums in (distance, index) order, then the closer non-intersecting lights of i's own object
             if per_object:
                 for o in range(n_obj):
-                    oord[o] = o
+                    for q in range(n_lanes):
+                        ex = obj_centres[o, 0] - recv[0, q]
+                        ey = obj_centres[o, 1] - recv[1, q]
+                        ez = obj_centres[o, 2] - recv[2, q]
+                        od[o, q] = ex * ex + ey * ey + ez * ez
                     for k in range(n2):
-                        osum[o, k] = 0.0
-                for o in range(1, n_obj):  # insertion sort by (od, index): stable, as the other tiers
-                    t = oord[o]
-                    j = o - 1
-                    while j >= 0 and od[oord[j]] > od[t]:
-                        oord[j + 1] = oord[j]
-                        j -= 1
-                    oord[j + 1] = t
+                        for q in range(n_lanes):
+                            osum[o, k, q] = 0.0
                 for s in range(n_sph):
                     o = sl_object[s]
                     for k in range(n2):
-                        osum[o, k] += gs[s, k]
-                for k in range(n2):
-                    run[k] = 0.0
-                for q in range(n_obj):
-                    o = oord[q]
+                        for q in range(n_lanes):
+                            osum[o, k, q] += gs[s, k, q]
+                for q in range(n_lanes):
+                    for o in range(n_obj):
+                        oidx[o] = o
+                    for o in range(1, n_obj):  # insertion sort by (od, index): stable, as the other tiers
+                        t = oidx[o]
+                        j = o - 1
+                        while j >= 0 and od[oidx[j], q] > od[t, q]:
+                            oidx[j + 1] = oidx[j]
+                            j -= 1
+                        oidx[j + 1] = t
                     for k in range(n2):
-                        pre[o, k] = run[k]
-                        run[k] += osum[o, k]
-            n_live = 0
+                        run[k] = 0.0
+                    for t in range(n_obj):
+                        o = oidx[t]
+                        for k in range(n2):
+                            pre[o, k, q] = run[k]
+                            run[k] += osum[o, k, q]
+            # average visibility (Eqs. 23-24): V~_i = (exp*(front) - exp*(front + G_i)) . rho_n
             for i in range(n_sph):
-                if theta[i] < 0.0:
+                n_live = 0
+                for q in range(n_lanes):
+                    if theta[i, q] >= 0.0:
+                        n_live += 1
+                if n_live == 0:
+                    for q in range(n_lanes):
+                        vavg[i, q] = 0.0
                     continue
-                live[n_live] = i
                 if per_object:
                     oi = sl_object[i]
                     for k in range(n2):
-                        fr[k] = pre[oi, k]
-                    for j in range(n_sph):
-                        if j != i and sl_object[j] == oi and dist[j] < dist[i] and not intersect[i, j]:
-                            for k in range(n2):
-                                fr[k] += gs[j, k]
+                        for q in range(n_lanes):
+                            fr[k, q] = pre[oi, k, q]
                 else:
                     for k in range(n2):
-                        fr[k] = 0.0
-                    for j in range(n_sph):
-                        if j != i and dist[j] < dist[i] and not intersect[i, j]:
-                            for k in range(n2):
-                                fr[k] += gs[j, k]
-                for k in range(n2):
-                    xl[k, 2 * n_live] = fr[k]
-                    xl[k, 2 * n_live + 1] = fr[k] + gs[i, k]
-                n_live += 1
-            if n_live == 0:
-                continue
-            _exp_lanes(xl[:, : 2 * n_live], hyb, r_max, tab_a, tab_b, threshold, gi, gj, gk, gv,
-                       hl[:, : 2 * n_live], vl[:, : 2 * n_live], wl[:, : 2 * n_live], kl[: 2 * n_live],
-                       el[:, : 2 * n_live])
-            for q in range(n_live):
-                i = live[q]
-                v_avg = 0.0
-                for k in range(n2):
-                    v_avg += (el[k, 2 * q] - el[k, 2 * q + 1]) * cosr[k]  # Eqs. 23-24
-                # Eq. 18: w_theta about light -> receiver in the light's frame
-                lx = -(rot[i, 0, 0] * axis[i, 0] + rot[i, 1, 0] * axis[i, 1] + rot[i, 2, 0] * axis[i, 2])
-                ly = -(rot[i, 0, 1] * axis[i, 0] + rot[i, 1, 1] * axis[i, 1] + rot[i, 2, 1] * axis[i, 2])
-                lz = -(rot[i, 0, 2] * axis[i, 0] + rot[i, 1, 2] * axis[i, 1] + rot[i, 2, 2] * axis[i, 2])
-                u = theta[i] * (n_theta / (0.5 * math.pi))
-                jt = min(int(math.floor(u)), n_theta - 1)
-                st = u - jt
+                        for q in range(n_lanes):
+                            fr[k, q] = 0.0
+                for e in range(front_ptr[i], front_ptr[i + 1]):
+                    j = front_idx[e]
+                    for k in range(n2):
+                        for q in range(n_lanes):
+                            fr[k, q] += gs[j, k, q] if dist[j, q] < dist[i, q] else 0.0
+                if hyb:
+                    for k in range(n2):
+                        for q in range(n_lanes):
+                            live = theta[i, q] >= 0.0
+                            xl[k, q] = fr[k, q] if live else 0.0
+                            xl[k, n_lanes + q] = fr[k, q] + gs[i, k, q] if live else 0.0
+                    _exp_hyb_columns(xl, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, hl, vl, wl, coll, ksl,
+                                     perml, el)
+                    for q in range(n_lanes):
+                        lane[0, q] = 0.0
+                    for k in range(n2):
+                        for q in range(n_lanes):
+                            lane[0, q] += (el[k, q] - el[k, n_lanes + q]) * cosr[k, q]
+                    for q in range(n_lanes):
+                        vavg[i, q] = lane[0, q] if theta[i, q] >= 0.0 else 0.0
+                else:
+                    # OL is linear in f^ given |f^|: exp*(f) . rho = e^(f_0 / sqrt(4 pi)) (a sqrt(4 pi) rho_0
+                    # + b f^ . rho^), so only norms and dot products are formed
+                    for q in range(n_lanes):  # rows: |f^|^2, |o^|^2, f^ . rho^, o^ . rho^ (o = f + G_i)
+                        lane[0, q] = 0.0
+                        lane[1, q] = 0.0
+                        lane[2, q] = 0.0
+                        lane[3, q] = 0.0
+                    for k in range(1, n2):
+                        for q in range(n_lanes):
+                            f = fr[k, q]
+                            o = f + gs[i, k, q]
+                            cr = cosr[k, q]
+                            lane[0, q] += f * f
+                            lane[1, q] += o * o
+                            lane[2, q] += f * cr
+                            lane[3, q] += o * cr
+                    for q in range(n_lanes):
+                        if theta[i, q] < 0.0:
+                            vavg[i, q] = 0.0
+                            continue
+                        af, bf = _ol_coefficients(math.sqrt(lane[0, q]), r_max, tab_a, tab_b)
+                        ao, bo = _ol_coefficients(math.sqrt(lane[1, q]), r_max, tab_a, tab_b)
+                        f0 = fr[0, q]
+                        o0 = f0 + gs[i, 0, q]
+                        c0 = sqrt4pi * cosr[0, q]
+                        vavg[i, q] = (math.exp(f0 / sqrt4pi) * (af * c0 + bf * lane[2, q])
+                                      - math.exp(o0 / sqrt4pi) * (ao * c0 + bo * lane[3, q]))
+            # average radiance (Eq. 18, or the cosine-weighted average) times V~, summed over the lights (Eq. 14)
+            for c in range(3):
+                for q in range(n_lanes):
+                    isum[c, q] = 0.0
+            for i in range(n_sph):
+                n_live = 0
+                for q in range(n_lanes):
+                    if theta[i, q] >= 0.0:
+                        n_live += 1
+                if n_live == 0:
+                    continue
+                r00, r01, r02 = rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2]
+                r10, r11, r12 = rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2]
+                r20, r21, r22 = rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2]
+                for q in range(n_lanes):  # direction light -> receiver in the light's frame (Sec. 7.1)
+                    ax, ay, az = axis[i, 0, q], axis[i, 1, q], axis[i, 2, q]
+                    lane[4, q] = -(r00 * ax + r10 * ay + r20 * az)
+                    lane[5, q] = -(r01 * ax + r11 * ay + r21 * az)
+                    lane[6, q] = -(r02 * ax + r12 * ay + r22 * az)
                 if cosine:
                     # E_n = s n.(Lu . K) - (n.b) L . K over pi s^2 (n . a), light frame (see irradiance_kernel_zh)
-                    uk = min(theta[i], THETA_MAX_K) * (N_THETA_K / THETA_MAX_K)
-                    jk = min(int(math.floor(uk)), N_THETA_K - 1)
-                    sk = uk - jk
+                    for q in range(n_lanes):
+                        uk = min(max(theta[i, q], 0.0), THETA_MAX_K) * (N_THETA_K / THETA_MAX_K)
+                        jk = min(int(math.floor(uk)), N_THETA_K - 1)
+                        sk = uk - jk
+                        for l in range(order + 1):
+                            glog[l, q] = (1.0 - sk) * k_table[jk, l] + sk * k_table[jk + 1, l]
+                    _basis_lanes(lane, 4, order + 1, ybuf, tmp)
                     for l in range(order + 1):
-                        kz[l] = (1.0 - sk) * k_table[jk, l] + sk * k_table[jk + 1, l]
-                    for k in range(n1):
-                        krot[k] = 0.0
-                    _add_rotated_zh(kz, lx, ly, lz, order + 1, ybuf, 1.0, krot)
-                    mx = rot[i, 0, 0] * nx + rot[i, 1, 0] * ny + rot[i, 2, 0] * nz
-                    my = rot[i, 0, 1] * nx + rot[i, 1, 1] * ny + rot[i, 2, 1] * nz
-                    mz = rot[i, 0, 2] * nx + rot[i, 1, 2] * ny + rot[i, 2, 2] * nz
-                    s_i = math.sin(min(theta[i], THETA_MAX_K))
-                    nb = mx * lx + my * ly + mz * lz
-                    cos_na = nx * axis[i, 0] + ny * axis[i, 1] + nz * axis[i, 2]
-                    proj = math.pi * s_i * s_i * cos_na
-                    v_open = _cap_visibility(math.cos(theta[i]), cos_na, cos_zh, order)
-                    if proj <= 0.0 or v_open <= 0.0:
-                        continue
-                    frac = min(max(v_avg / v_open, 0.0), 1.0)
-                    # a[j, c] = sum_k krot_k Lu[i, j, k, c] and e[c] = sum_k krot_k L[i, k, c] as axpys over
-                    # the contiguous (j, c) rows of lu (S, n1, 9) and emission (S, n2, 3)
+                        zs = _ZH_SCALE[l]
+                        for k in range(l * l, (l + 1) * (l + 1)):
+                            for q in range(n_lanes):
+                                krot[k, q] = zs * glog[l, q] * ybuf[k, q]
+                    # la[j, c] = sum_k krot_k Lu[i, k, (j, c)] and le[c] = sum_k krot_k L[i, k, c]
                     for t in range(9):
-                        la[t] = 0.0
+                        for q in range(n_lanes):
+                            la[t, q] = 0.0
                     for k in range(n1):
-                        kr = krot[k]
                         for t in range(9):
-                            la[t] += kr * lu[i, k, t]
+                            m = lu[i, k, t]
+                            for q in range(n_lanes):
+                                la[t, q] += krot[k, q] * m
                     for c in range(3):
-                        le[c] = 0.0
+                        for q in range(n_lanes):
+                            le[c, q] = 0.0
                     for k in range(n2):
-                        kr = krot[k]
                         for c in range(3):
-                            le[c] += kr * emission[i, k, c]
+                            m = emission[i, k, c]
+                            for q in range(n_lanes):
+                                le[c, q] += krot[k, q] * m
+                    for q in range(n_lanes):  # rows 7, 8: n . a and the unoccluded V~' (_cap_visibility)
+                        lane[7, q] = recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q] + recv[5, q] * axis[i, 2, q]
+                    _cap_visibility_lanes(cos_t, i, lane, cos_zh, order, tmp)
+                    for q in range(n_lanes):
+                        nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
+                        mx = r00 * nx + r10 * ny + r20 * nz
+                        my = r01 * nx + r11 * ny + r21 * nz
+                        mz = r02 * nx + r12 * ny + r22 * nz
+                        s_i = sin_t[i, q] if theta[i, q] <= THETA_MAX_K else sin_k_max
+                        nb_ = mx * lane[4, q] + my * lane[5, q] + mz * lane[6, q]
+                        proj = math.pi * s_i * s_i * lane[7, q]
+                        ok = theta[i, q] >= 0.0 and proj > 0.0 and lane[8, q] > 0.0
+                        frac = min(max(vavg[i, q] / lane[8, q], 0.0), 1.0)
+                        for c in range(3):
+                            e_n = s_i * (mx * la[c, q] + my * la[3 + c, q] + mz * la[6 + c, q]) - nb_ * le[c, q]
+                            isum[c, q] += e_n * frac if ok else 0.0
+                else:
+                    for q in range(n_lanes):
+                        u = max(theta[i, q], 0.0) * (n_theta / (0.5 * math.pi))
+                        jt = min(int(math.floor(u)), n_theta - 1)
+                        st = u - jt
+                        for l in range(order):
+                            glog[l, q] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
+                    _basis_lanes(lane, 4, order, ybuf, tmp)
+                    for l in range(order):
+                        zs = _ZH_SCALE[l]
+                        for k in range(l * l, (l + 1) * (l + 1)):
+                            for q in range(n_lanes):
+                                krot[k, q] = zs * glog[l, q] * ybuf[k, q]
                     for c in range(3):
-                        acc = s_i * (mx * la[c] + my * la[3 + c] + mz * la[6 + c]) - nb * le[c]
-                        indirect_out[b, c] += acc * frac
-                    continue
-                for l in range(order):
-                    wz[l] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
-                for k in range(n2):
-                    wrot[k] = 0.0
-                _add_rotated_zh(wz, lx, ly, lz, order, ybuf, 1.0, wrot)
-                for c in range(3):
-                    l_avg = 0.0
+                        for q in range(n_lanes):
+                            le[c, q] = 0.0
                     for k in range(n2):
-                        l_avg += wrot[k] * emission[i, k, c]
-                    indirect_out[b, c] += l_avg * v_avg
+                        for c in range(3):
+                            m = emission[i, k, c]
+                            for q in range(n_lanes):
+                                le[c, q] += krot[k, q] * m
+                    for c in range(3):
+                        for q in range(n_lanes):
+                            isum[c, q] += le[c, q] * vavg[i, q] if theta[i, q] >= 0.0 else 0.0
+            for q in range(nb):
+                for c in range(3):
+                    indirect_out[b0 + q, c] = isum[c, q]

@@ -47,7 +47,24 @@ import numba
 import numpy as np
 
 from prtlab import sh
-from prtlab.sh._kernels import LOW_BANDS, _A, _B, _PMM, _high_bands, _low_bands
+from prtlab.sh._kernels import (
+    _A,
+    _B,
+    _C00,
+    _C1,
+    _C2A,
+    _C20,
+    _C22,
+    _C30,
+    _C31,
+    _C32A,
+    _C32B,
+    _C33,
+    _PMM,
+    LOW_BANDS,
+    _high_bands,
+    _low_bands,
+)
 
 __all__ = ["adjust_blockers", "blocker_log_sum", "direct_irradiance", "environment_transfer"]
 
@@ -125,6 +142,155 @@ def _add_rotated_zh_low(g, ax, ay, az, order, ybuf, out_row):
         f = _ZH_SCALE[l] * g[l]
         for k in range(l * l, (l + 1) * (l + 1)):
             out_row[k] += f * ybuf[0, k]
+
+
+# --------------------------------------------------------------------------- lane kernels
+# Receivers as SIMD lanes: ``(..., L)`` scratch arrays with the lane axis last and the lane loop innermost,
+# so LLVM vectorises it (``error_model="numpy"``: no zero-division checks in the loops; no fastmath).
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _basis_lanes(d, row, order, out, tmp):
+    """SH basis of ``order`` at the unit directions ``d[row : row + 3, q]`` of the lanes: ``out[k, q]``.
+
+    The formulas and operation order of ``prtlab.sh``'s ``_low_bands`` (closed forms, bands < 4) and
+    ``_high_bands`` (normalised recurrence), so the values are identical; ``tmp`` is ``(4, L)`` scratch. No array
+    views here: a helper that makes views pays NRT reference counting on every call (measured: 50 ns).
+    """
+    n_lanes = d.shape[1]
+    for q in range(n_lanes):
+        out[0, q] = _C00
+    if order < 2:
+        return
+    for q in range(n_lanes):
+        out[1, q] = _C1 * d[row + 1, q]
+        out[2, q] = _C1 * d[row + 2, q]
+        out[3, q] = _C1 * d[row, q]
+    if order < 3:
+        return
+    for q in range(n_lanes):
+        xq, yq, zq = d[row, q], d[row + 1, q], d[row + 2, q]
+        out[4, q] = _C2A * xq * yq
+        out[5, q] = _C2A * yq * zq
+        out[6, q] = _C20 * (3.0 * (zq * zq) - 1.0)
+        out[7, q] = _C2A * xq * zq
+        out[8, q] = _C22 * (xq * xq - yq * yq)
+    if order < 4:
+        return
+    for q in range(n_lanes):
+        xq, yq, zq = d[row, q], d[row + 1, q], d[row + 2, q]
+        xx, yy, zz = xq * xq, yq * yq, zq * zq
+        t = 5.0 * zz - 1.0
+        out[9, q] = _C33 * yq * (3.0 * xx - yy)
+        out[10, q] = _C32A * xq * yq * zq
+        out[11, q] = _C31 * yq * t
+        out[12, q] = _C30 * zq * (5.0 * zz - 3.0)
+        out[13, q] = _C31 * xq * t
+        out[14, q] = _C32B * zq * (xx - yy)
+        out[15, q] = _C33 * xq * (xx - 3.0 * yy)
+    if order <= LOW_BANDS:
+        return
+    for q in range(n_lanes):
+        tmp[0, q] = 1.0
+        tmp[1, q] = 0.0
+    for m in range(order):
+        if m > 0:
+            for q in range(n_lanes):
+                cq = tmp[0, q]
+                tmp[0, q] = cq * d[row, q] - tmp[1, q] * d[row + 1, q]
+                tmp[1, q] = cq * d[row + 1, q] + tmp[1, q] * d[row, q]
+        pm = _PMM[m]
+        for q in range(n_lanes):
+            tmp[3, q] = 0.0
+            tmp[2, q] = pm
+        if m >= LOW_BANDS:
+            base = m * m + m
+            for q in range(n_lanes):
+                out[base + m, q] = pm * tmp[0, q]
+                out[base - m, q] = pm * tmp[1, q]
+        for l in range(m + 1, order):
+            al = _A[l, m]
+            bl = _B[l, m]
+            for q in range(n_lanes):
+                p = al * d[row + 2, q] * tmp[2, q] - bl * tmp[3, q]
+                tmp[3, q] = tmp[2, q]
+                tmp[2, q] = p
+            if l >= LOW_BANDS:
+                base = l * l + l
+                if m == 0:
+                    for q in range(n_lanes):
+                        out[base, q] = tmp[2, q]
+                else:
+                    for q in range(n_lanes):
+                        out[base + m, q] = tmp[2, q] * tmp[0, q]
+                        out[base - m, q] = tmp[2, q] * tmp[1, q]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _blocker_lanes(recv, s, cx, cy, cz, radius, table, u_knots, order, glog, ybuf, tmp, out, dist, theta,
+                   sin_t, cos_t, axis):
+    """Rotated blocker log of one sphere at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
+
+    recv : (6, L) receiver points and unit normals (x, y, z, nx, ny, nz). Writes row ``s`` of ``out (S, n*n, L)``
+    (0 where culled), of the centre distance ``dist (S, L)``, the angular radius ``theta (S, L)`` (-1 where
+    culled), its sine and cosine ``(S, L)`` and the unit axis ``(S, 3, L)``. The same quantities, to rounding,
+    as :func:`_adjust`, :func:`_lookup_log` and :func:`_add_rotated_zh` per receiver (``cos theta =
+    sqrt(1 - sin^2 theta)``). ``glog (order, L)``, ``ybuf (n*n, L)`` and ``tmp (7, L)`` (rows 4-6: the axis
+    for the basis) are scratch.
+    """
+    n_lanes = recv.shape[1]
+    r2 = radius * radius
+    for q in range(n_lanes):  # adjustment (see _adjust), distance, axis: branch-free, vectorised
+        px, py, pz = recv[0, q], recv[1, q], recv[2, q]
+        nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
+        ex, ey, ez = cx - px, cy - py, cz - pz
+        inside = ex * ex + ey * ey + ez * ez < r2
+        h = nx * ex + ny * ey + nz * ez
+        rn = 0.0 if inside or h <= -radius else (radius if h >= radius else 0.5 * (h + radius))
+        shift = rn - h if (not inside) and h < radius and h > -radius else 0.0
+        dx = (cx + shift * nx) - px
+        dy = (cy + shift * ny) - py
+        dz = (cz + shift * nz) - pz
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dist[s, q] = d
+        live = rn > 0.0 and d > 0.0
+        inv = 1.0 / d if d > 0.0 else 0.0
+        axis[s, 0, q] = dx * inv
+        axis[s, 1, q] = dy * inv
+        axis[s, 2, q] = dz * inv
+        tmp[4, q] = dx * inv
+        tmp[5, q] = dy * inv
+        tmp[6, q] = dz * inv
+        st = min(rn * inv, 1.0) if live else -1.0
+        sin_t[s, q] = st
+        cos_t[s, q] = math.sqrt(1.0 - st * st) if live else 0.0
+    step = 0.5 * math.pi / N_RADII
+    for q in range(n_lanes):  # angular radius and table lookup (asin, gathers: scalar)
+        st = sin_t[s, q]
+        if st < 0.0:
+            theta[s, q] = -1.0
+            for l in range(order):
+                glog[l, q] = 0.0
+            continue
+        th = 0.5 * math.pi if st >= 1.0 else math.asin(st)
+        theta[s, q] = th
+        j = min(int(math.floor(th / step)), N_RADII - 1)
+        u0 = u_knots[j]
+        w = ((1.0 - cos_t[s, q]) - u0) / (u_knots[j + 1] - u0)
+        w = min(max(w, 0.0), 1.0)
+        for l in range(order):
+            glog[l, q] = (1.0 - w) * table[j, l] + w * table[j + 1, l]
+    _basis_lanes(tmp, 4, order, ybuf, tmp)
+    for l in range(order):
+        zs = _ZH_SCALE[l]
+        for k in range(l * l, (l + 1) * (l + 1)):
+            for q in range(n_lanes):
+                out[s, k, q] = zs * glog[l, q] * ybuf[k, q]
+
+
+def _blocker_log_knots() -> np.ndarray:
+    """``1 - cos(theta_j)`` at the knots of :func:`blocker_log_table` (the interpolation variable), ``(257,)``."""
+    return 1.0 - np.cos(np.arange(N_RADII + 1) * (0.5 * np.pi / N_RADII))
 
 
 @numba.njit(cache=True, parallel=True)
