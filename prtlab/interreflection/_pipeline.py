@@ -894,45 +894,33 @@ class Interreflection(Precomputation):
         """Steps 3-4 (Sec. 5.3): the indirect radiance of ``bounces`` bounces, and the seconds of each step.
 
         Bounce ``b`` reflects ``L^(b) = max(0, sum_s Phi^s w^s(b-1))`` (Eq. 12; the clamp for a Lambertian
-        receiver) and its weights ``w(b)`` (Eq. 14) read ``L^(b)`` at the PCA sample vertices only. So the
-        chain of weights runs on the sample rows, and the light of every bounce at every vertex is then
-        one ``(V K', M) x (M, 3 B)`` product per receiver: one pass over its basis irradiance, not ``B``.
+        receiver), one ``(V K', M) x (M, 3)`` product per receiver, and its weights ``w(b)`` (Eq. 14) are
+        fitted to it at the PCA sample vertices (every vertex, as the pipeline builds its bases).
         """
-        t0 = time.perf_counter()
-        stacks = {r.name: self._stacked_irradiance(r, phi[r.name]) for r in self.objects}
-        rows = {o.name: self.bases[o.name].samples for o in self.objects}
-        at_samples = {o.name: light_k[o.name][rows[o.name]] for o in self.objects}
-        chain = []  # the weights that light bounce b: those of the direct light, then of each bounce
-        for b in range(bounces):
-            chain.append({o.name: fit_weights(self.bases[o.name], at_samples[o.name], self.seps[o.name].colour)
-                          for o in self.objects})
-            if b + 1 == bounces:
-                break
+        indirect = {o.name: np.zeros((o.n_vertices, 3)) for o in self.objects}
+        t_weights = t_bounces = 0.0
+        for _ in range(bounces):
+            t0 = time.perf_counter()
+            weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
+                       for o in self.objects}
+            t_weights += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            new_light = {}
             for r in self.objects:
-                stacked, sources = stacks[r.name]
+                g = geo[r.name]
+                stacked, sources = self._stacked_irradiance(r, phi[r.name])
                 if sources:
-                    w = np.concatenate([chain[-1][s].reshape(-1, 3) for s in sources], axis=0)
-                    lk = np.einsum("vqm,mc->vqc", stacked[rows[r.name]], w)
+                    # Eq. 12 before h: every source's (k, i) side by side
+                    w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                    lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
                 else:
-                    lk = np.zeros((len(rows[r.name]), self.seps[r.name].K, 3))
-                at_samples[r.name] = self._clamp_diffuse(r, lk)
-        t_weights = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        indirect = {}
-        for r in self.objects:
-            g = geo[r.name]
-            indirect[r.name] = np.zeros((len(g["x"]), 3))
-            stacked, sources = stacks[r.name]
-            if not sources or not bounces:
-                continue
-            # Eq. 12 before h for all bounces at once: every source's (k, i) side by side
-            w = np.concatenate([np.concatenate([c[s].reshape(-1, 3) for s in sources], axis=0) for c in chain],
-                               axis=1)  # (M, 3 B)
-            lk_all = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (bounces, 3))
-            for b in range(bounces):
-                lk = self._clamp_diffuse(r, lk_all[:, :, b])
+                    lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                lk = self._clamp_diffuse(r, lk)
+                new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
-        return indirect, t_weights, time.perf_counter() - t0
+            light_k = new_light
+            t_bounces += time.perf_counter() - t0
+        return indirect, t_weights, t_bounces
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
