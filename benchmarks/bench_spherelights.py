@@ -14,7 +14,6 @@ import numpy as np
 
 from prtlab.bench import case
 from prtlab.geometry import geodesic_directions
-from prtlab.sh import gaunt_tensor
 from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
 
 ORDER = 4
@@ -70,28 +69,54 @@ def _frame(a, blocking, indirect=True, exp_method="hyb"):
                        emission, a["env"], blocking=blocking, exp_method=exp_method, indirect=indirect)
 
 
-def _hyb_flops(order: int = ORDER, squarings: float = 4.0) -> float:
-    """One HYB exponential: OL (~3 n2 + 35) plus the squarings (3 flops per Gaunt entry each)."""
-    return 3 * order * order + 35 + squarings * 3 * gaunt_tensor(order).nnz
+# Counted work (flops, an FMA = 2) of the fused second pass as it runs: blocks of receivers as SIMD lanes, so the
+# per-light vector work is done for every lane of a block (culled pairs included) once any lane needs it.
+_BLOCKER = 130  # per receiver and light: adjustment, axis, table lookup, order-4 basis, ZH scaling, sum
+_DIRECT = 2 * 31 * 48 + 150 + 30 + 90  # per receiver: T_n = cos_7(n) @ M (31 non-zero rows), order-7 basis, dots
+_OL = 30  # one OL exponential given |f^| (norm counted apart): lookup, exp, scale
+_OL_VISIBILITY = 15 * 9 + 2 * _OL  # per pair: norms and rho-dots of front and front + own, two OL factors
+_SQUARE = 3 * 194  # one order-4 square: 194 symmetric Gaunt pairs, 3 flops each
+_HYB_FIXED = 30 + 15 + 32 + 16  # per HYB exponential besides its squarings: norm, halving, OL, DC factor
+_AVERAGE = {"cosine": 15 + 15 + 60 + 50 + 2 * 25 * 9 + 2 * 16 * 3 + 60 + 40, "paper": 12 + 30 + 32 + 2 * 16 * 3 + 6}
 
 
-def _ol_flops(order: int = ORDER) -> float:
-    """One OL exponential: the norm, the table lookup, the exp of the DC and one scaled copy (~3 n2 + 35)."""
-    return 3 * order * order + 35
+def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", average: str = "cosine") -> float:
+    """GFLOP of one frame, counted from the scene: the lights' front lists (``_front_lists``) and, for HYB, the
+    number of squarings of every exponential (``ceil(log2(|f^| / 0.125))``, from the composed tier's blocker
+    logs and front sums), plus the first pass (``S`` blocker logs, one exponential, the transfer per sample)."""
+    from prtlab.sh._explog import _HYB_THRESHOLD
+    from prtlab.spherelights import accumulate_blockers
+    from prtlab.spherelights._passes import _front_lists, _light_arrays
 
-
-def _frame_flops(n_recv: int, blocking: str, indirect: bool, exp_method: str = "hyb") -> float:
-    """Counted work of one frame (dominant terms): per receiver, S rotated blocker logs (~3 n2 + 40 each),
-    the front sums (S^2 / 2 or ~S n_l / 2 vector adds of n2), 1 + 2S exponentials, dot products."""
     n2 = ORDER * ORDER
-    s = N_LIGHTS
-    exp_flops = _hyb_flops() if exp_method == "hyb" else _ol_flops()
-    per = s * (3 * n2 + 40) + exp_flops + 2 * n2 * 3
+    b, s = a["points"].shape[0], N_LIGHTS
+    gs, gf, theta, _ = accumulate_blockers(a["points"], a["normals"], a["centres"], a["radii"], a["sl_object"],
+                                           a["inter"], ORDER, blocking=blocking)
+
+    def squarings(x):
+        norm = np.linalg.norm(x[..., 1:], axis=-1)
+        return np.where(norm > _HYB_THRESHOLD, np.ceil(np.log2(np.maximum(norm, 1e-300) / _HYB_THRESHOLD)), 0.0)
+
+    flops = b * (s * _BLOCKER + _DIRECT)
+    if exp_method == "hyb":
+        flops += b * _HYB_FIXED + _SQUARE * squarings(gs.sum(axis=1)).sum()
+    else:
+        flops += b * (15 * 2 + _OL)
     if indirect:
-        adds = s * s / 2 if blocking == "sphere" else s * 8 / 2 + s
-        per += adds * n2 + 2 * s * exp_flops + s * (2 * n2 + 3 * n2 * 2 + 40)
-    samples = N_LIGHTS * 92 * (per - (0 if not indirect else 2 * s * exp_flops)) if indirect else 0
-    return (n_recv * per + samples) / 1e9
+        _, _, obj, inter, obj_centres = _light_arrays(a["centres"], a["radii"], a["sl_object"], a["inter"])
+        ptr, _ = _front_lists(obj, inter, blocking == "object")
+        n_obj = obj_centres.shape[0]
+        fronts = (n_obj * 8 + s * n2 + 2 * n_obj * n2 if blocking == "object" else 0) + (s + ptr[-1]) * n2
+        flops += b * (16 + fronts + s * _AVERAGE[average])
+        if exp_method == "hyb":
+            live = theta >= 0
+            front = np.where(live, squarings(gf), 0.0)
+            own = np.where(live, squarings(gf + gs), 0.0)
+            flops += b * s * (2 * _HYB_FIXED + 3 * n2) + _SQUARE * (front.sum() + own.sum())
+        else:
+            flops += b * s * _OL_VISIBILITY
+        flops += N_LIGHTS * 92 * (s * _BLOCKER + _DIRECT + _OL + 30)  # first pass
+    return flops / 1e9
 
 
 def _n(quick):
@@ -101,14 +126,14 @@ def _n(quick):
 @case("spherelights.frame.per_object.21k")
 def frame_per_object(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
-    return {"run": lambda: _frame(a, "object"), "gflop": _frame_flops(_n(quick), "object", True),
+    return {"run": lambda: _frame(a, "object"), "gflop": _frame_flops(a, "object", True),
             "items": _n(quick), "peer": ("per-sphere blocking", lambda: _frame(a, "sphere"))}
 
 
 @case("spherelights.frame.per_sphere.21k")
 def frame_per_sphere(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
-    return {"run": lambda: _frame(a, "sphere"), "gflop": _frame_flops(_n(quick), "sphere", True),
+    return {"run": lambda: _frame(a, "sphere"), "gflop": _frame_flops(a, "sphere", True),
             "items": _n(quick), "peer": None}
 
 
@@ -116,12 +141,12 @@ def frame_per_sphere(quick: bool) -> dict:
 def frame_per_object_ol(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object", exp_method="ol"),
-            "gflop": _frame_flops(_n(quick), "object", True, exp_method="ol"), "items": _n(quick),
+            "gflop": _frame_flops(a, "object", True, exp_method="ol"), "items": _n(quick),
             "peer": ("HYB exponentiation", lambda: _frame(a, "object", exp_method="hyb"))}
 
 
 @case("spherelights.frame.shadows_only.21k")
 def frame_shadows_only(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
-    return {"run": lambda: _frame(a, "object", indirect=False), "gflop": _frame_flops(_n(quick), "object", False),
+    return {"run": lambda: _frame(a, "object", indirect=False), "gflop": _frame_flops(a, "object", False),
             "items": _n(quick), "peer": None}

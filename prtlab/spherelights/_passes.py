@@ -946,7 +946,8 @@ def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, 
                             for q in range(n_lanes):
                                 le[c, q] += krot[k, q] * m
                     for q in range(n_lanes):  # rows 7, 8: n . a and the unoccluded V~' (_cap_visibility)
-                        lane[7, q] = recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q] + recv[5, q] * axis[i, 2, q]
+                        lane[7, q] = (recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q]
+                                      + recv[5, q] * axis[i, 2, q])
                     _cap_visibility_lanes(cos_t, i, lane, cos_zh, order, tmp)
                     for q in range(n_lanes):
                         nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]

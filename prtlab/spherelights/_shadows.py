@@ -132,18 +132,6 @@ def _add_rotated_zh(g, ax, ay, az, order, ybuf, scale, out_row):
             out_row[k] += f * ybuf[0, k]
 
 
-@numba.njit(cache=True, inline="always")
-def _add_rotated_zh_low(g, ax, ay, az, order, ybuf, out_row):
-    """out_row += zh_rotate(g, axis) for ``order <= LOW_BANDS`` (closed-form bands only). Inlined into the
-    per-receiver-and-light loops, where the call of :func:`_add_rotated_zh` cost as much as its ~50 flops;
-    straight-line code, so inlining it costs little compile time (the recurrence of higher bands is not)."""
-    _low_bands(ax, ay, az, order, ybuf, 0)
-    for l in range(order):
-        f = _ZH_SCALE[l] * g[l]
-        for k in range(l * l, (l + 1) * (l + 1)):
-            out_row[k] += f * ybuf[0, k]
-
-
 # --------------------------------------------------------------------------- lane kernels
 # Receivers as SIMD lanes: ``(..., L)`` scratch arrays with the lane axis last and the lane loop innermost,
 # so LLVM vectorises it (``error_model="numpy"``: no zero-division checks in the loops; no fastmath).
