@@ -7,7 +7,9 @@ named by ``PRTLAB_BENCHMARKS``). A case is a function decorated with
     {"run": callable,                  # the work, called with no arguments
      "gflop": float | None,            # floating-point work of one call, in GFLOP
      "items": int | None,              # items (directions, rays, vertices) per call
-     "peer": (name, callable) | None}  # the same work done by a peer, timed in the same run
+     "peer": (name, callable) | None,  # the same work done by a peer, timed in the same run
+     "repeats": int,                   # optional: fewer repeats for a long case (a precomputation)
+     "info": dict}                     # optional: figures that are not times (bytes on disk), kept in the JSON
 
 Every timing is the median of several repeats after one warm-up call (which
 absorbs JIT compilation). The machine's peak float64 rate is measured in the
@@ -113,7 +115,8 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
     cases = []
     for name in names:
         spec = _CASES[name](quick)
-        seconds = statistics.median(_time(spec["run"], repeats))
+        n_repeats = min(repeats, int(spec.get("repeats", repeats)))
+        seconds = statistics.median(_time(spec["run"], n_repeats))
         entry = {"name": name, "seconds_median": seconds}
         gflop = spec.get("gflop")
         if gflop:
@@ -127,10 +130,14 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
             line += f"  {entry['items_per_second']:.3g} items/s"
         if spec.get("peer"):
             peer_name, peer_fn = spec["peer"]
-            peer_seconds = statistics.median(_time(peer_fn, repeats))
+            peer_seconds = statistics.median(_time(peer_fn, n_repeats))
             entry["peer"] = {"name": peer_name, "seconds_median": peer_seconds}
             entry["speedup_vs_peer"] = peer_seconds / seconds
             line += f"  peer {peer_name}: {peer_seconds * 1e3:.2f} ms (x{peer_seconds / seconds:.2f})"
+        if spec.get("info"):
+            entry["info"] = dict(spec["info"])
+            line += "  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                     for k, v in entry["info"].items())
         out(line)
         cases.append(entry)
     peak = max(peak_before, measure_peak_gflops(quick))
