@@ -508,11 +508,12 @@ class Interreflection(Precomputation):
 
     def _visibility(self, g, occ_r, factors, rows):
         """``V_j`` at ``rows`` of receiver ``g``: its self-visibility times each ``(name, mask)`` factor's occlusion
-        (in the given order) where ``mask`` is set; elsewhere the factor is 1 and its product is skipped."""
+        (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is 1 and its
+        product is skipped."""
         order = self.options.order
         vis = g["self"][rows]
         for name, mask in factors:
-            at = np.flatnonzero(mask[rows])
+            at = np.flatnonzero(mask)
             if len(at):
                 vis[at] = sh.product(vis[at], occ_r[name][rows[at]], order, channels=False)
         return vis
@@ -534,14 +535,17 @@ class Interreflection(Precomputation):
             cached = self._transfer_cache.get(r.name)
             if cached is None or cached[0] != key:
                 idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
-                factors = [(others[i], self._within_reach(g["x"], geo[others[i]])) for i in idx]
                 if cached is None or cached[0][0] != g["pose"]:
                     rows = np.arange(len(g["x"]))
-                    value = self._transfer(self._visibility(g, occ[r.name], factors, rows), g["g_cos"])
                 else:  # only occluders moved, came or went: the points their fields reach, before or now
                     rows = self._changed_rows(g["x"], cached[2], now, self._within_reach)
+                factors = [(others[i], self._within_reach(g["x"][rows], geo[others[i]])) for i in idx]
+                visibility = self._visibility(g, occ[r.name], factors, rows)
+                if len(rows) == len(g["x"]):
+                    value = self._transfer(visibility, g["g_cos"])
+                else:
                     value = cached[1].copy()
-                    value[rows] = self._transfer(self._visibility(g, occ[r.name], factors, rows), g["g_cos"][rows])
+                    value[rows] = self._transfer(visibility, g["g_cos"][rows])
                 cached = self._transfer_cache[r.name] = (key, value, now)
             transfer[r.name] = cached[1]
         return transfer
@@ -804,7 +808,7 @@ class Interreflection(Precomputation):
     def _pair_irradiance(self, geo, occ, r, s, blockers, rows):
         """Eq. 13 of source ``s`` at the ``rows`` of receiver ``r``: masked visibility, transfer, field, near field."""
         g, gs = geo[r.name], geo[s.name]
-        factors = [(o, self._may_block(g["x"], geo[o], gs)) for o in blockers]
+        factors = [(o, self._may_block(g["x"][rows], geo[o], gs)) for o in blockers]
         vis = self._visibility(g, occ[r.name], factors, rows)
         transfer = self._transfer(vis, g["g_cos"][rows])
         value = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid, g["x"][rows],
