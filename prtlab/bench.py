@@ -9,6 +9,7 @@ named by ``PRTLAB_BENCHMARKS``). A case is a function decorated with
      "items": int | None,              # items (directions, rays, vertices) per call
      "peer": (name, callable) | None,  # the same work done by a peer, timed in the same run
      "repeats": int,                   # optional: fewer repeats for a long case (a precomputation)
+     "warmup": bool,                   # optional: False skips the warm-up call (kernels compiled already)
      "info": dict}                     # optional: figures that are not times (bytes on disk), kept in the JSON
 
 Every timing is the median of several repeats after one warm-up call (which
@@ -70,8 +71,9 @@ def _discover() -> None:
         spec.loader.exec_module(module)
 
 
-def _time(fn: Callable, repeats: int) -> list[float]:
-    fn()  # warm-up: JIT compilation, caches, page faults
+def _time(fn: Callable, repeats: int, warmup: bool = True) -> list[float]:
+    if warmup:
+        fn()  # warm-up: JIT compilation, caches, page faults
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -116,7 +118,7 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
     for name in names:
         spec = _CASES[name](quick)
         n_repeats = min(repeats, int(spec.get("repeats", repeats)))
-        seconds = statistics.median(_time(spec["run"], n_repeats))
+        seconds = statistics.median(_time(spec["run"], n_repeats, spec.get("warmup", True)))
         entry = {"name": name, "seconds_median": seconds}
         gflop = spec.get("gflop")
         if gflop:
@@ -130,7 +132,7 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
             line += f"  {entry['items_per_second']:.3g} items/s"
         if spec.get("peer"):
             peer_name, peer_fn = spec["peer"]
-            peer_seconds = statistics.median(_time(peer_fn, n_repeats))
+            peer_seconds = statistics.median(_time(peer_fn, n_repeats, spec.get("warmup", True)))
             entry["peer"] = {"name": peer_name, "seconds_median": peer_seconds}
             entry["speedup_vs_peer"] = peer_seconds / seconds
             line += f"  peer {peer_name}: {peer_seconds * 1e3:.2f} ms (x{peer_seconds / seconds:.2f})"

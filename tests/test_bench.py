@@ -65,7 +65,8 @@ def test_cli_bench_writes_json(bench_folder, tmp_path):
 
 
 def test_repeats_and_info_are_kept(tmp_path, monkeypatch):
-    """A long case may ask for fewer repeats (never more), and its ``info`` figures reach the report."""
+    """A long case may ask for fewer repeats (never more) and no warm-up, and its ``info`` figures reach the
+    report."""
     (tmp_path / "bench_slow.py").write_text(textwrap.dedent(
         """
         from prtlab.bench import case
@@ -73,7 +74,8 @@ def test_repeats_and_info_are_kept(tmp_path, monkeypatch):
 
         @case("toy.precompute")
         def slow(quick):
-            return {"run": lambda: CALLS.append(1), "repeats": 1, "info": {"bytes": 1234, "seconds_first": 0.5}}
+            return {"run": lambda: CALLS.append(1), "repeats": 1, "warmup": False,
+                    "info": {"bytes": 1234, "seconds_first": 0.5}}
         """))
     monkeypatch.setenv("PRTLAB_BENCHMARKS", str(tmp_path))
     lines = []
@@ -81,4 +83,4 @@ def test_repeats_and_info_are_kept(tmp_path, monkeypatch):
     (entry,) = report["cases"]
     assert entry["info"] == {"bytes": 1234, "seconds_first": 0.5}
     assert "bytes=1234" in lines[1] and "seconds_first=0.5" in lines[1]
-    assert len(sys.modules["prtlab_benchmarks.bench_slow"].CALLS) == 2  # warm-up + 1 repeat
+    assert len(sys.modules["prtlab_benchmarks.bench_slow"].CALLS) == 1  # no warm-up, 1 repeat
