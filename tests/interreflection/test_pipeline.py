@@ -151,6 +151,31 @@ def test_module_level_precompute(pre, cache_root):
     np.testing.assert_allclose(again.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
 
 
+def test_error_falls_as_the_basis_and_the_order_grow(pre):
+    """Indirect error against Monte Carlo (4,096 paths; its own noise 0.085 floor, 0.017 ball) as N (PCA terms,
+    order 4) and the SH order (N = 8) grow, by :meth:`Interreflection.truncated` of one precomputation.
+
+    Measured (relative RMS): floor N = 1 / 2 / 4 / 8: 0.999 / 0.961 / 0.356 / 0.313, order 1 / 2 / 3 / 4:
+    0.792 / 0.244 / 0.210 / 0.313; ball N: 0.098 / 0.085 / 0.084 / 0.093, order: 0.823 / 0.103 / 0.129 / 0.093.
+    The large steps are the ones the paper's choice rests on: the floor's light (the ball's shadow in it)
+    needs N >= 4 and every receiver needs order >= 2. Beyond them the error is not monotone on these quick
+    fields (8 radii of 6 x 8 x 8 points): the truncated products of truncated visibility and radiance err
+    either way by a few percent, so only the overall fall is asserted, with the first big steps."""
+    ref = path_trace(pre.scene, 1, 4096, np.random.default_rng(11))
+
+    def error(p, name):
+        a, b = p.shade(bounces=1).indirect[name], ref.indirect[name]
+        return float(np.sqrt(np.mean((a - b) ** 2) / np.mean(b**2)))
+
+    for name in ("floor", "ball"):
+        by_n = [error(pre.truncated(n_basis=n), name) for n in (1, 4, 8)]
+        by_order = [error(pre.truncated(order=o), name) for o in (1, 2, 4)]
+        assert by_order[2] < 0.5 * by_order[0] and by_order[1] < 0.5 * by_order[0], (name, by_order)
+        assert by_n[2] <= by_n[0], (name, by_n)
+        if name == "floor":
+            assert by_n[1] < 0.5 * by_n[0] and by_n[2] < 0.5 * by_n[0], by_n
+
+
 def test_truncated_precomputation(pre):
     small = pre.truncated(n_basis=4, order=3)
     assert small.data["ball"]["basis_radiance"].shape[-2:] == (4, 9)
