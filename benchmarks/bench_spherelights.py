@@ -3,12 +3,16 @@
 The squirrel scene: about 21k receiver vertices, 14 leaf spherical lights,
 order 4. Here: a squirrel-like object of 8 lights plus 6 balls of one
 light each (7 objects), 92 surface samples per light, receivers on a
-ground grid and around the objects. Cases: a whole frame (first pass +
-second pass) with per-object and per-sphere blocking, shadows only, and
-the precomputed memory per object.
+ground grid and around the objects (synthetic arrays, no precomputation).
+Cases: a whole frame (first pass + second pass) with per-object and
+per-sphere blocking, shadows only, and the precomputation of a real scene
+(``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
+precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -19,6 +23,12 @@ from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
 ORDER = 4
 N_LIGHTS = 14
 N_RECEIVERS = 21_000
+SCENE = Path(__file__).resolve().parents[1] / "data" / "scenes" / "bunny_spheres_env.yaml"
+# the precomputed arrays each kind of frame reads (``SphereLights.data["objects"][name]``): the second pass reads
+# the sphere set, the first pass (indirect light) also the surface samples and the albedo SH; the rest of what is
+# stored is the per-vertex light index (soft deformations, Sec. 7.1) and the fit's figures
+SHADOW_ARRAYS = ("centres", "radii", "intersect")
+FRAME_ARRAYS = SHADOW_ARRAYS + ("sample_points", "sample_normals", "sample_valid", "albedo_sh")
 
 
 def _scene_arrays(n_receivers: int):
@@ -150,3 +160,46 @@ def frame_shadows_only(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object", indirect=False), "gflop": _frame_flops(a, "object", False),
             "items": _n(quick), "peer": None}
+
+
+def memory_per_object(objects: dict, arrays=None) -> dict:
+    """Bytes of each object's precomputed arrays (``SphereLights.data["objects"]``): all of them, or the names in
+    ``arrays`` (``FRAME_ARRAYS``, ``SHADOW_ARRAYS``)."""
+    return {name: int(sum(np.asarray(v).nbytes for k, v in data.items() if arrays is None or k in arrays))
+            for name, data in objects.items()}
+
+
+def precompute_bunny(n_bunny: int = 16, grid_resolution: int = 40, scene=None):
+    """``SphereLights.precompute`` of ``bunny_spheres_env`` (``n_bunny`` lights on the bunny, one per ball),
+    uncached."""
+    import prtlab
+    from prtlab.spherelights import SphereLights
+
+    scene = prtlab.load_scene(SCENE) if scene is None else scene
+    return SphereLights.precompute(scene, {"n_spheres": {"bunny": n_bunny, "sphere_green": 1, "sphere_orange": 1},
+                                           "grid_resolution": grid_resolution}, cache=False, progress=False)
+
+
+@case("spherelights.precompute.bunny16")
+def precompute_bunny16(quick: bool) -> dict:
+    """The whole precomputation of ``bunny_spheres_env`` (sphere sets, surface samples, albedo SH), uncached, 16
+    lights on the bunny; items: lights. ``info``: the precomputed KiB per object, all that is stored and what a frame
+    reads (``FRAME_ARRAYS``), and the bunny's lights. Under a second (half that quick, a coarser fit
+    grid): 3 repeats."""
+    import prtlab
+
+    scene = prtlab.load_scene(SCENE)
+    grid = 24 if quick else 40
+    info: dict = {}
+
+    def run():
+        pre = precompute_bunny(16, grid, scene)
+        objects = pre.data["objects"]
+        info["bunny_lights"] = len(objects["bunny"]["radii"])
+        for name, nbytes in memory_per_object(objects).items():
+            info[f"{name}_kib"] = nbytes / 1024
+        for name, nbytes in memory_per_object(objects, FRAME_ARRAYS).items():
+            info[f"{name}_frame_kib"] = nbytes / 1024
+
+    n_lights = 16 + 1 + 1  # 16 on the bunny, one per ball
+    return {"run": run, "gflop": None, "items": n_lights, "peer": None, "repeats": 3, "info": info}
