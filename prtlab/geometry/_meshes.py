@@ -476,9 +476,9 @@ def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
                           the grid ``|x| <= w/2, y = 0, |z| <= d/2`` with
                           ``(nx+1)(nz+1)`` vertices, x slowest; normal +Y.
     ``box``               ``size=[x, y, z]=[1, 1, 1]`` centred at the origin;
-                          ``subdivisions=0`` midpoint (1 -> 4) refinements. Faces
-                          share their edge vertices (8 corners at level 0), so
-                          vertex normals there are averages across faces.
+                          ``subdivisions=0`` midpoint (1 -> 4) refinements. Each
+                          side has vertices of its own (24 at level 0), so every
+                          vertex normal is its side's: sharp edges stay sharp.
     ``icosphere``         ``radius=1``, ``subdivisions=3`` (642 vertices), centred.
     ``uv_sphere``         ``radius=1``, ``count=[lat, lon]=[32, 32]``, poles on +-Y.
     ``torus``             ``major_radius=1``, ``minor_radius=0.25``,
