@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prtlab import brdf, pca, sh
@@ -86,8 +86,12 @@ def test_weights_reproduce_a_function_in_the_span():
 # --------------------------------------------------------------------------- against Monte Carlo
 
 
-def test_basis_irradiance_of_a_lit_floor_against_monte_carlo():
-    """One source, one receiver point: a floor lit by a square area light, a point above it facing down.
+@settings(max_examples=8, deadline=None)
+@given(px=st.floats(-0.8, 0.8), py=st.floats(0.3, 1.2), pz=st.floats(-0.8, 0.8),
+       tilt=st.floats(0.0, 1.0), azimuth=st.floats(0.0, 2 * np.pi))
+def test_basis_irradiance_of_a_lit_floor_against_monte_carlo(px, py, pz, tilt, azimuth):
+    """One source, one receiver point: a floor lit by a square area light, a point above it facing down
+    (tilted from straight down by up to 1 rad), anywhere over the floor's middle.
 
     Ours: the floor's exact vertex radiance as weights of hat basis functions (Psi = identity, so the
     basis itself adds no error), S projected at the point (degree 127), integrated against the order-4
@@ -111,8 +115,8 @@ def test_basis_irradiance_of_a_lit_floor_against_monte_carlo():
     cos_l = np.maximum(-(d @ light.normal), 0) / np.sqrt(r2)
     radiance = albedo / np.pi * 20.0 * np.sum(area_w * cos_x * cos_l / r2, axis=1)  # (V,)
 
-    p = np.array([[-0.2, 0.6, 0.1]])
-    n = np.array([0.0, -1.0, 0.0])
+    p = np.array([[px, py, pz]])
+    n = np.array([np.sin(tilt) * np.cos(azimuth), -np.cos(tilt), np.sin(tilt) * np.sin(azimuth)])
     sep = brdf.separable(brdf.lambert(np.ones(3)), 1, resolution=(8, 16))
     s = basis_radiance_at(floor, radiance[None], sep, p, ORDER, degree=127)[0, 0, 0]  # S of the lit floor
     g = brdf.project_g_cos(sep, n, ORDER)[0]
@@ -136,7 +140,9 @@ def test_basis_irradiance_of_a_lit_floor_against_monte_carlo():
     scene = Scene(objects=[SceneObject("floor", floor, material=Material("diffuse", np.full(3, albedo)))],
                   lights=[light])
     est = irradiance_at(scene, p, n, 256, np.random.default_rng(5), bounces=1)
-    assert np.all(est.direct == 0)
+    corners = light.center + np.array([[a, b] for a in (-1, 1) for b in (-1, 1)]) @ np.stack([light.u, light.v])
+    if np.all((corners - p) @ n <= 0):  # the light below the receiver's horizon: no direct light
+        assert np.all(est.direct == 0)
     mc, se = est.indirect[0, 0], est.indirect_stderr[0, 0]
     assert abs(exact - mc) <= MC_SIGMAS * se + 0.01 * exact  # piecewise-linear vertex radiance vs exact shading
     assert abs(ours - mc) <= MC_SIGMAS * se + bound + 0.01 * exact
