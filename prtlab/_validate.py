@@ -1,4 +1,4 @@
-"""The validators every public function shares: integers, SH orders, directions, choices.
+"""The validators every public function shares: integers, SH orders, directions, points, choices.
 
 One place decides what the project accepts, so every entry point answers bad input the same
 way: a ``TypeError`` when the value has the wrong type (``True`` is not an int here), a
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_int", "check_order", "check_choice", "as_directions"]
+__all__ = ["check_int", "check_order", "check_choice", "as_directions", "as_points"]
 
 
 def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None,
@@ -63,3 +63,17 @@ def as_directions(dirs: Any, name: str = "dirs", normalize: bool = True) -> np.n
     if np.any(length == 0.0):
         raise ValueError(f"{name} contains a zero vector; every direction must be a unit vector")
     return arr / length
+
+
+def as_points(points: Any, name: str = "points", flat: bool = False) -> np.ndarray:
+    """``points`` as finite float64 ``(..., 3)`` (``(V, 3)`` and C-contiguous with ``flat=True``)."""
+    arr = np.asarray(points)
+    if arr.dtype.kind not in "fiu":
+        raise TypeError(f"{name} must be a real array of points, got dtype {arr.dtype}")
+    shape = "(V, 3)" if flat else "(..., 3)"
+    if arr.ndim == 0 or arr.shape[-1] != 3 or (flat and arr.ndim != 2):
+        raise ValueError(f"{name} must be a {shape} array of points, got shape {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf; pass finite coordinates")
+    return arr

@@ -88,6 +88,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from prtlab._validate import as_points, check_choice
 from prtlab import brdf
 from prtlab.shadowfields import (
     HaarOcclusionField,
@@ -105,21 +106,6 @@ __all__ = ["haar_transfer", "haar_basis_irradiance", "texel_basis_irradiance", "
 _METHODS = ("numba", "reference")
 #: Transfer texels (vertex x k' x texel) per chunk of vertices.
 _TEXELS_PER_CHUNK = 1 << 21
-
-
-def _check_method(method) -> str:
-    if method not in _METHODS:
-        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-    return method
-
-
-def _as_points(x, name: str) -> np.ndarray:
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must be a (V, 3) array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contain NaN or inf; pass finite values")
-    return np.ascontiguousarray(arr)
 
 
 # --------------------------------------------------------------------------- kernels
@@ -228,27 +214,7 @@ def near_gather_kernel(rows, starts, hit_texel, w_obj, h, psi, out):
 def _corners(grid, local):
     """The 8 samples of the trilinear blend (as :func:`prtlab.shadowfields.interpolate_field`) and weights
     times ``(r_max / r)^2`` beyond the outermost sphere: (Q, 8) int64, (Q, 8) float64."""
-    rpos, face, s, t, _ = grid.locate(local)
-    n_r, _, g, _ = grid.shape
-    r0 = np.clip(np.floor(rpos).astype(np.int64), 0, n_r - 1)
-    fr = rpos - r0
-    r1 = np.minimum(r0 + 1, n_r - 1)
-    x = np.clip(s * g - 0.5, 0.0, g - 1.0)
-    y = np.clip(t * g - 0.5, 0.0, g - 1.0)
-    j0 = np.floor(x).astype(np.int64)
-    i0 = np.floor(y).astype(np.int64)
-    fj, fi = x - j0, y - i0
-    j1 = np.minimum(j0 + 1, g - 1)
-    i1 = np.minimum(i0 + 1, g - 1)
-    corners = np.empty((len(rpos), 8), dtype=np.int64)
-    weights = np.empty((len(rpos), 8))
-    c = 0
-    for rr, wr in ((r0, 1.0 - fr), (r1, fr)):
-        for ii, wi in ((i0, 1.0 - fi), (i1, fi)):
-            for jj, wj in ((j0, 1.0 - fj), (j1, fj)):
-                corners[:, c] = ((rr * 6 + face) * g + ii) * g + jj
-                weights[:, c] = wr * wi * wj
-                c += 1
+    corners, weights, _ = grid.trilinear_corners(local)
     r = np.linalg.norm(local - grid.center, axis=1)
     scale = np.where(r > grid.radii[-1], (grid.radii[-1] / np.maximum(r, 1e-300)) ** 2, 1.0)
     return corners, weights * scale[:, None]
@@ -322,11 +288,11 @@ def haar_transfer(points, normals, sep, resolution: int = 32, *, self_visibility
     """
     from prtlab.brdf import SeparableBRDF
 
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     if not isinstance(sep, SeparableBRDF):
         raise TypeError(f"sep must be a SeparableBRDF (prtlab.brdf.separable), got {type(sep).__name__}")
-    points = _as_points(points, "points")
-    normals = _as_points(normals, "normals")
+    points = as_points(points, "points", flat=True)
+    normals = as_points(normals, "normals", flat=True)
     if normals.shape != points.shape:
         raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
     normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
@@ -389,12 +355,12 @@ def haar_basis_irradiance(field: HaarBasisRadianceField, points, transfer, sourc
     A turned source reads the world transfer at the texel containing ``R d_t`` for each of its
     texels ``t`` (nearest texel; exact for the 24 rotations that permute the texels).
     """
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     if not isinstance(field, HaarBasisRadianceField):
         raise TypeError(f"field must be a HaarBasisRadianceField (haar_basis_radiance_field), got "
                         f"{type(field).__name__}")
     res = field.resolution
-    points = _as_points(points, "points")
+    points = as_points(points, "points", flat=True)
     nv = len(points)
     transfer = _check_transfer(transfer, nv, res)
     n_k, n_b = field.n_terms
@@ -491,9 +457,9 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
     from prtlab.geometry import RayCaster, cubemap_directions
     from prtlab.shadowfields import bounding_sphere
 
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     basis = np.asarray(basis, dtype=np.float64)
-    points = _as_points(points, "points")
+    points = as_points(points, "points", flat=True)
     nv = len(points)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if basis.ndim != 2 or basis.shape[1] != len(vertices):

@@ -114,6 +114,42 @@ class SphereGrid:
         rpos = np.interp(r, self.radii, np.arange(len(self.radii), dtype=np.float64))
         return rpos, face, s, t, r > self.radii[-1]
 
+    def trilinear_corners(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The 8 samples of the trilinear blend at object-space points (as :func:`interpolate_field`: radius
+        clamped to the first and last sphere, face coordinates clamped to the face's texel centres).
+
+        Returns
+        -------
+        corners : (Q, 8) int64
+            Flat indices into the ``(n_r, 6, res, res)`` samples.
+        weights : (Q, 8) float64
+            Blend weights (summing to 1).
+        beyond : (Q,) bool
+            ``r > radii[-1]``.
+        """
+        rpos, face, s, t, beyond = self.locate(points)
+        n_r, _, g, _ = self.shape
+        r0 = np.clip(np.floor(rpos).astype(np.int64), 0, n_r - 1)
+        fr = rpos - r0
+        r1 = np.minimum(r0 + 1, n_r - 1)
+        x = np.clip(s * g - 0.5, 0.0, g - 1.0)
+        y = np.clip(t * g - 0.5, 0.0, g - 1.0)
+        j0 = np.floor(x).astype(np.int64)
+        i0 = np.floor(y).astype(np.int64)
+        fj, fi = x - j0, y - i0
+        j1 = np.minimum(j0 + 1, g - 1)
+        i1 = np.minimum(i0 + 1, g - 1)
+        corners = np.empty((len(rpos), 8), dtype=np.int64)
+        weights = np.empty((len(rpos), 8))
+        c = 0
+        for rr, wr in ((r0, 1.0 - fr), (r1, fr)):
+            for ii, wi in ((i0, 1.0 - fi), (i1, fi)):
+                for jj, wj in ((j0, 1.0 - fj), (j1, fj)):
+                    corners[:, c] = ((rr * 6 + face) * g + ii) * g + jj
+                    weights[:, c] = wr * wi * wj
+                    c += 1
+        return corners, weights, beyond
+
     def to_arrays(self) -> dict:
         return {"center": self.center, "radius": np.float64(self.radius), "radii": self.radii,
                 "resolution": np.int64(self.resolution)}

@@ -353,27 +353,7 @@ class HaarOcclusionField:
 
 def _trilinear_corners(grid: SphereGrid, local, interpolation: str):
     """The 8 samples and weights of :func:`prtlab.shadowfields.interpolate_field` (same clamping)."""
-    rpos, face, s, t, beyond = grid.locate(local)
-    n_r, _, g, _ = grid.shape
-    r0 = np.clip(np.floor(rpos).astype(np.int64), 0, n_r - 1)
-    fr = rpos - r0
-    r1 = np.minimum(r0 + 1, n_r - 1)
-    x = np.clip(s * g - 0.5, 0.0, g - 1.0)
-    y = np.clip(t * g - 0.5, 0.0, g - 1.0)
-    j0 = np.floor(x).astype(np.int64)
-    i0 = np.floor(y).astype(np.int64)
-    fj, fi = x - j0, y - i0
-    j1 = np.minimum(j0 + 1, g - 1)
-    i1 = np.minimum(i0 + 1, g - 1)
-    corners = np.empty((len(rpos), 8), dtype=np.int64)
-    weights = np.empty((len(rpos), 8))
-    c = 0
-    for rr, wr in ((r0, 1.0 - fr), (r1, fr)):
-        for ii, wi in ((i0, 1.0 - fi), (i1, fi)):
-            for jj, wj in ((j0, 1.0 - fj), (j1, fj)):
-                corners[:, c] = ((rr * 6 + face) * g + ii) * g + jj
-                weights[:, c] = wr * wi * wj
-                c += 1
+    corners, weights, beyond = grid.trilinear_corners(local)
     if interpolation == "nearest":
         best = np.argmax(weights, axis=1)
         corners = np.take_along_axis(corners, best[:, None], axis=1).repeat(8, axis=1)

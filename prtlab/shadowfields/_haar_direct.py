@@ -81,6 +81,7 @@ import functools
 import numba
 import numpy as np
 
+from prtlab._validate import as_points, check_choice
 from prtlab.geometry import direction_to_cubemap
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight
 
@@ -106,21 +107,6 @@ __all__ = [
 _METHODS = ("numba", "reference")
 #: Pieces (vertex x texel) handled per chunk of vertices.
 _PIECES_PER_CHUNK = 1 << 21
-
-
-def _check_method(method) -> str:
-    if method not in _METHODS:
-        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-    return method
-
-
-def _as_points(x, name: str) -> np.ndarray:
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise ValueError(f"{name} must be a (V, 3) array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contain NaN or inf; pass finite values")
-    return np.ascontiguousarray(arr)
 
 
 def environment_cubemap(light: EnvironmentLight, resolution: int) -> np.ndarray:
@@ -239,8 +225,8 @@ def light_pieces(lights, points, normals, sep, resolution: int):
         Used pieces per vertex (the rest have zero weight).
     """
     res = _check_resolution(resolution)
-    points = _as_points(points, "points")
-    normals = _as_points(normals, "normals")
+    points = as_points(points, "points", flat=True)
+    normals = as_points(normals, "normals", flat=True)
     nv = len(points)
     n = 6 * res * res
     frames = cubemap_frames()
@@ -312,7 +298,7 @@ def haar_visibility_pass(query, factors, resolution: int, method: str = "numba")
     -------
     visibility : (V, T) float64
     """
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     res = _check_resolution(resolution)
     query = np.ascontiguousarray(np.asarray(query, dtype=np.int64))
     nv, nt = query.shape
@@ -360,7 +346,7 @@ def haar_direct_pass(visibility, g_weight, radiance, count=None, method: str = "
     -------
     light_k : (V, K, C) float64
     """
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     vis = np.ascontiguousarray(visibility, dtype=np.float64)
     gw = np.ascontiguousarray(g_weight, dtype=np.float64)
     rad = np.ascontiguousarray(radiance, dtype=np.float64)
@@ -451,11 +437,11 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
     """
     from prtlab.brdf import SeparableBRDF
 
-    method = _check_method(method)
+    method = check_choice(method, "method", _METHODS)
     if not isinstance(sep, SeparableBRDF):
         raise TypeError(f"sep must be a SeparableBRDF (prtlab.brdf.separable), got {type(sep).__name__}")
-    points = _as_points(points, "points")
-    normals = _as_points(normals, "normals")
+    points = as_points(points, "points", flat=True)
+    normals = as_points(normals, "normals", flat=True)
     if normals.shape != points.shape:
         raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
     normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)

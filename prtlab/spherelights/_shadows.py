@@ -47,6 +47,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._validate import as_points
 from prtlab.sh._kernels import (
     _A,
     _B,
@@ -310,20 +311,8 @@ def _blocker_log_sum(points, normals, centres, radii, table, order, out):
 # --------------------------------------------------------------------------- validation
 
 
-def _as_points(x, name: str) -> np.ndarray:
-    arr = np.asarray(x)
-    if arr.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
-    if arr.ndim == 0 or arr.shape[-1] != 3:
-        raise ValueError(f"{name} must be a (..., 3) array, got shape {arr.shape}")
-    arr = arr.astype(np.float64)
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; pass finite coordinates")
-    return arr
-
-
 def _as_spheres(centres, radii) -> tuple[np.ndarray, np.ndarray]:
-    c = _as_points(centres, "centres")
+    c = as_points(centres, "centres")
     if c.ndim != 2:
         raise ValueError(f"centres must be an (S, 3) array, got shape {c.shape}")
     r = np.asarray(radii)
@@ -338,8 +327,8 @@ def _as_spheres(centres, radii) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _receivers(points, normals):
-    p = _as_points(points, "points")
-    n = _as_points(normals, "normals")
+    p = as_points(points, "points")
+    n = as_points(normals, "normals")
     if p.shape != n.shape:
         raise ValueError(f"points {p.shape} and normals {n.shape} must have the same shape")
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
@@ -473,7 +462,7 @@ def environment_transfer(normals, env_sh, order: int | None = None) -> np.ndarra
     ----------
     Guerrero et al. 2008, Eq. 8 (precomputed product of lighting and BRDF).
     """
-    nrm = _as_points(normals, "normals")
+    nrm = as_points(normals, "normals")
     env = np.asarray(env_sh, dtype=np.float64)
     if env.ndim != 2:
         raise ValueError(f"env_sh must be an (N*N, C) array, got shape {env.shape}")

@@ -295,7 +295,7 @@ def test_errors():
         haar_transfer(p, n, "lambert", RES)
     with pytest.raises(ValueError, match=r"points must be a \(V, 3\)"):
         haar_transfer(np.zeros(3), n, _lambert(), RES)
-    with pytest.raises(ValueError, match="normals contain NaN"):
+    with pytest.raises(ValueError, match="normals contains NaN or inf"):
         haar_transfer(p, n * np.nan, _lambert(), RES)
     with pytest.raises(ValueError, match="normals must be"):
         haar_transfer(p, np.tile(n, (2, 1)), _lambert(), RES)

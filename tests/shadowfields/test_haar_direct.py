@@ -174,7 +174,7 @@ def test_errors():
     x, n = np.zeros((1, 3)), np.array([[0.0, 1, 0]])
     with pytest.raises(ValueError, match="points must be a"):
         haar_direct(np.zeros(3), n, [LIGHT], LAMBERT)
-    with pytest.raises(ValueError, match="contain NaN"):
+    with pytest.raises(ValueError, match="points contains NaN or inf"):
         haar_direct([[np.nan, 0, 0]], n, [LIGHT], LAMBERT)
     with pytest.raises(TypeError, match="sep must be a SeparableBRDF"):
         haar_direct(x, n, [LIGHT], "lambert")
