@@ -55,6 +55,24 @@ __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance"]
 _RAYS_PER_BATCH = 1 << 19
 
 
+def hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep) -> np.ndarray:
+    """``S_(k,i) = h_k(-w_in) Psi_i`` (H, K, N) leaving the source toward the rays that hit it.
+
+    ``hits`` are a :class:`prtlab.geometry.RayHits` of rays of directions ``w_in`` (H, 3) at the entries
+    ``sel`` (a tuple of index arrays, as ``np.nonzero``); ``Psi`` is interpolated barycentrically from the
+    vertices (``basis`` (N, n_vertices)) and is 0 where a ray meets the back of the surface (the shading
+    normal, interpolated from ``vertex_normals``, facing away from the ray's origin)."""
+    tri = faces[hits.triangle[sel]]  # (H, 3)
+    uv = hits.barycentric[sel]
+    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)  # (H, 3)
+    shading_n = np.einsum("hc,hcx->hx", bary, vertex_normals[tri])
+    shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
+    front = np.sum(shading_n * w_in, axis=1) < 0.0
+    psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
+    h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+    return h[:, :, None] * psi[:, None, :]
+
+
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
                       caster: RayCaster | None = None, method: str = "numba") -> np.ndarray:
     """SH of the basis radiance ``S_(k,i)(p, .)`` of a source object at points (object space).
@@ -110,16 +128,7 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
         sel = np.nonzero(hits.hit)
         if not len(sel[0]):
             continue
-        tri = faces[hits.triangle[sel]]  # (H, 3)
-        uv = hits.barycentric[sel]
-        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)  # (H, 3)
-        shading_n = np.einsum("hc,hcx->hx", bary, normals[tri])
-        shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
-        w_in = dirs[sel[1]]
-        front = np.sum(shading_n * w_in, axis=1) < 0.0
-        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
-        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
-        value = (h[:, :, None] * psi[:, None, :]).reshape(len(psi), n_k * n_b)  # (H, K N)
+        value = hit_basis_radiance(hits, sel, dirs[sel[1]], faces, normals, basis, sep).reshape(-1, n_k * n_b)
         if method == "reference":
             dense = np.zeros((b - a, len(dirs), n_k * n_b))
             dense[sel] = value
@@ -197,18 +206,11 @@ def self_basis_irradiance(mesh, basis, sep, points, normals, receiver_sep=None, 
         sel = np.nonzero(hits.hit & (cos > 0.0))
         if not len(sel[0]):
             continue
-        tri = faces[hits.triangle[sel]]
-        uv = hits.barycentric[sel]
-        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        shading_n = np.einsum("hc,hcx->hx", bary, vertex_normals[tri])
-        shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
         w_in = dirs[sel[1]]
-        front = np.sum(shading_n * w_in, axis=1) < 0.0
-        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
-        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K) of the source
+        s_hit = hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep)  # (H, K, N) of the source
         g = receiver_sep.g(brdf.to_local(w_in, nrm[sel[0]]))  # (H, K')
         g = g * (cos[sel] * weights[sel[1]])[:, None]
-        contrib = np.einsum("hq,hk,hn->hqkn", g, h, psi).reshape(len(sel[0]), -1)
+        contrib = np.einsum("hq,hkn->hqkn", g, s_hit).reshape(len(sel[0]), -1)
         rows, starts = np.unique(sel[0], return_index=True)  # sel[0] is sorted (row-major nonzero)
         out[a + rows] = np.add.reduceat(contrib, starts, axis=0).reshape(len(rows), n_kp, n_k, n_b)
     return out

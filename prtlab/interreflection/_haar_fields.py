@@ -55,10 +55,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab import brdf
 from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.shadowfields import SphereGrid, encode_sparse
+
+from ._fields import hit_basis_radiance
 
 __all__ = ["HaarBasisRadianceField", "haar_basis_radiance_cubemaps", "haar_basis_radiance_field"]
 
@@ -135,16 +136,7 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32,
         sel = np.nonzero(hits.hit)
         if not len(sel[0]):
             continue
-        tri = faces[hits.triangle[sel]]
-        uv = hits.barycentric[sel]
-        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        shading_n = np.einsum("hc,hcx->hx", bary, normals[tri])
-        shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
-        w_in = dirs[sel[1]]
-        front = np.sum(shading_n * w_in, axis=1) < 0.0
-        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
-        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
-        out[a + sel[0], :, :, sel[1]] = h[:, :, None] * psi[:, None, :]
+        out[a + sel[0], :, :, sel[1]] = hit_basis_radiance(hits, sel, dirs[sel[1]], faces, normals, basis, sep)
     if ss > 1:
         from prtlab.geometry import cubemap_solid_angles
 
