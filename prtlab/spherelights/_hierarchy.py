@@ -68,8 +68,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab import sh
-
 __all__ = ["LightHierarchy", "bounding_sphere", "build_hierarchy", "cluster_samples", "per_light_indirect",
            "receiver_clusters", "reflection_ratio", "select_cut"]
 
@@ -328,25 +326,6 @@ def reflection_ratio(leaf_values, node_values, max_ratio: float = 4.0) -> np.nda
     return np.clip(t, 0.0, max_ratio)
 
 
-def _cap_visibility(cos_theta, cos_na, order: int) -> np.ndarray:
-    """``P_n(1 - B) . rho_n`` per row: the order-``n`` unoccluded average visibility of a cap of angular radius
-    ``acos(cos_theta)`` at angle ``acos(cos_na)`` from the normal, ``sum_l q_l c_l P_l(n . a)`` with
-    ``q_l = 2 pi K_l int_{cos theta}^1 P_l = 2 pi K_l (P_{l-1}(c) - P_{l+1}(c)) / (2l + 1)`` (``P_{-1} = 1``)."""
-    c = np.asarray(cos_theta, dtype=np.float64)
-    a = np.asarray(cos_na, dtype=np.float64)
-    cz = sh.clamped_cosine_zh(order)
-    total = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi)) * (1.0 - c) * cz[0]
-    pc_prev, pc, pa_prev, pa, p_lm1 = np.ones_like(c), c, np.ones_like(a), a, np.ones_like(c)
-    for l in range(1, order):
-        pc_next = ((2 * l + 1) * c * pc - l * pc_prev) / (l + 1)
-        q = 2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * (p_lm1 - pc_next) / (2 * l + 1)
-        total = total + q * cz[l] * pa
-        p_lm1 = pc
-        pc_prev, pc = pc, pc_next
-        pa_prev, pa = pa, ((2 * l + 1) * a * pa - l * pa_prev) / (l + 1)
-    return total
-
-
 def per_light_indirect(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
                        blocking: str = "object", exp_method: str = "hyb", average: str = "cosine") -> np.ndarray:
     """Each light's diffuse reflection ``L~_i V~_i`` at each receiver (the terms of Eq. 14).
@@ -360,8 +339,7 @@ def per_light_indirect(points, normals, centres, radii, sl_object, intersect, sl
     values : (B, S, 3) float64
         ``values.sum(axis=1)`` is the second pass's indirect irradiance.
     """
-    from ._passes import accumulate_blockers, emission_times_direction
-    from ._tables import THETA_MAX_K, irradiance_kernel_zh, w_theta_zh
+    from ._passes import accumulate_blockers, light_terms
 
     if average not in ("cosine", "paper"):
         raise ValueError(f"average must be 'cosine' or 'paper', got {average!r}")
@@ -370,39 +348,13 @@ def per_light_indirect(points, normals, centres, radii, sl_object, intersect, sl
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     em = np.asarray(emission, dtype=np.float64)
     order = math.isqrt(em.shape[-2])
-    n2 = order * order
     B, S = p.shape[0], em.shape[0]
     out = np.zeros((B, S, 3))
     if B == 0 or S == 0:
         return out
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
                                                          blocking=blocking)
-    rows_b, rows_s = np.nonzero(theta >= 0)
-    if rows_b.size == 0:
-        return out
-    gf = g_front[rows_b, rows_s]
-    e = sh.exp(np.concatenate([gf, gf + g_sphere[rows_b, rows_s]], axis=0), method=exp_method, channels=False)
-    v_sl = e[: rows_b.size] - e[rows_b.size :]  # Eq. 23
-    cos = sh.zh_rotate(sh.clamped_cosine_zh(order), n)
-    v_avg = np.einsum("tk,tk->t", v_sl, cos[rows_b])  # Eq. 24
-    rot = np.asarray(sl_rotation, dtype=np.float64)
-    local = np.einsum("tji,tj->ti", rot[rows_s], -axis[rows_b, rows_s])
-    th = theta[rows_b, rows_s]
-    if average == "paper":
-        w = sh.zh_rotate(w_theta_zh(th, order), local)
-        l_avg = np.einsum("tk,tkc->tc", w, em[rows_s])  # Eq. 18
-    else:
-        k = sh.zh_rotate(irradiance_kernel_zh(th, order + 1), local)
-        lu = emission_times_direction(em)
-        n_loc = np.einsum("tji,tj->ti", rot[rows_s], n[rows_b])
-        s_t = np.sin(np.minimum(th, THETA_MAX_K))
-        e_n = (s_t[:, None] * np.einsum("tj,tjkc,tk->tc", n_loc, lu[rows_s], k)
-               - np.einsum("tj,tj->t", n_loc, local)[:, None] * np.einsum("tkc,tk->tc", em[rows_s], k[:, :n2]))
-        cos_na = np.einsum("tj,tj->t", n[rows_b], axis[rows_b, rows_s])
-        proj = np.pi * s_t**2 * cos_na
-        l_avg = np.where(proj[:, None] > 0, e_n / np.where(proj > 0, proj, 1.0)[:, None], 0.0)
-        v_open = _cap_visibility(np.cos(th), cos_na, order)
-        frac = np.where(v_open > 0, np.clip(v_avg / np.where(v_open > 0, v_open, 1.0), 0.0, 1.0), 0.0)
-        v_avg = frac * proj
-    out[rows_b, rows_s] = l_avg * v_avg[:, None]  # the terms of Eq. 14
+    rows_b, rows_s, terms = light_terms(n, g_sphere, g_front, theta, axis, sl_rotation, em, order,
+                                        exp_method=exp_method, average=average)
+    out[rows_b, rows_s] = terms  # the terms of Eq. 14
     return out

@@ -347,7 +347,7 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     env = np.asarray(env_sh, dtype=np.float64)
     order = math.isqrt(np.asarray(emission).shape[-2])
-    B, S, n2 = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0], order * order
+    B, S = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0]
     if B == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
     if method not in ("numba", "reference", "fused"):
@@ -366,21 +366,36 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     ind = np.zeros((B, 3))
     if not indirect or S == 0:
         return direct, ind
-    live = theta >= 0
-    rows_b, rows_s = np.nonzero(live)
+    rows_b, rows_s, terms = light_terms(n, g_sphere, g_front, theta, axis, sl_rotation, emission, order,
+                                        exp_method=exp_method, average=average)
+    np.add.at(ind, rows_b, terms)  # Eq. 14
+    return direct, ind
+
+
+def light_terms(n, g_sphere, g_front, theta, axis, sl_rotation, emission, order: int, *, exp_method: str = "hyb",
+                average: str = "cosine"):
+    """The diffuse reflection ``L~_i V~_i`` of every live (receiver, light) pair, from the blocker logs.
+
+    ``n (B, 3)`` unit normals and ``g_sphere, g_front, theta, axis`` as :func:`accumulate_blockers` returns
+    them; the rest as :func:`second_pass`. Returns ``rows_b, rows_s (T,)`` (the pairs with ``theta >= 0``)
+    and ``terms (T, 3)``, whose sum over the lights of a receiver is its indirect irradiance (Eq. 14):
+    ``V~_i = (exp(G_front) - exp(G_front + G_i)) . rho_n`` (Eqs. 23-24) times ``w'_theta . L^c_i`` (Eq. 18,
+    ``average="paper"``), or the light's cosine-weighted irradiance times the visible fraction ``V~_i / V~'_i``
+    (``"cosine"``).
+    """
+    rows_b, rows_s = np.nonzero(theta >= 0)
     if rows_b.size == 0:
-        return direct, ind
+        return rows_b, rows_s, np.zeros((0, 3))
+    n2 = order * order
     gf = g_front[rows_b, rows_s]
-    stacked = np.concatenate([gf, gf + g_sphere[rows_b, rows_s]], axis=0)
-    e = sh.exp(stacked, method=exp_method, channels=False)
+    e = sh.exp(np.concatenate([gf, gf + g_sphere[rows_b, rows_s]], axis=0), method=exp_method, channels=False)
     v_sl = e[: rows_b.size] - e[rows_b.size :]  # Eq. 23
     cos = sh.zh_rotate(sh.clamped_cosine_zh(order), n)
     v_avg = np.einsum("tk,tk->t", v_sl, cos[rows_b])  # Eq. 24
     # Eq. 18: w_theta about the direction light -> receiver, in the light's own frame (Sec. 7.1)
     rot = np.asarray(sl_rotation, dtype=np.float64)
     em = np.asarray(emission, dtype=np.float64)
-    to_recv = -axis[rows_b, rows_s]
-    local = np.einsum("tji,tj->ti", rot[rows_s], to_recv)
+    local = np.einsum("tji,tj->ti", rot[rows_s], -axis[rows_b, rows_s])
     th = theta[rows_b, rows_s]
     if average == "paper":
         w = sh.zh_rotate(w_theta_zh(th, order), local)
@@ -397,31 +412,28 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         proj = np.pi * s_t**2 * cos_na
         l_avg = np.where(proj[:, None] > 0, e_n / np.where(proj > 0, proj, 1.0)[:, None], 0.0)
         # visible fraction V~ / V~' (both order n): exact for an unoccluded light
-        cz = sh.clamped_cosine_zh(order)
-        v_open = np.array([_cap_visibility(math.cos(a), b_, cz, order) for a, b_ in zip(th, cos_na)])
+        v_open = _cap_visibility(np.cos(th), cos_na, order)
         frac = np.where(v_open > 0, np.clip(v_avg / np.where(v_open > 0, v_open, 1.0), 0.0, 1.0), 0.0)
         v_avg = frac * proj
-    np.add.at(ind, rows_b, l_avg * v_avg[:, None])  # Eq. 14
-    return direct, ind
+    return rows_b, rows_s, l_avg * v_avg[:, None]
 
 
-@numba.njit(cache=True)
-def _cap_visibility(cos_theta, cos_na, cos_zh, order):
-    """``P_n(1 - B) . rho_n``: the order-``n`` unoccluded average visibility of a cap of angular radius
-    ``theta`` at angle ``acos(cos_na)`` from the normal, ``sum_l q_l c_l P_l(n . a)`` with
-    ``q_l = 2 pi K_l int_{cos theta}^1 P_l``."""
-    # Legendre values at cos_theta (up to l = order) and at cos_na (up to order - 1)
-    pc_prev, pc = 1.0, cos_theta  # P_0, P_1 at cos theta
-    pa_prev, pa = 1.0, cos_na
-    total = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi)) * (1.0 - cos_theta) * cos_zh[0]
-    p_lm1 = 1.0  # P_{l-1}(c)
+def _cap_visibility(cos_theta, cos_na, order: int) -> np.ndarray:
+    """``P_n(1 - B) . rho_n`` per row: the order-``n`` unoccluded average visibility of a cap of angular radius
+    ``acos(cos_theta)`` at angle ``acos(cos_na)`` from the normal, ``sum_l q_l c_l P_l(n . a)`` with
+    ``q_l = 2 pi K_l int_{cos theta}^1 P_l = 2 pi K_l (P_{l-1}(c) - P_{l+1}(c)) / (2l + 1)`` (``P_{-1} = 1``)."""
+    c = np.asarray(cos_theta, dtype=np.float64)
+    a = np.asarray(cos_na, dtype=np.float64)
+    cz = sh.clamped_cosine_zh(order)
+    total = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi)) * (1.0 - c) * cz[0]
+    pc_prev, pc, pa_prev, pa, p_lm1 = np.ones_like(c), c, np.ones_like(a), a, np.ones_like(c)
     for l in range(1, order):
-        pc_next = ((2 * l + 1) * cos_theta * pc - l * pc_prev) / (l + 1)  # P_{l+1}(c)
+        pc_next = ((2 * l + 1) * c * pc - l * pc_prev) / (l + 1)
         q = 2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * (p_lm1 - pc_next) / (2 * l + 1)
-        total += q * cos_zh[l] * pa
+        total = total + q * cz[l] * pa
         p_lm1 = pc
         pc_prev, pc = pc, pc_next
-        pa_prev, pa = pa, ((2 * l + 1) * cos_na * pa - l * pa_prev) / (l + 1)
+        pa_prev, pa = pa, ((2 * l + 1) * a * pa - l * pa_prev) / (l + 1)
     return total
 
 
