@@ -17,7 +17,7 @@ from prtlab.spherelights import (
     w_theta_zh,
 )
 from tests.conftest import MC_SIGMAS, random_directions
-from tests.spherelights.test_shadows import _env_eval, _env_sh, _sphere_hit
+from tests.spherelights.test_shadows import _env_sh
 
 ORDER = 4
 
@@ -81,7 +81,6 @@ def test_first_pass_of_a_lone_sphere_is_its_diffuse_reflection():
     L = sh.basis(dirs, ORDER) @ truth
     cells = geodesic_directions(92)
     nn = np.argmax(dirs @ cells.T, axis=1)
-    l_nn = L[np.argmax(cells @ dirs.T, axis=1)][nn]  # value at the cell's nearest quadrature node
     # the direct L2 distance between L and its nearest-neighbour resampling on the cells
     vals = sh.basis(cells, ORDER) @ truth
     err_nn = np.sqrt((w[:, None] * (L - vals[nn]) ** 2).sum(0))

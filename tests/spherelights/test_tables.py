@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from prtlab import sh
-from prtlab.geometry import geodesic_directions
 from prtlab.spherelights import average_radiance_weight, voronoi_cell_sums, w_theta_zh
 
 
