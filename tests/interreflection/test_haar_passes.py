@@ -46,7 +46,7 @@ from prtlab.shadowfields import (
     sphere_grid,
     visibility_cubemaps,
 )
-from prtlab.wavelet import haar2d
+from prtlab.wavelet import haar2d, triple_product
 from tests.conftest import FLOAT_TOLERANCE, MC_SIGMAS
 
 RES = 8
@@ -116,6 +116,31 @@ def test_at_a_sample_point_the_haar_dot_is_the_texel_wise_triple_product(rng):
         expected = texel_basis_irradiance(cubes, transfer, pose)
         got = haar_basis_irradiance(field, world, transfer, pose)
         np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9)  # float32 storage
+
+
+def test_the_basis_irradiance_is_the_haar_triple_product_of_radiance_visibility_and_cosine(rng):
+    """Eq. 13 in the all-frequency basis is Ng et al.'s triple product: at a sample point (no blending, every
+    coefficient kept) ``Phi_(k',m) = r^2 triple_product(S^_m, V^, G^_k')`` with :func:`prtlab.wavelet.
+    triple_product` (which integrates over faces of unit area, so the texel sum is ``r^2`` times it), for a
+    random binary visibility ``V`` given as the receiver's self-visibility and ``G_k'`` the transfer without
+    it."""
+    mesh = builtin_mesh("icosphere", subdivisions=1)
+    basis = rng.normal(size=(3, len(mesh.vertices)))
+    grid = sphere_grid(mesh, n_radii=2, resolution=2)
+    n_all = 6 * RES * RES
+    field = haar_basis_radiance_field(mesh, basis, _lambert(), grid, RES, keep=n_all)
+    point = grid.points()[1, 4, 1, 0][None]  # a sample point (object frame = world frame)
+    normal = np.array([[0.2, 0.1, -0.97]])
+    normal /= np.linalg.norm(normal)
+    visibility = (rng.random((1, 6, RES, RES)) < 0.6).astype(float)
+    cosine = haar_transfer(point, normal, _lambert(), RES)  # G_k' per texel, (1, K', 6, r, r)
+    transfer = haar_transfer(point, normal, _lambert(), RES, self_visibility=encode_sparse(visibility, n_all))
+    np.testing.assert_allclose(transfer, visibility[:, None] * cosine, atol=1e-12)
+    got = haar_basis_irradiance(field, point, transfer)  # (1, K', K, N)
+    s_cubes = haar_basis_radiance_cubemaps(mesh, basis, _lambert(), point, RES)[0]  # (K, N, 6, r, r)
+    v_hat, g_hat = haar2d(visibility[0]), haar2d(cosine[0, 0])
+    expected = np.array([RES**2 * triple_product(haar2d(s_cubes[0, i]), v_hat, g_hat) for i in range(3)])
+    np.testing.assert_allclose(got[0, 0, 0], expected, rtol=1e-6, atol=1e-9)  # float32 storage of S
 
 
 def test_beyond_the_outermost_sphere_falls_off_as_inverse_square():
