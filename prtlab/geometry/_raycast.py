@@ -383,6 +383,12 @@ class RayCaster:
                 tri = np.zeros((1, 3, 3), dtype=np.float32)
                 mesh_construction.TriangleMesh(scene, tri)
         self._bounds = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((2, 3))
+        if np.all(np.isfinite(lo)):  # the sphere about the box centre through the farthest used vertex
+            centre = 0.5 * (lo + hi)
+            used = np.concatenate([w[np.unique(f)] for w, f in zip(self._world_vertices, self._faces) if len(f)])
+            self._sphere = (centre, float(np.max(np.linalg.norm(used - centre, axis=1))))
+        else:
+            self._sphere = (np.zeros(3), 0.0)
         vert_offset = np.cumsum([0] + [len(w) for w in self._world_vertices])
         self._face_offset = np.cumsum([0] + [len(f) for f in self._faces]).astype(np.int64)
         self._all_vertices = np.concatenate(self._world_vertices + [np.zeros((0, 3))])
@@ -397,6 +403,19 @@ class RayCaster:
     def bounds(self) -> np.ndarray:
         """(2, 3) world bounding box (min, max) of the current pose."""
         return self._bounds.copy()
+
+    def may_hit(self, origins, dirs) -> np.ndarray:
+        """(P, D) bool: whether the ray from each of ``origins`` (P, 3) along each unit direction of ``dirs``
+        (D, 3) meets the geometry's bounding sphere (an origin inside it: every ray). A ray for which it is
+        False hits nothing, so casting it can be skipped. The sphere is widened by :attr:`epsilon` (the
+        origin offset of ``normals=``) and a relative ``1e-6`` (Embree's float32 arithmetic)."""
+        centre, radius = self._sphere
+        radius = radius * (1.0 + 1e-6) + self.epsilon + 1e-12
+        to_c = centre - np.asarray(origins, dtype=np.float64).reshape(-1, 3)  # (P, 3)
+        dist2 = np.einsum("pi,pi->p", to_c, to_c)
+        along = to_c @ np.asarray(dirs, dtype=np.float64).reshape(-1, 3).T  # (P, D): t of the closest approach
+        inside = dist2 <= radius * radius
+        return inside[:, None] | ((along > 0.0) & (dist2[:, None] - along * along <= radius * radius))
 
     @property
     def epsilon(self) -> float:

@@ -58,8 +58,8 @@ _RAYS_PER_BATCH = 1 << 19
 def hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep) -> np.ndarray:
     """``S_(k,i) = h_k(-w_in) Psi_i`` (H, K, N) leaving the source toward the rays that hit it.
 
-    ``hits`` are a :class:`prtlab.geometry.RayHits` of rays of directions ``w_in`` (H, 3) at the entries
-    ``sel`` (a tuple of index arrays, as ``np.nonzero``); ``Psi`` is interpolated barycentrically from the
+    ``hits`` are a :class:`prtlab.geometry.RayHits` whose entries ``sel`` (a tuple of index arrays, as
+    ``np.nonzero``) are rays of directions ``w_in`` (H, 3) that hit; ``Psi`` is interpolated barycentrically from the
     vertices (``basis`` (N, n_vertices)) and is 0 where a ray meets the back of the surface (the shading
     normal, interpolated from ``vertex_normals``, facing away from the ray's origin)."""
     tri = faces[hits.triangle[sel]]  # (H, 3)
@@ -124,17 +124,19 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
     for a in range(0, len(flat), step):
         b = min(len(flat), a + step)
-        hits = caster.closest_hit(flat[a:b, None, :], dirs[None])
-        sel = np.nonzero(hits.hit)
-        if not len(sel[0]):
+        point, direction = np.nonzero(caster.may_hit(flat[a:b], dirs))  # the other rays miss the source
+        hits = caster.closest_hit(flat[a:b][point], dirs[direction])
+        at = np.flatnonzero(hits.hit)
+        if not len(at):
             continue
-        value = hit_basis_radiance(hits, sel, dirs[sel[1]], faces, normals, basis, sep).reshape(-1, n_k * n_b)
+        sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
+        value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep).reshape(-1, n_k * n_b)
         if method == "reference":
             dense = np.zeros((b - a, len(dirs), n_k * n_b))
             dense[sel] = value
             out[a:b] = np.matmul(dense.transpose(0, 2, 1), wy)
         else:
-            starts = np.searchsorted(sel[0], np.arange(b - a + 1))  # hits come sorted by point
+            starts = np.searchsorted(sel[0], np.arange(b - a + 1))
             project_hits_kernel(starts, np.ascontiguousarray(sel[1]), np.ascontiguousarray(value), wy, out[a:b])
     return out.reshape(batch + (n_k, n_b, n2))
 

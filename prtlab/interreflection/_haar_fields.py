@@ -132,11 +132,13 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32,
     step = max(1, _RAYS_PER_BATCH // n_t)
     for a in range(0, len(flat), step):
         b = min(len(flat), a + step)
-        hits = caster.closest_hit(flat[a:b, None, :], dirs[None])
-        sel = np.nonzero(hits.hit)
-        if not len(sel[0]):
+        point, direction = np.nonzero(caster.may_hit(flat[a:b], dirs))  # the other rays miss the source
+        hits = caster.closest_hit(flat[a:b][point], dirs[direction])
+        at = np.flatnonzero(hits.hit)
+        if not len(at):
             continue
-        out[a + sel[0], :, :, sel[1]] = hit_basis_radiance(hits, sel, dirs[sel[1]], faces, normals, basis, sep)
+        out[a + point[at], :, :, direction[at]] = hit_basis_radiance(hits, (at,), dirs[direction[at]], faces,
+                                                                     normals, basis, sep)
     if ss > 1:
         from prtlab.geometry import cubemap_solid_angles
 

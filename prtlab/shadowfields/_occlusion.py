@@ -93,8 +93,11 @@ def _blocked_batches(caster: RayCaster, flat, nflat, dirs, method: str):
     step = max(1, _RAYS_PER_BATCH // len(dirs))
     for a in range(0, len(flat), step):
         b = min(len(flat), a + step)
-        yield a, b, caster.occluded(flat[a:b, None, :], dirs[None], np.inf, method=method,
-                                    normals=None if nflat is None else nflat[a:b, None, :])
+        blocked = np.zeros((b - a, len(dirs)), dtype=bool)
+        point, direction = np.nonzero(caster.may_hit(flat[a:b], dirs))  # the other rays are unoccluded
+        blocked[point, direction] = caster.occluded(flat[a:b][point], dirs[direction], np.inf, method=method,
+                                                    normals=None if nflat is None else nflat[a:b][point])
+        yield a, b, blocked
 
 
 def project_visibility(caster: RayCaster, origins, order: int, *, normals=None, degree: int | None = None,

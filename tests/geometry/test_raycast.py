@@ -185,6 +185,33 @@ def test_matches_brute_force(seed):
     assert (occ == hits.hit).all()
 
 
+@given(seed=st.integers(0, 2**31 - 1))
+def test_a_ray_that_may_not_hit_hits_nothing(seed):
+    """``may_hit`` is False only for rays that miss the geometry's bounding sphere: no such ray hits (with or
+    without the origin offset of ``normals=``), and rays grazing the sphere are kept."""
+    rng = np.random.default_rng(seed)
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    mesh.vertices *= rng.uniform(0.5, 1.5, size=3)
+    caster = RayCaster([mesh], [Transform(translate=rng.normal(size=3), rotate_deg=rng.uniform(0, 90, 3))])
+    origins = rng.normal(size=(30, 3)) * 2.5
+    dirs = random_directions(rng, 200)
+    may = caster.may_hit(origins, dirs)
+    assert may.shape == (30, 200) and 0 < may.mean() < 1
+    hits = caster.closest_hit(origins[:, None], dirs[None])
+    assert not np.any(hits.hit & ~may)
+    normals = random_directions(rng, 30)
+    assert not np.any(caster.occluded(origins[:, None], dirs[None], normals=normals[:, None]) & ~may)
+    # a ray along the tangent of the sphere, from outside it, is kept; one a hair further out is not
+    centre, radius = caster._sphere
+    o = centre + np.array([0.0, 0.0, -3.0 * radius])
+    alpha = np.arcsin(1.0 / 3.0)  # the tangent's angle from the direction to the centre
+    tangent, beyond = (np.array([np.sin(a), 0.0, np.cos(a)]) for a in (alpha * (1 - 1e-9), alpha * 1.01))
+    outward = np.array([0.0, 0.0, -1.0])
+    np.testing.assert_array_equal(caster.may_hit(o[None], np.stack([tangent, beyond, outward])),
+                                  [[True, False, False]])
+    assert caster.may_hit(centre[None], outward[None]).all()  # inside the sphere: every ray
+
+
 # ------------------------------------------------------------------------- errors
 
 
