@@ -48,29 +48,47 @@ from prtlab import brdf, sh
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
-from ._kernels import project_hits_kernel
+from ._kernels import hit_basis_kernel, project_hits_kernel
 
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance"]
 
 _RAYS_PER_BATCH = 1 << 19
 
 
-def hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep) -> np.ndarray:
+def hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep, method: str = "numba") -> np.ndarray:
     """``S_(k,i) = h_k(-w_in) Psi_i`` (H, K, N) leaving the source toward the rays that hit it.
 
     ``hits`` are a :class:`prtlab.geometry.RayHits` whose entries ``sel`` (a tuple of index arrays, as
-    ``np.nonzero``) are rays of directions ``w_in`` (H, 3) that hit; ``Psi`` is interpolated barycentrically from the
-    vertices (``basis`` (N, n_vertices)) and is 0 where a ray meets the back of the surface (the shading
-    normal, interpolated from ``vertex_normals``, facing away from the ray's origin)."""
-    tri = faces[hits.triangle[sel]]  # (H, 3)
-    uv = hits.barycentric[sel]
-    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)  # (H, 3)
-    shading_n = np.einsum("hc,hcx->hx", bary, vertex_normals[tri])
-    shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
-    front = np.sum(shading_n * w_in, axis=1) < 0.0
-    psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
-    h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
+    ``np.nonzero``) are rays of directions ``w_in`` (H, 3) that hit; ``Psi`` is interpolated barycentrically
+    from the vertices (``basis`` (N, n_vertices)) and is 0 where a ray meets the back of the surface (the
+    shading normal, interpolated from ``vertex_normals``, facing away from the ray's origin). ``method``:
+    the parallel kernel (``"numba"``) or the numpy specification (``"reference"``); a Lambertian source's
+    constant ``h`` is not evaluated per hit.
+    """
+    tri = np.ascontiguousarray(faces[hits.triangle[sel]], dtype=np.int64)  # (H, 3)
+    uv = np.ascontiguousarray(hits.barycentric[sel], dtype=np.float64)
+    w_in = np.ascontiguousarray(w_in, dtype=np.float64)
+    if method == "reference":
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)  # (H, 3)
+        shading_n = np.einsum("hc,hcx->hx", bary, vertex_normals[tri])
+        shading_n /= np.maximum(np.linalg.norm(shading_n, axis=1, keepdims=True), 1e-300)
+        front = np.sum(shading_n * w_in, axis=1) < 0.0
+        psi = np.einsum("hc,nhc->hn", bary, basis[:, tri]) * front[:, None]  # (H, N)
+    else:
+        psi, shading_n = np.empty((len(tri), basis.shape[0])), np.empty((len(tri), 3))
+        hit_basis_kernel(tri, uv, np.ascontiguousarray(vertex_normals, dtype=np.float64),
+                         np.ascontiguousarray(basis, dtype=np.float64), w_in, psi, shading_n)
+    if method != "reference" and _constant_h(sep):
+        h = np.broadcast_to(sep.h(np.array([0.0, 0.0, 1.0])), (len(tri), sep.K))
+    else:
+        h = brdf.project_h(sep, -w_in, shading_n)  # (H, K)
     return h[:, :, None] * psi[:, None, :]
+
+
+def _constant_h(sep) -> bool:
+    """Whether ``h`` (one term, no azimuthal dependence, a constant radial table) is the same everywhere."""
+    h_radial = np.asarray(sep.h_radial)
+    return sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(h_radial) <= 1e-12 * max(np.abs(h_radial).max(), 1e-300)
 
 
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
@@ -130,7 +148,8 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
         if not len(at):
             continue
         sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
-        value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep).reshape(-1, n_k * n_b)
+        value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep,
+                                   method).reshape(-1, n_k * n_b)
         if method == "reference":
             dense = np.zeros((b - a, len(dirs), n_k * n_b))
             dense[sel] = value

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -94,3 +96,28 @@ def project_hits_kernel(starts, d_idx, value, wy, out):
                 if v != 0.0:
                     for i in range(n2):
                         out[p, m, i] += v * wy[d, i]
+
+
+@numba.njit(cache=True, parallel=True)
+def hit_basis_kernel(tri, uv, vertex_normals, basis, w_in, psi, shading_n):
+    """The source's basis functions at ray hits, 0 on back faces, and the hits' shading normals.
+
+    tri : (H, 3) hit triangle's vertices; uv : (H, 2) barycentrics (of vertices 1, 2)
+    vertex_normals : (V, 3); basis : (N, V) ``Psi_i`` at the vertices; w_in : (H, 3) ray directions
+    psi : (H, N) out, ``sum_c bary_c Psi_i(tri_c)`` where the shading normal faces the ray's origin, else 0
+    shading_n : (H, 3) out, the normalised barycentric blend of the vertex normals
+    """
+    n_b = basis.shape[0]
+    for h in numba.prange(tri.shape[0]):
+        b1, b2 = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - b1 - b2
+        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
+        nx = b0 * vertex_normals[i0, 0] + b1 * vertex_normals[i1, 0] + b2 * vertex_normals[i2, 0]
+        ny = b0 * vertex_normals[i0, 1] + b1 * vertex_normals[i1, 1] + b2 * vertex_normals[i2, 1]
+        nz = b0 * vertex_normals[i0, 2] + b1 * vertex_normals[i1, 2] + b2 * vertex_normals[i2, 2]
+        length = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+        nx, ny, nz = nx / length, ny / length, nz / length
+        shading_n[h, 0], shading_n[h, 1], shading_n[h, 2] = nx, ny, nz
+        front = nx * w_in[h, 0] + ny * w_in[h, 1] + nz * w_in[h, 2] < 0.0
+        for i in range(n_b):
+            psi[h, i] = (b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]) if front else 0.0

@@ -134,17 +134,19 @@ def test_self_basis_irradiance_against_monte_carlo():
 
 
 @settings(max_examples=15, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n_points=st.integers(0, 6))
-def test_projection_over_the_hits_equals_the_dense_reference_tier(seed, n_points):
-    """The hit-only numba projection and the dense float64 specification agree on a closed mesh seen from
-    inside and outside (some rays miss), for a glossy source (K = 2)."""
+@given(seed=st.integers(0, 2**32 - 1), n_points=st.integers(0, 6), glossy=st.booleans())
+def test_projection_over_the_hits_equals_the_dense_reference_tier(seed, n_points, glossy):
+    """The numba tier (hit kernel, hit-only projection, a Lambertian source's constant ``h``) and the dense
+    float64 specification agree on a closed mesh seen from inside and outside (some rays miss, some are
+    culled by the bounding sphere), for a glossy (K = 2) and a Lambertian source."""
     rng = np.random.default_rng(seed)
     mesh = builtin_mesh("icosphere", subdivisions=1)
     psi = rng.normal(size=(3, len(mesh.vertices)))
     points = rng.normal(size=(n_points, 3)) * rng.uniform(0.3, 3.0, size=(n_points, 1))
-    fast = basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, degree=15)
-    ref = basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, degree=15, method="reference")
-    assert fast.shape == (n_points, 2, 3, 16)
+    sep = GLOSSY if glossy else LAMBERT
+    fast = basis_radiance_at(mesh, psi, sep, points, ORDER, degree=15)
+    ref = basis_radiance_at(mesh, psi, sep, points, ORDER, degree=15, method="reference")
+    assert fast.shape == (n_points, sep.K, 3, 16)
     np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="method must be 'numba' or 'reference'"):
         basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, method="gpu")
