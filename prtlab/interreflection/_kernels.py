@@ -7,6 +7,8 @@ import math
 import numba
 import numpy as np
 
+from prtlab.sh._product_kernels import _tile_product
+
 
 @numba.njit(cache=True, parallel=True)
 def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
@@ -121,3 +123,54 @@ def hit_basis_kernel(tri, uv, vertex_normals, basis, w_in, psi, shading_n):
         front = nx * w_in[h, 0] + ny * w_in[h, 1] + nz * w_in[h, 2] < 0.0
         for i in range(n_b):
             psi[h, i] = (b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]) if front else 0.0
+
+
+@numba.njit(cache=True, parallel=True)
+def masked_product_kernel(vis, occ, at, rows, gi, gj, gk, gv):
+    """``vis[a] = P_n(vis[a] occ[rows[a]])`` in place for every ``a`` in ``at``: one occluder's factor of the
+    visibility product (``prtlab.sh.product`` truncated to the order of ``vis``) at the receiver rows it
+    may shadow, without gathering them first.
+
+    vis : (R, n2) visibility at the rows being computed; occ : (V, n2) the occluder's field at all receiver
+    vertices; at : (A,) positions in ``vis``; rows : (R,) receiver vertex of each position;
+    (gi, gj, gk, gv) the sparse Gaunt entries of order n.
+    """
+    n2 = vis.shape[1]
+    tile = 64
+    n_tiles = (at.shape[0] + tile - 1) // tile
+    for task in numba.prange(n_tiles):
+        start = task * tile
+        width = min(tile, at.shape[0] - start)
+        a_t = np.zeros((n2, tile))
+        b_t = np.zeros((n2, tile))
+        o_t = np.empty((n2, tile))
+        for q in range(width):
+            r = at[start + q]
+            for i in range(n2):
+                a_t[i, q] = vis[r, i]
+                b_t[i, q] = occ[rows[r], i]
+        _tile_product(a_t, b_t, gi, gj, gk, gv, o_t)
+        for q in range(width):
+            r = at[start + q]
+            for k in range(n2):
+                vis[r, k] = o_t[k, q]
+
+
+@numba.njit(cache=True, parallel=True)
+def may_block_kernel(x, occluder_centre, radius_sum, reach, source_centre, out):
+    """``out[v]``: whether an occluder (bounding sphere about ``occluder_centre``, its field reaching ``reach``
+    from it) may block a ray from ``x[v]`` to a source (centre ``source_centre``): the occluder's centre is
+    within ``radius_sum`` (occluder radius + source radius) of the segment ``x[v] -> source_centre`` and
+    within ``reach`` of ``x[v]``. The specification is ``Interreflection._may_block`` (``method="reference"``).
+    """
+    cx, cy, cz = occluder_centre[0], occluder_centre[1], occluder_centre[2]
+    sx, sy, sz = source_centre[0], source_centre[1], source_centre[2]
+    for v in numba.prange(x.shape[0]):
+        px, py, pz = x[v, 0], x[v, 1], x[v, 2]
+        dx, dy, dz = sx - px, sy - py, sz - pz
+        ox, oy, oz = cx - px, cy - py, cz - pz
+        t = (ox * dx + oy * dy + oz * dz) / max(dx * dx + dy * dy + dz * dz, 1e-300)
+        t = min(max(t, 0.0), 1.0)
+        gx, gy, gz = px + t * dx - cx, py + t * dy - cy, pz + t * dz - cz
+        out[v] = (gx * gx + gy * gy + gz * gz <= radius_sum * radius_sum) and (ox * ox + oy * oy + oz * oz
+                                                                               <= reach * reach)

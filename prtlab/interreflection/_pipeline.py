@@ -108,6 +108,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import brdf, pca, sh
+from prtlab.sh._gaunt import _gaunt_block
 from prtlab._validate import check_choice
 from prtlab.geometry import RayCaster, offset_origins, shading_points
 from prtlab.pipeline import FrameState, Precomputation, check_int_options, scene_geometry_key_parts
@@ -129,6 +130,7 @@ from prtlab.shadowfields import (
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
+from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -491,14 +493,21 @@ class Interreflection(Precomputation):
         return np.einsum("vi,vi->v", d, d) <= go["reach"] ** 2
 
     @staticmethod
-    def _may_block(x, go, gs) -> np.ndarray:
+    def _may_block(x, go, gs, method: str = "numba") -> np.ndarray:
         """(V,) bool: the points from which ``go`` may block a ray toward ``gs``.
 
         A ray from ``x`` that reaches the source's bounding sphere (centre ``c_s``, radius ``R_s``)
         stays inside the capsule of radius ``R_s`` about the segment ``x c_s``; an occluder whose
         bounding sphere misses that capsule, or whose field does not reach ``x``, blocks none of the
-        directions in which the source's basis radiance is non-zero.
+        directions in which the source's basis radiance is non-zero. ``method``: the parallel kernel or
+        ``"reference"`` (numpy, below).
         """
+        if method != "reference":
+            out = np.empty(len(x), dtype=np.bool_)
+            may_block_kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(go["center"], np.float64),
+                             float(go["radius"] + gs["radius"]), float(go["reach"]),
+                             np.asarray(gs["center"], np.float64), out)
+            return out
         d = gs["center"] - x
         t = np.clip(np.einsum("vi,vi->v", go["center"] - x, d) / np.maximum(np.einsum("vi,vi->v", d, d), 1e-300),
                     0.0, 1.0)
@@ -506,16 +515,22 @@ class Interreflection(Precomputation):
         return (np.einsum("vi,vi->v", gap, gap) <= (go["radius"] + gs["radius"]) ** 2) & Interreflection._within_reach(
             x, go)
 
-    def _visibility(self, g, occ_r, factors, rows):
+    def _visibility(self, g, occ_r, factors, rows, method: str = "numba"):
         """``V_j`` at ``rows`` of receiver ``g``: its self-visibility times each ``(name, mask)`` factor's occlusion
         (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is 1 and its
-        product is skipped."""
+        product is skipped. ``method``: the in-place kernel or ``"reference"`` (``prtlab.sh.product``)."""
         order = self.options.order
-        vis = g["self"][rows]
+        vis = np.ascontiguousarray(g["self"][rows])
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
         for name, mask in factors:
             at = np.flatnonzero(mask)
-            if len(at):
+            if not len(at):
+                continue
+            if method == "reference":
                 vis[at] = sh.product(vis[at], occ_r[name][rows[at]], order, channels=False)
+            else:
+                masked_product_kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *_gaunt_block(order, order,
+                                                                                                      order))
         return vis
 
     def _transfer(self, visibility, g_cos):

@@ -15,6 +15,8 @@ import functools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import prtlab
 from prtlab.interreflection import Interreflection, InterreflectionOptions, shade_scene
@@ -109,6 +111,41 @@ def test_moving_an_object_recomputes_only_the_pairs_it_touches(pre):
     fresh = Interreflection(sc, pre.options, data).shade(state, bounces=1)
     for name in ("floor", "ball", "far"):
         np.testing.assert_allclose(moved.total[name], fresh.total[name], rtol=1e-12, atol=1e-15)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_factors=st.integers(0, 3))
+def test_visibility_product_kernel_equals_the_product_tier(pre, seed, n_factors):
+    """The in-place masked product (``_visibility``'s kernel) equals ``prtlab.sh.product`` applied to the
+    masked rows, factor after factor, at any subset of rows (empty included)."""
+    rng = np.random.default_rng(seed)
+    n_v, n2 = 50, pre.options.order ** 2
+    g = {"self": rng.normal(size=(n_v, n2))}
+    occ = {f"o{i}": rng.normal(size=(n_v, n2)) for i in range(n_factors)}
+    rows = np.sort(rng.choice(n_v, size=int(rng.integers(0, n_v)), replace=False))
+    factors = [(name, rng.random(len(rows)) < 0.6) for name in occ]
+    fast = pre._visibility(g, occ, factors, rows)
+    ref = pre._visibility(g, occ, factors, rows, method="reference")
+    np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_may_block_kernel_equals_the_numpy_tier(seed):
+    """The capsule test of ``_may_block`` (numba) equals its numpy specification, including points on the
+    source's centre (a zero-length segment) and on the capsule's boundary up to rounding."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(300, 3)) * 2.0
+    go = {"center": rng.normal(size=3), "radius": float(rng.uniform(0.1, 1.0)), "reach": float(rng.uniform(0.5, 4))}
+    gs = {"center": rng.normal(size=3), "radius": float(rng.uniform(0.1, 1.0))}
+    x[0] = gs["center"]
+    x[1] = go["center"] + 0.01 * (go["center"] - gs["center"])  # just behind the occluder: it may block
+    x[2] = gs["center"] + (gs["center"] - go["center"]) * (go["reach"] + 1.0) / max(
+        np.linalg.norm(gs["center"] - go["center"]), 1e-9)  # beyond the source, out of the field's reach
+    fast = Interreflection._may_block(x, go, gs)
+    ref = Interreflection._may_block(x, go, gs, method="reference")
+    assert fast.dtype == bool and fast.shape == (300,)
+    assert np.mean(fast == ref) >= 0.99 and fast[1] and not fast[2]
 
 
 def test_threshold_skips_pairs(pre):
