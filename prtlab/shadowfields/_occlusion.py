@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import sh
-from prtlab._validate import check_int, check_order
+from prtlab._validate import as_points, check_int, check_order
 from prtlab.geometry import RayCaster
 
 from ._grid import SphereGrid, interpolate_field, sphere_grid
@@ -168,21 +168,24 @@ class OcclusionField:
         coeffs : (..., order**2) float64
             Beyond the outermost sphere: the constant 1 (unoccluded).
         """
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim == 0 or points.shape[-1] != 3:
-            raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+        points = as_points(points)
         R = None
         local = points
         if transform is not None:
             R = np.asarray(transform.rotation, dtype=np.float64)
             local = ((points - transform.translate) @ R) / float(transform.scale)
-        out, beyond = interpolate_field(self.grid, self.coeffs, local, method=method)
-        if R is not None and not np.allclose(R, np.eye(3), rtol=0.0, atol=1e-15) and out.size:
-            out = sh.rotate(out, R, channels=False)
-        if np.any(beyond):
-            out[beyond] = 0.0
-            out[beyond, 0] = _SQRT4PI
-        return out
+        batch = local.shape[:-1]
+        flat = local.reshape(-1, 3)
+        gap = flat - self.grid.center
+        inside = np.einsum("vi,vi->v", gap, gap) <= self.grid.radii[-1] ** 2  # beyond: exactly unoccluded
+        out = np.zeros((len(flat), self.coeffs.shape[-1]))
+        out[:, 0] = _SQRT4PI
+        if np.any(inside):
+            values, _ = interpolate_field(self.grid, self.coeffs, flat[inside], method=method)
+            if R is not None and not np.allclose(R, np.eye(3), rtol=0.0, atol=1e-15):
+                values = sh.rotate(values, R, channels=False)
+            out[inside] = values
+        return out.reshape(batch + out.shape[-1:])
 
     def to_arrays(self) -> dict:
         return {"grid": self.grid.to_arrays(), "order": np.int64(self.order), "coeffs": self.coeffs}

@@ -163,3 +163,5 @@ def test_errors(sphere_oof):
         self_visibility(SPHERE, 2, normals=np.zeros((3, 3)))
     with pytest.raises(ValueError, match="points must be a"):
         sphere_oof.lookup(np.zeros(3)[:2])
+    with pytest.raises(ValueError, match="points contains NaN or inf"):
+        sphere_oof.lookup([[np.nan, 0.0, 0.0]])
