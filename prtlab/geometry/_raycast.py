@@ -406,16 +406,30 @@ class RayCaster:
 
     def may_hit(self, origins, dirs) -> np.ndarray:
         """(P, D) bool: whether the ray from each of ``origins`` (P, 3) along each unit direction of ``dirs``
-        (D, 3) meets the geometry's bounding sphere (an origin inside it: every ray). A ray for which it is
-        False hits nothing, so casting it can be skipped. The sphere is widened by :attr:`epsilon` (the
-        origin offset of ``normals=``) and a relative ``1e-6`` (Embree's float32 arithmetic)."""
+        (D, 3) meets both the geometry's bounding sphere and its bounding box (an origin inside one: every
+        ray passes that test). A ray for which it is False hits nothing, so casting it can be skipped. Both
+        are widened by :attr:`epsilon` (the origin offset of ``normals=``) and a relative ``1e-6``
+        (Embree's float32 arithmetic); a flat object's box is then a thin slab that rays leaving its side
+        miss."""
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
         centre, radius = self._sphere
-        radius = radius * (1.0 + 1e-6) + self.epsilon + 1e-12
-        to_c = centre - np.asarray(origins, dtype=np.float64).reshape(-1, 3)  # (P, 3)
+        margin = 1e-6 * radius + self.epsilon + 1e-12
+        radius += margin
+        to_c = centre - o  # (P, 3)
         dist2 = np.einsum("pi,pi->p", to_c, to_c)
-        along = to_c @ np.asarray(dirs, dtype=np.float64).reshape(-1, 3).T  # (P, D): t of the closest approach
-        inside = dist2 <= radius * radius
-        return inside[:, None] | ((along > 0.0) & (dist2[:, None] - along * along <= radius * radius))
+        along = to_c @ d.T  # (P, D): t of the closest approach
+        sphere = (dist2 <= radius * radius)[:, None] | ((along > 0.0) & (dist2[:, None] - along * along
+                                                                          <= radius * radius))
+        lo, hi = self._bounds[0] - margin, self._bounds[1] + margin
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d  # (D, 3), inf along an axis the ray is parallel to
+            t1 = (lo - o)[:, None, :] * inv[None]  # (P, D, 3)
+            t2 = (hi - o)[:, None, :] * inv[None]
+            enter = np.max(np.fmin(t1, t2), axis=2)
+            leave = np.min(np.fmax(t1, t2), axis=2)
+        box = ~(leave < np.maximum(enter, 0.0))  # slab test; NaN (0 * inf on a slab face) keeps the ray
+        return sphere & box
 
     @property
     def epsilon(self) -> float:

@@ -201,15 +201,24 @@ def test_a_ray_that_may_not_hit_hits_nothing(seed):
     assert not np.any(hits.hit & ~may)
     normals = random_directions(rng, 30)
     assert not np.any(caster.occluded(origins[:, None], dirs[None], normals=normals[:, None]) & ~may)
-    # a ray along the tangent of the sphere, from outside it, is kept; one a hair further out is not
+    # from outside: a ray at the centre is kept, one just past the bounding sphere's tangent is not
     centre, radius = caster._sphere
     o = centre + np.array([0.0, 0.0, -3.0 * radius])
     alpha = np.arcsin(1.0 / 3.0)  # the tangent's angle from the direction to the centre
-    tangent, beyond = (np.array([np.sin(a), 0.0, np.cos(a)]) for a in (alpha * (1 - 1e-9), alpha * 1.01))
-    outward = np.array([0.0, 0.0, -1.0])
-    np.testing.assert_array_equal(caster.may_hit(o[None], np.stack([tangent, beyond, outward])),
+    at_centre, outward = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    beyond = np.array([np.sin(1.01 * alpha), 0.0, np.cos(1.01 * alpha)])
+    np.testing.assert_array_equal(caster.may_hit(o[None], np.stack([at_centre, beyond, outward])),
                                   [[True, False, False]])
-    assert caster.may_hit(centre[None], outward[None]).all()  # inside the sphere: every ray
+    assert caster.may_hit(centre[None], outward[None]).all()  # inside the sphere and the box: every ray
+
+
+def test_rays_leaving_a_flat_objects_side_may_not_hit_it():
+    """A floor's bounding box is a thin slab: from above it, only rays going down may hit it."""
+    floor = trimesh.Trimesh([[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2]], [[0, 2, 1], [0, 3, 2]])
+    caster = RayCaster([floor])
+    dirs = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.6, -0.8, 0.0], [0.6, 0.8, 0.0]])
+    np.testing.assert_array_equal(caster.may_hit(np.array([[0.0, 0.5, 0.0]]), dirs),
+                                  [[False, True, False, True, False]])
 
 
 # ------------------------------------------------------------------------- errors
