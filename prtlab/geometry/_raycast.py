@@ -136,6 +136,35 @@ def _as_rays(origins, dirs, normals=None):
 
 
 @numba.njit(cache=True, parallel=True)
+def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
+    """``out[p, d]``: the ray meets the sphere ``(centre, radius)`` and the box ``[lo, hi]`` (see ``may_hit``)."""
+    r2 = radius * radius
+    for p in numba.prange(origins.shape[0]):
+        ox, oy, oz = origins[p, 0], origins[p, 1], origins[p, 2]
+        cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+        dist2 = cx * cx + cy * cy + cz * cz
+        for j in range(dirs.shape[0]):
+            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            along = cx * dx + cy * dy + cz * dz
+            ok = dist2 <= r2 or (along > 0.0 and dist2 - along * along <= r2)
+            if ok:  # slab test: the ray's parameter interval inside the box is not empty
+                enter, leave = 0.0, np.inf
+                for axis in range(3):
+                    start = (ox, oy, oz)[axis]
+                    step = (dx, dy, dz)[axis]
+                    if step == 0.0:
+                        if start < lo[axis] or start > hi[axis]:
+                            ok = False
+                    else:
+                        t1 = (lo[axis] - start) / step
+                        t2 = (hi[axis] - start) / step
+                        enter = max(enter, min(t1, t2))
+                        leave = min(leave, max(t1, t2))
+                ok = ok and enter <= leave
+            out[p, j] = ok
+
+
+@numba.njit(cache=True, parallel=True)
 def _stage_rays(origins, dirs, normals, epsilon, tnear, o32, d32):
     """Unit float32 directions and float32 origins, offset off their surface and then ``tnear``
     along the ray; returns (#non-finite, #zero dirs)."""
@@ -411,25 +440,13 @@ class RayCaster:
         are widened by :attr:`epsilon` (the origin offset of ``normals=``) and a relative ``1e-6``
         (Embree's float32 arithmetic); a flat object's box is then a thin slab that rays leaving its side
         miss."""
-        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-        d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+        o = np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3))
+        d = np.ascontiguousarray(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))
         centre, radius = self._sphere
         margin = 1e-6 * radius + self.epsilon + 1e-12
-        radius += margin
-        to_c = centre - o  # (P, 3)
-        dist2 = np.einsum("pi,pi->p", to_c, to_c)
-        along = to_c @ d.T  # (P, D): t of the closest approach
-        sphere = (dist2 <= radius * radius)[:, None] | ((along > 0.0) & (dist2[:, None] - along * along
-                                                                          <= radius * radius))
-        lo, hi = self._bounds[0] - margin, self._bounds[1] + margin
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d  # (D, 3), inf along an axis the ray is parallel to
-            t1 = (lo - o)[:, None, :] * inv[None]  # (P, D, 3)
-            t2 = (hi - o)[:, None, :] * inv[None]
-            enter = np.max(np.fmin(t1, t2), axis=2)
-            leave = np.min(np.fmax(t1, t2), axis=2)
-        box = ~(leave < np.maximum(enter, 0.0))  # slab test; NaN (0 * inf on a slab face) keeps the ray
-        return sphere & box
+        out = np.empty((len(o), len(d)), dtype=np.bool_)
+        _may_hit_kernel(o, d, centre, radius + margin, self._bounds[0] - margin, self._bounds[1] + margin, out)
+        return out
 
     @property
     def epsilon(self) -> float:
