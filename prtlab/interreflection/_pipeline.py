@@ -701,14 +701,26 @@ class Interreflection(Precomputation):
         phi[at] = np.einsum("vkni,vqi->vqkn", S, t_obj)
         return len(at)
 
-    def _near_cast(self, s, local, grid):
-        """The near points (indices into ``local``, object frame of ``s``) and their cast ``S`` (v, K, N, n2)."""
+    def _near_points(self, s, local, grid) -> np.ndarray:
+        """Indices of the points ``local`` (object frame of ``s``) whose distance to the source's surface (its
+        nearest vertex) is below ``near_field`` times their distance to its centre.
+
+        The distance to the nearest vertex is at least the distance to the bounding sphere
+        (``|x - c| - R``), so only the points with ``|x - c| - R < near_field |x - c|`` are looked up."""
+        dist = np.linalg.norm(local - grid.center, axis=1)
+        candidates = np.flatnonzero(dist - grid.radius < self.options.near_field * dist)
+        if len(candidates) == 0:
+            return candidates
         if s.name not in self._trees:
             from scipy.spatial import cKDTree
 
             self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
-        gap, _ = self._trees[s.name].query(local)  # distance to the source's nearest vertex
-        near = np.flatnonzero(gap < self.options.near_field * np.linalg.norm(local - grid.center, axis=1))
+        gap, _ = self._trees[s.name].query(local[candidates])  # distance to the source's nearest vertex
+        return candidates[gap < self.options.near_field * dist[candidates]]
+
+    def _near_cast(self, s, local, grid):
+        """The near points (indices into ``local``, object frame of ``s``) and their cast ``S`` (v, K, N, n2)."""
+        near = self._near_points(s, local, grid)
         S = np.zeros((0,))
         if len(near):
             if s.name not in self._casters:
@@ -760,12 +772,7 @@ class Interreflection(Precomputation):
         local = _to_object(g["x"], T)
         near = np.zeros(len(local), bool)
         if self.options.near_field > 0 and len(local):
-            if s.name not in self._trees:
-                from scipy.spatial import cKDTree
-
-                self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
-            gap, _ = self._trees[s.name].query(local)
-            near = gap < self.options.near_field * np.linalg.norm(local - field.grid.center, axis=1)
+            near[self._near_points(s, local, field.grid)] = True
         out = np.empty((len(local), self.seps[r.name].K) + field.n_terms)
         step = 256
         caster = None
