@@ -88,7 +88,8 @@ def hit_basis_radiance(hits, sel, w_in, faces, vertex_normals, basis, sep, metho
 def _constant_h(sep) -> bool:
     """Whether ``h`` (one term, no azimuthal dependence, a constant radial table) is the same everywhere."""
     h_radial = np.asarray(sep.h_radial)
-    return sep.K == 1 and int(sep.freq[0]) == 0 and np.ptp(h_radial) <= 1e-12 * max(np.abs(h_radial).max(), 1e-300)
+    flat = np.ptp(h_radial) <= 1e-12 * max(np.abs(h_radial).max(), 1e-300)
+    return sep.K == 1 and int(sep.freq[0]) == 0 and bool(flat)
 
 
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,

@@ -108,11 +108,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import brdf, pca, sh
-from prtlab.sh._gaunt import _gaunt_block
 from prtlab._validate import check_choice
 from prtlab.geometry import RayCaster, offset_origins, shading_points
 from prtlab.pipeline import FrameState, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
+from prtlab.sh._gaunt import _gaunt_block
 from prtlab.shadowfields import (
     OcclusionField,
     area_light_sh,
@@ -520,6 +520,7 @@ class Interreflection(Precomputation):
         (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is 1 and its
         product is skipped. ``method``: the in-place kernel or ``"reference"`` (``prtlab.sh.product``)."""
         order = self.options.order
+        gaunt = _gaunt_block(order, order, order)
         vis = np.ascontiguousarray(g["self"][rows])
         rows = np.ascontiguousarray(rows, dtype=np.int64)
         for name, mask in factors:
@@ -529,8 +530,7 @@ class Interreflection(Precomputation):
             if method == "reference":
                 vis[at] = sh.product(vis[at], occ_r[name][rows[at]], order, channels=False)
             else:
-                masked_product_kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *_gaunt_block(order, order,
-                                                                                                      order))
+                masked_product_kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
         return vis
 
     def _transfer(self, visibility, g_cos):
@@ -646,7 +646,8 @@ class Interreflection(Precomputation):
         """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on receiver ``r``.
 
         The basis irradiance of a plane at the receiver's bounding-sphere centre facing the
-        source's centre (unoccluded), from the interpolated basis radiance field. A receiver vertex ``x`` at most ``R_r`` from that centre,
+        source's centre (unoccluded), from the interpolated basis radiance field. A receiver vertex ``x`` at
+        most ``R_r`` from that centre,
         with the source ``d`` away, sees the source's radiance over a solid angle at most
         ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
         (visibility only lowers it), up to the SH truncation of both sides.
