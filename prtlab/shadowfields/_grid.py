@@ -41,7 +41,7 @@ import numpy as np
 from prtlab._validate import check_int
 from prtlab.geometry import cubemap_directions, direction_to_cubemap
 
-from ._kernels import trilinear_kernel, trilinear_numpy
+from ._kernels import trilinear_kernel
 
 __all__ = ["SphereGrid", "sphere_grid", "interpolate_field", "bounding_sphere"]
 
@@ -230,10 +230,11 @@ def interpolate_field(grid: SphereGrid, values, points, method: str = "numba") -
         raise ValueError("points contain NaN or inf; pass finite points")
     batch, trail = points.shape[:-1], values.shape[4:]
     flat = np.ascontiguousarray(values.reshape(grid.shape + (-1,)))
-    rpos, face, s, t, beyond = grid.locate(points)
     if method == "reference":
-        out = trilinear_numpy(flat, rpos, face, s, t)
+        corners, weights, beyond = grid.trilinear_corners(points)
+        out = np.einsum("qc,qcf->qf", weights, flat.reshape(-1, flat.shape[-1])[corners])
     else:
+        rpos, face, s, t, beyond = grid.locate(points)
         out = np.empty((len(rpos), flat.shape[-1]))
         if len(rpos):
             trilinear_kernel(flat, rpos, face, s, t, out)

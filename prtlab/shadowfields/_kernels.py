@@ -63,28 +63,6 @@ def trilinear_kernel(values, rpos, face, s, t, out):
             out[q, k] = acc
 
 
-def trilinear_numpy(values, rpos, face, s, t):
-    """The float64 numpy specification of :func:`trilinear_kernel`; returns (Q, F)."""
-    n_r, _, res = values.shape[:3]
-    r0 = np.clip(np.floor(rpos).astype(np.int64), 0, n_r - 1)
-    fr = rpos - r0
-    r1 = np.minimum(r0 + 1, n_r - 1)
-    x = np.clip(s * res - 0.5, 0.0, res - 1.0)
-    y = np.clip(t * res - 0.5, 0.0, res - 1.0)
-    j0 = np.floor(x).astype(np.int64)
-    i0 = np.floor(y).astype(np.int64)
-    fj, fi = (x - j0)[:, None], (y - i0)[:, None]
-    j1 = np.minimum(j0 + 1, res - 1)
-    i1 = np.minimum(i0 + 1, res - 1)
-
-    def bilinear(rr):
-        return (1 - fi) * ((1 - fj) * values[rr, face, i0, j0] + fj * values[rr, face, i0, j1]) + fi * (
-            (1 - fj) * values[rr, face, i1, j0] + fj * values[rr, face, i1, j1]
-        )
-
-    return (1 - fr)[:, None] * bilinear(r0) + fr[:, None] * bilinear(r1)
-
-
 @numba.njit(cache=True, parallel=True)
 def project_visibility_kernel(blocked, wy, out):
     """SH of visibility: ``out[p] = sum_d (1 - blocked[p, d]) wy[d]``.
