@@ -8,6 +8,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 
+# Tests never read or write the user's cache: every precomputation a test caches goes to a folder of
+# this checkout (shared by the xdist workers of one run; entries are keyed by the code that made them).
+os.environ["PRTLAB_CACHE"] = os.environ.get(
+    "PRTLAB_TEST_CACHE", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".pytest_cache",
+                                      "prtlab-cache")
+)
+
 # One place for tolerances (per dtype), as e3nn's FLOAT_TOLERANCE.
 FLOAT_TOLERANCE = {np.float64: 1e-10, np.float32: 1e-4}
 
