@@ -5,6 +5,7 @@ Entry points::
     scene = prtlab.load_scene("scene.yaml")
     res = prtlab.shade(scene, method="reference", bounces=1)
     img = prtlab.render_image(scene, res)
+    print(prtlab.compare(res, reference).table())   # per-object errors (prtlab.metrics)
 
 Building blocks live in subpackages: :mod:`prtlab.sh`, :mod:`prtlab.wavelet`,
 :mod:`prtlab.brdf`, :mod:`prtlab.pca`, :mod:`prtlab.geometry`,
@@ -22,7 +23,7 @@ __version__ = "0.1.0"
 
 _SUBPACKAGES = {
     "sh", "wavelet", "brdf", "pca", "geometry", "scene", "shadowfields", "interreflection",
-    "spherelights", "portals", "reference", "render", "cache", "pipeline", "api",
+    "spherelights", "portals", "reference", "render", "cache", "pipeline", "api", "metrics",
 }
 _API = {
     "load_scene": "prtlab.scene",
@@ -31,6 +32,7 @@ _API = {
     "shade": "prtlab.api",
     "render_image": "prtlab.api",
     "precompute": "prtlab.api",
+    "compare": "prtlab.metrics",
 }
 
 __all__ = sorted(_SUBPACKAGES | set(_API))
