@@ -98,7 +98,25 @@ def test_local_frame_default_is_z(rng):
     np.testing.assert_array_equal(b.eval(wi, wo), b.eval(wi, wo, [0.0, 0.0, 1.0]))
 
 
-# --------------------------------------------------------------------------- outside references
+# --------------------------------------------------------------------------- closed forms
+
+
+@pytest.mark.parametrize("exponent", [0.0, 3.0, 10.0, 64.0])
+def test_albedo_at_normal_incidence_is_kd_plus_ks(exponent):
+    """At ``wi = n`` the mirror direction is ``n``, so the normalised lobe integrates in closed form:
+    ``int (e+2)/(2 pi) cos^e(theta) cos(theta) dw = 1`` and ``int kd/pi cos dw = kd``: albedo ``kd + ks``."""
+    kd, ks = np.array([0.2, 0.4, 0.1]), np.array([0.7, 0.3, 0.5])
+    mu, weight = np.polynomial.legendre.leggauss(200)
+    mu, weight = 0.5 * (mu + 1.0), 0.5 * weight                      # Gauss-Legendre on cos(theta) in [0, 1]
+    wo = np.stack([np.sqrt(1.0 - mu**2), np.zeros_like(mu), mu], axis=1)  # the integrand does not depend on phi
+    f = phong(kd, ks, exponent).eval(np.tile([0.0, 0.0, 1.0], (len(mu), 1)), wo)
+    albedo = 2.0 * np.pi * np.sum(f * (mu * weight)[:, None], axis=0)
+    np.testing.assert_allclose(albedo, kd + ks, rtol=1e-12)
+
+
+# --------------------------------------------------------------------------- the other implementations
+# The same Phong formula as written by the Monte Carlo estimator and the Mitsuba adapter (in-repo code,
+# not outside references): all three must agree to rounding, so a fix in one reaches the others.
 
 
 @pytest.mark.parametrize("exponent", [0.0, 3.0, 10.0, 64.0])

@@ -103,8 +103,9 @@ def test_grid_error_and_reconstruction_match_dense_truncation(e):
 def test_exact_at_full_rank_on_the_grid(kd, ks):
     b = phong(kd, ks, 12.0)
     probe = separable(b, 1, resolution=SMALL)
-    K = len(probe.singular_values) + (0 if probe.colour[0, 0] == probe.colour[0, 0] and np.allclose(
-        np.array(kd) * np.mean(ks), np.array(ks) * np.mean(kd)) else 1)
+    # one colour per term when kd and ks have the same chromaticity; otherwise one more term for the second colour
+    same_colour = np.allclose(np.array(kd) * np.mean(ks), np.array(ks) * np.mean(kd))
+    K = len(probe.singular_values) + (0 if same_colour else 1)
     sep = separable(b, K, resolution=SMALL)
     assert np.all(sep.relative_error() < 1e-10)
     d = _grid_dirs(sep.theta_in, SMALL[1])

@@ -54,16 +54,14 @@ def test_shade_frame_environment_changes(pre):
 
 def test_shade_scene_entry_point():
     import prtlab.api
-    from prtlab.api import METHODS
     from prtlab.portals import shade_scene
 
     opts = {k: v for k, v in QUICK.items() if k != "bounces"}
     scene = window_box(cell=0.5)
     res = shade_scene(scene, bounces=1, cache=False, progress=False, **opts)
     assert res.info["bounces"] == 1 and res.total["room"].shape == (scene.objects[0].n_vertices, 3)
-    if METHODS["portals"] == ("prtlab.portals", "shade_scene"):
-        again = prtlab.shade(scene, method="portals", bounces=1, cache=False, progress=False, **opts)
-        np.testing.assert_array_equal(again.total["room"], res.total["room"])
+    again = prtlab.api.shade(scene, method="portals", bounces=1, cache=False, progress=False, **opts)
+    np.testing.assert_array_equal(again.total["room"], res.total["room"])
 
 
 def test_errors(pre):

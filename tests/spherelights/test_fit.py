@@ -22,9 +22,17 @@ def test_one_sphere_fits_a_sphere_mesh():
     # the bounding sphere of an icosphere inscribed in the unit sphere is the unit sphere
     assert abs(fit.radii[0] - 1.0) < 0.02
     assert fit.coverage == 1.0
-    # outside volume: the unit ball minus the polyhedron (exact), up to the grid estimate
-    exact = 4.0 / 3.0 * np.pi - mesh.volume
-    assert abs(fit.outside_volume - exact) < 0.1 * (4.0 / 3.0 * np.pi)
+
+
+def test_outside_volume_is_exact_where_the_grid_is():
+    """A 2 x 2 x 2 box on a 24-cell grid: the cell midpoints count the box's volume exactly (8), so the
+    outside volume of one sphere is the closed form ``4/3 pi R^3 - 8`` with ``R = sqrt(3)`` at the centre."""
+    box = builtin_mesh("box", size=[2.0, 2.0, 2.0], subdivisions=2)
+    fit = fit_spheres(box, 1, grid_resolution=24)
+    np.testing.assert_allclose(fit.centres[0], 0.0, atol=1e-3)
+    np.testing.assert_allclose(fit.radii[0], np.sqrt(3.0), rtol=1e-3)
+    assert fit.outside_volume == pytest.approx(4.0 / 3.0 * np.pi * fit.radii[0] ** 3 - 8.0, rel=1e-12)
+    assert fit.outside_volume == pytest.approx(4.0 / 3.0 * np.pi * 3.0**1.5 - 8.0, rel=1e-2)
 
 
 def test_coverage_is_exact_on_surface_samples(capsule_like, rng):
