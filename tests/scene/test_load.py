@@ -381,5 +381,5 @@ def test_environment_file_with_negative_radiance(tmp_path):
     write_exr(tmp_path / "neg.exr", -np.ones((4, 8, 3)))
     d = base_dict()
     d["lights"][0] = {"type": "environment", "file": "neg.exr"}
-    with pytest.raises(SceneError, match=r"lights\[0\]\.file: environment map has NaN, inf or negative radiance"):
+    with pytest.raises(SceneError, match=r"lights\[0\]\.file: environment map .neg\.exr. has 32 pixels with negative radiance \(the first at row 0, column 0"):
         Scene.from_dict(d, base_dir=tmp_path)
