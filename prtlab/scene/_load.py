@@ -84,7 +84,7 @@ def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool
         key = loader.construct_object(key_node, deep=deep)
         if key in out:
             raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r}", key_node.start_mark
+                None, None, f"duplicate key {show(key)}", key_node.start_mark
             )
         out[key] = loader.construct_object(value_node, deep=deep)
     return out
@@ -151,6 +151,8 @@ def _read_yaml(path: Path) -> Any:
             "(MAX_SCENE_BYTES); keep meshes and maps in their own files and refer to them by path"
         )
     raw = path.read_bytes()
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise SceneError(f"{source}: not a UTF-8 text file (it is UTF-16, by its byte-order mark); save it as UTF-8")
     if b"\x00" in raw:
         raise SceneError(f"{source}: not a UTF-8 text file (it holds NUL bytes); a scene file is YAML text")
     try:
@@ -316,7 +318,7 @@ def scene_from_dict(d: Any, base_dir=None, source: str | None = None, default_na
         if plan["name"] in seen:
             raise v.error(
                 child(index("objects", i), "name"),
-                f"duplicate object name {plan['name']!r} (also objects[{seen[plan['name']]}]); names must be unique",
+                f"duplicate object name {show(plan['name'])} (also objects[{seen[plan['name']]}]); names must be unique",
             )
         seen[plan["name"]] = i
         object_plans.append(plan)
@@ -510,7 +512,7 @@ def _warn_if_inward(v: Validator, path: str, obj: SceneObject, camera: Camera) -
         return  # a room seen from inside: inward faces are what it needs
     warnings.warn(
         InwardNormalsWarning(
-            f"{v.source}: {path} ({obj.name!r}): the mesh is closed but its faces point inward (signed volume "
+            f"{v.source}: {path} ({show(obj.name)}): the mesh is closed but its faces point inward (signed volume "
             f"{volume:.3g} < 0), so seen from outside it shades black; flip its faces (reverse each face's "
             "vertex order, trimesh's mesh.invert()), or place the camera inside it if it is a room"
         ),
@@ -576,7 +578,7 @@ def _check_animated_placements(v: Validator, animation: dict, object_plans: list
             if not _placement_bound(obj.mesh, moved) <= MAX_COORDINATE:
                 raise v.error(
                     index(child(index("animation.tracks", k), "keys"), j),
-                    f"places object {obj.name!r} beyond world coordinates +-{MAX_COORDINATE:g} (MAX_COORDINATE); "
+                    f"places object {show(obj.name)} beyond world coordinates +-{MAX_COORDINATE:g} (MAX_COORDINATE); "
                     "use a smaller scale or translate",
                 )
 
@@ -701,12 +703,13 @@ def _check_environment_image(v: Validator, image: np.ndarray, path: str, name: s
 def _check_scale(v: Validator, image: np.ndarray, scale: float, path: str) -> None:
     """``scale`` times the map must stay finite, and so must its sum over the sphere."""
     with np.errstate(over="ignore", invalid="ignore"):
-        total = float(np.sum(image, dtype=np.float64)) * scale
+        raw = float(np.sum(image, dtype=np.float64))
+        total = raw * scale
+    if not np.isfinite(raw):
+        raise v.error(path, f"values up to {float(np.max(image)):.3g} make the map's total radiance overflow float64; use smaller values")
     if not np.isfinite(total):
         raise v.error(
-            path,
-            f"scale {show(scale)} times the map (total {float(np.sum(image)):.3g} over its pixels) overflows "
-            "float64; use a smaller scale",
+            path, f"scale {show(scale)} times the map (total {raw:.3g} over its pixels) overflows float64; use a smaller scale"
         )
 
 
