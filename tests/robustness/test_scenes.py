@@ -214,6 +214,9 @@ _KEY_CASES = [
     ("huge-env-constant", "lights.0.constant", [1e308, 1, 1], r"lights\[0\]\.constant: values up to 1e\+308 make the map's total radiance overflow float64"),
     ("huge-plane-resolution", "objects.0.mesh.resolution", [100000, 100000], r"objects\[0\]\.mesh: builtin 'plane': resolution \[100000, 100000\] makes about 10,000,200,001 vertices, above the 4,100,000 limit"),
     ("huge-box-subdivisions", "objects.1.mesh", {"builtin": "box", "subdivisions": 40}, r"objects\[1\]\.mesh: builtin 'box': subdivisions 40 makes about .* vertices, above the"),
+    ("huge-uv-sphere", "objects.1.mesh", {"builtin": "uv_sphere", "count": [5000, 5000]}, r"objects\[1\]\.mesh: builtin 'uv_sphere': count \[5000, 5000\] makes about 25,000,000 vertices"),
+    ("huge-torus", "objects.1.mesh", {"builtin": "torus", "sections": [4000, 4000]}, r"objects\[1\]\.mesh: builtin 'torus': sections \[4000, 4000\] makes about 16,000,000 vertices"),
+    ("huge-cylinder", "objects.1.mesh", {"builtin": "cylinder", "sections": 10**7}, r"objects\[1\]\.mesh: builtin 'cylinder': sections 10000000 makes about 40,000,002 vertices"),
     ("tiny-room-cells", "objects.0.mesh", {"builtin": "room", "cell_size": 1e-6}, r"objects\[0\]\.mesh: builtin 'room': cell_size 1e-06 makes about .* vertices"),
     # animation
     ("track-unknown-object", "animation.tracks.0.object", "balll", r"animation\.tracks\[0\]\.object: no object named 'balll'"),
@@ -222,6 +225,7 @@ _KEY_CASES = [
     ("key-unknown-field", "animation.tracks.0.keys.1.radiance", [1, 1, 1], r"animation\.tracks\[0\]\.keys\[1\]\.radiance: unknown key"),
     ("key-huge-translate", "animation.tracks.0.keys.1.translate", [0, 1e300, 0], r"animation\.tracks\[0\]\.keys\[1\]: places object 'ball' beyond world coordinates"),
     ("key-huge-env-scale", "animation.tracks.1.keys.1.scale", 1e308, r"animation\.tracks\[1\]\.keys\[1\]\.scale: scale 1e\+308 times the map .* overflows"),
+    ("key-huge-env-constant", "animation.tracks.1.keys", [{"time": 0, "constant": [1, 1, 1]}, {"time": 1, "constant": [1e308, 1, 1]}], r"animation\.tracks\[1\]\.keys\[1\]\.constant: values up to 1e\+308 make the map's total radiance overflow"),
     ("key-nan-time", "animation.tracks.0.keys.0.time", float("nan"), r"animation\.tracks\[0\]\.keys\[0\]\.time: expected a finite number >= 0\.0, got nan"),
 ]
 
