@@ -728,19 +728,19 @@ def _build_light(v: Validator, plan: dict, base_dir: Path | None):
     elif "constant" in plan["spec"]:
         _check_scale(v, image, 1.0, child(plan["path"], "constant"))
     _check_scale(v, image, plan["scale"], child(plan["path"], "scale"))
-    plan["peak_map"] = image  # for the animated scales
+    plan["unscaled_image"] = image  # for the animated scales
     return _scaled_environment(image, constant, plan["scale"], plan["spec"])
 
 
 def _check_animated_scales(v: Validator, animation: dict, light_plans: list) -> None:
     """The animated ``scale`` of an environment light must keep the map finite at every key."""
     for k, track in enumerate(animation["tracks"]):
-        if "light" not in track or "peak_map" not in light_plans[track["light"]]:
+        if "light" not in track or "unscaled_image" not in light_plans[track["light"]]:
             continue
         plan = light_plans[track["light"]]
         for j, key in enumerate(track["keys"]):
             kpath = index(child(index("animation.tracks", k), "keys"), j)
-            image = plan["peak_map"]
+            image = plan["unscaled_image"]
             if "constant" in key:
                 image = np.broadcast_to(np.asarray(key["constant"], dtype=np.float64), image.shape)
                 _check_scale(v, image, 1.0, child(kpath, "constant"))
