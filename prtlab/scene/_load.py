@@ -120,6 +120,9 @@ def _check_yaml_shape(text: str, source: str) -> None:
             if event.anchor:
                 sizes[event.anchor] = 1
         elif isinstance(event, yaml.AliasEvent):
+            if any(anchor == event.anchor for anchor, _ in starts):
+                line = event.start_mark.line + 1 if event.start_mark else "?"
+                raise SceneError(f"{source}: the alias *{clip(event.anchor)} refers to a value containing itself (line {line})")
             count += sizes.get(event.anchor, 0)  # an unknown anchor is the composer's error
         elif isinstance(event, yaml.CollectionStartEvent):
             count += 1

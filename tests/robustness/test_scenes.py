@@ -90,6 +90,7 @@ _FILE_CASES = [
     ("unknown-alias", b"objects: *nowhere\n", r"scene\.yaml: invalid YAML: found undefined alias"),
     ("two-documents", b"objects: []\n---\nobjects: []\n", r"scene\.yaml: invalid YAML: expected a single document"),
     ("alias-bomb", _BOMB.encode(), r"scene\.yaml: the YAML expands to more than 1,000,000 values .*alias bomb"),
+    ("recursive-alias", b"objects:\n  - {name: a, mesh: {builtin: plane, size: &s [1, *s]}}\n", r"scene\.yaml: the alias \*s refers to a value containing itself \(line 2\)"),
     ("deep-nesting", b"objects: " + b"[" * 5000 + b"]" * 5000, r"scene\.yaml: lists and mappings are nested more than 64 levels deep"),
     ("deep-mappings", b"".join(b"  " * k + b"k:\n" for k in range(200)), r"scene\.yaml: lists and mappings are nested more than 64 levels"),
     ("nul-bytes", bytes(range(256)), r"scene\.yaml: not a UTF-8 text file \(it holds NUL bytes\)"),
