@@ -2,8 +2,8 @@
 
 Every builder returns a :class:`trimesh.Trimesh` in object space (+Y up),
 created with ``process=False`` so that the vertex order written here is the
-order the pipelines shade in (see the design's "meshes are shaded at their
-own vertices, in input order").
+order the pipelines shade in (meshes are shaded at their own vertices, in
+input order).
 """
 
 from __future__ import annotations
@@ -45,27 +45,40 @@ _Z_TO_Y = np.array(
 # --------------------------------------------------------------------------- validation
 
 
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a message never prints a huge value whole)."""
+    if isinstance(value, np.ndarray) and value.size > limit:
+        return f"<array of shape {value.shape}>"
+    if isinstance(value, (list, tuple)) and len(value) > limit:
+        return f"<{type(value).__name__} of {len(value)} items>"
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _is_real(value: Any) -> bool:
+    """A real number that is not a bool (``True`` is not a number here)."""
+    return not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, float, np.integer, np.floating))
+
+
 def _finite_float(name: str, value: Any, *, positive: bool = False, context: str = "") -> float:
     where = f"{context}: " if context else ""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise TypeError(f"{where}{name} must be a number, got {value!r}")
+    if not _is_real(value):
+        raise TypeError(f"{where}{name} must be a number, got {_short(value)}")
     v = float(value)
     if not math.isfinite(v):
-        raise ValueError(f"{where}{name} must be finite, got {value!r}")
+        raise ValueError(f"{where}{name} must be finite, got {_short(value)}")
     if positive and v <= 0.0:
-        raise ValueError(f"{where}{name} must be > 0, got {value!r}")
+        raise ValueError(f"{where}{name} must be > 0, got {_short(value)}")
     return v
 
 
 def _int(name: str, value: Any, *, minimum: int, context: str = "") -> int:
+    """An integer >= ``minimum``; floats are not ints (``4.0`` is refused, as ``True`` is)."""
     where = f"{context}: " if context else ""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        if isinstance(value, (float, np.floating)) and float(value).is_integer():
-            value = int(value)
-        else:
-            raise TypeError(f"{where}{name} must be an integer >= {minimum}, got {value!r}")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{where}{name} must be an integer >= {minimum}, got {_short(value)}")
     if int(value) < minimum:
-        raise ValueError(f"{where}{name} must be an integer >= {minimum}, got {value!r}")
+        raise ValueError(f"{where}{name} must be an integer >= {minimum}, got {_short(value)}")
     return int(value)
 
 
@@ -73,18 +86,19 @@ def _vector(
     name: str, value: Any, n: int, *, positive: bool = False, context: str = ""
 ) -> np.ndarray:
     where = f"{context}: " if context else ""
-    if np.isscalar(value):
-        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {value!r}")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypeError(f"{where}{name} must be a list of {n} numbers, got {value!r}") from None
+    if np.isscalar(value) or not isinstance(value, (list, tuple, np.ndarray)):
+        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {_short(value)}")
+    if len(value) != n:
+        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {_short(value)}")
+    if not all(_is_real(x) for x in np.asarray(value, dtype=object).reshape(-1)):
+        raise TypeError(f"{where}{name} must be a list of {n} numbers, got {_short(value)}")
+    arr = np.asarray(value, dtype=np.float64)
     if arr.shape != (n,):
-        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {value!r}")
+        raise ValueError(f"{where}{name} must be a list of {n} numbers, got {_short(value)}")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{where}{name} must be finite, got {value!r}")
+        raise ValueError(f"{where}{name} must be finite, got {_short(value)}")
     if positive and np.any(arr <= 0.0):
-        raise ValueError(f"{where}{name} must be > 0 in every component, got {value!r}")
+        raise ValueError(f"{where}{name} must be > 0 in every component, got {_short(value)}")
     return arr
 
 
@@ -93,9 +107,22 @@ def _int_pair(name: str, value: Any, *, minimum: int, context: str = "") -> tupl
     if np.isscalar(value):
         value = (value, value)
     if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 2:
-        raise ValueError(f"{where}{name} must be one integer or a list of 2 integers, got {value!r}")
+        raise ValueError(f"{where}{name} must be one integer or a list of 2 integers, got {_short(value)}")
     a, b = (_int(name, v, minimum=minimum, context=context) for v in value)
     return a, b
+
+
+#: Most vertices a generated builtin may have (a plane of 2000 x 2000 cells has 4,004,001).
+MAX_BUILTIN_VERTICES = 4_100_000
+
+
+def _check_size(builtin: str, what: str, n_vertices: float) -> None:
+    """Refuse a builtin whose parameters would make more than :data:`MAX_BUILTIN_VERTICES` vertices."""
+    if not n_vertices <= MAX_BUILTIN_VERTICES:
+        raise ValueError(
+            f"builtin {builtin!r}: {what} makes about {n_vertices:,.0f} vertices, above the "
+            f"{MAX_BUILTIN_VERTICES:,} limit of a builtin mesh; use a coarser resolution"
+        )
 
 
 def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
@@ -113,6 +140,7 @@ def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
 def _plane(size=(1.0, 1.0), resolution=(1, 1)) -> trimesh.Trimesh:
     w, d = _vector("size", size, 2, positive=True, context="builtin 'plane'")
     nx, nz = _int_pair("resolution", resolution, minimum=1, context="builtin 'plane'")
+    _check_size("plane", f"resolution [{nx}, {nz}]", (nx + 1) * (nz + 1))
     xs = np.linspace(-0.5 * w, 0.5 * w, nx + 1)
     zs = np.linspace(-0.5 * d, 0.5 * d, nz + 1)
     # vertex (i, k) at index i * (nz + 1) + k: x varies slowest
@@ -138,6 +166,7 @@ def _box(size=(1.0, 1.0, 1.0), subdivisions=0) -> trimesh.Trimesh:
     """
     extents = _vector("size", size, 3, positive=True, context="builtin 'box'")
     levels = _int("subdivisions", subdivisions, minimum=0, context="builtin 'box'")
+    _check_size("box", f"subdivisions {levels}", 6 * (2 ** min(levels, 64) + 1) ** 2)
     n = 2**levels
     half = 0.5 * np.asarray(extents)
     grid = np.linspace(-1.0, 1.0, n + 1)
@@ -172,6 +201,7 @@ def _icosphere(radius=1.0, subdivisions=3) -> trimesh.Trimesh:
 def _uv_sphere(radius=1.0, count=(32, 32)) -> trimesh.Trimesh:
     r = _finite_float("radius", radius, positive=True, context="builtin 'uv_sphere'")
     lat, lon = _int_pair("count", count, minimum=3, context="builtin 'uv_sphere'")
+    _check_size("uv_sphere", f"count [{lat}, {lon}]", lat * lon)
     mesh = trimesh.creation.uv_sphere(radius=r, count=[lat, lon])
     return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
 
@@ -185,6 +215,7 @@ def _torus(major_radius=1.0, minor_radius=0.25, sections=(32, 16)) -> trimesh.Tr
             f">= {major_radius!r}"
         )
     n_major, n_minor = _int_pair("sections", sections, minimum=3, context="builtin 'torus'")
+    _check_size("torus", f"sections [{n_major}, {n_minor}]", n_major * n_minor)
     mesh = trimesh.creation.torus(big, small, major_sections=n_major, minor_sections=n_minor)
     return _mesh(trimesh.transform_points(mesh.vertices, _Z_TO_Y), mesh.faces)
 
@@ -198,6 +229,7 @@ def _cylinder(radius=0.5, height=1.0, sections=32) -> trimesh.Trimesh:
     r = _finite_float("radius", radius, positive=True, context="builtin 'cylinder'")
     h = _finite_float("height", height, positive=True, context="builtin 'cylinder'")
     n = _int("sections", sections, minimum=3, context="builtin 'cylinder'")
+    _check_size("cylinder", f"sections {n}", 4 * n + 2)
     angle = 2.0 * np.pi * np.arange(n) / n
     ring = np.stack([r * np.sin(angle), np.zeros(n), r * np.cos(angle)], axis=1)
     low, high = ring + [0.0, -0.5 * h, 0.0], ring + [0.0, 0.5 * h, 0.0]
@@ -240,7 +272,7 @@ def _teapot(resolution=8, bottom=True, fit_lid=True) -> trimesh.Trimesh:
         raise ValueError(f"builtin 'teapot': resolution must be <= 128, got {resolution!r}")
     for key, value in (("bottom", bottom), ("fit_lid", fit_lid)):
         if not isinstance(value, (bool, np.bool_)):
-            raise TypeError(f"builtin 'teapot': {key} must be true or false, got {value!r}")
+            raise TypeError(f"builtin 'teapot': {key} must be true or false, got {_short(value)}")
     vertices, faces = tessellate_teapot(n, bottom=bool(bottom), fit_lid=bool(fit_lid))
     return normalize_mesh(_mesh(vertices, faces))
 
@@ -263,7 +295,7 @@ def _dragon(variant="5k") -> trimesh.Trimesh:
     if variant not in _DRAGON_VARIANTS:
         raise ValueError(
             f"builtin 'dragon': variant must be one of {', '.join(map(repr, _DRAGON_VARIANTS))}, "
-            f"got {variant!r}"
+            f"got {_short(variant)}"
         )
     vertices, faces = _asset_arrays(_DRAGON_VARIANTS[variant])
     return normalize_mesh(_mesh(vertices, faces))
@@ -386,7 +418,7 @@ def _cornell_box(part=None, resolution=1) -> trimesh.Trimesh:
     if part not in CORNELL_BOX_PARTS:
         raise ValueError(
             f"builtin 'cornell_box' is not a single mesh: pass part= one of "
-            f"{', '.join(CORNELL_BOX_PARTS)} (got {part!r}), or call cornell_box_objects()"
+            f"{', '.join(CORNELL_BOX_PARTS)} (got {_short(part)}), or call cornell_box_objects()"
         )
     return cornell_box_objects(resolution)[part]
 
@@ -397,6 +429,11 @@ def _room(
     cell_size=0.25,
     surfaces=_room_module.ROOM_SURFACES,
 ) -> trimesh.Trimesh:
+    extent = _room_module._room_size(size)
+    cell = _finite_float("cell_size", cell_size, positive=True, context="builtin 'room'")
+    with np.errstate(over="ignore"):
+        cells = 2.0 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[0] * extent[2]) / cell**2
+    _check_size("room", f"cell_size {cell:g}", cells)
     walls, _ = _room_module.room_with_windows(
         size=size, windows=windows, cell_size=cell_size, surfaces=surfaces
     )
@@ -520,17 +557,17 @@ def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
     1839
     """
     if not isinstance(name, str):
-        raise TypeError(f"builtin mesh name must be a string, got {name!r}")
+        raise TypeError(f"builtin mesh name must be a string, got {_short(name)}")
     builder = _BUILDERS.get(name)
     if builder is None:
         raise ValueError(
-            f"unknown builtin mesh {name!r}; valid names: {', '.join(sorted(_BUILDERS))}"
+            f"unknown builtin mesh {_short(name)}; valid names: {', '.join(sorted(_BUILDERS))}"
         )
     valid = BUILTIN_MESHES[name]
     unknown = sorted(set(params) - set(valid))
     if unknown:
         raise ValueError(
-            f"builtin {name!r}: unknown parameter(s) {', '.join(map(repr, unknown))}; "
+            f"builtin {name!r}: unknown parameter(s) {', '.join(map(_short, unknown))}; "
             f"valid parameters: {', '.join(valid) or '(none)'}"
         )
     return builder(**params)
@@ -784,7 +821,29 @@ def load_mesh(path: str | os.PathLike) -> trimesh.Trimesh:
     offsets = np.cumsum([0] + [len(v) for v, _ in parts])
     vertices = np.concatenate([v for v, _ in parts]).reshape(-1, 3)
     faces = np.concatenate([f.reshape(-1, 3) + o for (_, f), o in zip(parts, offsets)])
+    if p.suffix.lower() == ".ply":
+        _check_ply_counts(p, len(vertices), len(faces))
     return _checked_mesh(p, vertices, faces)
+
+
+def _check_ply_counts(path: Path, n_vertices: int, n_faces: int) -> None:
+    """Refuse a PLY file holding fewer vertices or faces than its header declares (a truncated file)."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if end < 0:
+        return
+    declared = {}
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) == 3 and words[0] == "element" and words[2].isdigit():
+            declared[words[1]] = int(words[2])
+    if n_vertices < declared.get("vertex", 0) or n_faces < declared.get("face", 0):
+        raise ValueError(
+            f"mesh file {str(path)!r} is truncated or corrupt: its header declares "
+            f"{declared.get('vertex', 0):,} vertices and {declared.get('face', 0):,} faces, "
+            f"but {n_vertices:,} vertices and {n_faces:,} faces were read"
+        )
 
 
 def _checked_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:

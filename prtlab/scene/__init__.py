@@ -20,7 +20,17 @@ from ._envmap import (
     write_hdr,
     xyY_to_linear_srgb,
 )
-from ._load import DEGENERATE_AREA_RTOL, DEGENERATE_FACE_FRACTION, load_scene, save_scene
+from ._load import (
+    DEGENERATE_AREA_RTOL,
+    DEGENERATE_FACE_FRACTION,
+    MAX_COORDINATE,
+    MAX_SCENE_BYTES,
+    MAX_YAML_DEPTH,
+    MAX_YAML_NODES,
+    closed_signed_volume,
+    load_scene,
+    save_scene,
+)
 from ._result import ShadeResult
 from ._scene import (
     AreaLight,
@@ -33,7 +43,7 @@ from ._scene import (
     Transform,
     euler_to_matrix,
 )
-from ._validate import SceneError
+from ._validate import InwardNormalsWarning, SceneError
 
 __all__ = [
     "AreaLight",
@@ -50,8 +60,14 @@ __all__ = [
     "load_scene",
     "save_scene",
     "SceneError",
+    "InwardNormalsWarning",
     "DEGENERATE_FACE_FRACTION",
     "DEGENERATE_AREA_RTOL",
+    "MAX_SCENE_BYTES",
+    "MAX_YAML_NODES",
+    "MAX_YAML_DEPTH",
+    "MAX_COORDINATE",
+    "closed_signed_volume",
     # environment maps
     "read_envmap",
     "read_exr",

@@ -40,7 +40,7 @@ import numpy as np
 
 from prtlab._validate import check_int
 from ._scene import AreaLight, EnvironmentLight, PointLight, Scene, euler_to_matrix
-from ._validate import Validator, child, index, show
+from ._validate import Validator, child, clip, index, show
 
 __all__ = [
     "scene_at_time",
@@ -175,7 +175,9 @@ def check_animation(v: Validator, anim, path: str, object_names: list[str], ligh
         if "object" in track:
             name = v.text(track["object"], child(tpath, "object"))
             if name not in object_names:
-                raise v.error(child(tpath, "object"), f"no object named {name!r}; objects: {', '.join(object_names)}")
+                raise v.error(
+                    child(tpath, "object"), f"no object named {show(name)}; objects: {clip(', '.join(object_names), 200)}"
+                )
             target: dict = {"object": name}
             allowed = _OBJECT_FIELDS
         else:

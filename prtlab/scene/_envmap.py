@@ -64,8 +64,17 @@ def _as_image(image, name: str = "image") -> np.ndarray:
 # --------------------------------------------------------------------------- files
 
 
+#: 8-bit image formats, refused as environment maps: they hold display values, not radiance.
+_LDR_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".webp", ".tga", ".ppm")
+#: Largest map read, in pixels (16384 x 8192; 3.2 GB as float64 RGB).
+MAX_MAP_PIXELS = 16384 * 8192
+
+
 def read_envmap(path) -> np.ndarray:
     """Read an environment map file (``.exr`` or Radiance ``.hdr`` / ``.pic``).
+
+    8-bit images (PNG, JPEG, ...) are refused: they store display values
+    (gamma-encoded, clipped), from which radiance cannot be recovered.
 
     Returns
     -------
@@ -79,6 +88,12 @@ def read_envmap(path) -> np.ndarray:
         return read_exr(path)
     if suffix in (".hdr", ".pic", ".rgbe"):
         return read_hdr(path)
+    if suffix in _LDR_SUFFIXES:
+        raise ValueError(
+            f"cannot use {str(path)!r} as an environment map: {suffix} images hold 8-bit display values "
+            "(gamma-encoded, clipped at white), not linear radiance; convert the HDR original to OpenEXR (.exr) "
+            "or Radiance RGBE (.hdr)"
+        )
     raise ValueError(
         f"cannot read environment map {str(path)!r}: unknown extension {suffix!r}; "
         "use an OpenEXR (.exr) or Radiance RGBE (.hdr) file"
@@ -100,8 +115,8 @@ def read_exr(path) -> np.ndarray:
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
-    except RuntimeError as err:
-        raise ValueError(f"cannot read EXR file {str(path)!r}: {err}") from err
+    except Exception as err:  # OpenEXR raises RuntimeError and others for truncated or foreign files
+        raise ValueError(f"cannot read EXR file {str(path)!r} (truncated, or not OpenEXR?): {err}") from err
     if all(c in channels for c in "RGB"):
         image = np.stack([channels[c] for c in "RGB"], axis=-1)
     elif "Y" in channels:
@@ -199,7 +214,13 @@ def read_hdr(path) -> np.ndarray:
         raise ValueError(
             f"{where}: unsupported resolution line {b' '.join(tokens)!r}; expected '-Y H +X W'"
         )
+    if not (tokens[1].isdigit() and tokens[3].isdigit()):
+        raise ValueError(f"{where}: unsupported resolution line {b' '.join(tokens)!r}; expected '-Y H +X W'")
     height, width = int(tokens[1]), int(tokens[3])
+    if not (height >= 1 and width >= 1 and height * width <= MAX_MAP_PIXELS):
+        raise ValueError(f"{where}: {width} x {height} pixels; expected 1 to {MAX_MAP_PIXELS:,} pixels")
+    if len(data) - pos < 4 * height:  # every scanline takes at least 4 bytes
+        raise ValueError(f"{where}: truncated ({len(data) - pos} bytes of pixel data for {height} rows)")
     body = np.frombuffer(data, dtype=np.uint8, offset=pos)
     rgbe = np.empty((height, width, 4), dtype=np.uint8)
     k = 0

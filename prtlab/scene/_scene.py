@@ -1,6 +1,6 @@
 """The in-memory scene: what every method and the Mitsuba reference read alike.
 
-A :class:`Scene` is built from the YAML format of ``../shared/DESIGN.md`` by
+A :class:`Scene` is built from the YAML format of ``docs/SCENE_FORMAT.md`` by
 :func:`prtlab.load_scene` / :meth:`Scene.from_dict` (``_load.py``), which
 validate everything before any work starts. The classes here hold already
 validated, float64 data.

@@ -16,16 +16,25 @@ from typing import Any, Iterable
 
 import numpy as np
 
-__all__ = ["SceneError", "Validator", "child", "index", "show"]
+__all__ = ["SceneError", "InwardNormalsWarning", "Validator", "child", "index", "show", "clip", "SHOW_LIMIT"]
 
 
 class SceneError(ValueError):
     """A scene file or dict is invalid; the message names the file and the key path."""
 
 
+class InwardNormalsWarning(UserWarning):
+    """A closed mesh's faces point inward while the camera is outside it: it would shade black.
+
+    Silence it for a scene where this is meant with
+    ``warnings.filterwarnings("ignore", category=InwardNormalsWarning)``.
+    """
+
+
 def child(path: str, key: str) -> str:
-    """Key path of ``key`` inside ``path``."""
-    return f"{path}.{key}" if path else str(key)
+    """Key path of ``key`` inside ``path`` (a long key is cut to :data:`SHOW_LIMIT` characters)."""
+    key = clip(str(key))
+    return f"{path}.{key}" if path else key
 
 
 def index(path: str, i: int) -> str:
@@ -33,19 +42,56 @@ def index(path: str, i: int) -> str:
     return f"{path}[{i}]"
 
 
-def show(value: Any) -> str:
-    """Compact rendering of a YAML value for messages (``[0.5, nan, 1]``)."""
+#: Longest rendering of a value in a message; longer ones end in "...".
+SHOW_LIMIT = 80
+
+
+def show(value: Any, limit: int = SHOW_LIMIT) -> str:
+    """Compact rendering of a YAML value for messages (``[0.5, nan, 1]``), at most ``limit`` characters.
+
+    Containers are rendered lazily and cut at ``limit`` (ending in ``...``), so
+    even a value with billions of shared leaves is shown at once.
+    """
+    pieces: list[str] = []
+    size = 0
+    for piece in _pieces(value):
+        pieces.append(piece)
+        size += len(piece)
+        if size > limit:
+            break
+    return clip("".join(pieces), limit)
+
+
+def clip(text: str, limit: int = SHOW_LIMIT) -> str:
+    """``text`` cut to ``limit`` characters, ending in ``...`` when cut."""
+    return text if len(text) <= limit else text[: max(limit - 3, 0)] + "..."
+
+
+def _pieces(value: Any):
+    """The rendering of ``value`` as a stream of short strings (depth-first, lazily)."""
     if isinstance(value, np.ndarray):
         value = value.tolist()
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(show(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k}: {show(v)}" for k, v in value.items()) + "}"
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (np.integer,)):
-        return repr(int(value))
-    return repr(value) if isinstance(value, str) else str(value)
+        yield "["
+        for k, item in enumerate(value):
+            if k:
+                yield ", "
+            yield from _pieces(item)
+        yield "]"
+    elif isinstance(value, dict):
+        yield "{"
+        for k, (key, item) in enumerate(value.items()):
+            yield (", " if k else "") + clip(str(key)) + ": "
+            yield from _pieces(item)
+        yield "}"
+    elif isinstance(value, (float, np.floating)):
+        yield repr(float(value))
+    elif isinstance(value, np.integer):
+        yield repr(int(value))
+    elif isinstance(value, str):
+        yield clip(repr(value))
+    else:
+        yield clip(str(value))
 
 
 def _is_number(value: Any) -> bool:
@@ -203,5 +249,5 @@ class Validator:
             p = (base_dir or Path.cwd()) / p
         if not p.is_file():
             where = f" (relative to {base_dir})" if base_dir is not None and not Path(name).is_absolute() else ""
-            raise self.error(path, f"file not found: {name!r}{where}")
+            raise self.error(path, f"file not found: {clip(repr(name))}{where}")
         return p

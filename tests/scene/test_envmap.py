@@ -236,8 +236,10 @@ def test_exr_errors(tmp_path):
         write_exr(tmp_path / "x.exr", np.zeros((4, 4)))
     with pytest.raises(ValueError, match="image contains NaN or inf"):
         write_exr(tmp_path / "x.exr", np.full((2, 2, 3), np.inf))
-    with pytest.raises(ValueError, match="unknown extension '.png'"):
+    with pytest.raises(ValueError, match=r"\.png images hold 8-bit display values .* not linear radiance"):
         read_envmap(tmp_path / "x.png")
+    with pytest.raises(ValueError, match="unknown extension '.tiff'"):
+        read_envmap(tmp_path / "x.tiff")
 
 
 @pytest.mark.parametrize("rle", [True, False])

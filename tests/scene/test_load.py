@@ -381,5 +381,69 @@ def test_environment_file_with_negative_radiance(tmp_path):
     write_exr(tmp_path / "neg.exr", -np.ones((4, 8, 3)))
     d = base_dict()
     d["lights"][0] = {"type": "environment", "file": "neg.exr"}
-    with pytest.raises(SceneError, match=r"lights\[0\]\.file: environment map has NaN, inf or negative radiance"):
+    with pytest.raises(SceneError, match=r"lights\[0\]\.file: environment map .neg\.exr. has 32 pixels with negative radiance \(the first at row 0, column 0"):
         Scene.from_dict(d, base_dir=tmp_path)
+
+
+# ----------------------------------------------------------------------------- saving elsewhere, names, messages
+
+
+def test_save_into_another_folder_rewrites_relative_paths(tmp_path, monkeypatch):
+    folder = tmp_path / "project" / "scenes"
+    (tmp_path / "project" / "meshes").mkdir(parents=True)
+    folder.mkdir()
+    trimesh.creation.box().export(tmp_path / "project" / "meshes" / "box.ply")
+    write_exr(folder / "env.exr", np.full((8, 16, 3), 0.25))
+    absolute = tmp_path / "abs.ply"
+    trimesh.creation.box().export(absolute)
+    d = base_dict()
+    d["objects"][0]["mesh"] = "../meshes/box.ply"
+    d["objects"][1]["mesh"] = str(absolute)
+    d["lights"][0] = {"type": "environment", "file": "env.exr", "scale": 4.0}
+    (folder / "scene.yaml").write_text(yaml.safe_dump(d))
+    scene = load_scene(folder / "scene.yaml")
+    monkeypatch.chdir(tmp_path / "project")  # the working directory plays no part
+    for target in (tmp_path / "elsewhere" / "deeper" / "copy.yaml", tmp_path / "copy.yaml", folder / "same.yaml"):
+        out = save_scene(scene, target)
+        saved = yaml.safe_load(out.read_text())
+        assert (target.parent / saved["objects"][0]["mesh"]).resolve() == (tmp_path / "project" / "meshes" / "box.ply").resolve()
+        assert saved["objects"][1]["mesh"] == str(absolute)  # absolute paths are kept
+        assert (target.parent / saved["lights"][0]["file"]).resolve() == (folder / "env.exr").resolve()
+        again = load_scene(out)
+        for a, b in zip(again.objects, scene.objects):
+            np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+            np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
+        assert [o.transform for o in again.objects] == [o.transform for o in scene.objects]
+        np.testing.assert_array_equal(again.environment.image, scene.environment.image)
+    assert yaml.safe_load((folder / "same.yaml").read_text())["objects"][0]["mesh"] == "../meshes/box.ply"
+    assert scene.objects[0].mesh_spec == "../meshes/box.ply"  # the scene itself is unchanged
+
+
+def test_save_scene_refuses_a_folder(tmp_path):
+    with pytest.raises(IsADirectoryError, match=r"save_scene: .* is a folder; give the scene file's path"):
+        save_scene(Scene.from_dict(base_dict()), tmp_path)
+
+
+def test_load_a_shipped_scene_by_name(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)  # anywhere: the name is not a path
+    scene = prtlab.load_scene("cornell_box")
+    assert scene.name == "cornell_box" and scene == load_scene(SCENES_DIR / "cornell_box.yaml")
+
+
+def test_a_file_named_like_a_scene_wins(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cornell_box").write_text(yaml.safe_dump(base_dict()))
+    assert load_scene("cornell_box").name == "small"
+
+
+def test_show_is_cut_and_fast():
+    from prtlab.scene._validate import SHOW_LIMIT, show
+
+    leaf = ["lol"] * 9
+    for _ in range(9):  # 9^10 leaves, shared: rendering must stop at the limit
+        leaf = [leaf] * 9
+    text = show(leaf)
+    assert len(text) == SHOW_LIMIT and text.endswith("...") and text.startswith("[[[[")
+    assert show([0.5, float("nan"), 1]) == "[0.5, nan, 1]"
+    assert show("x" * 1000).endswith("...") and len(show("x" * 1000)) == SHOW_LIMIT
+    assert show({"a": [1, 2]}) == "{a: [1, 2]}"
