@@ -156,8 +156,14 @@ def _parser() -> argparse.ArgumentParser:
                         help="print the version and exit")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="print only results, warnings and errors (no progress bars or log lines)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
-                                parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser,
+                                help="what to do (prtlab COMMAND --help for its flags)")
+
+    def add(name, **kwargs):
+        p = sub.add_parser(name, **kwargs)
+        p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="as prtlab -q: no progress bars or log lines")
+        return p
 
     def scene_arg(p):
         p.add_argument("scene", help="scene file (YAML; see docs/SCENE_FORMAT.md)")
@@ -177,7 +183,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="a method option, repeatable, e.g. -o n_spheres=4 or -o 'n_spheres={bunny: 8}'; "
                             "a wrong key lists the valid ones")
 
-    p = sub.add_parser("shade", help="per-vertex radiance of a scene, saved as .npz",
+    p = add("shade", help="per-vertex radiance of a scene, saved as .npz",
                        description="Per-vertex radiance of every object of a scene by one method.")
     scene_arg(p)
     shading_args(p)
@@ -185,7 +191,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="output .npz (keys <object>/direct|indirect|total); a folder gets radiance.npz inside, "
                         "a name without .npz gets .npz appended (default radiance.npz)")
 
-    p = sub.add_parser("render", help="images of a scene, one per animation frame",
+    p = add("render", help="images of a scene, one per animation frame",
                        description="Render the scene's camera view for each animation frame. A pipeline is "
                                    "precomputed once; each frame then shades its own frame state.")
     scene_arg(p)
@@ -195,7 +201,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (frame_NNNN.png and .exr per frame)")
     p.add_argument("--exposure", type=_finite_float, default=0.0, help="exposure of the PNGs in stops (default 0)")
 
-    p = sub.add_parser("compare", help="error numbers of methods against a reference",
+    p = add("compare", help="error numbers of methods against a reference",
                        description="Shade a scene with each method and a reference; print per object the "
                                    "relative RMS error of direct, indirect and total light (prtlab.compare).")
     scene_arg(p)
@@ -208,7 +214,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="output folder: compare.json (every row) and per method difference, comparison and "
                         "agreement images")
 
-    p = sub.add_parser("precompute", help="run and cache a pipeline's precomputation",
+    p = add("precompute", help="run and cache a pipeline's precomputation",
                        description="Run a pipeline's precomputation (or find it in the cache), optionally "
                                    "on Dask workers.")
     scene_arg(p)
@@ -221,19 +227,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=_positive_float, default=10.0,
                    help="seconds to wait for --scheduler to answer (default 10)")
 
-    p = sub.add_parser("cache", help="show or clear the cache of precomputations",
+    p = add("cache", help="show or clear the cache of precomputations",
                        description="The cache of precomputations ($PRTLAB_CACHE, default ~/.cache/prtlab).")
     p.add_argument("action", choices=("info", "list", "clear"),
                    help="info: size and entries per method; list: one line per entry; clear: delete entries")
     p.add_argument("--method", default=None, help="only the entries of this method (e.g. portals)")
 
-    p = sub.add_parser("reproduce", help="every paper figure and table that exists so far, as report/index.html",
+    p = add("reproduce", help="every paper figure and table that exists so far, as report/index.html",
                        description="Run every notebook headless and gather their figures and tables.")
     p.add_argument("--quick", action="store_true", help="small sizes (PRTLAB_QUICK=1)")
     p.add_argument("--out", type=Path, default=Path("report"), help="output folder (default report/)")
     p.add_argument("--only", default=None, help="run only notebooks whose name contains this")
 
-    p = sub.add_parser("bench", help="benchmarks, with peers and the machine's peak measured in the same run",
+    p = add("bench", help="benchmarks, with peers and the machine's peak measured in the same run",
                        description="Time the benchmark cases (medians after a warm-up).")
     p.add_argument("--quick", action="store_true", help="small sizes")
     p.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
@@ -398,7 +404,15 @@ def _say(args, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
 
+def _no_bounces_option(pairs) -> None:
+    for scope, key, text in pairs:
+        if key == "bounces":
+            raise UsageError(f"-o {key}={text}: the bounces are set with --bounces (a method that stores bounces "
+                             "precomputes as many as --bounces asks for)")
+
+
 def _shade_options(args, method: str) -> dict:
+    _no_bounces_option(args.options)
     pairs = []
     for scope, key, text in args.options:
         if scope is not None and scope != method:
@@ -412,10 +426,13 @@ def _shade_options(args, method: str) -> dict:
 def _cmd_shade(args) -> int:
     from prtlab import api
 
+    from prtlab.scene import load_scene
+
     options = _shade_options(args, args.method)
     path = _npz_path(args.out)
+    scene = load_scene(args.scene)
     start = time.perf_counter()
-    result = api.shade(args.scene, method=args.method, bounces=args.bounces, progress=not args.quiet, **options)
+    result = api.shade(scene, method=args.method, bounces=args.bounces, progress=not args.quiet, **options)
     seconds = time.perf_counter() - start
     result.save_npz(path)
     print(f"wrote {path} ({len(result.total)} objects, {args.method}, {seconds:.2f} s)")
@@ -434,6 +451,8 @@ def _cmd_render(args) -> int:
     n = args.frames
     pre = None
     if args.method not in REFERENCE_NAMES:
+        if "bounces" in _takes(args.method):  # a pipeline that stores bounces stores as many as asked for
+            options["bounces"] = args.bounces
         start = time.perf_counter()
         pre = api.precompute(scene, args.method, progress=not args.quiet, **options)
         print(f"{args.method}: precomputed (or loaded from the cache) in {time.perf_counter() - start:.2f} s")
@@ -458,6 +477,7 @@ def _cmd_render(args) -> int:
 
 def _compare_options(args, methods: list[str]) -> dict[str, dict]:
     """Each method's options: ``METHOD.KEY=VALUE`` for that method, ``KEY=VALUE`` for every method having KEY."""
+    _no_bounces_option(args.options)
     per_method = {m: [] for m in methods}
     for scope, key, text in args.options:
         if scope is not None:
