@@ -166,22 +166,25 @@ def _parser() -> argparse.ArgumentParser:
         return p
 
     def scene_arg(p):
-        p.add_argument("scene", help="scene file (YAML; see docs/SCENE_FORMAT.md)")
+        p.add_argument("scene", help="scene file (YAML, see docs/SCENE_FORMAT.md) or the name of a shipped scene, "
+                                    "e.g. cornell_box")
 
     def shading_args(p, method: bool = True):
         if method:
             p.add_argument("--method", required=True, choices=METHOD_NAMES,
                            help="shading method: a Monte Carlo reference or a pipeline")
-        p.add_argument("--bounces", type=_int_at_least(0, "0 = direct light only"), default=1,
+        p.add_argument("--bounces", type=_int_at_least(0, "0 = direct light only"), default=1, metavar="B",
                        help="indirect bounces (0 = direct light only; default 1)")
-        p.add_argument("--samples", type=_int_at_least(1), default=None,
+        p.add_argument("--samples", type=_int_at_least(1), default=None, metavar="N",
                        help="Monte Carlo samples per vertex (the n_samples option of a reference)")
-        p.add_argument("--seed", type=_int_at_least(0), default=None,
+        p.add_argument("--seed", type=_int_at_least(0), default=None, metavar="S",
                        help="random seed (the seed option of the methods that draw random numbers)")
+        scoped = "" if method else ("; METHOD.KEY=VALUE sets it for one method only, KEY=VALUE for every "
+                                    "method of the run that has KEY")
         p.add_argument("-o", "--option", dest="options", action="append", type=_option_pair, default=[],
                        metavar="KEY=VALUE",
                        help="a method option, repeatable, e.g. -o n_spheres=4 or -o 'n_spheres={bunny: 8}'; "
-                            "a wrong key lists the valid ones")
+                            "a wrong key lists the valid ones" + scoped)
 
     p = add("shade", help="per-vertex radiance of a scene, saved as .npz",
                        description="Per-vertex radiance of every object of a scene by one method.")
@@ -196,7 +199,7 @@ def _parser() -> argparse.ArgumentParser:
                                    "precomputed once; each frame then shades its own frame state.")
     scene_arg(p)
     shading_args(p)
-    p.add_argument("--frames", type=_int_at_least(1), default=1,
+    p.add_argument("--frames", type=_int_at_least(1), default=1, metavar="N",
                    help="frames spread evenly over the scene's animation (>= 1; default 1)")
     p.add_argument("--out", required=True, help="output folder (frame_NNNN.png and .exr per frame)")
     p.add_argument("--exposure", type=_finite_float, default=0.0, help="exposure of the PNGs in stops (default 0)")
@@ -362,6 +365,18 @@ def _check_method(method: str, bounces: int | None, options: dict) -> None:
     cls = api.pipeline_class(method)
     if cls is not None:
         cls.make_options(options)
+        _check_cache_folder()
+
+
+def _check_cache_folder() -> None:
+    """The cache folder of precomputations must be writable before a pipeline starts."""
+    from prtlab.cache import default_cache_root
+
+    root = default_cache_root()
+    try:
+        _writable_folder(root, "cache folder")
+    except OSError as error:
+        raise OSError(f"{error}; set PRTLAB_CACHE to a writable folder") from None
 
 
 # --------------------------------------------------------------------------- outputs
@@ -678,12 +693,17 @@ def _cmd_cache(args) -> int:
 def _cmd_reproduce(args) -> int:
     from prtlab.reproduce import reproduce
 
+    _writable_folder(args.out, "--out")
     return 0 if reproduce(args.out, quick=args.quick, only=args.only) else 1
 
 
 def _cmd_bench(args) -> int:
     from prtlab.bench import run_benchmarks
 
+    if args.json is not None:
+        if args.json.is_dir():
+            raise OSError(f"--json {args.json}: is a folder; give a file name")
+        _writable_folder(args.json.parent, "--json")
     run_benchmarks(quick=args.quick, select=args.select, json_path=args.json)
     return 0
 

@@ -103,6 +103,8 @@ CASES = [
      r"argument --timeout: must be a number of seconds > 0"),
     (["precompute", "{scene}", "--method", "spherelights", "-o", "n_spheres=-"], 2, r"option 'n_spheres'"),
     (["cache", "frobnicate"], 2, r"argument action: invalid choice: 'frobnicate'"),
+    (["reproduce", "--out", "{file}"], 1, r"--out .*a_file: is a file, not a folder"),
+    (["bench", "--json", "{file}/bench.json"], 1, r"--json .*a_file: is a file, not a folder"),
 ]
 
 
@@ -132,6 +134,17 @@ def test_bad_command_line_is_one_line(argv, code, message, paths, capsys):
     import re
 
     assert re.search(message, err), err
+
+
+@pytest.mark.parametrize("command", ["shade", "render", "precompute"])
+def test_an_unwritable_cache_folder_is_refused_before_any_work(command, paths, monkeypatch, capsys):
+    monkeypatch.setenv("PRTLAB_CACHE", paths["file"] + "/cache")
+    argv = [command, paths["scene"], "--method", "spherelights"]
+    argv += ["--out", paths["tmp"] + "/out"] if command != "precompute" else []
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "cache folder" in err and "a_file/cache: cannot write there" in err and "set PRTLAB_CACHE" in err
 
 
 def test_missing_mitsuba_is_one_line(paths, monkeypatch, capsys):
