@@ -712,10 +712,13 @@ def _cmd_bench(args) -> int:
 
 
 def _one_line(error: BaseException) -> str:
-    if isinstance(error, KeyError) and error.args:
-        text = str(error.args[0])
+    """The error's message on one line (a bare ``KeyError('x')`` keeps its type: ``KeyError: 'x'``)."""
+    if isinstance(error, KeyError) and error.args and " " in str(error.args[0]):
+        text = str(error.args[0])  # a sentence, e.g. "no object 'x' in the scene"
     else:
-        text = str(error) or type(error).__name__
+        text = str(error)
+        if isinstance(error, KeyError) or not text:
+            text = f"{type(error).__name__}: {text}" if text else type(error).__name__
     return " ".join(text.split())
 
 

@@ -453,3 +453,13 @@ def test_unimplemented_method_exits_2(monkeypatch, tmp_path, capsys):
 def test_references_have_nothing_to_precompute(tmp_path, capsys):
     assert cli.main(["precompute", str(tmp_path / "any.yaml"), "--method", "reference"]) == 0
     assert "has no precomputation" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("error, line", [
+    (KeyError("objects"), "KeyError: 'objects'"),
+    (KeyError("no object 'x' in the scene"), "no object 'x' in the scene"),
+    (ValueError("first\nsecond"), "first second"),
+    (MemoryError(), "MemoryError"),
+])
+def test_errors_are_shown_on_one_line(error, line):
+    assert cli._one_line(error) == line
