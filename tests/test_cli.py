@@ -463,3 +463,18 @@ def test_references_have_nothing_to_precompute(tmp_path, capsys):
 ])
 def test_errors_are_shown_on_one_line(error, line):
     assert cli._one_line(error) == line
+
+
+def test_warnings_are_one_line(scenes, tmp_path, monkeypatch, capsys):
+    import warnings
+
+    def warning_shade(scene, method="reference", bounces=1, **options):
+        warnings.warn("the portal faces away\nfrom the room", RuntimeWarning)
+        res = ShadeResult()
+        res.total["floor"] = res.direct["floor"] = res.indirect["floor"] = np.ones((1, 3))
+        return res
+
+    monkeypatch.setattr(api, "shade", warning_shade)
+    code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "reference", "--out", tmp_path / "r.npz")
+    assert code == 0
+    assert err == "prtlab: RuntimeWarning: the portal faces away from the room\n"
