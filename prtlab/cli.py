@@ -414,11 +414,6 @@ def _npz_path(out: str) -> Path:
 # --------------------------------------------------------------------------- commands
 
 
-def _say(args, message: str) -> None:
-    if not args.quiet:
-        print(message, file=sys.stderr, flush=True)
-
-
 def _no_bounces_option(pairs) -> None:
     for scope, key, text in pairs:
         if key == "bounces":
@@ -440,7 +435,6 @@ def _shade_options(args, method: str) -> dict:
 
 def _cmd_shade(args) -> int:
     from prtlab import api
-
     from prtlab.scene import load_scene
 
     options = _shade_options(args, args.method)
