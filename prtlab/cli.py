@@ -764,10 +764,8 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as exit_:  # --help, --version and argparse errors
         return exit_.code if isinstance(exit_.code, int) else 1
-    from prtlab import _compile_notice
     from prtlab.api import MethodUnavailable
 
-    _compile_notice.install()
     debug = bool(os.environ.get("PRTLAB_DEBUG"))
     prefix = f"prtlab {args.command}"
     with _console(args.quiet):
