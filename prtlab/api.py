@@ -17,7 +17,7 @@ from prtlab._validate import check_int
 from prtlab.scene import Scene, ShadeResult
 
 __all__ = ["METHODS", "PIPELINES", "MethodUnavailable", "shade", "precompute", "render_image", "dask_map",
-           "pipeline_class", "method_options"]
+           "pipeline_class", "method_options", "check_bounces"]
 
 
 class MethodUnavailable(NotImplementedError):
@@ -73,7 +73,7 @@ def method_options(method: str) -> dict[str, typing.Any]:
             if name not in _NOT_OPTIONS and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
 
-def _check_bounces(method: str, bounces) -> int:
+def check_bounces(method: str, bounces) -> int:
     """``bounces`` as an int >= 0 that ``method`` can compute, checked before any work."""
     bounces = check_int(bounces, "bounces", 0)
     cls = pipeline_class(method)
@@ -115,7 +115,7 @@ def shade(scene, method: str = "reference", bounces: int = 1, **options) -> Shad
         ``direct[name]``, ``indirect[name]``, ``total[name]``: (n_vertices, 3).
     """
     entry_point = _entry_point(method)  # before any work: unknown or unavailable methods fail first
-    bounces = _check_bounces(method, bounces)
+    bounces = check_bounces(method, bounces)
     _compile_notice.install()
     if isinstance(scene, (str, Path)):
         from prtlab.scene import load_scene

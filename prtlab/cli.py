@@ -361,7 +361,7 @@ def _check_method(method: str, bounces: int | None, options: dict) -> None:
     if method == "mitsuba" and importlib.util.find_spec("mitsuba") is None:
         raise api.MethodUnavailable(_MITSUBA_MISSING)
     if bounces is not None:
-        api._check_bounces(method, bounces)
+        api.check_bounces(method, bounces)
     cls = api.pipeline_class(method)
     if cls is not None:
         cls.make_options(options)

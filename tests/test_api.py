@@ -103,3 +103,12 @@ def test_an_unreachable_scheduler_times_out_naming_its_address():
     assert time.perf_counter() - start < 10.0  # the timeout, not dask's default 30 s
     with pytest.raises(ValueError, match="timeout must be a number of seconds > 0"):
         api.dask_map(scheduler="tcp://127.0.0.1:9", timeout=0)
+
+
+def test_check_bounces():
+    assert api.check_bounces("interreflection", 3) == 3
+    assert api.check_bounces("reference", 0) == 0
+    with pytest.raises(ValueError, match="method 'spherelights' computes at most 1 indirect bounce"):
+        api.check_bounces("spherelights", 2)
+    with pytest.raises(TypeError, match="bounces must be an int >= 0"):
+        api.check_bounces("portals", True)
