@@ -538,6 +538,9 @@ def _cmd_compare(args) -> int:
         except (ValueError, NotImplementedError) as error:
             report["failed"][method] = _one_line(error)
             print(f"prtlab compare: {method} cannot shade this scene: {report['failed'][method]}", file=sys.stderr)
+    if not runnable:
+        print(f"prtlab compare: no method can shade this scene with --bounces {args.bounces}", file=sys.stderr)
+        return 1
     out = None if args.out is None else _writable_folder(Path(args.out), "--out")
     scene = load_scene(args.scene)
 

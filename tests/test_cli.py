@@ -478,3 +478,17 @@ def test_warnings_are_one_line(scenes, tmp_path, monkeypatch, capsys):
     code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "reference", "--out", tmp_path / "r.npz")
     assert code == 0
     assert err == "prtlab: RuntimeWarning: the portal faces away from the room\n"
+
+
+def test_compare_skips_a_method_that_cannot_do_the_bounces(scenes, monkeypatch, capsys):
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("computed although no method can shade")
+
+    monkeypatch.setattr(api, "shade", must_not_run)
+    code, _, err = run(capsys, "compare", scenes["tiny"], "--methods", "spherelights", "--bounces", "2")
+    assert code == 1
+    assert err.splitlines() == [
+        "prtlab compare: spherelights cannot shade this scene: method 'spherelights' computes at most 1 indirect "
+        "bounce(s), got bounces=2; use method='reference' for more",
+        "prtlab compare: no method can shade this scene with --bounces 2",
+    ]
