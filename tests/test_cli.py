@@ -122,6 +122,14 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"prtlab {prtlab.__version__}"
 
 
+def test_version_is_the_package_version():
+    import tomllib
+    from pathlib import Path
+
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    assert tomllib.loads(pyproject.read_text())["project"]["version"] == prtlab.__version__
+
+
 # --------------------------------------------------------------------------- every method runs
 
 
