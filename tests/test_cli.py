@@ -123,7 +123,7 @@ def test_version(capsys):
 
 
 def test_version_is_the_package_version():
-    import tomllib
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     from pathlib import Path
 
     pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
