@@ -4,7 +4,8 @@ Every prtlab kernel is compiled with ``cache=True``, so numba compiles it once p
 change of its source) and later processes load the machine code from disk. Loading from the disk
 cache fires no event; only a real compilation broadcasts numba's ``"numba:compile"`` event
 (:mod:`numba.core.event`). :func:`install` registers a listener that prints :data:`MESSAGE` on the
-first such event of the process and stays silent afterwards. It is installed lazily by the entry
+first such event of the process for a prtlab function (not for the user's own numba code) and stays
+silent afterwards. It is installed lazily by the entry
 points (:mod:`prtlab.api`, the ``prtlab`` command), so ``import prtlab`` does not import numba.
 """
 
@@ -20,8 +21,13 @@ MESSAGE = "prtlab: compiling numba kernels for this machine (first run only; cac
 _state = {"installed": False, "announced": False, "suppressed": 0}
 
 
-def _announce() -> None:
-    if _state["announced"] or _state["suppressed"]:
+def _is_prtlab(dispatcher) -> bool:
+    module = getattr(getattr(dispatcher, "py_func", None), "__module__", None) or ""
+    return module == "prtlab" or module.startswith("prtlab.")
+
+
+def _announce(dispatcher) -> None:
+    if _state["announced"] or _state["suppressed"] or not _is_prtlab(dispatcher):
         return
     _state["announced"] = True
     print(MESSAGE, file=sys.stderr, flush=True)
@@ -35,7 +41,7 @@ def install() -> None:
 
     class _CompileNotice(event.Listener):
         def on_start(self, ev):
-            _announce()
+            _announce(ev.data.get("dispatcher") if isinstance(ev.data, dict) else None)
 
         def on_end(self, ev):
             pass
