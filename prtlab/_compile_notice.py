@@ -30,7 +30,9 @@ def _announce(dispatcher) -> None:
     if _state["announced"] or _state["suppressed"] or not _is_prtlab(dispatcher):
         return
     _state["announced"] = True
-    print(MESSAGE, file=sys.stderr, flush=True)
+    from tqdm import tqdm
+
+    tqdm.write(MESSAGE, file=sys.stderr)  # on its own line, above any progress bar
 
 
 def install() -> None:

@@ -720,8 +720,15 @@ def _one_line(error: BaseException) -> str:
 
 
 class _OneLineHandler(logging.StreamHandler):
-    def format(self, record):
-        return " ".join(super().format(record).split())
+    """Each record as one line, written above any progress bar."""
+
+    def emit(self, record):
+        from tqdm import tqdm
+
+        try:
+            tqdm.write(" ".join(self.format(record).split()), file=self.stream)
+        except Exception:  # noqa: BLE001 - logging must never raise
+            self.handleError(record)
 
 
 @contextlib.contextmanager
@@ -739,7 +746,9 @@ def _console(quiet: bool):
         logger.setLevel(logging.INFO)
 
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"prtlab: {category.__name__}: {' '.join(str(message).split())}", file=sys.stderr)
+        from tqdm import tqdm
+
+        tqdm.write(f"prtlab: {category.__name__}: {' '.join(str(message).split())}", file=sys.stderr)
 
     with warnings.catch_warnings(), (_compile_notice.suppressed() if quiet else contextlib.nullcontext()):
         warnings.showwarning = show
