@@ -671,19 +671,20 @@ def _cmd_cache(args) -> int:
         return 0
     info = cache.info()
     print(f"cache folder: {info['root']}")
+    per_method: dict[str, list[int]] = {}
+    for e in entries:
+        count = per_method.setdefault(e.method, [0, 0, 0])  # entries, unfinished parts folders, bytes
+        count[0 if e.kind == "entry" else 1] += 1
+        count[2] += e.size_bytes
     if args.method:
-        total = sum(e.size_bytes for e in entries)
-        print(f"method {args.method}: {len(entries)} entries, {_size(total)}")
+        n, parts, size = [sum(c[i] for c in per_method.values()) for i in range(3)]
+        print(f"method {args.method}: {n} entries, {_size(size)}" + (f", {parts} unfinished" if parts else ""))
     else:
         print(f"{info['n_entries']} entries, {_size(info['total_bytes'])} of {_size(info['max_bytes'])} "
               "(least recently used entries are evicted beyond the cap)")
-        per_method: dict[str, list[int]] = {}
-        for e in entries:
-            count = per_method.setdefault(e.method, [0, 0])
-            count[0] += 1
-            count[1] += e.size_bytes
-        for method, (n, size) in sorted(per_method.items()):
-            print(f"  {method:<16} {n:>4} entries  {_size(size):>10}")
+    for method, (n, parts, size) in sorted(per_method.items()):
+        unfinished = f"  ({parts} unfinished)" if parts else ""
+        print(f"  {method:<16} {n:>4} entries  {_size(size):>10}{unfinished}")
     return 0
 
 
