@@ -414,21 +414,39 @@ def _npz_path(out: str) -> Path:
 # --------------------------------------------------------------------------- commands
 
 
-def _no_bounces_option(pairs) -> None:
-    for scope, key, text in pairs:
-        if key == "bounces":
-            raise UsageError(f"-o {key}={text}: the bounces are set with --bounces (a method that stores bounces "
-                             "precomputes as many as --bounces asks for)")
+def _stored_bounces(method: str, options: dict, bounces: int) -> dict:
+    """A pipeline whose options say how many bounces to store (portals) stores ``--bounces`` unless
+    ``-o bounces=K`` asks for more; fewer than ``--bounces`` is refused before any work."""
+    if _is_pipeline(method) and "bounces" in _takes(method):
+        stored = options.setdefault("bounces", bounces)
+        if isinstance(stored, int) and stored < bounces:
+            raise UsageError(f"-o bounces={stored} stores fewer bounces than --bounces {bounces}; "
+                             f"give -o bounces >= {bounces} (or leave it out)")
+    return options
+
+
+def _is_pipeline(method: str) -> bool:
+    from prtlab import api
+
+    return api.pipeline_class(method) is not None
+
+
+def _shade(scene, method: str, bounces: int, options: dict, progress: bool):
+    """``prtlab.shade`` of a reference; a pipeline's precomputation (with its options as given) then one frame."""
+    from prtlab import api
+
+    if not _is_pipeline(method):
+        return api.shade(scene, method=method, bounces=bounces, progress=progress, **options)
+    return api.precompute(scene, method, progress=progress, **options).shade(bounces=bounces)
 
 
 def _shade_options(args, method: str) -> dict:
-    _no_bounces_option(args.options)
     pairs = []
     for scope, key, text in args.options:
         if scope is not None and scope != method:
             raise UsageError(f"-o {scope}.{key}={text}: names method {scope!r}, but --method is {method!r}")
         pairs.append((scope, key, text))
-    options = _typed_options(method, pairs, _flags(args))
+    options = _stored_bounces(method, _typed_options(method, pairs, _flags(args)), args.bounces)
     _check_method(method, args.bounces, options)
     return options
 
@@ -441,7 +459,7 @@ def _cmd_shade(args) -> int:
     path = _npz_path(args.out)
     scene = load_scene(args.scene)
     start = time.perf_counter()
-    result = api.shade(scene, method=args.method, bounces=args.bounces, progress=not args.quiet, **options)
+    result = _shade(scene, args.method, args.bounces, options, progress=not args.quiet)
     seconds = time.perf_counter() - start
     result.save_npz(path)
     print(f"wrote {path} ({len(result.total)} objects, {args.method}, {seconds:.2f} s)")
@@ -460,8 +478,6 @@ def _cmd_render(args) -> int:
     n = args.frames
     pre = None
     if args.method not in REFERENCE_NAMES:
-        if "bounces" in _takes(args.method):  # a pipeline that stores bounces stores as many as asked for
-            options["bounces"] = args.bounces
         start = time.perf_counter()
         pre = api.precompute(scene, args.method, progress=not args.quiet, **options)
         print(f"{args.method}: precomputed (or loaded from the cache) in {time.perf_counter() - start:.2f} s")
@@ -486,7 +502,6 @@ def _cmd_render(args) -> int:
 
 def _compare_options(args, methods: list[str]) -> dict[str, dict]:
     """Each method's options: ``METHOD.KEY=VALUE`` for that method, ``KEY=VALUE`` for every method having KEY."""
-    _no_bounces_option(args.options)
     per_method = {m: [] for m in methods}
     for scope, key, text in args.options:
         if scope is not None:
@@ -505,7 +520,7 @@ def _compare_options(args, methods: list[str]) -> dict[str, dict]:
     options = {}
     for m in methods:
         given = {flag: kv for flag, kv in flags.items() if kv[0] in _takes(m)}
-        options[m] = _typed_options(m, per_method[m], given)
+        options[m] = _stored_bounces(m, _typed_options(m, per_method[m], given), args.bounces)
     for flag, (key, _) in flags.items():
         if not any(key in _takes(m) for m in methods):
             raise UsageError(f"{flag}: no method of this run ({', '.join(methods)}) has a {key} option")
@@ -545,8 +560,7 @@ def _cmd_compare(args) -> int:
     scene = load_scene(args.scene)
 
     start = time.perf_counter()
-    reference = api.shade(scene, method=args.reference, bounces=args.bounces, progress=not args.quiet,
-                          **options[args.reference])
+    reference = _shade(scene, args.reference, args.bounces, options[args.reference], progress=not args.quiet)
     print(f"{args.reference}: {time.perf_counter() - start:.2f} s")
     images = {}
     if out is not None:
@@ -554,8 +568,7 @@ def _cmd_compare(args) -> int:
     for method in runnable:
         try:
             start = time.perf_counter()
-            result = api.shade(scene, method=method, bounces=args.bounces, progress=not args.quiet,
-                               **options[method])
+            result = _shade(scene, method, args.bounces, options[method], progress=not args.quiet)
             seconds = time.perf_counter() - start
             comparison = compare(result, reference)
         except (ValueError, TypeError, KeyError, ImportError, NotImplementedError, MemoryError) as error:

@@ -147,17 +147,31 @@ def test_every_method_shades_from_the_command_line(method, scenes, tmp_path, cap
     assert result.total and all(np.all(np.isfinite(v)) for v in result.total.values())
 
 
+def _ones(scene):
+    res = ShadeResult()
+    for obj in scene.objects:
+        res.direct[obj.name] = res.indirect[obj.name] = res.total[obj.name] = np.ones((obj.n_vertices, 3))
+    return res
+
+
 def _capture_shade(monkeypatch):
+    """Replace the api's shade (references) and precompute (pipelines): (method, bounces, options) per call."""
     calls = []
 
     def fake_shade(scene, method="reference", bounces=1, **options):
         calls.append((method, bounces, options))
-        res = ShadeResult()
-        for obj in scene.objects:
-            res.direct[obj.name] = res.indirect[obj.name] = res.total[obj.name] = np.ones((obj.n_vertices, 3))
-        return res
+        return _ones(scene)
+
+    def fake_precompute(scene, method, **options):
+        class Precomputed:
+            def shade(self, state=None, bounces=1):
+                calls.append((method, bounces, options))
+                return _ones(scene)
+
+        return Precomputed()
 
     monkeypatch.setattr(api, "shade", fake_shade)
+    monkeypatch.setattr(api, "precompute", fake_precompute)
     return calls
 
 
@@ -170,7 +184,15 @@ def test_seed_and_samples_are_passed_only_when_given_and_taken(scenes, tmp_path,
     assert run(capsys, "shade", scenes["room"], "--method", "portals", "--seed", "5", "--out", out)[0] == 0
     assert calls[0] == ("interreflection", 1, {"progress": False})
     assert calls[1] == ("reference", 2, {"seed": 3, "n_samples": 8, "progress": False})
-    assert calls[2] == ("portals", 1, {"seed": 5, "progress": False})
+    assert calls[2] == ("portals", 1, {"seed": 5, "bounces": 1, "progress": False})  # stores --bounces bounces
+
+
+def test_a_pipeline_may_store_more_bounces_than_it_shades(scenes, tmp_path, monkeypatch, capsys):
+    calls = _capture_shade(monkeypatch)
+    out = tmp_path / "r.npz"
+    assert run(capsys, "shade", scenes["room"], "--method", "portals", "-o", "bounces=4", "--bounces", "2",
+               "--out", out)[0] == 0
+    assert calls == [("portals", 2, {"bounces": 4, "progress": False})]
 
 
 def test_options_are_typed_by_the_method(scenes, tmp_path, monkeypatch, capsys):
