@@ -26,7 +26,9 @@ strings, or YAML/JSON flow text for mappings and lists::
     prtlab shade scene.yaml --method interreflection -o n_lights=64 -o shadows=haar
 
 ``--seed`` and ``--samples`` set a method's ``seed`` and ``n_samples`` options; they are passed
-only when given and refused for a method that has no such option. With ``compare``, an option
+only when given and refused for a method that has no such option. A pipeline that stores a number
+of bounces (portals' ``bounces`` option) stores ``--bounces`` of them unless ``-o bounces=K`` asks
+for more (to reuse one precomputation for several ``--bounces``). With ``compare``, an option
 ``METHOD.KEY=VALUE`` goes to that method only, a bare ``KEY=VALUE`` to every method of the run
 that has ``KEY``.
 
