@@ -1,14 +1,23 @@
-"""The public entry points: ``shade`` and ``render_image``, dispatching by method name."""
+"""The public entry points: ``shade``, ``precompute`` and ``render_image``, dispatching by method name.
+
+:func:`method_options` lists the options each method takes with their types, so front ends (the
+``prtlab`` command's ``-o key=value``) can type and check them before any work.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import inspect
+import typing
 from pathlib import Path
 
+from prtlab import _compile_notice
 from prtlab._validate import check_int
 from prtlab.scene import Scene, ShadeResult
 
-__all__ = ["METHODS", "MethodUnavailable", "shade", "precompute", "render_image", "dask_map"]
+__all__ = ["METHODS", "PIPELINES", "MethodUnavailable", "shade", "precompute", "render_image", "dask_map",
+           "pipeline_class", "method_options", "check_bounces"]
 
 
 class MethodUnavailable(NotImplementedError):
@@ -23,6 +32,57 @@ METHODS: dict[str, tuple[str, str] | str] = {
     "spherelights": ("prtlab.spherelights", "shade_scene"),
     "portals": ("prtlab.portals", "shade_scene"),
 }
+
+
+# pipeline method name -> (module, class) of its Precomputation subclass.
+PIPELINES: dict[str, tuple[str, str]] = {
+    "interreflection": ("prtlab.interreflection", "Interreflection"),
+    "spherelights": ("prtlab.spherelights", "SphereLights"),
+    "portals": ("prtlab.portals", "Portals"),
+}
+
+# Parameters of an entry point that are not method options: the front end sets them.
+_NOT_OPTIONS = ("scene", "bounces", "progress", "cache", "options", "map_fn")
+
+
+def pipeline_class(method: str):
+    """The :class:`prtlab.pipeline.Precomputation` subclass of a pipeline method, or None for a reference."""
+    _entry_point(method)
+    if method not in PIPELINES:
+        return None
+    module, name = PIPELINES[method]
+    return getattr(importlib.import_module(module), name)
+
+
+def method_options(method: str) -> dict[str, typing.Any]:
+    """The options ``method`` takes, ``{name: type}``, in declaration order.
+
+    A pipeline's options are the fields of its options dataclass (``options_type``); a
+    reference's are the keyword parameters of its shade function (``n_samples``, ``seed``, ...).
+    ``scene``, ``bounces`` and ``progress`` are arguments of :func:`shade`, not options.
+    """
+    cls = pipeline_class(method)
+    if cls is not None:
+        if cls.options_type is None:
+            return {}
+        hints = typing.get_type_hints(cls.options_type)
+        return {f.name: hints.get(f.name, typing.Any) for f in dataclasses.fields(cls.options_type)}
+    function = _entry_point(method)
+    hints = typing.get_type_hints(function)
+    return {name: hints.get(name, typing.Any) for name, p in inspect.signature(function).parameters.items()
+            if name not in _NOT_OPTIONS and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def check_bounces(method: str, bounces) -> int:
+    """``bounces`` as an int >= 0 that ``method`` can compute, checked before any work."""
+    bounces = check_int(bounces, "bounces", 0)
+    cls = pipeline_class(method)
+    if cls is not None and cls.max_bounces is not None and bounces > cls.max_bounces:
+        raise ValueError(
+            f"method {method!r} computes at most {cls.max_bounces} indirect bounce(s), "
+            f"got bounces={bounces}; use method='reference' for more"
+        )
+    return bounces
 
 
 def _entry_point(method: str):
@@ -55,7 +115,8 @@ def shade(scene, method: str = "reference", bounces: int = 1, **options) -> Shad
         ``direct[name]``, ``indirect[name]``, ``total[name]``: (n_vertices, 3).
     """
     entry_point = _entry_point(method)  # before any work: unknown or unavailable methods fail first
-    check_int(bounces, "bounces", 0)
+    bounces = check_bounces(method, bounces)
+    _compile_notice.install()
     if isinstance(scene, (str, Path)):
         from prtlab.scene import load_scene
 
@@ -66,7 +127,7 @@ def shade(scene, method: str = "reference", bounces: int = 1, **options) -> Shad
 
 
 def precompute(scene, method: str, workers: int | None = None, scheduler: str | None = None,
-               progress: bool = True, **options):
+               progress: bool = True, timeout: float = 10.0, **options):
     """Run (or load from the cache) the precomputation of a pipeline method.
 
     Parameters
@@ -78,6 +139,10 @@ def precompute(scene, method: str, workers: int | None = None, scheduler: str | 
         worker processes (a ``LocalCluster``), or the address of a running
         Dask scheduler. Only methods whose ``precompute`` takes ``map_fn``
         can distribute; the others raise :class:`MethodUnavailable`.
+    progress : bool
+        Progress bars.
+    timeout : float
+        Seconds to wait for ``scheduler`` to answer (then ``ConnectionError``).
     **options
         The method's options.
 
@@ -85,15 +150,17 @@ def precompute(scene, method: str, workers: int | None = None, scheduler: str | 
     -------
     The method's :class:`prtlab.pipeline.Precomputation`; call ``.shade(state)`` per frame.
     """
-    import inspect
-
     _entry_point(method)  # unknown / unavailable methods fail here, before any work
-    if method in ("reference", "mitsuba"):
+    if method not in PIPELINES:
         raise ValueError(f"method {method!r} has no precomputation: it estimates radiance directly")
+    options = pipeline_class(method).make_options(options or None)  # bad options fail before any work
+    _compile_notice.install()
     if isinstance(scene, (str, Path)):
         from prtlab.scene import load_scene
 
         scene = load_scene(scene)
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a prtlab.Scene or a scene file path, got {type(scene).__name__}")
     module = importlib.import_module(f"prtlab.{method}")
     kwargs = {"progress": progress}
     if workers is not None or scheduler is not None:
@@ -101,17 +168,20 @@ def precompute(scene, method: str, workers: int | None = None, scheduler: str | 
             raise MethodUnavailable(
                 f"method {method!r} cannot distribute its precomputation yet; run it without --workers/--scheduler"
             )
-        kwargs["map_fn"] = dask_map(workers=workers, scheduler=scheduler)
-    return module.precompute(scene, options or None, **kwargs)
+        kwargs["map_fn"] = dask_map(workers=workers, scheduler=scheduler, timeout=timeout)
+    return module.precompute(scene, options, **kwargs)
 
 
-def dask_map(workers: int | None = None, scheduler: str | None = None, client=None):
+def dask_map(workers: int | None = None, scheduler: str | None = None, client=None, timeout: float = 10.0):
     """A ``map_fn`` for :meth:`prtlab.cache.Cache.get_or_compute_chunks` that runs chunks on Dask.
 
     ``client`` (a ``dask.distributed.Client``), else a client of the scheduler at
     ``scheduler``, else a ``LocalCluster`` of ``workers`` single-threaded
     processes. Finished chunks are yielded as they complete, so each is stored
     (and survives an interruption) as soon as it is done.
+
+    A scheduler that cannot be reached within ``timeout`` seconds raises
+    ``ConnectionError`` naming its address.
     """
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -121,7 +191,16 @@ def dask_map(workers: int | None = None, scheduler: str | None = None, client=No
         ) from error
     if client is None:
         if scheduler is not None:
-            client = Client(scheduler)
+            if not isinstance(timeout, (int, float)) or isinstance(timeout, bool) or not timeout > 0:
+                raise ValueError(f"timeout must be a number of seconds > 0, got {timeout!r}")
+            try:
+                client = Client(scheduler, timeout=timeout)
+            except (OSError, TimeoutError, ValueError) as error:
+                raise ConnectionError(
+                    f"cannot reach the Dask scheduler at {scheduler!r} within {timeout:g} s "
+                    f"({type(error).__name__}: {str(error).splitlines()[0] if str(error) else 'no answer'}); "
+                    "start it (dask scheduler) or check the address"
+                ) from None
         else:
             if workers is not None and (isinstance(workers, bool) or int(workers) < 1):
                 raise ValueError(f"workers must be a positive int, got {workers!r}")

@@ -119,16 +119,19 @@ class Comparison:
                          f"{r.error:>7.4f} {r.mean_ratio:>10.4f}")
         return "\n".join(lines)
 
-    def to_dict(self) -> dict:
-        """``{"rows": [...]}`` of plain numbers (NaN for an all-black reference), for JSON."""
-        return {"rows": [asdict(r) for r in self.rows]}
+    def to_dict(self, json_safe: bool = False) -> dict:
+        """``{"rows": [...]}`` of plain numbers (NaN for an all-black reference; ``None`` instead
+        if ``json_safe``, since JSON has no NaN)."""
+        rows = [asdict(r) for r in self.rows]
+        if json_safe:
+            rows = [{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
+                    for row in rows]
+        return {"rows": rows}
 
     def to_json(self, path) -> None:
         """Write :meth:`to_dict` as JSON (NaN written as ``null``)."""
-        rows = [{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
-                for row in self.to_dict()["rows"]]
         with open(path, "w", encoding="utf-8") as f:
-            json.dump({"rows": rows}, f, indent=2)
+            json.dump(self.to_dict(json_safe=True), f, indent=2)
 
 
 def compare(result, reference, objects: Iterable[str] | None = None, parts: Iterable[str] = PARTS,
