@@ -10,12 +10,14 @@ every input that made it (:func:`cache_key`). Guarantees:
   folder and renamed into place with :func:`os.replace`, so a reader never
   sees half a file, two processes writing the same entry leave one whole
   entry, and a crash leaves at worst a stray ``*.tmp-*`` file.
-- **Checked reads.** The key is stored inside the file with the format
-  version and a checksum (BLAKE2b) of every dataset, group and attribute; in
-  addition every chunked dataset carries HDF5's ``fletcher32`` checksum. A
-  file that fails to open, holds another key, or whose contents do not match
-  its checksum is reported with :class:`CacheWarning` naming the file and
-  recomputed (the bad file is replaced), never silently used.
+- **Checked reads.** Every file starts with a 512-byte header (the HDF5
+  user block) holding the format version and a BLAKE2b checksum of every
+  byte after it, verified before HDF5 parses the file; inside, the key, the
+  format version and a checksum of every dataset, group and attribute are
+  stored, and every chunked dataset carries HDF5's ``fletcher32`` checksum.
+  A file that is empty, truncated, corrupt in any bit, holds another key, or
+  has another format is reported with :class:`CacheWarning` naming the file
+  and recomputed (the bad file is replaced), never silently used.
 - **No code on load.** Only numeric/boolean datasets, groups and a JSON
   string of attributes are stored; nothing is pickled, so loading executes
   nothing.
@@ -82,6 +84,8 @@ _CHUNK_ATTR = "prtlab_chunk"
 _CHUNKING_ATTR = "prtlab_chunking"
 _ATTRS = "attrs"  # the reserved entry of a result dict holding JSON metadata
 
+_HEADER_SIZE = 512  # the HDF5 user block: magic, format version, checksum of every byte after it
+_MAGIC = b"prtlab-cache\n"
 _ENTRY_RE = re.compile(r"^(?P<name>[A-Za-z0-9_.-]+)-(?P<key>[0-9a-f]{32})\.(?P<ext>h5|parts)$")
 _TMP_MARK = ".tmp-"
 
@@ -315,6 +319,44 @@ def _checksum(attrs: Mapping[str, Any], groups: Iterable[str], arrays: Mapping[s
     return h.hexdigest()
 
 
+def _file_digest(f) -> str:
+    """BLAKE2b of the rest of the open binary file ``f``, read in blocks."""
+    h = hashlib.blake2b(digest_size=32)
+    while block := f.read(1 << 20):
+        h.update(block)
+    return h.hexdigest()
+
+
+def _header(digest: str, version: int = FORMAT_VERSION) -> bytes:
+    """The HDF5 user block of an entry: magic, format version, checksum of the bytes after it, zeros."""
+    return (_MAGIC + f"format {version}\nblake2b {digest}\n".encode()).ljust(_HEADER_SIZE, b"\0")
+
+
+def _stamp(path: Path) -> None:
+    """Write the header of a finished HDF5 file (made with ``userblock_size=_HEADER_SIZE``)."""
+    with open(path, "r+b") as f:
+        f.seek(_HEADER_SIZE)
+        digest = _file_digest(f)
+        f.seek(0)
+        f.write(_header(digest))
+
+
+def _verify_bytes(path: Path) -> None:
+    """Raise ``ValueError`` unless ``path`` starts with an entry header whose checksum matches the rest."""
+    with open(path, "rb") as f:
+        head = f.read(_HEADER_SIZE)
+        if not head.startswith(_MAGIC):
+            size = os.fstat(f.fileno()).st_size
+            raise ValueError(f"it has no prtlab cache header ({size} bytes; empty, truncated, or not a cache file)")
+        digest = _file_digest(f)
+    if head == _header(digest):
+        return
+    version = head[len(_MAGIC):].split(b"\n", 1)[0]
+    if version != f"format {FORMAT_VERSION}".encode() and head.rstrip(b"\0").count(b"\n") == 3:
+        raise ValueError(f"it has format version {version.decode('ascii', 'replace')[7:]}, not {FORMAT_VERSION}")
+    raise ValueError("its bytes do not match their checksum (the file is corrupt or truncated)")
+
+
 def _as_read(result: Mapping) -> dict:
     """``result`` in the form a read returns: numpy arrays (scalars as numpy scalars), attrs through JSON."""
     arrays, groups = _flatten(result)
@@ -341,7 +383,7 @@ def _write_h5(path: Path, result: Mapping, key: str, extra: dict | None = None) 
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}{_TMP_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}")
     try:
-        with h5py.File(tmp, "w") as f:
+        with h5py.File(tmp, "w", userblock_size=_HEADER_SIZE) as f:
             for k, v in attrs.items():
                 f.attrs[k] = v
             f.attrs[_CHECKSUM_ATTR] = checksum
@@ -353,6 +395,7 @@ def _write_h5(path: Path, result: Mapping, key: str, extra: dict | None = None) 
                 else:
                     f.create_dataset(name, data=arr, fletcher32=True,
                                      compression="gzip" if arr.nbytes > 1 << 16 else None)
+        _stamp(tmp)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -363,6 +406,7 @@ def _read_h5(path: Path, key: str, extra: dict | None = None) -> dict:
     """Read a cache file; raise ``ValueError`` naming the problem if it is not an intact entry for ``key``."""
     import h5py
 
+    _verify_bytes(path)  # before HDF5 parses a byte of it: corrupt metadata can make HDF5 loop forever
     with h5py.File(path, "r") as f:
         attrs = {k: _attr_value(f.attrs[k]) for k in f.attrs}
         stored = attrs.get(_KEY_ATTR)
@@ -745,7 +789,7 @@ class Cache:
     # ------------------------------------------------------------------ listing, size cap, clearing
 
     def entries(self, method: str | None = None) -> list[CacheEntry]:
-        """Every entry and unfinished-parts folder in the cache, sorted by path.
+        """Every entry and unfinished-parts folder in the cache, sorted by name, kind and path.
 
         ``method``: only those stored under that name or under a name that
         starts with ``method + "-"`` (``"portals"`` lists ``portals``,
@@ -771,7 +815,7 @@ class Cache:
             except FileNotFoundError:  # removed while listing
                 continue
             out.append(CacheEntry(path=p, method=name, size_bytes=size, last_used=last_used, kind=kind))
-        return sorted(out, key=lambda e: e.path.name)
+        return sorted(out, key=lambda e: (e.method, e.kind, e.path.name))
 
     def info(self) -> dict:
         """A summary: ``root``, ``n_entries``, ``n_parts`` (unfinished chunked results),
