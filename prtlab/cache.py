@@ -327,8 +327,9 @@ def _file_digest(f) -> str:
     return h.hexdigest()
 
 
-def _header(digest: str, version: int = FORMAT_VERSION) -> bytes:
+def _header(digest: str, version: int | None = None) -> bytes:
     """The HDF5 user block of an entry: magic, format version, checksum of the bytes after it, zeros."""
+    version = FORMAT_VERSION if version is None else version
     return (_MAGIC + f"format {version}\nblake2b {digest}\n".encode()).ljust(_HEADER_SIZE, b"\0")
 
 

@@ -246,7 +246,8 @@ def test_chunks_with_external_map_and_custom_assembly(cache):
             yield i, fn(i)
 
     out = cache.get_or_compute_chunks(
-        key, 3, _chunk, map_fn=reversed_map, assemble=lambda chunks: {"total": np.sum([c["values"].sum() for c in chunks])}
+        key, 3, _chunk, map_fn=reversed_map,
+        assemble=lambda chunks: {"total": np.sum([chunk["values"].sum() for chunk in chunks])}
     )
     assert seen == [2, 1, 0]
     assert float(out["total"]) == 6.0 * (0 + 1 + 2)
@@ -537,7 +538,7 @@ def test_size_cap_from_the_environment(monkeypatch, tmp_path):
     assert Cache(tmp_path, max_bytes=1234).max_bytes == 1234  # an explicit cap wins
     for bad in ("four", "0", "-1", "nan", "inf", "1e400"):
         monkeypatch.setenv("PRTLAB_CACHE_MAX_GB", bad)
-        with pytest.raises(ValueError, match=f"PRTLAB_CACHE_MAX_GB must be a positive number of gigabytes .*got '{bad}'"):
+        with pytest.raises(ValueError, match=f"PRTLAB_CACHE_MAX_GB must be a positive number of gigabytes .*'{bad}'"):
             Cache(tmp_path)
     monkeypatch.delenv("PRTLAB_CACHE_MAX_GB")
     with pytest.raises(TypeError, match="max_bytes must be an int >= 1, got 1.5"):

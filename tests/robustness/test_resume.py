@@ -49,8 +49,8 @@ def make_case(method: str):
                 {"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [6, 6]},
                  "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
                 {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 1},
-                 "transform": {"translate": [0.3, 0.6, -0.2]}, "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]},
-                 "dynamic": True},
+                 "transform": {"translate": [0.3, 0.6, -0.2]},
+                 "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]}, "dynamic": True},
             ],
             "lights": [{"type": "environment", "constant": [1.0, 0.9, 0.8]}],
         })
