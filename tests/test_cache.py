@@ -586,3 +586,37 @@ def test_pipeline_on_an_unwritable_cache_is_refused_before_computing(unwritable)
 
     with pytest.raises(PermissionError, match="set PRTLAB_CACHE to a writable folder"):
         Never.precompute(Scene(objects=[]), cache=unwritable)
+
+
+# ----------------------------------------------------------------------------- files removed under us
+
+
+class Vanishing(Cache):
+    """A cache whose files another process removes right after each write (as its eviction could)."""
+
+    def _evict(self, protect):
+        for path in protect:
+            c._remove(path)
+
+
+def test_entry_removed_right_after_writing_returns_the_computed_result(tmp_path, caplog):
+    cache = Vanishing(tmp_path, progress=False)
+    with caplog.at_level(logging.WARNING, logger="prtlab.cache"):
+        out = cache.get_or_compute(cache_key("gone"), lambda: {"x": np.arange(3.0), "n": np.array(2), "g": {},
+                                                               "attrs": {"a": (1, 2)}})
+        chunked = cache.get_or_compute_chunks(cache_key("gone chunks"), 2, lambda i: {"x": np.full(2, i)})
+    np.testing.assert_array_equal(out["x"], np.arange(3.0))
+    assert out["n"] == 2 and out["g"] == {} and out["attrs"] == {"a": [1, 2]}  # as a read returns it
+    np.testing.assert_array_equal(chunked["x"], [0, 0, 1, 1])
+    assert any("was removed right after it was written" in r.getMessage() for r in caplog.records)
+
+
+def test_chunk_that_cannot_be_stored_is_kept_in_memory(cache, monkeypatch, caplog):
+    def parts_folder_removed(*args, **kwargs):
+        raise FileNotFoundError("parts folder removed by another process")
+
+    monkeypatch.setattr(cache, "store_chunk", parts_folder_removed)
+    with caplog.at_level(logging.WARNING, logger="prtlab.cache"):
+        out = cache.get_or_compute_chunks(cache_key("lost part"), 3, lambda i: {"x": np.full(2, i)})
+    np.testing.assert_array_equal(out["x"], [0, 0, 1, 1, 2, 2])
+    assert sum("could not be stored; keeping it in memory" in r.getMessage() for r in caplog.records) == 3
