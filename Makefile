@@ -1,4 +1,5 @@
-# prtlab — every target creates .venv and installs what it needs on first use.
+# prtlab — every target creates .venv and installs what it needs on first use (no root needed:
+# install-llvm.sh only adds Mitsuba's LLVM library when run as root). Without make: pip install ".[reference]".
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
