@@ -136,3 +136,40 @@ def test_data_api_lists_what_ships():
         assert all(prtlab.data.path(kind, n).is_file() for n in names)
     assert prtlab.data.path() == prtlab.data.root()
     assert set(prtlab.data.scenes()) == {p.stem for p in prtlab.data.path("scenes").glob("*.yaml")}
+
+
+def _capabilities_tool():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("capabilities", ROOT / "tools" / "capabilities.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_readme_capability_table_is_the_tools():
+    """README's table was written by tools/capabilities.py from its current capability columns."""
+    tool = _capabilities_tool()
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert tool.BEGIN in text and tool.END in text
+    rows = [line for line in text.split(tool.BEGIN, 1)[1].split(tool.END, 1)[0].splitlines()
+            if line.startswith("| ") and not line.startswith("| method")]
+    assert [row.split(" | ")[0][2:] for row in rows] == list(tool.RUNS)
+    for row in rows:
+        cells = [c.strip() for c in row.strip("|").split(" | ")]
+        assert tuple(cells[1:6]) == tool.CAPABILITIES[cells[0]], f"README's row of {cells[0]} is stale: rerun the tool"
+
+
+def test_capabilities_tool_errors(tmp_path, capsys):
+    tool = _capabilities_tool()
+    readme = tmp_path / "README.md"
+    readme.write_text("# no table here\n")
+    with pytest.raises(ValueError, match="the markers <!-- capabilities:begin --> and <!-- capabilities:end --> are "
+                                         "missing"):
+        tool.write_readme("| table |", readme)
+    readme.write_text(f"before\n{tool.BEGIN}\nold\n{tool.END}\nafter\n")
+    tool.write_readme("new", readme)
+    assert readme.read_text() == f"before\n{tool.BEGIN}\nnew\n{tool.END}\nafter\n"
+    with pytest.raises(SystemExit):
+        tool.main(["--methods", "nothing"])
+    assert "--methods: unknown method(s) ['nothing']; choose from reference, mitsuba" in capsys.readouterr().err

@@ -148,7 +148,9 @@ def measure(method: str) -> dict:
                                   capture_output=True, text=True, env=env, cwd=cache)
             if proc.returncode != 0:
                 raise RuntimeError(f"measuring {method} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    result["load"] = os.getloadavg()[0]
+    return result
 
 
 def _seconds(s: float | None) -> str:
@@ -182,8 +184,11 @@ def table(results: dict) -> str:
             f"{r['data_mb']:.1f} MB" if r["data_mb"] >= 1 else f"{r['data_mb'] * 1024:.0f} KB")
         lines.append(f"| {method} | " + " | ".join(caps) + f" | {_seconds(r.get('precompute_s'))} | {data} | "
                      f"{r['peak_mb']:.0f} MB | {_seconds(r['frame_s'])} |")
-    caption = (f"Measured by `python tools/capabilities.py` on {cpu} ({os.cpu_count()} cores, shared), one "
-               f"process per method, numba kernels already compiled. Scenes and options: {runs}. "
+    loads = [r["load"] for r in results.values()]
+    caption = (f"Measured by `python tools/capabilities.py` on {cpu} ({os.cpu_count()} cores, shared with other "
+               f"work: 1-minute load average {min(loads):.1f}-{max(loads):.1f} during the runs, so times are "
+               "upper bounds), one process per method, numba kernels already compiled. "
+               f"Scenes and options: {runs}. "
                "Precompute: wall time, no cache; data: the precomputed arrays; peak memory: peak resident "
                "set above the process after imports; frame: median time of one frame after the object "
                "moved or the sky changed (the references: the whole estimate). Times and sizes grow with "
