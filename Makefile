@@ -21,7 +21,7 @@ demo: $(STAMP)
 
 # The default test run: unit and property tests, notebooks in quick mode. Under 15 min on 2 cores.
 test: $(STAMP)
-	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 -m "not slow" --nbmake tests $(wildcard notebooks/*.ipynb)
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m "not slow" --nbmake tests $(wildcard notebooks/*.ipynb)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 -m slow tests

@@ -25,6 +25,9 @@ from pathlib import Path
 
 import pytest
 
+# one venv for the module: its tests stay on one xdist worker (make test runs --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("install")
+
 ROOT = Path(__file__).resolve().parents[1]
 PIPE_SCENE = "tiny_ball_env"       # interreflection, spherelights and the references
 PORTAL_SCENE = "tiny_window_room"  # portals (a window)
@@ -194,5 +197,8 @@ def test_compare_prints_the_table(installed):
 
 
 def test_cache_info(installed):
-    proc = _run([installed["prtlab"], "cache", "info"], installed["env"], installed["cwd"])
-    assert installed["env"]["PRTLAB_CACHE"] in proc.stdout + proc.stderr
+    env = dict(installed["env"], PRTLAB_CACHE=str(installed["work"] / "cache-info"))
+    _run([installed["prtlab"], "shade", PORTAL_SCENE, "--method", "portals", *OPTIONS["portals"],
+          "--out", installed["cwd"] / "info.npz"], env, installed["cwd"])
+    out = _run([installed["prtlab"], "cache", "info"], env, installed["cwd"]).stdout
+    assert env["PRTLAB_CACHE"] in out and "portals" in out
