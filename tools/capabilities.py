@@ -12,8 +12,8 @@ table's caption:
 * data: bytes of the precomputed arrays (what the cache stores and a frame reads);
 * peak memory: the process's peak resident set (``ru_maxrss``) minus its resident set after the
   imports and the scene were loaded, i.e. what the precomputation and the frame added;
-* frame: median wall time of ``pre.shade(FrameState)`` at the animation's middle frame (the
-  object moved or the sky changed since the precomputation), three frames after one warm-up;
+* frame: median wall time of ``pre.shade(FrameState)`` over three frames alternating between
+  the animation's first and middle frames (the object moved or another sky), after one warm-up;
   for the references, the whole estimate (they have no precomputation).
 
 Each measuring process is run twice and the second run is kept, so numba's compilation (cached
@@ -190,8 +190,9 @@ def table(results: dict) -> str:
                "upper bounds), one process per method, numba kernels already compiled. "
                f"Scenes and options: {runs}. "
                "Precompute: wall time, no cache; data: the precomputed arrays; peak memory: peak resident "
-               "set above the process after imports; frame: median time of one frame after the object "
-               "moved or the sky changed (the references: the whole estimate). Times and sizes grow with "
+               "set above the process after imports; frame: median time of `shade(FrameState)` over "
+               "three frames alternating between the scene's first and middle animation frames (the object "
+               "moved or another sky), after one warm-up (the references: the whole estimate). Times and sizes grow with "
                "the vertices and the options (docs/BENCHMARKS.md has the papers' sizes).")
     return "\n".join(lines) + "\n\n" + caption
 
