@@ -119,6 +119,9 @@ def _install(root: Path) -> dict:
            if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV", "NUMBA_CACHE_DIR") and not k.startswith("PRTLAB_")}
     env.update(PATH=f"{env_dir / 'bin'}{os.pathsep}{env.get('PATH', '')}", PRTLAB_CACHE=str(work / "cache"),
                PRTLAB_QUICK="1", MPLBACKEND="Agg", NUMBA_CACHE_DIR=str(root / "numba-cache"))
+    shared = Path(sys.prefix) / "share" / "jupyter"  # the data files of those dependencies (nbconvert's templates)
+    if shared.is_dir():
+        env["JUPYTER_PATH"] = os.pathsep.join(filter(None, [env.get("JUPYTER_PATH"), str(shared)]))
     user = work / "user"
     user.mkdir()
     return {"dir": env_dir, "python": python, "prtlab": env_dir / "bin" / "prtlab", "env": env, "cwd": user,
@@ -229,3 +232,17 @@ def test_cache_info(installed):
           "--out", installed["cwd"] / "info.npz"], env, installed["cwd"])
     out = _run([installed["prtlab"], "cache", "info"], env, installed["cwd"]).stdout
     assert env["PRTLAB_CACHE"] in out and "portals" in out
+
+
+def test_bench_and_reproduce_run_from_the_package(installed):
+    """The benchmark cases and the notebooks ship in the wheel: both commands work outside a clone."""
+    import json
+
+    env, cwd = installed["env"], installed["cwd"]
+    _run([installed["prtlab"], "bench", "--quick", "--select", "brdf.phong.eval", "--json", cwd / "bench.json"],
+         env, cwd)
+    report = json.loads((cwd / "bench.json").read_text())
+    assert [case["name"] for case in report["cases"]] == ["brdf.phong.eval.1M"]
+    _run([installed["prtlab"], "reproduce", "--quick", "--only", "00_sh_algebra", "--out", cwd / "report"], env, cwd)
+    index = (cwd / "report" / "index.html").read_text()
+    assert "00_sh_algebra.ipynb" in index and "FAILED" not in index
