@@ -88,11 +88,11 @@ def test_links_stay_in_the_repository(doc):
 
 
 def _repository_files():
-    folders = ("prtlab", "tests", "docs", "tools", "notebooks", "benchmarks")
+    folders = ("prtlab", "tests", "docs", "tools", ".ci")  # prtlab/ holds the notebooks and benchmarks
     files = [ROOT / name for name in ("README.md", "Makefile", "pyproject.toml")]
     for folder in folders:
         files += [p for p in (ROOT / folder).rglob("*") if p.is_file() and "__pycache__" not in p.parts
-                  and p.suffix in (".py", ".md", ".ipynb", ".yaml", ".txt", ".toml", ".cfg")]
+                  and p.suffix in (".py", ".md", ".ipynb", ".yaml", ".txt", ".toml", ".cfg", ".sh", "")]
     return files
 
 
@@ -110,6 +110,17 @@ def test_every_shipped_scene_loads(name):
     scene = load_scene(prtlab.data.scene_path(name))
     assert scene.objects and all(o.n_vertices > 0 for o in scene.objects)
     assert scene.lights
+
+
+def test_prtlab_data_without_importing_it():
+    """``import prtlab`` then ``prtlab.data.scenes()``, as README shows, in a fresh interpreter."""
+    import subprocess
+    import sys
+
+    code = "import prtlab; print(len(prtlab.data.scenes()))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr
+    assert int(proc.stdout) == len(prtlab.data.scenes())
 
 
 def test_data_api_errors():
