@@ -246,3 +246,20 @@ def test_bench_and_reproduce_run_from_the_package(installed):
     _run([installed["prtlab"], "reproduce", "--quick", "--only", "00_sh_algebra", "--out", cwd / "report"], env, cwd)
     index = (cwd / "report" / "index.html").read_text()
     assert "00_sh_algebra.ipynb" in index and "FAILED" not in index
+
+
+def test_missing_notebook_and_benchmark_folders_say_what_to_set(tmp_path, monkeypatch):
+    from prtlab import bench, reproduce
+
+    monkeypatch.setenv("PRTLAB_NOTEBOOKS", str(tmp_path / "none"))
+    with pytest.raises(FileNotFoundError, match=r"no notebook folder at .*none \(PRTLAB_NOTEBOOKS names none\); "
+                                                r"set PRTLAB_NOTEBOOKS to a folder of \*\.ipynb files"):
+        reproduce.notebook_dir()
+    monkeypatch.setenv("PRTLAB_BENCHMARKS", str(tmp_path / "none"))
+    with pytest.raises(FileNotFoundError, match=r"no benchmark folder at .*none \(PRTLAB_BENCHMARKS names none\); "
+                                                r"set PRTLAB_BENCHMARKS to a folder of bench_\*\.py files"):
+        bench.benchmark_dir()
+    monkeypatch.delenv("PRTLAB_NOTEBOOKS")
+    monkeypatch.delenv("PRTLAB_BENCHMARKS")
+    assert reproduce.notebook_dir() == Path(reproduce.__file__).resolve().parent / "notebooks"
+    assert bench.benchmark_dir() == Path(bench.__file__).resolve().parent / "benchmarks"
