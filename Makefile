@@ -1,4 +1,5 @@
-# prtlab — every target creates .venv and installs what it needs on first use.
+# prtlab — every target creates .venv and installs what it needs on first use (no root needed:
+# install-llvm.sh only adds Mitsuba's LLVM library when run as root). Without make: pip install ".[reference]".
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -20,7 +21,7 @@ demo: $(STAMP)
 
 # The default test run: unit and property tests, notebooks in quick mode. Under 15 min on 2 cores.
 test: $(STAMP)
-	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 -m "not slow" --nbmake tests $(wildcard notebooks/*.ipynb)
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m "not slow" --nbmake tests $(wildcard notebooks/*.ipynb)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 -m slow tests

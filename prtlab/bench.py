@@ -1,7 +1,8 @@
 """The benchmark runner behind ``prtlab bench``.
 
-Cases live in ``benchmarks/bench_*.py`` at the repository root (or the folder
-named by ``PRTLAB_BENCHMARKS``). A case is a function decorated with
+Cases live in ``bench_*.py`` files of the package's ``prtlab/benchmarks/`` folder
+(shown as ``benchmarks/`` at the root of a clone), or of the folder named by
+``PRTLAB_BENCHMARKS``. A case is a function decorated with
 :func:`case`; it takes ``quick`` and returns a dict::
 
     {"run": callable,                  # the work, called with no arguments
@@ -50,12 +51,14 @@ def case(name: str):
 
 
 def benchmark_dir() -> Path:
-    """The folder holding ``bench_*.py``: ``$PRTLAB_BENCHMARKS`` or ``<repo>/benchmarks``."""
+    """The folder holding ``bench_*.py``: ``$PRTLAB_BENCHMARKS`` if set, else the one shipped in the package."""
     env = os.environ.get("PRTLAB_BENCHMARKS")
-    folder = Path(env) if env else Path(__file__).resolve().parents[1] / "benchmarks"
+    folder = Path(env) if env else Path(__file__).resolve().parent / "benchmarks"
     if not folder.is_dir():
+        where = "PRTLAB_BENCHMARKS names" if env else "the installed prtlab package has"
         raise FileNotFoundError(
-            f"no benchmark folder at {folder}; run from a prtlab checkout or set PRTLAB_BENCHMARKS"
+            f"no benchmark folder at {folder} ({where} none); set PRTLAB_BENCHMARKS to a folder of "
+            "bench_*.py files or reinstall prtlab"
         )
     return folder
 
@@ -104,8 +107,10 @@ def _cpu_name() -> str:
 def run_benchmarks(quick: bool = False, select: str | None = None, json_path=None, out=print) -> dict:
     """Run every registered case (or those whose name contains ``select``).
 
-    Returns the report dict of ``../shared/DESIGN.md`` and writes it to
-    ``json_path`` if given.
+    Returns the report ``{"machine": {cpu, cores, peak_gflops, numpy, python}, "quick": bool,
+    "cases": [...]}``, one entry per case (``name``, ``seconds_median`` and, where known,
+    ``gflop``, ``gflops``, ``share_of_peak``, ``items``, ``items_per_second``, ``peer``,
+    ``speedup_vs_peer``, ``info``), and writes it to ``json_path`` as JSON if given.
     """
     _discover()
     names = sorted(n for n in _CASES if select is None or select in n)

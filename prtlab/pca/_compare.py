@@ -4,8 +4,8 @@ Four bases approximate a per-vertex intensity ``L(x_j)`` with ``N`` terms each:
 
 ``"sh"``
     Real spherical harmonics *as functions of the parameter domain*,
-    ``Psi_i(u, v) = Y_i(theta = pi v, phi = 2 pi u)`` (``i < N``, DESIGN.md's
-    real SH, polar axis z). The paper expands ``L_k(u, v)`` in ``y(u, v)``
+    ``Psi_i(u, v) = Y_i(theta = pi v, phi = 2 pi u)`` (``i < N``, the real SH
+    of :mod:`prtlab.sh`, polar axis z). The paper expands ``L_k(u, v)`` in ``y(u, v)``
     over the geometry image (Sec. 5.1); it does not say how ``(u, v)`` maps to
     the sphere, so we use the equirectangular map.
 ``"haar"``

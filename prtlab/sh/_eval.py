@@ -1,6 +1,6 @@
 """Evaluation of the real orthonormal spherical harmonics.
 
-Convention (``../shared/DESIGN.md``): coefficient index ``i = l*l + l + m``,
+Convention (:mod:`prtlab.sh`): coefficient index ``i = l*l + l + m``,
 no Condon-Shortley phase, polar axis = world z::
 
     Y_l0  = K_l0 P_l(z)

@@ -1,7 +1,7 @@
-"""The real Gaunt (triple product) tensor of the design's real SH basis.
+"""The real Gaunt (triple product) tensor of prtlab's real SH basis.
 
 ``G_ijk = int_S2 Y_i(w) Y_j(w) Y_k(w) dw`` for the real orthonormal basis of
-``../shared/DESIGN.md`` (index ``i = l*l + l + m``, no Condon-Shortley phase,
+:mod:`prtlab.sh` (index ``i = l*l + l + m``, no Condon-Shortley phase,
 polar axis z). Computed once per order by a product quadrature that is exact
 for the integrands (they are polynomials of degree ``<= 3 (n - 1)`` restricted
 to the sphere), stored sparsely and cached in memory.

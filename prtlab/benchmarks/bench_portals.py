@@ -9,18 +9,17 @@ count and on the stored entries per vertex, not on where the vertices are). Peer
 from __future__ import annotations
 
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
-import prtlab
+import prtlab.data
 from prtlab.bench import case
 from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
 from prtlab.scene import load_scene
 from prtlab.wavelet import SparseTransfer
 
 PAPER_VERTICES = 44_763
-SCENE = Path(prtlab.__file__).resolve().parents[1] / "data" / "scenes" / "box_window_sky.yaml"
+SCENE = prtlab.data.scene_path("box_window_sky")
 
 
 def _tile(sparse: SparseTransfer, n: int) -> SparseTransfer:

@@ -12,10 +12,9 @@ precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
+import prtlab.data
 from prtlab.bench import case
 from prtlab.geometry import geodesic_directions
 from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
@@ -23,7 +22,7 @@ from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
 ORDER = 4
 N_LIGHTS = 14
 N_RECEIVERS = 21_000
-SCENE = Path(__file__).resolve().parents[1] / "data" / "scenes" / "bunny_spheres_env.yaml"
+SCENE = prtlab.data.scene_path("bunny_spheres_env")
 # the precomputed arrays each kind of frame reads (``SphereLights.data["objects"][name]``): the second pass reads
 # the sphere set, the first pass (indirect light) also the surface samples and the albedo SH; the rest of what is
 # stored is the per-vertex light index (soft deformations, Sec. 7.1) and the fit's figures
