@@ -23,7 +23,7 @@ __version__ = "0.1.0"
 
 _SUBPACKAGES = {
     "sh", "wavelet", "brdf", "pca", "geometry", "scene", "shadowfields", "interreflection",
-    "spherelights", "portals", "reference", "render", "cache", "pipeline", "api", "metrics",
+    "spherelights", "portals", "reference", "render", "cache", "pipeline", "api", "metrics", "data",
 }
 _API = {
     "load_scene": "prtlab.scene",

@@ -1,4 +1,4 @@
-"""The benchmark runner: report shape of DESIGN.md, peers, peak measured in the same run."""
+"""The benchmark runner: report shape, peers, peak measured in the same run."""
 
 import json
 import subprocess

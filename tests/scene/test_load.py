@@ -11,6 +11,7 @@ import trimesh
 import yaml
 
 import prtlab
+import prtlab.data
 from prtlab.scene import (
     DEGENERATE_FACE_FRACTION,
     AreaLight,
@@ -26,7 +27,7 @@ from prtlab.scene import (
     write_exr,
 )
 
-SCENES_DIR = Path(__file__).resolve().parents[2] / "data" / "scenes"
+SCENES_DIR = prtlab.data.path("scenes")
 
 
 def base_dict() -> dict:
