@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow bench clean
+.PHONY: demo test fidelity test-slow bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,7 +21,12 @@ demo: $(STAMP)
 
 # The default test run: unit and property tests, notebooks in quick mode. Under 15 min on 2 cores.
 test: $(STAMP)
-	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m "not slow" --nbmake tests $(wildcard notebooks/*.ipynb)
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m "not slow and not fidelity" --nbmake tests $(wildcard notebooks/*.ipynb)
+
+# The fidelity tier: each pipeline on its paper's scenes at reduced size against Mitsuba 3 / Monte Carlo,
+# every object, direct / indirect / total, moved objects where the method allows motion. About 20 min on 2 cores.
+fidelity: $(STAMP)
+	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m fidelity tests/fidelity
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 -m slow tests
