@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_int", "check_order", "check_choice", "as_directions", "as_points"]
+__all__ = ["check_int", "check_float", "check_bool", "check_order", "check_choice", "as_directions", "as_points"]
 
 
 def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None,
@@ -35,6 +35,36 @@ def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | 
     return int(value)
 
 
+def check_float(value: Any, name: str, minimum: float | None = None, maximum: float | None = None, *,
+                min_open: bool = False, max_open: bool = False, meaning: str = "") -> float:
+    """``value`` (an int or a float, not a bool) as a finite Python float in the given range.
+
+    ``min_open`` / ``max_open`` exclude the bound itself (``(0, 1]`` is ``minimum=0, min_open=True,
+    maximum=1``); ``meaning`` is added to the message in brackets.
+    """
+    bounds = []
+    if minimum is not None:
+        bounds.append(f"{'>' if min_open else '>='} {minimum}")
+    if maximum is not None:
+        bounds.append(f"{'<' if max_open else '<='} {maximum}")
+    what = f"{name} must be a finite number" + (" " + " and ".join(bounds) if bounds else "")
+    what += f" ({meaning})" if meaning else ""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{what}, got {value!r} of type {type(value).__name__}")
+    x = float(value)
+    if (not np.isfinite(x) or (minimum is not None and (x <= minimum if min_open else x < minimum))
+            or (maximum is not None and (x >= maximum if max_open else x > maximum))):
+        raise ValueError(f"{what}, got {value!r}")
+    return x
+
+
+def check_bool(value: Any, name: str) -> bool:
+    """``value`` if it is ``True`` or ``False`` (a NumPy bool too), else a TypeError (``1`` is not a bool)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r} of type {type(value).__name__}")
+    return bool(value)
+
+
 def check_order(order: Any, name: str = "order") -> int:
     """An SH order ``n >= 1`` (bands ``l = 0..n-1``, ``n**2`` coefficients)."""
     return check_int(order, name, 1, meaning=f"{name} n means SH bands l = 0..n-1")
@@ -42,7 +72,12 @@ def check_order(order: Any, name: str = "order") -> int:
 
 def check_choice(value: Any, name: str, allowed) -> Any:
     """``value`` if it is one of ``allowed``, else a ValueError listing them."""
-    if value not in allowed:
+    try:
+        ok = any(value == a and (type(value) is type(a) or isinstance(value, str) and isinstance(a, str))
+                 for a in allowed)
+    except (TypeError, ValueError):  # an array compared element-wise
+        ok = False
+    if not ok:
         raise ValueError(f"{name} must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
     return value
 
