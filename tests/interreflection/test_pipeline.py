@@ -174,7 +174,7 @@ def test_errors(pre):
     state.lights = [PointLight(position=np.array([0, 3.0, 0]), intensity=np.ones(3))]
     with pytest.raises(ValueError, match="not point lights; pass shadows='haar'"):
         pre.shade(state, bounces=1)
-    with pytest.raises(ValueError, match="option shadows must be 'sh' or 'haar'"):
+    with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', got 'wavelet'"):
         InterreflectionOptions(shadows="wavelet")
     with pytest.raises(ValueError, match="option haar_resolution must be a power of two"):
         InterreflectionOptions(haar_resolution=12)
