@@ -46,13 +46,12 @@ named after the pass.
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping, NamedTuple
+from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from prtlab._validate import check_int
+from prtlab._validate import MemoryNeed, check_int, check_memory, memory_limit
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
@@ -101,74 +100,6 @@ def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> 
         if dynamic_transforms or not obj.dynamic:
             parts.append(obj.transform.to_dict())
     return parts
-
-
-class MemoryNeed(NamedTuple):
-    """One large allocation of a computation: what it is, its size and the options it grows with."""
-
-    what: str
-    nbytes: float
-    options: tuple[str, ...]
-
-
-_GB = float(1 << 30)
-
-
-def _size(nbytes: float) -> str:
-    if nbytes >= 0.95 * _GB:
-        return f"{nbytes / _GB:,.3g} GB"
-    return f"{nbytes / (1 << 20):,.3g} MB"
-
-
-def memory_limit() -> float | None:
-    """Bytes a computation may allocate: ``$PRTLAB_MAX_MEMORY_GB`` if set, else the memory available now
-    (``MemAvailable`` of ``/proc/meminfo``, else ``os.sysconf``); None where neither is known."""
-    env = os.environ.get("PRTLAB_MAX_MEMORY_GB")
-    if env is not None and env.strip():
-        try:
-            gb = float(env)
-        except ValueError:
-            gb = float("nan")
-        if not (np.isfinite(gb) and gb > 0):
-            raise ValueError(f"environment variable PRTLAB_MAX_MEMORY_GB must be a number of GB > 0, got {env!r}")
-        return gb * _GB
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
-    except OSError:
-        pass
-    try:
-        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-def check_memory(method: str, options: Any, needs, context: str) -> None:
-    """Refuse, before allocating, a computation whose ``needs`` (:class:`MemoryNeed`) exceed :func:`memory_limit`.
-
-    One ValueError line names the options of the largest allocation first (with their values from
-    ``options``, a dataclass or a mapping), the estimate, ``context`` (e.g. ``"2,191 vertices"``) and the
-    limit, e.g. ``"portals: option order=8 with res=64 and bounces=40 needs ~31 GB for 2,191 vertices
-    (limit 20 GB): lower order, res or bounces"``.
-    """
-    needs = [n for n in needs if n.nbytes > 0]
-    total = float(sum(n.nbytes for n in needs))
-    limit = memory_limit()
-    if limit is None or total <= limit:
-        return
-    names: list[str] = []
-    for need in sorted(needs, key=lambda n: -n.nbytes):
-        names += [name for name in need.options if name not in names]
-    names = names[:3]
-    get = options.get if isinstance(options, Mapping) else lambda name: getattr(options, name)
-    values = [f"{name}={get(name)!r}" for name in names]
-    said = f"option {values[0]}" + (" with " + " and ".join(values[1:]) if len(values) > 1 else "")
-    lower = names[0] if len(names) == 1 else ", ".join(names[:-1]) + f" or {names[-1]}"
-    biggest = max(needs, key=lambda n: n.nbytes).what
-    raise ValueError(f"{method}: {said} needs ~{_size(total)} for {context} (limit {_size(limit)}; mostly "
-                     f"{biggest}): lower {lower} (or set PRTLAB_MAX_MEMORY_GB)")
 
 
 def _same_pose(a: Transform, b: Transform) -> bool:
