@@ -149,7 +149,10 @@ class InterreflectionOptions:
     degree : quadrature degree of the visibility and basis radiance projections (None: 47).
     threshold : Sec. 5.4 skip threshold for source/receiver pairs (0: compute all).
     pca_occluders : train each object's PCA basis with the shadows the other objects cast on it
-        in the scene as given (True), or on the object alone as in the paper (False).
+        in the scene as given (True), or on the object alone as in the paper (False). Objects may
+        still move per frame: the basis then spans the shadows of the precomputed poses (an
+        approximation, as any PCA basis is); with False a moved state shades exactly as a
+        precomputation at the new pose.
     self_interreflection : include the light an object bounces onto itself (True), or only
         light from the other objects as in the paper (False).
     near_field : receiver points whose distance to a source's surface (its nearest vertex) is below

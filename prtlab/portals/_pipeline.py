@@ -23,6 +23,14 @@ bunny's indirect light was 9.9% low; of that about 4% was its own specular
 light reflected onto itself, 1% its specular light reflected via the walls,
 the rest the order-4 SH truncation of the shell light.)
 
+The interior is static: photons, gather rays and shadow rays are traced
+against every object where the scene puts it, so every object's transform
+(dynamic or not) is in the cache key, and ``shade(state)`` refuses a state in
+which an object moved (re-precompute at the new pose, e.g. on
+``scene.at_frame(i, n)``). The camera may move (glossy view directions are
+taken per frame); the light is one environment seen through the portals.
+Each portal faces the interior whatever its winding (:func:`find_portals`).
+
 Bounces: the indirect transfer is stored per bounce (photon depth), so
 ``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
 Distant environments or user-given shell cubemaps (:meth:`Portals.shade_shells`).

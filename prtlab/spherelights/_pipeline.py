@@ -285,6 +285,16 @@ class SphereLights(Precomputation):
         return needs, f"{n_v:,} vertices and {int(s_total):,} spheres"
 
     @classmethod
+    def check_scene(cls, scene, options) -> None:
+        """A ``n_spheres`` dict names objects of the scene; then the memory check."""
+        if isinstance(options.n_spheres, dict):
+            names = [o.name for o in scene.objects]
+            unknown = sorted(set(options.n_spheres) - set(names))
+            if unknown:
+                raise ValueError(f"option n_spheres names unknown object(s) {unknown}; objects: {names}")
+        super().check_scene(scene, options)
+
+    @classmethod
     def cache_key_parts(cls, scene, options):
         # the run-time choices do not change the precomputed data
         from dataclasses import asdict

@@ -298,3 +298,8 @@ def test_spherelights_give_no_negative_radiance_beside_spheres_on_a_plane():
         for name, value in getattr(res, part).items():
             assert value.min() >= 0.0, (part, name, value.min())
     assert res.direct["plane"].max() > 0
+
+
+def test_spherelights_refuse_n_spheres_for_an_unknown_object_before_precomputing(no_compute):
+    with pytest.raises(ValueError, match=r"option n_spheres names unknown object\(s\) \['teapot'\]; objects: "):
+        prtlab.shade(_spheres_scene(), method="spherelights", cache=False, progress=False, n_spheres={"teapot": 2})
