@@ -303,3 +303,16 @@ def test_spherelights_give_no_negative_radiance_beside_spheres_on_a_plane():
 def test_spherelights_refuse_n_spheres_for_an_unknown_object_before_precomputing(no_compute):
     with pytest.raises(ValueError, match=r"option n_spheres names unknown object\(s\) \['teapot'\]; objects: "):
         prtlab.shade(_spheres_scene(), method="spherelights", cache=False, progress=False, n_spheres={"teapot": 2})
+
+
+def test_portals_stream_the_photon_estimates_and_gathering_in_smaller_chunks_with_the_same_result(monkeypatch):
+    import prtlab.portals._indirect as indirect
+
+    scene = window_box(cell=1.0)
+    options = dict(TINY_PORTALS, bounces=2, order=3)
+    whole = Portals.precompute(scene, options, cache=False, progress=False)
+    monkeypatch.setattr(indirect, "CHUNK_BYTES", 1)  # one vertex per chunk
+    streamed = Portals.precompute(scene, options, cache=False, progress=False)
+    for b in (1, 2):
+        np.testing.assert_allclose(streamed.indirect_transfer(0, b), whole.indirect_transfer(0, b), rtol=1e-6,
+                                   atol=1e-12)
