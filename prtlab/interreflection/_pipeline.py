@@ -459,12 +459,9 @@ class Interreflection(Precomputation):
         """
         import dataclasses
 
-        n = self.options.n_basis if n_basis is None else int(n_basis)
-        o = self.options.order if order is None else int(order)
-        if not (1 <= o <= self.options.order):
-            raise ValueError(f"order must be in [1, {self.options.order}] (the precomputed order), got {order!r}")
-        if n < 1:
-            raise ValueError(f"n_basis must be >= 1, got {n_basis!r}")
+        n = self.options.n_basis if n_basis is None else check_int(n_basis, "n_basis", 1)
+        o = self.options.order if order is None else check_int(order, "order", 1, self.options.order,
+                                                                meaning="at most the precomputed order")
         n2 = o * o
         data = {}
         for obj in self.objects:
