@@ -71,5 +71,6 @@ def test_check_memory_names_the_largest_allocation_first(monkeypatch):
         check_memory("portals", opts, needs, "2,191 vertices")
     check_memory("portals", opts, needs[1:], "2,191 vertices")  # 6 GB fits
     monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "0.001")
-    with pytest.raises(ValueError, match=r"option res=64 needs ~6 GB for 1 thing \(limit 1.02 MB; mostly the cubemaps\): lower res \("):
+    with pytest.raises(ValueError, match=r"option res=64 needs ~6 GB for 1 thing \(limit 1.02 MB; mostly the "
+                                         r"cubemaps\): lower res \("):
         check_memory("x", opts, needs[1:2] * 6, "1 thing")

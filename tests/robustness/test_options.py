@@ -87,6 +87,7 @@ def test_cross_field_and_special_limits(method, options, error, message):
 
 
 def test_good_values_of_each_kind_are_accepted():
-    SphereLightOptions(n_spheres={"ball": 3}, n_directions=42, cut_threshold=0, local_lights=[((0, 1, 0), 0.2, (1, 1, 1))])
+    SphereLightOptions(n_spheres={"ball": 3}, n_directions=42, cut_threshold=0,
+                       local_lights=[((0, 1, 0), 0.2, (1, 1, 1))])
     InterreflectionOptions(r_min=0.5, r_max=0.5, spacing="uniform", degree=15, threshold=1, near_field=0)
     PortalsOptions(merge_portals=True, direct_basis="haar", glossy_order=0, bounces=0)
