@@ -316,3 +316,10 @@ def test_portals_stream_the_photon_estimates_and_gathering_in_smaller_chunks_wit
     for b in (1, 2):
         np.testing.assert_allclose(streamed.indirect_transfer(0, b), whole.indirect_transfer(0, b), rtol=1e-6,
                                    atol=1e-12)
+
+
+def test_mitsuba_refuses_a_wavefront_beyond_memory_before_loading_mitsuba(monkeypatch):
+    monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "1")
+    with pytest.raises(ValueError, match=r"mitsuba: option n_samples=1000000000 needs ~[\d.,]+ GB for [\d,]+ vertices "
+                                         r"\(limit 1 GB; mostly the ray wavefront\): lower n_samples"):
+        prtlab.shade(window_box(cell=1.5), method="mitsuba", bounces=1, n_samples=10**9, progress=False)
