@@ -451,11 +451,11 @@ class SphereLights(Precomputation):
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
                                   exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
         emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
-        result = ShadeResult(info={"method": self.method, "n_lights": int(n_sl), "n_local_lights": int(n_loc),
-                                   "exp_method": opts.exp_method, "blocking": opts.blocking,
-                                   "average": opts.average})
+        result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
+                                   "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
+                                   "blocking": opts.blocking, "average": opts.average})
         nodes = None
-        for obj in self.scene.objects:
+        for obj in (o for o in self.scene.objects if not o.portal):  # portals are openings, not surfaces
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in deformed:
                 pts, nrm = _deformed_receivers(obj, deformed[obj.name], tr)

@@ -323,3 +323,11 @@ def test_mitsuba_refuses_a_wavefront_beyond_memory_before_loading_mitsuba(monkey
     with pytest.raises(ValueError, match=r"mitsuba: option n_samples=1000000000 needs ~[\d.,]+ GB for [\d,]+ vertices "
                                          r"\(limit 1 GB; mostly the ray wavefront\): lower n_samples"):
         prtlab.shade(window_box(cell=1.5), method="mitsuba", bounces=1, n_samples=10**9, progress=False)
+
+
+def test_spherelights_shade_the_same_objects_as_the_other_pipelines():
+    scene = _spheres_scene(plane_resolution=4)
+    window = window_box(cell=1.0).object("window")
+    scene.objects.append(window)
+    res = SphereLights.precompute(scene, TINY_SPHERES, cache=False, progress=False).shade(bounces=1)
+    assert sorted(res.total) == ["ball", "box", "plane"] and res.info["bounces"] == 1
