@@ -23,8 +23,24 @@ format version), the per-frame state, and the ``bounces`` check::
     pre = SphereLights.precompute(scene, {"n_spheres": 8})   # slow, cached
     frame = pre.shade(FrameState.from_scene(scene))            # fast, per frame
 
-Per-frame code is a batched numba loop over vertices (``parallel=True``,
-``prange``) with one function per shader pass, named after the pass.
+The contract, checked by the base in this order so that nothing heavy runs
+before a refusal:
+
+1. ``shade_scene`` (``prtlab.shade``): the options (the dataclass validates every
+   field), ``bounces`` (:meth:`Precomputation.check_bounces`) and the scene's
+   lights (:meth:`Precomputation.check_lights`), then ``precompute``;
+2. ``precompute``: :meth:`Precomputation.check_scene` (what the method needs in the
+   scene, and the memory its options need, :meth:`Precomputation.memory_needs`),
+   then ``compute`` (or the cache);
+3. ``shade(state)``: bounces, then :meth:`Precomputation.check_state`: every name in
+   the state is an object of the scene, an object whose pose the precomputed data
+   bakes in (:meth:`Precomputation.baked_objects`) has not moved, deformations
+   only where the method takes them (``supports_deformations``), and the lights.
+
+Everything that changes per frame (transforms, deformations, lights, camera)
+is in :class:`FrameState`. Per-frame code is a batched numba loop over
+vertices (``parallel=True``, ``prange``) with one function per shader pass,
+named after the pass.
 """
 
 from __future__ import annotations
@@ -35,20 +51,26 @@ from typing import Any, ClassVar, Mapping
 
 import numpy as np
 
-from prtlab._validate import check_int
+from prtlab._validate import MemoryNeed, check_int, check_memory, memory_limit
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
-__all__ = ["FrameState", "Precomputation", "check_int_options", "scene_geometry_key_parts"]
+__all__ = ["FrameState", "MemoryNeed", "Precomputation", "check_int_options", "check_memory", "memory_limit",
+           "scene_geometry_key_parts"]
 
 
 @dataclass
 class FrameState:
-    """What changes per frame: object transforms, lights, camera."""
+    """What changes per frame: object transforms, lights, camera, and soft deformations.
+
+    ``deformations``: ``{object name: (V, 3) object-space vertex positions}`` of softly
+    deformed objects (only methods with ``supports_deformations`` take them).
+    """
 
     transforms: dict[str, Transform] = field(default_factory=dict)
     lights: list = field(default_factory=list)
     camera: Camera | None = None
+    deformations: dict[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "FrameState":
@@ -80,6 +102,11 @@ def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> 
     return parts
 
 
+def _same_pose(a: Transform, b: Transform) -> bool:
+    ma, mb = a.matrix(), b.matrix()
+    return bool(np.allclose(ma, mb, rtol=0.0, atol=1e-12 * max(1.0, float(np.abs(mb).max()))))
+
+
 class Precomputation:
     """Base of every pipeline's precomputed data; see the module docstring."""
 
@@ -87,6 +114,12 @@ class Precomputation:
     format_version: ClassVar[int] = 1
     max_bounces: ClassVar[int | None] = None
     options_type: ClassVar[type | None] = None
+    #: ``compute`` takes ``store``, ``key`` and ``map_fn`` and stores resumable parts itself
+    resumable: ClassVar[bool] = False
+    #: the method takes ``FrameState.deformations``
+    supports_deformations: ClassVar[bool] = False
+    #: why moving a baked object is refused (see :meth:`baked_objects`)
+    baked_reason: ClassVar[str] = "the precomputation bakes in the poses of the objects"
 
     def __init__(self, scene: Scene, options: Any, data: Mapping[str, Any]):
         self.scene = scene
@@ -118,6 +151,77 @@ class Precomputation:
         opts = dataclasses.asdict(options) if dataclasses.is_dataclass(options) else options
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene), opts]
 
+    # ----------------------------------------------------------------- checks before any work
+
+    @classmethod
+    def check_bounces(cls, bounces, options) -> int:
+        """``bounces`` as an int the method can shade (``0 <= bounces <= max_bounces``)."""
+        bounces = check_int(bounces, "bounces", 0)
+        if cls.max_bounces is not None and bounces > cls.max_bounces:
+            raise ValueError(
+                f"method {cls.method!r} computes at most {cls.max_bounces} indirect bounce(s), "
+                f"got bounces={bounces}; use method='reference' for more"
+            )
+        return bounces
+
+    @classmethod
+    def check_lights(cls, lights, options) -> None:
+        """Raise ValueError for a light the method cannot shade (default: every light is taken)."""
+
+    @classmethod
+    def memory_needs(cls, scene: Scene, options) -> tuple[list[MemoryNeed], str]:
+        """The dominant allocations of ``compute`` and what they are counted for (e.g. ``"2,191 vertices"``)."""
+        return [], "the scene"
+
+    @classmethod
+    def check_scene(cls, scene: Scene, options) -> None:
+        """Refuse, before ``compute``, a scene the method cannot precompute and options whose memory does
+        not fit (:func:`check_memory`); subclasses add their own needs and call this."""
+        needs, context = cls.memory_needs(scene, options)
+        check_memory(cls.method, options, needs, context)
+
+    def baked_objects(self) -> tuple[str, ...]:
+        """Names of the objects whose pose the precomputed data bakes in (default: none, every object may move)."""
+        return ()
+
+    def moved_objects(self, state: "FrameState") -> list[str]:
+        """The baked objects (:meth:`baked_objects`) whose transform in ``state`` differs from the scene's."""
+        moved = []
+        for name in self.baked_objects():
+            now = state.transforms.get(name)
+            if now is not None and not _same_pose(now, self.scene.object(name).transform):
+                moved.append(name)
+        return moved
+
+    def check_state(self, state: "FrameState") -> "FrameState":
+        """``state`` checked against the precomputation (names, baked poses, deformations, lights);
+        returns it with its deformations as float64 arrays."""
+        names = [o.name for o in self.scene.objects]
+        for label, entries in (("transforms", state.transforms), ("deformations", state.deformations)):
+            unknown = sorted(set(entries) - set(names))
+            if unknown:
+                raise ValueError(f"the frame state's {label} name unknown object(s) {unknown}; objects: {names}")
+        moved = self.moved_objects(state)
+        if moved:
+            raise ValueError(
+                f"{self.baked_reason}: object {moved[0]!r} moved; keep it at its precomputed pose (mark it static) "
+                "or re-precompute at the new pose (e.g. precompute(scene.at_frame(i, n)))"
+            )
+        deformations = {}
+        if state.deformations:
+            if not self.supports_deformations:
+                raise ValueError(f"method {self.method!r} does not take soft deformations (FrameState.deformations "
+                                 f"of {sorted(state.deformations)}); re-precompute the deformed meshes")
+            for name, verts in state.deformations.items():
+                v = np.asarray(verts, dtype=np.float64)
+                n_v = self.scene.object(name).n_vertices
+                if v.shape != (n_v, 3) or not np.all(np.isfinite(v)):
+                    raise ValueError(f"deformed[{name!r}] must be finite object-space vertex positions of shape "
+                                     f"({n_v}, 3), got shape {v.shape}")
+                deformations[name] = v
+        self.check_lights(state.lights, self.options)
+        return dataclasses.replace(state, deformations=deformations)
+
     # ----------------------------------------------------------------- the two phases
 
     @classmethod
@@ -126,19 +230,26 @@ class Precomputation:
         raise NotImplementedError
 
     @classmethod
-    def precompute(cls, scene: Scene, options=None, cache: Cache | bool | None = True, progress: bool = True):
+    def precompute(cls, scene: Scene, options=None, cache: Cache | bool | None = True, progress: bool = True,
+                   map_fn=None):
         """Run (or load from the cache) the precomputation of ``scene``.
 
         ``cache``: True for the default cache (``$PRTLAB_CACHE`` or
         ``~/.cache/prtlab``), a :class:`prtlab.cache.Cache`, or False/None to
-        compute without caching.
+        compute without caching. :meth:`check_scene` runs first. A ``resumable``
+        method stores its parts as they finish (``map_fn`` runs them in parallel,
+        see :meth:`prtlab.cache.Cache.get_or_compute_chunks`).
         """
         options = cls.make_options(options)
+        cls.check_scene(scene, options)
+        if map_fn is not None and not cls.resumable:
+            raise ValueError(f"method {cls.method!r} cannot distribute its precomputation (map_fn)")
         if not cache:
             return cls(scene, options, cls.compute(scene, options, progress))
         store = Cache(progress=progress) if cache is True else cache
         key = cache_key(*cls.cache_key_parts(scene, options))
-        data = store.get_or_compute(key, lambda: cls.compute(scene, options, progress), name=cls.method)
+        extra = {"store": store, "key": key, "map_fn": map_fn} if cls.resumable else {}
+        data = store.get_or_compute(key, lambda: cls.compute(scene, options, progress, **extra), name=cls.method)
         return cls(scene, options, data)
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
@@ -147,15 +258,22 @@ class Precomputation:
 
     def shade(self, state: FrameState | None = None, bounces: int = 1) -> ShadeResult:
         """Per-vertex radiance for one frame (``state`` defaults to the scene as loaded)."""
-        bounces = check_int(bounces, "bounces", 0)
-        if self.max_bounces is not None and bounces > self.max_bounces:
-            raise ValueError(
-                f"method {self.method!r} computes at most {self.max_bounces} indirect bounce(s), "
-                f"got bounces={bounces}; use method='reference' for more"
-            )
-        return self.shade_frame(state or FrameState.from_scene(self.scene), bounces)
+        bounces = self.check_bounces(bounces, self.options)
+        state = self.check_state(state or FrameState.from_scene(self.scene))
+        return self.shade_frame(state, bounces)
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
-        """``precompute(scene, options).shade(bounces=bounces)``: the ``prtlab.shade`` entry point."""
+        """``precompute(scene, options).shade(bounces=bounces)``: the ``prtlab.shade`` entry point.
+
+        Options, ``bounces`` and the scene's lights are checked before the precomputation runs.
+        """
+        return cls.shade_once(scene, cls.make_options(options), bounces, cache=cache, progress=progress)
+
+    @classmethod
+    def shade_once(cls, scene: Scene, options, bounces: int = 1, cache=True, progress: bool = True) -> ShadeResult:
+        """:meth:`shade_scene` with the options as one object (a dict or the options dataclass)."""
+        options = cls.make_options(options)
+        bounces = cls.check_bounces(bounces, options)
+        cls.check_lights(scene.lights, options)
         return cls.precompute(scene, options, cache=cache, progress=progress).shade(bounces=bounces)

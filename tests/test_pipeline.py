@@ -70,3 +70,93 @@ def test_too_many_bounces_is_an_error(scene):
 def test_unknown_option_is_an_error(scene):
     with pytest.raises(ValueError, match=r"unknown option\(s\) \['gian'\] for method 'toy'"):
         Toy.precompute(scene, {"gian": 1.0}, cache=False)
+
+
+class Baked(Toy):
+    """A toy that bakes every object's pose in, takes deformations and refuses point lights."""
+
+    method = "baked"
+    supports_deformations = True
+    baked_reason = "the baked toy precomputes the poses"
+
+    def baked_objects(self):
+        return tuple(o.name for o in self.scene.objects)
+
+    @classmethod
+    def check_lights(cls, lights, options):
+        if lights:
+            raise ValueError("the baked toy takes no lights")
+
+    def shade_frame(self, state, bounces):
+        self.seen = state
+        return super().shade_frame(state, bounces)
+
+
+def test_a_moved_baked_object_is_refused_and_the_same_pose_is_not(scene):
+    from prtlab.scene import Transform
+
+    pre = Baked.precompute(scene, cache=False)
+    state = FrameState.from_scene(scene)
+    state.transforms["floor"] = Transform(translate=np.array([0.0, 1e-6, 0.0]))
+    with pytest.raises(ValueError, match=r"^the baked toy precomputes the poses: object 'floor' moved; keep it at its "
+                                         r"precomputed pose \(mark it static\) or re-precompute at the new pose"):
+        pre.shade(state, bounces=0)
+    assert pre.moved_objects(state) == ["floor"]
+    state.transforms["floor"] = Transform(translate=np.array([0.0, 1e-15, 0.0]))  # round-off is no motion
+    assert pre.moved_objects(state) == []
+    pre.shade(state, bounces=0)
+    assert Toy.precompute(scene, cache=False).moved_objects(state) == []  # nothing baked by default
+
+
+def test_the_frame_state_is_checked_before_shading(scene):
+    from prtlab.scene import PointLight
+
+    pre = Baked.precompute(scene, cache=False)
+    verts = np.asarray(scene.objects[0].mesh.vertices)
+    pre.shade(FrameState(deformations={"floor": verts.tolist()}), bounces=0)
+    assert pre.seen.deformations["floor"].dtype == np.float64
+    with pytest.raises(ValueError, match=r"deformed\['floor'\] must be finite object-space vertex positions of "
+                                         r"shape \(9, 3\), got shape \(2, 3\)"):
+        pre.shade(FrameState(deformations={"floor": verts[:2]}), bounces=0)
+    with pytest.raises(ValueError, match=r"the frame state's deformations name unknown object\(s\) \['wall'\]"):
+        pre.shade(FrameState(deformations={"wall": verts}), bounces=0)
+    with pytest.raises(ValueError, match="method 'toy' does not take soft deformations"):
+        Toy.precompute(scene, cache=False).shade(FrameState(deformations={"floor": verts}), bounces=0)
+    with pytest.raises(ValueError, match="the baked toy takes no lights"):
+        pre.shade(FrameState(lights=[PointLight(position=np.zeros(3), intensity=np.ones(3))]), bounces=0)
+
+
+def test_shade_scene_checks_bounces_and_lights_before_precomputing(scene, monkeypatch):
+    from prtlab.scene import PointLight
+
+    Toy.calls = Baked.calls = 0
+    with pytest.raises(ValueError, match="method 'toy' computes at most 1 indirect bounce"):
+        Toy.shade_scene(scene, bounces=2, cache=False)
+    lit = Scene(objects=scene.objects, lights=[PointLight(position=np.zeros(3), intensity=np.ones(3))])
+    with pytest.raises(ValueError, match="the baked toy takes no lights"):
+        Baked.shade_scene(lit, bounces=1, cache=False)
+    assert Toy.calls == Baked.calls == 0
+
+
+def test_check_scene_runs_before_compute(scene, monkeypatch):
+    monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "1")
+
+    class Hungry(Toy):
+        method = "hungry"
+
+        @classmethod
+        def memory_needs(cls, scene, options):
+            from prtlab.pipeline import MemoryNeed
+
+            return [MemoryNeed("the gains", options.gain * 2**30, ("gain",))], f"{len(scene.objects)} object"
+
+    Hungry.calls = 0
+    Hungry.precompute(scene, {"gain": 0.5}, cache=False)
+    with pytest.raises(ValueError, match=r"hungry: option gain=3.0 needs ~3 GB for 1 object \(limit 1 GB"):
+        Hungry.precompute(scene, {"gain": 3.0}, cache=False)
+    assert Hungry.calls == 1
+
+
+def test_only_resumable_methods_take_map_fn(scene):
+    with pytest.raises(ValueError, match="method 'toy' cannot distribute its precomputation"):
+        Toy.precompute(scene, cache=False, map_fn=map)

@@ -108,9 +108,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from prtlab import brdf, pca, sh
-from prtlab._validate import check_choice
+from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import RayCaster, offset_origins, shading_points
-from prtlab.pipeline import FrameState, Precomputation, check_int_options, scene_geometry_key_parts
+from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
 from prtlab.sh._gaunt import _gaunt_block
 from prtlab.shadowfields import (
@@ -149,7 +149,10 @@ class InterreflectionOptions:
     degree : quadrature degree of the visibility and basis radiance projections (None: 47).
     threshold : Sec. 5.4 skip threshold for source/receiver pairs (0: compute all).
     pca_occluders : train each object's PCA basis with the shadows the other objects cast on it
-        in the scene as given (True), or on the object alone as in the paper (False).
+        in the scene as given (True), or on the object alone as in the paper (False). Objects may
+        still move per frame: the basis then spans the shadows of the precomputed poses (an
+        approximation, as any PCA basis is); with False a moved state shades exactly as a
+        precomputation at the new pose.
     self_interreflection : include the light an object bounces onto itself (True), or only
         light from the other objects as in the paper (False).
     near_field : receiver points whose distance to a source's surface (its nearest vertex) is below
@@ -195,22 +198,26 @@ class InterreflectionOptions:
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
                                  "haar_resolution", "haar_keep", "haar_radiance_keep"))
+        check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
+        check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
+        if self.r_min > self.r_max:
+            raise ValueError(f"options r_min and r_max must satisfy r_min <= r_max, got r_min={self.r_min!r} > "
+                             f"r_max={self.r_max!r}")
+        check_choice(self.spacing, "option spacing", ("geometric", "uniform"))
+        if self.degree is not None:
+            check_int(self.degree, "option degree", 0, meaning="quadrature degree, or None for 47")
+        check_float(self.threshold, "option threshold", 0.0)
+        check_float(self.near_field, "option near_field", 0.0)
+        check_bool(self.pca_occluders, "option pca_occluders")
+        check_bool(self.self_interreflection, "option self_interreflection")
+        check_choice(self.shadows, "option shadows", ("sh", "haar"))
         check_choice(self.irradiance, "option irradiance", ("sh", "haar"))
         if self.irradiance == "haar" and self.shadows != "haar":
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
-        if self.shadows not in ("sh", "haar"):
-            raise ValueError(f"option shadows must be 'sh' or 'haar', got {self.shadows!r}")
         if self.haar_resolution & (self.haar_resolution - 1):
             raise ValueError(f"option haar_resolution must be a power of two, got {self.haar_resolution}")
-        if not (np.isfinite(self.threshold) and self.threshold >= 0):
-            raise ValueError(f"option threshold must be a finite number >= 0, got {self.threshold!r}")
-        if not (np.isfinite(self.near_field) and self.near_field >= 0):
-            raise ValueError(f"option near_field must be a finite number >= 0, got {self.near_field!r}")
-        for name in ("pca_occluders", "self_interreflection"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise TypeError(f"option {name} must be True or False, got {getattr(self, name)!r}")
 
 
 def _is_flat(mesh) -> bool:
@@ -326,6 +333,45 @@ class Interreflection(Precomputation):
         return parts
 
     @classmethod
+    def check_lights(cls, lights, options) -> None:
+        """Point lights need the all-frequency direct shadows (``shadows="haar"``)."""
+        if options.shadows == "sh" and any(isinstance(light, PointLight) for light in lights):
+            raise ValueError("the interreflection pipeline with shadows='sh' supports environment and area "
+                             "lights, not point lights; pass shadows='haar' (or replace the point light by "
+                             "a small area light)")
+
+    @classmethod
+    def memory_needs(cls, scene, options):
+        """Per object: the occlusion and basis radiance fields on the sample spheres, the PCA training
+        renders, the visibility projection and the Haar fields (with ``shadows``/``irradiance="haar"``)."""
+        objs = [o for o in scene.objects if not o.portal]
+        n_v = sum(o.n_vertices for o in objs)
+        v_max = max([o.n_vertices for o in objs] or [0])
+        k = max([1 if o.material.type == "diffuse" else options.K_glossy for o in objs] or [1])
+        n2 = options.order**2
+        n_b = options.n_basis
+        texels = float(options.n_radii) * 6 * options.resolution**2
+        degree = 47 if options.degree is None else options.degree
+        quadrature = (degree + 1) ** 2 / 2.0  # directions of a degree-d product rule
+        n_o = len(objs)
+        needs = [
+            MemoryNeed("the occlusion fields", n_o * texels * n2 * 8.0, ("n_radii", "resolution", "order")),
+            MemoryNeed("the basis radiance fields", n_o * texels * n_b * k * n2 * 8.0 * 2,
+                       ("n_radii", "resolution", "n_basis")),
+            MemoryNeed("the PCA training renders", 3.0 * 8 * options.n_lights * v_max, ("n_lights",)),
+            MemoryNeed("the visibility projection", 2.0 * 8 * v_max * quadrature, ("degree",)),
+            MemoryNeed("the self-interreflection", n_v * k * k * n_b * 8.0, ("n_basis", "K_glossy")),
+        ]
+        if options.shadows == "haar":
+            needs.append(MemoryNeed("the Haar occlusion fields", (n_o * texels + n_v) * options.haar_keep * 12.0,
+                                    ("haar_keep", "n_radii", "resolution")))
+        if options.irradiance == "haar":
+            needs.append(MemoryNeed("the Haar basis radiance fields",
+                                    n_o * texels * n_b * k * options.haar_radiance_keep * 12.0,
+                                    ("haar_radiance_keep", "n_basis", "n_radii")))
+        return needs, f"{n_o} objects of {n_v:,} vertices"
+
+    @classmethod
     def compute(cls, scene, options: InterreflectionOptions, progress: bool) -> dict:
         objs = [o for o in scene.objects if not o.portal]
         world = {o.name: o.world_vertices() for o in objs}
@@ -413,12 +459,9 @@ class Interreflection(Precomputation):
         """
         import dataclasses
 
-        n = self.options.n_basis if n_basis is None else int(n_basis)
-        o = self.options.order if order is None else int(order)
-        if not (1 <= o <= self.options.order):
-            raise ValueError(f"order must be in [1, {self.options.order}] (the precomputed order), got {order!r}")
-        if n < 1:
-            raise ValueError(f"n_basis must be >= 1, got {n_basis!r}")
+        n = self.options.n_basis if n_basis is None else check_int(n_basis, "n_basis", 1)
+        o = self.options.order if order is None else check_int(order, "order", 1, self.options.order,
+                                                                meaning="at most the precomputed order")
         n2 = o * o
         data = {}
         for obj in self.objects:
@@ -570,12 +613,7 @@ class Interreflection(Precomputation):
         if self.options.shadows == "haar":
             return self.direct_step_haar(state, geo)
         order = self.options.order
-        lights = state.lights
-        for light in lights:
-            if isinstance(light, PointLight):
-                raise ValueError("the interreflection pipeline with shadows='sh' supports environment and area "
-                                 "lights, not point lights; pass shadows='haar' (or replace the point light by "
-                                 "a small area light)")
+        lights = state.lights  # no point lights (check_lights)
         env = [light for light in lights if isinstance(light, EnvironmentLight)]
         env_sh = environment_sh(env[0], order) if env else None
         areas = [light for light in lights if isinstance(light, AreaLight)]

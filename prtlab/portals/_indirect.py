@@ -66,6 +66,15 @@ __all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "final_gather", "p
 
 _NORMAL_AGREEMENT = np.cos(np.radians(45.0))
 
+#: bytes of the per-chunk work arrays of :func:`radiance_estimate` and :func:`final_gather`: their vertex
+#: chunks shrink (to one vertex at least) so that many bounces and SH bands stream instead of piling up
+CHUNK_BYTES = 1 << 28
+
+
+def _fit_chunk(chunk: int, bytes_per_point: float) -> int:
+    """``chunk`` reduced so that ``chunk * bytes_per_point <= CHUNK_BYTES`` (at least 1)."""
+    return int(max(1, min(int(chunk), CHUNK_BYTES // max(int(bytes_per_point), 1))))
+
 
 class PhotonMap:
     """Stored photons: ``position (P, 3)``, ``normal (P, 3)`` (the side hit),
@@ -279,6 +288,7 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
     tree = cKDTree(photons.position)
     y = sh.basis(photons.emit_dir, order)
     q = min(len(photons), 4 * k)
+    chunk = _fit_chunk(chunk, 2 * q * n_depths * n_coeffs * 3 * 8)
     for start in range(0, len(points), chunk):
         x = points[start : start + chunk]
         nv = normals[start : start + chunk]
@@ -390,6 +400,7 @@ def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_of
         n_out = order_out * order_out
         matrix = np.zeros((len(points), n_out, exitance.shape[1]))
     faces_all = [caster.faces(i) for i in range(caster.n_objects)]
+    chunk = _fit_chunk(chunk, 4 * n_rays * exitance.shape[1] * 8)  # gathered and the 3 corners' exitance
     for start in range(0, len(points), chunk):
         x = points[start : start + chunk]
         nv = normals[start : start + chunk]

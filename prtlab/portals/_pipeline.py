@@ -23,6 +23,14 @@ bunny's indirect light was 9.9% low; of that about 4% was its own specular
 light reflected onto itself, 1% its specular light reflected via the walls,
 the rest the order-4 SH truncation of the shell light.)
 
+The interior is static: photons, gather rays and shadow rays are traced
+against every object where the scene puts it, so every object's transform
+(dynamic or not) is in the cache key, and ``shade(state)`` refuses a state in
+which an object moved (re-precompute at the new pose, e.g. on
+``scene.at_frame(i, n)``). The camera may move (glossy view directions are
+taken per frame); the light is one environment seen through the portals.
+Each portal faces the interior whatever its winding (:func:`find_portals`).
+
 Bounces: the indirect transfer is stored per bounce (photon depth), so
 ``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
 Distant environments or user-given shell cubemaps (:meth:`Portals.shade_shells`).
@@ -64,20 +72,21 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab._validate import check_int
-from prtlab.cache import Cache, cache_key
+from prtlab._validate import check_bool, check_choice
+from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster, cubemap_directions
-from prtlab.pipeline import FrameState, Precomputation, check_int_options
+from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
 from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
-from ._indirect import final_gather, radiance_estimate, trace_photons
+from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import find_portals, shell_light, shell_sh
 
@@ -124,10 +133,16 @@ class PortalsOptions:
         check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
         if self.res & (self.res - 1):
             raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
-        if not isinstance(self.merge_portals, (bool, np.bool_)):
-            raise ValueError(f"option merge_portals must be True or False, got {self.merge_portals!r}")
-        if self.direct_basis not in ("auto", "pulse", "haar"):
-            raise ValueError(f"option direct_basis must be 'auto', 'pulse' or 'haar', got {self.direct_basis!r}")
+        check_bool(self.merge_portals, "option merge_portals")
+        check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
+
+
+def n_photons_bytes(n_photons: int, bounces: int, n_coeffs: int) -> float:
+    """Bytes of a photon map and its radiance estimate's per-photon arrays, at most: every emitted photon stored
+    at each of ``bounces`` depths (photons are not ended by Russian roulette, only by escaping), each with five
+    3-vectors and a depth (twice, while the map is assembled), a one-hot over the depths and ``n_coeffs`` SH
+    values."""
+    return float(n_photons) * bounces * (32 + bounces + n_coeffs) * 8.0
 
 
 def _concatenate_chunks(chunks: list[dict]) -> dict:
@@ -155,30 +170,81 @@ class Portals(Precomputation):
     # 4: photons reflect off glossy objects by their Phong lobe too
     max_bounces = None
     options_type = PortalsOptions
+    resumable = True
+    baked_reason = "the portals method precomputes the interior"
 
     #: vertices per precomputation chunk (one resumable cache part each)
     chunk_vertices: int = 2048
 
     @classmethod
-    def precompute(cls, scene: Scene, options=None, cache=True, progress: bool = True, map_fn=None):
-        """Run (or load) the precomputation; with a cache, in resumable chunks of vertices.
+    def cache_key_parts(cls, scene: Scene, options) -> list:
+        """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
+        every object where it stands, dynamic or not."""
+        opts = dataclasses.asdict(options)
+        return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
 
-        Photon maps and their radiance estimates (one per portal) are cached as
-        their own entries; the per-vertex work (direct transfer, final gathering)
-        runs in chunks of :attr:`chunk_vertices` vertices, each stored as soon as it
-        finishes, so an interrupted run resumes from the missing chunks.
-        ``map_fn`` (see :meth:`prtlab.cache.Cache.get_or_compute_chunks`) runs
-        chunks in parallel, e.g. on Dask. Every chunk draws from its own seeded
-        generator, so the result does not depend on the order or on resuming.
-        """
-        options = cls.make_options(options)
-        if not cache:
-            return cls(scene, options, cls.compute(scene, options, progress))
-        store = Cache(progress=progress) if cache is True else cache
-        key = cache_key(*cls.cache_key_parts(scene, options))
-        data = store.get_or_compute(
-            key, lambda: cls.compute(scene, options, progress, store=store, key=key, map_fn=map_fn), name=cls.method)
-        return cls(scene, options, data)
+    def baked_objects(self) -> tuple[str, ...]:
+        """Every object: the transfer is traced against the whole scene as it stands."""
+        return tuple(o.name for o in self.scene.objects)
+
+    @classmethod
+    def check_bounces(cls, bounces, options) -> int:
+        """``0 <= bounces <=`` the precomputed ``bounces`` option."""
+        bounces = super().check_bounces(bounces, options)
+        if bounces > options.bounces:
+            raise ValueError(
+                f"the transfer was precomputed with bounces={options.bounces}; shade with bounces <= "
+                f"{options.bounces}, or precompute again with the bounces option set to {bounces}"
+            )
+        return bounces
+
+    @classmethod
+    def check_lights(cls, lights, options) -> None:
+        """Exactly one environment light, seen through the portals."""
+        envs = [light for light in lights if isinstance(light, EnvironmentLight)]
+        if len(envs) != 1 or len(envs) != len(lights):
+            raise ValueError(
+                "the portals pipeline is lit by exactly one environment light seen through the portals; "
+                f"got lights {[type(x).__name__ for x in lights]}"
+            )
+
+    @classmethod
+    def check_scene(cls, scene: Scene, options) -> None:
+        """A portal is needed; then the memory check (:meth:`memory_needs`)."""
+        if not any(o.portal for o in scene.objects):
+            raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
+        super().check_scene(scene, options)
+
+    @classmethod
+    def memory_needs(cls, scene: Scene, options) -> tuple[list[MemoryNeed], str]:
+        """The per-bounce SH transfer and exitance, the photon map, the dense direct cubemaps of a chunk (and the
+        encoder's work arrays, about 8 times their size), the encoded direct transfer (pulse worst case) and the
+        final-gather rays of a chunk. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
+        bounces=40``: estimate 12 GB, peak resident memory 5.9 GB (the estimate bounds the photons by one per
+        bounce)."""
+        objs = _shaded(scene)
+        n_v = sum(o.n_vertices for o in objs)
+        n_g = sum(o.n_vertices for o in objs if _is_glossy(o))
+        n_p = 1 if options.merge_portals else max(1, sum(1 for o in scene.objects if o.portal))
+        b, n2 = options.bounces, options.order**2
+        n_out2 = (options.glossy_order or options.order) ** 2
+        texels = 6.0 * options.res**2
+        views = 6.0 * options.view_res**2
+        per_vertex_gather = 4.0 * options.gather_rays * b * n2 * 3 * 8
+        needs = [
+            MemoryNeed("the per-bounce SH transfer", n_p * (n_v * b * n2 * 3 * 12.0 + n_g * b * n_out2 * n2 * 3 * 12.0)
+                       + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
+            MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
+            MemoryNeed("the dense direct transfer cubemaps", min(n_v, cls.chunk_vertices) * texels * 8.0 * 8,
+                       ("res",)),
+            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0, ("res", "view_res")),
+            MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
+                       ("view_res", "res")),
+            MemoryNeed("the final-gather rays", 0.0 if b == 0 else min(min(n_v, 512) * per_vertex_gather,
+                                                                      max(float(CHUNK_BYTES), per_vertex_gather)),
+                       ("gather_rays", "order", "bounces")),
+        ]
+        return needs, f"{n_v:,} vertices"
 
     @classmethod
     def compute(cls, scene: Scene, options: PortalsOptions, progress: bool, store=None, key=None,
@@ -186,8 +252,6 @@ class Portals(Precomputation):
         objs = _shaded(scene)
         names = [o.name for o in scene.objects if o.portal]
         portals = find_portals(scene, [names] if options.merge_portals and names else None)
-        if not portals:
-            raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
         caster = RayCaster(scene)
         points = np.concatenate([o.world_shading_points() for o in objs])
         normals = np.concatenate([o.world_normals() for o in objs])
@@ -342,15 +406,7 @@ class Portals(Precomputation):
         return cached[k, bounces, glossy]
 
     def _check_bounces(self, bounces):
-        if bounces is None:
-            return self.options.bounces
-        check_int(bounces, "bounces", 0)
-        if bounces > self.options.bounces:
-            raise ValueError(
-                f"the transfer was precomputed with bounces={self.options.bounces}; shade with bounces <= "
-                f"{self.options.bounces}, or precompute again with the bounces option set to {bounces}"
-            )
-        return int(bounces)
+        return self.options.bounces if bounces is None else self.check_bounces(bounces, self.options)
 
     @property
     def n_portals(self) -> int:
@@ -412,20 +468,14 @@ class Portals(Precomputation):
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        envs = [light for light in state.lights if isinstance(light, EnvironmentLight)]
-        if len(envs) != 1 or len(envs) != len(state.lights):
-            raise ValueError(
-                "the portals pipeline is lit by exactly one environment light seen through the portals; "
-                f"got lights {[type(x).__name__ for x in state.lights]}"
-            )
-        cube = shell_light(envs[0], self.options.res)
+        cube = shell_light(state.lights[0], self.options.res)
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
         """``prtlab.shade(scene, method="portals", bounces=B)``: precompute ``B`` bounces, shade."""
         options.setdefault("bounces", bounces)
-        return cls.precompute(scene, options, cache=cache, progress=progress).shade(bounces=bounces)
+        return cls.shade_once(scene, options, bounces, cache=cache, progress=progress)
 
 
 def shade_scene(scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

@@ -8,8 +8,11 @@ direction ``w``. For a distant environment (a map, an analytic sky, a
 constant) ``L_s`` is the environment itself; for a dynamic exterior it is a
 cubemap rendered from ``c`` (pass it as a ``(6, r, r, 3)`` array).
 
-Portal orientation: the interior is on the side of the portal's face normals
-(the built-in windows of :func:`prtlab.geometry.window_quad` face into the room).
+Portal orientation: the interior is on the side of the portal's face normals.
+:func:`find_portals` turns each portal object to face the interior, whatever the
+winding of its faces: toward the side of its plane where most vertices of the
+scene's other (non-portal) objects lie (the built-in windows of
+:func:`prtlab.geometry.window_quad` already face into the room).
 """
 
 from __future__ import annotations
@@ -121,7 +124,34 @@ def find_portals(scene: Scene, groups=None) -> list[Portal]:
             raise ValueError(
                 f"groups must name every portal object exactly once: portals {sorted(objs)}, groups {groups}"
             )
-    return [_make_portal(g, [(objs[n].world_vertices(), np.asarray(objs[n].mesh.faces)) for n in g]) for g in groups]
+    interior = [o.world_vertices() for o in scene.objects if not o.portal]
+    interior = np.concatenate(interior) if interior else np.zeros((0, 3))
+    meshes = {n: _facing_interior(objs[n].world_vertices(), np.asarray(objs[n].mesh.faces), interior) for n in objs}
+    return [_make_portal(g, [meshes[n] for n in g]) for g in groups]
+
+
+def _facing_interior(vertices, faces, interior) -> tuple[np.ndarray, np.ndarray]:
+    """A portal object's world ``(vertices, faces)`` wound so that its mean normal faces the interior: the side of
+    its plane holding more of the ``interior`` points (those off the plane by more than ``1e-6`` of the scene's
+    size); unchanged when the points do not decide (none off the plane, or as many on each side)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0 or len(interior) == 0:
+        return v, f
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    cross = np.cross(b - a, c - a)
+    normal = cross.sum(axis=0)
+    norm = np.linalg.norm(normal)
+    if not norm > 0:
+        return v, f
+    normal /= norm
+    areas = np.linalg.norm(cross, axis=1)
+    centre = ((a + b + c) / 3.0 * areas[:, None]).sum(axis=0) / areas.sum()
+    everything = np.concatenate([interior, v])
+    eps = 1e-6 * max(float(np.ptp(everything, axis=0).max()), 1e-300)
+    side = (interior - centre) @ normal
+    ahead, behind = int(np.sum(side > eps)), int(np.sum(side < -eps))
+    return (v, f[:, ::-1].copy()) if behind > ahead else (v, f)
 
 
 def shell_light(source, res: int = 32, method: str = "numba") -> np.ndarray:

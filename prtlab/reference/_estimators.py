@@ -81,7 +81,7 @@ import numpy as np
 from prtlab.geometry import RayCaster, direction_to_equirect, offset_origins
 from prtlab.scene import Material, ShadeResult
 
-from prtlab._validate import check_int
+from prtlab._validate import MemoryNeed, check_int, check_memory
 from ._kernels import bsdf_eval_kernel, bsdf_sample_kernel, hit_frame_kernel
 
 __all__ = [
@@ -96,6 +96,18 @@ __all__ = [
 
 #: Paths traced together (one wavefront); vertices are chunked to about this many paths.
 PATHS_PER_CHUNK = 1 << 17
+
+#: Bytes per path of a wavefront: its state (position, normals, view, BSDF, throughput: about 25 doubles),
+#: the two accumulators and the temporaries of next-event estimation and continuation.
+BYTES_PER_PATH = 512
+
+
+def _check_memory(n_points: int, n_samples: int) -> None:
+    """Refuse ``n_samples`` whose wavefront (all samples of at least one point at once) does not fit."""
+    paths = min(n_points, max(1, PATHS_PER_CHUNK // n_samples)) * n_samples
+    needs = [MemoryNeed("the path wavefront", float(paths) * BYTES_PER_PATH, ("n_samples",)),
+             MemoryNeed("the estimates", 18.0 * 8 * n_points, ())]
+    check_memory("reference", {"n_samples": n_samples}, needs, f"{n_points:,} points")
 
 
 class Estimate(NamedTuple):
@@ -500,9 +512,10 @@ def path_trace(
     n_samples = check_int(n_samples, "n_samples", 2)
     rng = _check_rng(rng)
     t0 = time.perf_counter()
-    data = _SceneData(scene, env_sampling, area_lights_block)
     shaded = [o for o in scene.objects if not o.portal]
     counts = [o.n_vertices for o in shaded]
+    _check_memory(sum(counts), n_samples)
+    data = _SceneData(scene, env_sampling, area_lights_block)
     pos = np.concatenate([o.world_shading_points() for o in shaded]) if shaded else np.zeros((0, 3))
     normals = np.concatenate([o.world_normals() for o in shaded]) if shaded else np.zeros((0, 3))
     mats = [_material_arrays(o.material) for o in shaded]
@@ -646,6 +659,7 @@ def radiance_at(
     batch = points.shape[:-1]
     pos = points.reshape(-1, 3)
     v = len(pos)
+    _check_memory(v, n_samples)
     data = _SceneData(scene, env_sampling, area_lights_block)
     out = _estimate(
         data, pos, _unit(normals.reshape(-1, 3)), _unit(view_dirs.reshape(-1, 3)),

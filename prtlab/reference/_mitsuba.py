@@ -28,8 +28,10 @@ import warnings
 
 import numpy as np
 
-from prtlab._validate import check_int
+from prtlab._validate import MemoryNeed, check_int, check_memory
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, Scene, ShadeResult
+
+from ._estimators import BYTES_PER_PATH
 
 __all__ = [
     "MitsubaUnavailable",
@@ -676,6 +678,10 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
         raise TypeError(f"seed must be an int, got {seed!r}")
     if int(chunk_rays) < 1:
         raise ValueError(f"chunk_rays must be >= 1, got {chunk_rays}")
+    n_shaded = sum(o.n_vertices for o in scene.objects if not o.portal)
+    rays = min(n_shaded, max(1, int(chunk_rays) // spp)) * spp  # a chunk holds every sample of its vertices
+    check_memory("mitsuba", {"n_samples": spp},
+                 [MemoryNeed("the ray wavefront", float(rays) * BYTES_PER_PATH, ("n_samples",))], f"{n_shaded:,} vertices")
     mi, dr = _import_mitsuba(variant)
     start = time.perf_counter()
     pos, nrm, wo, kd, ks, ex, counts = _vertex_data(scene)

@@ -24,7 +24,14 @@ rotated by the inverse rotation). Then :func:`first_pass` and
 and point lights raise); local lights are spherical lights with a user
 radiance (option ``local_lights``, Sec. 7.3).
 
-Soft deformations (Sec. 7.1, ``shade(..., deformed=)``): each light of a
+Every object may move (the precomputed data are in object space; the
+grounds' rectangles are taken per frame): a moved state shades as a
+precomputation at the new pose would. The direct and indirect irradiance
+are clamped at 0 before the albedo: their order-n SH products (visibility
+from the exponentiated log visibility, times the environment) ring below 0
+beside a sphere on a ground, as in the interreflection pipeline's clamp.
+
+Soft deformations (Sec. 7.1, ``FrameState.deformations``, or ``shade(..., deformed=)``): each light of a
 deformed object turns and moves with the best-fit rotation and the mean
 translation of its vertices (:func:`light_motions`): its centre and surface
 samples move rigidly with them and its frame (the rotation its ``w_theta``
@@ -40,14 +47,16 @@ reflection ratio.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from prtlab import sh
+from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import geodesic_directions
-from prtlab.pipeline import FrameState, Precomputation
+from prtlab.pipeline import FrameState, MemoryNeed, Precomputation
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
@@ -136,37 +145,46 @@ class SphereLightOptions:
     ratio_samples: int = 5
 
     def __post_init__(self):
-        hc = self.hierarchy_children
-        if isinstance(hc, bool) or not isinstance(hc, int) or hc < 0 or hc == 1:
-            raise ValueError(f"hierarchy_children must be 0 (no hierarchy) or an int >= 2, got {hc!r}")
-        ct = self.cut_threshold
-        if isinstance(ct, bool) or not isinstance(ct, (int, float)) or not 0.0 <= ct < 1.0:
-            raise ValueError(f"cut_threshold must be a number in [0, 1) (0: leaves everywhere), got {ct!r}")
-        cs = self.cluster_size
-        if isinstance(cs, bool) or not isinstance(cs, int) or cs < 1:
-            raise ValueError(f"cluster_size must be an int >= 1 (receivers per cluster), got {cs!r}")
-        rs = self.ratio_samples
-        if isinstance(rs, bool) or not isinstance(rs, int) or rs < 1:
-            raise ValueError(f"ratio_samples must be an int >= 1 (1: the cluster centre, Eq. 25), got {rs!r}")
-        if not isinstance(self.reflection_ratio, bool):
-            raise TypeError(f"reflection_ratio must be a bool, got {type(self.reflection_ratio).__name__}")
+        _check_n_spheres(self.n_spheres)
+        check_int(self.order, "option order", 1, 8)
+        check_choice(self.exp_method, "option exp_method", ("hyb", "ol", "exact"))
+        check_choice(self.blocking, "option blocking", ("object", "sphere"))
+        check_choice(self.average, "option average", ("cosine", "paper"))
+        check_int(self.n_directions, "option n_directions", 12, meaning="a geodesic sphere's 10 f^2 + 2 vertices")
+        f = int(round(math.sqrt((self.n_directions - 2) / 10.0)))
+        if 10 * f * f + 2 != self.n_directions:
+            raise ValueError(f"option n_directions must be the vertex count 10 f^2 + 2 of a geodesic sphere "
+                             f"(12, 42, 92, 162, ...), got {self.n_directions!r}")
+        check_int(self.grid_resolution, "option grid_resolution", 4)
+        check_int(self.cube_resolution, "option cube_resolution", 1)
+        check_bool(self.occluding_ground, "option occluding_ground")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
-        if self.exp_method not in ("hyb", "ol", "exact"):
-            raise ValueError(f"exp_method must be 'hyb', 'ol' or 'exact', got {self.exp_method!r}")
-        if self.average not in ("cosine", "paper"):
-            raise ValueError(f"average must be 'cosine' or 'paper', got {self.average!r}")
-        if self.blocking not in ("object", "sphere"):
-            raise ValueError(f"blocking must be 'object' or 'sphere', got {self.blocking!r}")
-        if isinstance(self.order, bool) or not isinstance(self.order, int) or not 1 <= self.order <= 8:
-            raise ValueError(f"order must be an int in 1..8, got {self.order!r}")
+        if check_int(self.hierarchy_children, "option hierarchy_children", 0) == 1:
+            raise ValueError("option hierarchy_children must be 0 (no hierarchy) or an int >= 2, got 1")
+        check_float(self.cut_threshold, "option cut_threshold", 0.0, 1.0, max_open=True,
+                    meaning="0: leaves everywhere")
+        check_int(self.cluster_size, "option cluster_size", 1, meaning="receivers per cluster")
+        check_int(self.ratio_samples, "option ratio_samples", 1, meaning="1: the cluster centre, Eq. 25")
+        check_bool(self.reflection_ratio, "option reflection_ratio")
+
+
+def _check_n_spheres(n_spheres) -> None:
+    """``n_spheres``: an int >= 1, or a dict of them by object name."""
+    if isinstance(n_spheres, dict):
+        for name, n in n_spheres.items():
+            if not isinstance(name, str):
+                raise TypeError(f"option n_spheres must map object names (str) to ints >= 1, got key {name!r}")
+            check_int(n, f"option n_spheres[{name!r}]", 1, meaning="spheres of the object")
+    else:
+        check_int(n_spheres, "option n_spheres", 1, meaning="spheres per object, or a dict of them by object name")
 
 
 def _check_local_lights(lights) -> tuple:
     """``local_lights`` as a tuple of ``(centre tuple(3), radius float, radiance tuple(3))``."""
-    msg = ("local_lights must be a sequence of (centre (3,), radius > 0, radiance RGB (3,) >= 0) with finite "
-           "values, e.g. [((0, 2, 0), 0.3, (5, 5, 5))]")
-    if isinstance(lights, (str, bytes)) or not hasattr(lights, "__iter__"):
-        raise ValueError(f"{msg}; got {lights!r}")
+    msg = ("option local_lights must be a sequence of (centre (3,), radius > 0, radiance RGB (3,) >= 0) with "
+           "finite values, e.g. [((0, 2, 0), 0.3, (5, 5, 5))]")
+    if isinstance(lights, (str, bytes, dict)) or not hasattr(lights, "__iter__"):
+        raise TypeError(f"{msg}; got {lights!r}")
     out = []
     for item in lights:
         try:
@@ -228,6 +246,53 @@ class SphereLights(Precomputation):
     format_version = 2
     max_bounces = 1
     options_type = SphereLightOptions
+    supports_deformations = True
+
+    @classmethod
+    def check_lights(cls, lights, options) -> None:
+        """Environment lights only (local lights are the option ``local_lights``)."""
+        for light in lights:
+            if not isinstance(light, EnvironmentLight):
+                raise ValueError(
+                    f"method 'spherelights' handles environment lighting only, got a {type(light).__name__}; "
+                    "remove area/point lights (a spherical emitter can be given as the option local_lights) or use "
+                    "method='reference'"
+                )
+
+    @classmethod
+    def memory_needs(cls, scene, options):
+        """The interior grid of the sphere fit, its face-to-sphere distances, the surface samples, the albedo
+        cubemaps, and per frame the receivers-by-lights SH products."""
+        n_s, n_faces, n_v = [], 0, 0
+        for obj in scene.objects:
+            n_v += obj.n_vertices
+            if obj.portal:
+                continue
+            n = options.n_spheres.get(obj.name, 8) if isinstance(options.n_spheres, dict) else options.n_spheres
+            n_s.append(min(int(n), len(obj.mesh.faces)))
+            n_faces = max(n_faces, len(obj.mesh.faces))
+        s_total = float(sum(n_s))
+        n2 = options.order**2
+        needs = [
+            MemoryNeed("the interior grid of the sphere fit", 4.0 * 8 * 3 * options.grid_resolution**3,
+                       ("grid_resolution",)),
+            MemoryNeed("the sphere fit's distances", 2.0 * 8 * n_faces * max(n_s or [0]), ("n_spheres",)),
+            MemoryNeed("the surface samples", 10.0 * 8 * s_total * options.n_directions, ("n_directions", "n_spheres")),
+            MemoryNeed("the albedo cubemaps", 4.0 * 8 * 3 * max(n_s or [0]) * 6 * options.cube_resolution**2,
+                       ("cube_resolution", "n_spheres")),
+            MemoryNeed("the per-frame SH products", 4.0 * 8 * n_v * s_total * n2, ("n_spheres", "order")),
+        ]
+        return needs, f"{n_v:,} vertices and {int(s_total):,} spheres"
+
+    @classmethod
+    def check_scene(cls, scene, options) -> None:
+        """A ``n_spheres`` dict names objects of the scene; then the memory check."""
+        if isinstance(options.n_spheres, dict):
+            names = [o.name for o in scene.objects]
+            unknown = sorted(set(options.n_spheres) - set(names))
+            if unknown:
+                raise ValueError(f"option n_spheres names unknown object(s) {unknown}; objects: {names}")
+        super().check_scene(scene, options)
 
     @classmethod
     def cache_key_parts(cls, scene, options):
@@ -248,7 +313,7 @@ class SphereLights(Precomputation):
             if mesh is None:
                 continue
             n = options.n_spheres.get(obj.name, 8) if isinstance(options.n_spheres, dict) else options.n_spheres
-            n = min(int(n), len(mesh.faces))
+            n = min(n, len(mesh.faces))
             fit = fit_spheres(mesh, n, grid_resolution=options.grid_resolution)
             pts, nrm, valid = surface_samples(mesh, fit.centres, fit.radii, dirs)
             albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
@@ -323,44 +388,23 @@ class SphereLights(Precomputation):
         order = 3 * self.options.order - 2
         env = np.zeros((order * order, 3))
         cache = self.__dict__.setdefault("_env_cache", {})
-        for light in state.lights:
-            if isinstance(light, EnvironmentLight):
-                key = (id(light), order)
-                if key not in cache or cache[key][0] is not light:
-                    cache[key] = (light, environment_sh(light, order))
-                env += cache[key][1]
-            else:
-                raise ValueError(
-                    f"method 'spherelights' handles environment lighting only, got a {type(light).__name__}; "
-                    "remove area/point lights (a spherical emitter can be given as the option local_lights) or use "
-                    "method='reference'"
-                )
+        for light in state.lights:  # environment lights only (check_lights)
+            key = (id(light), order)
+            if key not in cache or cache[key][0] is not light:
+                cache[key] = (light, environment_sh(light, order))
+            env += cache[key][1]
         return env
 
     def shade(self, state: FrameState | None = None, bounces: int = 1, *, deformed=None) -> ShadeResult:
         """Per-vertex radiance of one frame; ``deformed``: ``{object name: (V, 3) object-space vertex
-        positions}`` of softly deformed objects (Sec. 7.1; see the module docstring)."""
-        if deformed is None:
-            return super().shade(state, bounces)
-        if not isinstance(deformed, dict):
-            raise TypeError(f"deformed must be a dict {{object name: (V, 3) vertex positions}}, got "
-                            f"{type(deformed).__name__}")
-        checked = {}
-        for name, verts in deformed.items():
-            names = [o.name for o in self.scene.objects]
-            if name not in names:
-                raise ValueError(f"deformed names an unknown object {name!r}; objects: {names}")
-            v = np.asarray(verts, dtype=np.float64)
-            n_v = self.scene.object(name).n_vertices
-            if v.shape != (n_v, 3) or not np.all(np.isfinite(v)):
-                raise ValueError(f"deformed[{name!r}] must be finite object-space vertex positions of shape "
-                                 f"({n_v}, 3), got shape {v.shape}")
-            checked[name] = v
-        self._deformed = checked
-        try:
-            return super().shade(state, bounces)
-        finally:
-            self._deformed = None
+        positions}`` of softly deformed objects (Sec. 7.1; see the module docstring), a shorthand for
+        ``FrameState.deformations``."""
+        if deformed is not None:
+            if not isinstance(deformed, dict):
+                raise TypeError(f"deformed must be a dict {{object name: (V, 3) vertex positions}}, got "
+                                f"{type(deformed).__name__}")
+            state = dataclasses.replace(state or FrameState.from_scene(self.scene), deformations=deformed)
+        return super().shade(state, bounces)
 
     def _local_lights(self):
         """The option's local lights: centres (L, 3), radii (L,), emission SH (L, n*n, 3) (constant radiance)."""
@@ -375,7 +419,7 @@ class SphereLights(Precomputation):
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         opts = self.options
-        deformed = getattr(self, "_deformed", None) or {}
+        deformed = state.deformations
         env = self._environment(state)
         centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state, deformed)
         n_sl = len(radii)
@@ -407,11 +451,11 @@ class SphereLights(Precomputation):
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
                                   exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
         emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
-        result = ShadeResult(info={"method": self.method, "n_lights": int(n_sl), "n_local_lights": int(n_loc),
-                                   "exp_method": opts.exp_method, "blocking": opts.blocking,
-                                   "average": opts.average})
+        result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
+                                   "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
+                                   "blocking": opts.blocking, "average": opts.average})
         nodes = None
-        for obj in self.scene.objects:
+        for obj in (o for o in self.scene.objects if not o.portal):  # portals are openings, not surfaces
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in deformed:
                 pts, nrm = _deformed_receivers(obj, deformed[obj.name], tr)
@@ -433,8 +477,9 @@ class SphereLights(Precomputation):
                                             average=opts.average, indirect=True)
                 direct = direct + from_local
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
-            result.direct[obj.name] = direct * albedo
-            result.indirect[obj.name] = indirect * albedo
+            # irradiance is never negative: clamp the order-n SH products' ringing (see the module docstring)
+            result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
+            result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         return result
 

@@ -174,7 +174,7 @@ def test_errors(pre):
     state.lights = [PointLight(position=np.array([0, 3.0, 0]), intensity=np.ones(3))]
     with pytest.raises(ValueError, match="not point lights; pass shadows='haar'"):
         pre.shade(state, bounces=1)
-    with pytest.raises(ValueError, match="option shadows must be 'sh' or 'haar'"):
+    with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', got 'wavelet'"):
         InterreflectionOptions(shadows="wavelet")
     with pytest.raises(ValueError, match="option haar_resolution must be a power of two"):
         InterreflectionOptions(haar_resolution=12)
@@ -223,10 +223,12 @@ def test_truncated_precomputation(pre):
     assert np.all(np.isfinite(res.total["ball"])) and res.indirect["ball"].mean() > 0
     same = pre.truncated()
     np.testing.assert_allclose(same.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
-    with pytest.raises(ValueError, match="the precomputed order"):
+    with pytest.raises(ValueError, match=r"order must be an int >= 1 and <= 4 \(at most the precomputed order\)"):
         pre.truncated(order=5)
-    with pytest.raises(ValueError, match="n_basis must be >= 1"):
+    with pytest.raises(ValueError, match="n_basis must be an int >= 1, got 0"):
         pre.truncated(n_basis=0)
+    with pytest.raises(TypeError, match="n_basis must be an int >= 1, got 2.7 of type float"):
+        pre.truncated(n_basis=2.7)
 
 
 def test_vertices_are_shaded_at_the_shading_points(pre):

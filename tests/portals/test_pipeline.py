@@ -163,7 +163,7 @@ def test_merge_portals():
     separate = Portals.precompute(scene, opts, cache=False, progress=False)
     merged = Portals.precompute(scene, dict(opts, merge_portals=True), cache=False, progress=False)
     assert separate.n_portals == 2 and merged.n_portals == 1
-    with pytest.raises(ValueError, match="merge_portals"):
+    with pytest.raises(TypeError, match="option merge_portals must be True or False"):
         Portals.make_options({"merge_portals": "yes"})
 
 
