@@ -490,7 +490,13 @@ def _cmd_render(args) -> int:
             result = api.shade(frame_scene, method=args.method, bounces=args.bounces, progress=not args.quiet,
                                **options)
         else:
-            result = pre.shade(FrameState.from_scene(frame_scene), bounces=args.bounces)
+            state = FrameState.from_scene(frame_scene)
+            moved = pre.moved_objects(state)
+            if moved:  # the method bakes these poses (portals): precompute again where they now stand
+                print(f"frame {frame + 1}/{n}: {args.method} bakes the pose of {', '.join(map(repr, moved))}, "
+                      "which moved: precomputing again at the new pose", flush=True)
+                pre = api.precompute(frame_scene, args.method, progress=not args.quiet, **options)
+            result = pre.shade(state, bounces=args.bounces)
         shaded = time.perf_counter()
         image = api.render_image(frame_scene, result)
         imaged = time.perf_counter()

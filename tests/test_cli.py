@@ -331,6 +331,31 @@ def test_render_reports_a_frame_the_pipeline_refuses(scenes, tmp_path, monkeypat
     assert (tmp_path / "frame_0000.png").is_file()  # the finished frame is kept
 
 
+def test_render_precomputes_again_when_a_frame_moves_a_baked_object(scenes, tmp_path, monkeypatch, capsys):
+    """A method that bakes poses (portals) gets a new precomputation at every frame whose poses moved."""
+    from prtlab import api
+    from prtlab.pipeline import Precomputation
+
+    precomputes = []
+    real_precompute = api.precompute
+
+    def counting_precompute(scene, *args, **kwargs):
+        precomputes.append(scene.object("ball").transform.translate[0])
+        return real_precompute(scene, *args, **kwargs)
+
+    def ball_is_baked(self, state):
+        return ["ball"] if state.transforms["ball"].translate[0] != self.scene.object("ball").transform.translate[0] \
+            else []
+
+    monkeypatch.setattr(api, "precompute", counting_precompute)
+    monkeypatch.setattr(Precomputation, "moved_objects", ball_is_baked)
+    code, out, err = run(capsys, "render", scenes["tiny"], "--method", "interreflection",
+                         *TINY_OPTIONS["interreflection"], "--frames", "3", "--out", tmp_path)
+    assert code == 0, err
+    assert precomputes == [0.0, 0.5, 1.0]
+    assert out.count("precomputing again at the new pose") == 2
+
+
 def test_render_stores_as_many_portal_bounces_as_asked(scenes, tmp_path, capsys):
     code, _, err = run(capsys, "render", scenes["room"], "--method", "portals", *TINY_OPTIONS["portals"],
                        "--bounces", "3", "--out", tmp_path)

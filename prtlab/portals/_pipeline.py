@@ -352,7 +352,7 @@ class Portals(Precomputation):
 
         if store is not None:
             chunks = store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
-                                                 name="portals-chunks", map_fn=map_fn)
+                                                 name="portals-chunks", map_fn=map_fn, chunking={"vertices": size})
         else:
             from tqdm.auto import tqdm
 
