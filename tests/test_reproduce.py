@@ -185,3 +185,23 @@ def test_shipped_docs_sections_are_recorded_by_a_notebook():
     sources = "".join(p.read_text() for p in notebook_dir().glob("*.ipynb"))
     recorded = set(re.findall(r'record_table\(\\"([a-z0-9_.-]+)\\"', sources))
     assert names and sorted(set(names) - recorded) == []
+
+
+def test_command_line_write_docs(notebook_folder, tmp_path):
+    from prtlab.reproduce import main
+
+    _write_notebook(notebook_folder / "00_alpha.ipynb",
+                    "from prtlab.reproduce import record_table\nrecord_table('alpha', [('x', 0.25)], ['k', 'v'])")
+    doc = tmp_path / "doc.md"
+    doc.write_text(DOC)
+    assert main(["--quick", "--out", str(tmp_path / "report"), "--write-docs", str(doc)]) == 0
+    assert "| x | 0.25 |" in _section(doc.read_text(), "alpha")
+
+
+def test_default_docs_path(monkeypatch, tmp_path):
+    import prtlab.reproduce as module
+
+    assert module.default_docs_path() == Path(__file__).resolve().parent.parent / "docs" / "REPRODUCTION.md"
+    monkeypatch.setattr(module, "__file__", str(tmp_path / "site" / "prtlab" / "reproduce.py"))
+    with pytest.raises(FileNotFoundError, match=r"--write-docs: no .*REPRODUCTION.md .*give the Markdown file"):
+        module.default_docs_path()
