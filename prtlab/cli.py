@@ -9,7 +9,7 @@
                    [-o [METHOD.]KEY=VALUE ...] [--out DIR]
     prtlab precompute SCENE --method M [-o KEY=VALUE ...] [--workers N | --scheduler ADDRESS]
     prtlab cache info|list|clear [--method M]
-    prtlab reproduce [--quick] [--out report/]
+    prtlab reproduce [--quick] [--out report/] [--only NAME] [--write-docs [PATH]]
     prtlab bench [--quick] [--json bench.json] [--select NAME]
 
 Methods: ``reference`` and ``mitsuba`` (Monte Carlo ground truth) and the pipelines
@@ -240,9 +240,9 @@ def _parser() -> argparse.ArgumentParser:
 
     p = add("reproduce", help="every paper figure and table that exists so far, as report/index.html",
                        description="Run every notebook headless and gather their figures and tables.")
-    p.add_argument("--quick", action="store_true", help="small sizes (PRTLAB_QUICK=1)")
-    p.add_argument("--out", type=Path, default=Path("report"), help="output folder (default report/)")
-    p.add_argument("--only", default=None, help="run only notebooks whose name contains this")
+    from prtlab.reproduce import add_arguments
+
+    add_arguments(p)
 
     p = add("bench", help="benchmarks, with peers and the machine's peak measured in the same run",
                        description="Time the benchmark cases (medians after a warm-up).")
@@ -710,10 +710,10 @@ def _cmd_cache(args) -> int:
 
 
 def _cmd_reproduce(args) -> int:
-    from prtlab.reproduce import reproduce
+    from prtlab.reproduce import run
 
     _writable_folder(args.out, "--out")
-    return 0 if reproduce(args.out, quick=args.quick, only=args.only) else 1
+    return run(args)
 
 
 def _cmd_bench(args) -> int:
