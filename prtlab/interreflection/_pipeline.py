@@ -1020,7 +1020,7 @@ def precompute(scene, options=None, cache=True, progress: bool = True) -> Interr
     return Interreflection.precompute(scene, options, cache=cache, progress=progress)
 
 
-def shade_scene(scene, bounces: int = 3, cache=True, progress: bool = True, **options) -> ShadeResult:
+def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="interreflection", bounces=..., **options)``.
 
     Options are the fields of :class:`InterreflectionOptions`; ``cache`` as in
