@@ -1011,7 +1011,7 @@ class Interreflection(Precomputation):
             result.direct[o.name] = direct[o.name]
             result.indirect[o.name] = indirect[o.name]
             result.total[o.name] = direct[o.name] + indirect[o.name]
-        result.info = {"method": self.method, "bounces": bounces, "seconds": times, **counts}
+        result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts}
         return result
 
 

@@ -446,25 +446,30 @@ class Portals(Precomputation):
             rows, weights = view_interpolation(view, self.options.view_res)
             rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
+        timings = {"direct": 0.0, "indirect": 0.0}
         for k, cube in enumerate(shells):
+            t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
             direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
+            t1 = time.perf_counter()
             if bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
                 if len(g):
                     indirect[g] += glossy_indirect_pass(self.indirect_transfer(k, bounces, glossy=True), c, view,
                                                         method=method)
+            timings["direct"] += t1 - t0
+            timings["indirect"] += time.perf_counter() - t1
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
         for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
             result.direct[o.name] = direct[a:b]
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
-        result.info = {"method": "portals", "bounces": bounces}
+        result.info = {"method": self.method, "bounces": bounces, "timings": timings}
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:

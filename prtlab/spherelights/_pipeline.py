@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -418,6 +419,8 @@ class SphereLights(Precomputation):
         return centres, radii, emission
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
+        """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6)."""
+        t_start = time.perf_counter()
         opts = self.options
         deformed = state.deformations
         env = self._environment(state)
@@ -451,6 +454,7 @@ class SphereLights(Precomputation):
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
                                   exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
         emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
+        t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
                                    "blocking": opts.blocking, "average": opts.average})
@@ -481,6 +485,7 @@ class SphereLights(Precomputation):
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
             result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
+        result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
