@@ -118,6 +118,8 @@ class Precomputation:
     resumable: ClassVar[bool] = False
     #: the method takes ``FrameState.deformations``
     supports_deformations: ClassVar[bool] = False
+    #: former option names -> their names now, for a clear error when an old name is passed
+    renamed_options: ClassVar[dict[str, str]] = {}
     #: why moving a baked object is refused (see :meth:`baked_objects`)
     baked_reason: ClassVar[str] = "the precomputation bakes in the poses of the objects"
 
@@ -140,6 +142,11 @@ class Precomputation:
         if isinstance(options, cls.options_type):
             return options
         valid = {f.name for f in dataclasses.fields(cls.options_type)}
+        renamed = sorted(set(options) & set(cls.renamed_options) - valid)
+        if renamed:
+            old = renamed[0]
+            raise ValueError(f"option {old!r} of method {cls.method!r} is now called "
+                             f"{cls.renamed_options[old]!r}; pass {cls.renamed_options[old]}=... instead")
         unknown = sorted(set(options) - valid)
         if unknown:
             raise ValueError(f"unknown option(s) {unknown} for method {cls.method!r}; valid: {sorted(valid)}")

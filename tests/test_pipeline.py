@@ -166,8 +166,8 @@ def test_only_resumable_methods_take_map_fn(scene):
 
 _TINY_OPTIONS = {
     "interreflection": dict(order=2, n_radii=4, resolution=4, degree=15, n_lights=16, n_basis=4, pca_occluders=False),
-    "spherelights": dict(n_spheres=2, grid_resolution=12, n_directions=12, cube_resolution=4),
-    "portals": dict(res=4, direct_samples=16, n_photons=2000, gather_rays=8, order=2, bounces=1),
+    "spherelights": dict(n_spheres=2, fit_resolution=12, n_directions=12, cube_resolution=4),
+    "portals": dict(cube_resolution=4, direct_samples=16, n_photons=2000, gather_rays=8, order=2, bounces=1),
 }
 
 
@@ -217,3 +217,14 @@ def test_every_entry_point_defaults_to_one_bounce(method):
     for function in (module.shade_scene, pipeline_class(method).shade_scene, pipeline_class(method).shade,
                      prtlab.shade):
         assert inspect.signature(function).parameters["bounces"].default == 1, function
+
+
+@pytest.mark.parametrize("method, old, new", [("portals", "res", "cube_resolution"),
+                                              ("interreflection", "haar_resolution", "cube_resolution"),
+                                              ("spherelights", "grid_resolution", "fit_resolution")])
+def test_a_renamed_option_names_its_new_name(method, old, new):
+    from prtlab.api import pipeline_class
+
+    with pytest.raises(ValueError, match=rf"option '{old}' of method '{method}' is now called '{new}'; "
+                                         rf"pass {new}=\.\.\. instead"):
+        pipeline_class(method).make_options({old: 8})

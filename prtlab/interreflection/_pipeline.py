@@ -82,7 +82,7 @@ visibility per point, not per distance; build rooms from separate walls.
 Direct shadows (``shadows``): ``"sh"`` (default, the paper) takes ``L_k = < L_in, P_n(V G_k) >``
 with order-n SH visibility products; ``"haar"`` takes the all-frequency path of
 :func:`prtlab.shadowfields.haar_direct` for step 1 only: per object a sparse Haar occlusion field
-(``haar_resolution``-texel cubemap faces, ``haar_keep`` coefficients per sample point, on the same
+(``cube_resolution``-texel cubemap faces, ``haar_keep`` coefficients per sample point, on the same
 sample spheres) and a Haar self-visibility at its shading points, precomputed and cached with the
 rest; per frame the texel-wise visibility product and the lights as exact texel pieces (area lights
 with partial coverage, point lights as deltas, environments as texel averages). Basis irradiance
@@ -93,7 +93,7 @@ built-in bunny (1,839 vertices) on a 3 x 3 floor (625 vertices) under the Fig. 9
 
 All-frequency basis irradiance (``irradiance="haar"``, needs ``shadows="haar"``): per object a sparse
 Haar basis radiance field (:func:`prtlab.interreflection.haar_basis_radiance_field`: per sample point
-and ``(k, i)`` the ``haar_radiance_keep`` largest coefficients of a ``haar_resolution`` cubemap,
+and ``(k, i)`` the ``haar_radiance_keep`` largest coefficients of a ``cube_resolution`` cubemap,
 float32 values and uint16 indices); per pair the receiver's Haar visibility (self-visibility times
 the occluders' Haar fields) times ``g_k' cos`` per texel, Haar-transformed once and dotted with the
 blended sparse ``S`` (:func:`prtlab.interreflection.haar_basis_irradiance`); near-field receivers
@@ -161,7 +161,7 @@ class InterreflectionOptions:
         pair is (re)computed (0: always interpolate, as the paper).
     shadows : ``"sh"`` (order-n SH visibility, the paper) or ``"haar"`` (all-frequency direct
         shadows and point lights, :func:`prtlab.shadowfields.haar_direct`) for the direct light.
-    haar_resolution, haar_keep : cubemap texels per face edge (32) and Haar coefficients kept per
+    cube_resolution, haar_keep : cubemap texels per face edge (32) and Haar coefficients kept per
         visibility cubemap (512) of ``shadows="haar"``.
     area_lights : how ``shadows="sh"`` gets an area light's SH radiance at the vertices: ``"exact"``
         (:func:`prtlab.shadowfields.area_light_sh`, a quadrature over the light per vertex) or
@@ -189,7 +189,7 @@ class InterreflectionOptions:
     self_interreflection: bool = True
     near_field: float = 0.5
     shadows: str = "sh"
-    haar_resolution: int = 32
+    cube_resolution: int = 32
     haar_keep: int = 512
     area_lights: str = "exact"
     irradiance: str = "sh"
@@ -197,7 +197,7 @@ class InterreflectionOptions:
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
-                                 "haar_resolution", "haar_keep", "haar_radiance_keep"))
+                                 "cube_resolution", "haar_keep", "haar_radiance_keep"))
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -216,8 +216,9 @@ class InterreflectionOptions:
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
-        if self.haar_resolution & (self.haar_resolution - 1):
-            raise ValueError(f"option haar_resolution must be a power of two, got {self.haar_resolution}")
+        if self.cube_resolution & (self.cube_resolution - 1):
+            raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
+                             f"{self.cube_resolution}")
 
 
 def _is_flat(mesh) -> bool:
@@ -317,6 +318,7 @@ class Interreflection(Precomputation):
     format_version = 3
     max_bounces = None
     options_type = InterreflectionOptions
+    renamed_options = {"haar_resolution": "cube_resolution"}
 
     @classmethod
     def cache_key_parts(cls, scene, options) -> list:
@@ -402,7 +404,7 @@ class Interreflection(Precomputation):
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
                               "pca_samples": basis.samples, "basis_radiance": field, "self_irradiance": own}
             if options.shadows == "haar":
-                haar = {"resolution": options.haar_resolution, "keep": options.haar_keep}
+                haar = {"resolution": options.cube_resolution, "keep": options.haar_keep}
                 data[obj.name]["haar_oof"] = haar_occlusion_field(
                     mesh, n_radii=options.n_radii, grid_resolution=options.resolution, r_min=options.r_min,
                     r_max=options.r_max, spacing=options.spacing, **haar).to_arrays()
@@ -410,7 +412,7 @@ class Interreflection(Precomputation):
                                                                    **haar).to_arrays()
             if options.irradiance == "haar":
                 data[obj.name]["haar_radiance"] = haar_basis_radiance_field(
-                    mesh, basis.basis, sep, oof.grid, options.haar_resolution, options.haar_radiance_keep).to_arrays()
+                    mesh, basis.basis, sep, oof.grid, options.cube_resolution, options.haar_radiance_keep).to_arrays()
         return data
 
     def __init__(self, scene, options, data):
@@ -805,7 +807,7 @@ class Interreflection(Precomputation):
         times ``g_k' cos`` per texel; receivers near the source (as :meth:`_near_field`) take ``S`` cast at
         the receiver (:func:`near_basis_irradiance`, not cached).
         """
-        g, T, res = geo[r.name], geo[s.name]["T"], self.options.haar_resolution
+        g, T, res = geo[r.name], geo[s.name]["T"], self.options.cube_resolution
         field, own = self.haar_radiance[s.name], self.haar_self[r.name]
         occluders = [(self.haar_fields[o], geo[o]["T"]) for o in others]
         local = _to_object(g["x"], T)

@@ -64,7 +64,8 @@ Examples
 >>> import prtlab
 >>> from prtlab.portals import Portals
 >>> scene = prtlab.load_scene(prtlab.api.Path(prtlab.__file__).parents[1] / "data/scenes/box_window_sky.yaml")
->>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8, "res": 8},
+>>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8,
+...                                  "cube_resolution": 8},
 ...                          cache=False, progress=False)
 >>> pre.shade(bounces=1).total["room"].shape
 (2058, 3)
@@ -97,7 +98,7 @@ __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 class PortalsOptions:
     """Options of the portals precomputation (the paper's values in brackets).
 
-    res : cubemap face resolution of the direct transfer [32].
+    cube_resolution : cubemap face resolution of the direct transfer [32].
     direct_samples : portal points per vertex [4096].
     n_photons : photons emitted per portal, shared by all SH bases [2M per basis].
     gather_rays : final-gather rays per vertex [4096].
@@ -115,7 +116,7 @@ class PortalsOptions:
     seed : random seed.
     """
 
-    res: int = 32
+    cube_resolution: int = 32
     direct_samples: int = 1024
     n_photons: int = 200_000
     gather_rays: int = 256
@@ -129,10 +130,12 @@ class PortalsOptions:
     seed: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "view_res"))
+        check_int_options(self, ("cube_resolution", "direct_samples", "n_photons", "gather_rays", "order", "photon_k",
+                                 "view_res"))
         check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
-        if self.res & (self.res - 1):
-            raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
+        if self.cube_resolution & (self.cube_resolution - 1):
+            raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
+                             f"{self.cube_resolution}")
         check_bool(self.merge_portals, "option merge_portals")
         check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
 
@@ -170,6 +173,7 @@ class Portals(Precomputation):
     # 4: photons reflect off glossy objects by their Phong lobe too
     max_bounces = None
     options_type = PortalsOptions
+    renamed_options = {"res": "cube_resolution"}
     resumable = True
     baked_reason = "the portals method precomputes the interior"
 
@@ -228,7 +232,7 @@ class Portals(Precomputation):
         n_p = 1 if options.merge_portals else max(1, sum(1 for o in scene.objects if o.portal))
         b, n2 = options.bounces, options.order**2
         n_out2 = (options.glossy_order or options.order) ** 2
-        texels = 6.0 * options.res**2
+        texels = 6.0 * options.cube_resolution**2
         views = 6.0 * options.view_res**2
         per_vertex_gather = 4.0 * options.gather_rays * b * n2 * 3 * 8
         needs = [
@@ -236,10 +240,11 @@ class Portals(Precomputation):
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
             MemoryNeed("the dense direct transfer cubemaps", min(n_v, cls.chunk_vertices) * texels * 8.0 * 8,
-                       ("res",)),
-            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0, ("res", "view_res")),
+                       ("cube_resolution",)),
+            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0,
+                       ("cube_resolution", "view_res")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
-                       ("view_res", "res")),
+                       ("view_res", "cube_resolution")),
             MemoryNeed("the final-gather rays", 0.0 if b == 0 else min(min(n_v, 512) * per_vertex_gather,
                                                                       max(float(CHUNK_BYTES), per_vertex_gather)),
                        ("gather_rays", "order", "bounces")),
@@ -310,20 +315,20 @@ class Portals(Precomputation):
                 rng = np.random.default_rng([options.seed, k, 2, i])
                 t0 = time.perf_counter()
                 dense = direct_transfer(caster, points[sl], normals[sl], portal, options.direct_samples,
-                                        options.res, rng)
+                                        options.cube_resolution, rng)
                 sparse = encode_transfer(dense, options.direct_basis)
                 entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
                          "scale": sparse.scale, "basis": sparse.basis}
                 # glossy vertices: one 8-bit cubemap per discretised outgoing direction (Section 4.1.2)
-                parts = [encode_transfer(np.zeros((0, 6, options.res, options.res)), options.direct_basis)]
+                parts = [encode_transfer(np.zeros((0, 6, options.cube_resolution, options.cube_resolution)), options.direct_basis)]
                 for b0 in range(0, len(g), _GLOSSY_BATCH):
                     gb = g[b0 : b0 + _GLOSSY_BATCH]
-                    spec = np.empty((len(gb), len(view_dirs), 6, options.res, options.res))
+                    spec = np.empty((len(gb), len(view_dirs), 6, options.cube_resolution, options.cube_resolution))
                     for e in np.unique(exponent[gb]):
                         m = exponent[gb] == e
                         spec[m] = glossy_direct_transfer(caster, points[gb[m]], normals[gb[m]], portal, view_dirs,
-                                                         float(e), options.direct_samples, options.res, rng)
-                    parts.append(encode_transfer(spec.reshape(-1, 6, options.res, options.res), options.direct_basis))
+                                                         float(e), options.direct_samples, options.cube_resolution, rng)
+                    parts.append(encode_transfer(spec.reshape(-1, 6, options.cube_resolution, options.cube_resolution), options.direct_basis))
                 entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
                 for name in ("indices", "codes", "scale", "basis"):
                     entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
@@ -364,7 +369,7 @@ class Portals(Precomputation):
             c = chunks[f"portal{k}"]
             indptr = np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64)
             entry = {"indptr": indptr, "indices": c["indices"], "codes": c["codes"], "scale": c["scale"],
-                     "basis": c["basis"], "res": np.array(options.res),
+                     "basis": c["basis"], "res": np.array(options.cube_resolution),
                      "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
                      "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + photon_seconds[k]),
                      "n_photons_stored": np.array(n_stored[k])}
@@ -473,7 +478,7 @@ class Portals(Precomputation):
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        cube = shell_light(state.lights[0], self.options.res)
+        cube = shell_light(state.lights[0], self.options.cube_resolution)
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod

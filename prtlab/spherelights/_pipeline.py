@@ -91,8 +91,8 @@ class SphereLightOptions:
         (see :func:`second_pass`).
     n_directions : int
         Sample directions per light (92).
-    grid_resolution : int
-        Interior grid of the sphere fit.
+    fit_resolution : int
+        Cells per edge of the interior grid of the sphere fit (:func:`fit_spheres`'s ``grid_resolution``).
     cube_resolution : int
         Face resolution of the albedo cubemaps.
     local_lights : sequence of (centre (3,), radius, radiance (3,))
@@ -135,7 +135,7 @@ class SphereLightOptions:
     blocking: str = "object"
     average: str = "cosine"
     n_directions: int = 92
-    grid_resolution: int = 40
+    fit_resolution: int = 40
     cube_resolution: int = 16
     occluding_ground: bool = True
     local_lights: tuple = ()
@@ -156,7 +156,7 @@ class SphereLightOptions:
         if 10 * f * f + 2 != self.n_directions:
             raise ValueError(f"option n_directions must be the vertex count 10 f^2 + 2 of a geodesic sphere "
                              f"(12, 42, 92, 162, ...), got {self.n_directions!r}")
-        check_int(self.grid_resolution, "option grid_resolution", 4)
+        check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
         check_bool(self.occluding_ground, "option occluding_ground")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
@@ -247,6 +247,7 @@ class SphereLights(Precomputation):
     format_version = 2
     max_bounces = 1
     options_type = SphereLightOptions
+    renamed_options = {"grid_resolution": "fit_resolution"}
     supports_deformations = True
 
     @classmethod
@@ -275,8 +276,8 @@ class SphereLights(Precomputation):
         s_total = float(sum(n_s))
         n2 = options.order**2
         needs = [
-            MemoryNeed("the interior grid of the sphere fit", 4.0 * 8 * 3 * options.grid_resolution**3,
-                       ("grid_resolution",)),
+            MemoryNeed("the interior grid of the sphere fit", 4.0 * 8 * 3 * options.fit_resolution**3,
+                       ("fit_resolution",)),
             MemoryNeed("the sphere fit's distances", 2.0 * 8 * n_faces * max(n_s or [0]), ("n_spheres",)),
             MemoryNeed("the surface samples", 10.0 * 8 * s_total * options.n_directions, ("n_directions", "n_spheres")),
             MemoryNeed("the albedo cubemaps", 4.0 * 8 * 3 * max(n_s or [0]) * 6 * options.cube_resolution**2,
@@ -315,7 +316,7 @@ class SphereLights(Precomputation):
                 continue
             n = options.n_spheres.get(obj.name, 8) if isinstance(options.n_spheres, dict) else options.n_spheres
             n = min(n, len(mesh.faces))
-            fit = fit_spheres(mesh, n, grid_resolution=options.grid_resolution)
+            fit = fit_spheres(mesh, n, grid_resolution=options.fit_resolution)
             pts, nrm, valid = surface_samples(mesh, fit.centres, fit.radii, dirs)
             albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
                                        options.cube_resolution)
