@@ -176,8 +176,8 @@ def test_errors(pre):
         pre.shade(state, bounces=1)
     with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', got 'wavelet'"):
         InterreflectionOptions(shadows="wavelet")
-    with pytest.raises(ValueError, match="option haar_resolution must be a power of two"):
-        InterreflectionOptions(haar_resolution=12)
+    with pytest.raises(ValueError, match="option cube_resolution must be a power of two"):
+        InterreflectionOptions(cube_resolution=12)
 
 
 def test_module_level_precompute(pre, cache_root):
@@ -526,7 +526,7 @@ def test_haar_shadows_light_by_a_point_light_with_a_sharp_shadow():
     0-0.05 just inside; a 16-texel cubemap adds at most half a texel, 0.05 rad)."""
     s = ball_over_floor()
     s.lights = [PointLight(position=np.array([0.4, 2.5, 0.3]), intensity=np.array([4.0, 4.0, 4.0]))]
-    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", haar_resolution=16, haar_keep=256),
+    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", cube_resolution=16, haar_keep=256),
                                      cache=False, progress=False)
     res = pre.shade(bounces=0)
     floor = s.object("floor")
