@@ -140,38 +140,57 @@ __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_sce
 class InterreflectionOptions:
     """Options of the interreflection pipeline (defaults as in the paper, Sec. 6).
 
-    order : SH order n (4: 16 coefficients).
-    n_basis : PCA basis functions N (16).
-    n_lights : point lights of the PCA training renders (256).
-    K_glossy : separable-BRDF terms of Phong materials (4; Lambert uses 1).
-    n_radii, resolution, r_min, r_max, spacing : sample spheres (16 x 6 x 16 x 16, see
-        :func:`prtlab.shadowfields.sphere_grid`).
-    degree : quadrature degree of the visibility and basis radiance projections (None: 47).
-    threshold : Sec. 5.4 skip threshold for source/receiver pairs (0: compute all).
-    pca_occluders : train each object's PCA basis with the shadows the other objects cast on it
-        in the scene as given (True), or on the object alone as in the paper (False). Objects may
-        still move per frame: the basis then spans the shadows of the precomputed poses (an
-        approximation, as any PCA basis is); with False a moved state shades exactly as a
-        precomputation at the new pose.
-    self_interreflection : include the light an object bounces onto itself (True), or only
-        light from the other objects as in the paper (False).
-    near_field : receiver points whose distance to a source's surface (its nearest vertex) is below
-        ``near_field`` times their distance to the source's centre get that source's basis radiance
-        by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation, when the
-        pair is (re)computed (0: always interpolate, as the paper).
-    shadows : ``"sh"`` (order-n SH visibility, the paper) or ``"haar"`` (all-frequency direct
-        shadows and point lights, :func:`prtlab.shadowfields.haar_direct`) for the direct light.
-    cube_resolution, haar_keep : cubemap texels per face edge (32) and Haar coefficients kept per
-        visibility cubemap (512) of ``shadows="haar"``.
-    area_lights : how ``shadows="sh"`` gets an area light's SH radiance at the vertices: ``"exact"``
-        (:func:`prtlab.shadowfields.area_light_sh`, a quadrature over the light per vertex) or
-        ``"field"`` (the light's source radiance field, Zhou et al. 2005 Sec. 3, built once per light
-        shape on the sample spheres and interpolated: 2-3 % relative error, cheaper when lights move).
-    irradiance : ``"sh"`` (order-n SH basis radiance fields, the paper's low-frequency Eq. 13) or
-        ``"haar"`` (all-frequency: sparse Haar basis radiance cubemaps times the Haar visibility,
-        :func:`prtlab.interreflection.haar_basis_irradiance`; needs ``shadows="haar"``).
-    haar_radiance_keep : Haar coefficients kept per (sample point, k, i) basis radiance cubemap (64) of
-        ``irradiance="haar"``.
+    Attributes
+    ----------
+    order : int
+        SH order n of the transfer, visibility and basis radiance (4: 16 coefficients).
+    n_basis : int
+        PCA basis functions N per object (16).
+    n_lights : int
+        Point lights of the PCA training renders (256).
+    K_glossy : int
+        Separable-BRDF terms of Phong materials (Lambert uses 1).
+    n_radii, resolution : int
+        Sample spheres of the occlusion and basis radiance fields: ``n_radii`` spheres, each a cubemap of
+        ``resolution`` texels per face edge (:func:`prtlab.shadowfields.sphere_grid`).
+    r_min, r_max : float
+        Radii of the innermost and outermost sample spheres, in bounding radii (``r_min <= r_max``).
+    spacing : {"geometric", "uniform"}
+        Spacing of the sample spheres' radii.
+    degree : int or None
+        Quadrature degree of the visibility and basis radiance projections (None: 47).
+    threshold : float
+        Sec. 5.4 skip threshold of source/receiver pairs (0: compute all; a run-time choice).
+    pca_occluders : bool
+        Train each object's PCA basis with the shadows the other objects cast on it in the scene as given
+        (True), or on the object alone as in the paper (False). Objects may still move per frame: the basis
+        then spans the shadows of the precomputed poses (an approximation, as any PCA basis is); with False a
+        moved state shades exactly as a precomputation at the new pose.
+    self_interreflection : bool
+        Include the light an object bounces onto itself (True), or only light from the other objects as in the
+        paper (False).
+    near_field : float
+        Receiver points nearer a source's surface than ``near_field`` times their distance to its centre get
+        its basis radiance by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation
+        (0: always interpolate, as the paper; a run-time choice).
+    shadows : {"sh", "haar"}
+        Direct shadows: order-n SH visibility (the paper) or all-frequency Haar visibility with point lights
+        (:func:`prtlab.shadowfields.haar_direct`).
+    cube_resolution : int
+        Texels per face edge (a power of two) of the Haar visibility and basis radiance cubemaps of
+        ``shadows="haar"`` and ``irradiance="haar"``.
+    haar_keep : int
+        Haar coefficients kept per visibility cubemap of ``shadows="haar"``.
+    area_lights : {"exact", "field"}
+        SH radiance of an area light at the vertices with ``shadows="sh"``: a quadrature over the light per
+        vertex (:func:`prtlab.shadowfields.area_light_sh`), or its source radiance field (Zhou et al. 2005
+        Sec. 3; 2-3 % relative error, cheaper when lights move; a run-time choice).
+    irradiance : {"sh", "haar"}
+        Basis irradiance (Eq. 13): order-n SH basis radiance fields (the paper), or all-frequency sparse Haar
+        basis radiance cubemaps times the Haar visibility (:func:`prtlab.interreflection.haar_basis_irradiance`;
+        needs ``shadows="haar"``).
+    haar_radiance_keep : int
+        Haar coefficients kept per (sample point, k, i) basis radiance cubemap of ``irradiance="haar"``.
     """
 
     order: int = 4

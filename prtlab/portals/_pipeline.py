@@ -98,22 +98,35 @@ __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 class PortalsOptions:
     """Options of the portals precomputation (the paper's values in brackets).
 
-    cube_resolution : cubemap face resolution of the direct transfer [32].
-    direct_samples : portal points per vertex [4096].
-    n_photons : photons emitted per portal, shared by all SH bases [2M per basis].
-    gather_rays : final-gather rays per vertex [4096].
-    order : SH order of the indirect transfer [4].
-    photon_k : photons per radiance estimate.
-    bounces : indirect bounces stored [9].
-    direct_basis : "auto" (pulse or Haar, whichever is smaller per vertex), "pulse" or "haar".
-    merge_portals : one portal (and shell) for all portal objects (Section 3.1: windows of one material under a
-        distant environment), instead of one per portal object.
-    view_res : glossy vertices: face resolution of the cubemap of discretised outgoing directions ``w_o`` (one
-        direct transfer cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
-    glossy_order : SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``);
-        0: ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects
-        (exponent 10: the order-4 lobe peaks at half its height, :func:`prtlab.portals.phong_lobe_zh`).
-    seed : random seed.
+    Attributes
+    ----------
+    cube_resolution : int
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32].
+    direct_samples : int
+        Portal points per vertex of the direct transfer [4096].
+    n_photons : int
+        Photons emitted per portal, shared by all SH bases [2M per basis].
+    gather_rays : int
+        Final-gather rays per vertex [4096].
+    order : int
+        SH order of the indirect transfer [4].
+    photon_k : int
+        Photons per radiance estimate.
+    bounces : int
+        Indirect bounces stored (photon depth) [9]; shading takes any ``bounces`` up to it.
+    direct_basis : {"auto", "pulse", "haar"}
+        Basis of the 8-bit direct transfer: pulse or Haar, or whichever is smaller per vertex ("auto").
+    merge_portals : bool
+        One portal (and shell) for all portal objects (Section 3.1: windows of one material under a distant
+        environment), instead of one per portal object.
+    view_res : int
+        Glossy vertices: face resolution of the cubemap of discretised outgoing directions (one direct transfer
+        cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
+    glossy_order : int
+        SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``); 0:
+        ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects.
+    seed : int
+        Random seed of the photons and of the direct and gather samples.
     """
 
     cube_resolution: int = 32

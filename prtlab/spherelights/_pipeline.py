@@ -77,7 +77,7 @@ class SphereLightOptions:
 
     Attributes
     ----------
-    n_spheres : int
+    n_spheres : int or dict
         Spheres per source object (or a ``{"object name": n}`` dict, default 8).
     order : int
         SH order (the paper: 4).
@@ -116,10 +116,7 @@ class SphereLightOptions:
         Receivers of a cluster at which the ratio is fitted: 1 is the paper's Eq. 25 at the cluster centre (the
         centre then gets the flat value exactly); ``k > 1`` adds ``k - 1`` farthest-point receivers and takes the
         least-squares best scaling (the paper's wording for ``t``), which is steadier where the centre sees a
-        node near its horizon. Default 5: on the test scene (2 closed objects of 8 lights, clusters of 16
-        receivers, threshold 0.7) the relative RMS indirect error against the flat pass is 2.9 % without the
-        ratio, 6.4 % with the paper's centre ratio (curved receivers whose centre sees a node at a grazing angle
-        get ratios far off for the rest of the cluster) and 2.2 % with 5 points.
+        node near its horizon (the measurement behind the default: ``docs/NOTES.md``).
     occluding_ground : bool
         An extension, on by default: the scene's grounds (flat, horizontal,
         receiving-only objects) hide the environment from the surface samples of
