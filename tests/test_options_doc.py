@@ -52,7 +52,8 @@ def test_grouped_entries_document_each_name():
 def test_an_undocumented_option_is_an_error(monkeypatch):
     from prtlab.portals import PortalsOptions
 
-    monkeypatch.setattr(PortalsOptions, "__doc__", PortalsOptions.__doc__.replace("    seed : int\n", "    seedling : int\n"))
+    doc = PortalsOptions.__doc__.replace("    seed : int\n", "    seedling : int\n")
+    monkeypatch.setattr(PortalsOptions, "__doc__", doc)
     with pytest.raises(ValueError, match=r"option 'seed' of PortalsOptions has no entry in its docstring's Attributes "
                                          r"section; document it there"):
         options_reference()
