@@ -55,8 +55,8 @@ from prtlab._validate import MemoryNeed, check_int, check_memory, memory_limit
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
-__all__ = ["FrameState", "MemoryNeed", "Precomputation", "check_int_options", "check_memory", "memory_limit",
-           "scene_geometry_key_parts"]
+__all__ = ["FrameState", "MemoryNeed", "Precomputation", "check_int_options", "check_memory", "concatenate_chunks",
+           "memory_limit", "scene_geometry_key_parts"]
 
 
 @dataclass
@@ -100,6 +100,13 @@ def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> 
         if dynamic_transforms or not obj.dynamic:
             parts.append(obj.transform.to_dict())
     return parts
+
+
+def concatenate_chunks(chunks: list[dict]) -> dict:
+    """Chunk dicts (nested dicts of arrays) concatenated along axis 0, as the cache assembles them."""
+    first = chunks[0]
+    return {name: concatenate_chunks([c[name] for c in chunks]) if isinstance(first[name], dict)
+            else np.concatenate([c[name] for c in chunks]) for name in first}
 
 
 def _same_pose(a: Transform, b: Transform) -> bool:
@@ -258,6 +265,33 @@ class Precomputation:
         extra = {"store": store, "key": key, "map_fn": map_fn} if cls.resumable else {}
         data = store.get_or_compute(key, lambda: cls.compute(scene, options, progress, **extra), name=cls.method)
         return cls(scene, options, data)
+
+    @classmethod
+    def run_part(cls, store: Cache | None, key: str | None, part: tuple, name: str, fn):
+        """``fn()`` (a dict of arrays), stored as the resumable part ``part`` of the precomputation ``key`` when
+        ``store`` is given (a ``resumable`` method's ``compute`` gets ``store`` and ``key``), else computed here."""
+        if store is None:
+            return fn()
+        return store.get_or_compute(cache_key(key, *part), fn, name=name)
+
+    @classmethod
+    def run_chunks(cls, n_chunks: int, chunk_fn, store: Cache | None = None, key: str | None = None, map_fn=None,
+                   progress: bool = True, chunking=None) -> dict:
+        """``chunk_fn(i)`` for every chunk, concatenated along axis 0 (nested dicts of arrays).
+
+        With ``store`` each chunk is a resumable part of the precomputation ``key``
+        (:meth:`prtlab.cache.Cache.get_or_compute_chunks`, which runs them through ``map_fn``, e.g.
+        :func:`prtlab.api.dask_map`); ``chunking`` (what the chunks are, e.g. ``{"vertices": 2048}``) is
+        recorded with each part so that parts of another chunking are recomputed. Without ``store`` the
+        chunks run here in order, with a progress bar.
+        """
+        if store is not None:
+            return store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
+                                               name=f"{cls.method}-chunks", map_fn=map_fn, chunking=chunking)
+        from tqdm.auto import tqdm
+
+        return concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc=f"{cls.method} precompute",
+                                                             unit="chunk", disable=not progress)])
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         """The fast per-frame passes."""

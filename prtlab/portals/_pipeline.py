@@ -74,13 +74,13 @@ Examples
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from prtlab._validate import check_bool, check_choice
-from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
@@ -161,11 +161,6 @@ def n_photons_bytes(n_photons: int, bounces: int, n_coeffs: int) -> float:
     return float(n_photons) * bounces * (32 + bounces + n_coeffs) * 8.0
 
 
-def _concatenate_chunks(chunks: list[dict]) -> dict:
-    """Chunk dicts ``{portal: {name: array}}`` concatenated along axis 0 (as the cache assembles them)."""
-    return {p: {name: np.concatenate([c[p][name] for c in chunks]) for name in chunks[0][p]} for p in chunks[0]}
-
-
 def _shaded(scene: Scene):
     return [o for o in scene.objects if not o.portal]
 
@@ -176,6 +171,158 @@ def _is_glossy(obj) -> bool:
 
 #: glossy vertices per batch of the glossy direct transfer (bounds its dense (batch, J, 6, r, r) memory)
 _GLOSSY_BATCH = 16
+
+
+@dataclass
+class _Interior:
+    """The shaded vertices of a scene (its non-portal objects, concatenated in scene order, world space)
+    and their materials: what the photons, the direct transfer and the final gather read."""
+
+    points: np.ndarray  # (V, 3) shading points
+    normals: np.ndarray  # (V, 3)
+    albedo: np.ndarray  # (V, 3) Lambertian albedo
+    glossy: np.ndarray  # (V,) bool: Phong with ks > 0
+    ks: np.ndarray  # (V, 3), 0 off the glossy vertices
+    exponent: np.ndarray  # (V,), 0 off the glossy vertices
+    object_albedo: np.ndarray  # (O, 3) per object, for the photons
+    object_ks: np.ndarray  # (O, 3)
+    object_exponent: np.ndarray  # (O,)
+    offsets: np.ndarray  # (O + 1,) first vertex of each object
+
+    @classmethod
+    def of(cls, objs) -> "_Interior":
+        glossy = [_is_glossy(o) for o in objs]
+        ks = [np.asarray(o.material.ks, float) if g else np.zeros(3) for o, g in zip(objs, glossy)]
+        exponent = [float(o.material.exponent) if g else 0.0 for o, g in zip(objs, glossy)]
+        counts = [o.n_vertices for o in objs]
+        return cls(
+            points=np.concatenate([o.world_shading_points() for o in objs]),
+            normals=np.concatenate([o.world_normals() for o in objs]),
+            albedo=np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs]),
+            glossy=np.repeat(np.array(glossy, dtype=bool), counts),
+            ks=np.repeat(np.array(ks, dtype=np.float64).reshape(-1, 3), counts, axis=0),
+            exponent=np.repeat(np.array(exponent, dtype=np.float64), counts),
+            object_albedo=np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3),
+            object_ks=np.array(ks, dtype=np.float64).reshape(-1, 3),
+            object_exponent=np.array(exponent, dtype=np.float64),
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        )
+
+    @property
+    def glossy_row(self) -> np.ndarray:
+        """(V,) the row of each vertex among the glossy ones (-1 off them)."""
+        row = np.full(len(self.glossy), -1, dtype=np.int64)
+        row[self.glossy] = np.arange(int(self.glossy.sum()))
+        return row
+
+
+def _photon_estimates(caster, interior: _Interior, portal, k: int, options: PortalsOptions) -> dict:
+    """Section 4.1.1 steps 1a-1b for portal ``k``: photons from the portal, then the per-bounce SH radiance
+    estimate at every vertex (``exitance``) and the specular SH->SH response at the glossy ones."""
+    if options.bounces == 0:
+        return {"exitance": None, "glossy_exitance": None, "seconds": np.array(0.0),
+                "n_photons_stored": np.array(0)}
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([options.seed, k, 1])
+    photons = trace_photons(caster, interior.object_albedo, portal, options.n_photons, options.bounces, rng,
+                            ks=interior.object_ks, exponent=interior.object_exponent)
+    g = np.nonzero(interior.glossy)[0]
+    exitance, glossy_exitance = radiance_estimate(
+        photons, interior.points, interior.normals, interior.albedo, options.order, options.photon_k,
+        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order))
+    return {"exitance": exitance, "glossy_exitance": glossy_exitance,
+            "seconds": np.array(time.perf_counter() - t0), "n_photons_stored": np.array(len(photons))}
+
+
+def _direct_part(caster, interior: _Interior, rows: slice, portal, options: PortalsOptions, rng) -> dict:
+    """Section 4.1.2 for the vertices ``rows``: the 8-bit direct transfer cubemaps, and for the glossy ones one
+    cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
+    res, basis = options.cube_resolution, options.direct_basis
+    dense = direct_transfer(caster, interior.points[rows], interior.normals[rows], portal, options.direct_samples,
+                            res, rng)
+    sparse = encode_transfer(dense, basis)
+    entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
+             "scale": sparse.scale, "basis": sparse.basis}
+    g = np.nonzero(interior.glossy[rows])[0] + rows.start
+    view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
+    parts = [encode_transfer(np.zeros((0, 6, res, res)), basis)]
+    for b0 in range(0, len(g), _GLOSSY_BATCH):
+        gb = g[b0 : b0 + _GLOSSY_BATCH]
+        spec = np.empty((len(gb), len(view_dirs), 6, res, res))
+        for e in np.unique(interior.exponent[gb]):
+            m = interior.exponent[gb] == e
+            spec[m] = glossy_direct_transfer(caster, interior.points[gb[m]], interior.normals[gb[m]], portal,
+                                             view_dirs, float(e), options.direct_samples, res, rng)
+        parts.append(encode_transfer(spec.reshape(-1, 6, res, res), basis))
+    entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
+    for name in ("indices", "codes", "scale", "basis"):
+        entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
+    return entry
+
+
+def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng) -> dict:
+    """Section 4.1.1 step 2 for the vertices ``rows``: the per-bounce SH transfer vectors by final gathering
+    (``indirect``, (v, bounces, n*n, 3)) and the glossy vertices' SH->SH matrices (``glossy_matrix``)."""
+    n_c = options.order * options.order
+    g = np.nonzero(interior.glossy[rows])[0] + rows.start
+    diffuse = np.nonzero(~interior.glossy[rows])[0] + rows.start
+    indirect = np.zeros((rows.stop - rows.start, options.bounces, n_c, 3))
+    gather = dict(glossy_exitance=(interior.glossy_row, estimate["glossy_exitance"]))
+    if len(diffuse):
+        indirect[diffuse - rows.start] = final_gather(
+            caster, interior.points[diffuse], interior.normals[diffuse], interior.albedo[diffuse],
+            estimate["exitance"], interior.offsets, interior.normals, options.gather_rays, rng, **gather)
+    order_out = options.glossy_order or options.order
+    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
+    if len(g):
+        indirect[g - rows.start], matrix = final_gather(
+            caster, interior.points[g], interior.normals[g], interior.albedo[g], estimate["exitance"],
+            interior.offsets, interior.normals, options.gather_rays, rng,
+            glossy=(interior.ks[g], interior.exponent[g], order_out), **gather)
+    return {"indirect": indirect.astype(np.float32), "glossy_matrix": matrix.astype(np.float32)}
+
+
+def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: PortalsOptions, size: int,
+                  i: int) -> dict:
+    """Chunk ``i`` (vertices ``i size .. (i + 1) size``) of every portal: ``{"portal<k>": arrays}``, with the
+    seconds of its direct and indirect parts. One random stream per (portal, chunk), so a chunk's result does
+    not depend on which process runs it."""
+    rows = slice(i * size, min(len(interior.points), (i + 1) * size))
+    out = {}
+    for k, portal in enumerate(portals):
+        rng = np.random.default_rng([options.seed, k, 2, i])
+        t0 = time.perf_counter()
+        entry = _direct_part(caster, interior, rows, portal, options, rng)
+        t1 = time.perf_counter()
+        entry["seconds_direct"] = np.array([t1 - t0])
+        if options.bounces > 0:
+            entry.update(_indirect_part(caster, interior, rows, estimates[k], options, rng))
+        entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
+        out[f"portal{k}"] = entry
+    return out
+
+
+def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions) -> dict:
+    """The stored data: per portal the sparse direct transfer (CSR ``indptr`` from the chunks' counts), the
+    per-bounce indirect transfer, the seconds of each part; and the vertices' materials."""
+    data: dict = {"n_portals": np.array(len(estimates)), "albedo": interior.albedo,
+                  "glossy": interior.glossy.astype(np.uint8), "ks": interior.ks, "exponent": interior.exponent}
+    for k, estimate in enumerate(estimates):
+        c = chunks[f"portal{k}"]
+        entry = {"indptr": np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64), "indices": c["indices"],
+                 "codes": c["codes"], "scale": c["scale"], "basis": c["basis"],
+                 "res": np.array(options.cube_resolution),
+                 "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
+                 "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + float(estimate["seconds"])),
+                 "n_photons_stored": np.array(int(estimate["n_photons_stored"])),
+                 "glossy_indptr": np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)}
+        for name in ("indices", "codes", "scale", "basis"):
+            entry[f"glossy_{name}"] = c[f"glossy_{name}"]
+        if options.bounces > 0:
+            entry["indirect"] = c["indirect"]
+            entry["glossy_matrix"] = c["glossy_matrix"]
+        data[f"portal{k}"] = entry
+    return data
 
 
 class Portals(Precomputation):
@@ -267,134 +414,27 @@ class Portals(Precomputation):
     @classmethod
     def compute(cls, scene: Scene, options: PortalsOptions, progress: bool, store=None, key=None,
                 map_fn=None) -> dict:
-        objs = _shaded(scene)
+        """Per portal: the photon map's radiance estimates (Section 4.1.1, steps 1a-1b), then per chunk of
+        :attr:`chunk_vertices` vertices the direct transfer (Section 4.1.2) and the final gather (step 2).
+
+        Each portal's estimates and each chunk are resumable cache parts (:meth:`Precomputation.run_part`,
+        :meth:`Precomputation.run_chunks`); ``map_fn`` runs the chunks in parallel.
+        """
         names = [o.name for o in scene.objects if o.portal]
         portals = find_portals(scene, [names] if options.merge_portals and names else None)
         caster = RayCaster(scene)
-        points = np.concatenate([o.world_shading_points() for o in objs])
-        normals = np.concatenate([o.world_normals() for o in objs])
-        albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
-        glossy = np.concatenate([np.full(o.n_vertices, _is_glossy(o)) for o in objs])
-        ks = np.concatenate([np.tile(o.material.ks if _is_glossy(o) else np.zeros(3), (o.n_vertices, 1))
-                             for o in objs]).astype(np.float64)
-        exponent = np.concatenate([np.full(o.n_vertices, float(o.material.exponent) if _is_glossy(o) else 0.0)
-                                   for o in objs])
-        view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
-        obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
-        obj_ks = np.array([o.material.ks if _is_glossy(o) else np.zeros(3) for o in objs],
-                          dtype=np.float64).reshape(-1, 3)
-        obj_exponent = np.array([float(o.material.exponent) if _is_glossy(o) else 0.0 for o in objs])
-        offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
-        n_vertices = len(points)
-
-        # photons and radiance estimates: one per portal (Section 4.1.1, steps 1a-1b)
-        exitance, glossy_exitance, photon_seconds, n_stored = [], [], [], []
-        glossy_row = np.full(n_vertices, -1, dtype=np.int64)
-        glossy_row[glossy] = np.arange(int(glossy.sum()))
+        interior = _Interior.of(_shaded(scene))
+        estimates = []
         for k, portal in enumerate(portals):
-            def estimate(k=k, portal=portal):
-                t0 = time.perf_counter()
-                rng = np.random.default_rng([options.seed, k, 1])
-                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng,
-                                        ks=obj_ks, exponent=obj_exponent)
-                g_all = np.nonzero(glossy)[0]
-                b, spec = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k,
-                                            depths=options.bounces,
-                                            glossy=(g_all, ks[g_all], exponent[g_all], options.order))
-                return {"exitance": b, "glossy_exitance": spec, "seconds": np.array(time.perf_counter() - t0),
-                        "n_photons_stored": np.array(len(photons))}
-
-            if options.bounces == 0:
-                entry = {"exitance": None, "glossy_exitance": None, "seconds": np.array(0.0),
-                         "n_photons_stored": np.array(0)}
-            elif store is not None:
-                entry = store.get_or_compute(cache_key(key, "exitance", k), estimate, name="portals-photons")
-            else:
-                entry = estimate()
-            exitance.append(entry["exitance"])
-            glossy_exitance.append(entry["glossy_exitance"])
-            photon_seconds.append(float(entry["seconds"]))
-            n_stored.append(int(entry["n_photons_stored"]))
-
-        # per-vertex work in chunks (Section 4.1.2 and 4.1.1 step 2)
+            estimate = functools.partial(_photon_estimates, caster, interior, portal, k, options)
+            estimates.append(estimate() if options.bounces == 0 else  # nothing to store
+                             cls.run_part(store, key, ("exitance", k), "portals-photons", estimate))
         size = cls.chunk_vertices
-        n_chunks = max(1, -(-n_vertices // size))
-
-        def chunk_fn(i):
-            sl = slice(i * size, min(n_vertices, (i + 1) * size))
-            g = np.nonzero(glossy[sl])[0] + sl.start  # glossy vertices of the chunk
-            out = {}
-            for k, portal in enumerate(portals):
-                rng = np.random.default_rng([options.seed, k, 2, i])
-                t0 = time.perf_counter()
-                dense = direct_transfer(caster, points[sl], normals[sl], portal, options.direct_samples,
-                                        options.cube_resolution, rng)
-                sparse = encode_transfer(dense, options.direct_basis)
-                entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
-                         "scale": sparse.scale, "basis": sparse.basis}
-                # glossy vertices: one 8-bit cubemap per discretised outgoing direction (Section 4.1.2)
-                parts = [encode_transfer(np.zeros((0, 6, options.cube_resolution, options.cube_resolution)), options.direct_basis)]
-                for b0 in range(0, len(g), _GLOSSY_BATCH):
-                    gb = g[b0 : b0 + _GLOSSY_BATCH]
-                    spec = np.empty((len(gb), len(view_dirs), 6, options.cube_resolution, options.cube_resolution))
-                    for e in np.unique(exponent[gb]):
-                        m = exponent[gb] == e
-                        spec[m] = glossy_direct_transfer(caster, points[gb[m]], normals[gb[m]], portal, view_dirs,
-                                                         float(e), options.direct_samples, options.cube_resolution, rng)
-                    parts.append(encode_transfer(spec.reshape(-1, 6, options.cube_resolution, options.cube_resolution), options.direct_basis))
-                entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
-                for name in ("indices", "codes", "scale", "basis"):
-                    entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
-                t1 = time.perf_counter()
-                entry["seconds_direct"] = np.array([t1 - t0])
-                if options.bounces > 0:
-                    n_c = options.order * options.order
-                    indirect = np.zeros((sl.stop - sl.start, options.bounces, n_c, 3))
-                    diffuse = np.nonzero(~glossy[sl])[0] + sl.start
-                    if len(diffuse):
-                        indirect[diffuse - sl.start] = final_gather(
-                            caster, points[diffuse], normals[diffuse], albedo[diffuse], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy_exitance=(glossy_row, glossy_exitance[k]))
-                    order_out = options.glossy_order or options.order
-                    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
-                    if len(g):
-                        indirect[g - sl.start], matrix = final_gather(
-                            caster, points[g], normals[g], albedo[g], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy=(ks[g], exponent[g], order_out),
-                            glossy_exitance=(glossy_row, glossy_exitance[k]))
-                    entry["indirect"] = indirect.astype(np.float32)
-                    entry["glossy_matrix"] = matrix.astype(np.float32)
-                entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
-                out[f"portal{k}"] = entry
-            return out
-
-        if store is not None:
-            chunks = store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
-                                                 name="portals-chunks", map_fn=map_fn, chunking={"vertices": size})
-        else:
-            from tqdm.auto import tqdm
-
-            chunks = _concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc="portals precompute",
-                                                                    unit="chunk", disable=not progress)])
-        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo, "glossy": glossy.astype(np.uint8),
-                      "ks": ks, "exponent": exponent}
-        for k in range(len(portals)):
-            c = chunks[f"portal{k}"]
-            indptr = np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64)
-            entry = {"indptr": indptr, "indices": c["indices"], "codes": c["codes"], "scale": c["scale"],
-                     "basis": c["basis"], "res": np.array(options.cube_resolution),
-                     "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
-                     "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + photon_seconds[k]),
-                     "n_photons_stored": np.array(n_stored[k])}
-            glossy_indptr = np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)
-            entry.update({"glossy_indptr": glossy_indptr, "glossy_indices": c["glossy_indices"],
-                          "glossy_codes": c["glossy_codes"], "glossy_scale": c["glossy_scale"],
-                          "glossy_basis": c["glossy_basis"]})
-            if options.bounces > 0:
-                entry["indirect"] = c["indirect"]
-                entry["glossy_matrix"] = c["glossy_matrix"]
-            data[f"portal{k}"] = entry
-        return data
+        n_chunks = max(1, -(-len(interior.points) // size))
+        chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size)
+        chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
+                                chunking={"vertices": size})
+        return _assemble(chunks, estimates, interior, options)
 
     # ------------------------------------------------------------------ run time
 
