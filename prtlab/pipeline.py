@@ -1,13 +1,28 @@
-"""The two-phase base every PRT pipeline plugs into.
+"""The two-phase base every PRT pipeline plugs into, and the contract all of them follow.
 
 A pipeline is a subclass of :class:`Precomputation` that implements only its
-passes::
+passes; the base owns the loop (options, cache, checks, per-frame state)::
+
+    @dataclass(frozen=True)
+    class SphereLightOptions:                       # every option: default, validation, docstring entry
+        \"\"\"...
+
+        Attributes
+        ----------
+        n_spheres : int
+            Spheres per source object.
+        \"\"\"
+
+        n_spheres: int = 8
+
+        def __post_init__(self):
+            check_int(self.n_spheres, "option n_spheres", 1)
 
     class SphereLights(Precomputation):
         method = "spherelights"
         format_version = 1
         max_bounces = 1
-        options_type = SphereLightOptions        # a dataclass of the method's options
+        options_type = SphereLightOptions
 
         @classmethod
         def compute(cls, scene, options, progress):   # the slow passes -> dict of arrays
@@ -16,31 +31,49 @@ passes::
         def shade_frame(self, state, bounces):       # the fast per-frame passes -> ShadeResult
             ...
 
-The base owns the loop: option validation, the content-addressed HDF5 cache
-(keyed by the scene's geometry and materials, the options, the method and its
-format version), the per-frame state, and the ``bounces`` check::
-
     pre = SphereLights.precompute(scene, {"n_spheres": 8})   # slow, cached
     frame = pre.shade(FrameState.from_scene(scene))            # fast, per frame
 
-The contract, checked by the base in this order so that nothing heavy runs
-before a refusal:
+The contract
+------------
+**Options.** One dataclass (``options_type``) per method. Every field is
+validated in ``__post_init__`` by the shared validators of :mod:`prtlab._validate` (type,
+range, choice, cross-field: ``TypeError`` for a wrong type, ``ValueError`` out of range,
+naming the option), and documented in the class docstring's numpydoc ``Attributes``
+section, from which ``docs/OPTIONS.md`` is generated (:func:`prtlab.api.options_reference`).
+One name per concept across methods: ``order`` (SH order), ``cube_resolution`` (face
+resolution of a per-point cubemap of directions), ``n_basis``, ``seed``; a renamed option
+stays in ``renamed_options`` so that its old name fails with the new one. Options that
+do not change the precomputed data are left out of the cache key (``cache_key_parts``).
 
-1. ``shade_scene`` (``prtlab.shade``): the options (the dataclass validates every
-   field), ``bounces`` (:meth:`Precomputation.check_bounces`) and the scene's
-   lights (:meth:`Precomputation.check_lights`), then ``precompute``;
-2. ``precompute``: :meth:`Precomputation.check_scene` (what the method needs in the
-   scene, and the memory its options need, :meth:`Precomputation.memory_needs`),
-   then ``compute`` (or the cache);
-3. ``shade(state)``: bounces, then :meth:`Precomputation.check_state`: every name in
-   the state is an object of the scene, an object whose pose the precomputed data
-   bakes in (:meth:`Precomputation.baked_objects`) has not moved, deformations
-   only where the method takes them (``supports_deformations``), and the lights.
+**Precomputation** runs only through :meth:`Precomputation.precompute`: the options,
+:meth:`Precomputation.check_scene` (what the method needs, and the memory its options
+need, :meth:`Precomputation.memory_needs`), then ``compute`` or the content-addressed
+cache (keyed by the scene's geometry and materials, the options, the method and its
+``format_version``). A ``resumable`` method's ``compute`` takes ``store``, ``key`` and
+``map_fn`` and runs its work through :meth:`Precomputation.run_part` and
+:meth:`Precomputation.run_chunks`, which store each part as it finishes and distribute
+the chunks (``map_fn``, e.g. :func:`prtlab.api.dask_map`).
 
-Everything that changes per frame (transforms, deformations, lights, camera)
-is in :class:`FrameState`. Per-frame code is a batched numba loop over
-vertices (``parallel=True``, ``prange``) with one function per shader pass,
-named after the pass.
+**Per frame**, everything that changes is in :class:`FrameState`: object transforms,
+soft deformations (only where ``supports_deformations``), lights and camera; no other
+way in. :meth:`Precomputation.shade` checks ``bounces``, then the state
+(:meth:`Precomputation.check_state`: every name is an object of the scene, an object
+whose pose the data bakes in, :meth:`Precomputation.baked_objects`, has not moved,
+and the lights, :meth:`Precomputation.check_lights`), then calls ``shade_frame``. What
+consecutive frames reuse is held by one object owned by the precomputation, keyed by
+the poses it was made at (never by ``id()`` of arrays).
+
+**Results.** ``bounces`` defaults to 1 in every entry point (``prtlab.shade``,
+``shade_scene``, ``shade``); a method that cannot shade as many raises
+(:meth:`Precomputation.check_bounces`). A :class:`prtlab.scene.ShadeResult` holds
+``direct``, ``indirect`` and ``total`` of every object that is not a portal (portals are
+openings, not surfaces), and ``info`` holds at least ``method``, ``bounces`` and
+``timings`` (``{pass name: seconds}`` of the frame's passes), plus method-specific keys.
+
+**Order of checks**: ``shade_scene`` (``prtlab.shade``) checks the options, ``bounces``
+and the scene's lights before precomputing, so that nothing heavy runs before a
+refusal.
 """
 
 from __future__ import annotations

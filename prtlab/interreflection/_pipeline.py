@@ -17,87 +17,33 @@ Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
 2. **basis irradiance** (Eq. 13) of every source on every other receiver, with the
    visibility between them (the occluders other than source and receiver);
    a pair is recomputed only when the pose of its source or receiver, or of an
-   occluder whose field reaches the receiver, changed since it was last computed;
+   occluder whose field reaches the receiver, changed since it was last computed
+   (:class:`FrameReuse` holds what frames reuse);
 3. **weights** (Eq. 14) of every object from its ``L_k``;
 4. **bounces** (Eq. 12, Sec. 5.3): ``L_k'^(b) = sum_s Phi^s w^s(b-1)``, radiance
    ``sum_k' h_k' colour_k' L_k'^(b)``, new weights; ``bounces`` times.
 
 ``direct`` of the result is step 1's radiance, ``indirect`` the sum over the bounces.
+With ``threshold > 0`` a pair whose basis irradiance on a plane at the receiver's
+centre, ``I_c`` (:meth:`Interreflection.pair_importance`), is below ``threshold`` is
+skipped (Sec. 5.4; counted in ``info["skipped_pairs"]``).
 
-Sec. 5.4 (skip small contributions): with ``threshold > 0`` a source's basis
-irradiance on a receiver is not computed when the irradiance it gives a plane
-at the receiver's centre facing the source, ``I_c = max_(k',m) |< S_m(x_c), G_k'(w_c) >|``
-(unoccluded, the receiver's first BRDF term), is below ``threshold``; the
-skipped pairs are counted in ``info["skipped_pairs"]``.
+Extensions beyond the paper, each an option (how they were measured: ``docs/NOTES.md``):
+``pca_occluders`` (PCA bases trained with the other objects' shadows), ``self_interreflection``,
+``near_field`` (ray-cast basis radiance near a source), ``shadows="haar"`` (all-frequency direct
+shadows and point lights, :func:`prtlab.shadowfields.haar_direct`), ``irradiance="haar"``
+(all-frequency basis irradiance, :func:`prtlab.interreflection.haar_basis_irradiance`); and
+always: Lambertian light clamped at 0 (:meth:`Interreflection._clamp_diffuse`), a flat occluder
+with receiver and source on one side of it left out of their visibility
+(:meth:`Interreflection._plane_separates`). Vertices are shaded at
+:func:`prtlab.geometry.shading_points` (``docs/DECISIONS.md``).
 
-Extensions beyond the paper (each an option, measured on the Fig. 9 bunny on a green floor, one
-bounce, relative RMS of the bunny's indirect light against 256-path Monte Carlo, whose own noise is
-0.098; the paper's pipeline as first implemented: 0.71):
-
-* ``pca_occluders`` (default True): the PCA basis of an object is trained with the shadows the
-  other objects cast on it at their poses in the scene (:func:`_pca_basis`); a floor's basis
-  trained alone cannot hold the bunny's shadow (fit error of the floor's radiance 0.51 -> 0.08).
-  Its shadow rays leave the shading points: from the vertices, a floor's row along a wall (and the
-  wall's row on the floor) lay on the other plane, was dark in every training render and had a
-  basis of exactly 0, so as a source the edge emitted nothing. Diagnosis (format_version 3): a
-  4 x 4 floor and a 4 x 2 wall meeting at a right angle under the room's light, quick options,
-  one bounce against ``prtlab.reference.path_trace`` (256 paths): mean indirect floor 0.855,
-  wall 0.862 of Monte Carlo (edge rows 0.015, the next rows 0.93 / 0.99) with the bug; 1.003 /
-  0.990 after (edge rows 0.70 / 0.85: vertices on another surface, ill-defined). Ruled out on the
-  same scene: ``near_field=0`` (0.93 / 0.94 with the bug, 0.96 / 0.94 after: the interpolated
-  field is slightly darker near the edge, the ray-cast near field is right), N = 16 from 256
-  lights (no change), ``shadows="haar"`` (0.95 / 0.94 after, following its direct light, 0.98 /
-  0.97 of Monte Carlo where SH gives 1.00 / 1.02). This was the "light between the floor and the
-  walls" of the room (20 % too dark before, see ``tests/interreflection/test_pipeline.py``);
-  after it the room's floor / back / left wall indirect was 0.24 / 0.20 / 0.21 relative RMS against
-  Mitsuba (noise 0.10), 10 / 15 / 15 % too dark on average. The rest came from the order-n
-  visibility product: with the floor and both walls alone (no objects; own Monte Carlo, 128 paths)
-  the indirect was 0.96 / 0.92 / 0.91 of Monte Carlo, and 1.00 / 1.00 / 1.00 with the third plane
-  left out of each pair's visibility (exact there: it blocks nothing between the other two); its
-  half-space visibility, truncated to order 4 and multiplied with the source's radiance, leaked
-  onto the source's directions. A flat occluder with receiver and source on one side of its plane
-  is now left out (:meth:`Interreflection._plane_separates`). Room after both (one bounce, Mitsuba
-  256 spp): indirect floor / back / left wall 0.21 / 0.14 / 0.16, mean 1.00 / 0.98 / 0.99; bunny
-  0.17 (was 0.22), box 0.07, teapot 0.21: all within the 0.15 + noise goal;
-* ``self_interreflection`` (default True): light an object bounces onto itself, precomputed
-  (:func:`prtlab.interreflection.self_basis_irradiance`): 14-35 % of the bunny's indirect light;
-* ``near_field`` (default 0.5): receivers close to a source's surface get its basis radiance by
-  ray casting instead of the field's interpolation (:meth:`Interreflection._near_field`);
-  0.54 -> 0.22, at the price of the moving-object frame (0.4 s -> 2.3 s for the bunny);
-* Lambertian light is clamped at 0 (:meth:`Interreflection._clamp_diffuse`): the order-4 SH
-  direct light rings negative below a small light's horizon.
-
-With all four the bunny's indirect error is 0.22 and its total 0.15, set by the SH direct light.
-Vertices are shaded at :func:`prtlab.geometry.shading_points` (``docs/DECISIONS.md``).
-
-Conventions and limits: vertices are shaded on the side of their normal; a
-source emits only from the side of its vertex normals; inter-object
-visibility takes every object other than source and receiver as an occluder
-(also those behind the source); area lights occlude nothing here (they are
-opaque in the references: keep them away from the objects' line of sight to
-each other); point lights need ``shadows="haar"`` (else a clear error). An object that
-encloses a light (a closed room) blocks it everywhere: a shadow field holds one
-visibility per point, not per distance; build rooms from separate walls.
-
-Direct shadows (``shadows``): ``"sh"`` (default, the paper) takes ``L_k = < L_in, P_n(V G_k) >``
-with order-n SH visibility products; ``"haar"`` takes the all-frequency path of
-:func:`prtlab.shadowfields.haar_direct` for step 1 only: per object a sparse Haar occlusion field
-(``cube_resolution``-texel cubemap faces, ``haar_keep`` coefficients per sample point, on the same
-sample spheres) and a Haar self-visibility at its shading points, precomputed and cached with the
-rest; per frame the texel-wise visibility product and the lights as exact texel pieces (area lights
-with partial coverage, point lights as deltas, environments as texel averages). Basis irradiance
-(Eq. 13) keeps the SH visibility. Measured against ``prtlab.reference.direct`` (512 paths) on the
-built-in bunny (1,839 vertices) on a 3 x 3 floor (625 vertices) under the Fig. 9 light (0.6 x 0.6,
-2.5 up), default sample spheres: relative RMS of the direct radiance, bunny 0.013 (Haar) against
-0.207 (SH order 4), floor 0.055 against 0.145; direct step 1.07 s against 0.88 s (2 busy cores).
-
-All-frequency basis irradiance (``irradiance="haar"``, needs ``shadows="haar"``): per object a sparse
-Haar basis radiance field (:func:`prtlab.interreflection.haar_basis_radiance_field`: per sample point
-and ``(k, i)`` the ``haar_radiance_keep`` largest coefficients of a ``cube_resolution`` cubemap,
-float32 values and uint16 indices); per pair the receiver's Haar visibility (self-visibility times
-the occluders' Haar fields) times ``g_k' cos`` per texel, Haar-transformed once and dotted with the
-blended sparse ``S`` (:func:`prtlab.interreflection.haar_basis_irradiance`); near-field receivers
-cast ``S`` as a cubemap at the receiver (:meth:`Interreflection._haar_pair`).
+Conventions and limits: vertices are shaded on the side of their normal; a source emits only
+from the side of its vertex normals; inter-object visibility takes every object other than
+source and receiver as an occluder (also those behind the source); area lights occlude nothing
+here (keep them out of the objects' line of sight to each other); point lights need
+``shadows="haar"``. An object that encloses a light (a closed room) blocks it everywhere: a
+shadow field holds one visibility per point, not per distance; build rooms from separate walls.
 """
 
 from __future__ import annotations
@@ -282,11 +228,8 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     Without occluders it is :func:`prtlab.pca.fit_pca_basis` (the paper). With them, the
     training renders ``B_eta`` (unit point lights at :func:`prtlab.pca.pca_light_positions`)
     are shadowed by the object *and* the other objects at their poses in the scene, so the
-    basis spans the shadows they cast on it (a floor under a bunny): measured on the Fig. 9
-    floor, the least-squares fit of its true direct radiance by N = 16 functions has a
-    relative RMS of 0.22 (0.56 within 0.6 of the bunny) from the shadowless training and
-    0.094 (0.22) with the bunny's shadow in it. The mean, SVD and sign convention are those
-    of :func:`prtlab.pca.fit_pca_basis`.
+    basis spans the shadows they cast on it (a floor under a bunny; measured in ``docs/NOTES.md``).
+    The mean, SVD and sign convention are those of :func:`prtlab.pca.fit_pca_basis`.
     """
     v = np.asarray(mesh.vertices, float)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
@@ -712,10 +655,8 @@ class Interreflection(Precomputation):
         """``max(L, 0)`` for a Lambertian object (K = 1: ``L`` is its irradiance over pi, never negative).
 
         Order-n SH products of a small area light, a clamped cosine and a visibility ring
-        negative where the light is below a vertex's horizon: on the Fig. 9 bunny's
-        downward faces the order-4 direct light is -0.015 (Monte Carlo: +0.004), and that
-        negative light, reflected onto the floor, made the floor's one-bounce light 2.4x too
-        dark. Glossy terms (K > 1) may be negative by construction and are left alone.
+        negative where the light is below a vertex's horizon (``docs/NOTES.md``). Glossy terms
+        (K > 1) may be negative by construction and are left alone.
         """
         return np.maximum(light, 0.0) if self.seps[obj.name].K == 1 else light
 
@@ -758,9 +699,7 @@ class Interreflection(Precomputation):
         ``x`` are all the receiver's points; ``transfer`` and ``phi`` hold the rows ``rows`` of them.
 
         Near a large source (a floor under an object) the basis radiance changes faster than the
-        sample spheres resolve: measured on the Fig. 9 bunny, the interpolated field's basis
-        irradiance is 0.58 relative RMS (+24 % on average) from the one with ``S`` cast at the
-        vertex, which itself is within 0.035 of a dense ray-cast gather of the same PCA radiance.
+        sample spheres resolve (``docs/NOTES.md``).
         """
         if self.options.near_field <= 0 or len(rows) == 0:
             return 0
@@ -816,8 +755,7 @@ class Interreflection(Precomputation):
 
         Then ``o`` blocks no segment from ``r`` to ``s`` and is left out of their visibility: its
         order-n SH visibility (a half-space at a receiver near it) would only leak onto the
-        source's directions (a third wall darkened the bounce between floor and wall by 8-14 %,
-        ``tests/interreflection/test_pipeline.py::test_a_third_plane_darkens_the_bounce_by_its_order_n_visibility``).
+        source's directions (``docs/NOTES.md``).
         """
         if not self.flat[o.name]:
             return False

@@ -12,52 +12,21 @@ part ``kd`` as above; the specular direct part as one 8-bit cubemap per
 discretised outgoing direction (the texel centres of a ``view_res`` cubemap),
 blended bilinearly toward the camera at run time
 (:func:`prtlab.portals.view_interpolation`); the specular indirect part as an
-SH->SH transfer matrix from the same final-gather rays (matrix-vector product,
-then evaluation at the view direction, Eq. 6). Approximation: photons and
-photons reflect off glossy objects by their Phong lobe, and the radiance estimate at
-a glossy vertex has a specular part (an SH->SH exitance response over the
-outgoing direction at the light's SH order, :func:`radiance_estimate`), which
-gather rays reaching it read toward the gathering point. (Before, photons and
-estimates treated every surface as Lambertian with its ``kd``: the Fig. 11
-bunny's indirect light was 9.9% low; of that about 4% was its own specular
-light reflected onto itself, 1% its specular light reflected via the walls,
-the rest the order-4 SH truncation of the shell light.)
+SH->SH transfer matrix from the same final-gather rays (Eq. 6). Photons reflect
+off glossy objects by their Phong lobe, and the radiance estimate at a glossy
+vertex has a specular part (:func:`radiance_estimate`) that gather rays read
+toward the gathering point.
 
-The interior is static: photons, gather rays and shadow rays are traced
-against every object where the scene puts it, so every object's transform
-(dynamic or not) is in the cache key, and ``shade(state)`` refuses a state in
-which an object moved (re-precompute at the new pose, e.g. on
-``scene.at_frame(i, n)``). The camera may move (glossy view directions are
-taken per frame); the light is one environment seen through the portals.
-Each portal faces the interior whatever its winding (:func:`find_portals`).
-
-Bounces: the indirect transfer is stored per bounce (photon depth), so
-``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
-Distant environments or user-given shell cubemaps (:meth:`Portals.shade_shells`).
-A dynamic exterior: pass per-frame shells
-from :func:`prtlab.portals.exterior_shell`; portal materials:
-:func:`prtlab.portals.tint`, :func:`prtlab.portals.frosted`.
-
-Accuracy measured on ``data/scenes/box_window_sky.yaml`` (B = 3, 2048 portal
-samples, 2M photons, 1024 gather rays; reference 8192 paths per vertex with
-3.7% relative standard error; vertices on two walls left out): average
-relative difference of the total 3.9%, 3.0% with the reference's noise
-removed at SH order 4 (1.7% at order 8: most of the rest is the SH
-truncation of the sky seen through the window, Section 4.2); signed mean -0.2%.
-
-Glossy, Fig. 11 (``data/scenes/box_window_glossy_bunny_fig11.yaml``, Phong 10
-bunny; B = 2, 512 portal samples, 1M photons, 256 gather rays, view_res 8,
-glossy_order 8; reference 1024 paths per vertex, 10.1% mean relative standard
-error; room interior and bunny vertices off the floor): average relative
-difference of the total 9.1% (goal 2.1% + 10.1%: met), 5.0% with the noise
-removed, signed mean -0.2%; the bunny's indirect part -3.4% (signed; it was
--9.9% with the kd-only photon map, against both the own reference and
-Mitsuba 3); at small sizes (300k photons, 512 gather rays, 800 bunny
-vertices against 1024 reference paths each) the bunny's indirect is -3.3% to
--6.5% over three photon seeds at SH order 4, of which about 4% is the order-4
-truncation of the shell light (a diffuse bunny: -3.5% at order 4, +0.6% at
-order 8), and +0.3% / +3.2% at order 8;
-see ``tests/portals/test_whole_scene.py``.
+The interior is static: every object's transform is in the cache key, and
+``shade(state)`` refuses a state in which an object moved (re-precompute at the
+new pose, e.g. on ``scene.at_frame(i, n)``). The camera may move; the light is
+one environment seen through the portals (or user-given shell cubemaps,
+:meth:`Portals.shade_shells`: a dynamic exterior from
+:func:`prtlab.portals.exterior_shell`, portal materials :func:`prtlab.portals.tint`,
+:func:`prtlab.portals.frosted`). Each portal faces the interior whatever its
+winding (:func:`find_portals`). The indirect transfer is stored per bounce, so
+``shade(bounces=b)`` takes any ``b <=`` the precomputed ``bounces`` option.
+Measured accuracy: ``docs/NOTES.md``.
 
 Examples
 --------
