@@ -137,8 +137,9 @@ def precompute(scene, method: str, workers: int | None = None, scheduler: str | 
     workers, scheduler
         Distribute the precomputation's chunks with Dask: ``workers`` local
         worker processes (a ``LocalCluster``), or the address of a running
-        Dask scheduler. Only methods whose ``precompute`` takes ``map_fn``
-        can distribute; the others raise :class:`MethodUnavailable`.
+        Dask scheduler. Only ``resumable`` methods (their chunks run through
+        :meth:`prtlab.pipeline.Precomputation.run_chunks`) can distribute; the
+        others raise :class:`MethodUnavailable`.
     progress : bool
         Progress bars.
     timeout : float
@@ -161,15 +162,15 @@ def precompute(scene, method: str, workers: int | None = None, scheduler: str | 
         scene = load_scene(scene)
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a prtlab.Scene or a scene file path, got {type(scene).__name__}")
-    module = importlib.import_module(f"prtlab.{method}")
-    kwargs = {"progress": progress}
+    cls = pipeline_class(method)
+    map_fn = None
     if workers is not None or scheduler is not None:
-        if "map_fn" not in inspect.signature(module.precompute).parameters:
+        if not cls.resumable:
             raise MethodUnavailable(
                 f"method {method!r} cannot distribute its precomputation yet; run it without --workers/--scheduler"
             )
-        kwargs["map_fn"] = dask_map(workers=workers, scheduler=scheduler, timeout=timeout)
-    return module.precompute(scene, options, **kwargs)
+        map_fn = dask_map(workers=workers, scheduler=scheduler, timeout=timeout)
+    return cls.precompute(scene, options, progress=progress, map_fn=map_fn)
 
 
 def dask_map(workers: int | None = None, scheduler: str | None = None, client=None, timeout: float = 10.0):
