@@ -664,13 +664,13 @@ class Interreflection(Precomputation):
         return self.options.threshold > 0 and self.pair_importance(geo, r, s) < self.options.threshold
 
     def pair_importance(self, geo, r, s) -> float:
-        """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on receiver ``r``.
+        """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on
+        receiver ``r``.
 
         The basis irradiance of a plane at the receiver's bounding-sphere centre facing the
         source's centre (unoccluded), from the interpolated basis radiance field. A receiver vertex ``x`` at
-        most ``R_r`` from that centre,
-        with the source ``d`` away, sees the source's radiance over a solid angle at most
-        ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
+        most ``R_r`` from that centre, with the source ``d`` away, sees the source's radiance over a solid
+        angle at most ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
         (visibility only lowers it), up to the SH truncation of both sides.
         """
         gs, gr = geo[s.name], geo[r.name]
