@@ -57,7 +57,7 @@ import numpy as np
 from prtlab import sh
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import geodesic_directions
-from prtlab.pipeline import FrameState, MemoryNeed, Precomputation
+from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
@@ -228,10 +228,6 @@ def _closed_mesh(mesh):
     return merged if merged.is_watertight else None
 
 
-def _is_source(obj) -> bool:
-    return not obj.portal and _closed_mesh(obj.mesh) is not None
-
-
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
              "cluster_size", "reflection_ratio", "ratio_samples")
@@ -295,12 +291,8 @@ class SphereLights(Precomputation):
 
     @classmethod
     def cache_key_parts(cls, scene, options):
-        # the run-time choices do not change the precomputed data
-        from dataclasses import asdict
-
-        opts = {k: v for k, v in asdict(options).items() if k not in _RUN_TIME}
-        from prtlab.pipeline import scene_geometry_key_parts
-
+        """The run-time choices (``_RUN_TIME``) are left out: they do not change the precomputed data."""
+        opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in _RUN_TIME}
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=False), opts]
 
     @classmethod
