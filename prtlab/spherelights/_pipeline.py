@@ -51,6 +51,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -68,7 +69,7 @@ from ._passes import first_pass, second_pass
 from ._samples import surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
 
-__all__ = ["SphereLightOptions", "SphereLights", "light_motions", "shade_scene"]
+__all__ = ["SphereLightOptions", "SphereLights", "WorldLights", "light_motions", "shade_scene"]
 
 
 @dataclass(frozen=True)
@@ -228,6 +229,20 @@ def _closed_mesh(mesh):
     return merged if merged.is_watertight else None
 
 
+class WorldLights(NamedTuple):
+    """The spherical lights of one frame in world space (S lights, m surface samples each)."""
+
+    centres: np.ndarray  # (S, 3)
+    radii: np.ndarray  # (S,)
+    object_index: np.ndarray  # (S,) int: the source object of each light
+    intersect: np.ndarray  # (S, S) bool: overlapping lights of one object
+    rotations: np.ndarray  # (S, 3, 3): each light's frame (its object's rotation, turned by a deformation)
+    sample_points: np.ndarray  # (S, m, 3)
+    sample_normals: np.ndarray  # (S, m, 3)
+    sample_valid: np.ndarray  # (S, m) bool
+    albedo_sh: np.ndarray  # (S, n*n, 3)
+
+
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
              "cluster_size", "reflection_ratio", "ratio_samples")
@@ -328,9 +343,8 @@ class SphereLights(Precomputation):
 
     # ------------------------------------------------------------------ per frame
 
-    def world_lights(self, state: FrameState, deformed=None):
-        """World-space lights of a frame: centres (S, 3), radii (S,), object index (S,),
-        intersect (S, S), rotations (S, 3, 3), and the samples (S, m, 3) x 2 with validity (S, m).
+    def world_lights(self, state: FrameState, deformed=None) -> WorldLights:
+        """World-space lights of a frame (:class:`WorldLights`).
         ``deformed``: ``{name: (V, 3)}`` object-space vertex positions; each light of such an object
         (centre, samples and its frame) follows the average rotation and translation of its vertices
         (:func:`light_motions`, Sec. 7.1)."""
@@ -360,9 +374,9 @@ class SphereLights(Precomputation):
         if not parts:
             order = self.options.order
             m = self.options.n_directions
-            return (np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
-                    np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
-                    np.zeros((0, order * order, 3)))
+            return WorldLights(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
+                               np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
+                               np.zeros((0, order * order, 3)))
         s_total = sum(len(p[1]) for p in parts)
         inter = np.zeros((s_total, s_total), dtype=bool)
         i = 0
@@ -370,8 +384,7 @@ class SphereLights(Precomputation):
             s = len(p[1])
             inter[i : i + s, i : i + s] = p[3]
             i += s
-        cat = [inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)]
-        return tuple(cat)
+        return WorldLights(*(inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)))
 
     def _environment(self, state: FrameState) -> np.ndarray:
         """Environment SH of order ``3n - 2``: the transfer ``P_n(L cos)`` is then exact (see
