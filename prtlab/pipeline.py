@@ -1,13 +1,28 @@
-"""The two-phase base every PRT pipeline plugs into.
+"""The two-phase base every PRT pipeline plugs into, and the contract all of them follow.
 
 A pipeline is a subclass of :class:`Precomputation` that implements only its
-passes::
+passes; the base owns the loop (options, cache, checks, per-frame state)::
+
+    @dataclass(frozen=True)
+    class SphereLightOptions:                       # every option: default, validation, docstring entry
+        \"\"\"...
+
+        Attributes
+        ----------
+        n_spheres : int
+            Spheres per source object.
+        \"\"\"
+
+        n_spheres: int = 8
+
+        def __post_init__(self):
+            check_int(self.n_spheres, "option n_spheres", 1)
 
     class SphereLights(Precomputation):
         method = "spherelights"
         format_version = 1
         max_bounces = 1
-        options_type = SphereLightOptions        # a dataclass of the method's options
+        options_type = SphereLightOptions
 
         @classmethod
         def compute(cls, scene, options, progress):   # the slow passes -> dict of arrays
@@ -16,31 +31,49 @@ passes::
         def shade_frame(self, state, bounces):       # the fast per-frame passes -> ShadeResult
             ...
 
-The base owns the loop: option validation, the content-addressed HDF5 cache
-(keyed by the scene's geometry and materials, the options, the method and its
-format version), the per-frame state, and the ``bounces`` check::
-
     pre = SphereLights.precompute(scene, {"n_spheres": 8})   # slow, cached
     frame = pre.shade(FrameState.from_scene(scene))            # fast, per frame
 
-The contract, checked by the base in this order so that nothing heavy runs
-before a refusal:
+The contract
+------------
+**Options.** One dataclass (``options_type``) per method. Every field is
+validated in ``__post_init__`` by the shared validators of :mod:`prtlab._validate` (type,
+range, choice, cross-field: ``TypeError`` for a wrong type, ``ValueError`` out of range,
+naming the option), and documented in the class docstring's numpydoc ``Attributes``
+section, from which ``docs/OPTIONS.md`` is generated (:func:`prtlab.api.options_reference`).
+One name per concept across methods: ``order`` (SH order), ``cube_resolution`` (face
+resolution of a per-point cubemap of directions), ``n_basis``, ``seed``; a renamed option
+stays in ``renamed_options`` so that its old name fails with the new one. Options that
+do not change the precomputed data are left out of the cache key (``cache_key_parts``).
 
-1. ``shade_scene`` (``prtlab.shade``): the options (the dataclass validates every
-   field), ``bounces`` (:meth:`Precomputation.check_bounces`) and the scene's
-   lights (:meth:`Precomputation.check_lights`), then ``precompute``;
-2. ``precompute``: :meth:`Precomputation.check_scene` (what the method needs in the
-   scene, and the memory its options need, :meth:`Precomputation.memory_needs`),
-   then ``compute`` (or the cache);
-3. ``shade(state)``: bounces, then :meth:`Precomputation.check_state`: every name in
-   the state is an object of the scene, an object whose pose the precomputed data
-   bakes in (:meth:`Precomputation.baked_objects`) has not moved, deformations
-   only where the method takes them (``supports_deformations``), and the lights.
+**Precomputation** runs only through :meth:`Precomputation.precompute`: the options,
+:meth:`Precomputation.check_scene` (what the method needs, and the memory its options
+need, :meth:`Precomputation.memory_needs`), then ``compute`` or the content-addressed
+cache (keyed by the scene's geometry and materials, the options, the method and its
+``format_version``). A ``resumable`` method's ``compute`` takes ``store``, ``key`` and
+``map_fn`` and runs its work through :meth:`Precomputation.run_part` and
+:meth:`Precomputation.run_chunks`, which store each part as it finishes and distribute
+the chunks (``map_fn``, e.g. :func:`prtlab.api.dask_map`).
 
-Everything that changes per frame (transforms, deformations, lights, camera)
-is in :class:`FrameState`. Per-frame code is a batched numba loop over
-vertices (``parallel=True``, ``prange``) with one function per shader pass,
-named after the pass.
+**Per frame**, everything that changes is in :class:`FrameState`: object transforms,
+soft deformations (only where ``supports_deformations``), lights and camera; no other
+way in. :meth:`Precomputation.shade` checks ``bounces``, then the state
+(:meth:`Precomputation.check_state`: every name is an object of the scene, an object
+whose pose the data bakes in, :meth:`Precomputation.baked_objects`, has not moved,
+and the lights, :meth:`Precomputation.check_lights`), then calls ``shade_frame``. What
+consecutive frames reuse is held by one object owned by the precomputation, keyed by
+the poses it was made at (never by ``id()`` of arrays).
+
+**Results.** ``bounces`` defaults to 1 in every entry point (``prtlab.shade``,
+``shade_scene``, ``shade``); a method that cannot shade as many raises
+(:meth:`Precomputation.check_bounces`). A :class:`prtlab.scene.ShadeResult` holds
+``direct``, ``indirect`` and ``total`` of every object that is not a portal (portals are
+openings, not surfaces), and ``info`` holds at least ``method``, ``bounces`` and
+``timings`` (``{pass name: seconds}`` of the frame's passes), plus method-specific keys.
+
+**Order of checks**: ``shade_scene`` (``prtlab.shade``) checks the options, ``bounces``
+and the scene's lights before precomputing, so that nothing heavy runs before a
+refusal.
 """
 
 from __future__ import annotations
@@ -55,8 +88,8 @@ from prtlab._validate import MemoryNeed, check_int, check_memory, memory_limit
 from prtlab.cache import Cache, cache_key
 from prtlab.scene import Camera, Scene, ShadeResult, Transform
 
-__all__ = ["FrameState", "MemoryNeed", "Precomputation", "check_int_options", "check_memory", "memory_limit",
-           "scene_geometry_key_parts"]
+__all__ = ["FrameState", "MemoryNeed", "Precomputation", "check_int_options", "check_memory", "concatenate_chunks",
+           "memory_limit", "scene_geometry_key_parts"]
 
 
 @dataclass
@@ -102,6 +135,13 @@ def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> 
     return parts
 
 
+def concatenate_chunks(chunks: list[dict]) -> dict:
+    """Chunk dicts (nested dicts of arrays) concatenated along axis 0, as the cache assembles them."""
+    first = chunks[0]
+    return {name: concatenate_chunks([c[name] for c in chunks]) if isinstance(first[name], dict)
+            else np.concatenate([c[name] for c in chunks]) for name in first}
+
+
 def _same_pose(a: Transform, b: Transform) -> bool:
     ma, mb = a.matrix(), b.matrix()
     return bool(np.allclose(ma, mb, rtol=0.0, atol=1e-12 * max(1.0, float(np.abs(mb).max()))))
@@ -118,6 +158,8 @@ class Precomputation:
     resumable: ClassVar[bool] = False
     #: the method takes ``FrameState.deformations``
     supports_deformations: ClassVar[bool] = False
+    #: former option names -> their names now, for a clear error when an old name is passed
+    renamed_options: ClassVar[dict[str, str]] = {}
     #: why moving a baked object is refused (see :meth:`baked_objects`)
     baked_reason: ClassVar[str] = "the precomputation bakes in the poses of the objects"
 
@@ -140,6 +182,11 @@ class Precomputation:
         if isinstance(options, cls.options_type):
             return options
         valid = {f.name for f in dataclasses.fields(cls.options_type)}
+        renamed = sorted(set(options) & set(cls.renamed_options) - valid)
+        if renamed:
+            old = renamed[0]
+            raise ValueError(f"option {old!r} of method {cls.method!r} is now called "
+                             f"{cls.renamed_options[old]!r}; pass {cls.renamed_options[old]}=... instead")
         unknown = sorted(set(options) - valid)
         if unknown:
             raise ValueError(f"unknown option(s) {unknown} for method {cls.method!r}; valid: {sorted(valid)}")
@@ -251,6 +298,33 @@ class Precomputation:
         extra = {"store": store, "key": key, "map_fn": map_fn} if cls.resumable else {}
         data = store.get_or_compute(key, lambda: cls.compute(scene, options, progress, **extra), name=cls.method)
         return cls(scene, options, data)
+
+    @classmethod
+    def run_part(cls, store: Cache | None, key: str | None, part: tuple, name: str, fn):
+        """``fn()`` (a dict of arrays), stored as the resumable part ``part`` of the precomputation ``key`` when
+        ``store`` is given (a ``resumable`` method's ``compute`` gets ``store`` and ``key``), else computed here."""
+        if store is None:
+            return fn()
+        return store.get_or_compute(cache_key(key, *part), fn, name=name)
+
+    @classmethod
+    def run_chunks(cls, n_chunks: int, chunk_fn, store: Cache | None = None, key: str | None = None, map_fn=None,
+                   progress: bool = True, chunking=None) -> dict:
+        """``chunk_fn(i)`` for every chunk, concatenated along axis 0 (nested dicts of arrays).
+
+        With ``store`` each chunk is a resumable part of the precomputation ``key``
+        (:meth:`prtlab.cache.Cache.get_or_compute_chunks`, which runs them through ``map_fn``, e.g.
+        :func:`prtlab.api.dask_map`); ``chunking`` (what the chunks are, e.g. ``{"vertices": 2048}``) is
+        recorded with each part so that parts of another chunking are recomputed. Without ``store`` the
+        chunks run here in order, with a progress bar.
+        """
+        if store is not None:
+            return store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
+                                               name=f"{cls.method}-chunks", map_fn=map_fn, chunking=chunking)
+        from tqdm.auto import tqdm
+
+        return concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc=f"{cls.method} precompute",
+                                                             unit="chunk", disable=not progress)])
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         """The fast per-frame passes."""

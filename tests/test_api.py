@@ -6,6 +6,7 @@ import time
 
 import pytest
 
+import prtlab
 from prtlab import api
 from prtlab.scene import Scene
 
@@ -112,3 +113,12 @@ def test_check_bounces():
         api.check_bounces("spherelights", 2)
     with pytest.raises(TypeError, match="bounces must be an int >= 0"):
         api.check_bounces("portals", True)
+
+
+def test_only_resumable_pipelines_distribute_their_precomputation(monkeypatch):
+    from prtlab.spherelights import SphereLights
+
+    monkeypatch.setattr(SphereLights, "compute", classmethod(lambda *a, **k: pytest.fail("computed before refusing")))
+    with pytest.raises(api.MethodUnavailable, match=r"method 'spherelights' cannot distribute its precomputation yet; "
+                                                    r"run it without --workers/--scheduler"):
+        api.precompute(prtlab.load_scene("tiny_ball_env"), "spherelights", workers=2, progress=False)

@@ -70,9 +70,9 @@ TINY_OPTIONS = {
     "mitsuba": ["--samples", "4"],
     "interreflection": ["-o", "n_lights=8", "-o", "n_basis=4", "-o", "n_radii=4", "-o", "resolution=4",
                         "-o", "order=2"],
-    "spherelights": ["-o", "n_spheres=2", "-o", "grid_resolution=10", "-o", "n_directions=12",
+    "spherelights": ["-o", "n_spheres=2", "-o", "fit_resolution=10", "-o", "n_directions=12",
                      "-o", "cube_resolution=4"],
-    "portals": ["-o", "res=4", "-o", "direct_samples=16", "-o", "n_photons=2000", "-o", "gather_rays=16",
+    "portals": ["-o", "cube_resolution=4", "-o", "direct_samples=16", "-o", "n_photons=2000", "-o", "gather_rays=16",
                 "-o", "order=2", "-o", "photon_k=8", "-o", "view_res=1"],
 }
 
@@ -391,7 +391,7 @@ def test_compare_rows_are_prtlab_compare(scenes, tmp_path, capsys):
                          *TINY_OPTIONS["spherelights"], "--samples", "4", "--seed", "2", "--out", tmp_path)
     assert code == 0, err
     ours = prtlab.shade(prtlab.load_scene(scenes["tiny"]), method="spherelights", progress=False, n_spheres=2,
-                        grid_resolution=10, n_directions=12, cube_resolution=4)
+                        fit_resolution=10, n_directions=12, cube_resolution=4)
     expected = prtlab.compare(ours, ref).to_dict(json_safe=True)["rows"]
     assert json.loads((tmp_path / "compare.json").read_text())["methods"]["spherelights"]["rows"] == expected
 

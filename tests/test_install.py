@@ -45,8 +45,8 @@ OPTIONS = {
     "mitsuba": ["--samples", "8"],
     "interreflection": ["-o", "n_radii=4", "-o", "resolution=4", "-o", "degree=7", "-o", "n_lights=16",
                         "-o", "n_basis=4"],
-    "spherelights": ["-o", "n_spheres=2", "-o", "grid_resolution=12"],
-    "portals": ["-o", "res=8", "-o", "direct_samples=32", "-o", "n_photons=4000", "-o", "gather_rays=16",
+    "spherelights": ["-o", "n_spheres=2", "-o", "fit_resolution=12"],
+    "portals": ["-o", "cube_resolution=8", "-o", "direct_samples=32", "-o", "n_photons=4000", "-o", "gather_rays=16",
                 "-o", "order=3"],
 }
 
@@ -220,7 +220,7 @@ def test_render_precomputes_once(installed):
 
 def test_compare_prints_the_table(installed):
     out = _run([installed["prtlab"], "compare", PIPE_SCENE, "--methods", "spherelights", "--reference", "reference",
-                "--samples", "8", "-o", "spherelights.n_spheres=2", "-o", "spherelights.grid_resolution=12",
+                "--samples", "8", "-o", "spherelights.n_spheres=2", "-o", "spherelights.fit_resolution=12",
                 "--out", installed["cwd"] / "compare"], installed["env"], installed["cwd"]).stdout
     assert "rel_rms" in out and "ball" in out and "ground" in out
     assert (installed["cwd"] / "compare" / "compare.json").is_file()

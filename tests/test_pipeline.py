@@ -160,3 +160,71 @@ def test_check_scene_runs_before_compute(scene, monkeypatch):
 def test_only_resumable_methods_take_map_fn(scene):
     with pytest.raises(ValueError, match="method 'toy' cannot distribute its precomputation"):
         Toy.precompute(scene, cache=False, map_fn=map)
+
+
+# ------------------------------------------------------------------ the contract, on the three pipelines
+
+_TINY_OPTIONS = {
+    "interreflection": dict(order=2, n_radii=4, resolution=4, degree=15, n_lights=16, n_basis=4, pca_occluders=False),
+    "spherelights": dict(n_spheres=2, fit_resolution=12, n_directions=12, cube_resolution=4),
+    "portals": dict(cube_resolution=4, direct_samples=16, n_photons=2000, gather_rays=8, order=2, bounces=1),
+}
+
+
+def _tiny_scene_with_a_window(method):
+    """A ball on a plane under a sky with a window object (a portal) beside them; the window box for portals."""
+    from tests.portals.conftest import window_box
+
+    window = window_box(cell=1.0)
+    if method == "portals":
+        return window
+    scene = Scene.from_dict({
+        "objects": [
+            {"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [3, 3]},
+             "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+            {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 1},
+             "transform": {"translate": [0.0, 0.5, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]}},
+        ],
+        "lights": [{"type": "environment", "sky": {"sun_elevation_deg": 30, "height": 16, "width": 32}}],
+    })
+    scene.objects.append(window.object("window"))
+    return scene
+
+
+@pytest.mark.parametrize("method", ["interreflection", "spherelights", "portals"])
+def test_every_pipeline_returns_the_shaded_objects_and_the_common_info_keys(method):
+    import prtlab
+
+    scene = _tiny_scene_with_a_window(method)
+    result = prtlab.shade(scene, method=method, cache=False, progress=False, **_TINY_OPTIONS[method])
+    shaded = sorted(o.name for o in scene.objects if not o.portal)
+    assert sorted(result.total) == sorted(result.direct) == sorted(result.indirect) == shaded
+    assert "window" not in result.total
+    assert result.info["method"] == method and result.info["bounces"] == 1
+    timings = result.info["timings"]
+    assert isinstance(timings, dict) and timings
+    assert all(isinstance(t, float) and t >= 0 for t in timings.values())
+
+
+@pytest.mark.parametrize("method", ["interreflection", "spherelights", "portals"])
+def test_every_entry_point_defaults_to_one_bounce(method):
+    import inspect
+
+    import prtlab
+    from prtlab.api import pipeline_class
+
+    module = __import__(f"prtlab.{method}", fromlist=["shade_scene"])
+    for function in (module.shade_scene, pipeline_class(method).shade_scene, pipeline_class(method).shade,
+                     prtlab.shade):
+        assert inspect.signature(function).parameters["bounces"].default == 1, function
+
+
+@pytest.mark.parametrize("method, old, new", [("portals", "res", "cube_resolution"),
+                                              ("interreflection", "haar_resolution", "cube_resolution"),
+                                              ("spherelights", "grid_resolution", "fit_resolution")])
+def test_a_renamed_option_names_its_new_name(method, old, new):
+    from prtlab.api import pipeline_class
+
+    with pytest.raises(ValueError, match=rf"option '{old}' of method '{method}' is now called '{new}'; "
+                                         rf"pass {new}=\.\.\. instead"):
+        pipeline_class(method).make_options({old: 8})

@@ -97,9 +97,9 @@ def _bounce_gflop(pre, bounces: int) -> float:
         n_k, n_b = pre.seps[o.name].K, pre.bases[o.name].n_basis
         n_s = len(pre.bases[o.name].samples)
         flop += n_k * 3 * (2 * n_b * n_s + 2 * n_b * n_b)  # weights
-        stacked = pre._stack_cache.get(o.name)
+        stacked = pre.reuse.stacked.get(o.name)
         if stacked is not None:
-            v, kp, m = stacked[2].shape
+            v, kp, m = stacked[1].shape
             flop += 2 * v * kp * m * 3 + 2 * v * kp * 3  # Eq. 12, then sum_k' h_k' colour L_k'
     return bounces * flop / 1e9
 
@@ -157,9 +157,9 @@ def _moving(pre):
         return pre.shade(state, bounces=3)
 
     run()
-    before = {k: v[1] for k, v in pre._phi_cache.items()}
+    before = {k: v[1] for k, v in pre.reuse.pair_irradiance.items()}
     run()
-    recomputed = [k for k, v in pre._phi_cache.items() if before.get(k) is not v[1]]
+    recomputed = [k for k, v in pre.reuse.pair_irradiance.items() if before.get(k) is not v[1]]
     return run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3)
 
 

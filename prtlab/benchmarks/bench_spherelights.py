@@ -176,7 +176,7 @@ def precompute_bunny(n_bunny: int = 16, grid_resolution: int = 40, scene=None):
 
     scene = prtlab.load_scene(SCENE) if scene is None else scene
     return SphereLights.precompute(scene, {"n_spheres": {"bunny": n_bunny, "sphere_green": 1, "sphere_orange": 1},
-                                           "grid_resolution": grid_resolution}, cache=False, progress=False)
+                                           "fit_resolution": grid_resolution}, cache=False, progress=False)
 
 
 @case("spherelights.precompute.bunny16")

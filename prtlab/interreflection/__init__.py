@@ -4,7 +4,7 @@ Basis radiance fields of every object on its sample spheres (Sec. 4.3), basis
 irradiance per receiver vertex (Eq. 13), weights by the precomputed ``A^{-1}``
 (Eq. 14), first and multiple bounces (Eq. 12, Sec. 5.3), on the shadow fields
 of :mod:`prtlab.shadowfields` for visibility and direct light.
-``prtlab.shade(scene, method="interreflection", bounces=3)`` runs it.
+``prtlab.shade(scene, method="interreflection", bounces=1)`` runs it.
 """
 
 from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance

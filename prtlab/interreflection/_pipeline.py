@@ -17,92 +17,39 @@ Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
 2. **basis irradiance** (Eq. 13) of every source on every other receiver, with the
    visibility between them (the occluders other than source and receiver);
    a pair is recomputed only when the pose of its source or receiver, or of an
-   occluder whose field reaches the receiver, changed since it was last computed;
+   occluder whose field reaches the receiver, changed since it was last computed
+   (:class:`FrameReuse` holds what frames reuse);
 3. **weights** (Eq. 14) of every object from its ``L_k``;
 4. **bounces** (Eq. 12, Sec. 5.3): ``L_k'^(b) = sum_s Phi^s w^s(b-1)``, radiance
    ``sum_k' h_k' colour_k' L_k'^(b)``, new weights; ``bounces`` times.
 
 ``direct`` of the result is step 1's radiance, ``indirect`` the sum over the bounces.
+With ``threshold > 0`` a pair whose basis irradiance on a plane at the receiver's
+centre, ``I_c`` (:meth:`Interreflection.pair_importance`), is below ``threshold`` is
+skipped (Sec. 5.4; counted in ``info["skipped_pairs"]``).
 
-Sec. 5.4 (skip small contributions): with ``threshold > 0`` a source's basis
-irradiance on a receiver is not computed when the irradiance it gives a plane
-at the receiver's centre facing the source, ``I_c = max_(k',m) |< S_m(x_c), G_k'(w_c) >|``
-(unoccluded, the receiver's first BRDF term), is below ``threshold``; the
-skipped pairs are counted in ``info["skipped_pairs"]``.
+Extensions beyond the paper, each an option (how they were measured: ``docs/NOTES.md``):
+``pca_occluders`` (PCA bases trained with the other objects' shadows), ``self_interreflection``,
+``near_field`` (ray-cast basis radiance near a source), ``shadows="haar"`` (all-frequency direct
+shadows and point lights, :func:`prtlab.shadowfields.haar_direct`), ``irradiance="haar"``
+(all-frequency basis irradiance, :func:`prtlab.interreflection.haar_basis_irradiance`); and
+always: Lambertian light clamped at 0 (:meth:`Interreflection._clamp_diffuse`), a flat occluder
+with receiver and source on one side of it left out of their visibility
+(:meth:`Interreflection._plane_separates`). Vertices are shaded at
+:func:`prtlab.geometry.shading_points` (``docs/DECISIONS.md``).
 
-Extensions beyond the paper (each an option, measured on the Fig. 9 bunny on a green floor, one
-bounce, relative RMS of the bunny's indirect light against 256-path Monte Carlo, whose own noise is
-0.098; the paper's pipeline as first implemented: 0.71):
-
-* ``pca_occluders`` (default True): the PCA basis of an object is trained with the shadows the
-  other objects cast on it at their poses in the scene (:func:`_pca_basis`); a floor's basis
-  trained alone cannot hold the bunny's shadow (fit error of the floor's radiance 0.51 -> 0.08).
-  Its shadow rays leave the shading points: from the vertices, a floor's row along a wall (and the
-  wall's row on the floor) lay on the other plane, was dark in every training render and had a
-  basis of exactly 0, so as a source the edge emitted nothing. Diagnosis (format_version 3): a
-  4 x 4 floor and a 4 x 2 wall meeting at a right angle under the room's light, quick options,
-  one bounce against ``prtlab.reference.path_trace`` (256 paths): mean indirect floor 0.855,
-  wall 0.862 of Monte Carlo (edge rows 0.015, the next rows 0.93 / 0.99) with the bug; 1.003 /
-  0.990 after (edge rows 0.70 / 0.85: vertices on another surface, ill-defined). Ruled out on the
-  same scene: ``near_field=0`` (0.93 / 0.94 with the bug, 0.96 / 0.94 after: the interpolated
-  field is slightly darker near the edge, the ray-cast near field is right), N = 16 from 256
-  lights (no change), ``shadows="haar"`` (0.95 / 0.94 after, following its direct light, 0.98 /
-  0.97 of Monte Carlo where SH gives 1.00 / 1.02). This was the "light between the floor and the
-  walls" of the room (20 % too dark before, see ``tests/interreflection/test_pipeline.py``);
-  after it the room's floor / back / left wall indirect was 0.24 / 0.20 / 0.21 relative RMS against
-  Mitsuba (noise 0.10), 10 / 15 / 15 % too dark on average. The rest came from the order-n
-  visibility product: with the floor and both walls alone (no objects; own Monte Carlo, 128 paths)
-  the indirect was 0.96 / 0.92 / 0.91 of Monte Carlo, and 1.00 / 1.00 / 1.00 with the third plane
-  left out of each pair's visibility (exact there: it blocks nothing between the other two); its
-  half-space visibility, truncated to order 4 and multiplied with the source's radiance, leaked
-  onto the source's directions. A flat occluder with receiver and source on one side of its plane
-  is now left out (:meth:`Interreflection._plane_separates`). Room after both (one bounce, Mitsuba
-  256 spp): indirect floor / back / left wall 0.21 / 0.14 / 0.16, mean 1.00 / 0.98 / 0.99; bunny
-  0.17 (was 0.22), box 0.07, teapot 0.21: all within the 0.15 + noise goal;
-* ``self_interreflection`` (default True): light an object bounces onto itself, precomputed
-  (:func:`prtlab.interreflection.self_basis_irradiance`): 14-35 % of the bunny's indirect light;
-* ``near_field`` (default 0.5): receivers close to a source's surface get its basis radiance by
-  ray casting instead of the field's interpolation (:meth:`Interreflection._near_field`);
-  0.54 -> 0.22, at the price of the moving-object frame (0.4 s -> 2.3 s for the bunny);
-* Lambertian light is clamped at 0 (:meth:`Interreflection._clamp_diffuse`): the order-4 SH
-  direct light rings negative below a small light's horizon.
-
-With all four the bunny's indirect error is 0.22 and its total 0.15, set by the SH direct light.
-Vertices are shaded at :func:`prtlab.geometry.shading_points` (``docs/DECISIONS.md``).
-
-Conventions and limits: vertices are shaded on the side of their normal; a
-source emits only from the side of its vertex normals; inter-object
-visibility takes every object other than source and receiver as an occluder
-(also those behind the source); area lights occlude nothing here (they are
-opaque in the references: keep them away from the objects' line of sight to
-each other); point lights need ``shadows="haar"`` (else a clear error). An object that
-encloses a light (a closed room) blocks it everywhere: a shadow field holds one
-visibility per point, not per distance; build rooms from separate walls.
-
-Direct shadows (``shadows``): ``"sh"`` (default, the paper) takes ``L_k = < L_in, P_n(V G_k) >``
-with order-n SH visibility products; ``"haar"`` takes the all-frequency path of
-:func:`prtlab.shadowfields.haar_direct` for step 1 only: per object a sparse Haar occlusion field
-(``haar_resolution``-texel cubemap faces, ``haar_keep`` coefficients per sample point, on the same
-sample spheres) and a Haar self-visibility at its shading points, precomputed and cached with the
-rest; per frame the texel-wise visibility product and the lights as exact texel pieces (area lights
-with partial coverage, point lights as deltas, environments as texel averages). Basis irradiance
-(Eq. 13) keeps the SH visibility. Measured against ``prtlab.reference.direct`` (512 paths) on the
-built-in bunny (1,839 vertices) on a 3 x 3 floor (625 vertices) under the Fig. 9 light (0.6 x 0.6,
-2.5 up), default sample spheres: relative RMS of the direct radiance, bunny 0.013 (Haar) against
-0.207 (SH order 4), floor 0.055 against 0.145; direct step 1.07 s against 0.88 s (2 busy cores).
-
-All-frequency basis irradiance (``irradiance="haar"``, needs ``shadows="haar"``): per object a sparse
-Haar basis radiance field (:func:`prtlab.interreflection.haar_basis_radiance_field`: per sample point
-and ``(k, i)`` the ``haar_radiance_keep`` largest coefficients of a ``haar_resolution`` cubemap,
-float32 values and uint16 indices); per pair the receiver's Haar visibility (self-visibility times
-the occluders' Haar fields) times ``g_k' cos`` per texel, Haar-transformed once and dotted with the
-blended sparse ``S`` (:func:`prtlab.interreflection.haar_basis_irradiance`); near-field receivers
-cast ``S`` as a cubemap at the receiver (:meth:`Interreflection._haar_pair`).
+Conventions and limits: vertices are shaded on the side of their normal; a source emits only
+from the side of its vertex normals; inter-object visibility takes every object other than
+source and receiver as an occluder (also those behind the source); area lights occlude nothing
+here (keep them out of the objects' line of sight to each other); point lights need
+``shadows="haar"``. An object that encloses a light (a closed room) blocks it everywhere: a
+shadow field holds one visibility per point, not per distance; build rooms from separate walls.
 """
 
 from __future__ import annotations
 
 import time
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,38 +87,57 @@ __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_sce
 class InterreflectionOptions:
     """Options of the interreflection pipeline (defaults as in the paper, Sec. 6).
 
-    order : SH order n (4: 16 coefficients).
-    n_basis : PCA basis functions N (16).
-    n_lights : point lights of the PCA training renders (256).
-    K_glossy : separable-BRDF terms of Phong materials (4; Lambert uses 1).
-    n_radii, resolution, r_min, r_max, spacing : sample spheres (16 x 6 x 16 x 16, see
-        :func:`prtlab.shadowfields.sphere_grid`).
-    degree : quadrature degree of the visibility and basis radiance projections (None: 47).
-    threshold : Sec. 5.4 skip threshold for source/receiver pairs (0: compute all).
-    pca_occluders : train each object's PCA basis with the shadows the other objects cast on it
-        in the scene as given (True), or on the object alone as in the paper (False). Objects may
-        still move per frame: the basis then spans the shadows of the precomputed poses (an
-        approximation, as any PCA basis is); with False a moved state shades exactly as a
-        precomputation at the new pose.
-    self_interreflection : include the light an object bounces onto itself (True), or only
-        light from the other objects as in the paper (False).
-    near_field : receiver points whose distance to a source's surface (its nearest vertex) is below
-        ``near_field`` times their distance to the source's centre get that source's basis radiance
-        by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation, when the
-        pair is (re)computed (0: always interpolate, as the paper).
-    shadows : ``"sh"`` (order-n SH visibility, the paper) or ``"haar"`` (all-frequency direct
-        shadows and point lights, :func:`prtlab.shadowfields.haar_direct`) for the direct light.
-    haar_resolution, haar_keep : cubemap texels per face edge (32) and Haar coefficients kept per
-        visibility cubemap (512) of ``shadows="haar"``.
-    area_lights : how ``shadows="sh"`` gets an area light's SH radiance at the vertices: ``"exact"``
-        (:func:`prtlab.shadowfields.area_light_sh`, a quadrature over the light per vertex) or
-        ``"field"`` (the light's source radiance field, Zhou et al. 2005 Sec. 3, built once per light
-        shape on the sample spheres and interpolated: 2-3 % relative error, cheaper when lights move).
-    irradiance : ``"sh"`` (order-n SH basis radiance fields, the paper's low-frequency Eq. 13) or
-        ``"haar"`` (all-frequency: sparse Haar basis radiance cubemaps times the Haar visibility,
-        :func:`prtlab.interreflection.haar_basis_irradiance`; needs ``shadows="haar"``).
-    haar_radiance_keep : Haar coefficients kept per (sample point, k, i) basis radiance cubemap (64) of
-        ``irradiance="haar"``.
+    Attributes
+    ----------
+    order : int
+        SH order n of the transfer, visibility and basis radiance (4: 16 coefficients).
+    n_basis : int
+        PCA basis functions N per object (16).
+    n_lights : int
+        Point lights of the PCA training renders (256).
+    K_glossy : int
+        Separable-BRDF terms of Phong materials (Lambert uses 1).
+    n_radii, resolution : int
+        Sample spheres of the occlusion and basis radiance fields: ``n_radii`` spheres, each a cubemap of
+        ``resolution`` texels per face edge (:func:`prtlab.shadowfields.sphere_grid`).
+    r_min, r_max : float
+        Radii of the innermost and outermost sample spheres, in bounding radii (``r_min <= r_max``).
+    spacing : {"geometric", "uniform"}
+        Spacing of the sample spheres' radii.
+    degree : int or None
+        Quadrature degree of the visibility and basis radiance projections (None: 47).
+    threshold : float
+        Sec. 5.4 skip threshold of source/receiver pairs (0: compute all; a run-time choice).
+    pca_occluders : bool
+        Train each object's PCA basis with the shadows the other objects cast on it in the scene as given
+        (True), or on the object alone as in the paper (False). Objects may still move per frame: the basis
+        then spans the shadows of the precomputed poses (an approximation, as any PCA basis is); with False a
+        moved state shades exactly as a precomputation at the new pose.
+    self_interreflection : bool
+        Include the light an object bounces onto itself (True), or only light from the other objects as in the
+        paper (False).
+    near_field : float
+        Receiver points nearer a source's surface than ``near_field`` times their distance to its centre get
+        its basis radiance by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation
+        (0: always interpolate, as the paper; a run-time choice).
+    shadows : {"sh", "haar"}
+        Direct shadows: order-n SH visibility (the paper) or all-frequency Haar visibility with point lights
+        (:func:`prtlab.shadowfields.haar_direct`).
+    cube_resolution : int
+        Texels per face edge (a power of two) of the Haar visibility and basis radiance cubemaps of
+        ``shadows="haar"`` and ``irradiance="haar"``.
+    haar_keep : int
+        Haar coefficients kept per visibility cubemap of ``shadows="haar"``.
+    area_lights : {"exact", "field"}
+        SH radiance of an area light at the vertices with ``shadows="sh"``: a quadrature over the light per
+        vertex (:func:`prtlab.shadowfields.area_light_sh`), or its source radiance field (Zhou et al. 2005
+        Sec. 3; 2-3 % relative error, cheaper when lights move; a run-time choice).
+    irradiance : {"sh", "haar"}
+        Basis irradiance (Eq. 13): order-n SH basis radiance fields (the paper), or all-frequency sparse Haar
+        basis radiance cubemaps times the Haar visibility (:func:`prtlab.interreflection.haar_basis_irradiance`;
+        needs ``shadows="haar"``).
+    haar_radiance_keep : int
+        Haar coefficients kept per (sample point, k, i) basis radiance cubemap of ``irradiance="haar"``.
     """
 
     order: int = 4
@@ -189,7 +155,7 @@ class InterreflectionOptions:
     self_interreflection: bool = True
     near_field: float = 0.5
     shadows: str = "sh"
-    haar_resolution: int = 32
+    cube_resolution: int = 32
     haar_keep: int = 512
     area_lights: str = "exact"
     irradiance: str = "sh"
@@ -197,7 +163,7 @@ class InterreflectionOptions:
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
-                                 "haar_resolution", "haar_keep", "haar_radiance_keep"))
+                                 "cube_resolution", "haar_keep", "haar_radiance_keep"))
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -216,8 +182,9 @@ class InterreflectionOptions:
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
-        if self.haar_resolution & (self.haar_resolution - 1):
-            raise ValueError(f"option haar_resolution must be a power of two, got {self.haar_resolution}")
+        if self.cube_resolution & (self.cube_resolution - 1):
+            raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
+                             f"{self.cube_resolution}")
 
 
 def _is_flat(mesh) -> bool:
@@ -228,23 +195,21 @@ def _is_flat(mesh) -> bool:
     return bool(s[-1] <= 1e-9 * max(s[0], 1e-300))
 
 
-_SEPARABLE_CACHE: dict = {}
+def _separables(objects, K_glossy: int) -> dict:
+    """``{object name: separable BRDF}`` (K = 1 for Lambert), factorised once per distinct material.
 
-
-def _separable(material, K_glossy: int):
-    """The material's separable BRDF (K = 1 for Lambert), factorised once per material and K.
-
-    The factorisation (an SVD per azimuthal frequency of a 64 x 128 table) took about 1 s per call,
-    twice per object (precomputation and setup): 13 of the 44 s of a quick six-object precomputation.
+    A factorisation (an SVD per azimuthal frequency of a 64 x 128 table) takes 0.1-1 s; objects of one
+    material share it.
     """
-    K = 1 if material.type == "diffuse" else int(K_glossy)
-    key = (repr(sorted(material.to_dict().items())), K)
-    sep = _SEPARABLE_CACHE.get(key)
-    if sep is None:
-        if len(_SEPARABLE_CACHE) >= 64:  # bounded: materials come and go
-            _SEPARABLE_CACHE.clear()
-        sep = _SEPARABLE_CACHE[key] = brdf.separable(brdf.from_material(material), K)
-    return sep
+    by_material: dict = {}
+    out = {}
+    for obj in objects:
+        K = 1 if obj.material.type == "diffuse" else int(K_glossy)
+        key = (repr(sorted(obj.material.to_dict().items())), K)
+        if key not in by_material:
+            by_material[key] = brdf.separable(brdf.from_material(obj.material), K)
+        out[obj.name] = by_material[key]
+    return out
 
 
 def _local_shading_points(mesh) -> np.ndarray:
@@ -263,11 +228,8 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     Without occluders it is :func:`prtlab.pca.fit_pca_basis` (the paper). With them, the
     training renders ``B_eta`` (unit point lights at :func:`prtlab.pca.pca_light_positions`)
     are shadowed by the object *and* the other objects at their poses in the scene, so the
-    basis spans the shadows they cast on it (a floor under a bunny): measured on the Fig. 9
-    floor, the least-squares fit of its true direct radiance by N = 16 functions has a
-    relative RMS of 0.22 (0.56 within 0.6 of the bunny) from the shadowless training and
-    0.094 (0.22) with the bunny's shadow in it. The mean, SVD and sign convention are those
-    of :func:`prtlab.pca.fit_pca_basis`.
+    basis spans the shadows they cast on it (a floor under a bunny; measured in ``docs/NOTES.md``).
+    The mean, SVD and sign convention are those of :func:`prtlab.pca.fit_pca_basis`.
     """
     v = np.asarray(mesh.vertices, float)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
@@ -310,6 +272,42 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     return pca.PCABasis(basis, sv, energy, samples, lights, pca.WeightSolver.from_basis(basis, samples))
 
 
+@dataclass
+class FrameReuse:
+    """What consecutive frames of one :class:`Interreflection` reuse, each entry with the poses it was made at.
+
+    An entry is used again only while the poses (and camera) in its key are those of the new frame; objects that
+    did not move keep their geometry, lookups and pairs, and a pair whose occluders moved is updated only at the
+    receiver points they may block (:meth:`Interreflection.basis_irradiance_step`).
+    """
+
+    #: the last frame's key (poses, camera) and its (geometry, occlusion lookups, direct transfer)
+    frame: tuple | None = None
+    #: object -> (pose and camera, per-object geometry of :meth:`Interreflection._frame_geometry`)
+    geometry: dict = dataclasses.field(default_factory=dict)
+    #: (receiver, occluder) -> (poses, occlusion field looked up at the receiver's points)
+    occlusion: dict = dataclasses.field(default_factory=dict)
+    #: receiver -> (poses, P_n(V G_k), the occluders' geometry)
+    direct_transfer: dict = dataclasses.field(default_factory=dict)
+    #: (receiver, light index) -> (pose and light, SH radiance at the points, transfer, their product)
+    area_light_sh: dict = dataclasses.field(default_factory=dict)
+    #: source radiance fields of the area light shapes seen so far (``area_lights="field"``)
+    source_fields: list = dataclasses.field(default_factory=list)
+    #: (receiver, source) -> (poses of receiver, source and occluders, Phi, the occluders' geometry)
+    pair_irradiance: dict = dataclasses.field(default_factory=dict)
+    #: (receiver, source) -> how many times the pair's Phi was replaced (the stacked irradiance's key)
+    revision: dict = dataclasses.field(default_factory=dict)
+    #: receiver -> (sources and their revisions, [Phi^s_1 | ... | Phi^self])
+    stacked: dict = dataclasses.field(default_factory=dict)
+    #: (source, receiver points in its frame) -> (near points, their ray-cast S)
+    near_field: dict = dataclasses.field(default_factory=dict)
+    #: (plane, receiver, source) -> (poses, whether the plane separates them)
+    plane_separates: dict = dataclasses.field(default_factory=dict)
+    #: source -> k-d tree of its vertices / ray caster of its mesh (object frame, built on first use)
+    vertex_trees: dict = dataclasses.field(default_factory=dict)
+    casters: dict = dataclasses.field(default_factory=dict)
+
+
 class Interreflection(Precomputation):
     """Iwasaki et al. 2007: PRT for dynamic scenes with interreflections (module docstring)."""
 
@@ -317,12 +315,11 @@ class Interreflection(Precomputation):
     format_version = 3
     max_bounces = None
     options_type = InterreflectionOptions
+    renamed_options = {"haar_resolution": "cube_resolution"}
 
     @classmethod
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
-        import dataclasses
-
         run_time = ("threshold", "near_field", "area_lights")  # per-frame options: not part of the precomputed data
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
@@ -380,6 +377,7 @@ class Interreflection(Precomputation):
             from tqdm.auto import tqdm
 
             it = tqdm(objs, desc="interreflection precompute", unit="object")
+        seps = _separables(objs, options.K_glossy)
         data = {}
         for obj in it:
             mesh = obj.mesh
@@ -394,7 +392,7 @@ class Interreflection(Precomputation):
             occluders = [(_to_object(world[o.name], obj.transform), np.asarray(o.mesh.faces))
                          for o in objs if o is not obj] if options.pca_occluders else []
             basis = _pca_basis(mesh, n_basis, options.n_lights, _is_flat(mesh), occluders)
-            sep = _separable(obj.material, options.K_glossy)
+            sep = seps[obj.name]
             field = basis_radiance_field(mesh, basis.basis, sep, oof.grid, options.order, options.degree)
             own = np.zeros((len(points), sep.K, sep.K, basis.n_basis))
             if options.self_interreflection and not _is_flat(mesh):  # a plane sees none of itself
@@ -402,7 +400,7 @@ class Interreflection(Precomputation):
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
                               "pca_samples": basis.samples, "basis_radiance": field, "self_irradiance": own}
             if options.shadows == "haar":
-                haar = {"resolution": options.haar_resolution, "keep": options.haar_keep}
+                haar = {"resolution": options.cube_resolution, "keep": options.haar_keep}
                 data[obj.name]["haar_oof"] = haar_occlusion_field(
                     mesh, n_radii=options.n_radii, grid_resolution=options.resolution, r_min=options.r_min,
                     r_max=options.r_max, spacing=options.spacing, **haar).to_arrays()
@@ -410,7 +408,7 @@ class Interreflection(Precomputation):
                                                                    **haar).to_arrays()
             if options.irradiance == "haar":
                 data[obj.name]["haar_radiance"] = haar_basis_radiance_field(
-                    mesh, basis.basis, sep, oof.grid, options.haar_resolution, options.haar_radiance_keep).to_arrays()
+                    mesh, basis.basis, sep, oof.grid, options.cube_resolution, options.haar_radiance_keep).to_arrays()
         return data
 
     def __init__(self, scene, options, data):
@@ -424,7 +422,7 @@ class Interreflection(Precomputation):
             # the fit's spectrum and training lights are not needed per frame: basis and A^-1 only
             self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
                                               pca.WeightSolver.from_basis(b, samples))
-        self.seps = {o.name: _separable(o.material, options.K_glossy) for o in self.objects}
+        self.seps = _separables(self.objects, options.K_glossy)
         self.local_points = {o.name: _local_shading_points(o.mesh) for o in self.objects}
         self.self_irradiance = {o.name: np.ascontiguousarray(data[o.name]["self_irradiance"], dtype=float)
                                 for o in self.objects}
@@ -435,19 +433,8 @@ class Interreflection(Precomputation):
                           for o in self.objects} if haar else {}
         self.haar_radiance = {o.name: HaarBasisRadianceField.from_arrays(data[o.name]["haar_radiance"])
                               for o in self.objects} if options.irradiance == "haar" else {}
-        self._phi_cache: dict = {}
-        self._trees: dict = {}
-        self._stack_cache: dict = {}
-        self._area_cache: dict = {}
-        self._source_fields: list = []
-        self._geo_cache: dict = {}
-        self._occ_cache: dict = {}
-        self._transfer_cache: dict = {}
-        self._near_cache: dict = {}
-        self._flat: dict = {}
-        self._separates: dict = {}
-        self._casters: dict = {}
-        self._pose_cache = None
+        self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
+        self.reuse = FrameReuse()
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
         """The same precomputation with fewer basis functions and/or SH bands, without recomputing.
@@ -457,8 +444,6 @@ class Interreflection(Precomputation):
         first) are the smaller basis, their weights solved with their own ``A^{-1}``. Used for
         error-versus-N and error-versus-order studies.
         """
-        import dataclasses
-
         n = self.options.n_basis if n_basis is None else check_int(n_basis, "n_basis", 1)
         o = self.options.order if order is None else check_int(order, "order", 1, self.options.order,
                                                                 meaning="at most the precomputed order")
@@ -494,7 +479,7 @@ class Interreflection(Precomputation):
         for o in self.objects:
             T = state.transforms.get(o.name, o.transform)
             key = (tuple(T.matrix().ravel()), tuple(np.asarray(camera.position, float)))
-            cached = self._geo_cache.get(o.name)
+            cached = self.reuse.geometry.get(o.name)
             if cached is not None and cached[0] == key:
                 geo[o.name] = cached[1]
                 continue
@@ -510,7 +495,7 @@ class Interreflection(Precomputation):
                            "g_cos": brdf.project_g_cos(sep, n, order), "h": brdf.project_h(sep, wo, n),
                            "center": T.apply_points(grid.center), "radius": grid.radius * float(T.scale),
                            "reach": grid.radii[-1] * float(T.scale)}
-            self._geo_cache[o.name] = (key, geo[o.name])
+            self.reuse.geometry[o.name] = (key, geo[o.name])
         return geo
 
     def _occlusion(self, geo):
@@ -522,10 +507,10 @@ class Interreflection(Precomputation):
                 if o.name == r.name:
                     continue
                 key = (geo[r.name]["pose"], geo[o.name]["pose"])
-                cached = self._occ_cache.get((r.name, o.name))
+                cached = self.reuse.occlusion.get((r.name, o.name))
                 if cached is None or cached[0] != key:
                     cached = (key, self.fields[o.name].lookup(geo[r.name]["x"], geo[o.name]["T"]))
-                    self._occ_cache[(r.name, o.name)] = cached
+                    self.reuse.occlusion[(r.name, o.name)] = cached
                 occ[r.name][o.name] = cached[1]
         return occ
 
@@ -590,7 +575,7 @@ class Interreflection(Precomputation):
             others = [o.name for o in self.objects if o.name != r.name and self._reaches(geo, o, r)]
             key = (g["pose"], tuple((o, geo[o]["pose"]) for o in others))
             now = {o: geo[o] for o in others}
-            cached = self._transfer_cache.get(r.name)
+            cached = self.reuse.direct_transfer.get(r.name)
             if cached is None or cached[0] != key:
                 idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
                 if cached is None or cached[0][0] != g["pose"]:
@@ -604,7 +589,7 @@ class Interreflection(Precomputation):
                 else:
                     value = cached[1].copy()
                     value[rows] = self._transfer(visibility, g["g_cos"][rows])
-                cached = self._transfer_cache[r.name] = (key, value, now)
+                cached = self.reuse.direct_transfer[r.name] = (key, value, now)
             transfer[r.name] = cached[1]
         return transfer
 
@@ -629,11 +614,11 @@ class Interreflection(Precomputation):
                 # the transfer while the transfer does too
                 key = (g["pose"], *(np.asarray(getattr(light, f), float).tobytes()
                                     for f in ("center", "u", "v", "radiance")))
-                cached = self._area_cache.get((r.name, i))
+                cached = self.reuse.area_light_sh.get((r.name, i))
                 if cached is None or cached[0] != key:
                     cached = (key, self._area_light_sh(light, g["x"]), None, None)
                 if cached[2] is not t:
-                    cached = self._area_cache[(r.name, i)] = (key, cached[1], t,
+                    cached = self.reuse.area_light_sh[(r.name, i)] = (key, cached[1], t,
                                                               np.einsum("vki,vic->vkc", t, cached[1]))
                 lk += cached[3]
             lk = self._clamp_diffuse(r, lk)
@@ -646,11 +631,11 @@ class Interreflection(Precomputation):
         o = self.options
         if o.area_lights == "exact":
             return area_light_sh(light, points, o.order)
-        field = next((f for f in self._source_fields if f.fits(light)), None)
+        field = next((f for f in self.reuse.source_fields if f.fits(light)), None)
         if field is None:
             field = source_radiance_field(light, o.order, n_radii=o.n_radii, resolution=o.resolution, r_min=o.r_min,
                                           r_max=o.r_max, spacing=o.spacing)
-            self._source_fields.append(field)
+            self.reuse.source_fields.append(field)
         return field.lookup(light, points)
 
     def direct_step_haar(self, state: FrameState, geo):
@@ -670,10 +655,8 @@ class Interreflection(Precomputation):
         """``max(L, 0)`` for a Lambertian object (K = 1: ``L`` is its irradiance over pi, never negative).
 
         Order-n SH products of a small area light, a clamped cosine and a visibility ring
-        negative where the light is below a vertex's horizon: on the Fig. 9 bunny's
-        downward faces the order-4 direct light is -0.015 (Monte Carlo: +0.004), and that
-        negative light, reflected onto the floor, made the floor's one-bounce light 2.4x too
-        dark. Glossy terms (K > 1) may be negative by construction and are left alone.
+        negative where the light is below a vertex's horizon (``docs/NOTES.md``). Glossy terms
+        (K > 1) may be negative by construction and are left alone.
         """
         return np.maximum(light, 0.0) if self.seps[obj.name].K == 1 else light
 
@@ -681,13 +664,13 @@ class Interreflection(Precomputation):
         return self.options.threshold > 0 and self.pair_importance(geo, r, s) < self.options.threshold
 
     def pair_importance(self, geo, r, s) -> float:
-        """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on receiver ``r``.
+        """Sec. 5.4: ``I_c = max_(k',k,i) |int S_(k,i)(x_c^r, w) g_k'(w) (w_c . w) dw|`` of source ``s`` on
+        receiver ``r``.
 
         The basis irradiance of a plane at the receiver's bounding-sphere centre facing the
         source's centre (unoccluded), from the interpolated basis radiance field. A receiver vertex ``x`` at
-        most ``R_r`` from that centre,
-        with the source ``d`` away, sees the source's radiance over a solid angle at most
-        ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
+        most ``R_r`` from that centre, with the source ``d`` away, sees the source's radiance over a solid
+        angle at most ``(d / (d - R_r))^2`` times larger, so ``|Phi_(k',k,i)(x)| <= I_c (d / (d - R_r))^2``
         (visibility only lowers it), up to the SH truncation of both sides.
         """
         gs, gr = geo[s.name], geo[r.name]
@@ -716,21 +699,19 @@ class Interreflection(Precomputation):
         ``x`` are all the receiver's points; ``transfer`` and ``phi`` hold the rows ``rows`` of them.
 
         Near a large source (a floor under an object) the basis radiance changes faster than the
-        sample spheres resolve: measured on the Fig. 9 bunny, the interpolated field's basis
-        irradiance is 0.58 relative RMS (+24 % on average) from the one with ``S`` cast at the
-        vertex, which itself is within 0.035 of a dense ray-cast gather of the same PCA radiance.
+        sample spheres resolve (``docs/NOTES.md``).
         """
         if self.options.near_field <= 0 or len(rows) == 0:
             return 0
         grid = self.fields[s.name].grid
         local = _to_object(x, T)
         key = (s.name, local.shape, local.tobytes())  # the receiver points relative to the source
-        cached = self._near_cache.get(key)
+        cached = self.reuse.near_field.get(key)
         if cached is None:
             cached = self._near_cast(s, local, grid)
-            if len(self._near_cache) >= 4 * len(self.objects) ** 2:  # bounded: poses come and go
-                self._near_cache.clear()
-            self._near_cache[key] = cached  # an occluder that moves later changes the transfer, not S
+            if len(self.reuse.near_field) >= 4 * len(self.objects) ** 2:  # bounded: poses come and go
+                self.reuse.near_field.clear()
+            self.reuse.near_field[key] = cached  # an occluder that moves later changes the transfer, not S
         near, S = cached
         at = np.flatnonzero(np.isin(rows, near))  # positions in rows of the near points among them
         if len(at) == 0:
@@ -750,11 +731,11 @@ class Interreflection(Precomputation):
         candidates = np.flatnonzero(dist - grid.radius < self.options.near_field * dist)
         if len(candidates) == 0:
             return candidates
-        if s.name not in self._trees:
+        if s.name not in self.reuse.vertex_trees:
             from scipy.spatial import cKDTree
 
-            self._trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
-        gap, _ = self._trees[s.name].query(local[candidates])  # distance to the source's nearest vertex
+            self.reuse.vertex_trees[s.name] = cKDTree(np.asarray(s.mesh.vertices, float))
+        gap, _ = self.reuse.vertex_trees[s.name].query(local[candidates])  # distance to the source's nearest vertex
         return candidates[gap < self.options.near_field * dist[candidates]]
 
     def _near_cast(self, s, local, grid):
@@ -762,11 +743,11 @@ class Interreflection(Precomputation):
         near = self._near_points(s, local, grid)
         S = np.zeros((0,))
         if len(near):
-            if s.name not in self._casters:
-                self._casters[s.name] = RayCaster([(np.asarray(s.mesh.vertices, float), np.asarray(s.mesh.faces))])
+            if s.name not in self.reuse.casters:
+                self.reuse.casters[s.name] = RayCaster([(np.asarray(s.mesh.vertices, float), np.asarray(s.mesh.faces))])
             S = basis_radiance_at(s.mesh, self.bases[s.name].basis, self.seps[s.name], local[near],
                                   self.options.order, self.options.degree,
-                                  caster=self._casters[s.name])  # (v, K, N, n2), object frame
+                                  caster=self.reuse.casters[s.name])  # (v, K, N, n2), object frame
         return near, S
 
     def _plane_separates(self, geo, o, r, s) -> bool:
@@ -774,18 +755,14 @@ class Interreflection(Precomputation):
 
         Then ``o`` blocks no segment from ``r`` to ``s`` and is left out of their visibility: its
         order-n SH visibility (a half-space at a receiver near it) would only leak onto the
-        source's directions (a third wall darkened the bounce between floor and wall by 8-14 %,
-        ``tests/interreflection/test_pipeline.py::test_a_third_plane_darkens_the_bounce_by_its_order_n_visibility``).
+        source's directions (``docs/NOTES.md``).
         """
-        flat = self._flat.get(o.name)
-        if flat is None:
-            flat = self._flat[o.name] = _is_flat(o.mesh)
-        if not flat:
+        if not self.flat[o.name]:
             return False
         poses = (geo[o.name]["pose"], geo[r.name]["pose"], geo[s.name]["pose"])
-        cached = self._separates.get((o.name, r.name, s.name))
+        cached = self.reuse.plane_separates.get((o.name, r.name, s.name))
         if cached is None or cached[0] != poses:
-            cached = self._separates[(o.name, r.name, s.name)] = (poses, self._one_side(geo, o, r, s))
+            cached = self.reuse.plane_separates[(o.name, r.name, s.name)] = (poses, self._one_side(geo, o, r, s))
         return cached[1]
 
     def _one_side(self, geo, o, r, s) -> bool:
@@ -805,7 +782,7 @@ class Interreflection(Precomputation):
         times ``g_k' cos`` per texel; receivers near the source (as :meth:`_near_field`) take ``S`` cast at
         the receiver (:func:`near_basis_irradiance`, not cached).
         """
-        g, T, res = geo[r.name], geo[s.name]["T"], self.options.haar_resolution
+        g, T, res = geo[r.name], geo[s.name]["T"], self.options.cube_resolution
         field, own = self.haar_radiance[s.name], self.haar_self[r.name]
         occluders = [(self.haar_fields[o], geo[o]["T"]) for o in others]
         local = _to_object(g["x"], T)
@@ -896,7 +873,7 @@ class Interreflection(Precomputation):
                 blockers = self._blockers(geo, r, s)
                 depends = (g["pose"], geo[s.name]["pose"], tuple((o, geo[o]["pose"]) for o in blockers))
                 now = {o: geo[o] for o in blockers}
-                cached = self._phi_cache.get(key)
+                cached = self.reuse.pair_irradiance.get(key)
                 rows = None
                 if cached is not None and cached[0][:2] == depends[:2]:
                     if cached[0] == depends:
@@ -924,7 +901,9 @@ class Interreflection(Precomputation):
                     value = cached[1]
                     counts["reused_pairs"] += 1
                 phi[r.name][s.name] = value
-                self._phi_cache[key] = (depends, value, now)
+                if cached is None or value is not cached[1]:  # a new value: the stacked irradiance is rebuilt
+                    self.reuse.revision[key] = self.reuse.revision.get(key, 0) + 1
+                self.reuse.pair_irradiance[key] = (depends, value, now)
         return phi, counts
 
     def _stacked_irradiance(self, r, phi_r):
@@ -938,15 +917,15 @@ class Interreflection(Precomputation):
         if self.options.self_interreflection:
             sources.append(r.name)
             arrays.append(self.self_irradiance[r.name])
-        key = tuple(id(a) for a in arrays)
-        cached = self._stack_cache.get(r.name)
+        key = tuple((s, self.reuse.revision.get((r.name, s), 0)) for s in sources)
+        cached = self.reuse.stacked.get(r.name)
         if cached is not None and cached[0] == key:
-            return cached[2], sources
+            return cached[1], sources
         if not arrays:
             return None, sources
         n_v, n_kp = arrays[0].shape[:2]
         stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2))
-        self._stack_cache[r.name] = (key, arrays, stacked)  # the arrays are kept so that their ids stay theirs
+        self.reuse.stacked[r.name] = (key, stacked)
         return stacked, sources
 
     def _pose_key(self, state: FrameState):
@@ -991,13 +970,13 @@ class Interreflection(Precomputation):
         times = {}
         t0 = time.perf_counter()
         key = self._pose_key(state)
-        if self._pose_cache is not None and self._pose_cache[0] == key:
-            geo, occ, transfer = self._pose_cache[1]
+        if self.reuse.frame is not None and self.reuse.frame[0] == key:
+            geo, occ, transfer = self.reuse.frame[1]
         else:  # poses or camera changed: look the fields up again
             geo = self._frame_geometry(state)
             occ = self._occlusion(geo)
             transfer = self.direct_transfer(geo, occ)
-            self._pose_cache = (key, (geo, occ, transfer))
+            self.reuse.frame = (key, (geo, occ, transfer))
         light_k, direct = self.direct_step(state, geo, transfer)
         times["direct"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -1011,7 +990,7 @@ class Interreflection(Precomputation):
             result.direct[o.name] = direct[o.name]
             result.indirect[o.name] = indirect[o.name]
             result.total[o.name] = direct[o.name] + indirect[o.name]
-        result.info = {"method": self.method, "bounces": bounces, "seconds": times, **counts}
+        result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts}
         return result
 
 
@@ -1020,7 +999,7 @@ def precompute(scene, options=None, cache=True, progress: bool = True) -> Interr
     return Interreflection.precompute(scene, options, cache=cache, progress=progress)
 
 
-def shade_scene(scene, bounces: int = 3, cache=True, progress: bool = True, **options) -> ShadeResult:
+def shade_scene(scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="interreflection", bounces=..., **options)``.
 
     Options are the fields of :class:`InterreflectionOptions`; ``cache`` as in

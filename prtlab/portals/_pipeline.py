@@ -12,59 +12,29 @@ part ``kd`` as above; the specular direct part as one 8-bit cubemap per
 discretised outgoing direction (the texel centres of a ``view_res`` cubemap),
 blended bilinearly toward the camera at run time
 (:func:`prtlab.portals.view_interpolation`); the specular indirect part as an
-SH->SH transfer matrix from the same final-gather rays (matrix-vector product,
-then evaluation at the view direction, Eq. 6). Approximation: photons and
-photons reflect off glossy objects by their Phong lobe, and the radiance estimate at
-a glossy vertex has a specular part (an SH->SH exitance response over the
-outgoing direction at the light's SH order, :func:`radiance_estimate`), which
-gather rays reaching it read toward the gathering point. (Before, photons and
-estimates treated every surface as Lambertian with its ``kd``: the Fig. 11
-bunny's indirect light was 9.9% low; of that about 4% was its own specular
-light reflected onto itself, 1% its specular light reflected via the walls,
-the rest the order-4 SH truncation of the shell light.)
+SH->SH transfer matrix from the same final-gather rays (Eq. 6). Photons reflect
+off glossy objects by their Phong lobe, and the radiance estimate at a glossy
+vertex has a specular part (:func:`radiance_estimate`) that gather rays read
+toward the gathering point.
 
-The interior is static: photons, gather rays and shadow rays are traced
-against every object where the scene puts it, so every object's transform
-(dynamic or not) is in the cache key, and ``shade(state)`` refuses a state in
-which an object moved (re-precompute at the new pose, e.g. on
-``scene.at_frame(i, n)``). The camera may move (glossy view directions are
-taken per frame); the light is one environment seen through the portals.
-Each portal faces the interior whatever its winding (:func:`find_portals`).
-
-Bounces: the indirect transfer is stored per bounce (photon depth), so
-``shade(bounces=b)`` works for any ``b <=`` the precomputed ``bounces`` option.
-Distant environments or user-given shell cubemaps (:meth:`Portals.shade_shells`).
-A dynamic exterior: pass per-frame shells
-from :func:`prtlab.portals.exterior_shell`; portal materials:
-:func:`prtlab.portals.tint`, :func:`prtlab.portals.frosted`.
-
-Accuracy measured on ``data/scenes/box_window_sky.yaml`` (B = 3, 2048 portal
-samples, 2M photons, 1024 gather rays; reference 8192 paths per vertex with
-3.7% relative standard error; vertices on two walls left out): average
-relative difference of the total 3.9%, 3.0% with the reference's noise
-removed at SH order 4 (1.7% at order 8: most of the rest is the SH
-truncation of the sky seen through the window, Section 4.2); signed mean -0.2%.
-
-Glossy, Fig. 11 (``data/scenes/box_window_glossy_bunny_fig11.yaml``, Phong 10
-bunny; B = 2, 512 portal samples, 1M photons, 256 gather rays, view_res 8,
-glossy_order 8; reference 1024 paths per vertex, 10.1% mean relative standard
-error; room interior and bunny vertices off the floor): average relative
-difference of the total 9.1% (goal 2.1% + 10.1%: met), 5.0% with the noise
-removed, signed mean -0.2%; the bunny's indirect part -3.4% (signed; it was
--9.9% with the kd-only photon map, against both the own reference and
-Mitsuba 3); at small sizes (300k photons, 512 gather rays, 800 bunny
-vertices against 1024 reference paths each) the bunny's indirect is -3.3% to
--6.5% over three photon seeds at SH order 4, of which about 4% is the order-4
-truncation of the shell light (a diffuse bunny: -3.5% at order 4, +0.6% at
-order 8), and +0.3% / +3.2% at order 8;
-see ``tests/portals/test_whole_scene.py``.
+The interior is static: every object's transform is in the cache key, and
+``shade(state)`` refuses a state in which an object moved (re-precompute at the
+new pose, e.g. on ``scene.at_frame(i, n)``). The camera may move; the light is
+one environment seen through the portals (or user-given shell cubemaps,
+:meth:`Portals.shade_shells`: a dynamic exterior from
+:func:`prtlab.portals.exterior_shell`, portal materials :func:`prtlab.portals.tint`,
+:func:`prtlab.portals.frosted`). Each portal faces the interior whatever its
+winding (:func:`find_portals`). The indirect transfer is stored per bounce, so
+``shade(bounces=b)`` takes any ``b <=`` the precomputed ``bounces`` option.
+Measured accuracy: ``docs/NOTES.md``.
 
 Examples
 --------
 >>> import prtlab
 >>> from prtlab.portals import Portals
 >>> scene = prtlab.load_scene(prtlab.api.Path(prtlab.__file__).parents[1] / "data/scenes/box_window_sky.yaml")
->>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8, "res": 8},
+>>> pre = Portals.precompute(scene, {"direct_samples": 16, "n_photons": 5000, "gather_rays": 8,
+...                                  "cube_resolution": 8},
 ...                          cache=False, progress=False)
 >>> pre.shade(bounces=1).total["room"].shape
 (2058, 3)
@@ -73,13 +43,13 @@ Examples
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from prtlab._validate import check_bool, check_choice
-from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
@@ -97,25 +67,38 @@ __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 class PortalsOptions:
     """Options of the portals precomputation (the paper's values in brackets).
 
-    res : cubemap face resolution of the direct transfer [32].
-    direct_samples : portal points per vertex [4096].
-    n_photons : photons emitted per portal, shared by all SH bases [2M per basis].
-    gather_rays : final-gather rays per vertex [4096].
-    order : SH order of the indirect transfer [4].
-    photon_k : photons per radiance estimate.
-    bounces : indirect bounces stored [9].
-    direct_basis : "auto" (pulse or Haar, whichever is smaller per vertex), "pulse" or "haar".
-    merge_portals : one portal (and shell) for all portal objects (Section 3.1: windows of one material under a
-        distant environment), instead of one per portal object.
-    view_res : glossy vertices: face resolution of the cubemap of discretised outgoing directions ``w_o`` (one
-        direct transfer cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
-    glossy_order : SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``);
-        0: ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects
-        (exponent 10: the order-4 lobe peaks at half its height, :func:`prtlab.portals.phong_lobe_zh`).
-    seed : random seed.
+    Attributes
+    ----------
+    cube_resolution : int
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32].
+    direct_samples : int
+        Portal points per vertex of the direct transfer [4096].
+    n_photons : int
+        Photons emitted per portal, shared by all SH bases [2M per basis].
+    gather_rays : int
+        Final-gather rays per vertex [4096].
+    order : int
+        SH order of the indirect transfer [4].
+    photon_k : int
+        Photons per radiance estimate.
+    bounces : int
+        Indirect bounces stored (photon depth) [9]; shading takes any ``bounces`` up to it.
+    direct_basis : {"auto", "pulse", "haar"}
+        Basis of the 8-bit direct transfer: pulse or Haar, or whichever is smaller per vertex ("auto").
+    merge_portals : bool
+        One portal (and shell) for all portal objects (Section 3.1: windows of one material under a distant
+        environment), instead of one per portal object.
+    view_res : int
+        Glossy vertices: face resolution of the cubemap of discretised outgoing directions (one direct transfer
+        cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
+    glossy_order : int
+        SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``); 0:
+        ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects.
+    seed : int
+        Random seed of the photons and of the direct and gather samples.
     """
 
-    res: int = 32
+    cube_resolution: int = 32
     direct_samples: int = 1024
     n_photons: int = 200_000
     gather_rays: int = 256
@@ -129,10 +112,12 @@ class PortalsOptions:
     seed: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("res", "direct_samples", "n_photons", "gather_rays", "order", "photon_k", "view_res"))
+        check_int_options(self, ("cube_resolution", "direct_samples", "n_photons", "gather_rays", "order", "photon_k",
+                                 "view_res"))
         check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
-        if self.res & (self.res - 1):
-            raise ValueError(f"option res must be a power of two (Haar on the faces), got {self.res}")
+        if self.cube_resolution & (self.cube_resolution - 1):
+            raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
+                             f"{self.cube_resolution}")
         check_bool(self.merge_portals, "option merge_portals")
         check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
 
@@ -143,11 +128,6 @@ def n_photons_bytes(n_photons: int, bounces: int, n_coeffs: int) -> float:
     3-vectors and a depth (twice, while the map is assembled), a one-hot over the depths and ``n_coeffs`` SH
     values."""
     return float(n_photons) * bounces * (32 + bounces + n_coeffs) * 8.0
-
-
-def _concatenate_chunks(chunks: list[dict]) -> dict:
-    """Chunk dicts ``{portal: {name: array}}`` concatenated along axis 0 (as the cache assembles them)."""
-    return {p: {name: np.concatenate([c[p][name] for c in chunks]) for name in chunks[0][p]} for p in chunks[0]}
 
 
 def _shaded(scene: Scene):
@@ -162,6 +142,158 @@ def _is_glossy(obj) -> bool:
 _GLOSSY_BATCH = 16
 
 
+@dataclass
+class _Interior:
+    """The shaded vertices of a scene (its non-portal objects, concatenated in scene order, world space)
+    and their materials: what the photons, the direct transfer and the final gather read."""
+
+    points: np.ndarray  # (V, 3) shading points
+    normals: np.ndarray  # (V, 3)
+    albedo: np.ndarray  # (V, 3) Lambertian albedo
+    glossy: np.ndarray  # (V,) bool: Phong with ks > 0
+    ks: np.ndarray  # (V, 3), 0 off the glossy vertices
+    exponent: np.ndarray  # (V,), 0 off the glossy vertices
+    object_albedo: np.ndarray  # (O, 3) per object, for the photons
+    object_ks: np.ndarray  # (O, 3)
+    object_exponent: np.ndarray  # (O,)
+    offsets: np.ndarray  # (O + 1,) first vertex of each object
+
+    @classmethod
+    def of(cls, objs) -> "_Interior":
+        glossy = [_is_glossy(o) for o in objs]
+        ks = [np.asarray(o.material.ks, float) if g else np.zeros(3) for o, g in zip(objs, glossy)]
+        exponent = [float(o.material.exponent) if g else 0.0 for o, g in zip(objs, glossy)]
+        counts = [o.n_vertices for o in objs]
+        return cls(
+            points=np.concatenate([o.world_shading_points() for o in objs]),
+            normals=np.concatenate([o.world_normals() for o in objs]),
+            albedo=np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs]),
+            glossy=np.repeat(np.array(glossy, dtype=bool), counts),
+            ks=np.repeat(np.array(ks, dtype=np.float64).reshape(-1, 3), counts, axis=0),
+            exponent=np.repeat(np.array(exponent, dtype=np.float64), counts),
+            object_albedo=np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3),
+            object_ks=np.array(ks, dtype=np.float64).reshape(-1, 3),
+            object_exponent=np.array(exponent, dtype=np.float64),
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        )
+
+    @property
+    def glossy_row(self) -> np.ndarray:
+        """(V,) the row of each vertex among the glossy ones (-1 off them)."""
+        row = np.full(len(self.glossy), -1, dtype=np.int64)
+        row[self.glossy] = np.arange(int(self.glossy.sum()))
+        return row
+
+
+def _photon_estimates(caster, interior: _Interior, portal, k: int, options: PortalsOptions) -> dict:
+    """Section 4.1.1 steps 1a-1b for portal ``k``: photons from the portal, then the per-bounce SH radiance
+    estimate at every vertex (``exitance``) and the specular SH->SH response at the glossy ones."""
+    if options.bounces == 0:
+        return {"exitance": None, "glossy_exitance": None, "seconds": np.array(0.0),
+                "n_photons_stored": np.array(0)}
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([options.seed, k, 1])
+    photons = trace_photons(caster, interior.object_albedo, portal, options.n_photons, options.bounces, rng,
+                            ks=interior.object_ks, exponent=interior.object_exponent)
+    g = np.nonzero(interior.glossy)[0]
+    exitance, glossy_exitance = radiance_estimate(
+        photons, interior.points, interior.normals, interior.albedo, options.order, options.photon_k,
+        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order))
+    return {"exitance": exitance, "glossy_exitance": glossy_exitance,
+            "seconds": np.array(time.perf_counter() - t0), "n_photons_stored": np.array(len(photons))}
+
+
+def _direct_part(caster, interior: _Interior, rows: slice, portal, options: PortalsOptions, rng) -> dict:
+    """Section 4.1.2 for the vertices ``rows``: the 8-bit direct transfer cubemaps, and for the glossy ones one
+    cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
+    res, basis = options.cube_resolution, options.direct_basis
+    dense = direct_transfer(caster, interior.points[rows], interior.normals[rows], portal, options.direct_samples,
+                            res, rng)
+    sparse = encode_transfer(dense, basis)
+    entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
+             "scale": sparse.scale, "basis": sparse.basis}
+    g = np.nonzero(interior.glossy[rows])[0] + rows.start
+    view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
+    parts = [encode_transfer(np.zeros((0, 6, res, res)), basis)]
+    for b0 in range(0, len(g), _GLOSSY_BATCH):
+        gb = g[b0 : b0 + _GLOSSY_BATCH]
+        spec = np.empty((len(gb), len(view_dirs), 6, res, res))
+        for e in np.unique(interior.exponent[gb]):
+            m = interior.exponent[gb] == e
+            spec[m] = glossy_direct_transfer(caster, interior.points[gb[m]], interior.normals[gb[m]], portal,
+                                             view_dirs, float(e), options.direct_samples, res, rng)
+        parts.append(encode_transfer(spec.reshape(-1, 6, res, res), basis))
+    entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
+    for name in ("indices", "codes", "scale", "basis"):
+        entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
+    return entry
+
+
+def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng) -> dict:
+    """Section 4.1.1 step 2 for the vertices ``rows``: the per-bounce SH transfer vectors by final gathering
+    (``indirect``, (v, bounces, n*n, 3)) and the glossy vertices' SH->SH matrices (``glossy_matrix``)."""
+    n_c = options.order * options.order
+    g = np.nonzero(interior.glossy[rows])[0] + rows.start
+    diffuse = np.nonzero(~interior.glossy[rows])[0] + rows.start
+    indirect = np.zeros((rows.stop - rows.start, options.bounces, n_c, 3))
+    gather = dict(glossy_exitance=(interior.glossy_row, estimate["glossy_exitance"]))
+    if len(diffuse):
+        indirect[diffuse - rows.start] = final_gather(
+            caster, interior.points[diffuse], interior.normals[diffuse], interior.albedo[diffuse],
+            estimate["exitance"], interior.offsets, interior.normals, options.gather_rays, rng, **gather)
+    order_out = options.glossy_order or options.order
+    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
+    if len(g):
+        indirect[g - rows.start], matrix = final_gather(
+            caster, interior.points[g], interior.normals[g], interior.albedo[g], estimate["exitance"],
+            interior.offsets, interior.normals, options.gather_rays, rng,
+            glossy=(interior.ks[g], interior.exponent[g], order_out), **gather)
+    return {"indirect": indirect.astype(np.float32), "glossy_matrix": matrix.astype(np.float32)}
+
+
+def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: PortalsOptions, size: int,
+                  i: int) -> dict:
+    """Chunk ``i`` (vertices ``i size .. (i + 1) size``) of every portal: ``{"portal<k>": arrays}``, with the
+    seconds of its direct and indirect parts. One random stream per (portal, chunk), so a chunk's result does
+    not depend on which process runs it."""
+    rows = slice(i * size, min(len(interior.points), (i + 1) * size))
+    out = {}
+    for k, portal in enumerate(portals):
+        rng = np.random.default_rng([options.seed, k, 2, i])
+        t0 = time.perf_counter()
+        entry = _direct_part(caster, interior, rows, portal, options, rng)
+        t1 = time.perf_counter()
+        entry["seconds_direct"] = np.array([t1 - t0])
+        if options.bounces > 0:
+            entry.update(_indirect_part(caster, interior, rows, estimates[k], options, rng))
+        entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
+        out[f"portal{k}"] = entry
+    return out
+
+
+def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions) -> dict:
+    """The stored data: per portal the sparse direct transfer (CSR ``indptr`` from the chunks' counts), the
+    per-bounce indirect transfer, the seconds of each part; and the vertices' materials."""
+    data: dict = {"n_portals": np.array(len(estimates)), "albedo": interior.albedo,
+                  "glossy": interior.glossy.astype(np.uint8), "ks": interior.ks, "exponent": interior.exponent}
+    for k, estimate in enumerate(estimates):
+        c = chunks[f"portal{k}"]
+        entry = {"indptr": np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64), "indices": c["indices"],
+                 "codes": c["codes"], "scale": c["scale"], "basis": c["basis"],
+                 "res": np.array(options.cube_resolution),
+                 "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
+                 "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + float(estimate["seconds"])),
+                 "n_photons_stored": np.array(int(estimate["n_photons_stored"])),
+                 "glossy_indptr": np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)}
+        for name in ("indices", "codes", "scale", "basis"):
+            entry[f"glossy_{name}"] = c[f"glossy_{name}"]
+        if options.bounces > 0:
+            entry["indirect"] = c["indirect"]
+            entry["glossy_matrix"] = c["glossy_matrix"]
+        data[f"portal{k}"] = entry
+    return data
+
+
 class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
@@ -170,6 +302,7 @@ class Portals(Precomputation):
     # 4: photons reflect off glossy objects by their Phong lobe too
     max_bounces = None
     options_type = PortalsOptions
+    renamed_options = {"res": "cube_resolution"}
     resumable = True
     baked_reason = "the portals method precomputes the interior"
 
@@ -228,7 +361,7 @@ class Portals(Precomputation):
         n_p = 1 if options.merge_portals else max(1, sum(1 for o in scene.objects if o.portal))
         b, n2 = options.bounces, options.order**2
         n_out2 = (options.glossy_order or options.order) ** 2
-        texels = 6.0 * options.res**2
+        texels = 6.0 * options.cube_resolution**2
         views = 6.0 * options.view_res**2
         per_vertex_gather = 4.0 * options.gather_rays * b * n2 * 3 * 8
         needs = [
@@ -236,10 +369,11 @@ class Portals(Precomputation):
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
             MemoryNeed("the dense direct transfer cubemaps", min(n_v, cls.chunk_vertices) * texels * 8.0 * 8,
-                       ("res",)),
-            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0, ("res", "view_res")),
+                       ("cube_resolution",)),
+            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0,
+                       ("cube_resolution", "view_res")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
-                       ("view_res", "res")),
+                       ("view_res", "cube_resolution")),
             MemoryNeed("the final-gather rays", 0.0 if b == 0 else min(min(n_v, 512) * per_vertex_gather,
                                                                       max(float(CHUNK_BYTES), per_vertex_gather)),
                        ("gather_rays", "order", "bounces")),
@@ -249,134 +383,27 @@ class Portals(Precomputation):
     @classmethod
     def compute(cls, scene: Scene, options: PortalsOptions, progress: bool, store=None, key=None,
                 map_fn=None) -> dict:
-        objs = _shaded(scene)
+        """Per portal: the photon map's radiance estimates (Section 4.1.1, steps 1a-1b), then per chunk of
+        :attr:`chunk_vertices` vertices the direct transfer (Section 4.1.2) and the final gather (step 2).
+
+        Each portal's estimates and each chunk are resumable cache parts (:meth:`Precomputation.run_part`,
+        :meth:`Precomputation.run_chunks`); ``map_fn`` runs the chunks in parallel.
+        """
         names = [o.name for o in scene.objects if o.portal]
         portals = find_portals(scene, [names] if options.merge_portals and names else None)
         caster = RayCaster(scene)
-        points = np.concatenate([o.world_shading_points() for o in objs])
-        normals = np.concatenate([o.world_normals() for o in objs])
-        albedo = np.concatenate([np.tile(o.material.diffuse_albedo, (o.n_vertices, 1)) for o in objs])
-        glossy = np.concatenate([np.full(o.n_vertices, _is_glossy(o)) for o in objs])
-        ks = np.concatenate([np.tile(o.material.ks if _is_glossy(o) else np.zeros(3), (o.n_vertices, 1))
-                             for o in objs]).astype(np.float64)
-        exponent = np.concatenate([np.full(o.n_vertices, float(o.material.exponent) if _is_glossy(o) else 0.0)
-                                   for o in objs])
-        view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
-        obj_albedo = np.array([o.material.diffuse_albedo for o in objs], dtype=np.float64).reshape(-1, 3)
-        obj_ks = np.array([o.material.ks if _is_glossy(o) else np.zeros(3) for o in objs],
-                          dtype=np.float64).reshape(-1, 3)
-        obj_exponent = np.array([float(o.material.exponent) if _is_glossy(o) else 0.0 for o in objs])
-        offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])]).astype(np.int64)
-        n_vertices = len(points)
-
-        # photons and radiance estimates: one per portal (Section 4.1.1, steps 1a-1b)
-        exitance, glossy_exitance, photon_seconds, n_stored = [], [], [], []
-        glossy_row = np.full(n_vertices, -1, dtype=np.int64)
-        glossy_row[glossy] = np.arange(int(glossy.sum()))
+        interior = _Interior.of(_shaded(scene))
+        estimates = []
         for k, portal in enumerate(portals):
-            def estimate(k=k, portal=portal):
-                t0 = time.perf_counter()
-                rng = np.random.default_rng([options.seed, k, 1])
-                photons = trace_photons(caster, obj_albedo, portal, options.n_photons, options.bounces, rng,
-                                        ks=obj_ks, exponent=obj_exponent)
-                g_all = np.nonzero(glossy)[0]
-                b, spec = radiance_estimate(photons, points, normals, albedo, options.order, options.photon_k,
-                                            depths=options.bounces,
-                                            glossy=(g_all, ks[g_all], exponent[g_all], options.order))
-                return {"exitance": b, "glossy_exitance": spec, "seconds": np.array(time.perf_counter() - t0),
-                        "n_photons_stored": np.array(len(photons))}
-
-            if options.bounces == 0:
-                entry = {"exitance": None, "glossy_exitance": None, "seconds": np.array(0.0),
-                         "n_photons_stored": np.array(0)}
-            elif store is not None:
-                entry = store.get_or_compute(cache_key(key, "exitance", k), estimate, name="portals-photons")
-            else:
-                entry = estimate()
-            exitance.append(entry["exitance"])
-            glossy_exitance.append(entry["glossy_exitance"])
-            photon_seconds.append(float(entry["seconds"]))
-            n_stored.append(int(entry["n_photons_stored"]))
-
-        # per-vertex work in chunks (Section 4.1.2 and 4.1.1 step 2)
+            estimate = functools.partial(_photon_estimates, caster, interior, portal, k, options)
+            estimates.append(estimate() if options.bounces == 0 else  # nothing to store
+                             cls.run_part(store, key, ("exitance", k), "portals-photons", estimate))
         size = cls.chunk_vertices
-        n_chunks = max(1, -(-n_vertices // size))
-
-        def chunk_fn(i):
-            sl = slice(i * size, min(n_vertices, (i + 1) * size))
-            g = np.nonzero(glossy[sl])[0] + sl.start  # glossy vertices of the chunk
-            out = {}
-            for k, portal in enumerate(portals):
-                rng = np.random.default_rng([options.seed, k, 2, i])
-                t0 = time.perf_counter()
-                dense = direct_transfer(caster, points[sl], normals[sl], portal, options.direct_samples,
-                                        options.res, rng)
-                sparse = encode_transfer(dense, options.direct_basis)
-                entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
-                         "scale": sparse.scale, "basis": sparse.basis}
-                # glossy vertices: one 8-bit cubemap per discretised outgoing direction (Section 4.1.2)
-                parts = [encode_transfer(np.zeros((0, 6, options.res, options.res)), options.direct_basis)]
-                for b0 in range(0, len(g), _GLOSSY_BATCH):
-                    gb = g[b0 : b0 + _GLOSSY_BATCH]
-                    spec = np.empty((len(gb), len(view_dirs), 6, options.res, options.res))
-                    for e in np.unique(exponent[gb]):
-                        m = exponent[gb] == e
-                        spec[m] = glossy_direct_transfer(caster, points[gb[m]], normals[gb[m]], portal, view_dirs,
-                                                         float(e), options.direct_samples, options.res, rng)
-                    parts.append(encode_transfer(spec.reshape(-1, 6, options.res, options.res), options.direct_basis))
-                entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
-                for name in ("indices", "codes", "scale", "basis"):
-                    entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
-                t1 = time.perf_counter()
-                entry["seconds_direct"] = np.array([t1 - t0])
-                if options.bounces > 0:
-                    n_c = options.order * options.order
-                    indirect = np.zeros((sl.stop - sl.start, options.bounces, n_c, 3))
-                    diffuse = np.nonzero(~glossy[sl])[0] + sl.start
-                    if len(diffuse):
-                        indirect[diffuse - sl.start] = final_gather(
-                            caster, points[diffuse], normals[diffuse], albedo[diffuse], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy_exitance=(glossy_row, glossy_exitance[k]))
-                    order_out = options.glossy_order or options.order
-                    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
-                    if len(g):
-                        indirect[g - sl.start], matrix = final_gather(
-                            caster, points[g], normals[g], albedo[g], exitance[k], offsets, normals,
-                            options.gather_rays, rng, glossy=(ks[g], exponent[g], order_out),
-                            glossy_exitance=(glossy_row, glossy_exitance[k]))
-                    entry["indirect"] = indirect.astype(np.float32)
-                    entry["glossy_matrix"] = matrix.astype(np.float32)
-                entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
-                out[f"portal{k}"] = entry
-            return out
-
-        if store is not None:
-            chunks = store.get_or_compute_chunks(cache_key(key, "chunks"), n_chunks, chunk_fn,
-                                                 name="portals-chunks", map_fn=map_fn, chunking={"vertices": size})
-        else:
-            from tqdm.auto import tqdm
-
-            chunks = _concatenate_chunks([chunk_fn(i) for i in tqdm(range(n_chunks), desc="portals precompute",
-                                                                    unit="chunk", disable=not progress)])
-        data: dict = {"n_portals": np.array(len(portals)), "albedo": albedo, "glossy": glossy.astype(np.uint8),
-                      "ks": ks, "exponent": exponent}
-        for k in range(len(portals)):
-            c = chunks[f"portal{k}"]
-            indptr = np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64)
-            entry = {"indptr": indptr, "indices": c["indices"], "codes": c["codes"], "scale": c["scale"],
-                     "basis": c["basis"], "res": np.array(options.res),
-                     "seconds_direct": np.array(float(np.sum(c["seconds_direct"]))),
-                     "seconds_indirect": np.array(float(np.sum(c["seconds_indirect"])) + photon_seconds[k]),
-                     "n_photons_stored": np.array(n_stored[k])}
-            glossy_indptr = np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)
-            entry.update({"glossy_indptr": glossy_indptr, "glossy_indices": c["glossy_indices"],
-                          "glossy_codes": c["glossy_codes"], "glossy_scale": c["glossy_scale"],
-                          "glossy_basis": c["glossy_basis"]})
-            if options.bounces > 0:
-                entry["indirect"] = c["indirect"]
-                entry["glossy_matrix"] = c["glossy_matrix"]
-            data[f"portal{k}"] = entry
-        return data
+        n_chunks = max(1, -(-len(interior.points) // size))
+        chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size)
+        chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
+                                chunking={"vertices": size})
+        return _assemble(chunks, estimates, interior, options)
 
     # ------------------------------------------------------------------ run time
 
@@ -446,29 +473,34 @@ class Portals(Precomputation):
             rows, weights = view_interpolation(view, self.options.view_res)
             rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
+        timings = {"direct": 0.0, "indirect": 0.0}
         for k, cube in enumerate(shells):
+            t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
             direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
+            t1 = time.perf_counter()
             if bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
                 if len(g):
                     indirect[g] += glossy_indirect_pass(self.indirect_transfer(k, bounces, glossy=True), c, view,
                                                         method=method)
+            timings["direct"] += t1 - t0
+            timings["indirect"] += time.perf_counter() - t1
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
         for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
             result.direct[o.name] = direct[a:b]
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
-        result.info = {"method": "portals", "bounces": bounces}
+        result.info = {"method": self.method, "bounces": bounces, "timings": timings}
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        cube = shell_light(state.lights[0], self.options.res)
+        cube = shell_light(state.lights[0], self.options.cube_resolution)
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod

@@ -10,7 +10,7 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
-from ._pipeline import SphereLightOptions, SphereLights, light_motions, precompute, shade_scene
+from ._pipeline import SphereLightOptions, SphereLights, WorldLights, light_motions, precompute, shade_scene
 from ._ground import ground_blocked_transfer, ground_rectangles
 from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
                          receiver_clusters, reflection_ratio, select_cut)
@@ -58,6 +58,7 @@ __all__ = [
     # the pipeline (prtlab.shade(scene, method="spherelights"))
     "SphereLightOptions",
     "SphereLights",
+    "WorldLights",
     "light_motions",
     "precompute",
     "shade_scene",

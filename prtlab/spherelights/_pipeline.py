@@ -49,14 +49,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from prtlab import sh
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import geodesic_directions
-from prtlab.pipeline import FrameState, MemoryNeed, Precomputation
+from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
@@ -67,7 +69,7 @@ from ._passes import first_pass, second_pass
 from ._samples import surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
 
-__all__ = ["SphereLightOptions", "SphereLights", "light_motions", "shade_scene"]
+__all__ = ["SphereLightOptions", "SphereLights", "WorldLights", "light_motions", "shade_scene"]
 
 
 @dataclass(frozen=True)
@@ -76,7 +78,7 @@ class SphereLightOptions:
 
     Attributes
     ----------
-    n_spheres : int
+    n_spheres : int or dict
         Spheres per source object (or a ``{"object name": n}`` dict, default 8).
     order : int
         SH order (the paper: 4).
@@ -90,8 +92,8 @@ class SphereLightOptions:
         (see :func:`second_pass`).
     n_directions : int
         Sample directions per light (92).
-    grid_resolution : int
-        Interior grid of the sphere fit.
+    fit_resolution : int
+        Cells per edge of the interior grid of the sphere fit (:func:`fit_spheres`'s ``grid_resolution``).
     cube_resolution : int
         Face resolution of the albedo cubemaps.
     local_lights : sequence of (centre (3,), radius, radiance (3,))
@@ -115,10 +117,7 @@ class SphereLightOptions:
         Receivers of a cluster at which the ratio is fitted: 1 is the paper's Eq. 25 at the cluster centre (the
         centre then gets the flat value exactly); ``k > 1`` adds ``k - 1`` farthest-point receivers and takes the
         least-squares best scaling (the paper's wording for ``t``), which is steadier where the centre sees a
-        node near its horizon. Default 5: on the test scene (2 closed objects of 8 lights, clusters of 16
-        receivers, threshold 0.7) the relative RMS indirect error against the flat pass is 2.9 % without the
-        ratio, 6.4 % with the paper's centre ratio (curved receivers whose centre sees a node at a grazing angle
-        get ratios far off for the rest of the cluster) and 2.2 % with 5 points.
+        node near its horizon (the measurement behind the default: ``docs/NOTES.md``).
     occluding_ground : bool
         An extension, on by default: the scene's grounds (flat, horizontal,
         receiving-only objects) hide the environment from the surface samples of
@@ -134,7 +133,7 @@ class SphereLightOptions:
     blocking: str = "object"
     average: str = "cosine"
     n_directions: int = 92
-    grid_resolution: int = 40
+    fit_resolution: int = 40
     cube_resolution: int = 16
     occluding_ground: bool = True
     local_lights: tuple = ()
@@ -155,7 +154,7 @@ class SphereLightOptions:
         if 10 * f * f + 2 != self.n_directions:
             raise ValueError(f"option n_directions must be the vertex count 10 f^2 + 2 of a geodesic sphere "
                              f"(12, 42, 92, 162, ...), got {self.n_directions!r}")
-        check_int(self.grid_resolution, "option grid_resolution", 4)
+        check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
         check_bool(self.occluding_ground, "option occluding_ground")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
@@ -230,8 +229,18 @@ def _closed_mesh(mesh):
     return merged if merged.is_watertight else None
 
 
-def _is_source(obj) -> bool:
-    return not obj.portal and _closed_mesh(obj.mesh) is not None
+class WorldLights(NamedTuple):
+    """The spherical lights of one frame in world space (S lights, m surface samples each)."""
+
+    centres: np.ndarray  # (S, 3)
+    radii: np.ndarray  # (S,)
+    object_index: np.ndarray  # (S,) int: the source object of each light
+    intersect: np.ndarray  # (S, S) bool: overlapping lights of one object
+    rotations: np.ndarray  # (S, 3, 3): each light's frame (its object's rotation, turned by a deformation)
+    sample_points: np.ndarray  # (S, m, 3)
+    sample_normals: np.ndarray  # (S, m, 3)
+    sample_valid: np.ndarray  # (S, m) bool
+    albedo_sh: np.ndarray  # (S, n*n, 3)
 
 
 #: Options that do not change the precomputed data (left out of the cache key).
@@ -246,6 +255,7 @@ class SphereLights(Precomputation):
     format_version = 2
     max_bounces = 1
     options_type = SphereLightOptions
+    renamed_options = {"grid_resolution": "fit_resolution"}
     supports_deformations = True
 
     @classmethod
@@ -274,8 +284,8 @@ class SphereLights(Precomputation):
         s_total = float(sum(n_s))
         n2 = options.order**2
         needs = [
-            MemoryNeed("the interior grid of the sphere fit", 4.0 * 8 * 3 * options.grid_resolution**3,
-                       ("grid_resolution",)),
+            MemoryNeed("the interior grid of the sphere fit", 4.0 * 8 * 3 * options.fit_resolution**3,
+                       ("fit_resolution",)),
             MemoryNeed("the sphere fit's distances", 2.0 * 8 * n_faces * max(n_s or [0]), ("n_spheres",)),
             MemoryNeed("the surface samples", 10.0 * 8 * s_total * options.n_directions, ("n_directions", "n_spheres")),
             MemoryNeed("the albedo cubemaps", 4.0 * 8 * 3 * max(n_s or [0]) * 6 * options.cube_resolution**2,
@@ -296,12 +306,8 @@ class SphereLights(Precomputation):
 
     @classmethod
     def cache_key_parts(cls, scene, options):
-        # the run-time choices do not change the precomputed data
-        from dataclasses import asdict
-
-        opts = {k: v for k, v in asdict(options).items() if k not in _RUN_TIME}
-        from prtlab.pipeline import scene_geometry_key_parts
-
+        """The run-time choices (``_RUN_TIME``) are left out: they do not change the precomputed data."""
+        opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in _RUN_TIME}
         return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=False), opts]
 
     @classmethod
@@ -314,7 +320,7 @@ class SphereLights(Precomputation):
                 continue
             n = options.n_spheres.get(obj.name, 8) if isinstance(options.n_spheres, dict) else options.n_spheres
             n = min(n, len(mesh.faces))
-            fit = fit_spheres(mesh, n, grid_resolution=options.grid_resolution)
+            fit = fit_spheres(mesh, n, grid_resolution=options.fit_resolution)
             pts, nrm, valid = surface_samples(mesh, fit.centres, fit.radii, dirs)
             albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
                                        options.cube_resolution)
@@ -337,9 +343,8 @@ class SphereLights(Precomputation):
 
     # ------------------------------------------------------------------ per frame
 
-    def world_lights(self, state: FrameState, deformed=None):
-        """World-space lights of a frame: centres (S, 3), radii (S,), object index (S,),
-        intersect (S, S), rotations (S, 3, 3), and the samples (S, m, 3) x 2 with validity (S, m).
+    def world_lights(self, state: FrameState, deformed=None) -> WorldLights:
+        """World-space lights of a frame (:class:`WorldLights`).
         ``deformed``: ``{name: (V, 3)}`` object-space vertex positions; each light of such an object
         (centre, samples and its frame) follows the average rotation and translation of its vertices
         (:func:`light_motions`, Sec. 7.1)."""
@@ -369,9 +374,9 @@ class SphereLights(Precomputation):
         if not parts:
             order = self.options.order
             m = self.options.n_directions
-            return (np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
-                    np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
-                    np.zeros((0, order * order, 3)))
+            return WorldLights(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
+                               np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
+                               np.zeros((0, order * order, 3)))
         s_total = sum(len(p[1]) for p in parts)
         inter = np.zeros((s_total, s_total), dtype=bool)
         i = 0
@@ -379,8 +384,7 @@ class SphereLights(Precomputation):
             s = len(p[1])
             inter[i : i + s, i : i + s] = p[3]
             i += s
-        cat = [inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)]
-        return tuple(cat)
+        return WorldLights(*(inter if j == 3 else np.concatenate([p[j] for p in parts]) for j in range(9)))
 
     def _environment(self, state: FrameState) -> np.ndarray:
         """Environment SH of order ``3n - 2``: the transfer ``P_n(L cos)`` is then exact (see
@@ -418,6 +422,8 @@ class SphereLights(Precomputation):
         return centres, radii, emission
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
+        """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6)."""
+        t_start = time.perf_counter()
         opts = self.options
         deformed = state.deformations
         env = self._environment(state)
@@ -451,6 +457,7 @@ class SphereLights(Precomputation):
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
                                   exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
         emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
+        t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
                                    "blocking": opts.blocking, "average": opts.average})
@@ -481,6 +488,7 @@ class SphereLights(Precomputation):
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
             result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
+        result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)

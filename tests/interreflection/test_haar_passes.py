@@ -346,7 +346,7 @@ def test_errors():
 
 # --------------------------------------------------------------------------- the pipeline option
 
-_TINY = dict(n_radii=6, resolution=4, degree=31, n_lights=64, n_basis=8, haar_resolution=8, haar_keep=128,
+_TINY = dict(n_radii=6, resolution=4, degree=31, n_lights=64, n_basis=8, cube_resolution=8, haar_keep=128,
              haar_radiance_keep=32, shadows="haar")
 
 

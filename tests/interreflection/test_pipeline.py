@@ -176,8 +176,8 @@ def test_errors(pre):
         pre.shade(state, bounces=1)
     with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', got 'wavelet'"):
         InterreflectionOptions(shadows="wavelet")
-    with pytest.raises(ValueError, match="option haar_resolution must be a power of two"):
-        InterreflectionOptions(haar_resolution=12)
+    with pytest.raises(ValueError, match="option cube_resolution must be a power of two"):
+        InterreflectionOptions(cube_resolution=12)
 
 
 def test_module_level_precompute(pre, cache_root):
@@ -425,14 +425,14 @@ def test_relighting_reuses_unchanged_area_lights_and_equals_a_fresh_shade(pre):
     state.lights = [*sc.lights, light]
     ir = Interreflection(sc, pre.options, pre.data)
     ir.shade(state, bounces=1)
-    before = dict(ir._area_cache)
+    before = dict(ir.reuse.area_light_sh)
     state.lights = [type(sc.lights[0])(image=sc.lights[0].image * 0.5), light]
     again = ir.shade(state, bounces=1)
-    assert all(ir._area_cache[k] is before[k] for k in before)  # reused
+    assert all(ir.reuse.area_light_sh[k] is before[k] for k in before)  # reused
     moved = AreaLight(center=np.array([0.0, 2.2, 0.1]), u=light.u, v=light.v, radiance=light.radiance)
     state.lights = [state.lights[0], moved]
     third = ir.shade(state, bounces=1)
-    assert all(ir._area_cache[k] is not before[k] for k in before)  # recomputed
+    assert all(ir.reuse.area_light_sh[k] is not before[k] for k in before)  # recomputed
     for res, lights in ((again, [state.lights[0], light]), (third, state.lights)):
         fresh_state = FrameState.from_scene(sc)
         fresh_state.lights = list(lights)
@@ -504,14 +504,14 @@ def test_moving_an_occluder_reuses_the_near_field_basis_radiance(pre):
     ir = Interreflection(sc, pre.options, data)
     state = FrameState.from_scene(sc)
     ir.shade(state, bounces=1)
-    before = dict(ir._near_cache)
+    before = dict(ir.reuse.near_field)
     assert any(len(near) for near, _ in before.values())
     state.transforms["other"] = Transform(translate=np.array([1.4, 0.7, 0.2]))
     moved = ir.shade(state, bounces=1)
     # the four pairs of "other" are recomputed; between floor and ball only the points it may shadow
     assert moved.info["computed_pairs"] == 4 and moved.info["updated_pairs"] == 2
     assert 0 < moved.info["updated_rows"] < sum(o.n_vertices for o in sc.objects if o.name != "other")
-    kept = [k for k in before if ir._near_cache.get(k) is before[k]]
+    kept = [k for k in before if ir.reuse.near_field.get(k) is before[k]]
     assert any(k[0] == "floor" and len(before[k][0]) for k in kept)  # the ball's near points under the floor
     fresh = Interreflection(sc, pre.options, data).shade(state, bounces=1)
     for name in ("floor", "ball", "other"):
@@ -526,7 +526,7 @@ def test_haar_shadows_light_by_a_point_light_with_a_sharp_shadow():
     0-0.05 just inside; a 16-texel cubemap adds at most half a texel, 0.05 rad)."""
     s = ball_over_floor()
     s.lights = [PointLight(position=np.array([0.4, 2.5, 0.3]), intensity=np.array([4.0, 4.0, 4.0]))]
-    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", haar_resolution=16, haar_keep=256),
+    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", cube_resolution=16, haar_keep=256),
                                      cache=False, progress=False)
     res = pre.shade(bounces=0)
     floor = s.object("floor")
@@ -661,6 +661,6 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
             for name in ("floor", "ball"):
                 err = np.linalg.norm(b.direct[name] - a.direct[name]) / np.linalg.norm(a.direct[name])
                 assert err < bound, (spheres, name, err)
-        assert len(field._source_fields) == 1  # the turned light is a uniform scale of the first
+        assert len(field.reuse.source_fields) == 1  # the turned light is a uniform scale of the first
     with pytest.raises(ValueError, match="option area_lights must be one of 'exact', 'field'"):
         InterreflectionOptions(area_lights="srf")

@@ -20,7 +20,7 @@ from prtlab.scene import Scene
 
 from .conftest import window_box
 
-QUICK = {"res": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32, "order": 3, "bounces": 1}
+QUICK = {"cube_resolution": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32, "order": 3, "bounces": 1}
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +70,7 @@ def test_errors(pre):
     with pytest.raises(ValueError, match="one shell cubemap per portal"):
         pre.shade_shells([])
     with pytest.raises(ValueError, match="power of two"):
-        Portals.make_options({"res": 12})
+        Portals.make_options({"cube_resolution": 12})
     with pytest.raises(ValueError, match="option n_photons"):
         Portals.make_options({"n_photons": 0})
     with pytest.raises(ValueError, match="option direct_basis"):

@@ -23,8 +23,8 @@ from prtlab.spherelights import SphereLights
 from tests.portals.conftest import window_box
 
 #: the smallest portals options that still trace every pass
-TINY_PORTALS = {"res": 4, "direct_samples": 16, "n_photons": 2000, "gather_rays": 8, "order": 2, "bounces": 1}
-TINY_SPHERES = {"n_spheres": 2, "grid_resolution": 12}
+TINY_PORTALS = {"cube_resolution": 4, "direct_samples": 16, "n_photons": 2000, "gather_rays": 8, "order": 2, "bounces": 1}
+TINY_SPHERES = {"n_spheres": 2, "fit_resolution": 12}
 TINY_INTERREFLECTION = dict(order=2, n_radii=4, resolution=4, degree=15, n_lights=16, n_basis=4, pca_occluders=False)
 
 #: a box that blocks the window of :func:`window_box` (wall z = -1.5, window centre x = 0, y = 1.4)
@@ -220,11 +220,11 @@ def _fast(fn):
 
 
 @pytest.mark.parametrize("method, options, named", [
-    ("portals", dict(TINY_PORTALS, order=8, res=64, bounces=40, n_photons=2_000_000, gather_rays=4096),
+    ("portals", dict(TINY_PORTALS, order=8, cube_resolution=64, bounces=40, n_photons=2_000_000, gather_rays=4096),
      r"portals: option (order|gather_rays|n_photons)=\d+ with .* needs ~[\d.,]+ GB for [\d,]+ vertices"),
     ("portals", dict(TINY_PORTALS, bounces=10**6), r"portals: option .*bounces=1000000"),
-    ("portals", dict(TINY_PORTALS, res=2**16), r"portals: option res=65536 .*needs ~[\d.,]+ GB"),
-    ("spherelights", dict(TINY_SPHERES, grid_resolution=100_000), r"spherelights: option grid_resolution=100000 "),
+    ("portals", dict(TINY_PORTALS, cube_resolution=2**16), r"portals: option cube_resolution=65536 .*needs ~[\d.,]+ GB"),
+    ("spherelights", dict(TINY_SPHERES, fit_resolution=100_000), r"spherelights: option fit_resolution=100000 "),
     ("spherelights", dict(TINY_SPHERES, cube_resolution=100_000), r"spherelights: option cube_resolution=100000 "),
     ("interreflection", dict(TINY_INTERREFLECTION, resolution=4096), r"interreflection: option .*resolution=4096"),
     ("interreflection", dict(TINY_INTERREFLECTION, n_lights=10**9), r"interreflection: option n_lights=1000000000 "),
@@ -292,7 +292,7 @@ def test_a_portal_of_either_winding_faces_the_room():
 def test_spherelights_give_no_negative_radiance_beside_spheres_on_a_plane():
     scene = prtlab.load_scene(prtlab.api.Path(prtlab.__file__).parents[1] / "data/scenes/spheres_on_plane_env.yaml")
     scene.objects = scene.objects[:2]  # the plane and the red sphere
-    res = SphereLights.precompute(scene, {"n_spheres": 1, "grid_resolution": 12}, cache=False,
+    res = SphereLights.precompute(scene, {"n_spheres": 1, "fit_resolution": 12}, cache=False,
                                   progress=False).shade(bounces=1)
     for part in ("direct", "indirect", "total"):
         for name, value in getattr(res, part).items():

@@ -54,12 +54,12 @@ def make_case(method: str):
             ],
             "lights": [{"type": "environment", "constant": [1.0, 0.9, 0.8]}],
         })
-        return SphereLights, scene, {"n_spheres": 2, "grid_resolution": 16}
+        return SphereLights, scene, {"n_spheres": 2, "fit_resolution": 16}
     if method == "portals":
         from prtlab.portals import Portals
         from tests.portals.conftest import window_box
 
-        return Portals, window_box(cell=0.5), {"res": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32,
+        return Portals, window_box(cell=0.5), {"cube_resolution": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32,
                                                "order": 3, "bounces": 1}
     raise ValueError(method)
 
@@ -211,7 +211,7 @@ def test_spherelights_without_closed_objects_through_the_cache(tmp_path):
                      "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}}],
         "lights": [{"type": "environment", "constant": [1.0, 1.0, 1.0]}],
     })
-    options = {"n_spheres": 2, "grid_resolution": 16}
+    options = {"n_spheres": 2, "fit_resolution": 16}
     cache = Cache(tmp_path, progress=False)
     fresh = SphereLights.precompute(scene, options, cache=False, progress=False)
     miss = SphereLights.precompute(scene, options, cache=cache, progress=False)

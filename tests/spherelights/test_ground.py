@@ -69,7 +69,7 @@ def test_first_pass_samples_with_the_ground_against_monte_carlo():
     Monte Carlo of the same scene. The sphere's own light is culled at its samples, so E = T_q . e_0 exactly up to
     the ground quadrature (bounded by its refinement)."""
     sc = _scene()
-    pre = SphereLights.precompute(sc, {"n_spheres": 1, "grid_resolution": 16}, cache=False, progress=False)
+    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16}, cache=False, progress=False)
     c, r, so, inter, rot, spts, snrm, sval, albsh = pre.world_lights(FrameState.from_scene(sc))
     sel = np.nonzero(sval[0])[0][::3]
     p, n = spts[0, sel], snrm[0, sel]
@@ -123,7 +123,7 @@ def test_one_sphere_on_an_infinite_ground_against_closed_form():
     quadrature error (bounded by its refinement, times int W_n)."""
     alb = 0.8
     sc = _scene(plane_size=2e6, albedo=alb)
-    pre = SphereLights.precompute(sc, {"n_spheres": 1, "grid_resolution": 16}, cache=False, progress=False)
+    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16}, cache=False, progress=False)
     c, r, so, inter, rot, spts, snrm, sval, albsh = pre.world_lights(FrameState.from_scene(sc))
     rect = ground_rectangles([sc.object("plane")])
     em = first_pass(spts, snrm, sval, c, r, WHITE, voronoi_cell_sums(ORDER), albsh, exp_method="exact", ground=rect)

@@ -76,7 +76,7 @@ def shaded():
     for name, (make, opts) in CASES.items():
         sc = make()
         ref = shade_mitsuba(sc, bounces=1, spp=SPP, seed=0, progress=False)
-        ours = SphereLights.precompute(sc, dict(opts, grid_resolution=40), cache=True, progress=False).shade(bounces=1)
+        ours = SphereLights.precompute(sc, dict(opts, fit_resolution=40), cache=True, progress=False).shade(bounces=1)
         out[name] = (ours, ref)
     return out
 
@@ -106,7 +106,7 @@ def test_indirect_error_falls_with_the_number_of_spheres(shaded):
     errs = []
     for n in (1, 4, 16):
         pre = SphereLights.precompute(sc, {"n_spheres": {"bunny": n, "sphere_green": 1, "sphere_orange": 1},
-                                           "grid_resolution": 40}, cache=True, progress=False)
+                                           "fit_resolution": 40}, cache=True, progress=False)
         errs.append(_rel(pre.shade(bounces=1).indirect["plane"], ref.indirect["plane"]))
     assert shade_mitsuba is not None
     assert errs[2] <= errs[0], errs

@@ -28,7 +28,7 @@ def _scene(constant=(1.0, 0.9, 0.8), lights=None):
 
 @pytest.fixture(scope="module")
 def pre():
-    return SphereLights.precompute(_scene(), {"n_spheres": 2, "grid_resolution": 16}, cache=False, progress=False)
+    return SphereLights.precompute(_scene(), {"n_spheres": 2, "fit_resolution": 16}, cache=False, progress=False)
 
 
 def _moved(pre, f):
@@ -38,7 +38,7 @@ def _moved(pre, f):
 
 def test_shade_through_the_api(tmp_path):
     res = prtlab.shade(_scene(), method="spherelights", bounces=1, cache=False, progress=False,
-                       n_spheres=1, grid_resolution=16)
+                       n_spheres=1, fit_resolution=16)
     for name in ("plane", "ball", "box"):
         assert res.total[name].shape == res.direct[name].shape
         assert np.all(np.isfinite(res.total[name]))
@@ -46,7 +46,7 @@ def test_shade_through_the_api(tmp_path):
     # the spheres light the plane (positive indirect somewhere) and bounces=0 removes it
     assert res.indirect["plane"].max() > 0
     res0 = prtlab.shade(_scene(), method="spherelights", bounces=0, cache=False, progress=False,
-                        n_spheres=1, grid_resolution=16)
+                        n_spheres=1, fit_resolution=16)
     assert np.all(res0.indirect["plane"] == 0)
     np.testing.assert_allclose(res0.direct["plane"], res.direct["plane"])
 
@@ -85,7 +85,7 @@ def test_blocking_and_exp_methods_run(pre):
     for blocking in ("object", "sphere"):
         for exp_method in ("hyb", "ol", "exact"):
             p = SphereLights(pre.scene, SphereLights.make_options(
-                {"n_spheres": 2, "grid_resolution": 16, "blocking": blocking, "exp_method": exp_method}), pre.data)
+                {"n_spheres": 2, "fit_resolution": 16, "blocking": blocking, "exp_method": exp_method}), pre.data)
             res = p.shade(bounces=1)
             assert np.all(np.isfinite(res.total["plane"]))
 
@@ -106,7 +106,7 @@ def test_errors(pre):
 
 
 def test_objects_with_different_sphere_counts():
-    pre = SphereLights.precompute(_scene(), {"n_spheres": {"ball": 1, "box": 3}, "grid_resolution": 12},
+    pre = SphereLights.precompute(_scene(), {"n_spheres": {"ball": 1, "box": 3}, "fit_resolution": 12},
                                   cache=False, progress=False)
     centres, radii, sl_object, inter, *_ = pre.world_lights(FrameState.from_scene(pre.scene))
     assert radii.shape == (4,) and inter.shape == (4, 4)
@@ -120,7 +120,7 @@ def test_occluding_ground_hides_the_environment_from_the_first_pass(pre):
     rect = ground_rectangles([pre.scene.object("plane")])
     np.testing.assert_allclose(rect, [[0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0]], atol=1e-12)  # 4 x 4 plane at y = 0
     assert ground_rectangles([pre.scene.object("ball")]).shape == (0, 7)  # not flat: no ground
-    off = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "grid_resolution": 16,
+    off = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16,
                                                              "occluding_ground": False}), pre.data)
     a, b = pre.shade(bounces=1), off.shade(bounces=1)
     np.testing.assert_allclose(a.direct["plane"], b.direct["plane"])
@@ -185,7 +185,7 @@ def test_local_light_behind_a_blocker_against_monte_carlo(rng):
     ball = {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2},
             "transform": {"translate": [0.0, 0.7, 0.0]}, "material": {"type": "diffuse", "albedo": [0.0, 0.0, 0.0]}}
     centre, radius, L = np.array([0.9, 1.7, 0.0]), 0.4, np.array([5.0, 4.0, 3.0])
-    pre = SphereLights.precompute(_plane_and([ball]), {"n_spheres": 1, "grid_resolution": 16,
+    pre = SphereLights.precompute(_plane_and([ball]), {"n_spheres": 1, "fit_resolution": 16,
                                                        "local_lights": [(centre, radius, L)]},
                                   cache=False, progress=False)
     res = pre.shade(bounces=1)
@@ -216,7 +216,7 @@ def test_local_light_lights_objects_through_the_first_pass():
     lit side), and nothing without bounces."""
     ball = {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2},
             "transform": {"translate": [0.0, 0.5, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}
-    opts = {"n_spheres": 1, "grid_resolution": 16, "local_lights": [((1.0, 0.6, 0.0), 0.2, (5.0, 5.0, 5.0))]}
+    opts = {"n_spheres": 1, "fit_resolution": 16, "local_lights": [((1.0, 0.6, 0.0), 0.2, (5.0, 5.0, 5.0))]}
     pre = SphereLights.precompute(_plane_and([ball]), opts, cache=False, progress=False)
     res = pre.shade(bounces=1)
     ind = res.indirect["plane"][:, 0]
@@ -314,7 +314,7 @@ def test_bend_moves_each_light_with_its_vertices():
     bar = {"name": "bar", "mesh": {"builtin": "box", "size": [2.0, 0.3, 0.3], "subdivisions": 3},
            "transform": {"translate": [0.0, 0.6, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}
     scene = _plane_and([bar], [{"type": "environment", "constant": [1.0, 1.0, 1.0]}])
-    pre = SphereLights.precompute(scene, {"n_spheres": 4, "grid_resolution": 24}, cache=False, progress=False)
+    pre = SphereLights.precompute(scene, {"n_spheres": 4, "fit_resolution": 24}, cache=False, progress=False)
     data = pre.data["objects"]["bar"]
     verts = np.asarray(scene.object("bar").mesh.vertices)
     owner = np.asarray(data["vertex_light"])
@@ -363,7 +363,7 @@ def test_deformed_errors(pre):
 
 @pytest.fixture(scope="module")
 def pre8():
-    return SphereLights.precompute(_scene(), {"n_spheres": 8, "grid_resolution": 16}, cache=False, progress=False)
+    return SphereLights.precompute(_scene(), {"n_spheres": 8, "fit_resolution": 16}, cache=False, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -433,9 +433,9 @@ def test_reflection_ratio_reduces_the_error_of_coarse_cuts(pre8, flat8, threshol
 
 def test_hierarchy_through_the_api():
     res = prtlab.shade(_scene(), method="spherelights", bounces=1, cache=False, progress=False, n_spheres=2,
-                       grid_resolution=16, hierarchy_children=2, cut_threshold=0.6, cluster_size=32)
+                       fit_resolution=16, hierarchy_children=2, cut_threshold=0.6, cluster_size=32)
     flat = prtlab.shade(_scene(), method="spherelights", bounces=1, cache=False, progress=False, n_spheres=2,
-                        grid_resolution=16)
+                        fit_resolution=16)
     for name in flat.total:
         np.testing.assert_array_equal(res.direct[name], flat.direct[name])
         assert np.all(np.isfinite(res.indirect[name]))
