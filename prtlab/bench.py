@@ -15,8 +15,8 @@ Cases live in ``bench_*.py`` files of the package's ``prtlab/benchmarks/`` folde
      "info": dict}                     # optional: figures that are not times (bytes on disk), kept in the JSON
 
 Every timing is the median of several repeats after one warm-up call (which
-absorbs JIT compilation); ``setup`` gives each repeat fresh state outside the
-timer. Ours and the peer run with the same threads: BLAS through
+absorbs JIT compilation), the repeats of ours and of the peer interleaved;
+``setup`` gives each call fresh state outside the timer. Ours and the peer run with the same threads: BLAS through
 ``threadpoolctl``, numba through ``numba.set_num_threads``. The machine's peak
 float64 rate is measured in the same run as the median GFLOP/s of a large
 ``numpy`` matrix product, before and after the cases (the larger is kept), so
@@ -89,18 +89,22 @@ def _discover() -> None:
         spec.loader.exec_module(module)
 
 
-def _time(fn: Callable, repeats: int, warmup: bool = True, setup: Callable | None = None) -> list[float]:
+def _time(fns: list[Callable], repeats: int, warmup: bool = True, setup: Callable | None = None) -> list[list[float]]:
+    """Seconds of ``repeats`` calls of each of ``fns``, interleaved (ours, peer, ours, peer, ...) so that a
+    change of the machine's load during the case weighs on both alike; ``setup`` before every call."""
     if warmup:
-        if setup is not None:
-            setup()
-        fn()  # warm-up: JIT compilation, caches, page faults
-    times = []
+        for fn in fns:
+            if setup is not None:
+                setup()
+            fn()  # warm-up: JIT compilation, caches, page faults
+    times = [[] for _ in fns]
     for _ in range(repeats):
-        if setup is not None:
-            setup()
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
+        for fn, seconds in zip(fns, times):
+            if setup is not None:
+                setup()
+            t0 = time.perf_counter()
+            fn()
+            seconds.append(time.perf_counter() - t0)
     return times
 
 
@@ -129,7 +133,7 @@ def measure_peak_gflops(quick: bool = False) -> float:
     n = 1024 if quick else 2048
     rng = np.random.default_rng(0)
     a, b = rng.random((n, n)), rng.random((n, n))
-    seconds = statistics.median(_time(lambda: a @ b, 3 if quick else 5))
+    seconds = statistics.median(_time([lambda: a @ b], 3 if quick else 5)[0])
     return 2.0 * n**3 / seconds / 1e9
 
 
@@ -178,7 +182,9 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
             spec = _CASES[name](quick)
             n_repeats = min(repeats, int(spec.get("repeats", repeats)))
             warmup, setup = spec.get("warmup", True), spec.get("setup")
-            seconds = statistics.median(_time(spec["run"], n_repeats, warmup, setup))
+            fns = [spec["run"]] + ([spec["peer"][1]] if spec.get("peer") else [])
+            times = [statistics.median(t) for t in _time(fns, n_repeats, warmup, setup)]
+            seconds = times[0]
             entry = {"name": name, "seconds_median": seconds, "repeats": n_repeats}
             gflop = spec.get("gflop")
             if gflop:
@@ -191,8 +197,7 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
             if "items_per_second" in entry:
                 line += f"  {entry['items_per_second']:.3g} items/s"
             if spec.get("peer"):
-                peer_name, peer_fn = spec["peer"]
-                peer_seconds = statistics.median(_time(peer_fn, n_repeats, warmup, setup))
+                peer_name, peer_seconds = spec["peer"][0], times[1]
                 entry["peer"] = {"name": peer_name, "seconds_median": peer_seconds}
                 entry["speedup_vs_peer"] = peer_seconds / seconds
                 line += f"  peer {peer_name}: {peer_seconds * 1e3:.2f} ms (x{peer_seconds / seconds:.2f})"

@@ -92,7 +92,8 @@ def test_repeats_and_info_are_kept(tmp_path, monkeypatch):
 
 
 def test_setup_runs_before_every_call_outside_the_timer(tmp_path, monkeypatch):
-    """``setup`` runs before the warm-up and every repeat of ours and of the peer, and its time is not counted."""
+    """``setup`` runs before the warm-up and every repeat of ours and of the peer (interleaved), and its time is not
+    counted."""
     (tmp_path / "bench_fresh.py").write_text(textwrap.dedent(
         """
         import time
@@ -111,7 +112,7 @@ def test_setup_runs_before_every_call_outside_the_timer(tmp_path, monkeypatch):
     report = bench.run_benchmarks(quick=True, select="toy.fresh", out=lambda *a: None)
     (entry,) = report["cases"]
     log = sys.modules["prtlab_benchmarks.bench_fresh"].LOG
-    assert log == ["setup", "run"] * 4 + ["setup", "peer"] * 4  # warm-up + 3 repeats each
+    assert log == ["setup", "run", "setup", "peer"] * 4  # warm-up + 3 repeats each
     assert entry["seconds_median"] < 0.1 and entry["peer"]["seconds_median"] < 0.1
 
 
