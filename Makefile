@@ -32,7 +32,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -n 2 -m slow tests
 
 bench: $(STAMP)
-	$(VENV)/bin/prtlab bench --json bench.json
+	$(VENV)/bin/prtlab bench --json bench.json --write-docs
 
 clean:
 	rm -rf $(VENV) report .pytest_cache .hypothesis

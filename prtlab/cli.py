@@ -10,7 +10,7 @@
     prtlab precompute SCENE --method M [-o KEY=VALUE ...] [--workers N | --scheduler ADDRESS]
     prtlab cache info|list|clear [--method M]
     prtlab reproduce [--quick] [--out report/] [--only NAME] [--write-docs [PATH]]
-    prtlab bench [--quick] [--json bench.json] [--select NAME]
+    prtlab bench [--quick] [--json bench.json] [--select NAME] [--threads N] [--write-docs [PATH]]
 
 Methods: ``reference`` and ``mitsuba`` (Monte Carlo ground truth) and the pipelines
 ``interreflection``, ``spherelights`` and ``portals``.
@@ -246,9 +246,9 @@ def _parser() -> argparse.ArgumentParser:
 
     p = add("bench", help="benchmarks, with peers and the machine's peak measured in the same run",
                        description="Time the benchmark cases (medians after a warm-up).")
-    p.add_argument("--quick", action="store_true", help="small sizes")
-    p.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
-    p.add_argument("--select", default=None, help="run only cases whose name contains this")
+    from prtlab.bench import add_arguments as add_bench_arguments
+
+    add_bench_arguments(p)
     return parser
 
 
@@ -717,14 +717,13 @@ def _cmd_reproduce(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from prtlab.bench import run_benchmarks
+    from prtlab.bench import run_from_args
 
     if args.json is not None:
         if args.json.is_dir():
             raise OSError(f"--json {args.json}: is a folder; give a file name")
         _writable_folder(args.json.parent, "--json")
-    run_benchmarks(quick=args.quick, select=args.select, json_path=args.json)
-    return 0
+    return run_from_args(args)
 
 
 # --------------------------------------------------------------------------- main

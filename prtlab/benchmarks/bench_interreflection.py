@@ -3,8 +3,9 @@
 Full mode is the paper's room scale (Sec. 6: about 50k vertices, 12 objects): a floor, two walls and
 nine objects (teapots, bunnies, balls, a box), 46.8k vertices, with the paper's sample spheres
 (16 x 6 x 16 x 16), N = 16 and 3 bounces; quick mode a ball over a floor (~800 vertices) with quick
-fields. The precomputation is cached (``$PRTLAB_CACHE``), so only
-the first run pays for it.
+fields. The precomputation is cached (``$PRTLAB_CACHE``) and done outside the timers; every timed frame
+gets a new ``FrameState`` (``setup``) with a light position or pose no earlier frame had, and its pair counts
+(``info``: computed, updated, reused) say which work it did and which it reused.
 """
 
 from __future__ import annotations
@@ -129,46 +130,99 @@ def _pose_gflop(pre, recomputed) -> float:
     return flop / 1e9
 
 
-@case("interreflection.frame.relight")
-def relight_frame(quick: bool) -> dict:
-    """Light changes, poses do not: direct + weights + 3 bounces (basis irradiance reused)."""
-    pre = _precomputed(quick)
-    state = FrameState.from_scene(pre.scene)
-    pre.shade(state, bounces=3)  # fills the pair cache
-    env = state.lights[0]
-    scales = iter(np.tile([1.0, 1.5], 10_000))
+def _frame_info(info: dict, result) -> None:
+    """Keep the pair counts of the last timed frame (``computed_pairs``, ``updated_pairs``, ``reused_pairs``):
+    they say which work a frame did and which it reused."""
+    for k in ("computed_pairs", "updated_pairs", "reused_pairs", "skipped_pairs"):
+        info[k] = int(result.info.get(k, 0))
+
+
+def _relight(pre, env_only: bool):
+    """``setup`` and ``run`` of a relighting frame: poses stay, so every pair's basis irradiance is reused (the
+    paper's relighting); the environment's scale changes every frame and, unless ``env_only``, the area light
+    moves to a position no earlier frame had (its SH at every vertex and the direct light are recomputed).
+    ``env_only`` shades the environment alone. Each repeat gets a new ``FrameState``."""
+    env, area = pre.scene.lights[0], pre.scene.lights[1]
+    steps = iter(range(1, 1_000_000))
+    frame: dict = {}
+    info: dict = {}
+
+    def setup():
+        k = next(steps)
+        state = FrameState.from_scene(pre.scene)
+        lights = [type(env)(image=env.image * (1.0 + 0.5 * (k % 2)))]
+        if not env_only:
+            lights.append(type(area)(center=area.center + [0.5 * k / 1_000_000 + 1e-3 * k, 0.0, 0.0], u=area.u,
+                                     v=area.v, radiance=area.radiance))
+        state.lights = lights
+        frame["state"] = state
 
     def run():
-        state.lights = [type(env)(image=env.image * next(scales)), *state.lights[1:]]
-        return pre.shade(state, bounces=3)
+        result = pre.shade(frame["state"], bounces=3)
+        _frame_info(info, result)
+        return result
 
-    return {"run": run, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3), "items": _vertices(pre), "peer": None}
+    setup()
+    run()  # the pairs at the scene's poses: computed once, reused by every relighting frame
+    return setup, run, info
+
+
+@case("interreflection.frame.relight")
+def relight_frame(quick: bool) -> dict:
+    """Light changes, poses do not: the area light moves (exact SH at every vertex, the default) and the
+    environment changes, then weights and 3 bounces; every pair's basis irradiance reused (``reused_pairs``)."""
+    pre = _precomputed(quick)
+    setup, run, info = _relight(pre, env_only=False)
+    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
+            "items": _vertices(pre), "peer": None, "info": info}
+
+
+@case("interreflection.frame.relight_env_only")
+def relight_env_frame(quick: bool) -> dict:
+    """The environment changes, no area light in the frame, poses do not: direct, weights and 3 bounces, every
+    pair's basis irradiance reused."""
+    pre = _precomputed(quick)
+    setup, run, info = _relight(pre, env_only=True)
+    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
+            "items": _vertices(pre), "peer": None, "info": info}
 
 
 def _moving(pre):
-    """A run() moving the last object (a ball) by a new small step each call, and the work of one call in GFLOP."""
-    state = FrameState.from_scene(pre.scene)
+    """``setup``, ``run`` moving the last object (a ball) to a new pose each call, the work of one call in GFLOP,
+    and the pair counts of the last frame."""
     mover = pre.objects[-1]
     poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0], rotate_deg=mover.transform.rotate_deg,
                             scale=mover.transform.scale) for dx in np.linspace(0.0, 0.1, 10_000)])
+    frame: dict = {}
+    info: dict = {}
+
+    def setup():
+        state = FrameState.from_scene(pre.scene)
+        state.transforms[mover.name] = next(poses)
+        frame["state"] = state
 
     def run():
-        state.transforms[mover.name] = next(poses)
-        return pre.shade(state, bounces=3)
+        result = pre.shade(frame["state"], bounces=3)
+        _frame_info(info, result)
+        return result
 
+    setup()
     run()
     before = {k: v[1] for k, v in pre.reuse.pair_irradiance.items()}
+    setup()
     run()
     recomputed = [k for k, v in pre.reuse.pair_irradiance.items() if before.get(k) is not v[1]]
-    return run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3)
+    return setup, run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3), info
 
 
 @case("interreflection.frame.move_one")
 def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
-    source's surface by ray casting, ``near_field``), then 3 bounces. Every frame is a new pose."""
-    run, gflop = _moving(_precomputed(quick))
-    return {"run": run, "gflop": gflop, "items": _vertices(_precomputed(quick)), "peer": None}
+    source's surface by ray casting, ``near_field``), the others reused, then 3 bounces. Every frame is a new
+    pose."""
+    setup, run, gflop, info = _moving(_precomputed(quick))
+    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(_precomputed(quick)), "peer": None,
+            "info": info}
 
 
 @case("interreflection.frame.move_one.paper")
@@ -180,34 +234,46 @@ def move_frame_paper(quick: bool) -> dict:
 
     base = _precomputed(quick)
     pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
-    run, gflop = _moving(pre)
-    return {"run": run, "gflop": gflop, "items": _vertices(pre), "peer": None}
+    setup, run, gflop, info = _moving(pre)
+    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(pre), "peer": None, "info": info}
 
 
 @case("interreflection.frame.move_light")
 def move_light_frame(quick: bool) -> dict:
-    """The area light moves (poses do not): its SH radiance at every vertex from its source radiance field
-    (``area_lights="field"``), then 3 bounces; peer: the exact per-vertex projection (the default)."""
+    """The area light moves (poses do not) with ``area_lights="field"``: its SH radiance at every vertex from
+    its source radiance field, then 3 bounces; peer: the exact per-vertex projection (the default). Each frame
+    a new light position and a new ``FrameState``."""
     import dataclasses
 
     from prtlab.interreflection import Interreflection
 
     base = _precomputed(quick)
+    frames = {}
 
     def mover(area_lights):
         pre = Interreflection(base.scene, dataclasses.replace(base.options, area_lights=area_lights), base.data)
-        state = FrameState.from_scene(pre.scene)
-        light = state.lights[1]
+        light = base.scene.lights[1]
         centres = iter([light.center + [dx, 0.0, 0.0] for dx in np.linspace(0.0, 0.5, 10_000)])
 
-        def run():
+        def setup():
+            state = FrameState.from_scene(pre.scene)
             state.lights[1] = type(light)(center=next(centres), u=light.u, v=light.v, radiance=light.radiance)
-            return pre.shade(state, bounces=3)
+            frames[area_lights] = state
 
-        return run
+        def run():
+            return pre.shade(frames[area_lights], bounces=3)
 
-    return {"run": mover("field"), "gflop": None, "items": _vertices(base), "peer": ("exact area_light_sh",
-                                                                                    mover("exact"))}
+        return setup, run
+
+    setup_field, run_field = mover("field")
+    setup_exact, run_exact = mover("exact")
+
+    def setup():
+        setup_field()
+        setup_exact()
+
+    return {"run": run_field, "setup": setup, "gflop": None, "items": _vertices(base),
+            "peer": ("exact area_light_sh", run_exact)}
 
 
 @case("interreflection.precompute")

@@ -9,10 +9,7 @@ on the grid.
 The peer of the bunny case is the SH path (order 4: visibility products, area-light SH, triple
 integral) on the same vertices.
 
-Measured (one numba thread, the machine shared with three other jobs, medians of 3): bunny 4k + 1 ball
-137 us per vertex (SH path 32), + 3 balls 149 (SH 30), constant environment + 1 ball 527, floor 50k +
-bunny + 2 balls 125 us per vertex (6.3 s per frame). With 2 threads on the loaded machine the parallel
-kernels were slower still; on an idle machine expect about half.
+Times are in docs/BENCHMARKS.md, written by ``prtlab bench --write-docs``.
 """
 
 from __future__ import annotations
