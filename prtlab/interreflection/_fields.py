@@ -45,6 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from prtlab import brdf, sh
+from prtlab._validate import as_points
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
@@ -92,6 +93,20 @@ def _constant_h(sep) -> bool:
     return sep.K == 1 and int(sep.freq[0]) == 0 and bool(flat)
 
 
+def source_hits(caster, points, dirs, step):
+    """The rays from every point along every direction that hit the source, in batches of ``step`` points:
+    yields ``(a, b, point, direction, hits, at)``: points ``a:b``, the candidate rays (``point`` relative to
+    ``a``, ``direction``), their :meth:`RayCaster.closest_hit` and the indices ``at`` of the hits; batches with
+    no hit are skipped."""
+    for a in range(0, len(points), step):
+        b = min(len(points), a + step)
+        point, direction = np.nonzero(caster.may_hit(points[a:b], dirs))  # the other rays miss the source
+        hits = caster.closest_hit(points[a:b][point], dirs[direction])
+        at = np.flatnonzero(hits.hit)
+        if len(at):
+            yield a, b, point, direction, hits, at
+
+
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
                       caster: RayCaster | None = None, method: str = "numba") -> np.ndarray:
     """SH of the basis radiance ``S_(k,i)(p, .)`` of a source object at points (object space).
@@ -128,9 +143,7 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     if method not in ("numba", "reference"):
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
     degree = max(DEFAULT_DEGREE, 2 * order - 2) if degree is None else int(degree)
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim == 0 or points.shape[-1] != 3:
-        raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+    points = as_points(points)
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
@@ -141,13 +154,7 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     wy = weights[:, None] * y  # (D, n2)
     out = np.zeros((len(flat), n_k * n_b, n2))
     step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
-    for a in range(0, len(flat), step):
-        b = min(len(flat), a + step)
-        point, direction = np.nonzero(caster.may_hit(flat[a:b], dirs))  # the other rays miss the source
-        hits = caster.closest_hit(flat[a:b][point], dirs[direction])
-        at = np.flatnonzero(hits.hit)
-        if not len(at):
-            continue
+    for a, b, point, direction, hits, at in source_hits(caster, flat, dirs, step):
         sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
         value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep,
                                    method).reshape(-1, n_k * n_b)

@@ -55,11 +55,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab._validate import check_int
+from prtlab._validate import as_points, check_int
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.shadowfields import SphereGrid, encode_sparse
 
-from ._fields import hit_basis_radiance
+from ._fields import hit_basis_radiance, source_hits
 
 __all__ = ["HaarBasisRadianceField", "haar_basis_radiance_cubemaps", "haar_basis_radiance_field"]
 
@@ -113,11 +113,7 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32,
     basis, vertices = _check_source(mesh, basis)
     res = _check_resolution(resolution)
     ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim == 0 or points.shape[-1] != 3:
-        raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("points contain NaN or inf; pass finite points")
+    points = as_points(points)
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
     faces = np.asarray(mesh.faces, dtype=np.int64)
@@ -130,13 +126,7 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32,
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     caster = RayCaster([(vertices, faces)])
     step = max(1, _RAYS_PER_BATCH // n_t)
-    for a in range(0, len(flat), step):
-        b = min(len(flat), a + step)
-        point, direction = np.nonzero(caster.may_hit(flat[a:b], dirs))  # the other rays miss the source
-        hits = caster.closest_hit(flat[a:b][point], dirs[direction])
-        at = np.flatnonzero(hits.hit)
-        if not len(at):
-            continue
+    for a, _, point, direction, hits, at in source_hits(caster, flat, dirs, step):
         out[a + point[at], :, :, direction[at]] = hit_basis_radiance(hits, (at,), dirs[direction[at]], faces,
                                                                      normals, basis, sep)
     if ss > 1:

@@ -91,12 +91,12 @@ import numpy as np
 from prtlab._validate import as_points, check_choice
 from prtlab import brdf
 from prtlab.shadowfields import (
-    HaarOcclusionField,
     SparseCubemaps,
     haar_visibility_pass,
     rotation_texel_map,
     texel_moments,
 )
+from prtlab.shadowfields._haar_direct import check_receivers, visibility_factors
 
 from ._haar_fields import HaarBasisRadianceField, _check_resolution
 
@@ -233,34 +233,6 @@ def _texel_g_cos(sep, normals, res) -> np.ndarray:
     return np.moveaxis(sep.g(local), 2, 1) * cos[:, None, :]
 
 
-def _visibility_factors(points, self_visibility, self_transform, occluders, res):
-    nv = len(points)
-    factors = []
-    if self_visibility is not None:
-        if not isinstance(self_visibility, SparseCubemaps):
-            raise TypeError(f"self_visibility must be SparseCubemaps (haar_self_visibility), got "
-                            f"{type(self_visibility).__name__}")
-        if self_visibility.shape != (nv,):
-            raise ValueError(f"self_visibility must hold one cubemap per point ({nv},), got {self_visibility.shape}")
-        corners = np.zeros((nv, 8), dtype=np.int64)
-        corners[:, 0] = np.arange(nv)
-        weights = np.zeros((nv, 8))
-        weights[:, 0] = 1.0
-        R = np.eye(3) if self_transform is None else np.asarray(self_transform.rotation, float)
-        factors.append((self_visibility, corners, weights, rotation_texel_map(R, res)))
-    for i, item in enumerate(occluders):
-        if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], HaarOcclusionField)):
-            raise TypeError(f"occluders[{i}] must be a (HaarOcclusionField, Transform or None) pair")
-        field, T = item
-        corners, weights = field.corners(points, T)
-        R = np.eye(3) if T is None else np.asarray(T.rotation, float)
-        factors.append((field.visibility, corners, weights, rotation_texel_map(R, res)))
-    for table, *_ in factors:
-        if table.resolution != res:
-            raise ValueError(f"self_visibility and the occluders must have resolution {res}, got {table.resolution}")
-    return factors
-
-
 def haar_transfer(points, normals, sep, resolution: int = 32, *, self_visibility: SparseCubemaps | None = None,
                   self_transform=None, occluders=(), method: str = "numba") -> np.ndarray:
     """Per-texel transfer ``W_k'(t) = V(x, t) int_t g_k'(w) max(0, n . w) dw`` of receiver vertices (world frame).
@@ -286,21 +258,13 @@ def haar_transfer(points, normals, sep, resolution: int = 32, *, self_visibility
     -------
     transfer : (V, K', 6, r, r) float64
     """
-    from prtlab.brdf import SeparableBRDF
-
     method = check_choice(method, "method", _METHODS)
-    if not isinstance(sep, SeparableBRDF):
-        raise TypeError(f"sep must be a SeparableBRDF (prtlab.brdf.separable), got {type(sep).__name__}")
-    points = as_points(points, "points", flat=True)
-    normals = as_points(normals, "normals", flat=True)
-    if normals.shape != points.shape:
-        raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    points, normals = check_receivers(sep, points, normals)
     res = _check_resolution(resolution)
     n = 6 * res * res
     nv = len(points)
     out = np.empty((nv, sep.K, n))
-    factors = _visibility_factors(points, self_visibility, self_transform, list(occluders), res)
+    factors = visibility_factors(points, self_visibility, self_transform, list(occluders), "trilinear", res)
     step = max(1, _TEXELS_PER_CHUNK // (n * max(sep.K, 1)))
     for a in range(0, nv, step):
         b = min(nv, a + step)

@@ -8,6 +8,7 @@ import numba
 import numpy as np
 
 from prtlab.sh._product_kernels import _tile_product
+from prtlab.shadowfields._kernels import sample_corners
 
 
 @numba.njit(cache=True, parallel=True)
@@ -26,21 +27,7 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
     n2 = field.shape[5]
     n_kp = transfer.shape[1]
     for v in numba.prange(rpos.shape[0]):
-        r0 = int(np.floor(rpos[v]))
-        if r0 > n_r - 1:
-            r0 = n_r - 1
-        if r0 < 0:
-            r0 = 0
-        fr = rpos[v] - r0
-        r1 = r0 + 1 if r0 + 1 < n_r else r0
-        x = min(max(s[v] * res - 0.5, 0.0), res - 1.0)
-        y = min(max(t[v] * res - 0.5, 0.0), res - 1.0)
-        j0 = int(np.floor(x))
-        i0 = int(np.floor(y))
-        fj = x - j0
-        fi = y - i0
-        j1 = j0 + 1 if j0 + 1 < res else j0
-        i1 = i0 + 1 if i0 + 1 < res else i0
+        r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[v], s[v], t[v], n_r, res)
         f = face[v]
         for kp in range(n_kp):
             for m in range(n_m):

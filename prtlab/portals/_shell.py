@@ -61,11 +61,6 @@ class Portal:
     size: float
 
     @property
-    def face_areas(self) -> np.ndarray:
-        a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
-        return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-    @property
     def face_normals(self) -> np.ndarray:
         a, b, c = (self.vertices[self.faces[:, k]] for k in range(3))
         n = np.cross(b - a, c - a)

@@ -179,14 +179,6 @@ class SceneObject:
         local = shading_points(self.mesh.vertices, np.asarray(self.mesh.faces), self.mesh.vertex_normals)
         return (transform or self.transform).apply_points(local)
 
-    def world_mesh(self, transform: Transform | None = None):
-        """A trimesh copy in world space (same vertex order and faces)."""
-        import trimesh
-
-        return trimesh.Trimesh(
-            vertices=self.world_vertices(transform), faces=np.asarray(self.mesh.faces), process=False
-        )
-
     def __eq__(self, other):
         return _dataclass_eq(self, other)
 

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab._validate import check_int
+from prtlab._validate import as_points, check_int
 from prtlab.geometry import cubemap_directions, direction_to_cubemap
 
 from ._kernels import trilinear_kernel
@@ -223,11 +223,7 @@ def interpolate_field(grid: SphereGrid, values, points, method: str = "numba") -
     values = np.asarray(values, dtype=np.float64)
     if values.shape[:4] != grid.shape:
         raise ValueError(f"values must be {grid.shape} + (F...) to match the grid, got shape {values.shape}")
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim == 0 or points.shape[-1] != 3:
-        raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("points contain NaN or inf; pass finite points")
+    points = as_points(points)
     batch, trail = points.shape[:-1], values.shape[4:]
     flat = np.ascontiguousarray(values.reshape(grid.shape + (-1,)))
     if method == "reference":

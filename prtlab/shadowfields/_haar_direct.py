@@ -364,7 +364,24 @@ def haar_direct_pass(visibility, g_weight, radiance, count=None, method: str = "
     return out
 
 
-def _factors(points, self_visibility, self_transform, occluders, interpolation, resolution):
+def check_receivers(sep, points, normals):
+    """The receivers of a Haar pass checked: ``sep`` a :class:`prtlab.brdf.SeparableBRDF`, ``points`` and
+    ``normals`` ``(V, 3)`` finite, the normals made unit. Returns ``(points, normals)``."""
+    from prtlab.brdf import SeparableBRDF
+
+    if not isinstance(sep, SeparableBRDF):
+        raise TypeError(f"sep must be a SeparableBRDF (prtlab.brdf.separable), got {type(sep).__name__}")
+    points = as_points(points, "points", flat=True)
+    normals = as_points(normals, "normals", flat=True)
+    if normals.shape != points.shape:
+        raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    return points, normals
+
+
+def visibility_factors(points, self_visibility, self_transform, occluders, interpolation, resolution):
+    """The visibility factors at ``points``: ``(table, corners (V, 8), weights (V, 8), texel map)`` for the
+    object's own cubemaps (rotated by ``self_transform``) and each ``(HaarOcclusionField, Transform)`` occluder."""
     factors = []
     nv = len(points)
     if self_visibility is not None:
@@ -388,8 +405,8 @@ def _factors(points, self_visibility, self_transform, occluders, interpolation, 
         factors.append((field.visibility, corners, weights, rotation_texel_map(R, resolution)))
     for table, *_ in factors:
         if table.resolution != resolution:
-            raise ValueError(f"self_visibility and the occluders must share one cubemap resolution, got "
-                             f"{table.resolution} and {resolution}")
+            raise ValueError(f"self_visibility and the occluders must share one cubemap resolution: they must "
+                             f"have resolution {resolution}, got {table.resolution}")
     return factors
 
 
@@ -435,16 +452,8 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
     >>> np.round(lk[0, 0] * np.pi * 4, 6)  # E = I / r^2 = 1/4, g = 1/pi
     array([1., 1., 1.])
     """
-    from prtlab.brdf import SeparableBRDF
-
     method = check_choice(method, "method", _METHODS)
-    if not isinstance(sep, SeparableBRDF):
-        raise TypeError(f"sep must be a SeparableBRDF (prtlab.brdf.separable), got {type(sep).__name__}")
-    points = as_points(points, "points", flat=True)
-    normals = as_points(normals, "normals", flat=True)
-    if normals.shape != points.shape:
-        raise ValueError(f"normals must be {points.shape} like points, got {normals.shape}")
-    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    points, normals = check_receivers(sep, points, normals)
     if resolution is None:
         tables = ([self_visibility] if isinstance(self_visibility, SparseCubemaps) else []) + [
             o[0].visibility for o in occluders if isinstance(o, (tuple, list)) and len(o) == 2
@@ -456,7 +465,7 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
     out = np.zeros((nv, sep.K, 3))
     if nv == 0:
         return out
-    factors = _factors(points, self_visibility, self_transform, occluders, interpolation, res)
+    factors = visibility_factors(points, self_visibility, self_transform, occluders, interpolation, res)
     # environments take a dense path (every texel lit, the light shared by all vertices) in the fast tier;
     # the reference tier runs every light through light_pieces and haar_direct_pass (the specification)
     fast_env = method == "numba"

@@ -10,6 +10,23 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True, inline="always")
+def sample_corners(rpos, s, t, n_r, res):
+    """The eight samples around a point of a field on concentric cubemap-gridded spheres: the sphere indices
+    ``r0, r1`` and weight ``fr`` of ``r1``, the texel rows ``i0, i1`` (weight ``fi``) and columns ``j0, j1``
+    (weight ``fj``) at face coordinates ``(s, t)``, texel centres at ``(j + 0.5) / res``, clamped to the grid."""
+    r0 = min(max(int(np.floor(rpos)), 0), n_r - 1)
+    fr = rpos - r0
+    r1 = r0 + 1 if r0 + 1 < n_r else r0
+    x = min(max(s * res - 0.5, 0.0), res - 1.0)
+    y = min(max(t * res - 0.5, 0.0), res - 1.0)
+    j0 = int(np.floor(x))
+    i0 = int(np.floor(y))
+    j1 = j0 + 1 if j0 + 1 < res else j0
+    i1 = i0 + 1 if i0 + 1 < res else i0
+    return r0, r1, fr, i0, i1, y - i0, j0, j1, x - j0
+
+
 @numba.njit(cache=True, parallel=True)
 def trilinear_kernel(values, rpos, face, s, t, out):
     """Trilinear interpolation of a field sampled on concentric cubemap-gridded spheres.
@@ -23,30 +40,7 @@ def trilinear_kernel(values, rpos, face, s, t, out):
     res = values.shape[2]
     n_f = values.shape[4]
     for q in numba.prange(rpos.shape[0]):
-        r = rpos[q]
-        r0 = int(np.floor(r))
-        if r0 >= n_r - 1:
-            r0 = n_r - 1
-        if r0 < 0:
-            r0 = 0
-        fr = r - r0
-        r1 = r0 + 1 if r0 + 1 < n_r else r0
-        x = s[q] * res - 0.5
-        y = t[q] * res - 0.5
-        if x < 0.0:
-            x = 0.0
-        if x > res - 1.0:
-            x = res - 1.0
-        if y < 0.0:
-            y = 0.0
-        if y > res - 1.0:
-            y = res - 1.0
-        j0 = int(np.floor(x))
-        i0 = int(np.floor(y))
-        fj = x - j0
-        fi = y - i0
-        j1 = j0 + 1 if j0 + 1 < res else j0
-        i1 = i0 + 1 if i0 + 1 < res else i0
+        r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[q], s[q], t[q], n_r, res)
         f = face[q]
         for k in range(n_f):
             acc = 0.0

@@ -76,11 +76,7 @@ def _check_degree(degree, order: int) -> int:
 
 def _flat_origins(origins, normals):
     """``origins`` (..., 3) checked and flattened: ``(batch shape, (P, 3), (P, 3) normals or None)``."""
-    origins = np.asarray(origins, dtype=np.float64)
-    if origins.ndim == 0 or origins.shape[-1] != 3:
-        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
-    if not np.all(np.isfinite(origins)):
-        raise ValueError("origins contain NaN or inf; pass finite points")
+    origins = as_points(origins, "origins")
     nflat = None
     if normals is not None:
         nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)

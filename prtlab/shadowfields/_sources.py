@@ -42,7 +42,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
-from prtlab._validate import check_int, check_order
+from prtlab._validate import as_points, check_int, check_order
 
 from ._grid import SphereGrid, interpolate_field, sphere_grid
 
@@ -112,11 +112,7 @@ def area_light_sh(light, points, order: int, n_nodes: int = 12, method: str = "n
     check_int(n_nodes, "n_nodes", 1)
     if method not in ("numba", "reference"):
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim == 0 or points.shape[-1] != 3:
-        raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("points contain NaN or inf; pass finite points")
+    points = as_points(points)
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
     x, w = _gauss_legendre(int(n_nodes))
@@ -209,9 +205,7 @@ class SourceRadianceField:
         if not self.fits(light):
             raise ValueError("the area light's shape (|u|, |v| and their angle) is not a uniform scale of the "
                              "field's; build a field for it with source_radiance_field(light)")
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim == 0 or points.shape[-1] != 3:
-            raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+        points = as_points(points)
         frame, shape = _canonical(light)
         local = (points - np.asarray(light.center, dtype=np.float64)) @ frame / (shape[0] / self.shape[0])
         out, _ = interpolate_field(self.grid, self.coeffs, local, method=method)
