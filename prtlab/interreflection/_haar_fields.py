@@ -33,13 +33,7 @@ reconstruction error by Parseval) and of the whole cubemap (``energy``) are kept
 cubemap, so the truncation is reported, never hidden: the pass bounds its effect by
 Cauchy-Schwarz (:func:`prtlab.interreflection.haar_basis_irradiance`).
 
-Measured (``data/scenes/interreflection_fig9.yaml``: the bunny, 1,839 vertices, and the floor, 2,401;
-default grid 16 x 6 x 16 x 16, r = 32, ``keep = 64``, N = 16, K = 1): 151 MB per object (the order-4 SH
-field: 50 MB in float64); build 368 s (bunny) and 405 s (floor) on the 2-core machine shared with a
-load of 5-9 (the whole precomputation 1,115 s); relative truncation ``sqrt(sum energy_lost / sum
-energy)`` 0.28 (bunny) and 0.32 (floor): the dropped coefficients are the fine silhouette and texture
-detail of near, large sources, which the pipeline's near field casts exactly instead
-(:func:`prtlab.interreflection.near_basis_irradiance`).
+Measured figures: ``docs/notes/interreflection.md``.
 
 References
 ----------
@@ -55,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab._validate import as_points, check_int
+from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.shadowfields import SphereGrid, encode_sparse
 
@@ -113,7 +107,11 @@ def haar_basis_radiance_cubemaps(mesh, basis, sep, points, resolution: int = 32,
     basis, vertices = _check_source(mesh, basis)
     res = _check_resolution(resolution)
     ss = check_int(supersample, "supersample", 1, meaning="rays per texel edge")
-    points = as_points(points)
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim == 0 or points.shape[-1] != 3:
+        raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("points contain NaN or inf; pass finite points")
     batch = points.shape[:-1]
     flat = points.reshape(-1, 3)
     faces = np.asarray(mesh.faces, dtype=np.int64)

@@ -46,35 +46,7 @@ pipeline's near field casts ``S`` at the receiver instead (:func:`near_basis_irr
 Kernels live in this module (``@numba.njit(cache=True)``); the ``"reference"`` tiers
 are the float64 numpy specifications.
 
-Measured
-
-* one source, one receiver point, against ``prtlab.reference.irradiance_at`` (16,384 paths;
-  ``tests/interreflection/test_haar_passes.py``): a side-lit floor seen from 0.6 above (smooth),
-  Haar 0.429, SH order 4 0.427, Monte Carlo 0.460 +- 0.007 (Haar: -3.7 % texel-centre sampling of
-  the floor's edges, which run along texel rows, and -2.6 % truncation to 64 coefficients); with a
-  black 0.3 x 0.3 plate half-way (sharp), Haar 0.336, SH 0.275 (-23 %), Monte Carlo 0.357 +- 0.007;
-* Fig. 9 (bunny on a floor, one bounce, against Mitsuba 3 at 256 spp, relative RMS; reference noise
-  in brackets): bunny indirect 0.177 (0.098), total 0.032 (0.019); floor indirect 0.528 (0.499),
-  total 0.059 (0.012); with SH irradiance and the same Haar shadows 0.172, 0.031, 0.543, 0.059.
-  The indirect light of this scene is smooth (a diffuse floor and bunny under one small light), so
-  the all-frequency irradiance changes little; it pays where the visibility between source and
-  receiver is sharp (the plate above: SH 23 % off). Mean indirect over Mitsuba: bunny 1.028 (SH
-  1.019), floor 1.092 (SH 1.040; the excess sits on floor points 0.7-1.5 from the bunny, far-field
-  receivers, where the truncated field differs from ``S`` cast at the point by -1.5 % for the mean
-  basis function and -12 % for the first PCA function). Coefficients kept per cubemap
-  (``haar_radiance_keep``; field size per object, relative truncation bunny / floor, indirect RMS
-  bunny / floor): 16: 38 MB, 0.48 / 0.53, 0.178 / 0.568; 32: 75 MB, 0.38 / 0.42, 0.178 / 0.543;
-  64: 151 MB, 0.28 / 0.32, 0.177 / 0.528; 128: 302 MB, 0.19 / 0.22, 0.177 / 0.521; 256: 604 MB,
-  0.10 / 0.14, 0.176 / 0.519. Without the near field (``near_field=0``, the paper) the bunny's indirect
-  is 0.547 (SH 0.535): the sample spheres do not resolve a large source nearby, in either basis;
-* frame (Fig. 9, one bounce, the bunny moved, medians of 3, same run, busy machine): basis irradiance
-  step 6.1 / 10.6 s (Haar), 0.86 / 2.6 s (SH), 2.0 / 4.0 s (Haar without near field); direct step
-  0.2-1.0 s in every variant. The Haar near field (about 60 % of the step) casts ``6 r^2`` texel
-  rays per receiver where the SH one casts its quadrature (degree 47);
-* speed: :func:`haar_basis_irradiance` (K N = 16, keep 64, r = 32) runs about 21 times faster than its
-  reference tier, and 4-57 times slower than the order-4 SH :func:`basis_irradiance` (same run, a
-  loaded machine: 280-340 us against 5-80 us per vertex): the Haar transform of the transfer,
-  ``6 r^2`` texels per vertex and ``k'``, dominates.
+Measured figures (how they were found): ``docs/notes/interreflection.md``.
 
 References
 ----------

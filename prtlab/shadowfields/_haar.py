@@ -60,7 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from prtlab._validate import as_points, check_int
+from prtlab._validate import check_int
 from prtlab.geometry import RayCaster, cubemap_directions, direction_to_cubemap
 from prtlab.wavelet import haar2d, ihaar2d
 
@@ -296,7 +296,11 @@ class HaarOcclusionField:
         """
         if interpolation not in ("trilinear", "nearest"):
             raise ValueError(f"interpolation must be 'trilinear' or 'nearest', got {interpolation!r}")
-        points = as_points(points)
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim == 0 or points.shape[-1] != 3:
+            raise ValueError(f"points must be a (..., 3) array, got shape {points.shape}")
+        if not np.all(np.isfinite(points)):
+            raise ValueError("points contain NaN or inf; pass finite points")
         local = points.reshape(-1, 3)
         if transform is not None:
             R = np.asarray(transform.rotation, dtype=np.float64)

@@ -57,15 +57,7 @@ vertex under the Fig. 9 light with 1-3 occluders (the SH path: 30), 60 % in the 
 the light's pieces and 35 % in the visibility products; 0.5 ms per vertex under an environment
 (every texel lit: one synthesis per factor and vertex).
 
-Measured accuracy (relative RMS of the direct light against ``prtlab.reference``)
-
-* ball over 81 floor points, Fig. 9 area light: Haar field 0.105 (ray-cast
-  cubemap at the point 0.045), SH order 4 0.637; point light: Haar field 0.281
-  (ray-cast cubemap 0.218: the hard edge within a texel), SH visibility toward
-  the light 0.631;
-* the interreflection pipeline's direct step on the bunny (1,839 vertices) on a
-  floor under the Fig. 9 light (the pipeline option ``shadows="haar"``):
-  bunny 0.013 against 0.207 with SH, floor 0.055 against 0.145.
+Measured figures: ``docs/notes/shadowfields.md``.
 
 References
 ----------

@@ -26,17 +26,7 @@ Self-visibility ``V_self(x_j, w)`` of a vertex is the same projection from
 the vertex (the ray origin offset off the surface on the side of the ray,
 :mod:`prtlab.geometry._raycast`), against its own object only.
 
-Measured errors (``tests/shadowfields/test_occlusion.py``), as the SH distance
-relative to the norm of the shadow ``||1 - V||`` of a unit sphere blocker, at
-random points 1.5..6 radii from it:
-
-* quadrature of the step ``V`` against the closed-form cap
-  (:func:`prtlab.sh.blocker_zh`), points 1.5..4 radii: rms 0.09 (degree 31),
-  0.046 (47), 0.030 (63), 0.018 (95);
-* trilinear interpolation against the direct projection (same rule): rms
-  0.10, 95th percentile 0.19 with the default grid (16 radii, ``6 x 16 x 16``);
-  rms 0.24, p95 0.48 with ``n_radii=8, resolution=8``. The maximum is a heavy
-  tail (far points whose small cap falls between neighbouring samples).
+Measured figures: ``docs/notes/shadowfields.md``.
 
 References
 ----------
@@ -76,7 +66,11 @@ def _check_degree(degree, order: int) -> int:
 
 def _flat_origins(origins, normals):
     """``origins`` (..., 3) checked and flattened: ``(batch shape, (P, 3), (P, 3) normals or None)``."""
-    origins = as_points(origins, "origins")
+    origins = np.asarray(origins, dtype=np.float64)
+    if origins.ndim == 0 or origins.shape[-1] != 3:
+        raise ValueError(f"origins must be a (..., 3) array, got shape {origins.shape}")
+    if not np.all(np.isfinite(origins)):
+        raise ValueError("origins contain NaN or inf; pass finite points")
     nflat = None
     if normals is not None:
         nflat = np.broadcast_to(np.asarray(normals, dtype=np.float64), origins.shape).reshape(-1, 3)

@@ -21,12 +21,7 @@ represented by its height and a rectangle in ``x, z`` (centre and two half
 edges: the object-space bounding box of its mesh, placed by its transform, so
 a rotated ground stays the same rectangle).
 
-Measured (one diffuse sphere resting on the 6 x 6 ground of the Fig. 8
-scenes, constant environment): the radiance of the sphere's surface with the
-finite ground is 15 % above the one with an infinite ground (the band of
-environment between the horizon and the ground's edge, ``atan(0.5 / 3)``,
-about 9.5 degrees deep, is visible); with this module the first pass
-matches the Monte Carlo radiance of the samples within its standard error.
+Measured figures: ``docs/notes/spherelights.md``.
 """
 
 from __future__ import annotations

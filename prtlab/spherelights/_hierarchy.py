@@ -49,16 +49,7 @@ The per-light values at the ratio points come from :func:`per_light_indirect`
 themselves are shaded by the fused second pass, one call per coarse cluster
 (its emission scaled by ``t``), or per distinct cut without the ratio.
 
-Measured (6 balls of 16 lights = 96 leaves over a 49 x 49 plane, 3373
-receivers, 4 children per parent, clusters of 128, HYB, per-object blocking;
-times as ratios against the flat pass in the same run, 4 interleaved repeats,
-2 shared cores): threshold 0.5: without the ratio 1.75x faster at 6.3 %
-relative RMS indirect error, with it (5 points) 0.64x (slower) at 1.8 %;
-threshold 0.7: 1.56x at 6.6 %, 0.64x at 2.0 %; clusters of 256 at 0.5:
-1.61x at 4.9 % and 0.92x at 2.2 %. The direct light is the flat pass's
-exactly. On a CPU the ratio costs more than the coarse cuts save at this
-scale: the per-light values (30k rows at 5 points per cluster) run in the
-numpy tier, and each coarse cluster is its own second-pass call.
+Measured figures: ``docs/notes/spherelights.md``.
 """
 
 from __future__ import annotations
