@@ -112,14 +112,20 @@ def _grey_weights(brdf: Phong) -> tuple[float, float]:
     return wd / (wd + ws), ws / (wd + ws)
 
 
-def _tables(exponent: float, n_theta: int, n_phi: int, parameterisation: str):
-    """Diffuse and lobe tables ``(n_in, n_out, n_phi)`` over ``(theta_i, theta_o, phi_o - phi_i)``."""
+def _grid(n_theta: int, n_phi: int, parameterisation: str):
+    """The tabulation grid: Gauss nodes and weights in ``theta_i`` over ``[0, pi/2]`` and in ``theta_o`` (over
+    ``[0, pi/2]`` for the plain parameterisation, else ``2 n_theta`` over ``[0, pi]``), ``n_phi`` even azimuths."""
     theta_i, w_i = _gauss_theta(n_theta, 0.5 * np.pi)
     if parameterisation == "plain":
         theta_o, w_o = _gauss_theta(n_theta, 0.5 * np.pi)
     else:
         theta_o, w_o = _gauss_theta(2 * n_theta, np.pi)
-    phi = 2.0 * np.pi * np.arange(n_phi) / n_phi
+    return theta_i, w_i, theta_o, w_o, 2.0 * np.pi * np.arange(n_phi) / n_phi
+
+
+def _tables(exponent: float, n_theta: int, n_phi: int, parameterisation: str):
+    """Diffuse and lobe tables ``(n_in, n_out, n_phi)`` over ``(theta_i, theta_o, phi_o - phi_i)``."""
+    theta_i, w_i, theta_o, w_o, phi = _grid(n_theta, n_phi, parameterisation)
     wi = np.stack([np.sin(theta_i), np.zeros_like(theta_i), np.cos(theta_i)], axis=-1)[:, None, None, :]
     so, co = np.sin(theta_o)[:, None], np.cos(theta_o)[:, None]
     out = np.stack(np.broadcast_arrays(so * np.cos(phi), so * np.sin(phi), co), axis=-1)[None]  # (1, n_o, n_phi, 3)
@@ -515,12 +521,7 @@ def _dense_svd_spectrum(brdf, resolution, parameterisation: str = "plain"):
     small resolutions only.
     """
     n_theta, n_phi = _check_resolution(resolution)
-    theta_i, w_i = _gauss_theta(n_theta, 0.5 * np.pi)
-    if parameterisation == "plain":
-        theta_o, w_o = _gauss_theta(n_theta, 0.5 * np.pi)
-    else:
-        theta_o, w_o = _gauss_theta(2 * n_theta, np.pi)
-    phi = 2.0 * np.pi * np.arange(n_phi) / n_phi
+    theta_i, w_i, theta_o, w_o, phi = _grid(n_theta, n_phi, parameterisation)
 
     def dirs(theta):
         st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]

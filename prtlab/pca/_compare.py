@@ -50,14 +50,8 @@ from ..sh import basis as sh_basis
 from ._param import SurfaceParam
 from ._weights import WeightSolver
 
-__all__ = [
-    "COMPARISON_BASES",
-    "BasisComparison",
-    "uv_basis",
-    "fourier_cosine_indices",
-    "compare_bases",
-    "area_light_intensity",
-]
+__all__ = ["COMPARISON_BASES", "BasisComparison", "uv_basis", "fourier_cosine_indices", "compare_bases",
+           "area_light_intensity"]
 
 COMPARISON_BASES = ("sh", "haar", "fourier", "pca")
 

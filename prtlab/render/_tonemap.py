@@ -100,6 +100,21 @@ def tonemap(img, exposure: float = 0.0, curve: str = "clip", srgb: bool = True) 
     return srgb_encode(x) if srgb else x
 
 
+def _rgb_image(img) -> np.ndarray:
+    """``img`` checked as an ``(h, w, 3)`` linear RGB image."""
+    arr = _image("img", img)
+    if arr.ndim != 3 or arr.shape[-1] != 3:
+        raise ValueError(f"img must be an (h, w, 3) linear RGB image, got shape {arr.shape}")
+    return arr
+
+
+def _output_path(path) -> Path:
+    """``path`` as a Path, its folder created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def save_png(path, img, exposure: float = 0.0, tonemap: str = "clip") -> Path:
     """Write a linear HDR image as an 8-bit sRGB PNG.
 
@@ -118,12 +133,9 @@ def save_png(path, img, exposure: float = 0.0, tonemap: str = "clip") -> Path:
     """
     import imageio.v3 as iio
 
-    arr = _image("img", img)
-    if arr.ndim != 3 or arr.shape[-1] != 3:
-        raise ValueError(f"img must be an (h, w, 3) linear RGB image, got shape {arr.shape}")
+    arr = _rgb_image(img)
     display = _tonemap(arr, exposure=exposure, curve=tonemap)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = _output_path(path)
     iio.imwrite(path, np.round(display * 255.0).astype(np.uint8), extension=".png")
     return path
 
@@ -145,11 +157,8 @@ def save_exr(path, img) -> Path:
     """
     import OpenEXR
 
-    arr = _image("img", img)
-    if arr.ndim != 3 or arr.shape[-1] != 3:
-        raise ValueError(f"img must be an (h, w, 3) linear RGB image, got shape {arr.shape}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = _rgb_image(img)
+    path = _output_path(path)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, {"RGB": np.ascontiguousarray(arr, dtype=np.float32)}) as exr:
         exr.write(str(path))

@@ -22,19 +22,9 @@ import yaml
 from ._scene import AreaLight, Camera, EnvironmentLight, Material, PointLight, Scene, SceneObject, Transform
 from ._validate import InwardNormalsWarning, SceneError, Validator, child, clip, index, show
 
-__all__ = [
-    "load_scene",
-    "scene_from_dict",
-    "scene_to_dict",
-    "save_scene",
-    "build_environment",
-    "DEGENERATE_FACE_FRACTION",
-    "DEGENERATE_AREA_RTOL",
-    "MAX_SCENE_BYTES",
-    "MAX_YAML_NODES",
-    "MAX_YAML_DEPTH",
-    "MAX_COORDINATE",
-]
+__all__ = ["load_scene", "scene_from_dict", "scene_to_dict", "save_scene", "build_environment",
+           "DEGENERATE_FACE_FRACTION", "DEGENERATE_AREA_RTOL", "MAX_SCENE_BYTES", "MAX_YAML_NODES", "MAX_YAML_DEPTH",
+           "MAX_COORDINATE"]
 
 #: A mesh is rejected when more than this fraction of its faces have zero area.
 DEGENERATE_FACE_FRACTION = 0.01

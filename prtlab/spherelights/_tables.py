@@ -30,6 +30,18 @@ N_THETA = 256
 _N_GAUSS = 64
 
 
+def _check_zh_args(theta, order, method) -> np.ndarray:
+    """``method`` one of "table", "direct", ``order`` valid, ``theta`` finite angular radii in ``[0, pi/2]``:
+    returned as float64."""
+    if method not in ("table", "direct"):
+        raise ValueError(f"method must be 'table' or 'direct', got {method!r}")
+    check_order(order)
+    th = np.asarray(theta, dtype=np.float64)
+    if not np.all(np.isfinite(th)) or np.any((th < 0) | (th > 0.5 * np.pi)):
+        raise ValueError("theta must be finite angular radii in [0, pi/2] radians")
+    return th
+
+
 def average_radiance_weight(alpha, theta) -> np.ndarray:
     """``cos gamma(alpha)`` of Eq. 17 (unnormalised): inclination of the sphere surface seen from ``p``.
 
@@ -115,12 +127,7 @@ def w_theta_zh(theta, order: int, *, method: str = "table") -> np.ndarray:
     ----------
     Guerrero et al. 2008, Eqs. 16-18.
     """
-    if method not in ("table", "direct"):
-        raise ValueError(f"method must be 'table' or 'direct', got {method!r}")
-    check_order(order)
-    th = np.asarray(theta, dtype=np.float64)
-    if not np.all(np.isfinite(th)) or np.any((th < 0) | (th > 0.5 * np.pi)):
-        raise ValueError("theta must be finite angular radii in [0, pi/2] radians")
+    th = _check_zh_args(theta, order, method)
     if method == "direct":
         return _w_theta_direct(th, int(order)).reshape(th.shape + (order,))
     table = _w_theta_table(int(order))
@@ -259,12 +266,7 @@ def irradiance_kernel_zh(theta, order: int, *, method: str = "table") -> np.ndar
     ----------
     Guerrero et al. 2008, Eqs. 13-18 (of which this is the exact unoccluded form).
     """
-    if method not in ("table", "direct"):
-        raise ValueError(f"method must be 'table' or 'direct', got {method!r}")
-    check_order(order)
-    th = np.asarray(theta, dtype=np.float64)
-    if not np.all(np.isfinite(th)) or np.any((th < 0) | (th > 0.5 * np.pi)):
-        raise ValueError("theta must be finite angular radii in [0, pi/2] radians")
+    th = _check_zh_args(theta, order, method)
     th = np.minimum(th, THETA_MAX_K)
     if method == "direct":
         return _irradiance_kernel_direct(th, int(order)).reshape(th.shape + (order,))
