@@ -24,6 +24,13 @@ import numpy as np
 # --------------------------------------------------------------------------- transforms
 
 
+@numba.njit(cache=True, inline="always")
+def _details(f, p, q, h, inv_r):
+    """The three detail coefficients of the square ``(p, q)`` at level ``h`` (horizontal, vertical,
+    diagonal), scaled by ``inv_r``."""
+    return f[p, h + q] * inv_r, f[h + p, q] * inv_r, f[h + p, h + q] * inv_r
+
+
 @numba.njit(cache=True, parallel=True)
 def haar_forward(faces, out):
     """Orthonormal non-standard 2D Haar transform of ``faces (F, r, r)`` into ``out``."""
@@ -145,15 +152,9 @@ def haar_triple(a, b, c, out):
             last = 2 * h == r
             for p in range(h - 1, -1, -1):
                 for q in range(h - 1, -1, -1):
-                    a01 = fa[p, h + q] * inv_r
-                    a10 = fa[h + p, q] * inv_r
-                    a11 = fa[h + p, h + q] * inv_r
-                    b01 = fb[p, h + q] * inv_r
-                    b10 = fb[h + p, q] * inv_r
-                    b11 = fb[h + p, h + q] * inv_r
-                    c01 = fc[p, h + q] * inv_r
-                    c10 = fc[h + p, q] * inv_r
-                    c11 = fc[h + p, h + q] * inv_r
+                    a01, a10, a11 = _details(fa, p, q, h, inv_r)
+                    b01, b10, b11 = _details(fb, p, q, h, inv_r)
+                    c01, c10, c11 = _details(fc, p, q, h, inv_r)
                     am = ma[p, q]
                     bm = mb[p, q]
                     cm = mc[p, q]
@@ -207,12 +208,8 @@ def haar_product(a, b, out):
             last = 2 * h == r
             for p in range(h - 1, -1, -1):
                 for q in range(h - 1, -1, -1):
-                    a01 = fa[p, h + q] * inv_r
-                    a10 = fa[h + p, q] * inv_r
-                    a11 = fa[h + p, h + q] * inv_r
-                    b01 = fb[p, h + q] * inv_r
-                    b10 = fb[h + p, q] * inv_r
-                    b11 = fb[h + p, h + q] * inv_r
+                    a01, a10, a11 = _details(fa, p, q, h, inv_r)
+                    b01, b10, b11 = _details(fb, p, q, h, inv_r)
                     am = ma[p, q]
                     bm = mb[p, q]
                     dst[p, h + q] = a01 * bm + b01 * am + lev * (a10 * b11 + a11 * b10)
