@@ -343,7 +343,12 @@ def test_pca_basis_with_occluders_spans_their_shadows():
 #: total), within a third of the goals (``Comparison.check``).
 ROOM_SPP = 2048
 _DIRECT_SH = "the order-4 SH direct light of the small area light"
-_KNOWN: dict = {}  # (object, part): measured figure and cause; strict, so a fix fails loudly
+#: (object, part): measured figure (defaults, Mitsuba 256 spp) and cause; strict, so a fix fails loudly. Not yet
+#: measured at ROOM_SPP: the direct parts and the indirect parts under quadrature (the issue measured the floor's
+#: indirect 0.21, noise 0.10, against its budget hypot(0.15, 0.035) = 0.159 here).
+_KNOWN = {(o, "total"): f"measured rel_rms {v} (noise 0.01-0.03): the direct light is 0.16-0.28 off, {_DIRECT_SH}"
+          for o, v in (("floor", 0.18), ("wall_back", 0.14), ("wall_left", 0.15), ("box", 0.24), ("teapot", 0.18),
+                       ("bunny", 0.18))}
 _ROOM_OBJECTS = ("floor", "wall_back", "wall_left", "box", "teapot", "bunny")
 
 
