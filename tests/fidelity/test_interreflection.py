@@ -47,10 +47,10 @@ POSE_A = Transform(translate=np.array([0.9, 0.0, -0.8]), rotate_deg=np.array([0.
 
 CASES = {
     "fig9": ({}, False),
-    "fig9_haar": ({"shadows": "haar"}, False),
-    "fig9_haar_irradiance": ({"shadows": "haar", "irradiance": "haar"}, False),
     "moved": ({}, True),
     "moved_paper_basis": ({"pca_occluders": False}, True),
+    "fig9_haar": ({"shadows": "haar"}, False),
+    "fig9_haar_irradiance": ({"shadows": "haar", "irradiance": "haar"}, False),
 }
 
 #: Strict xfails: measured figures and causes (see the module docstring for how they are measured).
@@ -85,7 +85,7 @@ def shaded(reference):
         if case not in memo:
             options, moved = CASES[case]
             scene = fig9_scene(POSE_A) if moved else scene_b
-            pre = Interreflection.precompute(scene, options, cache=False, progress=False)
+            pre = Interreflection.precompute(scene, options, progress=False)
             state = FrameState.from_scene(scene)
             state.transforms["bunny"] = scene_b.object("bunny").transform
             memo[case] = pre.shade(state, bounces=1)
@@ -141,7 +141,7 @@ def ball_over_floor():
     from prtlab.reference import path_trace
     from tests.interreflection.test_pipeline import QUICK, scene
 
-    pre = Interreflection.precompute(scene(), QUICK, cache=False, progress=False)
+    pre = Interreflection.precompute(scene(), QUICK, progress=False)
     return pre.shade(bounces=1), path_trace(pre.scene, 1, PATHS, np.random.default_rng(11))
 
 

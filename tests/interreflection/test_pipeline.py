@@ -635,10 +635,10 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
 
 def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre):
     """``area_lights="field"``: one field per light shape, shared by moved, turned and scaled lights, sized
-    like the objects' sample spheres. Its direct light against the exact projection, relative L2 per
-    object (measured, floor / ball): 0.169 / 0.153 on these quick 8 x 6 x 8 x 8 spheres, 0.034 / 0.028 on the
-    default 16 x 6 x 16 x 16 (the field's own error on the SH radiance there: 0.022-0.026,
-    ``tests/shadowfields/test_sources.py``)."""
+    like the objects' sample spheres. Its direct light converges to the exact projection's as the spheres
+    refine: halving the spacing (8 x 6 x 8 x 8 to 16 x 6 x 16 x 16) cuts the relative L2 error per object at
+    least to half (trilinear interpolation errs like the spacing squared: a quarter). Measured, floor /
+    ball: 0.169 / 0.153 on the quick spheres, 0.034 / 0.028 on the default ones."""
     import dataclasses
 
     from prtlab.scene import AreaLight
@@ -651,15 +651,17 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
     turned = AreaLight(center=np.array([-0.3, 1.8, 0.2]), u=1.5 * R @ light.u, v=1.5 * R @ light.v,
                        radiance=np.array([1.0, 2.0, 3.0]))
     # the objects' fields are precomputed: at run time n_radii and resolution size only the light's field
-    for spheres, bound in (({}, 0.2), ({"n_radii": 16, "resolution": 16}, 0.04)):
+    errors = []
+    for spheres in ({}, {"n_radii": 16, "resolution": 16}):
         field = Interreflection(sc, dataclasses.replace(pre.options, area_lights="field", **spheres), pre.data)
-        for lit in (light, turned):
+        errors.append({})
+        for i, lit in enumerate((light, turned)):
             state = FrameState.from_scene(sc)
             state.lights = [lit]
             a, b = exact.shade(state, bounces=0), field.shade(state, bounces=0)
             for name in ("floor", "ball"):
-                err = np.linalg.norm(b.direct[name] - a.direct[name]) / np.linalg.norm(a.direct[name])
-                assert err < bound, (spheres, name, err)
+                errors[-1][i, name] = np.linalg.norm(b.direct[name] - a.direct[name]) / np.linalg.norm(a.direct[name])
         assert len(field._source_fields) == 1  # the turned light is a uniform scale of the first
+    assert all(errors[1][k] <= 0.5 * errors[0][k] for k in errors[0]), errors
     with pytest.raises(ValueError, match="option area_lights must be one of 'exact', 'field'"):
         InterreflectionOptions(area_lights="srf")
