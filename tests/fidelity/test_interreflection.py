@@ -8,8 +8,9 @@ and :meth:`prtlab.metrics.Comparison.check` refuses a reference whose noise exce
 
 The Fig. 9 floor's indirect light (the bunny's bounce light) is the one part whose reference cannot
 meet that within this module's budget: a BRDF-sampled ray from the floor rarely hits the bunny, and
-a per-vertex noise of 0.05 needs about 28k samples per vertex (several CPU-minutes per pose). It is
-checked through its mean instead: ``|mean(ours - ref)| <= goal * rms(ref) + MC_SIGMAS * se``, a
+a per-vertex noise of 0.05 needs about 28k samples per vertex (several CPU-minutes per pose). Its
+noise (0.23) only widens the budget ``hypot(goal, noise)``, so a miss of that budget is still a miss; a
+pass is further checked through the mean: ``|mean(ours - ref)| <= goal * rms(ref) + MC_SIGMAS * se``, a
 necessary condition of ``rel_rms <= goal`` (``|mean d| <= rms d``) plus the k-sigma interval of the
 reference's mean (``se`` its standard error).
 
@@ -53,8 +54,36 @@ CASES = {
     "fig9_haar_irradiance": ({"shadows": "haar", "irradiance": "haar"}, False),
 }
 
-#: Strict xfails: measured figures and causes (see the module docstring for how they are measured).
-KNOWN: dict = {}
+
+def _measured(rel_rms, noise, error, mean, cause):
+    return f"measured rel_rms {rel_rms} (noise {noise}, error {error}; mean {mean}): {cause}"
+
+
+_SH_DIRECT = "the order-4 SH direct light of the small area light (issue 18, item 2)"
+_DIRECT = {"floor": ("0.131", "0.005", "0.131", "-2 %"), "bunny": ("0.137", "0.004", "0.137", "-8 %")}
+_MOVED = ("the PCA bases hold the other objects' shadows at the precompute pose (pca_occluders), not at the "
+          "new one (issue 18)")
+_PAPER = "the paper's basis (no occluders in the PCA training) cannot hold the bunny's shadow on the floor (issue 18)"
+#: Strict xfails of test_fig9_against_mitsuba: measured figures (SPP, seed 0) and causes.
+KNOWN: dict = {
+    **{(case, obj, "direct"): _measured(*_DIRECT[obj], _SH_DIRECT)
+       for case in ("fig9", "moved", "moved_paper_basis") for obj in _DIRECT},
+    ("fig9", "floor", "total"): _measured("0.131", "0.005", "0.131", "-2 %", f"its direct light, {_SH_DIRECT}"),
+    ("fig9", "bunny", "total"): _measured("0.146", "0.008", "0.146", "-5 %", f"its direct light, {_SH_DIRECT}"),
+    ("fig9", "floor", "indirect"): _measured("0.516", "0.234", "0.460", "-1 %", "the bunny's radiance as a source"
+                                             f" carries the bunny's direct light, {_SH_DIRECT}"),
+    ("fig9", "bunny", "indirect"): _measured("0.353", "0.040", "0.350", "+8 %", "not traced"),
+    ("moved", "floor", "total"): _measured("0.132", "0.005", "0.132", "-2 %", f"its direct light, {_SH_DIRECT}"),
+    ("moved", "bunny", "total"): _measured("0.170", "0.008", "0.170", "-4 %", f"{_SH_DIRECT}, and its indirect"),
+    ("moved", "floor", "indirect"): _measured("0.651", "0.234", "0.608", "+4 %", _MOVED),
+    ("moved", "bunny", "indirect"): _measured("0.593", "0.040", "0.591", "+15 %", _MOVED),
+    ("moved_paper_basis", "floor", "total"): _measured("0.132", "0.005", "0.132", "-2 %",
+                                                       f"its direct light, {_SH_DIRECT}"),
+    ("moved_paper_basis", "bunny", "total"): _measured("0.162", "0.008", "0.162", "-4 %",
+                                                       f"{_SH_DIRECT}, and its indirect"),
+    ("moved_paper_basis", "floor", "indirect"): _measured("1.147", "0.234", "1.123", "+15 %", _PAPER),
+    ("moved_paper_basis", "bunny", "indirect"): _measured("0.527", "0.040", "0.526", "+13 %", _PAPER),
+}
 
 
 def fig9_scene(bunny: Transform | None = None) -> Scene:
@@ -121,7 +150,8 @@ def test_fig9_against_mitsuba(reference, shaded, case, obj, part):
     row = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=scored_vertices(scene)).row(obj, part)
     print(f"\n{case} {obj} {part}: rel_rms {row.rel_rms:.4f} noise {row.noise:.4f} error {row.error:.4f} "
           f"mean ratio {row.mean_ratio:.4f}")
-    if (obj, part) == ("floor", "indirect"):  # its per-vertex noise is above goal / 3: the mean (docstring)
+    if (obj, part) == ("floor", "indirect"):  # its noise is above goal / 3 (module docstring)
+        assert row.meets(GOAL[part]), row
         err, bound = mean_within_goal(ours.indirect["floor"], ref.indirect["floor"], ref.stderr["indirect"]["floor"],
                                       GOAL[part])
         assert np.all(err <= bound), (err, bound, row)
@@ -133,7 +163,10 @@ def test_fig9_against_mitsuba(reference, shaded, case, obj, part):
 
 # --------------------------------------------------------------------------- ball over floor, Monte Carlo
 
-BALL_KNOWN: dict = {}
+BALL_KNOWN = {("floor", "indirect"): "measured rel_rms 0.301 (noise 0.043, error 0.298; mean +18 %): the ball's "
+                                    "bounce light on the floor is too bright; the floor is a plane (visibility 1, "
+                                    "exact transfer), so the error is in the ball as a source (its N = 8 PCA radiance "
+                                    "on the quick sample spheres), not traced further"}
 
 
 @pytest.fixture(scope="module")
