@@ -125,7 +125,8 @@ def test_self_visibility_of_a_convex_object_is_the_outer_hemisphere():
     """The outer hemisphere about each vertex normal, reached at the step function's quadrature rate."""
     n = np.asarray(SPHERE.vertex_normals)
     ref = sh.zh_rotate(sh.blocker_zh(np.full(len(n), np.pi / 2), ORDER), -n)
-    rms = [np.sqrt(np.mean(relative_to_shadow(self_visibility(SPHERE, ORDER, degree=d), ref) ** 2)) for d in (31, 63, 127)]
+    rms = [np.sqrt(np.mean(relative_to_shadow(self_visibility(SPHERE, ORDER, degree=d), ref) ** 2))
+           for d in (31, 63, 127)]
     assert rms[1] <= STEP_RATE * rms[0] and rms[2] <= STEP_RATE * rms[1], rms
 
 
