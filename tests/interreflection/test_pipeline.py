@@ -91,7 +91,8 @@ def test_one_bounce_between_two_objects_against_monte_carlo(pre, reference):
 @pytest.mark.xfail(strict=True, reason="measured rel_rms 0.313 (noise 0.085, error 0.30; mean +18 %) against "
                    "4,096 paths, 0.301 (noise 0.043, error 0.298) against 16,384 in the fidelity tier: the ball's "
                    "bounce light on the floor is too bright; the floor is a plane (visibility 1, exact transfer), so "
-                   "the error is in the ball as a source (its N = 8 PCA radiance on the quick sample spheres), not traced further")
+                   "the error is in the ball as a source (its N = 8 PCA radiance on the quick sample spheres), not "
+                   "traced further")
 def test_the_floors_bounce_light_is_within_the_goal(pre, reference):
     """The floor's indirect light against ``PATHS`` paths: its reference noise (0.085) is above a third of
     the goal, which only widens the budget ``hypot(goal, noise)``; a miss is still a miss."""
