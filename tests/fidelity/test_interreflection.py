@@ -19,8 +19,9 @@ light, one bounce) with a 16 x 16 floor; the pose it ships in is pose B. Cases: 
 ``shadows="haar"`` at B, also with ``irradiance="haar"``; precomputed with the bunny at pose A (moved
 and turned away) and moved to B by a :class:`prtlab.pipeline.FrameState`, at the defaults and with
 ``pca_occluders=False`` (the paper's basis). The reference is Mitsuba at B for every case. Bunny
-vertices on the floor (y <= 0.01) are left out (``docs/DECISIONS.md``). Ball over floor (``tests/interreflection/test_pipeline.py``,
-quick options) against prtlab's own path tracer with 16,384 paths per vertex.
+vertices on the floor (y <= 0.01) are left out (``docs/DECISIONS.md``). Ball over floor
+(``tests/interreflection/test_pipeline.py``, quick options) against prtlab's own path tracer with 16,384
+paths per vertex.
 """
 
 from __future__ import annotations
