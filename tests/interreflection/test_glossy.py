@@ -30,8 +30,9 @@ given below the horizon; such vertices are not seen in an image (measured on a g
 +16-23 % there, within 1 % on the camera-facing vertices at K = 16).
 
 One bounce (quick fields, per-object means of the camera-facing vertices, 128 paths), against
-the all-diffuse scene's +3.7 % (ball indirect; ``TAU_MEAN`` of test_pipeline.py documents the
-diffuse machinery's bias, 10 %):
+the all-diffuse scene's +3.7 % (ball indirect); the means are held to the paper's indirect goal by
+``mean_bound`` of test_pipeline.py (``|mean d| <= 0.15 rms(ref)``, a necessary condition of a
+relative RMS of 15 %, plus ``MC_SIGMAS`` standard errors of the reference's mean):
 
 * diffuse source onto a glossy receiver: ball indirect +15..17 % at K = 4, +3.5 % at K = 16;
   adding the derived separable term ``< ell_ind, T - T_K >`` (``ell_ind``: the floor's radiance
@@ -39,8 +40,7 @@ diffuse machinery's bias, 10 %):
 * glossy source onto a diffuse receiver: ball indirect +9 % at K = 4, +8 % at K = 16; the
   glossy source adds about 4-5 % to the diffuse machinery's bias (not traced to a stage yet; the
   candidates are its view-dependent basis radiance at SH order 4 and the PCA fit of its K light
-  terms), bounded with the diffuse ``TAU`` 
-  plus the source's own separable error toward the receiver (relative RMS over the floor's vertices,
+  terms), bounded with the indirect goal plus the source's own separable error toward the receiver (relative RMS over the floor's vertices,
   0.13-0.15 at K = 4; a loose bound: the ball integrates it, and K = 16 gives nearly the same +8 %).
 
 Fig. 7, reduced (``data/scenes/interreflection_teapots.yaml``, defaults, one bounce, Mitsuba 3 at
@@ -63,7 +63,7 @@ from prtlab.pipeline import FrameState
 from prtlab.reference import path_trace
 from prtlab.scene import AreaLight, EnvironmentLight, Material, Scene, environment_sh
 from tests.conftest import MC_SIGMAS
-from tests.interreflection.test_pipeline import QUICK, TAU_MEAN
+from tests.interreflection.test_pipeline import GOAL, QUICK, mean_bound
 
 GLOSSY = {"type": "phong", "kd": [0.3, 0.25, 0.2], "ks": [0.5, 0.5, 0.5], "exponent": 10}
 RED = {"type": "diffuse", "albedo": [0.8, 0.3, 0.3]}
@@ -239,13 +239,6 @@ def _facing(scene, name):
     return np.sum(n * wo, axis=1) > 0.0
 
 
-def _mean_bound(ours, truth, se, tau):
-    """Per-object means: ``|mean(ours) - mean(truth)| <= MC_SIGMAS se_mean + tau mean(truth)`` per channel."""
-    se_mean = np.sqrt(np.sum(se**2, axis=0)) / len(truth)
-    err = np.abs(ours.mean(0) - truth.mean(0))
-    return err, MC_SIGMAS * se_mean + tau * truth.mean(0)
-
-
 @pytest.fixture(scope="module")
 def diffuse_onto_glossy(cache):
     scene = ball_over_floor(RED, GLOSSY)
@@ -264,7 +257,7 @@ def test_one_bounce_from_a_diffuse_source_onto_a_glossy_receiver(diffuse_onto_gl
     """A red floor lights a glossy ball. The ball's indirect light (camera-facing vertices) plus the
     derived separable term ``< ell_ind, T - T_K >`` (``ell_ind``: the floor's radiance at the ball's
     shading points, :func:`basis_radiance_at` with the pipeline's weights) is Monte Carlo within the
-    diffuse machinery's documented bias ``TAU_MEAN`` (test_pipeline.py); the ball's direct light as
+    indirect goal (``mean_bound``, test_pipeline.py); the ball's direct light as
     well (the separable term of its direct light, against the unshadowed environment, added)."""
     pre, res, ref = diffuse_onto_glossy
     scene = pre.scene
@@ -280,11 +273,10 @@ def test_one_bounce_from_a_diffuse_source_onto_a_glossy_receiver(diffuse_onto_gl
     predicted = np.einsum("vic,vic->vc", ell_ind, T - TK)
     m = _facing(scene, "ball")
     truth, se = ref.indirect["ball"][m], ref.stderr["indirect"]["ball"][m]
-    err, bound = _mean_bound(res.indirect["ball"][m] + predicted[m], truth, se, TAU_MEAN["indirect"])
+    err, bound = mean_bound(res.indirect["ball"][m] + predicted[m], truth, se, GOAL["indirect"])
     assert np.all(err <= bound), (err, bound, truth.mean(0))
-    # the separable term is what K = 4 costs here: 11-14 % of the indirect light (module docstring)
-    share = -predicted[m].mean(0) / truth.mean(0)
-    assert np.all((share > 0.05) & (share < 0.20)), share
+    # the derived separable term is what K = 4 costs here: without it the mean is further from Monte Carlo
+    assert np.all(np.abs(res.indirect["ball"][m].mean(0) - truth.mean(0)) > err), err
     # the red floor tints the glossy ball
     ind = res.indirect["ball"][m].mean(0)
     assert ind[0] > 1.5 * ind[2]
@@ -292,14 +284,14 @@ def test_one_bounce_from_a_diffuse_source_onto_a_glossy_receiver(diffuse_onto_gl
     ell = environment_sh(scene.lights[0], ORDER)
     predicted_direct = np.einsum("ic,vic->vc", ell, T - TK)
     truth, se = ref.direct["ball"][m], ref.stderr["direct"]["ball"][m]
-    err, bound = _mean_bound(res.direct["ball"][m] + predicted_direct[m], truth, se, TAU_MEAN["direct"])
+    err, bound = mean_bound(res.direct["ball"][m] + predicted_direct[m], truth, se, GOAL["direct"])
     assert np.all(err <= bound), (err, bound, truth.mean(0))
 
 
 def test_one_bounce_from_a_glossy_source_onto_a_diffuse_receiver(glossy_onto_diffuse):
     """A glossy floor lights a diffuse ball. The receiver's BRDF is exact (Lambert, K = 1); the source
     emits ``sum_k h_k(-w_in) colour_k L_k``. Bound of the ball's mean indirect light: the diffuse
-    machinery's ``TAU_MEAN`` plus the source's separable error toward the receiver, derived on the
+    indirect goal (``mean_bound``) plus the source's separable error toward the receiver, derived on the
     floor's vertices under the (unshadowed) environment: ``rms_x < ell, T - T_K >(x -> ball centre)``
     relative to ``rms_x < ell, T >``."""
     pre, res, ref = glossy_onto_diffuse
@@ -312,17 +304,16 @@ def test_one_bounce_from_a_glossy_source_onto_a_diffuse_receiver(glossy_onto_dif
     ell = environment_sh(scene.lights[0], ORDER)
     emitted, error = np.einsum("ic,vic->vc", ell, T), np.einsum("ic,vic->vc", ell, T - TK)
     tau_source = np.sqrt(np.mean(error**2, axis=0) / np.mean(emitted**2, axis=0))
-    assert np.all((tau_source > 0.05) & (tau_source < 0.25)), tau_source  # measured 0.13-0.15 (docstring)
     m = _facing(scene, "ball")  # as seen in an image (all vertices: +14 % at K = 16, +8 % all-diffuse)
     truth, se = ref.indirect["ball"][m], ref.stderr["indirect"]["ball"][m]
-    err, bound = _mean_bound(res.indirect["ball"][m], truth, se, TAU_MEAN["indirect"] + tau_source)
+    err, bound = mean_bound(res.indirect["ball"][m], truth, se, GOAL["indirect"] + tau_source)
     assert np.all(err <= bound), (err, bound, truth.mean(0))
     # the glossy floor's direct light (camera-facing: all of a plane under this camera) as in (a)
     _, n, wo = _view(scene, floor)
     T, TK, _ = separable_transfer(floor.material, pre.seps["floor"], n, wo)
     truth, se = ref.direct["floor"], ref.stderr["direct"]["floor"]
-    err, bound = _mean_bound(res.direct["floor"] + np.einsum("ic,vic->vc", ell, T - TK), truth, se,
-                             TAU_MEAN["direct"])
+    err, bound = mean_bound(res.direct["floor"] + np.einsum("ic,vic->vc", ell, T - TK), truth, se,
+                            GOAL["direct"])
     assert np.all(err <= bound), (err, bound, truth.mean(0))
 
 
@@ -330,24 +321,24 @@ def test_one_bounce_from_a_glossy_source_onto_a_diffuse_receiver(glossy_onto_dif
 @pytest.mark.parametrize("which", ["diffuse_onto_glossy", "glossy_onto_diffuse"])
 def test_one_bounce_with_many_separable_terms_is_the_diffuse_machinery(which, cache):
     """With K = 16 (``brdf.transfer_error`` 0.03 here) the glossy ball's / the diffuse ball's indirect
-    light is within ``TAU_MEAN`` of Monte Carlo without any separable correction (measured: +3.5 % and
-    +8 %)."""
+    light is within the indirect goal of Monte Carlo (``mean_bound``) without any separable correction
+    (measured: +3.5 % and +8 %)."""
     materials = {"diffuse_onto_glossy": (RED, GLOSSY), "glossy_onto_diffuse": (GLOSSY, BLUE)}[which]
     scene = ball_over_floor(*materials)
     res = _precompute(scene, cache, K_glossy=16).shade(bounces=1)
     ref = path_trace(scene, 1, 128, np.random.default_rng(3))
     m = _facing(scene, "ball")
-    err, bound = _mean_bound(res.indirect["ball"][m], ref.indirect["ball"][m], ref.stderr["indirect"]["ball"][m],
-                             TAU_MEAN["indirect"])
+    err, bound = mean_bound(res.indirect["ball"][m], ref.indirect["ball"][m], ref.stderr["indirect"]["ball"][m],
+                            GOAL["indirect"])
     assert np.all(err <= bound), (err, bound)
 
 
 # --------------------------------------------------------------------------- Fig. 7, reduced, against Mitsuba 3
 
-#: The issue's goals (relative RMS of per-vertex radiance against Mitsuba), as test_pipeline.py.
-GOAL = {"indirect": 0.15, "total": 0.05}
+#: Mitsuba samples per vertex of Fig. 7: relative noise within a third of the goals (``Comparison.check``).
+TEAPOTS_SPP = 2048
 TEAPOTS = ("floor", "wall_back", "wall_left", "teapot_glossy", "teapot_purple", "teapot_yellow")
-#: Measured at the defaults (one bounce, Mitsuba 256 spp) with what limits them; strict: a fix fails loudly.
+#: Measured rel_rms at the defaults (one bounce, Mitsuba 256 spp) with what limits them; strict: a fix fails loudly.
 _SH_DIRECT = "the order-4 SH direct light of the small area light (as the diffuse room, test_pipeline.py)"
 _SEPARABLE = ("the K = 4 separable Phong (exponent 10; +13-16 % on a glossy plane under smooth light, "
               "test_glossy_direct_is_the_separable_brdf_against_monte_carlo)")
@@ -368,8 +359,9 @@ TEAPOTS_KNOWN: dict = {
 # 0.027, and with shadows="haar" at K = 4 0.463 (-11 %) / 0.415 (+14 %) / 0.027: a Phong lobe of exponent 10
 # under a small area light needs more than 4 SH bands, and beyond order-4 light the K-term separation errs
 # more than brdf.transfer_error(sep, 4) says (relative_error() of this BRDF: 0.59 at K = 4, 0.21 at K = 16).
-# passing (measured): indirect floor 0.186 (noise 0.111), back wall 0.130 (0.101), left wall 0.124 (0.097),
-# yellow teapot 0.217 (0.070; bound 0.220), means 0.97-1.04 of Mitsuba
+# Indirect at 256 spp (linear budgets, before quadrature): floor 0.186 (noise 0.111), back wall 0.130 (0.101),
+# left wall 0.124 (0.097), yellow teapot 0.217 (0.070), means 0.97-1.04 of Mitsuba. Not yet measured at
+# TEAPOTS_SPP: these and the direct parts (no strict xfail without a measured figure).
 
 
 def scored_vertices(scene, name):
@@ -384,24 +376,14 @@ def scored_vertices(scene, name):
     return keep
 
 
-def relative_rms(scene, ours, ref, name, part):
-    """``(rms(ours - ref), rms(stderr))`` over the scored vertices, both relative to ``rms(ref)``."""
-    m = scored_vertices(scene, name)
-    a, b, se = getattr(ours, part)[name][m], getattr(ref, part)[name][m], ref.stderr[part][name][m]
-    scale = np.sqrt(np.mean(b**2))
-    return np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
-
-
 @pytest.fixture(scope="module")
 def teapots_scene():
-    import pathlib
-
     import prtlab
     from prtlab.reference import shade_mitsuba
 
     pytest.importorskip("mitsuba")
-    scene = prtlab.load_scene(pathlib.Path(__file__).resolve().parents[2] / "data/scenes/interreflection_teapots.yaml")
-    ref = shade_mitsuba(scene, bounces=1, spp=256, seed=0)
+    scene = prtlab.load_scene("interreflection_teapots")
+    ref = shade_mitsuba(scene, bounces=1, spp=TEAPOTS_SPP, seed=0)
     ours = Interreflection.precompute(scene, {}, progress=False).shade(bounces=1)
     return scene, ours, ref
 
@@ -416,7 +398,11 @@ def _teapots_case(obj, part):
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("obj, part", [_teapots_case(o, p) for o in TEAPOTS for p in GOAL])
 def test_fig7_teapots_against_mitsuba(teapots_scene, obj, part):
-    """Fig. 7 reduced (``data/scenes/interreflection_teapots.yaml``), one bounce, defaults: the goal plus
-    the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
-    rms, noise = relative_rms(*teapots_scene, obj, part)
-    assert rms <= GOAL[part] + noise, (rms, noise)
+    """Fig. 7 reduced (``data/scenes/interreflection_teapots.yaml``), one bounce, defaults, against Mitsuba at
+    ``TEAPOTS_SPP``: ``rel_rms <= hypot(goal, noise)`` on the scored vertices (:func:`scored_vertices`)."""
+    import prtlab
+
+    scene, ours, ref = teapots_scene
+    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks={obj: scored_vertices(scene, obj)})
+    failures = comparison.check(GOAL[part])
+    assert not failures, failures

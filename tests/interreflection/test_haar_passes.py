@@ -361,22 +361,20 @@ def test_pipeline_irradiance_option_needs_haar_shadows():
 
 def test_pipeline_one_bounce_against_monte_carlo(tmp_path):
     """The ball over a red floor (``tests/interreflection/test_pipeline.py``), one bounce, tiny fields: the
-    per-object mean indirect light of ``irradiance="haar"`` within ``MC_SIGMAS`` standard errors plus
-    ``TAU_MEAN`` of Monte Carlo (the bound of the SH pipeline's test)."""
+    per-object mean indirect light of ``irradiance="haar"`` held to the indirect goal (``mean_bound`` of
+    ``test_pipeline.py``: a necessary condition of 15 % relative RMS, plus ``MC_SIGMAS`` standard errors)."""
     from prtlab.cache import Cache
     from prtlab.interreflection import Interreflection
     from prtlab.reference import path_trace
-    from tests.interreflection.test_pipeline import TAU_MEAN, scene
+    from tests.interreflection.test_pipeline import GOAL, mean_bound, scene
 
     cache = Cache(tmp_path, progress=False)
     pre = Interreflection.precompute(scene(), dict(_TINY, irradiance="haar"), cache=cache, progress=False)
     res = pre.shade(bounces=1)
     ref = path_trace(pre.scene, 1, 64, np.random.default_rng(11))
     for name in ("floor", "ball"):
-        ours, truth = res.indirect[name], ref.indirect[name]
-        se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
-        err = np.abs(ours.mean(0) - truth.mean(0))
-        assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err)
+        err, bound = mean_bound(res.indirect[name], ref.indirect[name], ref.stderr["indirect"][name], GOAL["indirect"])
+        assert np.all(err <= bound), (name, err, bound)
     # the cached field comes back as it was, and truncating N cuts it
     again = Interreflection.precompute(scene(), dict(_TINY, irradiance="haar"), cache=cache, progress=False)
     np.testing.assert_array_equal(again.haar_radiance["ball"].values, pre.haar_radiance["ball"].values)
@@ -411,24 +409,48 @@ def test_near_field_gather_equals_the_dense_cubemaps(seed):
 
 # --------------------------------------------------------------------------- Fig. 9 against Mitsuba 3
 
+#: (object, part): measured figure and cause, strict (as tests/fidelity/test_interreflection.py).
+FIG9_KNOWN = {
+    ("bunny", "indirect"): "measured rel_rms 0.327 (noise 0.040, error 0.324; mean +9 %): not traced (0.315 with "
+                           "SH irradiance, tests/fidelity/test_interreflection.py)",
+    ("bunny", "total"): "measured rel_rms 0.056 (noise 0.008, error 0.055; mean +2 %): its indirect light (above)",
+}
+
 
 @pytest.fixture(scope="module")
-def fig9_haar_irradiance_scene():
-    from tests.interreflection.test_pipeline import _whole_scene
+def fig9_haar_irradiance():
+    """Fig. 9 reduced as in the fidelity tier, ``shadows="haar", irradiance="haar"``, and its Mitsuba reference."""
+    pytest.importorskip("mitsuba")
+    from prtlab.interreflection import Interreflection
+    from prtlab.reference import shade_mitsuba
+    from tests.fidelity.test_interreflection import SPP, fig9_scene
 
-    return _whole_scene("fig9", shadows="haar", irradiance="haar")
+    scene = fig9_scene()
+    ours = Interreflection.precompute(scene, {"shadows": "haar", "irradiance": "haar"}, progress=False).shade(bounces=1)
+    return scene, ours, shade_mitsuba(scene, bounces=1, spp=SPP, seed=0)
+
+
+def _fig9_case(obj, part):
+    marks = [pytest.mark.xfail(strict=True, reason=FIG9_KNOWN[obj, part])] if (obj, part) in FIG9_KNOWN else []
+    return pytest.param(obj, part, marks=marks, id=f"{obj}-{part}")
 
 
 @pytest.mark.slow
 @pytest.mark.mitsuba
-@pytest.mark.parametrize("obj, part", [(o, p) for o in ("bunny", "floor") for p in ("indirect", "total")])
-def test_fig9_haar_irradiance_against_mitsuba(fig9_haar_irradiance_scene, obj, part):
-    """Fig. 9 with ``irradiance="haar"`` (and Haar shadows), one bounce, against Mitsuba 3 (256 spp), within the
-    goal of ``test_pipeline.py`` plus the reference noise. Measured (relative RMS, noise in brackets):
-    bunny direct 0.010 (0.010), indirect 0.177 (0.098), total 0.032 (0.019); floor direct 0.059 (0.011),
-    indirect 0.528 (0.499), total 0.059 (0.012). With SH irradiance in the same run: bunny indirect 0.172,
-    total 0.031; floor indirect 0.543, total 0.059 (the scene's indirect light is smooth: Haar buys nothing
-    measurable here, see the module docstring of ``_haar_passes``)."""
-    from tests.interreflection.test_pipeline import _assert_within_goal
+@pytest.mark.parametrize("obj, part", [_fig9_case(o, p) for o in ("floor", "bunny")
+                                       for p in ("direct", "indirect", "total")])
+def test_fig9_haar_irradiance_against_mitsuba(fig9_haar_irradiance, obj, part):
+    """Fig. 9 with ``irradiance="haar"`` (and Haar shadows), one bounce, scored as
+    ``test_fig9_against_mitsuba`` of the fidelity tier (its goals, noise rule and floor-indirect check)."""
+    import prtlab
+    from tests.fidelity.test_interreflection import GOAL, mean_within_goal, scored_vertices
 
-    _assert_within_goal(*fig9_haar_irradiance_scene, obj, part)
+    scene, ours, ref = fig9_haar_irradiance
+    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=scored_vertices(scene))
+    if (obj, part) == ("floor", "indirect"):
+        assert comparison.row(obj, part).meets(GOAL[part]), comparison.table()
+        err, bound = mean_within_goal(ours.indirect[obj], ref.indirect[obj], ref.stderr["indirect"][obj], GOAL[part])
+        assert np.all(err <= bound), (err, bound)
+        return
+    failures = comparison.check(GOAL[part])
+    assert not failures, failures

@@ -1,12 +1,18 @@
 """Tests of prtlab/interreflection/_pipeline.py: one bounce between two objects against Monte Carlo,
 moving objects, the api entry point.
 
-Documented approximation error (order-4 SH, quick fields: 8 radii x 6 x 8 x 8, degree 31; PCA with
-N = 8 from 64 lights), measured on this scene (ball of radius 0.5 at height 0.7 over a red floor, sky)
-against the reference with 256 paths per vertex: per-object mean radiance within 2.3 % (direct) and
-7 % (indirect: floor +3..7 %, ball -2.5..-3.2 %, z-scores up to 9, so these are the method's bias, not
-noise); relative RMS over vertices of the indirect, with the noise removed, about 8 % (ball). The tests
-bound the per-object means by ``MC_SIGMAS`` standard errors of the mean plus ``TAU_MEAN`` of the value.
+Goals (Iwasaki et al. 2007 as issue 15 sets them): relative RMS of per-vertex radiance 5 % on the
+total and 15 % on the indirect light, the direct light held to the total's 5 %, scored with
+:func:`prtlab.compare` (the reference's noise in quadrature, :meth:`prtlab.metrics.ComparisonRow.meets`;
+:meth:`prtlab.metrics.Comparison.check` refuses a reference noisier than a third of the goal).
+Where only a per-object mean is affordable, :func:`mean_bound` holds it to the same goal: ``rel_rms <= g``
+implies ``|mean(ours - ref)| <= g rms(ref)`` (``|mean d| <= rms d``), and ``MC_SIGMAS`` standard
+errors of the reference's mean are added (a confidence interval, not a noise budget).
+
+The quick ball over a red floor (order-4 SH, 8 radii x 6 x 8 x 8 spheres, degree 31, PCA with N = 8
+from 64 lights) against 4,096 paths per vertex: the floor's indirect light (the ball's bounce light)
+misses the indirect goal (``test_the_floors_bounce_light_is_within_the_goal``, a strict xfail; the
+fidelity tier repeats the whole scene with 16,384 paths, ``tests/fidelity/test_interreflection.py``).
 """
 
 from __future__ import annotations
@@ -27,7 +33,23 @@ from tests.conftest import MC_SIGMAS
 from tests.shadowfields.test_scene import ball_over_floor
 
 QUICK = dict(n_radii=8, resolution=8, degree=31, n_lights=64, n_basis=8)
-TAU_MEAN = {"direct": 0.04, "indirect": 0.10}
+#: The paper's goals: relative RMS of per-vertex radiance (direct held to the total's goal).
+GOAL = {"direct": 0.05, "indirect": 0.15, "total": 0.05}
+#: Paths per vertex of the ball-over-floor reference: relative noise 0.006-0.009 (direct, total) and
+#: 0.017 (ball indirect), within a third of the goals; the floor's indirect 0.085 is not (its xfail).
+PATHS = 4096
+
+
+def mean_bound(ours, truth, stderr, goal):
+    """``(|mean(ours - truth)|, goal * rms(truth) + MC_SIGMAS * se)`` per channel over the vertices.
+
+    ``rel_rms <= goal`` implies the first is at most ``goal * rms(truth)`` (``|mean d| <= rms d``);
+    ``se``, the standard error of the reference's mean, adds ``MC_SIGMAS`` of its confidence interval.
+    """
+    ours, truth = np.asarray(ours), np.asarray(truth)
+    err = np.abs(np.mean(ours - truth, axis=0))
+    se_mean = np.sqrt(np.sum(np.asarray(stderr) ** 2, axis=0)) / len(truth)
+    return err, goal * np.sqrt(np.mean(truth**2, axis=0)) + MC_SIGMAS * se_mean
 
 
 def scene():
@@ -48,18 +70,35 @@ def pre(cache_root):
     return Interreflection.precompute(scene(), QUICK, cache=Cache(cache_root, progress=False), progress=False)
 
 
-def test_one_bounce_between_two_objects_against_monte_carlo(pre):
+@pytest.fixture(scope="module")
+def reference(pre):
+    """One bounce of the quick ball over floor by Monte Carlo, ``PATHS`` paths per vertex."""
+    return path_trace(pre.scene, 1, PATHS, np.random.default_rng(11))
+
+
+def test_one_bounce_between_two_objects_against_monte_carlo(pre, reference):
+    """Direct and total light of both objects and the ball's indirect light within the goals, per vertex."""
     res = pre.shade(bounces=1)
-    ref = path_trace(pre.scene, 1, 64, np.random.default_rng(11))
-    for name in ("floor", "ball"):
-        for part in ("direct", "indirect"):
-            ours, truth = getattr(res, part)[name], getattr(ref, part)[name]
-            se_mean = np.sqrt(np.sum(ref.stderr[part][name] ** 2, axis=0)) / len(truth)
-            err = np.abs(ours.mean(0) - truth.mean(0))
-            assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN[part] * truth.mean(0)), (name, part, err)
+    comparison = prtlab.compare(res, reference)
+    failures = [*comparison.check(GOAL["total"], parts=("direct", "total")),
+                *comparison.check(GOAL["indirect"], parts=("indirect",), objects=("ball",))]
+    assert not failures, failures
     # the red floor tints the ball's indirect light red
     ind = res.indirect["ball"].mean(0)
     assert ind[0] > 1.5 * ind[1]
+
+
+@pytest.mark.xfail(strict=True, reason="measured rel_rms 0.313 (noise 0.085, error 0.30; mean +18 %) against "
+                   "4,096 paths, 0.301 (noise 0.043, error 0.298) against 16,384 in the fidelity tier: the ball's "
+                   "bounce light on the floor is too bright; the floor is a plane (visibility 1, exact transfer), so "
+                   "the error is in the ball as a source (its N = 8 PCA radiance on the quick sample spheres), not "
+                   "traced further")
+def test_the_floors_bounce_light_is_within_the_goal(pre, reference):
+    """The floor's indirect light against ``PATHS`` paths: its reference noise (0.085) is above a third of
+    the goal, which only widens the budget ``hypot(goal, noise)``; a miss is still a miss."""
+    row = prtlab.compare(pre.shade(bounces=1), reference, objects=["floor"], parts=["indirect"]).row("floor",
+                                                                                                  "indirect")
+    assert row.meets(GOAL["indirect"]), row
 
 
 def test_more_bounces_add_light_and_converge(pre):
@@ -188,7 +227,7 @@ def test_module_level_precompute(pre, cache_root):
     np.testing.assert_allclose(again.shade(bounces=1).total["ball"], pre.shade(bounces=1).total["ball"], rtol=1e-12)
 
 
-def test_error_falls_as_the_basis_and_the_order_grow(pre):
+def test_error_falls_as_the_basis_and_the_order_grow(pre, reference):
     """Indirect error against Monte Carlo (4,096 paths; its own noise 0.085 floor, 0.017 ball) as N (PCA terms,
     order 4) and the SH order (N = 8) grow, by :meth:`Interreflection.truncated` of one precomputation.
 
@@ -201,7 +240,7 @@ def test_error_falls_as_the_basis_and_the_order_grow(pre):
     3 is 0): between orders 3 and 4 only the ball's direct light changes, and it improves (on the ball's
     bottom, which the floor sees, 0.90 -> 0.96 of Monte Carlo), yet the floor's bounce light goes from 1.02
     to 1.09 of Monte Carlo; what is left between the two is the N-term fit of the ball's radiance."""
-    ref = path_trace(pre.scene, 1, 4096, np.random.default_rng(11))
+    ref = reference
 
     def error(p, name):
         a, b = p.shade(bounces=1).indirect[name], ref.indirect[name]
@@ -299,52 +338,34 @@ def test_pca_basis_with_occluders_spans_their_shadows():
 
 
 # --------------------------------------------------------------------------- whole scenes against Mitsuba 3
+# Fig. 9 (defaults, shadows="haar", after a move) is in the fidelity tier: tests/fidelity/test_interreflection.py.
 
-#: The issue's goals: relative RMS of per-vertex radiance against Mitsuba at the default settings.
-GOAL = {"indirect": 0.15, "total": 0.05}
-_SCENES = __import__("pathlib").Path(__file__).resolve().parents[2] / "data" / "scenes"
-_DIRECT_SH = ("order-4 SH direct light of the small area light (shadows='haar' removes it: "
-              "test_fig9_haar_against_mitsuba)")
-_KNOWN = {  # measured (256 spp) with what limits them; strict: a fix makes them fail loudly
-    ("fig9", "bunny", "total"): f"0.14 (reference noise 0.019): the bunny's direct light is 0.14 off, {_DIRECT_SH}",
-    ("fig9", "floor", "total"): f"0.14 (noise 0.012): the floor's direct light is 0.14 off, {_DIRECT_SH}",
-    ("fig9", "floor", "indirect"): "0.67 (noise 0.50, about 0.43 without it): the bunny's light on the floor "
-                                   f"comes from its lower faces, where the {_DIRECT_SH} is worst",
-    **{("room", o, "total"): f"{v} (noise 0.01-0.03): the direct light is 0.16-0.28 off, {_DIRECT_SH}"
-       for o, v in (("floor", 0.18), ("wall_back", 0.14), ("wall_left", 0.15), ("box", 0.24), ("teapot", 0.18),
-                    ("bunny", 0.18))},
-    # the room's indirect passes: floor / back wall / left wall 0.21 / 0.14 / 0.16 (were 0.36-0.38, 20 % too
-    # dark: PCA bases 0 along the edges where planes meet, test_planes_meeting_at_an_edge_get_their_bounce_light,
-    # and a third wall's order-4 visibility, test_a_plane_that_blocks_nothing_between_two_others_is_not_their_
-    # occluder), bunny 0.17 (was 0.223, 8 % too dark), box 0.07, teapot 0.21; means within 2 % (teapot +7 %)
-}
-
+#: Mitsuba samples per vertex of the room: relative noise at most 0.035 (indirect) and 0.011 (direct,
+#: total), within a third of the goals (``Comparison.check``).
+ROOM_SPP = 2048
+_DIRECT_SH = "the order-4 SH direct light of the small area light"
+#: (object, part): measured figure (defaults, Mitsuba 256 spp) and cause; strict, so a fix fails loudly. Not yet
+#: measured at ROOM_SPP: the direct parts and the indirect parts under quadrature (the issue measured the floor's
+#: indirect 0.21, noise 0.10, against its budget hypot(0.15, 0.035) = 0.159 here).
+_KNOWN = {(o, "total"): f"measured rel_rms {v} (noise 0.01-0.03): the direct light is 0.16-0.28 off, {_DIRECT_SH}"
+          for o, v in (("floor", 0.18), ("wall_back", 0.14), ("wall_left", 0.15), ("box", 0.24), ("teapot", 0.18),
+                       ("bunny", 0.18))}
 _ROOM_OBJECTS = ("floor", "wall_back", "wall_left", "box", "teapot", "bunny")
 
 
 @functools.lru_cache(maxsize=None)
-def _mitsuba(name):
+def _mitsuba(name, spp):
     from prtlab.reference import shade_mitsuba
 
     pytest.importorskip("mitsuba")
-    scene = prtlab.load_scene(_SCENES / f"interreflection_{name}.yaml")
-    return scene, shade_mitsuba(scene, bounces=1, spp=256, seed=0)
+    scene = prtlab.load_scene(f"interreflection_{name}")
+    return scene, shade_mitsuba(scene, bounces=1, spp=spp, seed=0)
 
 
-def _whole_scene(name, **options):
-    scene, ref = _mitsuba(name)
+def _whole_scene(name, spp, **options):
+    scene, ref = _mitsuba(name, spp)
     ours = Interreflection.precompute(scene, options, progress=False).shade(bounces=1)
     return scene, ours, ref
-
-
-@pytest.fixture(scope="module")
-def fig9_scene():
-    return _whole_scene("fig9")
-
-
-@pytest.fixture(scope="module")
-def fig9_haar_scene():
-    return _whole_scene("fig9", shadows="haar")
 
 
 def _scored(scene, name):
@@ -356,35 +377,16 @@ def _scored(scene, name):
 
 
 def _assert_within_goal(scene, ours, ref, obj, part):
-    """Bound: the goal plus the reference's own relative noise (``rms(ours - ref)^2 = err^2 + noise^2``)."""
-    m = _scored(scene, obj)
-    a, b, se = getattr(ours, part)[obj][m], getattr(ref, part)[obj][m], ref.stderr[part][obj][m]
-    scale = np.sqrt(np.mean(b**2))
-    rms, noise = np.sqrt(np.mean((a - b) ** 2)) / scale, np.sqrt(np.mean(se**2)) / scale
-    assert rms <= GOAL[part] + noise, (rms, noise)
+    """``rel_rms <= hypot(goal, noise)`` on the scored vertices, the reference within a third of the goal."""
+    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks={obj: _scored(scene, obj)})
+    failures = comparison.check(GOAL[part])
+    assert not failures, failures
 
 
-def _case(scene_name, obj, part):
-    key = (scene_name, obj, part)
+def _case(obj, part):
+    key = (obj, part)
     marks = [pytest.mark.xfail(strict=True, reason=_KNOWN[key])] if key in _KNOWN else []
     return pytest.param(obj, part, marks=marks, id=f"{obj}-{part}")
-
-
-@pytest.mark.slow
-@pytest.mark.mitsuba
-@pytest.mark.parametrize("obj, part", [_case("fig9", o, p) for o in ("bunny", "floor") for p in GOAL])
-def test_fig9_against_mitsuba(fig9_scene, obj, part):
-    """Fig. 9 at the defaults (the paper's order-4 SH shadows)."""
-    _assert_within_goal(*fig9_scene, obj, part)
-
-
-@pytest.mark.slow
-@pytest.mark.mitsuba
-@pytest.mark.parametrize("obj, part", [_case("fig9_haar", o, p) for o in ("bunny", "floor") for p in GOAL])
-def test_fig9_haar_against_mitsuba(fig9_haar_scene, obj, part):
-    """Fig. 9 with all-frequency direct shadows (``shadows="haar"``); measured (256 spp): bunny total 0.031
-    (noise 0.019), indirect 0.172 (0.098); floor total 0.059 (0.012), indirect 0.54 (0.50)."""
-    _assert_within_goal(*fig9_haar_scene, obj, part)
 
 
 def test_bounce_pass_equals_the_reference_tier(pre):
@@ -443,14 +445,15 @@ def test_relighting_reuses_unchanged_area_lights_and_equals_a_fresh_shade(pre):
 
 @pytest.fixture(scope="module")
 def room_scene():
-    return _whole_scene("room")
+    return _whole_scene("room", ROOM_SPP)
 
 
 @pytest.mark.slow
 @pytest.mark.mitsuba
-@pytest.mark.parametrize("obj, part", [_case("room", o, p) for o in _ROOM_OBJECTS for p in GOAL])
+@pytest.mark.parametrize("obj, part", [_case(o, p) for o in _ROOM_OBJECTS for p in GOAL])
 def test_room_against_mitsuba(room_scene, obj, part):
-    """A room of several objects (floor, two walls, box, teapot, bunny), one bounce; bound as for Fig. 9."""
+    """A room of several objects (floor, two walls, box, teapot, bunny), one bounce, defaults, against
+    Mitsuba at ``ROOM_SPP``: every object, direct / indirect / total within the goals."""
     _assert_within_goal(*room_scene, obj, part)
 
 
@@ -578,7 +581,7 @@ def test_planes_meeting_at_an_edge_get_their_bounce_light(cache_root):
     there; as a source the edge then emitted nothing, and the light bouncing between the planes (most
     of it from near the edge) was 14 % (floor) and 14 % (wall) too dark on average, 0.02x on the edge
     rows. From the shading points (as the pipeline shades) the means are within 1 % of Monte Carlo.
-    Bound as ``test_one_bounce_between_two_objects_against_monte_carlo``.
+    Per-object means held to the indirect goal by :func:`mean_bound` (128 paths).
     """
     from prtlab.cache import Cache
 
@@ -590,10 +593,8 @@ def test_planes_meeting_at_an_edge_get_their_bounce_light(cache_root):
     res = pre.shade(bounces=1)
     ref = path_trace(pre.scene, 1, 128, np.random.default_rng(5))
     for name in ("floor", "wall"):
-        ours, truth = res.indirect[name], ref.indirect[name]
-        se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
-        err = np.abs(ours.mean(0) - truth.mean(0))
-        assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err, truth.mean(0))
+        err, bound = mean_bound(res.indirect[name], ref.indirect[name], ref.stderr["indirect"][name], GOAL["indirect"])
+        assert np.all(err <= bound), (name, err, bound)
 
 
 def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(cache_root, monkeypatch):
@@ -605,8 +606,8 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
     0.91 (floor), 0.88 (back wall), 0.86 (left wall) of Monte Carlo; on the room's finer planes
     0.96 / 0.92 / 0.91. A flat object with the receiver and the source on one side of its plane is
     now left out (``Interreflection._plane_separates``): exactly the shade with no occluders at all
-    here (its basis irradiance; indirect 0.96 / 0.97 / 0.95, room planes 1.00 / 1.00 / 1.00), held to
-    Monte Carlo as ``test_one_bounce_between_two_objects_against_monte_carlo``. A plane between the two
+    here (its basis irradiance; indirect 0.96 / 0.97 / 0.95, room planes 1.00 / 1.00 / 1.00), per-object
+    means held to the indirect goal by :func:`mean_bound` (128 paths). A plane between the two
     still blocks.
     """
     from prtlab.cache import Cache
@@ -622,10 +623,9 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
     for name in ("floor", "wall", "wall_left"):
         for source in phi[name]:
             np.testing.assert_allclose(phi[name][source], free[name][source], rtol=1e-10, atol=1e-14)
-        truth = ref.indirect[name]
-        se_mean = np.sqrt(np.sum(ref.stderr["indirect"][name] ** 2, axis=0)) / len(truth)
-        err = np.abs(ours.indirect[name].mean(0) - truth.mean(0))
-        assert np.all(err <= MC_SIGMAS * se_mean + TAU_MEAN["indirect"] * truth.mean(0)), (name, err, truth.mean(0))
+        err, bound = mean_bound(ours.indirect[name], ref.indirect[name], ref.stderr["indirect"][name],
+                                GOAL["indirect"])
+        assert np.all(err <= bound), (name, err, bound)
     floor, wall, left = (pre.scene.object(n) for n in ("floor", "wall", "wall_left"))
     assert pre._plane_separates(geo, left, wall, floor) and pre._plane_separates(geo, wall, left, floor)
     # a plane between receiver and source: the floor's plane with the wall's half below it
@@ -636,10 +636,10 @@ def test_a_plane_that_blocks_nothing_between_two_others_is_not_their_occluder(ca
 
 def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre):
     """``area_lights="field"``: one field per light shape, shared by moved, turned and scaled lights, sized
-    like the objects' sample spheres. Its direct light against the exact projection, relative L2 per
-    object (measured, floor / ball): 0.169 / 0.153 on these quick 8 x 6 x 8 x 8 spheres, 0.034 / 0.028 on the
-    default 16 x 6 x 16 x 16 (the field's own error on the SH radiance there: 0.022-0.026,
-    ``tests/shadowfields/test_sources.py``)."""
+    like the objects' sample spheres. Its direct light converges to the exact projection's as the spheres
+    refine: halving the spacing (8 x 6 x 8 x 8 to 16 x 6 x 16 x 16) cuts the relative L2 error per object at
+    least to half (trilinear interpolation errs like the spacing squared: a quarter). Measured, floor /
+    ball: 0.169 / 0.153 on the quick spheres, 0.034 / 0.028 on the default ones."""
     import dataclasses
 
     from prtlab.scene import AreaLight
@@ -652,15 +652,17 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
     turned = AreaLight(center=np.array([-0.3, 1.8, 0.2]), u=1.5 * R @ light.u, v=1.5 * R @ light.v,
                        radiance=np.array([1.0, 2.0, 3.0]))
     # the objects' fields are precomputed: at run time n_radii and resolution size only the light's field
-    for spheres, bound in (({}, 0.2), ({"n_radii": 16, "resolution": 16}, 0.04)):
+    errors = []
+    for spheres in ({}, {"n_radii": 16, "resolution": 16}):
         field = Interreflection(sc, dataclasses.replace(pre.options, area_lights="field", **spheres), pre.data)
-        for lit in (light, turned):
+        errors.append({})
+        for i, lit in enumerate((light, turned)):
             state = FrameState.from_scene(sc)
             state.lights = [lit]
             a, b = exact.shade(state, bounces=0), field.shade(state, bounces=0)
             for name in ("floor", "ball"):
-                err = np.linalg.norm(b.direct[name] - a.direct[name]) / np.linalg.norm(a.direct[name])
-                assert err < bound, (spheres, name, err)
+                errors[-1][i, name] = np.linalg.norm(b.direct[name] - a.direct[name]) / np.linalg.norm(a.direct[name])
         assert len(field.reuse.source_fields) == 1  # the turned light is a uniform scale of the first
+    assert all(errors[1][k] <= 0.5 * errors[0][k] for k in errors[0]), errors
     with pytest.raises(ValueError, match="option area_lights must be one of 'exact', 'field'"):
         InterreflectionOptions(area_lights="srf")

@@ -88,8 +88,9 @@ def test_the_field_is_exact_at_its_nodes_in_any_pose(srf, rng):
 
 def test_the_field_converges_to_the_exact_projection(rng):
     """Relative L2 distance to :func:`area_light_sh` over points around the light falls with the sample
-    spheres (measured: 0.10-0.13 at 8 radii x 16^2, 0.022-0.026 at 16 x 16^2 (the default), 0.009-0.011 at
-    32 x 16^2);
+    spheres at least at half per doubling of the radii (trilinear interpolation errs like the spacing
+    squared, a quarter; the angular spacing stays; measured: 0.10-0.13 at 8 radii x 16^2, 0.022-0.026 at
+    16 x 16^2 (the default), 0.009-0.011 at 32 x 16^2);
     beyond the outermost sphere the ``(r_max / r)^2`` law holds to the light's finite size there (its
     angular radius at ``r_max = 8 R`` is 1/8: higher bands differ from a point source's by O(1/64))."""
     from prtlab.shadowfields import source_radiance_field
@@ -98,8 +99,7 @@ def test_the_field_converges_to_the_exact_projection(rng):
     exact = area_light_sh(LIGHT, pts, 4, n_nodes=24)
     errors = [np.linalg.norm(source_radiance_field(LIGHT, 4, n_radii=n, resolution=16).lookup(LIGHT, pts) - exact)
               / np.linalg.norm(exact) for n in (8, 16, 32)]
-    assert errors[0] > errors[1] > errors[2]
-    assert errors[1] < 0.04
+    assert errors[1] <= 0.5 * errors[0] and errors[2] <= 0.5 * errors[1], errors
     far = LIGHT.center + 30.0 * (pts - LIGHT.center)
     srf = source_radiance_field(LIGHT, 4, n_radii=4, resolution=16)
     exact = area_light_sh(LIGHT, far, 4)
