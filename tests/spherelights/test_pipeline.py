@@ -414,13 +414,14 @@ def test_reflection_ratio_reduces_the_error_of_coarse_cuts(pre8, flat8, threshol
     16 receivers): threshold 0.5: 1.6 % without the ratio, 0.9 % with it (5 points), 3.4 % with the paper's
     centre ratio; 0.7: 2.9 %, 2.2 % and 6.4 %. The centre ratio fails on the curved receivers (a centre that
     sees a node at a grazing angle gives the rest of its cluster a wrong ratio); on the plane (flat) it
-    helps at 0.7: 1.9 -> 1.0 % (at 0.5 it changes nothing: 0.36 -> 0.38 %)."""
+    helps at 0.7: 1.9 -> 1.0 % (at 0.5 it changes nothing: 0.36 -> 0.38 %). No error bound is derived for a
+    coarse cut, so the test checks the claims only: the ratio lowers the error, and at 0.7 the centre ratio
+    lowers it on the flat receiver."""
     kw = dict(hierarchy_children=2, cut_threshold=threshold, cluster_size=16)
     without = _with(pre8, reflection_ratio=False, **kw).shade(bounces=1)
     ratio = _with(pre8, **kw).shade(bounces=1)
     e_without, e_ratio = _relative_rms(without, flat8), _relative_rms(ratio, flat8)
     assert 0 < e_ratio < e_without
-    assert e_ratio < {0.5: 0.012, 0.7: 0.028}[threshold]  # the measured errors (0.94 %, 2.2 %) with a margin
     if threshold == 0.7:
         centre = _with(pre8, ratio_samples=1, **kw).shade(bounces=1)
 
@@ -428,7 +429,7 @@ def test_reflection_ratio_reduces_the_error_of_coarse_cuts(pre8, flat8, threshol
             d = res.indirect["plane"] - flat8.indirect["plane"]
             return float(np.sqrt(np.sum(d**2) / np.sum(flat8.indirect["plane"] ** 2)))
 
-        assert plane_error(centre) < 0.6 * plane_error(without)
+        assert plane_error(centre) < plane_error(without)
 
 
 def test_hierarchy_through_the_api():
