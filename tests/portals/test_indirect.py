@@ -53,7 +53,7 @@ def _estimate_terms(photons, scene, k=PHOTON_K):
     verts, normals = room.world_vertices(), room.world_normals()
     lo, hi = verts.min(0), verts.max(0)
     wlo, whi = window.world_vertices().min(0), window.world_vertices().max(0)
-    dist, idx = cKDTree(photons.position).query(verts, 4 * k)
+    dist, idx = cKDTree(photons.position, balanced_tree=False, compact_nodes=False).query(verts, 4 * k)
     ok = np.einsum("vqk,vk->vq", photons.normal[idx], normals) > _NORMAL_AGREEMENT
     rank = np.cumsum(ok, axis=1)
     k_v = np.minimum(k, rank[:, -1])
@@ -65,7 +65,7 @@ def _estimate_terms(photons, scene, k=PHOTON_K):
     t1 = np.cross(normals, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(normals, t1)
-    d = _sunflower(2048)
+    d = _sunflower(512)
     p = verts[:, None] + radius[:, None, None] * (d[None, :, :1] * t1[:, None] + d[None, :, 1:] * t2[:, None])
     eps = 1e-9
     on_box = np.all((p >= lo - eps) & (p <= hi + eps), axis=-1)
