@@ -24,7 +24,7 @@ test: $(STAMP)
 	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m "not slow and not fidelity" --nbmake tests $(wildcard notebooks/*.ipynb)
 
 # The fidelity tier: each pipeline on its paper's scenes at reduced size against Mitsuba 3 / Monte Carlo,
-# every object, direct / indirect / total, moved objects where the method allows motion. About 20 min on 2 cores.
+# every object, direct / indirect / total, moved objects where the method allows motion.
 fidelity: $(STAMP)
 	PRTLAB_QUICK=1 $(PY) -m pytest -n 2 --dist loadgroup -m fidelity tests/fidelity
 
