@@ -4,7 +4,7 @@
 Rules every module here follows:
 
 - every test is marked ``fidelity`` (this conftest marks every item it collects), so ``make test``
-  leaves them out and ``make fidelity`` runs them;
+  leaves them out and ``make fidelity`` (run by CI after ``make test``) runs them;
 - goals are the papers' figures or derived bounds, never our own output; a goal is met when
   ``rel_rms <= hypot(goal, noise)`` (:meth:`prtlab.metrics.ComparisonRow.meets`), and references are
   sampled so their relative noise is at most a third of the goal (:meth:`prtlab.metrics.Comparison.check`
