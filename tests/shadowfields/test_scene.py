@@ -133,12 +133,10 @@ def dense_direct_glossy(scene, obj, degree=127):
     return np.einsum("vd,d,dc,vdc->vc", ~occ * np.maximum(n @ dirs.T, 0.0), w, radiance, f)
 
 
-def test_glossy_receiver_through_the_separable_brdf():
-    """A Phong floor (kd 0.3, ks 0.5, exponent 10) toward the camera. Measured relative RMS against the
-    dense quadrature with the exact BRDF: 0.185 with K = 1 and 0.081 with K = 4 (0.157 / 0.049 at
-    exponent 4); the order-4 transfer error of the K-term BRDF (:func:`prtlab.brdf.transfer_error`) is
-    0.63 / 0.34. Bound: K = 4 within 0.12 and better than K = 1; the reference agrees with the dense
-    truth (mean squared z-score 1.02 measured)."""
+@pytest.fixture(scope="module")
+def glossy():
+    """The Phong floor (kd 0.3, ks 0.5, exponent 10) toward the camera: the dense truth with the exact BRDF
+    and the relative RMS error of the order-4 SH shading with K = 1 and K = 4 separable terms."""
     scene = ball_over_floor({"type": "phong", "kd": [0.3, 0.3, 0.3], "ks": [0.5, 0.5, 0.5], "exponent": 10.0})
     vis = scene_visibility(scene, precompute_scene(scene, ORDER, **QUICK))
     truth = dense_direct_glossy(scene, scene.object("floor"))
@@ -146,7 +144,38 @@ def test_glossy_receiver_through_the_separable_brdf():
     for K in (1, 4):
         ours = direct_environment(scene, vis, separable_brdfs(scene, K_glossy=K), ORDER)["floor"]
         err[K] = np.sqrt(np.mean((ours - truth) ** 2)) / np.sqrt(np.mean(truth**2))
-    assert err[4] < 0.12 and err[4] < 0.7 * err[1]
-    ref = direct(scene, 64, np.random.default_rng(1))
-    z = (ref.direct["floor"] - truth) / ref.stderr["direct"]["floor"]
-    assert np.mean(z**2) < 2.0
+    return scene, truth, err
+
+
+def test_glossy_dense_truth_agrees_with_monte_carlo(glossy):
+    """The dense truth against an independent Monte Carlo estimate (64 samples per vertex): the mean of the
+    squared z-scores over the floor's vertices is that of Student's t with 63 degrees of freedom,
+    ``nu / (nu - 2)``, within ``MC_SIGMAS`` standard deviations of a mean of N values
+    (``Var t^2 = 2 nu^2 (nu - 1) / ((nu - 2)^2 (nu - 4))``)."""
+    from tests.conftest import MC_SIGMAS
+
+    scene, truth, _ = glossy
+    n = 64
+    ref = direct(scene, n, np.random.default_rng(1))
+    z = ((ref.direct["floor"] - truth) / ref.stderr["direct"]["floor"]).ravel()
+    nu = n - 1.0
+    mean, var = nu / (nu - 2.0), 2.0 * nu**2 * (nu - 1.0) / ((nu - 2.0) ** 2 * (nu - 4.0))
+    # the three colour channels of a vertex share their samples: N counts vertices, not channels
+    half_width = MC_SIGMAS * np.sqrt(var / (z.size / 3))
+    assert abs(np.mean(z**2) - mean) < half_width, (np.mean(z**2), mean, half_width)
+
+
+def test_glossy_receiver_more_separable_terms_help(glossy):
+    """Four separable terms err less than one (the separable part of the error falls with K, the rest is
+    shared). Measured figures: docs/notes/shadowfields.md."""
+    _, _, err = glossy
+    assert err[4] < err[1], err
+
+
+@pytest.mark.xfail(strict=True, reason="measured 0.081 (K = 4; 0.185 with K = 1) vs goal 0.05: order-4 SH "
+                                       "cannot carry a Phong exponent-10 lobe (transfer error of the 4-term "
+                                       "BRDF at order 4: 0.34, prtlab.brdf.transfer_error)")
+def test_glossy_receiver_through_the_separable_brdf_within_the_goal(glossy):
+    """The Phong floor's direct light (K = 4) within ``GOAL`` of the dense truth."""
+    _, _, err = glossy
+    assert err[4] < GOAL, err
