@@ -522,31 +522,61 @@ def test_moving_an_occluder_reuses_the_near_field_basis_radiance(pre):
 
 
 def test_haar_shadows_light_by_a_point_light_with_a_sharp_shadow():
-    """``shadows="haar"``: point lights work, and the ball's shadow on the floor is sharp up to the field's
-    blur. The unshadowed irradiance is exact, so ``ours / unshadowed`` is the visibility toward the light;
-    the quick grid (6 x 8 x 8 directions, about 0.2 rad apart) blends the 8 surrounding samples' shadows,
-    which softens the edge over about +-0.2 rad of the silhouette angle (measured: 0.91-1 just outside,
-    0-0.05 just inside; a 16-texel cubemap adds at most half a texel, 0.05 rad)."""
+    """``shadows="haar"``: point lights work, and the ball's shadow on the floor is what the shadow field's
+    contract gives, from the closed form of the sphere. The unshadowed irradiance is exact, so
+    ``ours / unshadowed`` is the visibility toward the light: the trilinear blend of the 8 surrounding
+    samples of the ball's field, each read bilinearly between the 4 texel centres around the light's
+    direction (``prtlab.shadowfields._haar_direct``), each texel the ray through its centre. Those rays are
+    cast here against the sphere: a ray missing the ball's circumscribed sphere (radius 0.5) misses the
+    icosphere, one within its inradius hits it, so the visibility lies between the two blends (equal
+    unless a ray grazes the tessellation); it is exactly 1 where every blended ray misses and 0 where every
+    one hits. The 256 Haar coefficients kept hold each sample's cubemap exactly here, or this fails."""
+    from prtlab.geometry import cubemap_directions, direction_to_cubemap
+    from prtlab.shadowfields import sphere_grid
+
     s = ball_over_floor()
     s.lights = [PointLight(position=np.array([0.4, 2.5, 0.3]), intensity=np.array([4.0, 4.0, 4.0]))]
-    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", cube_resolution=16, haar_keep=256),
+    res_cube = 16
+    pre = Interreflection.precompute(s, dict(QUICK, shadows="haar", cube_resolution=res_cube, haar_keep=256),
                                      cache=False, progress=False)
     res = pre.shade(bounces=0)
-    floor = s.object("floor")
+    floor, ball = s.object("floor"), s.object("ball")
     x, n = floor.world_shading_points(), floor.world_normals()
     to_light = s.lights[0].position - x
     r = np.linalg.norm(to_light, axis=1)
     d = to_light / r[:, None]
     unshadowed = 0.8 / np.pi * 4.0 * np.maximum(np.sum(n * d, axis=1), 0.0) / r**2
     visibility = res.direct["floor"][:, 0] / unshadowed
-    to_ball = np.array([0.0, 1.0, 0.0]) - x
-    dist = np.linalg.norm(to_ball, axis=1)
-    margin = np.arccos(np.clip(np.sum(d * to_ball, axis=1) / dist, -1, 1)) - np.arcsin(0.5 / dist)
-    assert np.all((visibility >= -1e-12) & (visibility <= 1 + 1e-9))
-    lit, umbra = margin > 0.2, margin < -0.2
-    assert lit.sum() > 50 and umbra.sum() > 3
-    assert np.all(visibility[lit] >= 0.85), visibility[lit].min()
-    assert np.all(visibility[umbra] <= 0.1), visibility[umbra].max()
+    # the 8 samples of the ball's field (its grid, object space: the ball is only translated) ...
+    grid = sphere_grid(ball.mesh, QUICK["n_radii"], QUICK["resolution"])
+    corners, w, beyond = grid.trilinear_corners(x - ball.transform.translate)
+    assert not beyond.any()
+    samples = grid.points().reshape(-1, 3)[corners]  # (V, 8, 3), ball centre at the origin
+    # ... and the 4 texel centres around d on its face (texel centres at (j + 1/2) / res, clamped at borders)
+    face, fs, ft = direction_to_cubemap(d)
+    cx, cy = np.clip(fs * res_cube - 0.5, 0, res_cube - 1), np.clip(ft * res_cube - 0.5, 0, res_cube - 1)
+    j0 = np.minimum(np.floor(cx).astype(np.int64), res_cube - 2)
+    i0 = np.minimum(np.floor(cy).astype(np.int64), res_cube - 2)
+    fx, fy = cx - j0, cy - i0
+    centres = cubemap_directions(res_cube)
+    texels = np.stack([centres[face, i0 + a, j0 + b] for a in (0, 1) for b in (0, 1)], axis=1)  # (V, 4, 3)
+    bw = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=1)
+    along = np.einsum("vcx,vtx->vct", samples, texels)
+    miss_dist = np.linalg.norm(samples[:, :, None] - along[..., None] * texels[:, None], axis=-1)
+    v, f = ball.mesh.vertices, ball.mesh.faces
+    normal = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    inradius = np.min(np.abs(np.sum(normal * v[f[:, 0]], axis=1)) / np.linalg.norm(normal, axis=1))
+    misses = ~((along < 0) & (miss_dist < 0.5))
+    hits = (along < 0) & (miss_dist < inradius)
+    weight = w[:, :, None] * bw[:, None, :]
+    low, high = np.sum(weight * misses, axis=(1, 2)), np.sum(weight * ~hits, axis=(1, 2))
+    assert np.all((visibility >= low - 1e-9) & (visibility <= high + 1e-9)), np.max(
+        np.maximum(low - visibility, visibility - high))
+    used = weight > 0
+    lit, umbra = np.all(misses | ~used, axis=(1, 2)), np.all(hits | ~used, axis=(1, 2))
+    assert lit.sum() > 50 and umbra.sum() > 0 and np.sum(high - low > 0) < 0.1 * len(x)
+    np.testing.assert_allclose(visibility[lit], 1.0, atol=1e-9)
+    np.testing.assert_allclose(visibility[umbra], 0.0, atol=1e-9)
     np.testing.assert_allclose(res.direct["floor"], res.direct["floor"][:, :1] * [1, 1, 1], rtol=1e-12)
 
 
