@@ -47,6 +47,8 @@ from typing import Callable
 
 import numpy as np
 
+from prtlab._shipped import clone_doc, shipped_folder
+
 __all__ = ["case", "run_benchmarks", "measure_peak_gflops", "benchmark_dir", "render_section", "write_docs",
            "default_docs_path", "doc_sections", "main", "transfer_csr", "check_same_work"]
 
@@ -67,15 +69,7 @@ def case(name: str):
 
 def benchmark_dir() -> Path:
     """The folder holding ``bench_*.py``: ``$PRTLAB_BENCHMARKS`` if set, else the one shipped in the package."""
-    env = os.environ.get("PRTLAB_BENCHMARKS")
-    folder = Path(env) if env else Path(__file__).resolve().parent / "benchmarks"
-    if not folder.is_dir():
-        where = "PRTLAB_BENCHMARKS names" if env else "the installed prtlab package has"
-        raise FileNotFoundError(
-            f"no benchmark folder at {folder} ({where} none); set PRTLAB_BENCHMARKS to a folder of "
-            "bench_*.py files or reinstall prtlab"
-        )
-    return folder
+    return shipped_folder("PRTLAB_BENCHMARKS", "benchmarks", "benchmark", "bench_*.py files")
 
 
 def _discover() -> None:
@@ -265,7 +259,7 @@ _MARKER = re.compile(r"<!-- bench:begin (?P<name>[\w.-]+) -->\n(?P<body>.*?)<!--
 
 def default_docs_path() -> Path:
     """``docs/BENCHMARKS.md`` of the checkout holding this package."""
-    return Path(__file__).resolve().parent.parent / "docs" / "BENCHMARKS.md"
+    return clone_doc("BENCHMARKS.md")
 
 
 def _ms(seconds: float) -> str:

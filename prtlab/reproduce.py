@@ -27,6 +27,8 @@ import re
 import time
 from pathlib import Path
 
+from prtlab._shipped import clone_doc, shipped_folder
+
 __all__ = ["reproduce", "notebook_dir", "record_table", "render_table", "write_docs", "default_docs_path"]
 
 TABLES_ENV = "PRTLAB_REPRODUCE_TABLES"
@@ -37,20 +39,12 @@ _MARKER = re.compile(r"<!-- repro:(begin|end) ([^ ]*) -->")
 
 def notebook_dir() -> Path:
     """The folder of the paper notebooks: ``$PRTLAB_NOTEBOOKS`` if set, else the one shipped in the package."""
-    env = os.environ.get("PRTLAB_NOTEBOOKS")
-    folder = Path(env) if env else Path(__file__).resolve().parent / "notebooks"
-    if not folder.is_dir():
-        where = "PRTLAB_NOTEBOOKS names" if env else "the installed prtlab package has"
-        raise FileNotFoundError(
-            f"no notebook folder at {folder} ({where} none); set PRTLAB_NOTEBOOKS to a folder of "
-            "*.ipynb files or reinstall prtlab"
-        )
-    return folder
+    return shipped_folder("PRTLAB_NOTEBOOKS", "notebooks", "notebook", "*.ipynb files")
 
 
 def default_docs_path() -> Path:
     """``docs/REPRODUCTION.md`` of the clone this package runs from."""
-    path = Path(__file__).resolve().parent.parent / "docs" / "REPRODUCTION.md"
+    path = clone_doc("REPRODUCTION.md")
     if not path.is_file():
         raise FileNotFoundError(
             f"--write-docs: no {path} (prtlab is not run from a clone); give the Markdown file, --write-docs PATH"

@@ -202,6 +202,6 @@ def test_default_docs_path(monkeypatch, tmp_path):
     import prtlab.reproduce as module
 
     assert module.default_docs_path() == Path(__file__).resolve().parent.parent / "docs" / "REPRODUCTION.md"
-    monkeypatch.setattr(module, "__file__", str(tmp_path / "site" / "prtlab" / "reproduce.py"))
+    monkeypatch.setattr("prtlab._shipped._PACKAGE", tmp_path / "site" / "prtlab")
     with pytest.raises(FileNotFoundError, match=r"--write-docs: no .*REPRODUCTION.md .*give the Markdown file"):
         module.default_docs_path()

@@ -137,6 +137,23 @@ def _frame_info(info: dict, result) -> None:
         info[k] = int(result.info.get(k, 0))
 
 
+def _frames(pre, next_state):
+    """``setup`` (the ``FrameState`` of the next frame, ``next_state()``, made before every call, untimed),
+    ``run`` (shade it with 3 bounces, recording the frame's pair counts) and the ``info`` dict they fill."""
+    frame: dict = {}
+    info: dict = {}
+
+    def setup():
+        frame["state"] = next_state()
+
+    def run():
+        result = pre.shade(frame["state"], bounces=3)
+        _frame_info(info, result)
+        return result
+
+    return setup, run, info
+
+
 def _relight(pre, env_only: bool):
     """``setup`` and ``run`` of a relighting frame: poses stay, so every pair's basis irradiance is reused (the
     paper's relighting); the environment's scale changes every frame and, unless ``env_only``, the area light
@@ -144,10 +161,8 @@ def _relight(pre, env_only: bool):
     ``env_only`` shades the environment alone. Each repeat gets a new ``FrameState``."""
     env, area = pre.scene.lights[0], pre.scene.lights[1]
     steps = iter(range(1, 1_000_000))
-    frame: dict = {}
-    info: dict = {}
 
-    def setup():
+    def next_state():
         k = next(steps)
         state = FrameState.from_scene(pre.scene)
         lights = [type(env)(image=env.image * (1.0 + 0.5 * (k % 2)))]
@@ -155,36 +170,33 @@ def _relight(pre, env_only: bool):
             lights.append(type(area)(center=area.center + [0.5 * k / 1_000_000 + 1e-3 * k, 0.0, 0.0], u=area.u,
                                      v=area.v, radiance=area.radiance))
         state.lights = lights
-        frame["state"] = state
+        return state
 
-    def run():
-        result = pre.shade(frame["state"], bounces=3)
-        _frame_info(info, result)
-        return result
-
+    setup, run, info = _frames(pre, next_state)
     setup()
     run()  # the pairs at the scene's poses: computed once, reused by every relighting frame
     return setup, run, info
+
+
+def _relight_case(quick: bool, env_only: bool) -> dict:
+    pre = _precomputed(quick)
+    setup, run, info = _relight(pre, env_only)
+    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
+            "items": _vertices(pre), "peer": None, "info": info}
 
 
 @case("interreflection.frame.relight")
 def relight_frame(quick: bool) -> dict:
     """Light changes, poses do not: the area light moves (exact SH at every vertex, the default) and the
     environment changes, then weights and 3 bounces; every pair's basis irradiance reused (``reused_pairs``)."""
-    pre = _precomputed(quick)
-    setup, run, info = _relight(pre, env_only=False)
-    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
-            "items": _vertices(pre), "peer": None, "info": info}
+    return _relight_case(quick, env_only=False)
 
 
 @case("interreflection.frame.relight_env_only")
 def relight_env_frame(quick: bool) -> dict:
     """The environment changes, no area light in the frame, poses do not: direct, weights and 3 bounces, every
     pair's basis irradiance reused."""
-    pre = _precomputed(quick)
-    setup, run, info = _relight(pre, env_only=True)
-    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
-            "items": _vertices(pre), "peer": None, "info": info}
+    return _relight_case(quick, env_only=True)
 
 
 def _moving(pre):
@@ -193,19 +205,13 @@ def _moving(pre):
     mover = pre.objects[-1]
     poses = iter([Transform(translate=mover.transform.translate + [dx, 0, 0], rotate_deg=mover.transform.rotate_deg,
                             scale=mover.transform.scale) for dx in np.linspace(0.0, 0.1, 10_000)])
-    frame: dict = {}
-    info: dict = {}
 
-    def setup():
+    def next_state():
         state = FrameState.from_scene(pre.scene)
         state.transforms[mover.name] = next(poses)
-        frame["state"] = state
+        return state
 
-    def run():
-        result = pre.shade(frame["state"], bounces=3)
-        _frame_info(info, result)
-        return result
-
+    setup, run, info = _frames(pre, next_state)
     setup()
     run()
     before = {k: v[1] for k, v in pre.reuse.pair_irradiance.items()}

@@ -109,10 +109,6 @@ def direct_transfer_memory() -> dict:
             "entries_per_vertex": len(sparse.codes) / sparse.n_vertices, "indirect_bytes_float32": transfer.nbytes}
 
 
-if __name__ == "__main__":  # pragma: no cover
-    print(direct_transfer_memory())
-
-
 @lru_cache(maxsize=1)
 def _precompute_inputs():
     from prtlab.geometry import RayCaster
@@ -129,17 +125,22 @@ def _precompute_inputs():
     return caster, portal, points, normals, albedo, exitance
 
 
+def _sample_vertices(quick: bool):
+    """64 (quick: 16) of the room's vertices, the same for every precomputation case: ``(inputs, sel)``."""
+    inputs = _precompute_inputs()
+    points = inputs[2]
+    return inputs, np.random.default_rng(1).choice(len(points), 16 if quick else 64, replace=False)
+
+
 @case("portals.precompute.direct.4096rays")
 def precompute_direct(quick: bool) -> dict:
     """Direct transfer of 64 (quick: 16) vertices at the paper's 4096 portal samples; x 44,763 / items = Table 1."""
     from prtlab.portals import direct_transfer
 
-    caster, portal, points, normals, _, _ = _precompute_inputs()
-    n = 16 if quick else 64
-    sel = np.random.default_rng(1).choice(len(points), n, replace=False)
+    (caster, portal, points, normals, _, _), sel = _sample_vertices(quick)
     rng = np.random.default_rng(2)
     return {"run": lambda: direct_transfer(caster, points[sel], normals[sel], portal, 4096, 32, rng),
-            "gflop": None, "items": n, "peer": None}
+            "gflop": None, "items": len(sel), "peer": None}
 
 
 @case("portals.precompute.gather.4096rays")
@@ -147,14 +148,12 @@ def precompute_gather(quick: bool) -> dict:
     """Final gathering of 64 (quick: 16) vertices at the paper's 4096 rays, order 4."""
     from prtlab.portals import final_gather
 
-    caster, _, points, normals, albedo, exitance = _precompute_inputs()
-    n = 16 if quick else 64
-    sel = np.random.default_rng(1).choice(len(points), n, replace=False)
+    (caster, _, points, normals, albedo, exitance), sel = _sample_vertices(quick)
     rng = np.random.default_rng(3)
     offsets = np.array([0, len(points)])
     return {"run": lambda: final_gather(caster, points[sel], normals[sel], albedo[sel], exitance, offsets, normals,
                                         4096, rng),
-            "gflop": None, "items": n, "peer": None}
+            "gflop": None, "items": len(sel), "peer": None}
 
 
 @case("portals.precompute.photons.200k")
@@ -197,3 +196,7 @@ def glossy_passes(quick: bool) -> dict:
     entries = int(sum(rows_sparse.indptr[r + 1] - rows_sparse.indptr[r] for r in rows.ravel()))
     return {"run": run, "gflop": (2 * entries * 3 + 2 * matrix.size + 2 * 16 * 3 * n_glossy) / 1e9,
             "items": n_glossy, "peer": ("float64 reference tiers", lambda: run("reference"))}
+
+
+if __name__ == "__main__":  # pragma: no cover
+    print(direct_transfer_memory())

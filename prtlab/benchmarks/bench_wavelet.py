@@ -40,28 +40,29 @@ def _haar_peer(x: np.ndarray, inverse: bool):
                 lambda: (ihaar2d if inverse else haar2d)(x, method="reference"))
 
 
-@case("wavelet.haar.forward.10k")
-def haar_forward(quick: bool) -> dict:
+def _haar_case(quick: bool, inverse: bool) -> dict:
+    """The forward transform of 10k (quick: 1k) random cubemaps, or the inverse of their coefficients,
+    against :func:`_haar_peer`."""
     n = 1_000 if quick else 10_000
-    x = _cubemaps(n, 1)
+    x = _cubemaps(n, 2 if inverse else 1)
+    if inverse:
+        x = haar2d(x)
     return {
-        "run": lambda: haar2d(x),
+        "run": (lambda: ihaar2d(x)) if inverse else (lambda: haar2d(x)),
         "gflop": n * TEXELS * HAAR_FLOPS_PER_TEXEL / 1e9,
         "items": n,
-        "peer": _haar_peer(x, inverse=False),
+        "peer": _haar_peer(x, inverse),
     }
+
+
+@case("wavelet.haar.forward.10k")
+def haar_forward(quick: bool) -> dict:
+    return _haar_case(quick, inverse=False)
 
 
 @case("wavelet.haar.inverse.10k")
 def haar_inverse(quick: bool) -> dict:
-    n = 1_000 if quick else 10_000
-    c = haar2d(_cubemaps(n, 2))
-    return {
-        "run": lambda: ihaar2d(c),
-        "gflop": n * TEXELS * HAAR_FLOPS_PER_TEXEL / 1e9,
-        "items": n,
-        "peer": _haar_peer(c, inverse=True),
-    }
+    return _haar_case(quick, inverse=True)
 
 
 @case("wavelet.triple.6x32x32")
