@@ -612,12 +612,12 @@ def exp(f, method: str = "hyb", *, channels=None) -> np.ndarray:
     function, ``|e - e_exact| / sqrt(4 pi)`` (visibility 1 = unoccluded), over
     2000 sums independent of the training set (seed ``[7, 4]``):
 
-    ====== ======== ================ ======== ===========================
-    method  mean     99th percentile  max      bound (tests, with margin)
-    ====== ======== ================ ======== ===========================
-    OL      0.228    0.965            2.28     mean 0.30, p99 1.3, max 3.0
-    HYB     0.0667   0.188            0.293    mean 0.09, p99 0.25, max 0.4
-    ====== ======== ================ ======== ===========================
+    ====== ======== ================ ========
+    method  mean     99th percentile  max
+    ====== ======== ================ ========
+    OL      0.228    0.965            2.28
+    HYB     0.0667   0.188            0.293
+    ====== ======== ================ ========
 
     (The mean RMS of the exact visibility over the ensemble is about 0.5.)
     Nearly all of HYB's error is the truncation of the ``k`` squarings to
