@@ -201,8 +201,8 @@ def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
     band-limited order-8 functions sampled at the pixels and projected to
     order 8: max coefficient error ``~5e-4 |c|`` at ``64 x 128``,
     ``~3e-5 |c|`` at ``256 x 512``, ``~8e-6 |c|`` at ``512 x 1024`` (``|c|``
-    the coefficient norm; ``tests/sh/test_project.py`` bounds it by
-    ``1e-4 |c|`` at ``256 x 512`` and checks the second-order rate).
+    the coefficient norm; ``tests/sh/test_project.py`` checks it against the
+    leading term of its Euler-Maclaurin expansion).
     """
     order = check_order(order)
     arr = _as_image(image, "image")
@@ -237,8 +237,8 @@ def project_cubemap(faces, order: int, method: str = "numba") -> np.ndarray:
     directions; error ``O(1/res^2)``. Measured on random band-limited
     order-8 functions sampled at the texel centres and projected to order 8:
     max coefficient error ``~1.8e-4 |c|`` at ``res = 32``, ``~1.1e-5 |c|`` at
-    ``res = 128`` (``tests/sh/test_project.py`` bounds it by ``5e-5 |c|`` at
-    ``res = 128`` and checks the second-order rate).
+    ``res = 128`` (``tests/sh/test_project.py`` checks it against the leading
+    term of its expansion about the texel centres).
     """
     order = check_order(order)
     arr = _as_image(faces, "faces")

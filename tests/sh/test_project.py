@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prtlab.geometry import cubemap_directions, equirect_directions
+from prtlab.geometry._spheremaps import _face_directions
 from prtlab.sh import (
     basis_reference,
     evaluate,
@@ -93,35 +94,92 @@ def test_project_constant_is_exact():
     assert cube[0] == pytest.approx(c00, rel=1e-13)
 
 
-# --------------------------------------------------------------------------- sphere images: measured accuracy
+# --------------------------------------------------------------------------- sphere images: error expansions
+#
+# Both rules integrate ``g_i = f Y_i`` of a band-limited ``f`` with an error whose first term is known in
+# closed form (Euler-Maclaurin); the next term is O(h^4), so the first predicts the error to O(h^2) of
+# itself: (pi / 127)^2 = 6e-4 for a 128-row map, (2 / 64)^2 = 1e-3 for 64-texel faces. PREDICTED (1 %)
+# leaves room for a constant of 10 in that term (and for the quadratures of the predictions, far finer).
+
+PREDICTED = 0.01
 
 
-def _equirect_error(c, order, height):
-    img = evaluate(c, equirect_directions(height, 2 * height))
-    return np.abs(project_equirect(img, order) - c).max() / np.linalg.norm(c)
+def _f_times_basis(dirs, c, order):
+    y = basis_reference(dirs, order)
+    return (y @ c)[..., None] * y
 
 
-def _cubemap_error(c, order, res):
-    faces = evaluate(c, cubemap_directions(res))
-    return np.abs(project_cubemap(faces, order) - c).max() / np.linalg.norm(c)
+def equirect_leading_error(c, order, height, step=1e-3):
+    """``(h^2 / 12) int int d^2 g_i / d theta^2 sin(theta) dtheta dphi`` with ``h = pi / (H - 1)``: the first
+    error term of the rows' rule (the exact integral of the linear interpolant in ``theta``, weight
+    ``sin theta``); the columns' rule is exact for ``|m| < W``. Gauss-Legendre in ``theta``, uniform ``phi``
+    (exact: ``g_i`` has degree ``2 (order - 1)`` in ``phi``), central differences for the derivative."""
+    x, w = np.polynomial.legendre.leggauss(64)
+    theta, wt = 0.5 * np.pi * (x + 1.0), 0.5 * np.pi * w
+    m = 4 * order
+    phi = 2.0 * np.pi * (np.arange(m) + 0.5) / m
+
+    def g(t):
+        tt, pp = np.meshgrid(t, phi, indexing="ij")
+        return _f_times_basis(np.stack([np.sin(tt) * np.sin(pp), np.cos(tt), -np.sin(tt) * np.cos(pp)], -1), c,
+                              order)
+
+    g2 = (g(theta + step) - 2.0 * g(theta) + g(theta - step)) / step**2
+    integral = np.einsum("tpi,t->i", g2, wt * np.sin(theta)) * 2.0 * np.pi / m
+    return (np.pi / (height - 1)) ** 2 / 12.0 * integral
 
 
-def test_equirect_accuracy_and_rate(rng):
+def cubemap_leading_error(c, order, res, step=1e-3):
+    """``-(D^2 / 12) sum_faces int int (grad g_i . grad J + J lap g_i / 2) ds dt`` with ``D = 2 / res`` the
+    texel edge in face coordinates ``s, t in [-1, 1]`` and ``J = (1 + s^2 + t^2)^(-3/2)`` the solid angle
+    density: the first error term of the midpoint rule with exact texel weights (expand ``g`` and ``J``
+    about the texel centre). Gauss-Legendre on each face, central differences for the derivatives."""
+    x, w = np.polynomial.legendre.leggauss(48)
+    s, t = np.meshgrid(x, x, indexing="ij")
+    weight = w[:, None] * w[None, :]
+    r2 = 1.0 + s**2 + t**2
+    jac, jac_s, jac_t = r2**-1.5, -3.0 * s * r2**-2.5, -3.0 * t * r2**-2.5
+    total = 0.0
+    for face in range(6):
+        def g(a, b):
+            d = _face_directions(face, a, b)
+            return _f_times_basis(d / np.linalg.norm(d, axis=-1, keepdims=True), c, order)
+
+        g0, gsp, gsm, gtp, gtm = g(s, t), g(s + step, t), g(s - step, t), g(s, t + step), g(s, t - step)
+        grad_dot = (gsp - gsm) / (2 * step) * jac_s[..., None] + (gtp - gtm) / (2 * step) * jac_t[..., None]
+        lap = (gsp + gsm + gtp + gtm - 4.0 * g0) / step**2
+        total = total + np.einsum("st,sti->i", weight, grad_dot + 0.5 * jac[..., None] * lap)
+    return -((2.0 / res) ** 2) / 12.0 * total
+
+
+def test_equirect_error_is_its_leading_term(rng):
+    """The error of projecting an order-8 function sampled on the map is the first term of its expansion
+    (within ``PREDICTED`` of it), at 128 x 256 and 256 x 512; halving h quarters it."""
     order = 8
     for _ in range(3):
         c = rng.normal(size=order * order)
-        e128, e256 = _equirect_error(c, order, 128), _equirect_error(c, order, 256)
-        assert e256 < 1e-4  # documented in project_equirect
-        assert 3.5 < e128 / e256 < 4.5  # second order in 1/H
+        errors = []
+        for height in (128, 256):
+            err = project_equirect(evaluate(c, equirect_directions(height, 2 * height)), order) - c
+            lead = equirect_leading_error(c, order, height)
+            assert np.abs(err - lead).max() <= PREDICTED * np.abs(lead).max(), height
+            errors.append(np.abs(err).max())
+        assert 3.5 < errors[0] / errors[1] < 4.5  # second order in 1/H
 
 
-def test_cubemap_accuracy_and_rate(rng):
+def test_cubemap_error_is_its_leading_term(rng):
+    """As above for cubemaps of 64 and 128 texels per face edge (three colour channels)."""
     order = 8
     for _ in range(3):
         c = rng.normal(size=(order * order, 3))
-        e64, e128 = _cubemap_error(c, order, 64), _cubemap_error(c, order, 128)
-        assert e128 < 5e-5  # documented in project_cubemap
-        assert 3.5 < e64 / e128 < 4.5  # second order in 1/res
+        errors = []
+        for res in (64, 128):
+            err = project_cubemap(evaluate(c, cubemap_directions(res)), order) - c
+            for ch in range(3):
+                lead = cubemap_leading_error(c[:, ch], order, res)
+                assert np.abs(err[:, ch] - lead).max() <= PREDICTED * np.abs(lead).max(), (res, ch)
+            errors.append(np.abs(err).max())
+        assert 3.5 < errors[0] / errors[1] < 4.5  # second order in 1/res
 
 
 def test_equirect_orientation(rng):
