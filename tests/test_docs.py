@@ -184,3 +184,16 @@ def test_capabilities_tool_errors(tmp_path, capsys):
     with pytest.raises(SystemExit):
         tool.main(["--methods", "nothing"])
     assert "--methods: unknown method(s) ['nothing']; choose from reference, mitsuba" in capsys.readouterr().err
+
+
+def test_fidelity_table_names_existing_tests():
+    """docs/FIDELITY.md's generated table (tests/fidelity/conftest.py writes it) names tests that still exist."""
+    text = (ROOT / "docs" / "FIDELITY.md").read_text(encoding="utf-8")
+    begin, end = "<!-- fidelity:begin -->", "<!-- fidelity:end -->"
+    assert text.count(begin) == 1 and text.count(end) == 1
+    rows = [line for line in text.split(begin, 1)[1].split(end, 1)[0].splitlines()
+            if line.startswith("| ") and not line.startswith("| test ")]
+    for row in rows:
+        module, _, test = row[2:].split(" | ", 1)[0].partition(": ")
+        source = (ROOT / "tests" / "fidelity" / f"test_{module}.py").read_text(encoding="utf-8")
+        assert f"def {test.split('[', 1)[0]}(" in source, f"docs/FIDELITY.md names a test that is gone: {row[:80]}"
