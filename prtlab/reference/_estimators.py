@@ -545,26 +545,17 @@ def path_trace(
     return result
 
 
-def direct(
-    scene,
-    n_samples: int,
-    rng: np.random.Generator,
-    *,
-    env_sampling: str = "mis",
-    area_lights_block: bool = True,
-    progress: bool = False,
-) -> ShadeResult:
+def direct(scene, n_samples: int, rng: np.random.Generator, **options) -> ShadeResult:
     """Direct light only: :func:`path_trace` with ``bounces=0`` (``indirect`` is zero).
 
     Environment by BSDF (cosine / Phong) sampling, plus map importance
     sampling with MIS for an image environment; area lights by uniform area
     sampling of the parallelogram, one-sided; point lights by an exact shadow ray.
     Diffuse vertices give ``albedo / pi * E``; Phong vertices the normalised
-    Phong BRDF toward the camera.
+    Phong BRDF toward the camera. ``options`` (``env_sampling``,
+    ``area_lights_block``, ``progress``) are those of :func:`path_trace`.
     """
-    return path_trace(
-        scene, 0, n_samples, rng, env_sampling=env_sampling, area_lights_block=area_lights_block, progress=progress
-    )
+    return path_trace(scene, 0, n_samples, rng, **options)
 
 
 def shade_reference(
@@ -579,26 +570,10 @@ def shade_reference(
 ) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="reference", ...)``: :func:`path_trace` seeded by ``seed``.
 
-    Parameters
-    ----------
-    scene : prtlab.Scene
-    bounces : int >= 0
-        Indirect bounces (0 = direct light only).
-    n_samples : int >= 2
-        Independent paths per vertex.
-    seed : int
-        Seed of ``numpy.random.default_rng``; the same seed gives the same result.
-    progress : bool
-        tqdm bar over vertex chunks.
-    env_sampling : {"mis", "bsdf"}
-        See :func:`path_trace`.
-    area_lights_block : bool
-        See :func:`path_trace`.
-
-    Returns
-    -------
-    ShadeResult
-        Per object ``(n_vertices, 3)`` direct, indirect, total and their ``stderr``.
+    ``seed`` (int) seeds ``numpy.random.default_rng``: the same seed gives the same
+    result. The other parameters and the returned :class:`ShadeResult` (per object
+    ``(n_vertices, 3)`` direct, indirect, total and their ``stderr``) are those of
+    :func:`path_trace`; ``progress`` shows a tqdm bar over vertex chunks.
     """
     check_int(seed, "seed")
     return path_trace(
@@ -670,32 +645,12 @@ def radiance_at(
     return Estimate(*(out[k].reshape(shape) for k in keys))
 
 
-def irradiance_at(
-    scene,
-    points,
-    normals,
-    n_samples: int,
-    rng: np.random.Generator,
-    *,
-    bounces: int = 0,
-    env_sampling: str = "mis",
-    area_lights_block: bool = True,
-) -> Estimate:
+def irradiance_at(scene, points, normals, n_samples: int, rng: np.random.Generator, *, bounces: int = 0,
+                  env_sampling: str = "mis", area_lights_block: bool = True) -> Estimate:
     """Irradiance ``E = int L_i cos`` at any points on the side of ``normals``, with shadows.
 
-    Parameters
-    ----------
-    scene : prtlab.Scene
-    points, normals : (..., 3) float
-    n_samples : int >= 2
-    rng : numpy.random.Generator
-    bounces : int >= 0
-        0 counts light straight from the sources; ``B`` adds light reflected by
-        the scene up to ``B`` times (``indirect``).
-    env_sampling : {"mis", "bsdf"}
-        As in :func:`path_trace`.
-    area_lights_block : bool
-        As in :func:`path_trace`.
+    The parameters are those of :func:`radiance_at` (a white Lambertian surface, no
+    ``view_dirs``); ``bounces=B`` adds light reflected by the scene up to ``B`` times.
 
     Returns
     -------
