@@ -230,33 +230,6 @@ def _light_polygon(point, normal, corners, light_normal, poly, tmp):
 
 
 @numba.njit(cache=True)
-def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane):
-    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a`` (``plane``: scratch (3,))."""
-    for c in range(3):
-        plane[c] = s_ax[c] - s0 * axis[c]
-    m = _clip(poly, n, plane, buf_a)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = s1 * axis[c] - s_ax[c]
-    m = _clip(buf_a, m, plane, buf_b)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = t_ax[c] - t0 * axis[c]
-    m = _clip(buf_b, m, plane, buf_a)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = t1 * axis[c] - t_ax[c]
-    m = _clip(buf_a, m, plane, buf_b)
-    for k in range(m):
-        for c in range(3):
-            buf_a[k, c] = buf_b[k, c]
-    return m
-
-
-@numba.njit(cache=True)
 def _clip_slab(poly, n, axis, dir_ax, lo, hi, out, buf, plane):
     """Clip to the slab ``lo <= (x . dir_ax) / (x . axis) <= hi`` of a face (two planes); result in ``out``."""
     for c in range(3):
@@ -267,6 +240,19 @@ def _clip_slab(poly, n, axis, dir_ax, lo, hi, out, buf, plane):
     for c in range(3):
         plane[c] = hi * axis[c] - dir_ax[c]
     return _clip(buf, m, plane, out)
+
+
+@numba.njit(cache=True)
+def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane):
+    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a`` (``plane``: scratch (3,))."""
+    m = _clip_slab(poly, n, axis, s_ax, s0, s1, buf_b, buf_a, plane)
+    if m == 0:
+        return 0
+    m = _clip_slab(buf_b, m, axis, t_ax, t0, t1, buf_b, buf_a, plane)
+    for k in range(m):
+        for c in range(3):
+            buf_a[k, c] = buf_b[k, c]
+    return m
 
 
 @numba.njit(cache=True, parallel=True)
