@@ -101,6 +101,14 @@ def read_envmap(path) -> np.ndarray:
     )
 
 
+def _existing_file(path, kind: str) -> Path:
+    """``path`` as a Path; FileNotFoundError naming ``kind`` if it is not a file."""
+    path = Path(os.fspath(path))
+    if not path.is_file():
+        raise FileNotFoundError(f"{kind} file not found: {str(path)!r}")
+    return path
+
+
 def read_exr(path) -> np.ndarray:
     """Read the R, G, B (or Y) channels of an OpenEXR file.
 
@@ -110,9 +118,7 @@ def read_exr(path) -> np.ndarray:
     """
     import OpenEXR
 
-    path = Path(os.fspath(path))
-    if not path.is_file():
-        raise FileNotFoundError(f"EXR file not found: {str(path)!r}")
+    path = _existing_file(path, "EXR")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
@@ -187,9 +193,7 @@ def read_hdr(path) -> np.ndarray:
     -------
     image : (H, W, 3) float64
     """
-    path = Path(os.fspath(path))
-    if not path.is_file():
-        raise FileNotFoundError(f"HDR file not found: {str(path)!r}")
+    path = _existing_file(path, "HDR")
     data = path.read_bytes()
     where = f"HDR file {str(path)!r}"
     if not (data.startswith(b"#?RADIANCE") or data.startswith(b"#?RGBE")):
