@@ -169,8 +169,8 @@ def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
     image : (H, W) or (H, W, C) float
         Pixel samples; row 0 is the +Y pole, row H-1 the -Y pole (see
         :mod:`prtlab.geometry`).
-    order : int
-        Number of bands n.
+    order, method
+        Number of bands n and basis tier, as in :func:`project`.
 
     Returns
     -------
@@ -207,12 +207,13 @@ def project_cubemap(faces, order: int, method: str = "numba") -> np.ndarray:
     ----------
     faces : (6, res, res) or (6, res, res, C) float
         Texel values (cell values at texel centres).
-    order : int
-        Number of bands n.
+    order, method
+        As in :func:`project_equirect`.
 
     Returns
     -------
     coeffs : (n*n,) or (n*n, C) float64
+        One column per channel C; a single vector for ``(6, res, res)`` faces.
 
     Notes
     -----
