@@ -78,6 +78,15 @@ def haar_synthesis(dense, res, out, work):
 # --------------------------------------------------------------------------- visibility pass
 
 
+@numba.njit(cache=True, inline="always")
+def blends_nothing(weights, v):
+    """True when every blend weight ``weights[v, :]`` is zero (vertex ``v`` takes nothing from the field)."""
+    for c in range(weights.shape[1]):
+        if weights[v, c] != 0.0:
+            return False
+    return True
+
+
 @numba.njit(cache=True, parallel=True)
 def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, n_blocks, vis):
     """Multiply one factor's visibility into ``vis`` at each vertex's query texels.
@@ -99,10 +108,7 @@ def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, quer
         tex = np.empty(n)
         work = np.empty(res * res)
         for v in range(blk * n_v // n_blocks, (blk + 1) * n_v // n_blocks):
-            wsum = 0.0
-            for c in range(8):
-                wsum += abs(weights[v, c])
-            if wsum == 0.0:
+            if blends_nothing(weights, v):
                 continue
             for c in range(8):
                 w = weights[v, c]
