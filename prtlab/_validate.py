@@ -62,12 +62,12 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
 
 
 def as_real_array(value: Any, name: str, finite_hint: str = "") -> np.ndarray:
-    """``value`` as a float64 array: TypeError unless real (bool, int or float), ValueError on NaN or inf.
+    """``value`` as a float64 array: TypeError unless bool, int or float, ValueError on NaN or inf.
 
     ``finite_hint`` follows the NaN message after a semicolon (what to pass instead).
     """
     arr = np.asarray(value)
-    if arr.dtype.kind not in "fiu":
+    if arr.dtype.kind not in "bfiu":
         raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
     arr = arr.astype(np.float64, copy=False)
     if not np.all(np.isfinite(arr)):
