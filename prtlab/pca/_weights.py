@@ -163,10 +163,13 @@ class WeightSolver:
 
     @property
     def n_basis(self) -> int:
+        """N, the basis functions fitted (mean included): the rows of
+        :attr:`basis_at_samples`."""
         return self.basis_at_samples.shape[0]
 
     @property
     def n_samples(self) -> int:
+        """The sample vertices, the columns of :attr:`basis_at_samples`."""
         return self.basis_at_samples.shape[1]
 
     def solve(self, values, *, colour: bool | None = None, method: str = "fast") -> np.ndarray:
