@@ -70,7 +70,7 @@ def tangent_frame(normals) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     normals : (..., 3) float
-        Unit normals.
+        Unit normals, used as given (not renormalised).
 
     Returns
     -------
