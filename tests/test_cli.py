@@ -500,14 +500,16 @@ def test_a_user_error_in_a_real_process_is_one_line():
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr and "missing.yaml" in proc.stderr
 
 
-def test_unimplemented_method_exits_2(monkeypatch, tmp_path, capsys):
-    monkeypatch.setitem(api.METHODS, "radiosity", "a future method (issue 99)")
-    monkeypatch.setattr(cli, "METHOD_NAMES", cli.METHOD_NAMES + ("radiosity",))
+def test_a_method_not_installed_exits_2(monkeypatch, tmp_path, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mitsuba" else real(name, *a))
     scene = tmp_path / "scene.yaml"
     scene.write_text("objects: []\n")
-    code = cli.main(["shade", str(scene), "--method", "radiosity", "--out", str(tmp_path / "r.npz")])
+    code = cli.main(["shade", str(scene), "--method", "mitsuba", "--out", str(tmp_path / "r.npz")])
     assert code == 2
-    assert "method 'radiosity' is not implemented yet" in capsys.readouterr().err
+    assert "method 'mitsuba' needs Mitsuba 3: pip install 'prtlab[reference]'" in capsys.readouterr().err
 
 
 def test_references_have_nothing_to_precompute(tmp_path, capsys):
