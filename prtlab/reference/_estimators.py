@@ -130,6 +130,19 @@ def _material_arrays(material: Material):
     return np.asarray(material.albedo, float), np.zeros(3), 1.0
 
 
+def _vertex_arrays(objects):
+    """World shading points, normals and material ``(kd, ks, exponent)`` of every vertex of ``objects``."""
+    if not objects:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    counts = [o.n_vertices for o in objects]
+    mats = [_material_arrays(o.material) for o in objects]
+    return (np.concatenate([o.world_shading_points() for o in objects]),
+            np.concatenate([o.world_normals() for o in objects]),
+            np.concatenate([np.tile(m[0], (c, 1)) for m, c in zip(mats, counts)]),
+            np.concatenate([np.tile(m[1], (c, 1)) for m, c in zip(mats, counts)]),
+            np.concatenate([np.full(c, m[2]) for m, c in zip(mats, counts)]))
+
+
 class _SceneData:
     """World-space arrays of one pose of a scene: the ray caster, normals, materials, lights."""
 
@@ -516,23 +529,14 @@ def path_trace(
     counts = [o.n_vertices for o in shaded]
     _check_memory(sum(counts), n_samples)
     data = _SceneData(scene, env_sampling, area_lights_block)
-    pos = np.concatenate([o.world_shading_points() for o in shaded]) if shaded else np.zeros((0, 3))
-    normals = np.concatenate([o.world_normals() for o in shaded]) if shaded else np.zeros((0, 3))
-    mats = [_material_arrays(o.material) for o in shaded]
-    kd = np.concatenate([np.tile(m[0], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))
-    ks = np.concatenate([np.tile(m[1], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))
-    ex = np.concatenate([np.full(c, m[2]) for m, c in zip(mats, counts)]) if shaded else np.zeros(0)
+    pos, normals, kd, ks, ex = _vertex_arrays(shaded)
     wo = _unit(np.asarray(scene.camera.position, float) - pos)
     out = _estimate(
         data, pos, normals, wo, kd, ks, ex, bounces, n_samples, rng, progress, desc=f"reference B={bounces}"
     )
-    result = ShadeResult()
-    result.stderr = {"direct": {}, "indirect": {}, "total": {}}
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    for obj, a, b in zip(shaded, offsets[:-1], offsets[1:]):
-        for part in ("direct", "indirect", "total"):
-            getattr(result, part)[obj.name] = out[part][a:b]
-            result.stderr[part][obj.name] = out[part + "_se"][a:b]
+    parts = ("direct", "indirect", "total")
+    result = ShadeResult.from_vertex_arrays([o.name for o in shaded], counts, {p: out[p] for p in parts},
+                                            {p: out[p + "_se"] for p in parts})
     result.info = {
         "method": "reference",
         "bounces": bounces,
