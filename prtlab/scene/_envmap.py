@@ -198,6 +198,38 @@ def read_hdr(path) -> np.ndarray:
     where = f"HDR file {str(path)!r}"
     if not (data.startswith(b"#?RADIANCE") or data.startswith(b"#?RGBE")):
         raise ValueError(f"{where} does not start with '#?RADIANCE' or '#?RGBE'")
+    height, width, pos = _hdr_header(data, where)
+    if len(data) - pos < 4 * height:  # every scanline takes at least 4 bytes
+        raise ValueError(f"{where}: truncated ({len(data) - pos} bytes of pixel data for {height} rows)")
+    body = np.frombuffer(data, dtype=np.uint8, offset=pos)
+    rgbe = np.empty((height, width, 4), dtype=np.uint8)
+    k = 0
+    try:
+        for row in range(height):
+            new_rle = (
+                8 <= width < 32768
+                and body[k] == 2
+                and body[k + 1] == 2
+                and (int(body[k + 2]) << 8 | int(body[k + 3])) == width
+                and not body[k + 2] & 0x80
+            )
+            if not new_rle:  # flat scanline, possibly with old-style (1, 1, 1, n) repeat codes
+                flat = body[k : k + 4 * width]
+                flat = flat[: len(flat) // 4 * 4].reshape(-1, 4)
+                if len(flat) == width and not np.any((flat[:, 0] == 1) & (flat[:, 1] == 1) & (flat[:, 2] == 1)):
+                    rgbe[row] = flat
+                    k += 4 * width
+                else:
+                    k = _read_old_rle(body, k, rgbe[row])
+                continue
+            k = _read_new_rle(body, k + 4, rgbe[row])
+    except (IndexError, ValueError) as err:
+        raise ValueError(f"{where}: corrupt or truncated pixel data at row {row} ({err})") from err
+    return _rgbe_to_float(rgbe)
+
+
+def _hdr_header(data: bytes, where: str) -> tuple[int, int, int]:
+    """``(height, width, offset of the pixel data)`` from a Radiance header and its ``-Y H +X W`` line."""
     pos = 0
     fmt = None
     while True:  # header lines up to an empty line
@@ -224,51 +256,32 @@ def read_hdr(path) -> np.ndarray:
     height, width = int(tokens[1]), int(tokens[3])
     if not (height >= 1 and width >= 1 and height * width <= MAX_MAP_PIXELS):
         raise ValueError(f"{where}: {width} x {height} pixels; expected 1 to {MAX_MAP_PIXELS:,} pixels")
-    if len(data) - pos < 4 * height:  # every scanline takes at least 4 bytes
-        raise ValueError(f"{where}: truncated ({len(data) - pos} bytes of pixel data for {height} rows)")
-    body = np.frombuffer(data, dtype=np.uint8, offset=pos)
-    rgbe = np.empty((height, width, 4), dtype=np.uint8)
-    k = 0
-    try:
-        for row in range(height):
-            new_rle = (
-                8 <= width < 32768
-                and body[k] == 2
-                and body[k + 1] == 2
-                and (int(body[k + 2]) << 8 | int(body[k + 3])) == width
-                and not body[k + 2] & 0x80
-            )
-            if not new_rle:  # flat scanline, possibly with old-style (1, 1, 1, n) repeat codes
-                flat = body[k : k + 4 * width]
-                flat = flat[: len(flat) // 4 * 4].reshape(-1, 4)
-                if len(flat) == width and not np.any((flat[:, 0] == 1) & (flat[:, 1] == 1) & (flat[:, 2] == 1)):
-                    rgbe[row] = flat
-                    k += 4 * width
-                else:
-                    k = _read_old_rle(body, k, rgbe[row])
-                continue
-            k += 4
-            for c in range(4):
-                x = 0
-                line = rgbe[row, :, c]
-                while x < width:
-                    count = int(body[k])
-                    k += 1
-                    if count > 128:  # a run
-                        count -= 128
-                        line[x : x + count] = body[k]
-                        k += 1
-                    else:  # literal bytes
-                        if count == 0:
-                            raise ValueError("zero-length literal")
-                        line[x : x + count] = body[k : k + count]
-                        k += count
-                    x += count
-                if x != width:
-                    raise ValueError("scanline overrun")
-    except (IndexError, ValueError) as err:
-        raise ValueError(f"{where}: corrupt or truncated pixel data at row {row} ({err})") from err
-    return _rgbe_to_float(rgbe)
+    return height, width, pos
+
+
+def _read_new_rle(body: np.ndarray, k: int, scanline: np.ndarray) -> int:
+    """Decode the four run-length encoded channels of one new-style scanline (its 4-byte marker read) into
+    ``scanline (W, 4)``; return the next byte offset."""
+    width = scanline.shape[0]
+    for c in range(4):
+        x = 0
+        line = scanline[:, c]
+        while x < width:
+            count = int(body[k])
+            k += 1
+            if count > 128:  # a run
+                count -= 128
+                line[x : x + count] = body[k]
+                k += 1
+            else:  # literal bytes
+                if count == 0:
+                    raise ValueError("zero-length literal")
+                line[x : x + count] = body[k : k + count]
+                k += count
+            x += count
+        if x != width:
+            raise ValueError("scanline overrun")
+    return k
 
 
 def _read_old_rle(body: np.ndarray, k: int, line: np.ndarray) -> int:
