@@ -365,48 +365,44 @@ def to_mitsuba(scene, *, bounces: int | None = None, smooth_normals: bool = True
         if obj.portal:  # an opening, not a surface
             continue
         desc[f"object_{i}"] = _mesh(mi, obj, smooth_normals)
-    black = {"type": "diffuse", "reflectance": _rgb(np.zeros(3))}
     for i, light in enumerate(scene.lights):
-        key = f"light_{i}"
-        if isinstance(light, EnvironmentLight):
-            if light.constant is not None:
-                desc[key] = {"type": "constant", "radiance": _rgb(light.constant)}
-            else:
-                image = np.ascontiguousarray(np.asarray(light.image, dtype=np.float32))
-                desc[key] = {"type": "envmap", "bitmap": mi.Bitmap(image)}
-        elif isinstance(light, AreaLight):
-            desc[key] = {
-                "type": "rectangle",
-                "to_world": _rectangle_to_world(mi, light),
-                "bsdf": black,
-                "emitter": {"type": "area", "radiance": _rgb(light.radiance)},
-            }
-        elif isinstance(light, PointLight):
-            desc[key] = {
-                "type": "point",
-                "position": [float(c) for c in light.position],
-                "intensity": _rgb(light.intensity),
-            }
-        else:
-            raise NotImplementedError(f"light {i} of type {type(light).__name__} has no Mitsuba translation")
+        desc[f"light_{i}"] = _light(mi, i, light)
     if sensor:
-        cam = scene.camera
-        width, height = (int(r) for r in cam.resolution)
-        desc["sensor"] = {
-            "type": "perspective",
-            "fov": float(cam.fov_deg),
-            "fov_axis": "y",
-            "to_world": _camera_to_world(mi, cam),
-            "sampler": {"type": "independent", "sample_count": int(spp)},
-            "film": {
-                "type": "hdrfilm",
-                "width": width,
-                "height": height,
-                "pixel_format": "rgb",
-                "rfilter": {"type": "box"},
-            },
-        }
+        desc["sensor"] = _sensor(mi, scene.camera, spp)
     return desc
+
+
+def _light(mi, i: int, light) -> dict:
+    """The ``load_dict`` entry of scene light ``i``."""
+    if isinstance(light, EnvironmentLight):
+        if light.constant is not None:
+            return {"type": "constant", "radiance": _rgb(light.constant)}
+        image = np.ascontiguousarray(np.asarray(light.image, dtype=np.float32))
+        return {"type": "envmap", "bitmap": mi.Bitmap(image)}
+    if isinstance(light, AreaLight):
+        return {
+            "type": "rectangle",
+            "to_world": _rectangle_to_world(mi, light),
+            "bsdf": {"type": "diffuse", "reflectance": _rgb(np.zeros(3))},
+            "emitter": {"type": "area", "radiance": _rgb(light.radiance)},
+        }
+    if isinstance(light, PointLight):
+        return {"type": "point", "position": [float(c) for c in light.position], "intensity": _rgb(light.intensity)}
+    raise NotImplementedError(f"light {i} of type {type(light).__name__} has no Mitsuba translation")
+
+
+def _sensor(mi, cam, spp: int) -> dict:
+    """A perspective sensor (vertical ``fov``) and box-filtered RGB film matching ``cam``."""
+    width, height = (int(r) for r in cam.resolution)
+    return {
+        "type": "perspective",
+        "fov": float(cam.fov_deg),
+        "fov_axis": "y",
+        "to_world": _camera_to_world(mi, cam),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                 "rfilter": {"type": "box"}},
+    }
 
 
 def _load(mi, scene, **kwargs):
