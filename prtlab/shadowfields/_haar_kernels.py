@@ -281,6 +281,42 @@ def area_light_count_kernel(points, normals, corners, light_normal, frames, res,
         count[v] = total
 
 
+@numba.njit(cache=True, inline="always")
+def _cone_planes(poly, n, edge):
+    """Inward normals ``edge[:n]`` of the faces of the cone from the origin over ``poly[:n]`` (planes
+    through the origin and an edge)."""
+    c0 = c1 = c2 = 0.0
+    for e in range(n):
+        c0 += poly[e, 0]
+        c1 += poly[e, 1]
+        c2 += poly[e, 2]
+    orient = 0.0
+    for e in range(n):
+        a, b = poly[e], poly[(e + 1) % n]
+        edge[e, 0] = a[1] * b[2] - a[2] * b[1]
+        edge[e, 1] = a[2] * b[0] - a[0] * b[2]
+        edge[e, 2] = a[0] * b[1] - a[1] * b[0]
+        orient += edge[e, 0] * c0 + edge[e, 1] * c1 + edge[e, 2] * c2
+    if orient < 0.0:
+        for e in range(n):
+            edge[e, 0], edge[e, 1], edge[e, 2] = -edge[e, 0], -edge[e, 1], -edge[e, 2]
+
+
+@numba.njit(cache=True, inline="always")
+def _texel_in_cone(axis, s_ax, t_ax, s0, s1, t0, t1, edge, n, corner):
+    """True when the 4 corner directions of the face texel ``[s0, s1] x [t0, t1]`` are all inside the
+    cone of :func:`_cone_planes` (``corner``: scratch (3,))."""
+    for q in range(4):
+        sc = s0 if q % 2 == 0 else s1
+        tc = t0 if q < 2 else t1
+        for c in range(3):
+            corner[c] = axis[c] + sc * s_ax[c] + tc * t_ax[c]
+        for e in range(n):
+            if edge[e, 0] * corner[0] + edge[e, 1] * corner[1] + edge[e, 2] * corner[2] < 0.0:
+                return False
+    return True
+
+
 @numba.njit(cache=True, parallel=True)
 def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res, texel_omega, texel_moment,
                              texel, omega, moment, count):
@@ -307,23 +343,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
         k = 0
         if n > 0:
-            # inward normals of the light cone's faces (planes through the point and an edge)
-            c0 = c1 = c2 = 0.0
-            for e in range(n):
-                c0 += poly[e, 0]
-                c1 += poly[e, 1]
-                c2 += poly[e, 2]
-            orient = 0.0
-            for e in range(n):
-                a, b = poly[e], poly[(e + 1) % n]
-                edge[e, 0] = a[1] * b[2] - a[2] * b[1]
-                edge[e, 1] = a[2] * b[0] - a[0] * b[2]
-                edge[e, 2] = a[0] * b[1] - a[1] * b[0]
-                orient += edge[e, 0] * c0 + edge[e, 1] * c1 + edge[e, 2] * c2
-            if orient < 0.0:
-                for e in range(n):
-                    edge[e, 0], edge[e, 1], edge[e, 2] = -edge[e, 0], -edge[e, 1], -edge[e, 2]
-        if n > 0:
+            _cone_planes(poly, n, edge)
             for f in range(6):
                 axis, s_ax, t_ax = frames[f, 0], frames[f, 1], frames[f, 2]
                 m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf, plane)
@@ -340,19 +360,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                     for j in range(r0, r1 + 1):
                         s0 = 2.0 * j / res - 1.0
                         s1 = 2.0 * (j + 1) / res - 1.0
-                        whole = True
-                        for q in range(4):
-                            sc = s0 if q % 2 == 0 else s1
-                            tc = t0 if q < 2 else t1
-                            for c in range(3):
-                                corner[c] = axis[c] + sc * s_ax[c] + tc * t_ax[c]
-                            for e in range(n):
-                                if edge[e, 0] * corner[0] + edge[e, 1] * corner[1] + edge[e, 2] * corner[2] < 0.0:
-                                    whole = False
-                                    break
-                            if not whole:
-                                break
-                        if whole:
+                        if _texel_in_cone(axis, s_ax, t_ax, s0, s1, t0, t1, edge, n, corner):
                             if k < texel.shape[1]:
                                 t = f * rr + i * res + j
                                 texel[v, k] = t
