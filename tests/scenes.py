@@ -3,7 +3,29 @@
 
 from __future__ import annotations
 
+import copy
+
 from prtlab.scene import Scene
+
+#: ``with_change(d, path, DELETE)`` deletes the item at ``path``.
+DELETE = object()
+
+
+def with_change(d: dict, path: str, value) -> dict:
+    """A deep copy of the scene dict ``d`` with the item at a dotted path (``objects.0.material.albedo``)
+    replaced by ``value``, or deleted if ``value`` is :data:`DELETE`."""
+    d = copy.deepcopy(d)
+    *parents, last = path.split(".")
+    node = d
+    for p in parents:
+        node = node[int(p)] if isinstance(node, list) else node[p]
+    key = int(last) if isinstance(node, list) else last
+    if value is DELETE:
+        del node[key]
+    else:
+        node[key] = value
+    return d
+
 
 #: A floor and a moving ball under a small sky, with a camera and a one-second animation (command-line tests).
 TINY_SCENE = """\
