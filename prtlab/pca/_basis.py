@@ -319,6 +319,24 @@ class PCABasis:
         return self.reconstruct(self.weights(intensity, colour=colour), colour=colour)
 
 
+def principal_basis(training, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and ``n - 1`` principal vectors of the columns of ``training (N_v, N_light)``.
+
+    Returns ``basis (n, N_v)`` (row 0 the mean, then the unit principal vectors, each with its
+    largest-magnitude entry positive), all singular values of the centred matrix, and ``energy (n,)``
+    as :attr:`PCABasis.energy`.
+    """
+    mean = training.mean(axis=1)
+    u, s, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
+    comps = u[:, : n - 1].T.copy()
+    flip = np.sign(comps[np.arange(n - 1), np.argmax(np.abs(comps), axis=1)])
+    comps *= np.where(flip == 0, 1.0, flip)[:, None]
+    basis = np.concatenate([mean[None], comps], axis=0)
+    total = float(np.sum(s * s))
+    energy = np.concatenate([[0.0], np.cumsum(s[: n - 1] ** 2)]) / (total if total > 0 else 1.0)
+    return basis, s, energy
+
+
 def fit_pca_basis(
     mesh_or_object,
     n_basis: int = 16,
@@ -390,14 +408,7 @@ def fit_pca_basis(
     check_int(seed, "seed")
     lights = pca_light_positions(mesh, m, light_distance, plane=plane)
     training = point_light_intensity(mesh, lights, albedo=albedo, shadows=shadows).T  # (N_v, N_light)
-    mean = training.mean(axis=1)
-    u, s, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
-    comps = u[:, : n - 1].T.copy()
-    flip = np.sign(comps[np.arange(n - 1), np.argmax(np.abs(comps), axis=1)])
-    comps *= np.where(flip == 0, 1.0, flip)[:, None]
-    basis = np.concatenate([mean[None], comps], axis=0)
-    total = float(np.sum(s * s))
-    energy = np.concatenate([[0.0], np.cumsum(s[: n - 1] ** 2)]) / (total if total > 0 else 1.0)
+    basis, s, energy = principal_basis(training, n)
     if n_samples is None:
         samples = np.arange(nv)
     else:
