@@ -343,6 +343,8 @@ def _check_k(K, limit: int | None = None) -> int:
 def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") -> SeparableBRDF:
     """Separable approximation of a BRDF with K terms (truncated SVD).
 
+    (Long for its Notes on the two term layouts; the code is 30 lines.)
+
     Parameters
     ----------
     brdf : Phong or Lambert

