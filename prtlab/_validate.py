@@ -14,8 +14,20 @@ from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
-__all__ = ["check_int", "check_float", "check_bool", "check_order", "check_choice", "as_directions", "as_points",
+__all__ = ["check_int", "check_float", "check_bool", "check_order", "check_choice", "as_real_array", "as_directions", "as_points",
            "MemoryNeed", "memory_limit", "check_memory"]
+
+
+def _requirement(name: str, kind: str, minimum, maximum, meaning: str, min_open: bool = False,
+                 max_open: bool = False) -> str:
+    """``"<name> must be <kind> >= minimum and <= maximum (meaning)"``, the head of a range error."""
+    bounds = []
+    if minimum is not None:
+        bounds.append(f"{'>' if min_open else '>='} {minimum}")
+    if maximum is not None:
+        bounds.append(f"{'<' if max_open else '<='} {maximum}")
+    what = f"{name} must be {kind}" + (" " + " and ".join(bounds) if bounds else "")
+    return what + (f" ({meaning})" if meaning else "")
 
 
 def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None,
@@ -24,13 +36,7 @@ def check_int(value: Any, name: str, minimum: int | None = None, maximum: int | 
 
     ``meaning`` (e.g. ``"number of SH bands"``) is added to the message in brackets.
     """
-    bounds = []
-    if minimum is not None:
-        bounds.append(f">= {minimum}")
-    if maximum is not None:
-        bounds.append(f"<= {maximum}")
-    what = f"{name} must be an int" + (" " + " and ".join(bounds) if bounds else "")
-    what += f" ({meaning})" if meaning else ""
+    what = _requirement(name, "an int", minimum, maximum, meaning)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{what}, got {value!r} of type {type(value).__name__}")
     if (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
@@ -45,13 +51,7 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
     ``min_open`` / ``max_open`` exclude the bound itself (``(0, 1]`` is ``minimum=0, min_open=True,
     maximum=1``); ``meaning`` is added to the message in brackets.
     """
-    bounds = []
-    if minimum is not None:
-        bounds.append(f"{'>' if min_open else '>='} {minimum}")
-    if maximum is not None:
-        bounds.append(f"{'<' if max_open else '<='} {maximum}")
-    what = f"{name} must be a finite number" + (" " + " and ".join(bounds) if bounds else "")
-    what += f" ({meaning})" if meaning else ""
+    what = _requirement(name, "a finite number", minimum, maximum, meaning, min_open, max_open)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise TypeError(f"{what}, got {value!r} of type {type(value).__name__}")
     x = float(value)
@@ -59,6 +59,20 @@ def check_float(value: Any, name: str, minimum: float | None = None, maximum: fl
             or (maximum is not None and (x >= maximum if max_open else x > maximum))):
         raise ValueError(f"{what}, got {value!r}")
     return x
+
+
+def as_real_array(value: Any, name: str, finite_hint: str = "") -> np.ndarray:
+    """``value`` as a float64 array: TypeError unless bool, int or float, ValueError on NaN or inf.
+
+    ``finite_hint`` follows the NaN message after a semicolon (what to pass instead).
+    """
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "bfiu":
+        raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf" + (f"; {finite_hint}" if finite_hint else ""))
+    return arr
 
 
 def check_bool(value: Any, name: str) -> bool:

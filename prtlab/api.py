@@ -21,11 +21,11 @@ __all__ = ["METHODS", "PIPELINES", "MethodUnavailable", "shade", "precompute", "
 
 
 class MethodUnavailable(NotImplementedError):
-    """The method exists in the design but is not implemented (or installed) here."""
+    """The method needs something not installed here (e.g. Mitsuba 3 for ``method="mitsuba"``)."""
 
 
-# method name -> (module, function) of its shade entry point, or the issue that will add it.
-METHODS: dict[str, tuple[str, str] | str] = {
+# method name -> (module, function) of its shade entry point.
+METHODS: dict[str, tuple[str, str]] = {
     "reference": ("prtlab.reference", "shade_reference"),
     "mitsuba": ("prtlab.reference", "shade_mitsuba"),
     "interreflection": ("prtlab.interreflection", "shade_scene"),
@@ -88,10 +88,7 @@ def check_bounces(method: str, bounces) -> int:
 def _entry_point(method: str):
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    target = METHODS[method]
-    if isinstance(target, str):
-        raise MethodUnavailable(f"method {method!r} is not implemented yet: {target}")
-    module, function = target
+    module, function = METHODS[method]
     return getattr(importlib.import_module(module), function)
 
 

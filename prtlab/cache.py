@@ -761,19 +761,7 @@ class Cache:
         todo = [i for i, chunk in stored.items() if chunk is None]
         log.info("cache miss: %s %s; computing %d of %d chunks", name, path, len(todo), n_chunks)
         if todo:
-            from tqdm.auto import tqdm
-
-            runner = map_fn or (lambda fn, indices: ((i, fn(i)) for i in indices))
-            with tqdm(
-                total=n_chunks, initial=n_chunks - len(todo), desc=name, unit="chunk", disable=not self.progress
-            ) as bar:
-                for i, result in runner(chunk_fn, todo):
-                    try:
-                        self.store_chunk(key, i, result, name, n_chunks=n_chunks, chunking=chunking)
-                    except FileNotFoundError:  # the parts folder was removed under us: keep it in memory
-                        log.warning("cache chunk %d of %s could not be stored; keeping it in memory", i, path)
-                    stored[int(i)] = _as_read(result)
-                    bar.update(1)
+            self._compute_chunks(key, name, todo, chunk_fn, map_fn, stored, n_chunks, chunking)
         missing = [i for i, chunk in stored.items() if chunk is None]
         if missing:
             raise RuntimeError(f"chunks {missing} of {name!r} are missing after computing them (map_fn skipped them?)")
@@ -786,6 +774,23 @@ class Cache:
             log.warning("cache entry %s was removed right after it was written; using the computed result", path)
             return _as_read(result)
         return fresh
+
+    def _compute_chunks(self, key, name, todo, chunk_fn, map_fn, stored: dict, n_chunks: int, chunking) -> None:
+        """Compute the chunks ``todo`` (by ``map_fn``), store each as it finishes and put it in ``stored``."""
+        from tqdm.auto import tqdm
+
+        runner = map_fn or (lambda fn, indices: ((i, fn(i)) for i in indices))
+        with tqdm(
+            total=n_chunks, initial=n_chunks - len(todo), desc=name, unit="chunk", disable=not self.progress
+        ) as bar:
+            for i, result in runner(chunk_fn, todo):
+                try:
+                    self.store_chunk(key, i, result, name, n_chunks=n_chunks, chunking=chunking)
+                except FileNotFoundError:  # the parts folder was removed under us: keep it in memory
+                    log.warning("cache chunk %d of %s could not be stored; keeping it in memory", i,
+                                self.path(key, name))
+                stored[int(i)] = _as_read(result)
+                bar.update(1)
 
     # ------------------------------------------------------------------ listing, size cap, clearing
 

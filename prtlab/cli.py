@@ -55,6 +55,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import sys
 import tempfile
@@ -100,24 +101,23 @@ def _int_at_least(minimum: int, meaning: str = ""):
     return parse
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
-    return value
+def _float_in(what: str, accept):
+    """An argparse type: a float for which ``accept(value)`` holds, else ``must be <what>, got <text>``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = None
+        if value is None or not accept(value):
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    parse.__name__ = "float"
+    return parse
 
 
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if value != value or value in (float("inf"), float("-inf")):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
-    return value
+_positive_float = _float_in("a number of seconds > 0", lambda v: 0 < v < float("inf"))
+_finite_float = _float_in("a finite number", math.isfinite)
 
 
 def _option_pair(text: str) -> tuple[str | None, str, str]:
@@ -160,69 +160,81 @@ def _parser() -> argparse.ArgumentParser:
                         help="print only results, warnings and errors (no progress bars or log lines)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser,
                                 help="what to do (prtlab COMMAND --help for its flags)")
+    _add_shading_commands(sub)
+    _add_tool_commands(sub)
+    return parser
 
-    def add(name, **kwargs):
-        p = sub.add_parser(name, **kwargs)
-        p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
-                       help="as prtlab -q: no progress bars or log lines")
-        return p
 
-    def scene_arg(p):
-        p.add_argument("scene", help="scene file (YAML, see docs/SCENE_FORMAT.md) or the name of a shipped scene, "
-                                    "e.g. cornell_box")
+def _add_command(sub, name, **kwargs):
+    p = sub.add_parser(name, **kwargs)
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                   help="as prtlab -q: no progress bars or log lines")
+    return p
 
-    def shading_args(p, method: bool = True):
-        if method:
-            p.add_argument("--method", required=True, choices=METHOD_NAMES,
-                           help="shading method: a Monte Carlo reference or a pipeline")
-        p.add_argument("--bounces", type=_int_at_least(0, "0 = direct light only"), default=1, metavar="B",
-                       help="indirect bounces (0 = direct light only; default 1)")
-        p.add_argument("--samples", type=_int_at_least(1), default=None, metavar="N",
-                       help="Monte Carlo samples per vertex (the n_samples option of a reference)")
-        p.add_argument("--seed", type=_int_at_least(0), default=None, metavar="S",
-                       help="random seed (the seed option of the methods that draw random numbers)")
-        scoped = "" if method else ("; METHOD.KEY=VALUE sets it for one method only, KEY=VALUE for every "
-                                    "method of the run that has KEY")
-        p.add_argument("-o", "--option", dest="options", action="append", type=_option_pair, default=[],
-                       metavar="KEY=VALUE",
-                       help="a method option, repeatable, e.g. -o n_spheres=4 or -o 'n_spheres={bunny: 8}'; "
-                            "a wrong key lists the valid ones" + scoped)
 
-    p = add("shade", help="per-vertex radiance of a scene, saved as .npz",
-                       description="Per-vertex radiance of every object of a scene by one method.")
-    scene_arg(p)
-    shading_args(p)
+def _scene_arg(p):
+    p.add_argument("scene", help="scene file (YAML, see docs/SCENE_FORMAT.md) or the name of a shipped scene, "
+                                "e.g. cornell_box")
+
+
+def _shading_args(p, method: bool = True):
+    if method:
+        p.add_argument("--method", required=True, choices=METHOD_NAMES,
+                       help="shading method: a Monte Carlo reference or a pipeline")
+    p.add_argument("--bounces", type=_int_at_least(0, "0 = direct light only"), default=1, metavar="B",
+                   help="indirect bounces (0 = direct light only; default 1)")
+    p.add_argument("--samples", type=_int_at_least(1), default=None, metavar="N",
+                   help="Monte Carlo samples per vertex (the n_samples option of a reference)")
+    p.add_argument("--seed", type=_int_at_least(0), default=None, metavar="S",
+                   help="random seed (the seed option of the methods that draw random numbers)")
+    scoped = "" if method else ("; METHOD.KEY=VALUE sets it for one method only, KEY=VALUE for every "
+                                "method of the run that has KEY")
+    p.add_argument("-o", "--option", dest="options", action="append", type=_option_pair, default=[],
+                   metavar="KEY=VALUE",
+                   help="a method option, repeatable, e.g. -o n_spheres=4 or -o 'n_spheres={bunny: 8}'; "
+                        "a wrong key lists the valid ones" + scoped)
+
+
+def _add_shading_commands(sub):
+    """``shade``, ``render`` and ``compare``: the commands that shade a scene."""
+    p = _add_command(sub, "shade", help="per-vertex radiance of a scene, saved as .npz",
+                     description="Per-vertex radiance of every object of a scene by one method.")
+    _scene_arg(p)
+    _shading_args(p)
     p.add_argument("--out", default="radiance.npz",
                    help="output .npz (keys <object>/direct|indirect|total); a folder gets radiance.npz inside, "
                         "a name without .npz gets .npz appended (default radiance.npz)")
 
-    p = add("render", help="images of a scene, one per animation frame",
-                       description="Render the scene's camera view for each animation frame. A pipeline is "
-                                   "precomputed once; each frame then shades its own frame state.")
-    scene_arg(p)
-    shading_args(p)
+    p = _add_command(sub, "render", help="images of a scene, one per animation frame",
+                     description="Render the scene's camera view for each animation frame. A pipeline is "
+                                 "precomputed once; each frame then shades its own frame state.")
+    _scene_arg(p)
+    _shading_args(p)
     p.add_argument("--frames", type=_int_at_least(1), default=1, metavar="N",
                    help="frames spread evenly over the scene's animation (>= 1; default 1)")
     p.add_argument("--out", required=True, help="output folder (frame_NNNN.png and .exr per frame)")
     p.add_argument("--exposure", type=_finite_float, default=0.0, help="exposure of the PNGs in stops (default 0)")
 
-    p = add("compare", help="error numbers of methods against a reference",
-                       description="Shade a scene with each method and a reference; print per object the "
-                                   "relative RMS error of direct, indirect and total light (prtlab.compare).")
-    scene_arg(p)
+    p = _add_command(sub, "compare", help="error numbers of methods against a reference",
+                     description="Shade a scene with each method and a reference; print per object the "
+                                 "relative RMS error of direct, indirect and total light (prtlab.compare).")
+    _scene_arg(p)
     p.add_argument("--methods", required=True, type=_method_list,
                    help=f"methods to score, separated by commas (from {', '.join(METHOD_NAMES)})")
     p.add_argument("--reference", choices=REFERENCE_NAMES, default="reference",
                    help="the ground truth (default: prtlab's own Monte Carlo reference)")
-    shading_args(p, method=False)
+    _shading_args(p, method=False)
     p.add_argument("--out", default=None,
                    help="output folder: compare.json (every row) and per method difference, comparison and "
                         "agreement images")
 
-    p = add("precompute", help="run and cache a pipeline's precomputation",
-                       description="Run a pipeline's precomputation (or find it in the cache), optionally "
-                                   "on Dask workers.")
-    scene_arg(p)
+
+def _add_tool_commands(sub):
+    """``precompute``, ``cache``, ``reproduce`` and ``bench``."""
+    p = _add_command(sub, "precompute", help="run and cache a pipeline's precomputation",
+                     description="Run a pipeline's precomputation (or find it in the cache), optionally "
+                                 "on Dask workers.")
+    _scene_arg(p)
     p.add_argument("--method", required=True, choices=METHOD_NAMES, help="the pipeline to precompute")
     p.add_argument("-o", "--option", dest="options", action="append", type=_option_pair, default=[],
                    metavar="KEY=VALUE", help="a method option, repeatable (as for shade)")
@@ -232,24 +244,21 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=_positive_float, default=10.0,
                    help="seconds to wait for --scheduler to answer (default 10)")
 
-    p = add("cache", help="show or clear the cache of precomputations",
-                       description="The cache of precomputations ($PRTLAB_CACHE, default ~/.cache/prtlab).")
+    p = _add_command(sub, "cache", help="show or clear the cache of precomputations",
+                     description="The cache of precomputations ($PRTLAB_CACHE, default ~/.cache/prtlab).")
     p.add_argument("action", choices=("info", "list", "clear"),
                    help="info: size and entries per method; list: one line per entry; clear: delete entries")
     p.add_argument("--method", default=None, help="only the entries of this method (e.g. portals)")
 
-    p = add("reproduce", help="every paper figure and table that exists so far, as report/index.html",
-                       description="Run every notebook headless and gather their figures and tables.")
-    from prtlab.reproduce import add_arguments
-
-    add_arguments(p)
-
-    p = add("bench", help="benchmarks, with peers and the machine's peak measured in the same run",
-                       description="Time the benchmark cases (medians after a warm-up).")
     from prtlab.bench import add_arguments as add_bench_arguments
+    from prtlab.reproduce import add_arguments as add_reproduce_arguments
 
-    add_bench_arguments(p)
-    return parser
+    add_reproduce_arguments(_add_command(
+        sub, "reproduce", help="every paper figure and table that exists so far, as report/index.html",
+        description="Run every notebook headless and gather their figures and tables."))
+    add_bench_arguments(_add_command(
+        sub, "bench", help="benchmarks, with peers and the machine's peak measured in the same run",
+        description="Time the benchmark cases (medians after a warm-up)."))
 
 
 # --------------------------------------------------------------------------- method options

@@ -16,12 +16,6 @@ def test_api_unknown_method_message():
         api._entry_point("radiosity")
 
 
-def test_api_unimplemented_method_message(monkeypatch):
-    monkeypatch.setitem(api.METHODS, "radiosity", "a future method (issue 99)")
-    with pytest.raises(api.MethodUnavailable, match="method 'radiosity' is not implemented yet: a future method"):
-        api._entry_point("radiosity")
-
-
 def test_every_design_method_is_registered():
     for method in ("reference", "mitsuba", "interreflection", "spherelights", "portals"):
         assert isinstance(api.METHODS[method], tuple), method

@@ -19,50 +19,7 @@ import pytest
 import prtlab
 from prtlab import _compile_notice, api, cli
 from prtlab.scene import ShadeResult
-
-TINY_SCENE = """\
-name: tiny
-objects:
-  - name: floor
-    mesh: {builtin: plane, size: [4, 4], resolution: [4, 4]}
-    material: {type: diffuse, albedo: [0.7, 0.7, 0.7]}
-  - name: ball
-    mesh: {builtin: icosphere, radius: 0.5, subdivisions: 1}
-    transform: {translate: [0, 0.5, 0]}
-    material: {type: diffuse, albedo: [0.8, 0.2, 0.2]}
-    dynamic: true
-lights:
-  - type: environment
-    sky: {sun_elevation_deg: 35, sun_azimuth_deg: 0, turbidity: 3, sun: false, height: 16, width: 32}
-    scale: 0.5
-camera: {position: [0, 2.0, 4.5], look_at: [0, 0.4, 0], up: [0, 1, 0], fov_deg: 40, resolution: [32, 24]}
-animation:
-  tracks:
-    - object: ball
-      keys:
-        - {time: 0, translate: [0, 0.5, 0]}
-        - {time: 1, translate: [1, 0.5, 0]}
-"""
-
-TINY_ROOM = """\
-name: tiny_room
-objects:
-  - name: room
-    mesh:
-      builtin: room
-      size: [4, 2.5, 4]
-      windows: [{wall: -z, center: [0, 1.4], size: [1.5, 1.0]}]
-      cell_size: 1.0
-    material: {type: diffuse, albedo: [0.7, 0.7, 0.7]}
-  - name: window
-    mesh: {builtin: window, room_size: [4, 2.5, 4], wall: -z, center: [0, 1.4], size: [1.5, 1.0]}
-    portal: true
-lights:
-  - type: environment
-    sky: {sun_elevation_deg: 35, sun_azimuth_deg: 0, turbidity: 3, sun: false, height: 16, width: 32}
-    scale: 0.2
-camera: {position: [0.8, 1.3, 1.9], look_at: [-0.2, 0.7, -1.0], up: [0, 1, 0], fov_deg: 60, resolution: [32, 24]}
-"""
+from tests.scenes import TINY_ROOM, TINY_SCENE
 
 # The smallest options each method accepts that still exercise all of its passes.
 TINY_OPTIONS = {
@@ -500,14 +457,16 @@ def test_a_user_error_in_a_real_process_is_one_line():
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr and "missing.yaml" in proc.stderr
 
 
-def test_unimplemented_method_exits_2(monkeypatch, tmp_path, capsys):
-    monkeypatch.setitem(api.METHODS, "radiosity", "a future method (issue 99)")
-    monkeypatch.setattr(cli, "METHOD_NAMES", cli.METHOD_NAMES + ("radiosity",))
+def test_a_method_not_installed_exits_2(monkeypatch, tmp_path, capsys):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "mitsuba" else real(name, *a))
     scene = tmp_path / "scene.yaml"
     scene.write_text("objects: []\n")
-    code = cli.main(["shade", str(scene), "--method", "radiosity", "--out", str(tmp_path / "r.npz")])
+    code = cli.main(["shade", str(scene), "--method", "mitsuba", "--out", str(tmp_path / "r.npz")])
     assert code == 2
-    assert "method 'radiosity' is not implemented yet" in capsys.readouterr().err
+    assert "method 'mitsuba' needs Mitsuba 3: pip install 'prtlab[reference]'" in capsys.readouterr().err
 
 
 def test_references_have_nothing_to_precompute(tmp_path, capsys):

@@ -133,7 +133,7 @@ def _install(root: Path) -> dict:
 
 def test_wheel_carries_the_data(installed):
     names = set(zipfile.ZipFile(installed["wheel"]).namelist())
-    shipped = [p for kind in ("scenes", "meshes", "envmaps") for p in (ROOT / "prtlab" / "data" / kind).rglob("*")
+    shipped = [p for kind in ("scenes", "meshes", "envmaps", "tables") for p in (ROOT / "prtlab" / "data" / kind).rglob("*")
                if p.is_file()]
     shipped += list((ROOT / "prtlab" / "notebooks").glob("*.ipynb"))
     shipped += list((ROOT / "prtlab" / "benchmarks").glob("bench_*.py"))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from prtlab._validate import MemoryNeed, as_points, check_bool, check_choice, check_float, check_memory
+from prtlab._validate import MemoryNeed, as_points, as_real_array, check_bool, check_choice, check_float, check_memory
 
 
 def test_as_points_keeps_batch_axes_or_asks_for_a_flat_list():
@@ -23,6 +23,18 @@ def test_as_points_errors():
         as_points(np.zeros((1, 1, 3)), flat=True)
     with pytest.raises(ValueError, match="normals contains NaN or inf; pass finite coordinates"):
         as_points([[0.0, np.inf, 0.0]], "normals")
+
+
+def test_as_real_array_converts_or_names_the_fault():
+    arr = as_real_array(np.array([[1, 2]], np.int32), "x")
+    assert arr.dtype == np.float64 and arr.shape == (1, 2)
+    assert as_real_array(np.zeros(0), "x").shape == (0,)
+    with pytest.raises(TypeError, match="factors must be a real array, got dtype <U1"):
+        as_real_array(["a"], "factors")
+    with pytest.raises(ValueError, match="^weights contains NaN or inf$"):
+        as_real_array([1.0, np.nan], "weights")
+    with pytest.raises(ValueError, match="image contains NaN or inf; environment maps must be finite"):
+        as_real_array([np.inf], "image", "environment maps must be finite")
 
 
 def test_check_float_accepts_ints_and_floats_in_range():

@@ -14,7 +14,7 @@ It fetches, into ``--workdir`` (skipping what is already there):
 * Debian ``python3-tinyobjloader`` -> data/meshes/cornell_box/*.ply (examples/cornell_box.obj)
 * Debian ``blender-data``          -> data/envmaps/{sunset,interior,courtyard}.exr
 * npm ``three@0.160.0``            -> only with --check-teapot: verifies that the patch
-                                      data in prtlab/geometry/_teapot.py equals three.js's
+                                      data in prtlab/data/tables/teapot_*.csv equals three.js's
 
 See prtlab/data/README.md for sources, licences and what each step does.
 """

@@ -343,6 +343,8 @@ def _check_k(K, limit: int | None = None) -> int:
 def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") -> SeparableBRDF:
     """Separable approximation of a BRDF with K terms (truncated SVD).
 
+    (Long for its Notes on the two term layouts; the code is 30 lines.)
+
     Parameters
     ----------
     brdf : Phong or Lambert
@@ -417,28 +419,9 @@ def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") ->
     )
     n_split = 0 if grey else 1
     K = _check_k(K, len(fac.entries) + n_split)
-    kept = fac.entries[: K - n_split]
-    theta_i, theta_o, w_i, w_o = fac.theta_i, fac.theta_o, fac.w_i, fac.w_o
     # h has unit mean square over its domain (solid angle 2 pi plain, 4 pi reflection)
     domain = 2.0 * np.pi if parameterisation == "plain" else 4.0 * np.pi
-    g_radial = np.empty((K, theta_i.shape[0]))
-    h_radial = np.empty((K, theta_o.shape[0]))
-    freq = np.zeros(K, dtype=np.int64)
-    parity = np.zeros(K, dtype=np.int64)
-    sigma = np.empty(K)
-    colour = np.empty((K, brdf.channels))
-    if not grey:
-        g_radial[0], h_radial[0], sigma[0], colour[0] = 1.0 / np.pi, 1.0, np.sqrt(2.0 * np.pi * domain) / np.pi, kd
-    for k, (sig, m, j, par) in enumerate(kept, start=n_split):
-        uk = fac.u[m, :, j] / np.sqrt(w_i)
-        vk = fac.vt[m, j, :] / np.sqrt(w_o)
-        if vk[np.argmax(np.abs(vk))] < 0:  # deterministic sign: the largest |h| node is positive
-            uk, vk = -uk, -vk
-        h_scale = np.sqrt(domain / (2.0 * np.pi)) * (1.0 if m == 0 else np.sqrt(2.0))
-        h_radial[k] = h_scale * vk
-        g_radial[k] = fac.s[m, j] / h_scale * uk
-        freq[k], parity[k], sigma[k] = m, par, sig
-        colour[k] = kd + ks if grey else ks
+    terms = _radial_terms(fac, K, n_split, domain, kd + ks if grey else ks, kd)
     residual = fac.nyquist + fac.tail[K - n_split]
     if grey:
         norm2 = (kd + ks) ** 2 * fac.norm2
@@ -447,24 +430,36 @@ def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") ->
         norm2 = kd**2 * fac.dd + ks**2 * fac.ll + 2.0 * kd * ks * fac.dl
         residual2 = ks**2 * residual
     return SeparableBRDF(
-        brdf=brdf,
-        K=K,
-        parameterisation=parameterisation,
-        resolution=(n_theta, n_phi),
-        theta_in=theta_i,
-        theta_out=theta_o,
-        weights_in=w_i,
-        weights_out=w_o,
-        g_radial=g_radial,
-        h_radial=h_radial,
-        freq=freq,
-        parity=parity,
-        sigma=sigma,
-        colour=colour,
-        singular_values=np.array([e[0] for e in fac.entries]),
-        _norm2=norm2,
-        _residual2=residual2,
+        brdf=brdf, K=K, parameterisation=parameterisation, resolution=(n_theta, n_phi),
+        theta_in=fac.theta_i, theta_out=fac.theta_o, weights_in=fac.w_i, weights_out=fac.w_o, **terms,
+        singular_values=np.array([e[0] for e in fac.entries]), _norm2=norm2, _residual2=residual2,
     )
+
+
+def _radial_terms(fac, K: int, n_split: int, domain: float, colour_lobe, colour_diffuse) -> dict:
+    """``g_radial, h_radial, freq, parity, sigma, colour`` of the K terms: the diffuse term first when
+    ``n_split`` is 1, then the largest singular triplets of ``fac`` (``h`` of unit mean square over
+    ``domain``, the largest ``|h|`` node positive)."""
+    g_radial = np.empty((K, fac.theta_i.shape[0]))
+    h_radial = np.empty((K, fac.theta_o.shape[0]))
+    freq = np.zeros(K, dtype=np.int64)
+    parity = np.zeros(K, dtype=np.int64)
+    sigma = np.empty(K)
+    colour = np.empty((K, len(colour_lobe)))
+    if n_split:
+        g_radial[0], h_radial[0], sigma[0] = 1.0 / np.pi, 1.0, np.sqrt(2.0 * np.pi * domain) / np.pi
+        colour[0] = colour_diffuse
+    for k, (sig, m, j, par) in enumerate(fac.entries[: K - n_split], start=n_split):
+        uk = fac.u[m, :, j] / np.sqrt(fac.w_i)
+        vk = fac.vt[m, j, :] / np.sqrt(fac.w_o)
+        if vk[np.argmax(np.abs(vk))] < 0:  # deterministic sign: the largest |h| node is positive
+            uk, vk = -uk, -vk
+        h_scale = np.sqrt(domain / (2.0 * np.pi)) * (1.0 if m == 0 else np.sqrt(2.0))
+        h_radial[k] = h_scale * vk
+        g_radial[k] = fac.s[m, j] / h_scale * uk
+        freq[k], parity[k], sigma[k] = m, par, sig
+        colour[k] = colour_lobe
+    return dict(g_radial=g_radial, h_radial=h_radial, freq=freq, parity=parity, sigma=sigma, colour=colour)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ Layout::
     meshes/*.ply          the Stanford bunny and dragons
     meshes/cornell_box/   the Cornell box, one PLY per part
     envmaps/*.exr         light probes, 512 x 256 equirectangular
+    tables/*.csv          numeric tables (teapot patches, sun spectrum)
 
 Examples
 --------

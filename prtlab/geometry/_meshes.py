@@ -480,6 +480,8 @@ BUILTIN_MESHES: Mapping[str, dict[str, Any]] = _BuiltinNames()
 def builtin_mesh(name: str, **params: Any) -> trimesh.Trimesh:
     """Build one of prtlab's built-in meshes in object space (+Y up).
 
+    (Long for the table of builtins and their parameters; the code is a 16-line dispatch.)
+
     Parameters
     ----------
     name : str

@@ -135,6 +135,15 @@ def _as_rays(origins, dirs, normals=None):
     return flat(origins), flat(dirs), normals, batch
 
 
+@numba.njit(cache=True, inline="always")
+def barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2):
+    """``b0 n[i0] + b1 n[i1] + b2 n[i2]`` of ``vertex_normals (V, 3)`` as three floats (not normalised)."""
+    nx = b0 * vertex_normals[i0, 0] + b1 * vertex_normals[i1, 0] + b2 * vertex_normals[i2, 0]
+    ny = b0 * vertex_normals[i0, 1] + b1 * vertex_normals[i1, 1] + b2 * vertex_normals[i2, 1]
+    nz = b0 * vertex_normals[i0, 2] + b1 * vertex_normals[i1, 2] + b2 * vertex_normals[i2, 2]
+    return nx, ny, nz
+
+
 @numba.njit(cache=True, parallel=True)
 def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
     """``out[p, d]``: the ray meets the sphere ``(centre, radius)`` and the box ``[lo, hi]`` (see ``may_hit``)."""

@@ -172,6 +172,21 @@ def _window_mesh(room: np.ndarray, w: dict[str, Any]) -> trimesh.Trimesh:
     return trimesh.Trimesh(vertices=corners, faces=faces, process=False)
 
 
+def _parse_windows(windows, room) -> list[dict]:
+    """The parsed ``windows`` of a room; openings on one wall must not overlap."""
+    if isinstance(windows, Mapping) or not isinstance(windows, (list, tuple)):
+        raise TypeError(f"room: windows must be a list of window mappings, got {windows!r}")
+    parsed = [_parse_window(w, room, k) for k, w in enumerate(windows)]
+    for k, wk in enumerate(parsed):
+        for m in range(k):
+            wm = parsed[m]
+            if wk["wall"] == wm["wall"] and np.all(
+                np.minimum(wk["hi"], wm["hi"]) > np.maximum(wk["lo"], wm["lo"])
+            ):
+                raise ValueError(f"room: windows[{m}] and windows[{k}] overlap on wall {wk['wall']!r}")
+    return parsed
+
+
 def room_with_windows(
     size=_DEFAULT_ROOM_SIZE,
     windows=(_DEFAULT_WINDOW,),
@@ -223,9 +238,7 @@ def room_with_windows(
 
     room = _room_size(size)
     cell = _finite_float("cell_size", cell_size, positive=True, context="room")
-    if isinstance(windows, Mapping) or not isinstance(windows, (list, tuple)):
-        raise TypeError(f"room: windows must be a list of window mappings, got {windows!r}")
-    parsed = [_parse_window(w, room, k) for k, w in enumerate(windows)]
+    parsed = _parse_windows(windows, room)
     if isinstance(surfaces, str) or not isinstance(surfaces, (list, tuple)):
         raise TypeError(f"room: surfaces must be a list of {', '.join(ROOM_SURFACES)}")
     bad = [s for s in surfaces if s not in ROOM_SURFACES]
@@ -233,13 +246,6 @@ def room_with_windows(
         raise ValueError(
             f"room: surfaces must be a non-empty list of {', '.join(ROOM_SURFACES)}, got {surfaces!r}"
         )
-    for k, wk in enumerate(parsed):
-        for m in range(k):
-            wm = parsed[m]
-            if wk["wall"] == wm["wall"] and np.all(
-                np.minimum(wk["hi"], wm["hi"]) > np.maximum(wk["lo"], wm["lo"])
-            ):
-                raise ValueError(f"room: windows[{m}] and windows[{k}] overlap on wall {wk['wall']!r}")
     min_cells = max(room) / cell
     if min_cells > 4096:
         raise ValueError(f"room: cell_size {cell_size!r} is too small for a room of size {list(room)}")

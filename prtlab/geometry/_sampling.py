@@ -65,14 +65,17 @@ def _check_normal(normal) -> np.ndarray | None:
 def tangent_frame(normals) -> tuple[np.ndarray, np.ndarray]:
     """Orthonormal tangents ``(t, b)`` with ``(t, b, n)`` right-handed.
 
+    Branch-free in the sign of ``n_z``; the frame jumps where ``n_z`` changes sign.
+
     Parameters
     ----------
     normals : (..., 3) float
-        Unit normals.
+        Unit normals, used as given (not renormalised).
 
     Returns
     -------
     t, b : (..., 3) float64
+        Unit tangent and bitangent, ``b = n x t``.
 
     References
     ----------

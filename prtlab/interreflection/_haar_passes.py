@@ -69,6 +69,7 @@ from prtlab.shadowfields import (
     texel_moments,
 )
 from prtlab.shadowfields._haar_direct import check_receivers, visibility_factors
+from prtlab.shadowfields._haar_kernels import blends_nothing
 
 from ._haar_fields import HaarBasisRadianceField, _check_resolution
 
@@ -112,6 +113,18 @@ def _haar_analysis(tex, res, out, work):
         out[base] = work[0]
 
 
+@numba.njit(cache=True, inline="always")
+def _sparse_dot(tab_idx, tab_val, p, m, coef):
+    """``sum_k tab_val[p, m, k] coef[tab_idx[p, m, k]]`` over the stored entries (they end at the first zero)."""
+    acc = 0.0
+    for k in range(tab_idx.shape[2]):
+        val = tab_val[p, m, k]
+        if val == 0.0:
+            break
+        acc += np.float64(val) * coef[np.int64(tab_idx[p, m, k])]
+    return acc
+
+
 @numba.njit(cache=True, parallel=True)
 def haar_basis_irradiance_kernel(tab_idx, tab_val, corners, weights, transfer, texel_map, res, out):
     """Eq. 13 per receiver vertex: transform its transfer once per ``k'``, dot with the blended sparse ``S``.
@@ -124,11 +137,8 @@ def haar_basis_irradiance_kernel(tab_idx, tab_val, corners, weights, transfer, t
     texel_map : (6 r^2,) int64 -- source-frame texel -> world texel
     out : (V, K', M)
     """
-    n = 6 * res * res
-    n_v = corners.shape[0]
-    n_kp = transfer.shape[1]
+    n_v, n_kp, n = transfer.shape  # n = 6 r^2 texels
     n_m = tab_idx.shape[1]
-    keep = tab_idx.shape[2]
     for v in numba.prange(n_v):
         tex = np.empty(n)
         coef = np.empty(n)
@@ -136,11 +146,9 @@ def haar_basis_irradiance_kernel(tab_idx, tab_val, corners, weights, transfer, t
         for kp in range(n_kp):
             for m in range(n_m):
                 out[v, kp, m] = 0.0
-            wsum = 0.0
-            for c in range(8):
-                wsum += abs(weights[v, c])
-            if wsum == 0.0:
-                continue
+        if blends_nothing(weights, v):
+            continue
+        for kp in range(n_kp):
             for t in range(n):
                 tex[t] = transfer[v, kp, texel_map[t]]
             _haar_analysis(tex, res, coef, work)
@@ -148,15 +156,8 @@ def haar_basis_irradiance_kernel(tab_idx, tab_val, corners, weights, transfer, t
                 w = weights[v, c]
                 if w == 0.0:
                     continue
-                p = corners[v, c]
                 for m in range(n_m):
-                    acc = 0.0
-                    for k in range(keep):
-                        val = tab_val[p, m, k]
-                        if val == 0.0:
-                            break
-                        acc += np.float64(val) * coef[np.int64(tab_idx[p, m, k])]
-                    out[v, kp, m] += w * acc
+                    out[v, kp, m] += w * _sparse_dot(tab_idx, tab_val, corners[v, c], m, coef)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -370,11 +371,8 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
 
     Parameters
     ----------
-    mesh : trimesh.Trimesh
-        The source in object space.
-    basis : (N, n_vertices) float
-    sep : prtlab.brdf.SeparableBRDF
-        The source's separable BRDF (``h_k``).
+    mesh, basis, sep : trimesh.Trimesh, (N, n_vertices) float, prtlab.brdf.SeparableBRDF
+        The source in object space, its radiance basis and its separable BRDF (``h_k``).
     points : (V, 3) float
         Receiver points in the source's object space.
     transfer : (V, K', 6, r, r) float

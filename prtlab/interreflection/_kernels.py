@@ -7,6 +7,7 @@ import math
 import numba
 import numpy as np
 
+from prtlab.geometry._raycast import barycentric_normal
 from prtlab.sh._product_kernels import _tile_product
 from prtlab.shadowfields._kernels import sample_corners
 
@@ -21,10 +22,7 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
     scale : (V,) factor per vertex (``(r_max / r)^2`` beyond the outermost sphere, else 1)
     out : (V, K', M)
     """
-    n_r = field.shape[0]
-    res = field.shape[2]
-    n_m = field.shape[4]
-    n2 = field.shape[5]
+    n_r, _, res, _, n_m, n2 = field.shape
     n_kp = transfer.shape[1]
     for v in numba.prange(rpos.shape[0]):
         r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[v], s[v], t[v], n_r, res)
@@ -101,9 +99,7 @@ def hit_basis_kernel(tri, uv, vertex_normals, basis, w_in, psi, shading_n):
         b1, b2 = uv[h, 0], uv[h, 1]
         b0 = 1.0 - b1 - b2
         i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
-        nx = b0 * vertex_normals[i0, 0] + b1 * vertex_normals[i1, 0] + b2 * vertex_normals[i2, 0]
-        ny = b0 * vertex_normals[i0, 1] + b1 * vertex_normals[i1, 1] + b2 * vertex_normals[i2, 1]
-        nz = b0 * vertex_normals[i0, 2] + b1 * vertex_normals[i1, 2] + b2 * vertex_normals[i2, 2]
+        nx, ny, nz = barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2)
         length = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
         nx, ny, nz = nx / length, ny / length, nz / length
         shading_n[h, 0], shading_n[h, 1], shading_n[h, 2] = nx, ny, nz

@@ -8,7 +8,7 @@ of SH, Haar, Fourier cosine and PCA bases over a (u, v) parameterisation
 (:func:`surface_uv`, :func:`uv_basis`, :func:`compare_bases`) lives here too.
 """
 
-from ._basis import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity
+from ._basis import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity, principal_basis
 from ._compare import (
     COMPARISON_BASES,
     BasisComparison,
@@ -23,6 +23,7 @@ from ._weights import WeightSolver, reconstruct, solve_weights
 __all__ = [
     "PCABasis",
     "fit_pca_basis",
+    "principal_basis",
     "pca_light_positions",
     "point_light_intensity",
     "WeightSolver",

@@ -319,6 +319,29 @@ class PCABasis:
         return self.reconstruct(self.weights(intensity, colour=colour), colour=colour)
 
 
+def principal_basis(training, n: int, rank_tol: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and ``n - 1`` principal vectors of the columns of ``training (N_v, N_light)``.
+
+    Returns ``basis (n', N_v)`` (row 0 the mean, then the unit principal vectors, each with its
+    largest-magnitude entry positive), all singular values of the centred matrix, and ``energy (n',)``
+    as :attr:`PCABasis.energy`. ``n' = n`` unless ``rank_tol`` is given: then only the vectors whose
+    singular value exceeds ``rank_tol`` times the largest are kept (a rank-deficient training set gives
+    fewer functions).
+    """
+    mean = training.mean(axis=1)
+    u, s, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
+    n_comps = n - 1
+    if rank_tol is not None:
+        n_comps = min(n_comps, int(np.sum(s > rank_tol * max(float(s[0]) if len(s) else 0.0, 1e-300))))
+    comps = u[:, :n_comps].T.copy()
+    flip = np.sign(comps[np.arange(n_comps), np.argmax(np.abs(comps), axis=1)])
+    comps *= np.where(flip == 0, 1.0, flip)[:, None]
+    basis = np.concatenate([mean[None], comps], axis=0)
+    total = float(np.sum(s * s))
+    energy = np.concatenate([[0.0], np.cumsum(s[:n_comps] ** 2)]) / (total if total > 0 else 1.0)
+    return basis, s, energy
+
+
 def fit_pca_basis(
     mesh_or_object,
     n_basis: int = 16,
@@ -390,14 +413,7 @@ def fit_pca_basis(
     check_int(seed, "seed")
     lights = pca_light_positions(mesh, m, light_distance, plane=plane)
     training = point_light_intensity(mesh, lights, albedo=albedo, shadows=shadows).T  # (N_v, N_light)
-    mean = training.mean(axis=1)
-    u, s, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
-    comps = u[:, : n - 1].T.copy()
-    flip = np.sign(comps[np.arange(n - 1), np.argmax(np.abs(comps), axis=1)])
-    comps *= np.where(flip == 0, 1.0, flip)[:, None]
-    basis = np.concatenate([mean[None], comps], axis=0)
-    total = float(np.sum(s * s))
-    energy = np.concatenate([[0.0], np.cumsum(s[: n - 1] ** 2)]) / (total if total > 0 else 1.0)
+    basis, s, energy = principal_basis(training, n)
     if n_samples is None:
         samples = np.arange(nv)
     else:

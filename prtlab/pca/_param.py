@@ -112,6 +112,7 @@ def surface_uv(mesh, *, plane: bool = False, resolution: int = 512) -> SurfacePa
     Returns
     -------
     SurfaceParam
+        The charts' coordinates in ``[0, 1]^2``; seam vertices repeat.
 
     Examples
     --------

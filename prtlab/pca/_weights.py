@@ -36,6 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from prtlab._validate import as_real_array
+
 __all__ = ["WeightSolver", "solve_weights", "reconstruct"]
 
 _METHODS = ("fast", "reference")
@@ -99,15 +101,7 @@ def _point_axis(values: np.ndarray, n_points: int, colour, name: str) -> bool:
 
 
 def _as_values(values, name: str) -> np.ndarray:
-    v = np.asarray(values)
-    if v.dtype == object or not (
-        np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer) or v.dtype == bool
-    ):
-        raise TypeError(f"{name} must be a real array, got dtype {v.dtype}")
-    v = v.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(v)):
-        raise ValueError(f"{name} contains NaN or inf; every intensity must be finite")
-    return v
+    return as_real_array(values, name, "every intensity must be finite")
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,10 +163,13 @@ class WeightSolver:
 
     @property
     def n_basis(self) -> int:
+        """N, the basis functions fitted (mean included): the rows of
+        :attr:`basis_at_samples`."""
         return self.basis_at_samples.shape[0]
 
     @property
     def n_samples(self) -> int:
+        """The sample vertices, the columns of :attr:`basis_at_samples`."""
         return self.basis_at_samples.shape[1]
 
     def solve(self, values, *, colour: bool | None = None, method: str = "fast") -> np.ndarray:

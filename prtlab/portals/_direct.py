@@ -144,18 +144,8 @@ def direct_transfer(
     return out.reshape(n_vertices, 6, res, res)
 
 
-def glossy_direct_transfer(
-    caster: RayCaster,
-    points,
-    normals,
-    portal: Portal,
-    view_dirs,
-    exponent: float,
-    n_samples: int,
-    res: int,
-    rng: np.random.Generator,
-    chunk: int = 8,
-) -> np.ndarray:
+def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, view_dirs, exponent: float,
+                           n_samples: int, res: int, rng: np.random.Generator, chunk: int = 8) -> np.ndarray:
     """Specular direct transfer of Phong vertices, one cubemap per discretised view direction (Section 4.1.2).
 
     Parameters

@@ -11,9 +11,7 @@ def indirect_pass_kernel(transfer, light_sh, out):
     """out[v, c] += sum_i transfer[v, i, c] * light_sh[i, c], c in 0..2 (float32 transfer, float64 sums)."""
     n_vertices, n_coeffs, n_channels = transfer.shape
     for v in numba.prange(n_vertices):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
+        a0 = a1 = a2 = 0.0
         for i in range(n_coeffs):  # memory order: (i, c) contiguous per vertex
             a0 += transfer[v, i, 0] * light_sh[i, 0]
             a1 += transfer[v, i, 1] * light_sh[i, 1]
@@ -85,9 +83,7 @@ def glossy_direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, li
     n_vertices, n_rows = rows.shape
     n = light.shape[0] // 2
     for v in numba.prange(n_vertices):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
+        a0 = a1 = a2 = 0.0
         for q in range(n_rows):
             w_row = weights[v, q]
             if w_row == 0.0:
@@ -108,14 +104,10 @@ def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
     """out[v, c] = sum_j basis_out[v, j] sum_i matrix[v, j, i, c] light_sh[i, c] (Appendix Eq. 6), 3 channels."""
     n_vertices, n_out, n_in, _ = matrix.shape
     for v in numba.prange(n_vertices):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
+        a0 = a1 = a2 = 0.0
         for j in range(n_out):
             y = basis_out[v, j]
-            b0 = 0.0
-            b1 = 0.0
-            b2 = 0.0
+            b0 = b1 = b2 = 0.0
             for i in range(n_in):
                 b0 += matrix[v, j, i, 0] * light_sh[i, 0]
                 b1 += matrix[v, j, i, 1] * light_sh[i, 1]

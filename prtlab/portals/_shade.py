@@ -216,10 +216,12 @@ def glossy_indirect_pass(matrix, light_sh, view_dirs, method: str = "numba") -> 
     view_dirs : (V_g, 3) float
         Unit directions toward the viewer.
     method : {"numba", "reference"}
+        ``"numba"``: a ``prange`` kernel over vertices; ``"reference"``: numpy ``einsum``.
 
     Returns
     -------
     (V_g, 3) float64
+        Indirect radiance toward ``view_dirs``.
     """
     import prtlab.sh as sh
 

@@ -20,6 +20,13 @@ def _positive(value, name):
     return value
 
 
+def _holds(ok, message: str) -> bool:
+    """``ok`` as a bool; a :class:`PortalValidityWarning` with ``message`` (at the caller's caller) if False."""
+    if not ok:
+        warnings.warn(message, PortalValidityWarning, stacklevel=3)
+    return bool(ok)
+
+
 def check_shell_distance(portal_size: float, distance: float, max_angle_deg: float = 5.0) -> bool:
     """First criterion: every portal point sees an exterior point ``q`` as its centre does.
 
@@ -36,14 +43,10 @@ def check_shell_distance(portal_size: float, distance: float, max_angle_deg: flo
     l = _positive(portal_size, "portal_size")
     r = _positive(distance, "distance")
     theta = np.radians(_positive(max_angle_deg, "max_angle_deg"))
-    ok = l / (2.0 * r) < theta
-    if not ok:
-        warnings.warn(
-            f"exterior object at {r:.3g} from a portal of size {l:.3g}: directional error l/(2r) = "
-            f"{np.degrees(l / (2 * r)):.2f} deg >= {np.degrees(theta):.2f} deg; split the portal into smaller ones",
-            PortalValidityWarning, stacklevel=2,
-        )
-    return bool(ok)
+    return _holds(l / (2.0 * r) < theta,
+                  f"exterior object at {r:.3g} from a portal of size {l:.3g}: directional error l/(2r) = "
+                  f"{np.degrees(l / (2 * r)):.2f} deg >= {np.degrees(theta):.2f} deg; split the portal into smaller "
+                  "ones")
 
 
 def check_interior_solid_angle(interior_area: float, distance: float, max_ratio: float = 0.02) -> bool:
@@ -61,11 +64,6 @@ def check_interior_solid_angle(interior_area: float, distance: float, max_ratio:
     d = _positive(distance, "distance")
     ratio = _positive(max_ratio, "max_ratio")
     value = a / (4.0 * np.pi * d * d)
-    ok = value < ratio
-    if not ok:
-        warnings.warn(
-            f"exterior object at {d:.3g} sees the interior (area {a:.3g}) under A/(4 pi d^2) = {value:.3g} >= "
-            f"{ratio:.3g}: light reflected from the interior onto it is not negligible",
-            PortalValidityWarning, stacklevel=2,
-        )
-    return bool(ok)
+    return _holds(value < ratio,
+                  f"exterior object at {d:.3g} sees the interior (area {a:.3g}) under A/(4 pi d^2) = {value:.3g} >= "
+                  f"{ratio:.3g}: light reflected from the interior onto it is not negligible")

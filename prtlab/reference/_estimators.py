@@ -130,6 +130,19 @@ def _material_arrays(material: Material):
     return np.asarray(material.albedo, float), np.zeros(3), 1.0
 
 
+def _vertex_arrays(objects):
+    """World shading points, normals and material ``(kd, ks, exponent)`` of every vertex of ``objects``."""
+    if not objects:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    counts = [o.n_vertices for o in objects]
+    mats = [_material_arrays(o.material) for o in objects]
+    return (np.concatenate([o.world_shading_points() for o in objects]),
+            np.concatenate([o.world_normals() for o in objects]),
+            np.concatenate([np.tile(m[0], (c, 1)) for m, c in zip(mats, counts)]),
+            np.concatenate([np.tile(m[1], (c, 1)) for m, c in zip(mats, counts)]),
+            np.concatenate([np.full(c, m[2]) for m, c in zip(mats, counts)]))
+
+
 class _SceneData:
     """World-space arrays of one pose of a scene: the ray caster, normals, materials, lights."""
 
@@ -516,23 +529,14 @@ def path_trace(
     counts = [o.n_vertices for o in shaded]
     _check_memory(sum(counts), n_samples)
     data = _SceneData(scene, env_sampling, area_lights_block)
-    pos = np.concatenate([o.world_shading_points() for o in shaded]) if shaded else np.zeros((0, 3))
-    normals = np.concatenate([o.world_normals() for o in shaded]) if shaded else np.zeros((0, 3))
-    mats = [_material_arrays(o.material) for o in shaded]
-    kd = np.concatenate([np.tile(m[0], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))
-    ks = np.concatenate([np.tile(m[1], (c, 1)) for m, c in zip(mats, counts)]) if shaded else np.zeros((0, 3))
-    ex = np.concatenate([np.full(c, m[2]) for m, c in zip(mats, counts)]) if shaded else np.zeros(0)
+    pos, normals, kd, ks, ex = _vertex_arrays(shaded)
     wo = _unit(np.asarray(scene.camera.position, float) - pos)
     out = _estimate(
         data, pos, normals, wo, kd, ks, ex, bounces, n_samples, rng, progress, desc=f"reference B={bounces}"
     )
-    result = ShadeResult()
-    result.stderr = {"direct": {}, "indirect": {}, "total": {}}
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    for obj, a, b in zip(shaded, offsets[:-1], offsets[1:]):
-        for part in ("direct", "indirect", "total"):
-            getattr(result, part)[obj.name] = out[part][a:b]
-            result.stderr[part][obj.name] = out[part + "_se"][a:b]
+    parts = ("direct", "indirect", "total")
+    result = ShadeResult.from_vertex_arrays([o.name for o in shaded], counts, {p: out[p] for p in parts},
+                                            {p: out[p + "_se"] for p in parts})
     result.info = {
         "method": "reference",
         "bounces": bounces,
@@ -545,26 +549,17 @@ def path_trace(
     return result
 
 
-def direct(
-    scene,
-    n_samples: int,
-    rng: np.random.Generator,
-    *,
-    env_sampling: str = "mis",
-    area_lights_block: bool = True,
-    progress: bool = False,
-) -> ShadeResult:
+def direct(scene, n_samples: int, rng: np.random.Generator, **options) -> ShadeResult:
     """Direct light only: :func:`path_trace` with ``bounces=0`` (``indirect`` is zero).
 
     Environment by BSDF (cosine / Phong) sampling, plus map importance
     sampling with MIS for an image environment; area lights by uniform area
     sampling of the parallelogram, one-sided; point lights by an exact shadow ray.
     Diffuse vertices give ``albedo / pi * E``; Phong vertices the normalised
-    Phong BRDF toward the camera.
+    Phong BRDF toward the camera. ``options`` (``env_sampling``,
+    ``area_lights_block``, ``progress``) are those of :func:`path_trace`.
     """
-    return path_trace(
-        scene, 0, n_samples, rng, env_sampling=env_sampling, area_lights_block=area_lights_block, progress=progress
-    )
+    return path_trace(scene, 0, n_samples, rng, **options)
 
 
 def shade_reference(
@@ -579,26 +574,10 @@ def shade_reference(
 ) -> ShadeResult:
     """Entry point of ``prtlab.shade(scene, method="reference", ...)``: :func:`path_trace` seeded by ``seed``.
 
-    Parameters
-    ----------
-    scene : prtlab.Scene
-    bounces : int >= 0
-        Indirect bounces (0 = direct light only).
-    n_samples : int >= 2
-        Independent paths per vertex.
-    seed : int
-        Seed of ``numpy.random.default_rng``; the same seed gives the same result.
-    progress : bool
-        tqdm bar over vertex chunks.
-    env_sampling : {"mis", "bsdf"}
-        See :func:`path_trace`.
-    area_lights_block : bool
-        See :func:`path_trace`.
-
-    Returns
-    -------
-    ShadeResult
-        Per object ``(n_vertices, 3)`` direct, indirect, total and their ``stderr``.
+    ``seed`` (int) seeds ``numpy.random.default_rng``: the same seed gives the same
+    result. The other parameters and the returned :class:`ShadeResult` (per object
+    ``(n_vertices, 3)`` direct, indirect, total and their ``stderr``) are those of
+    :func:`path_trace`; ``progress`` shows a tqdm bar over vertex chunks.
     """
     check_int(seed, "seed")
     return path_trace(
@@ -670,32 +649,12 @@ def radiance_at(
     return Estimate(*(out[k].reshape(shape) for k in keys))
 
 
-def irradiance_at(
-    scene,
-    points,
-    normals,
-    n_samples: int,
-    rng: np.random.Generator,
-    *,
-    bounces: int = 0,
-    env_sampling: str = "mis",
-    area_lights_block: bool = True,
-) -> Estimate:
+def irradiance_at(scene, points, normals, n_samples: int, rng: np.random.Generator, *, bounces: int = 0,
+                  env_sampling: str = "mis", area_lights_block: bool = True) -> Estimate:
     """Irradiance ``E = int L_i cos`` at any points on the side of ``normals``, with shadows.
 
-    Parameters
-    ----------
-    scene : prtlab.Scene
-    points, normals : (..., 3) float
-    n_samples : int >= 2
-    rng : numpy.random.Generator
-    bounces : int >= 0
-        0 counts light straight from the sources; ``B`` adds light reflected by
-        the scene up to ``B`` times (``indirect``).
-    env_sampling : {"mis", "bsdf"}
-        As in :func:`path_trace`.
-    area_lights_block : bool
-        As in :func:`path_trace`.
+    The parameters are those of :func:`radiance_at` (a white Lambertian surface, no
+    ``view_dirs``); ``bounces=B`` adds light reflected by the scene up to ``B`` times.
 
     Returns
     -------

@@ -29,6 +29,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from prtlab.geometry._raycast import barycentric_normal
+
 __all__ = ["bsdf_eval_kernel", "bsdf_sample_kernel", "bsdf_eval_numpy", "hit_frame_kernel"]
 
 _INV_PI = 1.0 / np.pi
@@ -147,9 +149,7 @@ def hit_frame_kernel(obj, tri, uv, ng, wi, face_offset, faces, vertex_normals, o
         u, v = uv[i, 0], uv[i, 1]
         w = 1.0 - u - v
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        nx = w * vertex_normals[a, 0] + u * vertex_normals[b, 0] + v * vertex_normals[c, 0]
-        ny = w * vertex_normals[a, 1] + u * vertex_normals[b, 1] + v * vertex_normals[c, 1]
-        nz = w * vertex_normals[a, 2] + u * vertex_normals[b, 2] + v * vertex_normals[c, 2]
+        nx, ny, nz = barycentric_normal(vertex_normals, a, b, c, w, u, v)
         length = np.sqrt(nx * nx + ny * ny + nz * nz)
         if length < 1e-12:
             nx, ny, nz = ng[i, 0], ng[i, 1], ng[i, 2]

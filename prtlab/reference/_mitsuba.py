@@ -365,48 +365,44 @@ def to_mitsuba(scene, *, bounces: int | None = None, smooth_normals: bool = True
         if obj.portal:  # an opening, not a surface
             continue
         desc[f"object_{i}"] = _mesh(mi, obj, smooth_normals)
-    black = {"type": "diffuse", "reflectance": _rgb(np.zeros(3))}
     for i, light in enumerate(scene.lights):
-        key = f"light_{i}"
-        if isinstance(light, EnvironmentLight):
-            if light.constant is not None:
-                desc[key] = {"type": "constant", "radiance": _rgb(light.constant)}
-            else:
-                image = np.ascontiguousarray(np.asarray(light.image, dtype=np.float32))
-                desc[key] = {"type": "envmap", "bitmap": mi.Bitmap(image)}
-        elif isinstance(light, AreaLight):
-            desc[key] = {
-                "type": "rectangle",
-                "to_world": _rectangle_to_world(mi, light),
-                "bsdf": black,
-                "emitter": {"type": "area", "radiance": _rgb(light.radiance)},
-            }
-        elif isinstance(light, PointLight):
-            desc[key] = {
-                "type": "point",
-                "position": [float(c) for c in light.position],
-                "intensity": _rgb(light.intensity),
-            }
-        else:
-            raise NotImplementedError(f"light {i} of type {type(light).__name__} has no Mitsuba translation")
+        desc[f"light_{i}"] = _light(mi, i, light)
     if sensor:
-        cam = scene.camera
-        width, height = (int(r) for r in cam.resolution)
-        desc["sensor"] = {
-            "type": "perspective",
-            "fov": float(cam.fov_deg),
-            "fov_axis": "y",
-            "to_world": _camera_to_world(mi, cam),
-            "sampler": {"type": "independent", "sample_count": int(spp)},
-            "film": {
-                "type": "hdrfilm",
-                "width": width,
-                "height": height,
-                "pixel_format": "rgb",
-                "rfilter": {"type": "box"},
-            },
-        }
+        desc["sensor"] = _sensor(mi, scene.camera, spp)
     return desc
+
+
+def _light(mi, i: int, light) -> dict:
+    """The ``load_dict`` entry of scene light ``i``."""
+    if isinstance(light, EnvironmentLight):
+        if light.constant is not None:
+            return {"type": "constant", "radiance": _rgb(light.constant)}
+        image = np.ascontiguousarray(np.asarray(light.image, dtype=np.float32))
+        return {"type": "envmap", "bitmap": mi.Bitmap(image)}
+    if isinstance(light, AreaLight):
+        return {
+            "type": "rectangle",
+            "to_world": _rectangle_to_world(mi, light),
+            "bsdf": {"type": "diffuse", "reflectance": _rgb(np.zeros(3))},
+            "emitter": {"type": "area", "radiance": _rgb(light.radiance)},
+        }
+    if isinstance(light, PointLight):
+        return {"type": "point", "position": [float(c) for c in light.position], "intensity": _rgb(light.intensity)}
+    raise NotImplementedError(f"light {i} of type {type(light).__name__} has no Mitsuba translation")
+
+
+def _sensor(mi, cam, spp: int) -> dict:
+    """A perspective sensor (vertical ``fov``) and box-filtered RGB film matching ``cam``."""
+    width, height = (int(r) for r in cam.resolution)
+    return {
+        "type": "perspective",
+        "fov": float(cam.fov_deg),
+        "fov_axis": "y",
+        "to_world": _camera_to_world(mi, cam),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                 "rfilter": {"type": "box"}},
+    }
 
 
 def _load(mi, scene, **kwargs):
@@ -616,6 +612,8 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
                   progress: bool = False) -> ShadeResult:
     """Per-vertex outgoing radiance estimated with Mitsuba 3.
 
+    (Long for the estimator's Notes; the code is 50 lines: validation, the chunk loop, the result.)
+
     Parameters
     ----------
     scene : prtlab.Scene
@@ -652,18 +650,13 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
 
     Direct light (emission arriving straight at the vertex: environment,
     area lights, point lights) is estimated by multiple importance sampling
-    (power heuristic, Veach 1997 Sec. 9.2.4) of ``scene.sample_emitter_direction``
-    (with a visibility test) and the BRDF-sampled ray's emitter hit. The power
-    heuristic matters for honest standard errors: with the balance heuristic a
-    small light is hit by a BRDF ray once in hundreds of samples, each time
-    adding as much as the whole emitter estimate, a heavy tail that makes the
-    sample standard error unreliable at moderate sample counts. Indirect light
+    (power heuristic, Veach 1997 Sec. 9.2.4; why not the balance heuristic:
+    ``docs/notes/reference.md``) of ``scene.sample_emitter_direction`` (with a
+    visibility test) and the BRDF-sampled ray's emitter hit. Indirect light
     (>= 1 bounce) is, for BRDF rays that hit a non-emitting surface, the
     ``path`` integrator's radiance along that ray with ``max_depth =
-    bounces + 1``: from that surface on, Mitsuba alone does the work (its
-    own emitter sampling, MIS, two-sided BSDFs). BRDF rays hitting an area
-    light or the sky add nothing indirect, so the parts are disjoint and
-    ``total = direct + indirect`` counts every path once.
+    bounces + 1``. BRDF rays hitting an area light or the sky add nothing
+    indirect, so ``total = direct + indirect`` counts every path once.
 
     The vertex BRDF is sampled as a mixture of the cosine lobe (probability
     ``1 - p``) and the Phong lobe ``(e+1)/(2 pi) cos^e`` about the mirror
@@ -671,17 +664,17 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
     """
     _check_scene(scene)
     bounces = _check_bounces(bounces)
-    if n_samples is not None:
-        spp = n_samples
-    spp = check_int(spp, "spp (n_samples)", 2, meaning="standard errors need two samples")
+    spp = check_int(spp if n_samples is None else n_samples, "spp (n_samples)", 2,
+                    meaning="standard errors need two samples")
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool):
         raise TypeError(f"seed must be an int, got {seed!r}")
     if int(chunk_rays) < 1:
         raise ValueError(f"chunk_rays must be >= 1, got {chunk_rays}")
     n_shaded = sum(o.n_vertices for o in scene.objects if not o.portal)
-    rays = min(n_shaded, max(1, int(chunk_rays) // spp)) * spp  # a chunk holds every sample of its vertices
+    per_chunk = max(1, int(chunk_rays) // spp)  # a chunk holds every sample of its vertices
     check_memory("mitsuba", {"n_samples": spp},
-                 [MemoryNeed("the ray wavefront", float(rays) * BYTES_PER_PATH, ("n_samples",))], f"{n_shaded:,} vertices")
+                 [MemoryNeed("the ray wavefront", float(min(n_shaded, per_chunk) * spp) * BYTES_PER_PATH,
+                             ("n_samples",))], f"{n_shaded:,} vertices")
     mi, dr = _import_mitsuba(variant)
     start = time.perf_counter()
     pos, nrm, wo, kd, ks, ex, counts = _vertex_data(scene)
@@ -689,16 +682,11 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
         offset = 1e-4 * _scene_extent(scene, pos)
     if not np.isfinite(offset) or offset < 0:
         raise ValueError(f"offset must be a finite float >= 0, got {offset}")
-    mscene = _load(mi, scene, sensor=False)
-    max_depth = _max_depth(bounces, from_camera=False)
-    integrator = mi.load_dict({"type": "path", "max_depth": max_depth, "rr_depth": max(5, max_depth)})
-    trace = _trace_llvm if mi.variant().startswith("llvm") else _trace_scalar
+    tracer = _vertex_tracer(mi, dr, scene, bounces, offset)
     rng = np.random.default_rng(seed)
-
     n_vert = len(pos)
     means = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
     errors = {p: np.zeros((n_vert, 3)) for p in ("direct", "indirect", "total")}
-    per_chunk = max(1, int(chunk_rays) // spp)
     starts = range(0, n_vert, per_chunk)
     if progress:
         from tqdm.auto import tqdm
@@ -706,47 +694,61 @@ def shade_mitsuba(scene, bounces: int = 1, spp: int = 64, seed: int = 0, *, n_sa
         starts = tqdm(starts, desc=f"mitsuba B={bounces}", unit="chunk")
     for chunk, lo in enumerate(starts):
         idx = np.arange(lo, min(n_vert, lo + per_chunk))
-        m = len(idx)
-        rep = lambda a: np.repeat(a[idx], spp, axis=0)  # noqa: E731
-        p, n, w, d_kd, d_ks, d_ex = rep(pos), rep(nrm), rep(wo), rep(kd), rep(ks), rep(ex)
-        wi = _sample_bsdf(rng, n, w, d_kd, d_ks, d_ex)
-        pdf_b = _bsdf_pdf(wi, n, w, d_kd, d_ks, d_ex)
-        fcos_b = _brdf_cos(wi, n, w, d_kd, d_ks, d_ex)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            thr = np.where(pdf_b[:, None] > 0, fcos_b / np.where(pdf_b > 0, pdf_b, 1.0)[:, None], 0.0)
-        em_sample = rng.random((len(p), 2))
-        tr = trace(mi, dr, mscene, integrator, p, n, offset, wi, em_sample, max_depth,
-                   (int(seed) * 1_000_003 + chunk) & 0x7FFFFFFF)
-        # BRDF-sampled ray hitting an emitter: MIS weight (power heuristic) against emitter sampling.
-        w_b = _power_heuristic(pdf_b, tr["bsdf_em_pdf"])
-        direct = thr * tr["bsdf_le"] * w_b[:, None]
-        # Emitter sample.
-        d_em = tr["em_dir"]
-        ok = tr["em_pdf"] > 0
-        fcos_e = _brdf_cos(d_em, n, w, d_kd, d_ks, d_ex)
-        pdf_be = _bsdf_pdf(d_em, n, w, d_kd, d_ks, d_ex)
-        w_e = np.where(tr["em_delta"], 1.0, np.where(ok, _power_heuristic(tr["em_pdf"], pdf_be), 0.0))
-        direct = direct + np.where(ok[:, None], fcos_e * tr["em_weight"] * w_e[:, None], 0.0)
-        indirect = thr * tr["indirect"]
+        samples = (np.repeat(a[idx], spp, axis=0) for a in (pos, nrm, wo, kd, ks, ex))
+        chunk_seed = (int(seed) * 1_000_003 + chunk) & 0x7FFFFFFF
+        direct, indirect = _chunk_samples(tracer, rng, *samples, chunk_seed=chunk_seed)
         for part, vals in (("direct", direct), ("indirect", indirect), ("total", direct + indirect)):
             # every sample of a vertex is in this chunk: two-pass mean and standard error
-            vals = vals.reshape(m, spp, 3)
+            vals = vals.reshape(len(idx), spp, 3)
             means[part][idx] = vals.mean(axis=1)
             errors[part][idx] = vals.std(axis=1, ddof=1) / np.sqrt(spp)
 
-    result = ShadeResult()
-    bounds = np.concatenate([[0], np.cumsum(counts)])
-    for part in ("direct", "indirect", "total"):
-        mean, err = means[part], errors[part]
-        result.stderr[part] = {}
-        for i, obj in enumerate(_shaded_objects(scene)):
-            getattr(result, part)[obj.name] = mean[bounds[i]:bounds[i + 1]].copy()
-            result.stderr[part][obj.name] = err[bounds[i]:bounds[i + 1]].copy()
+    result = ShadeResult.from_vertex_arrays([o.name for o in _shaded_objects(scene)], counts, means, errors)
     result.info.update(
         method="mitsuba", variant=mi.variant(), bounces=bounces, spp=spp, seed=int(seed),
         offset=float(offset), seconds=time.perf_counter() - start, mitsuba_version=mi.__version__,
     )
     return result
+
+
+def _vertex_tracer(mi, dr, scene, bounces: int, offset: float):
+    """``tracer(points, normals, dirs, em_sample, seed)``: one wavefront of :func:`_trace_llvm` (or
+    :func:`_trace_scalar`) in the Mitsuba scene of ``scene`` with a ``path`` integrator for ``bounces``."""
+    mscene = _load(mi, scene, sensor=False)
+    max_depth = _max_depth(bounces, from_camera=False)
+    integrator = mi.load_dict({"type": "path", "max_depth": max_depth, "rr_depth": max(5, max_depth)})
+    trace = _trace_llvm if mi.variant().startswith("llvm") else _trace_scalar
+
+    def tracer(points, normals, dirs, em_sample, chunk_seed):
+        return trace(mi, dr, mscene, integrator, points, normals, offset, dirs, em_sample, max_depth, chunk_seed)
+
+    return tracer
+
+
+def _chunk_samples(tracer, rng, p, n, w, d_kd, d_ks, d_ex, chunk_seed):
+    """Per-sample direct and indirect radiance ``(S, 3)`` of one wavefront of vertex samples.
+
+    Direct: the BRDF-sampled ray's emitter hit and one emitter sample, combined by the power
+    heuristic; indirect: the throughput times the path integrator's radiance along the BRDF ray.
+    """
+    wi = _sample_bsdf(rng, n, w, d_kd, d_ks, d_ex)
+    pdf_b = _bsdf_pdf(wi, n, w, d_kd, d_ks, d_ex)
+    fcos_b = _brdf_cos(wi, n, w, d_kd, d_ks, d_ex)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        thr = np.where(pdf_b[:, None] > 0, fcos_b / np.where(pdf_b > 0, pdf_b, 1.0)[:, None], 0.0)
+    em_sample = rng.random((len(p), 2))
+    tr = tracer(p, n, wi, em_sample, chunk_seed)
+    # BRDF-sampled ray hitting an emitter: MIS weight (power heuristic) against emitter sampling.
+    w_b = _power_heuristic(pdf_b, tr["bsdf_em_pdf"])
+    direct = thr * tr["bsdf_le"] * w_b[:, None]
+    # Emitter sample.
+    d_em = tr["em_dir"]
+    ok = tr["em_pdf"] > 0
+    fcos_e = _brdf_cos(d_em, n, w, d_kd, d_ks, d_ex)
+    pdf_be = _bsdf_pdf(d_em, n, w, d_kd, d_ks, d_ex)
+    w_e = np.where(tr["em_delta"], 1.0, np.where(ok, _power_heuristic(tr["em_pdf"], pdf_be), 0.0))
+    direct = direct + np.where(ok[:, None], fcos_e * tr["em_weight"] * w_e[:, None], 0.0)
+    return direct, thr * tr["indirect"]
 
 
 # --------------------------------------------------------------------------- camera image

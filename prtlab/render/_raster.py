@@ -109,6 +109,19 @@ def intersect_area_lights(lights, origins, dirs) -> tuple[np.ndarray, np.ndarray
     return best, index, front
 
 
+def _object_values(values: dict, obj, part: str) -> np.ndarray:
+    """``values[obj.name]`` as a float64 ``(n_vertices, 3)`` array; a KeyError / ValueError naming ``part``."""
+    if obj.name not in values:
+        raise KeyError(
+            f"result has no {part!r} radiance for object {obj.name!r}, which the camera sees; "
+            f"it has {sorted(values)}"
+        )
+    vals = np.asarray(values[obj.name], dtype=np.float64)
+    if vals.shape != (obj.n_vertices, 3):
+        raise ValueError(f"result.{part}[{obj.name!r}] must have shape ({obj.n_vertices}, 3), got {vals.shape}")
+    return vals
+
+
 def render_image(scene, result, part: str = "total", *, background: bool = True) -> np.ndarray:
     """Render per-vertex radiance from the scene camera.
 
@@ -160,16 +173,7 @@ def render_image(scene, result, part: str = "total", *, background: bool = True)
         sel = np.nonzero(hits.hit & (hits.object == k))[0]
         if len(sel) == 0:
             continue
-        if obj.name not in values:
-            raise KeyError(
-                f"result has no {part!r} radiance for object {obj.name!r}, which the camera sees; "
-                f"it has {sorted(values)}"
-            )
-        vals = np.asarray(values[obj.name], dtype=np.float64)
-        if vals.shape != (obj.n_vertices, 3):
-            raise ValueError(
-                f"result.{part}[{obj.name!r}] must have shape ({obj.n_vertices}, 3), got {vals.shape}"
-            )
+        vals = _object_values(values, obj, part)
         faces = caster.faces(k)
         verts = caster.world_vertices(k)
         tri = hits.triangle[sel]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from prtlab.data import path as data_path
 from prtlab._validate import check_int, check_order
 from prtlab.geometry import (
     cubemap_directions,
@@ -100,6 +101,14 @@ def read_envmap(path) -> np.ndarray:
     )
 
 
+def _existing_file(path, kind: str) -> Path:
+    """``path`` as a Path; FileNotFoundError naming ``kind`` if it is not a file."""
+    path = Path(os.fspath(path))
+    if not path.is_file():
+        raise FileNotFoundError(f"{kind} file not found: {str(path)!r}")
+    return path
+
+
 def read_exr(path) -> np.ndarray:
     """Read the R, G, B (or Y) channels of an OpenEXR file.
 
@@ -109,9 +118,7 @@ def read_exr(path) -> np.ndarray:
     """
     import OpenEXR
 
-    path = Path(os.fspath(path))
-    if not path.is_file():
-        raise FileNotFoundError(f"EXR file not found: {str(path)!r}")
+    path = _existing_file(path, "EXR")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
@@ -186,13 +193,43 @@ def read_hdr(path) -> np.ndarray:
     -------
     image : (H, W, 3) float64
     """
-    path = Path(os.fspath(path))
-    if not path.is_file():
-        raise FileNotFoundError(f"HDR file not found: {str(path)!r}")
+    path = _existing_file(path, "HDR")
     data = path.read_bytes()
     where = f"HDR file {str(path)!r}"
     if not (data.startswith(b"#?RADIANCE") or data.startswith(b"#?RGBE")):
         raise ValueError(f"{where} does not start with '#?RADIANCE' or '#?RGBE'")
+    height, width, pos = _hdr_header(data, where)
+    if len(data) - pos < 4 * height:  # every scanline takes at least 4 bytes
+        raise ValueError(f"{where}: truncated ({len(data) - pos} bytes of pixel data for {height} rows)")
+    body = np.frombuffer(data, dtype=np.uint8, offset=pos)
+    rgbe = np.empty((height, width, 4), dtype=np.uint8)
+    k = 0
+    try:
+        for row in range(height):
+            new_rle = (
+                8 <= width < 32768
+                and body[k] == 2
+                and body[k + 1] == 2
+                and (int(body[k + 2]) << 8 | int(body[k + 3])) == width
+                and not body[k + 2] & 0x80
+            )
+            if not new_rle:  # flat scanline, possibly with old-style (1, 1, 1, n) repeat codes
+                flat = body[k : k + 4 * width]
+                flat = flat[: len(flat) // 4 * 4].reshape(-1, 4)
+                if len(flat) == width and not np.any((flat[:, 0] == 1) & (flat[:, 1] == 1) & (flat[:, 2] == 1)):
+                    rgbe[row] = flat
+                    k += 4 * width
+                else:
+                    k = _read_old_rle(body, k, rgbe[row])
+                continue
+            k = _read_new_rle(body, k + 4, rgbe[row])
+    except (IndexError, ValueError) as err:
+        raise ValueError(f"{where}: corrupt or truncated pixel data at row {row} ({err})") from err
+    return _rgbe_to_float(rgbe)
+
+
+def _hdr_header(data: bytes, where: str) -> tuple[int, int, int]:
+    """``(height, width, offset of the pixel data)`` from a Radiance header and its ``-Y H +X W`` line."""
     pos = 0
     fmt = None
     while True:  # header lines up to an empty line
@@ -219,51 +256,32 @@ def read_hdr(path) -> np.ndarray:
     height, width = int(tokens[1]), int(tokens[3])
     if not (height >= 1 and width >= 1 and height * width <= MAX_MAP_PIXELS):
         raise ValueError(f"{where}: {width} x {height} pixels; expected 1 to {MAX_MAP_PIXELS:,} pixels")
-    if len(data) - pos < 4 * height:  # every scanline takes at least 4 bytes
-        raise ValueError(f"{where}: truncated ({len(data) - pos} bytes of pixel data for {height} rows)")
-    body = np.frombuffer(data, dtype=np.uint8, offset=pos)
-    rgbe = np.empty((height, width, 4), dtype=np.uint8)
-    k = 0
-    try:
-        for row in range(height):
-            new_rle = (
-                8 <= width < 32768
-                and body[k] == 2
-                and body[k + 1] == 2
-                and (int(body[k + 2]) << 8 | int(body[k + 3])) == width
-                and not body[k + 2] & 0x80
-            )
-            if not new_rle:  # flat scanline, possibly with old-style (1, 1, 1, n) repeat codes
-                flat = body[k : k + 4 * width]
-                flat = flat[: len(flat) // 4 * 4].reshape(-1, 4)
-                if len(flat) == width and not np.any((flat[:, 0] == 1) & (flat[:, 1] == 1) & (flat[:, 2] == 1)):
-                    rgbe[row] = flat
-                    k += 4 * width
-                else:
-                    k = _read_old_rle(body, k, rgbe[row])
-                continue
-            k += 4
-            for c in range(4):
-                x = 0
-                line = rgbe[row, :, c]
-                while x < width:
-                    count = int(body[k])
-                    k += 1
-                    if count > 128:  # a run
-                        count -= 128
-                        line[x : x + count] = body[k]
-                        k += 1
-                    else:  # literal bytes
-                        if count == 0:
-                            raise ValueError("zero-length literal")
-                        line[x : x + count] = body[k : k + count]
-                        k += count
-                    x += count
-                if x != width:
-                    raise ValueError("scanline overrun")
-    except (IndexError, ValueError) as err:
-        raise ValueError(f"{where}: corrupt or truncated pixel data at row {row} ({err})") from err
-    return _rgbe_to_float(rgbe)
+    return height, width, pos
+
+
+def _read_new_rle(body: np.ndarray, k: int, scanline: np.ndarray) -> int:
+    """Decode the four run-length encoded channels of one new-style scanline (its 4-byte marker read) into
+    ``scanline (W, 4)``; return the next byte offset."""
+    width = scanline.shape[0]
+    for c in range(4):
+        x = 0
+        line = scanline[:, c]
+        while x < width:
+            count = int(body[k])
+            k += 1
+            if count > 128:  # a run
+                count -= 128
+                line[x : x + count] = body[k]
+                k += 1
+            else:  # literal bytes
+                if count == 0:
+                    raise ValueError("zero-length literal")
+                line[x : x + count] = body[k : k + count]
+                k += count
+            x += count
+        if x != width:
+            raise ValueError("scanline overrun")
+    return k
 
 
 def _read_old_rle(body: np.ndarray, k: int, line: np.ndarray) -> int:
@@ -577,41 +595,9 @@ def preetham_sky(
 
 
 # Sun spectrum (Preetham et al. 1999, Appendix A.1, table of the extraterrestrial
-# solar spectral radiance S0 in W / (m^2 sr nm)... tabulated at 380..750 nm) and
-# CIE 1931 2-degree matching functions at the same wavelengths.
-_WAVELENGTHS = np.arange(380.0, 751.0, 10.0)
-_SOL = np.array(
-    [
-        16559.0, 16233.7, 21127.5, 25888.2, 25829.1, 24232.3, 26760.5, 29658.3, 30545.4, 30057.5,
-        30663.7, 28830.4, 28712.1, 27825.0, 27100.6, 27233.6, 26361.3, 25503.8, 25060.2, 25311.6,
-        25355.9, 25134.2, 24631.5, 24173.2, 23685.3, 23212.1, 22827.7, 22339.8, 21970.2, 21526.7,
-        21097.9, 20728.3, 20240.4, 19870.8, 19427.2, 19072.4, 18628.9, 18259.2,
-    ]
-)
-_CIE_X = np.array(
-    [
-        0.001368, 0.004243, 0.01431, 0.04351, 0.13438, 0.2839, 0.34828, 0.3362, 0.2908, 0.19536,
-        0.09564, 0.03201, 0.0049, 0.0093, 0.06327, 0.1655, 0.2904, 0.43345, 0.5945, 0.7621,
-        0.9163, 1.0263, 1.0622, 1.0026, 0.85445, 0.6424, 0.4479, 0.2835, 0.1649, 0.0874,
-        0.04677, 0.0227, 0.011359, 0.00579, 0.002899, 0.00144, 0.00069, 0.000332,
-    ]
-)
-_CIE_Y = np.array(
-    [
-        0.000039, 0.00012, 0.000396, 0.00121, 0.004, 0.0116, 0.023, 0.038, 0.06, 0.09098,
-        0.13902, 0.20802, 0.323, 0.503, 0.71, 0.862, 0.954, 0.99495, 0.995, 0.952,
-        0.87, 0.757, 0.631, 0.503, 0.381, 0.265, 0.175, 0.107, 0.061, 0.032,
-        0.017, 0.00821, 0.004102, 0.002091, 0.001047, 0.00052, 0.000249, 0.00012,
-    ]
-)
-_CIE_Z = np.array(
-    [
-        0.00645, 0.02005, 0.06785, 0.2074, 0.6456, 1.3856, 1.74706, 1.77211, 1.6692, 1.28764,
-        0.81295, 0.46518, 0.272, 0.1582, 0.07825, 0.04216, 0.0203, 0.00875, 0.0039, 0.0021,
-        0.00165, 0.0011, 0.0008, 0.00034, 0.00019, 0.00005, 0.00002, 0.0, 0.0, 0.0,
-        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-    ]
-)
+# solar spectral radiance S0 in W / (m^2 sr nm), tabulated at 380..750 nm) and
+# CIE 1931 2-degree matching functions at the same wavelengths (prtlab/data/tables).
+_WAVELENGTHS, _SOL, _CIE_X, _CIE_Y, _CIE_Z = np.loadtxt(data_path("tables", "sun_spectrum.csv"), delimiter=",").T
 
 
 def _sun_rgb(sun_zenith_deg: float, turbidity: float) -> np.ndarray:

@@ -29,6 +29,18 @@ class ShadeResult:
     stderr: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
 
+    @classmethod
+    def from_vertex_arrays(cls, names, counts, parts: dict, stderr: dict | None = None) -> "ShadeResult":
+        """Split ``parts[part]`` (and ``stderr[part]``), ``(sum(counts), 3)`` arrays over the objects ``names``
+        in order, ``counts[i]`` rows each (copies)."""
+        result = cls()
+        bounds = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+        for part, values in parts.items():
+            getattr(result, part).update({n: values[a:b].copy() for n, a, b in zip(names, bounds[:-1], bounds[1:])})
+        for part, values in (stderr or {}).items():
+            result.stderr[part] = {n: values[a:b].copy() for n, a, b in zip(names, bounds[:-1], bounds[1:])}
+        return result
+
     def save_npz(self, path) -> Path:
         """Write ``<object>/direct|indirect|total`` (and ``<object>/stderr_<part>``) arrays."""
         arrays = {}

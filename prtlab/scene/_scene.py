@@ -49,6 +49,11 @@ def _values_equal(a, b) -> bool:
     return bool(a == b)
 
 
+def _float_lists(obj, *names: str) -> dict:
+    """``{name: list of floats}`` of the vector fields ``names`` of ``obj`` (for ``to_dict``)."""
+    return {name: [float(c) for c in getattr(obj, name)] for name in names}
+
+
 def _dataclass_eq(self, other, skip: tuple[str, ...] = ()) -> bool:
     if type(self) is not type(other):
         return NotImplemented
@@ -259,13 +264,7 @@ class AreaLight:
         return float(4.0 * np.linalg.norm(np.cross(self.u, self.v)))
 
     def to_dict(self) -> dict:
-        return {
-            "type": "area",
-            "center": [float(c) for c in self.center],
-            "u": [float(c) for c in self.u],
-            "v": [float(c) for c in self.v],
-            "radiance": [float(c) for c in self.radiance],
-        }
+        return {"type": "area", **_float_lists(self, "center", "u", "v", "radiance")}
 
     def __eq__(self, other):
         return _dataclass_eq(self, other)
@@ -279,11 +278,7 @@ class PointLight:
     intensity: np.ndarray
 
     def to_dict(self) -> dict:
-        return {
-            "type": "point",
-            "position": [float(c) for c in self.position],
-            "intensity": [float(c) for c in self.intensity],
-        }
+        return {"type": "point", **_float_lists(self, "position", "intensity")}
 
     def __eq__(self, other):
         return _dataclass_eq(self, other)
@@ -301,9 +296,7 @@ class Camera:
 
     def to_dict(self) -> dict:
         return {
-            "position": [float(c) for c in self.position],
-            "look_at": [float(c) for c in self.look_at],
-            "up": [float(c) for c in self.up],
+            **_float_lists(self, "position", "look_at", "up"),
             "fov_deg": float(self.fov_deg),
             "resolution": [int(r) for r in self.resolution],
         }

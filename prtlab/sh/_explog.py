@@ -571,6 +571,8 @@ def _exp_hyb_reference(x: np.ndarray, r_max: float, tab_a: np.ndarray, tab_b: np
 def exp(f, method: str = "hyb", *, channels=None) -> np.ndarray:
     """SH exponential ``exp*(f)``: the SH vector of ``exp(f(w))``, same order as ``f``.
 
+    (Long for the documentation of its five tiers; the code is 20 lines.)
+
     Parameters
     ----------
     f : (..., n*n) or (..., n*n, C) float

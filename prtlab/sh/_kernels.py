@@ -315,9 +315,7 @@ def apply_blocks(blocks, offsets, rot_index, coeffs, out):
             for col in range(width):
                 dst[0, col] = blk[0] * src[0, col]
             for l in range(1, order):
-                d = 2 * l + 1
-                base = l * l
-                off = offsets[l]
+                d, base, off = 2 * l + 1, l * l, offsets[l]  # band l: size, first index, block offset
                 for a in range(d):
                     row = off + a * d
                     w = blk[row]
@@ -332,9 +330,7 @@ def apply_blocks(blocks, offsets, rot_index, coeffs, out):
                 blk = blocks[rot_index[start + col // nc]]
                 dst[0, col] = blk[0] * src[0, col]
                 for l in range(1, order):
-                    d = 2 * l + 1
-                    base = l * l
-                    off = offsets[l]
+                    d, base, off = 2 * l + 1, l * l, offsets[l]  # band l: size, first index, block offset
                     for a in range(d):
                         row = off + a * d
                         acc = blk[row] * src[base, col]

@@ -10,7 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from prtlab._validate import as_directions, check_int, check_order
+from prtlab._validate import as_directions, as_real_array, check_int, check_order
 
 from ..geometry import cubemap_directions, cubemap_solid_angles, equirect_directions, equirect_solid_angles
 from ._eval import _CHUNK, _check_method, basis
@@ -113,22 +113,12 @@ def project(values, dirs, weights, order: int, method: str = "numba") -> np.ndar
     if dirs.ndim != 2:
         raise ValueError(f"dirs must be an (N, 3) array, got shape {dirs.shape}")
     n = dirs.shape[0]
-    values = np.asarray(values)
-    if values.dtype.kind not in "fiu":
-        raise TypeError(f"values must be a real array, got dtype {values.dtype}")
-    values = values.astype(np.float64, copy=False)
+    values = as_real_array(values, "values", "project finite samples only")
     if values.ndim not in (1, 2) or values.shape[0] != n:
         raise ValueError(f"values must be ({n},) or ({n}, C) to match dirs {dirs.shape}, got shape {values.shape}")
-    weights = np.asarray(weights)
-    if weights.dtype.kind not in "fiu":
-        raise TypeError(f"weights must be a real array, got dtype {weights.dtype}")
-    weights = weights.astype(np.float64, copy=False)
+    weights = as_real_array(weights, "weights", "quadrature weights must be finite")
     if weights.shape != (n,):
         raise ValueError(f"weights must be ({n},) to match dirs {dirs.shape}, got shape {weights.shape}")
-    if not np.all(np.isfinite(values)):
-        raise ValueError("values contains NaN or inf; project finite samples only")
-    if not np.all(np.isfinite(weights)):
-        raise ValueError("weights contains NaN or inf; quadrature weights must be finite")
     out = _project_core(values.reshape(n, 1) if values.ndim == 1 else values, dirs, weights, order, method)
     return out[:, 0] if values.ndim == 1 else out
 
@@ -168,13 +158,7 @@ def project_function(f, order: int, degree: int | None = None, method: str = "nu
 
 
 def _as_image(image, name: str) -> np.ndarray:
-    arr = np.asarray(image)
-    if arr.dtype.kind not in "fiu":
-        raise TypeError(f"{name} must be a real array, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf; environment maps must be finite")
-    return arr
+    return as_real_array(image, name, "environment maps must be finite")
 
 
 def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
@@ -185,8 +169,8 @@ def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
     image : (H, W) or (H, W, C) float
         Pixel samples; row 0 is the +Y pole, row H-1 the -Y pole (see
         :mod:`prtlab.geometry`).
-    order : int
-        Number of bands n.
+    order, method
+        Number of bands n and basis tier, as in :func:`project`.
 
     Returns
     -------
@@ -223,12 +207,13 @@ def project_cubemap(faces, order: int, method: str = "numba") -> np.ndarray:
     ----------
     faces : (6, res, res) or (6, res, res, C) float
         Texel values (cell values at texel centres).
-    order : int
-        Number of bands n.
+    order, method
+        As in :func:`project_equirect`.
 
     Returns
     -------
     coeffs : (n*n,) or (n*n, C) float64
+        One column per channel C; a single vector for ``(6, res, res)`` faces.
 
     Notes
     -----

@@ -11,7 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from prtlab._validate import check_int, check_order
+from prtlab._validate import as_real_array, check_int, check_order
 
 from ._eval import _as_coeffs, _band_of_coeff, basis
 
@@ -83,14 +83,9 @@ def apply_window(coeffs, factors, channels: bool | None = None) -> np.ndarray:
     windowed : same shape as ``coeffs``, float64
     """
     coeffs, order, has_channels = _as_coeffs(coeffs, channels=channels)
-    f = np.asarray(factors)
-    if f.dtype.kind not in "fiu":
-        raise TypeError(f"factors must be a real (n,) array, got dtype {f.dtype}")
-    f = f.astype(np.float64, copy=False)
+    f = as_real_array(factors, "factors")
     if f.shape != (order,):
         raise ValueError(f"factors must have shape ({order},) to match coeffs of order {order}, got shape {f.shape}")
-    if not np.all(np.isfinite(f)):
-        raise ValueError("factors contains NaN or inf")
     scale = f[_band_of_coeff(order)]
     return coeffs * (scale[:, None] if has_channels else scale)
 

@@ -37,7 +37,6 @@ from ._haar_direct import (
     light_pieces,
     texel_moments,
 )
-from ._scene import direct_environment, precompute_scene, scene_visibility, separable_brdfs
 
 __all__ = [
     # sample spheres
@@ -79,9 +78,4 @@ __all__ = [
     "haar_direct_pass",
     "haar_direct",
     "edge_bound",
-    # whole scenes
-    "precompute_scene",
-    "scene_visibility",
-    "separable_brdfs",
-    "direct_environment",
 ]

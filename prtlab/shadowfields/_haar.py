@@ -65,7 +65,7 @@ from prtlab.geometry import RayCaster, cubemap_directions, direction_to_cubemap
 from prtlab.wavelet import haar2d, ihaar2d
 
 from ._grid import SphereGrid, sphere_grid
-from ._occlusion import _blocked_batches, _flat_origins, _mesh_pair
+from ._occlusion import _blocked_batches, _flat_origins, _mesh_and_normals, _mesh_pair
 
 __all__ = [
     "DEFAULT_HAAR_RESOLUTION",
@@ -371,8 +371,8 @@ def haar_occlusion_field(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
 
     Parameters
     ----------
-    mesh : trimesh.Trimesh or (vertices, faces)
-        The object in object space.
+    mesh, method
+        The object in object space and the ray-casting tier, as in :func:`prtlab.shadowfields.occlusion_field`.
     resolution : int
         Visibility cubemap texels per face edge (32).
     keep : int
@@ -381,8 +381,6 @@ def haar_occlusion_field(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
         The sample spheres (:func:`sphere_grid`; defaults 16 spheres of ``6 x 16 x 16`` points).
     supersample : int
         Rays per texel edge (:func:`visibility_cubemaps`).
-    method : {"embree", "numpy"}
-        Ray-casting tier.
 
     Returns
     -------
@@ -440,14 +438,7 @@ def haar_self_visibility(mesh, *, resolution: int = DEFAULT_HAAR_RESOLUTION, kee
     SparseCubemaps
         Shape ``(n_vertices,)``.
     """
-    vertices, faces = _mesh_pair(mesh)
-    if normals is None:
-        if not hasattr(mesh, "vertex_normals"):
-            raise ValueError("normals are required when mesh is a (vertices, faces) pair")
-        normals = np.asarray(mesh.vertex_normals, float)
-    normals = np.asarray(normals, dtype=np.float64)
-    if normals.shape != vertices.shape:
-        raise ValueError(f"normals must be {vertices.shape} (one per vertex), got {normals.shape}")
+    vertices, faces, normals = _mesh_and_normals(mesh, normals)
     origins = vertices
     if points is not None:
         origins = np.asarray(points, dtype=np.float64)

@@ -477,17 +477,25 @@ def haar_direct(points, normals, lights, sep, *, self_visibility: SparseCubemaps
                 vis = haar_visibility_pass(texel, chunk, res, method=method)
                 out[a:b] += haar_direct_pass(vis, gw, rad, count, method=method)
         if envs:
-            query = np.ascontiguousarray(np.broadcast_to(np.arange(n_tex), (b - a, n_tex)))
-            vis = haar_visibility_pass(query, chunk, res, method=method)
-            g0 = _lambert_g(sep)
-            if g0 is not None:  # int_texel g cos = g max(0, n . m_t): one matrix product
-                gc = (g0 * np.maximum(normals[a:b] @ moments.T, 0.0))[:, :, None]
-            else:
-                gc = _g_cos(sep, np.broadcast_to(moments, (b - a, n_tex, 3)), normals[a:b],
-                            np.linalg.norm(moments, axis=1)[None, :])  # (v, t, K)
-            for cube in cubes:
-                for k in range(sep.K):
-                    out[a:b, k] += (vis * gc[:, :, k]) @ cube
+            out[a:b] += _environments_direct(sep, normals[a:b], chunk, cubes, moments, res, method)
+    return out
+
+
+def _environments_direct(sep, normals, factors, cubes, moments, res: int, method: str) -> np.ndarray:
+    """``(v, K, 3)`` light of the environment ``cubes`` (each ``(6 r^2, 3)``) on every texel at once."""
+    n_tex = 6 * res * res
+    query = np.ascontiguousarray(np.broadcast_to(np.arange(n_tex), (len(normals), n_tex)))
+    vis = haar_visibility_pass(query, factors, res, method=method)
+    g0 = _lambert_g(sep)
+    if g0 is not None:  # int_texel g cos = g max(0, n . m_t): one matrix product
+        gc = (g0 * np.maximum(normals @ moments.T, 0.0))[:, :, None]
+    else:
+        gc = _g_cos(sep, np.broadcast_to(moments, (len(normals), n_tex, 3)), normals,
+                    np.linalg.norm(moments, axis=1)[None, :])  # (v, t, K)
+    out = np.zeros((len(normals), sep.K, 3))
+    for cube in cubes:
+        for k in range(sep.K):
+            out[:, k] += (vis * gc[:, :, k]) @ cube
     return out
 
 

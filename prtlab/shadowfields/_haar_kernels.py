@@ -78,6 +78,15 @@ def haar_synthesis(dense, res, out, work):
 # --------------------------------------------------------------------------- visibility pass
 
 
+@numba.njit(cache=True, inline="always")
+def blends_nothing(weights, v):
+    """True when every blend weight ``weights[v, :]`` is zero (vertex ``v`` takes nothing from the field)."""
+    for c in range(weights.shape[1]):
+        if weights[v, c] != 0.0:
+            return False
+    return True
+
+
 @numba.njit(cache=True, parallel=True)
 def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, query, count, res, n_blocks, vis):
     """Multiply one factor's visibility into ``vis`` at each vertex's query texels.
@@ -99,10 +108,7 @@ def visibility_factor_kernel(tab_idx, tab_val, corners, weights, texel_map, quer
         tex = np.empty(n)
         work = np.empty(res * res)
         for v in range(blk * n_v // n_blocks, (blk + 1) * n_v // n_blocks):
-            wsum = 0.0
-            for c in range(8):
-                wsum += abs(weights[v, c])
-            if wsum == 0.0:
+            if blends_nothing(weights, v):
                 continue
             for c in range(8):
                 w = weights[v, c]
@@ -230,33 +236,6 @@ def _light_polygon(point, normal, corners, light_normal, poly, tmp):
 
 
 @numba.njit(cache=True)
-def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane):
-    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a`` (``plane``: scratch (3,))."""
-    for c in range(3):
-        plane[c] = s_ax[c] - s0 * axis[c]
-    m = _clip(poly, n, plane, buf_a)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = s1 * axis[c] - s_ax[c]
-    m = _clip(buf_a, m, plane, buf_b)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = t_ax[c] - t0 * axis[c]
-    m = _clip(buf_b, m, plane, buf_a)
-    if m == 0:
-        return 0
-    for c in range(3):
-        plane[c] = t1 * axis[c] - t_ax[c]
-    m = _clip(buf_a, m, plane, buf_b)
-    for k in range(m):
-        for c in range(3):
-            buf_a[k, c] = buf_b[k, c]
-    return m
-
-
-@numba.njit(cache=True)
 def _clip_slab(poly, n, axis, dir_ax, lo, hi, out, buf, plane):
     """Clip to the slab ``lo <= (x . dir_ax) / (x . axis) <= hi`` of a face (two planes); result in ``out``."""
     for c in range(3):
@@ -267,6 +246,19 @@ def _clip_slab(poly, n, axis, dir_ax, lo, hi, out, buf, plane):
     for c in range(3):
         plane[c] = hi * axis[c] - dir_ax[c]
     return _clip(buf, m, plane, out)
+
+
+@numba.njit(cache=True)
+def _clip_to_cell(poly, n, axis, s_ax, t_ax, s0, s1, t0, t1, buf_a, buf_b, plane):
+    """Clip to the pyramid of the face rectangle ``[s0, s1] x [t0, t1]``; result in ``buf_a`` (``plane``: scratch (3,))."""
+    m = _clip_slab(poly, n, axis, s_ax, s0, s1, buf_b, buf_a, plane)
+    if m == 0:
+        return 0
+    m = _clip_slab(buf_b, m, axis, t_ax, t0, t1, buf_b, buf_a, plane)
+    for k in range(m):
+        for c in range(3):
+            buf_a[k, c] = buf_b[k, c]
+    return m
 
 
 @numba.njit(cache=True, parallel=True)
@@ -287,6 +279,42 @@ def area_light_count_kernel(points, normals, corners, light_normal, frames, res,
                     j0, j1, i0, i1 = _face_range(tmp, m, frames[f, 0], frames[f, 1], frames[f, 2], res)
                     total += (j1 - j0 + 3) * (i1 - i0 + 1)  # +2 columns: rows may round outward
         count[v] = total
+
+
+@numba.njit(cache=True, inline="always")
+def _cone_planes(poly, n, edge):
+    """Inward normals ``edge[:n]`` of the faces of the cone from the origin over ``poly[:n]`` (planes
+    through the origin and an edge)."""
+    c0 = c1 = c2 = 0.0
+    for e in range(n):
+        c0 += poly[e, 0]
+        c1 += poly[e, 1]
+        c2 += poly[e, 2]
+    orient = 0.0
+    for e in range(n):
+        a, b = poly[e], poly[(e + 1) % n]
+        edge[e, 0] = a[1] * b[2] - a[2] * b[1]
+        edge[e, 1] = a[2] * b[0] - a[0] * b[2]
+        edge[e, 2] = a[0] * b[1] - a[1] * b[0]
+        orient += edge[e, 0] * c0 + edge[e, 1] * c1 + edge[e, 2] * c2
+    if orient < 0.0:
+        for e in range(n):
+            edge[e, 0], edge[e, 1], edge[e, 2] = -edge[e, 0], -edge[e, 1], -edge[e, 2]
+
+
+@numba.njit(cache=True, inline="always")
+def _texel_in_cone(axis, s_ax, t_ax, s0, s1, t0, t1, edge, n, corner):
+    """True when the 4 corner directions of the face texel ``[s0, s1] x [t0, t1]`` are all inside the
+    cone of :func:`_cone_planes` (``corner``: scratch (3,))."""
+    for q in range(4):
+        sc = s0 if q % 2 == 0 else s1
+        tc = t0 if q < 2 else t1
+        for c in range(3):
+            corner[c] = axis[c] + sc * s_ax[c] + tc * t_ax[c]
+        for e in range(n):
+            if edge[e, 0] * corner[0] + edge[e, 1] * corner[1] + edge[e, 2] * corner[2] < 0.0:
+                return False
+    return True
 
 
 @numba.njit(cache=True, parallel=True)
@@ -315,23 +343,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
         n = _light_polygon(points[v], normals[v], corners, light_normal, poly, tmp)
         k = 0
         if n > 0:
-            # inward normals of the light cone's faces (planes through the point and an edge)
-            c0 = c1 = c2 = 0.0
-            for e in range(n):
-                c0 += poly[e, 0]
-                c1 += poly[e, 1]
-                c2 += poly[e, 2]
-            orient = 0.0
-            for e in range(n):
-                a, b = poly[e], poly[(e + 1) % n]
-                edge[e, 0] = a[1] * b[2] - a[2] * b[1]
-                edge[e, 1] = a[2] * b[0] - a[0] * b[2]
-                edge[e, 2] = a[0] * b[1] - a[1] * b[0]
-                orient += edge[e, 0] * c0 + edge[e, 1] * c1 + edge[e, 2] * c2
-            if orient < 0.0:
-                for e in range(n):
-                    edge[e, 0], edge[e, 1], edge[e, 2] = -edge[e, 0], -edge[e, 1], -edge[e, 2]
-        if n > 0:
+            _cone_planes(poly, n, edge)
             for f in range(6):
                 axis, s_ax, t_ax = frames[f, 0], frames[f, 1], frames[f, 2]
                 m = _clip_to_cell(poly, n, axis, s_ax, t_ax, -1.0, 1.0, -1.0, 1.0, tmp, buf, plane)
@@ -348,19 +360,7 @@ def area_light_pieces_kernel(points, normals, corners, light_normal, frames, res
                     for j in range(r0, r1 + 1):
                         s0 = 2.0 * j / res - 1.0
                         s1 = 2.0 * (j + 1) / res - 1.0
-                        whole = True
-                        for q in range(4):
-                            sc = s0 if q % 2 == 0 else s1
-                            tc = t0 if q < 2 else t1
-                            for c in range(3):
-                                corner[c] = axis[c] + sc * s_ax[c] + tc * t_ax[c]
-                            for e in range(n):
-                                if edge[e, 0] * corner[0] + edge[e, 1] * corner[1] + edge[e, 2] * corner[2] < 0.0:
-                                    whole = False
-                                    break
-                            if not whole:
-                                break
-                        if whole:
+                        if _texel_in_cone(axis, s_ax, t_ax, s0, s1, t0, t1, edge, n, corner):
                             if k < texel.shape[1]:
                                 t = f * rr + i * res + j
                                 texel[v, k] = t

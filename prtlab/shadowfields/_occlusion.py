@@ -193,6 +193,19 @@ def _mesh_pair(mesh):
     raise TypeError(f"mesh must be a trimesh.Trimesh or a (vertices, faces) pair, got {type(mesh).__name__}")
 
 
+def _mesh_and_normals(mesh, normals):
+    """``(vertices, faces, normals)`` of ``mesh``; ``normals`` default to ``mesh.vertex_normals``."""
+    vertices, faces = _mesh_pair(mesh)
+    if normals is None:
+        if not hasattr(mesh, "vertex_normals"):
+            raise ValueError("normals are required when mesh is a (vertices, faces) pair")
+        normals = np.asarray(mesh.vertex_normals, float)
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != vertices.shape:
+        raise ValueError(f"normals must be {vertices.shape} (one per vertex), got {normals.shape}")
+    return vertices, faces, normals
+
+
 def occlusion_field(mesh, order: int = 4, *, n_radii: int = 16, resolution: int = 16, r_min: float = 0.2,
                     r_max: float = 8.0, spacing: str = "geometric", degree: int | None = None,
                     method: str = "embree") -> OcclusionField:
@@ -215,6 +228,7 @@ def occlusion_field(mesh, order: int = 4, *, n_radii: int = 16, resolution: int 
     Returns
     -------
     OcclusionField
+        SH coefficients ``(n_radii, 6, resolution, resolution, order**2)`` on the grid's points.
 
     Examples
     --------
@@ -249,13 +263,6 @@ def self_visibility(mesh, order: int = 4, *, normals=None, degree: int | None = 
     coeffs : (n_vertices, order**2) float64
     """
     order = check_order(order)
-    vertices, faces = _mesh_pair(mesh)
-    if normals is None:
-        if not hasattr(mesh, "vertex_normals"):
-            raise ValueError("normals are required when mesh is a (vertices, faces) pair")
-        normals = np.asarray(mesh.vertex_normals, float)
-    normals = np.asarray(normals, dtype=np.float64)
-    if normals.shape != vertices.shape:
-        raise ValueError(f"normals must be {vertices.shape} (one per vertex), got {normals.shape}")
+    vertices, faces, normals = _mesh_and_normals(mesh, normals)
     caster = RayCaster([(vertices, faces)])
     return project_visibility(caster, vertices, order, normals=normals, degree=degree, method=method)

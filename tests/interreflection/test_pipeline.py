@@ -30,7 +30,7 @@ from prtlab.pipeline import FrameState
 from prtlab.reference import path_trace
 from prtlab.scene import PointLight, Transform
 from tests.conftest import MC_SIGMAS
-from tests.shadowfields.test_scene import ball_over_floor
+from tests.scenes import ball_over_floor
 
 QUICK = dict(n_radii=8, resolution=8, degree=31, n_lights=64, n_basis=8)
 #: The paper's goals: relative RMS of per-vertex radiance (direct held to the total's goal).

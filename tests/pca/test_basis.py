@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prtlab.geometry import builtin_mesh
-from prtlab.pca import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity
+from prtlab.pca import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity, principal_basis
 from prtlab.scene import Material, SceneObject
 
 
@@ -187,3 +187,19 @@ def test_errors(sphere):
     pca = fit_pca_basis(sphere, n_basis=4, n_lights=16)
     with pytest.raises(ValueError, match="n_basis must be <= 4"):
         pca.truncated(5)
+
+
+def test_principal_basis_is_the_mean_and_the_leading_singular_vectors():
+    rng = np.random.default_rng(5)
+    # rank 2 after centring: the mean plus two directions, 40 vertices, 30 lights
+    training = rng.random(40)[:, None] + rng.random((40, 2)) @ rng.standard_normal((2, 30))
+    basis, s, energy = principal_basis(training, 4)
+    assert basis.shape == (4, 40) and s.shape == (30,)
+    np.testing.assert_allclose(basis[0], training.mean(axis=1), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(basis[1:] @ basis[1:].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(energy[2], 1.0, rtol=1e-12)  # two components carry all the variance
+    assert np.all(np.abs(basis[1:]).argmax(axis=1) == np.argmax(basis[1:], axis=1))  # largest entry positive
+    capped, _, capped_energy = principal_basis(training, 4, rank_tol=1e-12)
+    assert capped.shape == (3, 40)  # the numerical rank caps the functions
+    np.testing.assert_array_equal(capped, basis[:3])
+    np.testing.assert_array_equal(capped_energy, energy[:3])

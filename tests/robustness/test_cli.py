@@ -12,20 +12,7 @@ import sys
 import pytest
 
 from prtlab import api, cli
-
-SCENE = """\
-name: tiny
-objects:
-  - name: floor
-    mesh: {builtin: plane, size: [4, 4], resolution: [2, 2]}
-    material: {type: diffuse, albedo: [0.7, 0.7, 0.7]}
-  - name: ball
-    mesh: {builtin: icosphere, radius: 0.5, subdivisions: 0}
-    transform: {translate: [0, 0.5, 0]}
-    material: {type: diffuse, albedo: [0.8, 0.2, 0.2]}
-lights:
-  - {type: environment, sky: {sun_elevation_deg: 35, sun_azimuth_deg: 0, sun: false, height: 8, width: 16}}
-"""
+from tests.scenes import TINY_SCENE as SCENE
 
 # (argv with {scene} / {tmp} / {file} placeholders, exit code, regex the one line must match)
 CASES = [

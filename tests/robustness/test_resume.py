@@ -19,6 +19,7 @@ import pytest
 
 from prtlab.cache import Cache, CacheWarning
 from prtlab.scene import Scene
+from tests.scenes import floor_and_ball
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -31,29 +32,13 @@ def make_case(method: str):
     if method == "interreflection":
         from prtlab.interreflection import Interreflection
 
-        scene = Scene.from_dict({
-            "objects": [
-                {"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [3, 3]},
-                 "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.3]}},
-                {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 1},
-                 "transform": {"translate": [0, 0.7, 0]}, "material": {"type": "diffuse", "albedo": [0.5, 0.6, 0.7]}},
-            ],
-            "lights": [{"type": "environment", "constant": [1.0, 0.9, 0.8]}],
-        })
+        scene = floor_and_ball(3, 1, (0, 0.7, 0), floor_material={"type": "diffuse", "albedo": [0.8, 0.3, 0.3]},
+                               ball_albedo=(0.5, 0.6, 0.7))
         return Interreflection, scene, dict(order=2, n_radii=2, resolution=4, degree=7, n_lights=8, n_basis=2)
     if method == "spherelights":
         from prtlab.spherelights import SphereLights
 
-        scene = Scene.from_dict({
-            "objects": [
-                {"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [6, 6]},
-                 "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
-                {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 1},
-                 "transform": {"translate": [0.3, 0.6, -0.2]},
-                 "material": {"type": "diffuse", "albedo": [0.8, 0.3, 0.2]}, "dynamic": True},
-            ],
-            "lights": [{"type": "environment", "constant": [1.0, 0.9, 0.8]}],
-        })
+        scene = floor_and_ball(6, 1, (0.3, 0.6, -0.2), floor_name="plane", ball_albedo=(0.8, 0.3, 0.2), dynamic=True)
         return SphereLights, scene, {"n_spheres": 2, "fit_resolution": 16}
     if method == "portals":
         from prtlab.portals import Portals

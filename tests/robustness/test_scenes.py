@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import time
 
 import pytest
@@ -10,8 +9,9 @@ import yaml
 
 import prtlab.scene._load as load_module
 from prtlab.scene import Scene, SceneError, load_scene
+from tests.scenes import DELETE as _DELETE
+from tests.scenes import with_change
 
-_DELETE = object()
 
 
 def base_dict() -> dict:
@@ -44,17 +44,7 @@ def base_dict() -> dict:
 
 def changed(path: str, value) -> dict:
     """``base_dict()`` with the item at a dotted path (``objects.0.mesh``) replaced (or deleted)."""
-    d = copy.deepcopy(base_dict())
-    *parents, last = path.split(".")
-    node = d
-    for p in parents:
-        node = node[int(p)] if isinstance(node, list) else node[p]
-    key = int(last) if isinstance(node, list) else last
-    if value is _DELETE:
-        del node[key]
-    else:
-        node[key] = value
-    return d
+    return with_change(base_dict(), path, value)
 
 
 def write(tmp_path, d) -> str:

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import copy
-from pathlib import Path
-
 import numpy as np
 import pytest
 import trimesh
@@ -26,6 +23,8 @@ from prtlab.scene import (
     save_scene,
     write_exr,
 )
+from tests import scenes
+from tests.scenes import DELETE as _DELETE
 
 SCENES_DIR = prtlab.data.path("scenes")
 
@@ -60,21 +59,8 @@ def base_dict() -> dict:
 
 
 def with_change(path: str, value, d: dict | None = None) -> dict:
-    """A copy of ``d`` with the item at a dotted path (``objects.0.material.albedo``) replaced or deleted."""
-    d = copy.deepcopy(d or base_dict())
-    *parents, last = path.split(".")
-    node = d
-    for p in parents:
-        node = node[int(p)] if isinstance(node, list) else node[p]
-    key = int(last) if isinstance(node, list) else last
-    if value is _DELETE:
-        del node[key]
-    else:
-        node[key] = value
-    return d
-
-
-_DELETE = object()
+    """A copy of ``d`` (default ``base_dict()``) with the item at a dotted path replaced or deleted."""
+    return scenes.with_change(d or base_dict(), path, value)
 
 
 # ----------------------------------------------------------------------------- loading and round trips

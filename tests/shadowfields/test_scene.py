@@ -1,4 +1,5 @@
-"""Tests of prtlab/shadowfields/_scene.py: direct shadows from one occluder against Monte Carlo.
+"""SH shadow fields of a whole scene (tests/shadowfields/sh_scene.py): direct shadows from one occluder
+against Monte Carlo.
 
 Goal: relative RMS of per-vertex direct light 5 % (issue 15's goal for direct and total light, as the
 interreflection tests), against a dense deterministic quadrature of the same integral (``dense_direct``,
@@ -17,27 +18,14 @@ from prtlab import sh
 from prtlab.geometry import RayCaster
 from prtlab.reference import direct
 from prtlab.scene import Scene
-from prtlab.shadowfields import direct_environment, precompute_scene, scene_visibility, separable_brdfs
+from tests.scenes import ball_over_floor
+from tests.shadowfields.sh_scene import direct_environment, precompute_scene, scene_visibility, separable_brdfs
 
 ORDER = 4
 GOAL = 0.05
 #: Monte Carlo samples per vertex: relative noise 0.008 (floor), 0.013 (ball), within a third of the goal
 SAMPLES = 2048
 QUICK = dict(n_radii=8, resolution=8, degree=31)
-
-
-def ball_over_floor(floor_material=None):
-    return Scene.from_dict({
-        "objects": [
-            {"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [12, 12]},
-             "material": floor_material or {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}},
-            {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 3},
-             "transform": {"translate": [0, 1.0, 0]}, "material": {"type": "diffuse", "albedo": [0.5, 0.6, 0.7]}},
-        ],
-        "lights": [{"type": "environment", "sky": {"sun_elevation_deg": 40, "sun_azimuth_deg": 30,
-                                                   "turbidity": 3}, "scale": 0.1}],
-        "camera": {"position": [0, 3, 6], "look_at": [0, 0, 0]},
-    })
 
 
 def dense_direct(scene, degree=127):

@@ -1,18 +1,14 @@
-"""Shadow fields of a whole scene: per-object precomputation and per-frame visibility and direct light.
+"""Test helper: the SH shadow fields of a whole scene, assembled from the public building blocks.
 
-:func:`precompute_scene` computes, for every (non-portal) object of a
-:class:`prtlab.scene.Scene`, its occlusion field and its vertices'
-self-visibility, both in object space. :func:`scene_visibility` assembles the
-world-frame visibility of every vertex for a frame (objects in any pose), and
-:func:`direct_environment` lights it with the scene's environment through
-each object's separable BRDF. The arrays are plain dicts of arrays, so a
-pipeline can cache them in HDF5 (:mod:`prtlab.cache`).
+For every (non-portal) object of a :class:`prtlab.scene.Scene`, :func:`precompute_scene` computes its
+occlusion field and its vertices' self-visibility (object space); :func:`scene_visibility` assembles the
+world-frame visibility of every vertex for a pose of the scene (:func:`prtlab.shadowfields.occluder_order`,
+:func:`prtlab.shadowfields.visibility_pass`), and :func:`direct_environment` lights it with the scene's
+environment through each object's separable BRDF (Zhou et al. 2005 / Iwasaki et al. 2007 Eq. 7-8). No
+pipeline uses this assembly; the tests of :mod:`prtlab.shadowfields` check the blocks with it.
 
-Limitations (documented, tested where they matter): occlusion fields are
-clamped to their innermost sphere (0.2 bounding radii by default), so a
-receiver very close to a large occluder (a vertex of an object standing on a
-floor, as seen by the floor's field) gets a blurred visibility; area lights
-do not occlude the environment here.
+Occlusion fields are clamped to their innermost sphere (0.2 bounding radii by default), so a receiver very
+close to a large occluder gets a blurred visibility; area lights do not occlude the environment here.
 """
 
 from __future__ import annotations
@@ -20,11 +16,14 @@ from __future__ import annotations
 import numpy as np
 
 from prtlab import sh
-
-from ._direct import direct_pass, occluder_order, visibility_pass
-from ._occlusion import OcclusionField, occlusion_field, self_visibility
-
-__all__ = ["precompute_scene", "scene_visibility", "direct_environment", "separable_brdfs"]
+from prtlab.shadowfields import (
+    OcclusionField,
+    direct_pass,
+    occluder_order,
+    occlusion_field,
+    self_visibility,
+    visibility_pass,
+)
 
 
 def _shaded(scene):
