@@ -58,8 +58,9 @@ import numpy as np
 
 from prtlab._shipped import clone_doc, shipped_folder
 
-__all__ = ["case", "floor", "run_benchmarks", "measure_peak_gflops", "measure_bandwidth_gbs", "benchmark_dir", "render_section", "write_docs",
-           "default_docs_path", "doc_sections", "main", "transfer_csr", "check_same_work"]
+__all__ = ["case", "floor", "floor_shares", "run_benchmarks", "measure_peak_gflops", "measure_bandwidth_gbs",
+           "benchmark_dir", "render_section", "write_docs", "default_docs_path", "doc_sections", "main", "transfer_csr",
+           "check_same_work"]
 
 _CASES: dict[str, Callable] = {}
 
@@ -378,7 +379,8 @@ def _run_line(report: dict) -> str:
     return (f"Run of {report.get('started', 'an unknown date')}, {'quick' if report['quick'] else 'full'} sizes, "
             f"{m['threads'] if 'threads' in m else m['cores']} threads for ours and the peers, load average at the "
             f"start {load_text} (1 / 5 / 15 min) on {m['cores']} cores; float64 peak {m['peak_gflops']:.1f} GFLOP/s "
-            f"(numpy matmul){_bandwidth_text(m)}, measured in the same run. {m['cpu']}, numpy {m['numpy']}, Python {m['python']}.")
+            f"(numpy matmul){_bandwidth_text(m)}, measured in the same run. {m['cpu']}, numpy {m['numpy']}, "
+            f"Python {m['python']}.")
 
 
 def render_section(report: dict, name: str) -> str | None:
