@@ -359,7 +359,7 @@ def _floor_cells(entry_floor: dict | None) -> list[str]:
         return ["", ""]
     work = ", ".join([f"{entry_floor['gflop']:.3g}" if "gflop" in entry_floor else "-",
                       f"{entry_floor['bytes'] / 1e6:.3g}" if "bytes" in entry_floor else "-"])
-    shares = ", ".join(f"{100 * entry_floor[k]:.1f}%" if k in entry_floor else "-"
+    shares = ", ".join(f"{100 * entry_floor[k]:.2g}%" if k in entry_floor else "-"
                        for k in ("share_of_peak", "share_of_bandwidth", "share_of_roofline"))
     return [work, shares]
 
