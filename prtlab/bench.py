@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import functools
 import importlib.util
 import json
 import os
@@ -169,7 +170,9 @@ def measure_peak_gflops(quick: bool = False) -> float:
     return 2.0 * n**3 / seconds / 1e9
 
 
+@functools.lru_cache(maxsize=1)
 def _triad_kernel():
+    """The STREAM triad ``a[i] = b[i] + scalar c[i]`` as a parallel numba kernel, compiled once a process."""
     import numba
 
     @numba.njit(parallel=True, cache=True)
