@@ -361,8 +361,11 @@ def test_interreflection_floors_by_hand():
     p = module._product_flop(2)
     flop, nbytes = module.pose_floor(pre, "b")
     lookups = 4 * (16 * 4 + p + 1 * p) + 2 * (16 * 4 + p) + 6 * 2 * p
-    pair_ab = 10 * (16 + 2 * 1) * 6 * 4 + 10 * 1 * p
-    pair_ba = 6 * (16 + 2 * 2) * 2 * 4 + 6 * 2 * p
+    # Eq. 13 a point and basis function: min(interpolate then contract n^2 (16 + 2 K'), contract at the 8 corners
+    # then interpolate K' (16 n^2 + 16)): K' = 1: min(72, 80); K' = 2: min(80, 160)
+    assert (module.eq13_flop(1, 4), module.eq13_flop(2, 4), module.eq13_flop(1, 16)) == (72, 80, 272)
+    pair_ab = 10 * 6 * 72 + 10 * 1 * p
+    pair_ba = 6 * 2 * 80 + 6 * 2 * p
     assert flop == lookups + pair_ab + pair_ba
     assert nbytes == 8 * 10 * 1 * 6 + 8 * 6 * 2 * 2
 
@@ -382,3 +385,15 @@ def test_spherelights_floor_by_hand():
     assert (theta >= 0).tolist() == [[True, False], [True, False]]
     flop, nbytes = module.frame_floor(a, "object", indirect=False, exp_method="ol")
     assert flop == 2 * (2 * 31 * 3 * n2 + 3 * n2 + 6 * n2) + 4 * n2 * 2 and nbytes == 192
+
+
+def test_spherelights_frame_floors_are_below_the_counted_work():
+    """Every spherelights frame case carries a floor, at most the work its kernels are counted to do (``gflop``:
+    every lane of a block, culled pairs included) and at least a tenth of it."""
+    module = _bench_module("bench_spherelights")
+    names = [n for n in bench._CASES if n.startswith("spherelights.frame.")]
+    assert len(names) >= 4
+    for name in names:
+        spec = bench._CASES[name](True)
+        assert 0.1 * spec["gflop"] <= spec["floor"]["gflop"] <= spec["gflop"], name
+        assert spec["floor"]["bytes"] == 96 * module._n(True) and spec["floor"]["formula"] == module.FLOOR_FORMULA

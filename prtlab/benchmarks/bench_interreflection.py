@@ -143,8 +143,9 @@ def _pose_gflop(pre, recomputed) -> float:
 # per bounce. Not counted: the area light's SH at the vertices (its exact projection or its field's lookup), the
 # environment's SH, the geometry of a pose. A pose change (one object m moves) adds, for the pairs (m, s) and
 # (r, m) (which must be recomputed at every vertex; pairs whose occluders moved are not counted):
-#   Eq. 13   V_r (16 K_s N_s n^2 + 2 K_r K_s N_s n^2): the source's field interpolated (8 corners), contracted with
-#            the transfer                                         bytes: Phi written, V_r K_r K_s N_s x 8
+#   Eq. 13   V_r K_s N_s E(K_r): the source's field at 8 corners, interpolated then contracted with the K_r
+#            transfers (n^2 (16 + 2 K_r)) or contracted at each corner then interpolated (K_r (16 n^2 + 16)),
+#            the cheaper, E(K') = min of the two                  bytes: Phi written, V_r K_r K_s N_s x 8
 #   transfer V_r K_r P flops (P: one order-n SH product, 3 a Gaunt non-zero) for the pair's transfer, and
 #            V_r P for the visibility without s when there are other occluders
 # and its lookups: each other receiver's points within the reach of the mover's occlusion field (R_r of them) look
@@ -153,7 +154,7 @@ def _pose_gflop(pre, recomputed) -> float:
 # its direct transfer (V_m K_m P). Near-field rays (``near_field``) are not counted.
 FRAME_FORMULA = ("per object: (2 V K n^2 3 lights + B (2 V K M 3 + 2 N S K 3) + (B+1) 2 V K 3) flops; "
                  "(V K n^2 + B V K M) x itemsize + 8 V K + 72 V bytes")
-POSE_FORMULA = (FRAME_FORMULA + "; plus per pair (m, s), (r, m): V_r (16 + 2 K_r) K_s N_s n^2 + V_r (K_r + 1) P "
+POSE_FORMULA = (FRAME_FORMULA + "; plus per pair (m, s), (r, m): V_r K_s N_s E(K_r) + V_r (K_r + 1) P "
                 "flops, 8 V_r K_r K_s N_s bytes; lookups R_r (16 n^2 + P) + R_m (16 n^2 + P), transfers "
                 "R_r K_r P + V_m K_m P")
 
@@ -182,6 +183,12 @@ def frame_floor(pre, bounces: int, lights: int) -> tuple[float, float]:
     return flop, nbytes
 
 
+def eq13_flop(n_kp: int, n2: int) -> int:
+    """E(K'): Eq. 13's flops a receiver point and source basis function (``K'`` transfers, ``n2`` coefficients, 8
+    corners), the cheaper of interpolating first (``n2 (16 + 2 K')``) and contracting first (``K' (16 n2 + 16)``)."""
+    return min(n2 * (16 + 2 * n_kp), n_kp * (16 * n2 + 16))
+
+
 def pose_floor(pre, mover: str) -> tuple[float, float]:
     """(flop, bytes) that a pose change of ``mover`` adds to a frame's floor (``POSE_FORMULA``)."""
     n2, prod = pre.options.order ** 2, _product_flop(pre.options.order)
@@ -205,7 +212,7 @@ def pose_floor(pre, mover: str) -> tuple[float, float]:
             if s.name == r.name or mover not in (r.name, s.name):
                 continue
             ksn = pre.seps[s.name].K * pre.bases[s.name].n_basis
-            flop += v * (16 + 2 * k) * ksn * n2 + v * (k + (n_obj > 2)) * prod
+            flop += v * ksn * eq13_flop(k, n2) + v * (k + (n_obj > 2)) * prod
             nbytes += 8 * v * k * ksn
     return flop, nbytes
 
@@ -423,15 +430,16 @@ def basis_irradiance_kernel(quick: bool) -> dict:
     pts = rng.normal(size=(v, 3)) * 3.0
     transfer = rng.normal(size=(v, 1, n2))
     flop = v * 8 * n_k * n_b * n2 * 2
-    # floor: the field interpolated at each point (8 corners: 16 K N n^2) then contracted with the transfer
-    # (2 K' K N n^2); the field read once, points and transfer read, Phi written
+    # floor: Eq. 13 at each point in the cheaper order (``eq13_flop``); the field read once, points and transfer
+    # read, Phi written
     n_kp = transfer.shape[1]
     return {
         "run": lambda: basis_irradiance(field, grid, pts, transfer),
         "gflop": flop / 1e9,
         "items": v,
         "peer": ("numpy float64 tier", lambda: basis_irradiance(field, grid, pts, transfer, method="reference")),
-        "floor": floor(v * (16 + 2 * n_kp) * n_k * n_b * n2,
+        "floor": floor(v * n_k * n_b * eq13_flop(n_kp, n2),
                        field.nbytes + v * (24 + 8 * n_kp * n2 + 8 * n_kp * n_k * n_b),
-                       "V (16 + 2 K') K N n^2 flops; field bytes + V (24 + 8 K' n^2 + 8 K' K N) bytes"),
+                       "V K N E(K') flops, E(K') = min(n^2 (16 + 2 K'), K' (16 n^2 + 16)); field bytes + "
+                       "V (24 + 8 K' n^2 + 8 K' K N) bytes"),
     }
