@@ -14,7 +14,8 @@ Cases live in ``bench_*.py`` files of the package's ``prtlab/benchmarks/`` folde
      "setup": callable,                # optional: called before every call of ``run`` and of the peer, untimed
      "info": dict,                     # optional: figures that are not times (bytes on disk), kept in the JSON
      "floor": dict,                    # optional: the work the call must at least do (:func:`floor`)
-     "stored_bytes": int}              # optional: bytes of the precomputation the case makes or reads
+     "stored_bytes": int | callable}   # optional: bytes of the precomputation the case reads or makes (a
+                                       # callable is read after the timed calls)
 
 Every timing is the median of several repeats after one warm-up call (which
 absorbs JIT compilation), the repeats of ours and of the peer interleaved;
