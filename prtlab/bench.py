@@ -12,15 +12,25 @@ Cases live in ``bench_*.py`` files of the package's ``prtlab/benchmarks/`` folde
      "repeats": int,                   # optional: fewer repeats for a long case (a precomputation)
      "warmup": bool,                   # optional: False skips the warm-up call (kernels compiled already)
      "setup": callable,                # optional: called before every call of ``run`` and of the peer, untimed
-     "info": dict}                     # optional: figures that are not times (bytes on disk), kept in the JSON
+     "info": dict,                     # optional: figures that are not times (bytes on disk), kept in the JSON
+     "floor": dict,                    # optional: the work the call must at least do (:func:`floor`)
+     "stored_bytes": int | callable}   # optional: bytes of the precomputation the case reads or makes (a
+                                       # callable is read after the timed calls)
 
 Every timing is the median of several repeats after one warm-up call (which
 absorbs JIT compilation), the repeats of ours and of the peer interleaved;
 ``setup`` gives each call fresh state outside the timer. Ours and the peer run with the same threads: BLAS through
 ``threadpoolctl``, numba through ``numba.set_num_threads``. The machine's peak
 float64 rate is measured in the same run as the median GFLOP/s of a large
-``numpy`` matrix product, before and after the cases (the larger is kept), so
-ratios hold on a shared, noisy machine.
+``numpy`` matrix product, and its memory bandwidth as the median GB/s of a
+STREAM triad (``a = b + s c``, 24 bytes an element, :func:`measure_bandwidth_gbs`),
+both before and after the cases (the larger kept), so ratios hold on a shared, noisy machine.
+
+A case's ``floor`` is the work any implementation of its pass must at least do, counted from the case's
+sizes by a formula written next to the case (not measured): FLOPs (a multiply-add counts 2) and bytes that
+must cross the memory bus (its stored operands read once, its outputs written once). The report gives its
+share of the peak (floor GFLOP / seconds / peak), of the bandwidth (floor GB / seconds / bandwidth) and of
+the roofline (``max(flop / peak, bytes / bandwidth) / seconds``: 100% is a pass at the machine's limit).
 
 ``write_docs`` writes the tables of a report into a Markdown file between
 ``<!-- bench:begin NAME -->`` and ``<!-- bench:end NAME -->`` markers (the
@@ -34,6 +44,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import functools
 import importlib.util
 import json
 import os
@@ -49,8 +60,9 @@ import numpy as np
 
 from prtlab._shipped import clone_doc, shipped_folder
 
-__all__ = ["case", "run_benchmarks", "measure_peak_gflops", "benchmark_dir", "render_section", "write_docs",
-           "default_docs_path", "doc_sections", "main", "transfer_csr", "check_same_work"]
+__all__ = ["case", "floor", "floor_shares", "run_benchmarks", "measure_peak_gflops", "measure_bandwidth_gbs",
+           "benchmark_dir", "render_section", "write_docs", "default_docs_path", "doc_sections", "main", "transfer_csr",
+           "check_same_work"]
 
 _CASES: dict[str, Callable] = {}
 
@@ -65,6 +77,34 @@ def case(name: str):
         return fn
 
     return register
+
+
+def floor(flop: float | None = None, nbytes: float | None = None, formula: str = "") -> dict:
+    """A case's ``floor``: the FLOPs (multiply-add = 2) and bytes its pass must at least do and move, with the
+    ``formula`` they come from (in the case's sizes), for the report. At least one of ``flop``, ``nbytes``."""
+    if flop is None and nbytes is None:
+        raise ValueError("floor needs flop or nbytes; give the work the pass must at least do")
+    for label, value in (("flop", flop), ("nbytes", nbytes)):
+        if value is not None and (isinstance(value, bool) or not np.isfinite(value) or value < 0):
+            raise ValueError(f"floor {label} must be a finite number >= 0, got {value!r}")
+    out = {"formula": str(formula)}
+    if flop is not None:
+        out["gflop"] = float(flop) / 1e9
+    if nbytes is not None:
+        out["bytes"] = float(nbytes)
+    return out
+
+
+def floor_shares(entry_floor: dict, seconds: float, peak_gflops: float, bandwidth_gbs: float) -> dict:
+    """``share_of_peak``, ``share_of_bandwidth`` and ``share_of_roofline`` of a floor run in ``seconds``."""
+    t_flop = entry_floor.get("gflop", 0.0) / peak_gflops
+    t_bytes = entry_floor.get("bytes", 0.0) / 1e9 / bandwidth_gbs
+    shares = {"share_of_roofline": max(t_flop, t_bytes) / seconds}
+    if "gflop" in entry_floor:
+        shares["share_of_peak"] = t_flop / seconds
+    if "bytes" in entry_floor:
+        shares["share_of_bandwidth"] = t_bytes / seconds
+    return shares
 
 
 def benchmark_dir() -> Path:
@@ -131,6 +171,30 @@ def measure_peak_gflops(quick: bool = False) -> float:
     return 2.0 * n**3 / seconds / 1e9
 
 
+@functools.lru_cache(maxsize=1)
+def _triad_kernel():
+    """The STREAM triad ``a[i] = b[i] + scalar c[i]`` as a parallel numba kernel, compiled once a process."""
+    import numba
+
+    @numba.njit(parallel=True, cache=True)
+    def triad(a, b, c, scalar):
+        for i in numba.prange(a.shape[0]):
+            a[i] = b[i] + scalar * c[i]
+
+    return triad
+
+
+def measure_bandwidth_gbs(quick: bool = False) -> float:
+    """Median GB/s of a STREAM triad ``a = b + s c`` over float64 arrays of 256 MiB each (quick: 64 MiB, past the
+    2 x 2 MiB of L2 caches this was written on), counted as STREAM does (24 bytes an element: two reads, one
+    write), on numba's threads."""
+    n = (1 << 23) if quick else (1 << 25)
+    triad = _triad_kernel()
+    a, b, c = np.zeros(n), np.ones(n), np.full(n, 2.0)
+    seconds = statistics.median(_time([lambda: triad(a, b, c, 3.0)], 5 if quick else 10)[0])
+    return 24.0 * n / seconds / 1e9
+
+
 def _cpu_name() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -149,15 +213,52 @@ def _check_threads(threads) -> int:
     return int(threads)
 
 
+def _entry(name: str, spec: dict, times: list[float], n_repeats: int) -> tuple[dict, str]:
+    """The report entry of a case from its spec and the medians ``times`` (ours, then the peer's), and its line
+    of output. ``stored_bytes`` may be a callable, read after the timed calls (a precomputation's size)."""
+    seconds = times[0]
+    entry = {"name": name, "seconds_median": seconds, "repeats": n_repeats}
+    gflop = spec.get("gflop")
+    if gflop:
+        entry["gflop"] = gflop
+        entry["gflops"] = gflop / seconds
+    if spec.get("items"):
+        entry["items"] = int(spec["items"])
+        entry["items_per_second"] = spec["items"] / seconds
+    line = f"{name:40s} {seconds * 1e3:10.2f} ms"
+    if "items_per_second" in entry:
+        line += f"  {entry['items_per_second']:.3g} items/s"
+    if spec.get("peer"):
+        peer_name, peer_seconds = spec["peer"][0], times[1]
+        entry["peer"] = {"name": peer_name, "seconds_median": peer_seconds}
+        entry["speedup_vs_peer"] = peer_seconds / seconds
+        line += f"  peer {peer_name}: {peer_seconds * 1e3:.2f} ms (x{peer_seconds / seconds:.2f})"
+    if spec.get("floor"):
+        entry["floor"] = dict(spec["floor"])
+        line += "  floor " + ", ".join(f"{v:.3g} {k}" for k, v in entry["floor"].items() if k != "formula")
+    stored = spec.get("stored_bytes")
+    stored = stored() if callable(stored) else stored
+    if stored is not None:
+        entry["stored_bytes"] = int(stored)
+        line += f"  stored {entry['stored_bytes'] / 1e6:.4g} MB"
+    if spec.get("info"):
+        entry["info"] = dict(spec["info"])
+        line += "  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                 for k, v in entry["info"].items())
+    return entry, line
+
+
 def run_benchmarks(quick: bool = False, select: str | None = None, json_path=None, out=print,
                    threads: int | None = None) -> dict:
     """Run every registered case (or those whose name contains ``select``).
 
     Ours and every peer run with ``threads`` threads (default: every core), BLAS and numba alike.
-    Returns the report ``{"machine": {cpu, cores, threads, peak_gflops, numpy, python}, "quick": bool,
-    "started": ISO date (UTC), "load_at_start": [1, 5, 15 min load averages], "cases": [...]}``, one entry
+    Returns the report ``{"machine": {cpu, cores, threads, peak_gflops, bandwidth_gbs, numpy, python}, "quick":
+    bool, "started": ISO date (UTC), "load_at_start": [1, 5, 15 min load averages], "cases": [...]}``, one entry
     per case (``name``, ``seconds_median``, ``repeats`` and, where known, ``gflop``, ``gflops``,
-    ``share_of_peak``, ``items``, ``items_per_second``, ``peer``, ``speedup_vs_peer``, ``info``), and
+    ``share_of_peak``, ``items``, ``items_per_second``, ``peer``, ``speedup_vs_peer``, ``floor`` (``gflop``,
+    ``bytes``, ``formula``, ``share_of_peak``, ``share_of_bandwidth``, ``share_of_roofline``),
+    ``stored_bytes``, ``info``), and
     writes it to ``json_path`` as JSON if given.
     """
     threads = _check_threads(threads)
@@ -170,47 +271,32 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
     repeats = 3 if quick else 7
     cases = []
     with _threads(threads):
-        peak_before = measure_peak_gflops(quick)
-        out(f"machine peak (float64 matmul, {threads} threads): {peak_before:.1f} GFLOP/s; load at start {load}")
+        peak_before, bandwidth_before = measure_peak_gflops(quick), measure_bandwidth_gbs(quick)
+        out(f"machine peak (float64 matmul, {threads} threads): {peak_before:.1f} GFLOP/s, bandwidth (triad) "
+            f"{bandwidth_before:.1f} GB/s; load at start {load}")
         for name in names:
             spec = _CASES[name](quick)
             n_repeats = min(repeats, int(spec.get("repeats", repeats)))
             warmup, setup = spec.get("warmup", True), spec.get("setup")
             fns = [spec["run"]] + ([spec["peer"][1]] if spec.get("peer") else [])
             times = [statistics.median(t) for t in _time(fns, n_repeats, warmup, setup)]
-            seconds = times[0]
-            entry = {"name": name, "seconds_median": seconds, "repeats": n_repeats}
-            gflop = spec.get("gflop")
-            if gflop:
-                entry["gflop"] = gflop
-                entry["gflops"] = gflop / seconds
-            if spec.get("items"):
-                entry["items"] = int(spec["items"])
-                entry["items_per_second"] = spec["items"] / seconds
-            line = f"{name:40s} {seconds * 1e3:10.2f} ms"
-            if "items_per_second" in entry:
-                line += f"  {entry['items_per_second']:.3g} items/s"
-            if spec.get("peer"):
-                peer_name, peer_seconds = spec["peer"][0], times[1]
-                entry["peer"] = {"name": peer_name, "seconds_median": peer_seconds}
-                entry["speedup_vs_peer"] = peer_seconds / seconds
-                line += f"  peer {peer_name}: {peer_seconds * 1e3:.2f} ms (x{peer_seconds / seconds:.2f})"
-            if spec.get("info"):
-                entry["info"] = dict(spec["info"])
-                line += "  " + ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                         for k, v in entry["info"].items())
+            entry, line = _entry(name, spec, times, n_repeats)
             out(line)
             cases.append(entry)
         peak = max(peak_before, measure_peak_gflops(quick))
+        bandwidth = max(bandwidth_before, measure_bandwidth_gbs(quick))
     for entry in cases:
         if "gflops" in entry:
             entry["share_of_peak"] = entry["gflops"] / peak
+        if "floor" in entry:
+            entry["floor"].update(floor_shares(entry["floor"], entry["seconds_median"], peak, bandwidth))
     report = {
         "machine": {
             "cpu": _cpu_name(),
             "cores": os.cpu_count(),
             "threads": threads,
             "peak_gflops": peak,
+            "bandwidth_gbs": bandwidth,
             "numpy": np.__version__,
             "python": platform.python_version(),
         },
@@ -267,8 +353,27 @@ def _ms(seconds: float) -> str:
     return f"{ms:.3g} ms" if ms < 100 else f"{ms:.0f} ms"
 
 
+def _mb(nbytes: float) -> str:
+    return f"{nbytes / 1e6:.3g} MB"
+
+
+def _floor_cells(entry_floor: dict | None) -> list[str]:
+    """The floor's work (``GFLOP, MB``, ``-`` where not counted) and its shares (``peak, bandwidth, roofline``)."""
+    if not entry_floor:
+        return ["", ""]
+    work = ", ".join([f"{entry_floor['gflop']:.3g}" if "gflop" in entry_floor else "-",
+                      f"{entry_floor['bytes'] / 1e6:.3g}" if "bytes" in entry_floor else "-"])
+    shares = ", ".join(f"{100 * entry_floor[k]:.2g}%" if k in entry_floor else "-"
+                       for k in ("share_of_peak", "share_of_bandwidth", "share_of_roofline"))
+    return [work, shares]
+
+
 def _info_text(info: dict) -> str:
     return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in info.items())
+
+
+def _bandwidth_text(machine: dict) -> str:
+    return f", bandwidth {machine['bandwidth_gbs']:.1f} GB/s (STREAM triad)" if "bandwidth_gbs" in machine else ""
 
 
 def _run_line(report: dict) -> str:
@@ -278,28 +383,32 @@ def _run_line(report: dict) -> str:
     return (f"Run of {report.get('started', 'an unknown date')}, {'quick' if report['quick'] else 'full'} sizes, "
             f"{m['threads'] if 'threads' in m else m['cores']} threads for ours and the peers, load average at the "
             f"start {load_text} (1 / 5 / 15 min) on {m['cores']} cores; float64 peak {m['peak_gflops']:.1f} GFLOP/s "
-            f"(numpy matmul, measured in the same run). {m['cpu']}, numpy {m['numpy']}, Python {m['python']}.")
+            f"(numpy matmul){_bandwidth_text(m)}, measured in the same run. {m['cpu']}, numpy {m['numpy']}, "
+            f"Python {m['python']}.")
 
 
 def render_section(report: dict, name: str) -> str | None:
     """The Markdown of section ``name`` from a report (``run_benchmarks``' value or its JSON), or None when
     the report has no case for it: ``machine`` is the run's header line, any other name a table of the
-    cases named ``NAME.*`` (median, peer, peer median, ratio peer / ours, GFLOP/s and share of the peak,
-    throughput, info) followed by the run's line."""
+    cases named ``NAME.*`` (median, peer, peer median, ratio peer / ours, GFLOP/s and share of the peak, the
+    floor's GFLOP and MB and their shares of peak, bandwidth and roofline, stored MB, throughput, info)
+    followed by the run's line."""
     if name == "machine":
         return _run_line(report) + "\n"
     rows = [c for c in report["cases"] if c["name"] == name or c["name"].startswith(name + ".")]
     if not rows:
         return None
-    lines = ["| case | median | peer | peer median | peer / ours | GFLOP/s (share of peak) | items/s | info |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | median | peer | peer median | peer / ours | GFLOP/s (share of peak) | floor: GFLOP, MB | "
+             "floor's share: peak, bandwidth, roofline | stored | items/s | info |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in rows:
         peer = c.get("peer")
         rate = f"{c['gflops']:.3g} ({100 * c['share_of_peak']:.1f}%)" if "share_of_peak" in c else ""
         lines.append("| " + " | ".join([
             f"`{c['name']}`", _ms(c["seconds_median"]), peer["name"] if peer else "",
             _ms(peer["seconds_median"]) if peer else "",
-            f"x{c['speedup_vs_peer']:.2f}" if peer else "", rate,
+            f"x{c['speedup_vs_peer']:.2f}" if peer else "", rate, *_floor_cells(c.get("floor")),
+            _mb(c["stored_bytes"]) if "stored_bytes" in c else "",
             f"{c['items_per_second']:.3g}" if "items_per_second" in c else "",
             _info_text(c["info"]) if c.get("info") else ""]).replace("\n", " ") + " |")
     return "\n".join(lines) + "\n\n" + _run_line(report) + "\n"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.bench import case
+from prtlab.bench import case, floor
 from prtlab.pipeline import FrameState
 from prtlab.scene import Scene, Transform
 
@@ -130,6 +130,93 @@ def _pose_gflop(pre, recomputed) -> float:
     return flop / 1e9
 
 
+# Floors (``prtlab.bench.floor``) of a frame, per object r: V_r vertices, K_r BRDF terms, N_r PCA functions fitted
+# at S_r samples, M_r = sum over r's sources s (the other objects a pair is kept for, and r itself with
+# self-interreflection) of K_s N_s columns of its stacked basis irradiance, n^2 SH coefficients, 3 colours, B
+# bounces. Relighting (poses stay):
+#   direct   2 V K n^2 3 per light (env, area): L_k = <P_n(V G_k), L>    bytes: the transfer V K n^2 read once
+#   weights  2 N S K 3 per bounce (Eq. 14: the projector times the light at the samples)
+#   bounces  2 V K M 3 per bounce (Eq. 12)                         bytes: the stacked V K M read once per bounce
+#   radiance 2 V K 3 per outgoing radiance (direct, each bounce)   bytes: h read (V K 8), direct / indirect /
+#            total written (72 V)
+# Each bounce's weights need the whole previous bounce, so a stacked matrix larger than the caches is read once
+# per bounce. Not counted: the area light's SH at the vertices (its exact projection or its field's lookup), the
+# environment's SH, the geometry of a pose. A pose change (one object m moves) adds, for the pairs (m, s) and
+# (r, m) (which must be recomputed at every vertex; pairs whose occluders moved are not counted):
+#   Eq. 13   V_r K_s N_s E(K_r): the source's field at 8 corners, interpolated then contracted with the K_r
+#            transfers (n^2 (16 + 2 K_r)) or contracted at each corner then interpolated (K_r (16 n^2 + 16)),
+#            the cheaper, E(K') = min of the two                  bytes: Phi written, V_r K_r K_s N_s x 8
+#   transfer V_r K_r P flops (P: one order-n SH product, 3 a Gaunt non-zero) for the pair's transfer, and
+#            V_r P for the visibility without s when there are other occluders
+# and its lookups: each other receiver's points within the reach of the mover's occlusion field (R_r of them) look
+# it up and multiply it in (R_r (16 n^2 + P)) and redo their direct transfer (R_r K_r P); the mover looks up each
+# other field at its points within that field's reach (R_m of them over all fields: R_m (16 n^2 + P)) and redoes
+# its direct transfer (V_m K_m P). Near-field rays (``near_field``) are not counted.
+FRAME_FORMULA = ("per object: (2 V K n^2 3 lights + B (2 V K M 3 + 2 N S K 3) + (B+1) 2 V K 3) flops; "
+                 "(V K n^2 + B V K M) x itemsize + 8 V K + 72 V bytes")
+POSE_FORMULA = (FRAME_FORMULA + "; plus per pair (m, s), (r, m): V_r K_s N_s E(K_r) + V_r (K_r + 1) P "
+                "flops, 8 V_r K_r K_s N_s bytes; lookups R_r (16 n^2 + P) + R_m (16 n^2 + P), transfers "
+                "R_r K_r P + V_m K_m P")
+
+
+def _columns(pre, r) -> int:
+    """M_r: the stacked basis irradiance's columns of receiver ``r`` (its sources' K_s N_s)."""
+    stacked = pre.reuse.stacked.get(r.name)
+    if stacked is not None:
+        return int(stacked[1].shape[2])
+    sources = [s for s in pre.objects if s.name != r.name or pre.options.self_interreflection]
+    return sum(pre.seps[s.name].K * pre.bases[s.name].n_basis for s in sources)
+
+
+def frame_floor(pre, bounces: int, lights: int) -> tuple[float, float]:
+    """(flop, bytes) of a relighting frame's floor (``FRAME_FORMULA``) with ``lights`` SH lights."""
+    n2 = pre.options.order ** 2
+    flop = nbytes = 0.0
+    for r in pre.objects:
+        v, k, n = r.n_vertices, pre.seps[r.name].K, pre.bases[r.name].n_basis
+        m, s = _columns(pre, r), len(pre.bases[r.name].samples)
+        flop += 2 * v * k * n2 * 3 * lights + bounces * (2 * v * k * m * 3 + 2 * n * s * k * 3)
+        flop += (bounces + 1) * 2 * v * k * 3
+        stacked = pre.reuse.stacked.get(r.name)
+        itemsize = stacked[1].itemsize if stacked is not None else 8
+        nbytes += (v * k * n2 + bounces * v * k * m) * itemsize + 8 * v * k + 72 * v
+    return flop, nbytes
+
+
+def eq13_flop(n_kp: int, n2: int) -> int:
+    """E(K'): Eq. 13's flops a receiver point and source basis function (``K'`` transfers, ``n2`` coefficients, 8
+    corners), the cheaper of interpolating first (``n2 (16 + 2 K')``) and contracting first (``K' (16 n2 + 16)``)."""
+    return min(n2 * (16 + 2 * n_kp), n_kp * (16 * n2 + 16))
+
+
+def pose_floor(pre, mover: str) -> tuple[float, float]:
+    """(flop, bytes) that a pose change of ``mover`` adds to a frame's floor (``POSE_FORMULA``)."""
+    n2, prod = pre.options.order ** 2, _product_flop(pre.options.order)
+    n_obj = len(pre.objects)
+    geo = {name: entry[1] for name, entry in pre.reuse.geometry.items()}  # the last frame's poses
+
+    def within(x, o):
+        d = x - geo[o]["center"]
+        return int(np.count_nonzero(np.einsum("vi,vi->v", d, d) <= geo[o]["reach"] ** 2))
+
+    flop = nbytes = 0.0
+    for r in pre.objects:
+        v, k = r.n_vertices, pre.seps[r.name].K
+        if r.name == mover:
+            reached = sum(within(geo[r.name]["x"], o.name) for o in pre.objects if o.name != mover)
+            flop += reached * (16 * n2 + prod) + v * k * prod
+        else:
+            reached = within(geo[r.name]["x"], mover)
+            flop += reached * (16 * n2 + prod + k * prod)
+        for s in pre.objects:
+            if s.name == r.name or mover not in (r.name, s.name):
+                continue
+            ksn = pre.seps[s.name].K * pre.bases[s.name].n_basis
+            flop += v * ksn * eq13_flop(k, n2) + v * (k + (n_obj > 2)) * prod
+            nbytes += 8 * v * k * ksn
+    return flop, nbytes
+
+
 def _frame_info(info: dict, result) -> None:
     """Keep the pair counts of the last timed frame (``computed_pairs``, ``updated_pairs``, ``reused_pairs``):
     they say which work a frame did and which it reused."""
@@ -178,11 +265,25 @@ def _relight(pre, env_only: bool):
     return setup, run, info
 
 
+def _stored_bytes(pre) -> int:
+    """Bytes of the precomputation's arrays (``pre.data``, as held in memory): what the frames read from."""
+    def walk(x):
+        if isinstance(x, dict):
+            return sum(walk(y) for y in x.values())
+        if isinstance(x, (list, tuple)):
+            return sum(walk(y) for y in x)
+        return np.asarray(x).nbytes if isinstance(x, (np.ndarray, np.generic)) else 0
+
+    return int(walk(pre.data))
+
+
 def _relight_case(quick: bool, env_only: bool) -> dict:
     pre = _precomputed(quick)
     setup, run, info = _relight(pre, env_only)
     return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
-            "items": _vertices(pre), "peer": None, "info": info}
+            "items": _vertices(pre), "peer": None, "info": info,
+            "floor": floor(*frame_floor(pre, 3, 1 if env_only else 2), FRAME_FORMULA),
+            "stored_bytes": _stored_bytes(pre)}
 
 
 @case("interreflection.frame.relight")
@@ -218,7 +319,9 @@ def _moving(pre):
     setup()
     run()
     recomputed = [k for k, v in pre.reuse.pair_irradiance.items() if before.get(k) is not v[1]]
-    return setup, run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3), info
+    (f_frame, b_frame), (f_pose, b_pose) = frame_floor(pre, 3, 1), pose_floor(pre, mover.name)
+    return (setup, run, _pose_gflop(pre, recomputed) + _direct_gflop(pre) + _bounce_gflop(pre, 3), info,
+            floor(f_frame + f_pose, b_frame + b_pose, POSE_FORMULA))
 
 
 @case("interreflection.frame.move_one")
@@ -226,9 +329,9 @@ def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
     source's surface by ray casting, ``near_field``), the others reused, then 3 bounces. Every frame is a new
     pose."""
-    setup, run, gflop, info = _moving(_precomputed(quick))
+    setup, run, gflop, info, work = _moving(_precomputed(quick))
     return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(_precomputed(quick)), "peer": None,
-            "info": info}
+            "info": info, "floor": work, "stored_bytes": _stored_bytes(_precomputed(quick))}
 
 
 @case("interreflection.frame.move_one.paper")
@@ -240,8 +343,9 @@ def move_frame_paper(quick: bool) -> dict:
 
     base = _precomputed(quick)
     pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
-    setup, run, gflop, info = _moving(pre)
-    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(pre), "peer": None, "info": info}
+    setup, run, gflop, info, work = _moving(pre)
+    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(pre), "peer": None, "info": info,
+            "floor": work, "stored_bytes": _stored_bytes(pre)}
 
 
 @case("interreflection.frame.move_light")
@@ -269,17 +373,21 @@ def move_light_frame(quick: bool) -> dict:
         def run():
             return pre.shade(frames[area_lights], bounces=3)
 
-        return setup, run
+        return setup, run, pre
 
-    setup_field, run_field = mover("field")
-    setup_exact, run_exact = mover("exact")
+    setup_field, run_field, pre_field = mover("field")
+    setup_exact, run_exact, _ = mover("exact")
 
     def setup():
         setup_field()
         setup_exact()
 
+    setup_field()
+    run_field()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
     return {"run": run_field, "setup": setup, "gflop": None, "items": _vertices(base),
-            "peer": ("exact area_light_sh", run_exact)}
+            "peer": ("exact area_light_sh", run_exact),
+            "floor": floor(*frame_floor(pre_field, 3, 2), FRAME_FORMULA),
+            "stored_bytes": _stored_bytes(base)}
 
 
 @case("interreflection.precompute")
@@ -299,11 +407,12 @@ def precompute_scene(quick: bool) -> dict:
 
     def run():
         with tempfile.TemporaryDirectory() as root:
-            Interreflection.precompute(scene, _options(quick), cache=Cache(root, progress=False), progress=False)
+            pre = Interreflection.precompute(scene, _options(quick), cache=Cache(root, progress=False), progress=False)
             info["hdf5_mb"] = sum(f.stat().st_size for f in Path(root).rglob("*.h5")) / 1e6
+            info["stored_bytes"] = _stored_bytes(pre)
 
     return {"run": run, "gflop": None, "items": _vertices(_precomputed(quick)), "peer": None, "repeats": 1,
-            "warmup": False, "info": info}
+            "warmup": False, "info": info, "stored_bytes": lambda: info.pop("stored_bytes")}
 
 
 @case("interreflection.basis_irradiance.kernel")
@@ -321,9 +430,16 @@ def basis_irradiance_kernel(quick: bool) -> dict:
     pts = rng.normal(size=(v, 3)) * 3.0
     transfer = rng.normal(size=(v, 1, n2))
     flop = v * 8 * n_k * n_b * n2 * 2
+    # floor: Eq. 13 at each point in the cheaper order (``eq13_flop``); the field read once, points and transfer
+    # read, Phi written
+    n_kp = transfer.shape[1]
     return {
         "run": lambda: basis_irradiance(field, grid, pts, transfer),
         "gflop": flop / 1e9,
         "items": v,
         "peer": ("numpy float64 tier", lambda: basis_irradiance(field, grid, pts, transfer, method="reference")),
+        "floor": floor(v * n_k * n_b * eq13_flop(n_kp, n2),
+                       field.nbytes + v * (24 + 8 * n_kp * n2 + 8 * n_kp * n_k * n_b),
+                       "V K N E(K') flops, E(K') = min(n^2 (16 + 2 K'), K' (16 n^2 + 16)); field bytes + "
+                       "V (24 + 8 K' n^2 + 8 K' K N) bytes"),
     }

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.bench import case, check_same_work
+from prtlab.bench import case, check_same_work, floor
 from prtlab.pca import WeightSolver
 
 N_VERTICES, N_BASIS = 50_000, 16
@@ -43,6 +43,10 @@ def weights_50k(quick: bool) -> dict:
         "gflop": 4.0 * N_BASIS * N_VERTICES * len(values) / 1e9,  # P L (2 N S B) + w Psi (2 N S B)
         "items": len(values),
         "peer": ("numpy pinv projector (precomputed) GEMM", peer),
+        # floor: the two products (4 N S B flops); the projector and the basis read once, the intensities read
+        # and the reconstruction written (8 (2 N S + 2 B S) bytes)
+        "floor": floor(4.0 * N_BASIS * N_VERTICES * len(values), 8.0 * (2 * N_BASIS + 2 * len(values)) * N_VERTICES,
+                       "4 N S B flops; 8 (2 N S + 2 B S) bytes"),
     }
 
 

@@ -15,7 +15,7 @@ from functools import lru_cache
 import numpy as np
 
 import prtlab.data
-from prtlab.bench import case, check_same_work, transfer_csr
+from prtlab.bench import case, check_same_work, floor, transfer_csr
 from prtlab.wavelet import haar2d
 from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
 from prtlab.scene import load_scene
@@ -62,6 +62,28 @@ def _einsum_indirect(transfer, c):
     return np.einsum("vic,ic->vc", transfer, c)
 
 
+# Floors (``prtlab.bench.floor``): V vertices, E stored 8-bit entries, T = 6 r^2 texels of the shell cube, n^2 SH
+# coefficients, 3 colours, float64 outputs. Direct pass: 2 x 3 flops an entry (the 8-bit code times the light, per
+# colour; the vertex's scale and albedo folded in once: 2 x 3 V), bytes: the stored transfer read once
+# (``SparseTransfer.nbytes``), albedo read and radiance written (2 x 24 V), the light (2 T x 3 x 8: pulse and
+# Haar). Indirect pass: 2 x 3 n^2 V flops, bytes: the stored transfer (V n^2 3 x its itemsize) and 24 V written.
+
+
+def _direct_floor(sparse, res: int) -> tuple[float, float]:
+    """(flop, bytes) of the direct pass's floor."""
+    v, e, t = sparse.n_vertices, len(sparse.codes), 6 * res * res
+    return 6.0 * e + 6.0 * v, sparse.nbytes + 48.0 * v + 2 * t * 3 * 8
+
+
+def _indirect_floor(transfer) -> tuple[float, float]:
+    """(flop, bytes) of the indirect pass's floor: ``transfer`` (V, n^2, 3)."""
+    return 2.0 * transfer.size, transfer.nbytes + 24.0 * transfer.shape[0]
+
+
+DIRECT_FORMULA = "6 E + 6 V flops; SparseTransfer.nbytes + 48 V + 144 T bytes"
+INDIRECT_FORMULA = "6 n^2 V flops; V n^2 3 itemsize + 24 V bytes"
+
+
 @case("portals.frame.45k")
 def frame(quick: bool) -> dict:
     scene, sparse, transfer, albedo = _frame_data()
@@ -78,8 +100,14 @@ def frame(quick: bool) -> dict:
 
     check_same_work(run(), peer(), "portals.frame", rtol=1e-6)
     entries = len(sparse.codes)
+    # floor: both passes with one radiance written (24 V less), and the light's SH (2 T n^2 3 flops)
+    (fd, bd), (fi, bi) = _direct_floor(sparse, 32), _indirect_floor(transfer)
+    n2 = transfer.shape[1]
     return {"run": run, "gflop": (2 * entries * 3 + 2 * transfer.size) / 1e9, "items": PAPER_VERTICES,
-            "peer": ("scipy.sparse CSR direct + numpy einsum indirect", peer)}
+            "peer": ("scipy.sparse CSR direct + numpy einsum indirect", peer),
+            "floor": floor(fd + fi + 2 * 6 * 32**2 * n2 * 3, bd + bi - 24 * PAPER_VERTICES,
+                           f"direct ({DIRECT_FORMULA}) + indirect ({INDIRECT_FORMULA}) + 6 T n^2 flops - 24 V bytes"),
+            "stored_bytes": sparse.nbytes + transfer.nbytes + albedo.nbytes}
 
 
 @case("portals.direct_pass.45k")
@@ -90,7 +118,8 @@ def direct(quick: bool) -> dict:
     check_same_work(direct_pass(sparse, albedo, cube), _csr_direct(csr, albedo, cube), "portals.direct_pass")
     return {"run": lambda: direct_pass(sparse, albedo, cube), "gflop": 2 * len(sparse.codes) * 3 / 1e9,
             "items": PAPER_VERTICES, "peer": ("scipy.sparse CSR float64 (decoded once) @ light",
-                                              lambda: _csr_direct(csr, albedo, cube))}
+                                              lambda: _csr_direct(csr, albedo, cube)),
+            "floor": floor(*_direct_floor(sparse, 32), DIRECT_FORMULA), "stored_bytes": sparse.nbytes}
 
 
 @case("portals.indirect_pass.45k")
@@ -99,7 +128,8 @@ def indirect(quick: bool) -> dict:
     c = shell_sh(shell_light(scene.environment, 32), 4)
     check_same_work(indirect_pass(transfer, c), _einsum_indirect(transfer, c), "portals.indirect_pass", rtol=1e-6)
     return {"run": lambda: indirect_pass(transfer, c), "gflop": 2 * transfer.size / 1e9, "items": PAPER_VERTICES,
-            "peer": ("numpy einsum (float32 transfer, float64 light)", lambda: _einsum_indirect(transfer, c))}
+            "peer": ("numpy einsum (float32 transfer, float64 light)", lambda: _einsum_indirect(transfer, c)),
+            "floor": floor(*_indirect_floor(transfer), INDIRECT_FORMULA), "stored_bytes": transfer.nbytes}
 
 
 def direct_transfer_memory() -> dict:
@@ -195,7 +225,29 @@ def glossy_passes(quick: bool) -> dict:
 
     entries = int(sum(rows_sparse.indptr[r + 1] - rows_sparse.indptr[r] for r in rows.ravel()))
     return {"run": run, "gflop": (2 * entries * 3 + 2 * matrix.size + 2 * 16 * 3 * n_glossy) / 1e9,
-            "items": n_glossy, "peer": ("float64 reference tiers", lambda: run("reference"))}
+            "items": n_glossy, "peer": ("float64 reference tiers", lambda: run("reference")),
+            "floor": floor(*_glossy_floor(rows_sparse, rows, matrix), GLOSSY_FORMULA),
+            "stored_bytes": rows_sparse.nbytes + matrix.nbytes}
+
+
+# The glossy passes' floor: V_g vertices blending Q rows of E_q 8-bit entries in all, the (V_g, n^2, n^2, 3)
+# matrices. Flops: 2 x 3 an entry read (its weight folded per row, 2 x 3 Q V_g), the matrix-vector products
+# (2 x its size) and the evaluation at the view (2 n^2 3 V_g; the view's SH basis not counted). Bytes: the blended
+# rows' entries (code and index) and their rows' pointers, scale and basis; the matrices; rows and weights, ks,
+# views read and radiance written (Q V_g 16 + 3 x 24 V_g).
+GLOSSY_FORMULA = ("6 E_q + 6 Q V_g + 2 V_g n^4 3 + 6 n^2 V_g flops; E_q (code + index bytes) + Q V_g (indptr 16 + "
+                  "scale + basis bytes) + matrix bytes + 16 Q V_g + 72 V_g bytes")
+
+
+def _glossy_floor(sparse, rows, matrix) -> tuple[float, float]:
+    n_glossy, q = rows.shape
+    entries = float(sum(sparse.indptr[r + 1] - sparse.indptr[r] for r in rows.ravel()))
+    n2 = matrix.shape[2]
+    flop = 6 * entries + 6 * q * n_glossy + 2 * matrix.size + 6 * n2 * n_glossy
+    per_row = 2 * sparse.indptr.itemsize + sparse.scale.itemsize + sparse.basis.itemsize
+    nbytes = (entries * (sparse.codes.itemsize + sparse.indices.itemsize) + rows.size * per_row + matrix.nbytes
+              + 16 * rows.size + 72 * n_glossy)
+    return flop, nbytes
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.bench import case, check_same_work
+from prtlab.bench import case, check_same_work, floor
 from prtlab.sh import exp, gaunt_tensor, product
 from prtlab.sh._explog import _HYB_THRESHOLD, _blocker_sums
 
@@ -23,6 +23,23 @@ def _batch(quick: bool) -> int:
 def _product_flops(order: int) -> int:
     """Flops of one truncated product: 3 per Gaunt entry (two multiplies, one add)."""
     return 3 * gaunt_tensor(order).nnz
+
+
+def _square_flops(order: int) -> int:
+    """Flops of one truncated square ``a * a`` at least: 2 per Gaunt entry with ``i <= j`` (the factor 2 of
+    ``i < j`` folded into the tensor; the products ``a_i a_j``, shared over ``k``, not counted)."""
+    g = gaunt_tensor(order)
+    n2 = order * order
+    dense = g.dense()[:n2, :n2, :n2]
+    return 2 * int(np.count_nonzero(np.triu(np.ones((n2, n2), bool))[:, :, None] & (dense != 0)))
+
+
+# Floors (``prtlab.bench.floor``) of a batch of B order-n vectors (n^2 coefficients, float64): a product reads two
+# and writes one (24 n^2 B bytes) and does 3 flops a Gaunt non-zero; an exponential reads one and writes one
+# (16 n^2 B) and does at least OL's 3 n^2 (norm of f^, scale, DC term; the table lookup not counted) plus, for HYB,
+# each item's own squarings (ceil(log2(|f^| / 0.125)), not its tile's largest) at the symmetric square's flops.
+PRODUCT_FORMULA = "3 nnz(G) B flops; 24 n^2 B bytes"
+EXP_FORMULA = "3 n^2 B (+ sum of squarings x symmetric square flops, HYB) flops; 16 n^2 B bytes"
 
 
 def _log_visibility(n: int) -> np.ndarray:
@@ -49,6 +66,7 @@ def product_order4(quick: bool) -> dict:
         "gflop": n * _product_flops(ORDER) / 1e9,
         "items": n,
         "peer": ("numpy outer products @ Gaunt (n^4, n^2) GEMM", peer),
+        "floor": floor(n * _product_flops(ORDER), 24 * n2 * n, PRODUCT_FORMULA),
     }
 
 
@@ -64,6 +82,7 @@ def exp_ol_order4(quick: bool) -> dict:
         "gflop": n * flops / 1e9,
         "items": n,
         "peer": ("numpy reference tier (method='ol-reference')", lambda: exp(f, method="ol-reference")),
+        "floor": floor(3 * n2 * n, 16 * n2 * n, EXP_FORMULA),
     }
 
 
@@ -82,4 +101,5 @@ def exp_hyb_order4(quick: bool) -> dict:
         "gflop": flops / 1e9,
         "items": n,
         "peer": ("numpy reference tier (method='hyb-reference')", lambda: exp(f, method="hyb-reference")),
+        "floor": floor(3 * ORDER**2 * n + k.sum() * _square_flops(ORDER), 16 * ORDER**2 * n, EXP_FORMULA),
     }

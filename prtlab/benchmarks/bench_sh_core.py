@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.bench import case, check_same_work
+from prtlab.bench import case, check_same_work, floor
 from prtlab.sh import basis, rotate, rotation_matrix
 
 
@@ -76,4 +76,8 @@ def rotate_order4(quick: bool) -> dict:
         "gflop": 2 * n * block_macs / 1e9,
         "items": n,
         "peer": ("BLAS GEMM, batch @ block-diagonal D(R)^T", lambda: coeffs @ dense_t),
+        # floor: each band's (2l+1)^2 block applied to every vector (the blocks built once, not counted); the
+        # batch read and written once
+        "floor": floor(2 * n * block_macs, 16 * n * order * order,
+                       "2 B sum_l (2l+1)^2 flops; 16 n^2 B bytes"),
     }

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 import prtlab.data
-from prtlab.bench import case
+from prtlab.bench import case, floor
 from prtlab.geometry import geodesic_directions
 from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
 
@@ -93,7 +93,6 @@ def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", aver
     """GFLOP of one frame, counted from the scene: the lights' front lists (``_front_lists``) and, for HYB, the
     number of squarings of every exponential (``ceil(log2(|f^| / 0.125))``, from the composed tier's blocker
     logs and front sums), plus the first pass (``S`` blocker logs, one exponential, the transfer per sample)."""
-    from prtlab.sh._explog import _HYB_THRESHOLD
     from prtlab.spherelights import accumulate_blockers
     from prtlab.spherelights._passes import _front_lists, _light_arrays
 
@@ -102,13 +101,9 @@ def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", aver
     gs, gf, theta, _ = accumulate_blockers(a["points"], a["normals"], a["centres"], a["radii"], a["sl_object"],
                                            a["inter"], ORDER, blocking=blocking)
 
-    def squarings(x):
-        norm = np.linalg.norm(x[..., 1:], axis=-1)
-        return np.where(norm > _HYB_THRESHOLD, np.ceil(np.log2(np.maximum(norm, 1e-300) / _HYB_THRESHOLD)), 0.0)
-
     flops = b * (s * _BLOCKER + _DIRECT)
     if exp_method == "hyb":
-        flops += b * _HYB_FIXED + _SQUARE * squarings(gs.sum(axis=1)).sum()
+        flops += b * _HYB_FIXED + _SQUARE * _squarings(gs.sum(axis=1)).sum()
     else:
         flops += b * (15 * 2 + _OL)
     if indirect:
@@ -119,13 +114,56 @@ def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", aver
         flops += b * (16 + fronts + s * _AVERAGE[average])
         if exp_method == "hyb":
             live = theta >= 0
-            front = np.where(live, squarings(gf), 0.0)
-            own = np.where(live, squarings(gf + gs), 0.0)
+            front = np.where(live, _squarings(gf), 0.0)
+            own = np.where(live, _squarings(gf + gs), 0.0)
             flops += b * s * (2 * _HYB_FIXED + 3 * n2) + _SQUARE * (front.sum() + own.sum())
         else:
             flops += b * s * _OL_VISIBILITY
         flops += N_LIGHTS * 92 * (s * _BLOCKER + _DIRECT + _OL + 30)  # first pass
     return flops / 1e9
+
+
+# Floors (``prtlab.bench.floor``): B receivers, S lights, n^2 = 16 SH coefficients, 3 colours, L live (receiver,
+# light) pairs (the adjusted light above the receiver's horizon and not culled, ``accumulate_blockers``' theta >= 0
+# for the case's blocking), every exponential at OL's cost (E = 3 n^2: the norm of f^, the scale, the DC term)
+# plus, for HYB, 3 x 194 flops (an order-4 square, its symmetric Gaunt pairs) per squaring it needs (the count
+# ``ceil(log2(|f^| / 0.125))`` from the logs). Per receiver: the transfer T_n = M cos_7(n) (2 x 31 x 3 n^2, the
+# order-7 clamped cosine's 31 non-zero coefficients; the basis at n not counted), one exponential of the summed
+# logs and the dot V . T_n (2 x 3 n^2). Per live pair: the light's log (its order-4 basis, ZH scaling and sum into
+# the total: 4 n^2); with indirect light also the front sum and front + own (2 n^2), two exponentials, their
+# difference dotted with rho_n (3 n^2), the average radiance (2 x 3 n^2) and its product (6). First pass: per
+# surface sample (S x 92) the receiver's per-receiver work, no blocker counted. Bytes: points and normals read,
+# direct and indirect written (96 B); the lights' arrays are a few KB.
+FLOOR_FORMULA = ("B (2 31 3 n^2 + E + 6 n^2) + 4 n^2 L [+ L (2 n^2 + 2 E + 3 n^2 + 6 n^2 + 6) + 92 S (2 31 3 n^2 + "
+                 "E + 6 n^2) with indirect] flops, E = 3 n^2 (+ 582 a HYB squaring); 96 B bytes")
+
+
+def _squarings(x):
+    """Squarings HYB needs for the exponential of each order-4 vector of ``x`` (``ceil(log2(|f^| / 0.125))``)."""
+    from prtlab.sh._explog import _HYB_THRESHOLD
+
+    norm = np.linalg.norm(x[..., 1:], axis=-1)
+    return np.where(norm > _HYB_THRESHOLD, np.ceil(np.log2(np.maximum(norm, 1e-300) / _HYB_THRESHOLD)), 0.0)
+
+
+def frame_floor(a, blocking: str, indirect: bool, exp_method: str = "hyb") -> tuple[float, float]:
+    """(flop, bytes) of one frame's floor (``FLOOR_FORMULA``)."""
+    from prtlab.spherelights import accumulate_blockers
+
+    n2, b = ORDER * ORDER, a["points"].shape[0]
+    gs, gf, theta, _ = accumulate_blockers(a["points"], a["normals"], a["centres"], a["radii"], a["sl_object"],
+                                           a["inter"], ORDER, blocking=blocking)
+    live = theta >= 0
+    exp_cost, square = 3 * n2, 3 * 194
+    per_receiver = 2 * 31 * 3 * n2 + exp_cost + 6 * n2
+    flop = b * per_receiver + 4 * n2 * live.sum()
+    if exp_method == "hyb":
+        flop += square * _squarings(gs.sum(axis=1)).sum()
+    if indirect:
+        flop += live.sum() * (2 * n2 + 2 * exp_cost + 3 * n2 + 6 * n2 + 6) + N_LIGHTS * 92 * per_receiver
+        if exp_method == "hyb":
+            flop += square * np.where(live, _squarings(gf) + _squarings(gf + gs), 0.0).sum()
+    return float(flop), 96.0 * b
 
 
 def _n(quick):
@@ -136,14 +174,15 @@ def _n(quick):
 def frame_per_object(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object"), "gflop": _frame_flops(a, "object", True),
-            "items": _n(quick), "peer": ("per-sphere blocking", lambda: _frame(a, "sphere"))}
+            "items": _n(quick), "peer": ("per-sphere blocking", lambda: _frame(a, "sphere")),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
 @case("spherelights.frame.per_sphere.21k")
 def frame_per_sphere(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "sphere"), "gflop": _frame_flops(a, "sphere", True),
-            "items": _n(quick), "peer": None}
+            "items": _n(quick), "peer": None, "floor": floor(*frame_floor(a, "sphere", True), FLOOR_FORMULA)}
 
 
 @case("spherelights.frame.per_object_ol.21k")
@@ -151,14 +190,15 @@ def frame_per_object_ol(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object", exp_method="ol"),
             "gflop": _frame_flops(a, "object", True, exp_method="ol"), "items": _n(quick),
-            "peer": ("HYB exponentiation", lambda: _frame(a, "object", exp_method="hyb"))}
+            "peer": ("HYB exponentiation", lambda: _frame(a, "object", exp_method="hyb")),
+            "floor": floor(*frame_floor(a, "object", True, "ol"), FLOOR_FORMULA)}
 
 
 @case("spherelights.frame.shadows_only.21k")
 def frame_shadows_only(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object", indirect=False), "gflop": _frame_flops(a, "object", False),
-            "items": _n(quick), "peer": None}
+            "items": _n(quick), "peer": None, "floor": floor(*frame_floor(a, "object", False), FLOOR_FORMULA)}
 
 
 def memory_per_object(objects: dict, arrays=None) -> dict:
@@ -199,6 +239,9 @@ def precompute_bunny16(quick: bool) -> dict:
             info[f"{name}_kib"] = nbytes / 1024
         for name, nbytes in memory_per_object(objects, FRAME_ARRAYS).items():
             info[f"{name}_frame_kib"] = nbytes / 1024
+        stored[0] = sum(memory_per_object(objects).values())
 
     n_lights = 16 + 1 + 1  # 16 on the bunny, one per ball
-    return {"run": run, "gflop": None, "items": n_lights, "peer": None, "repeats": 3, "info": info}
+    stored = [0]
+    return {"run": run, "gflop": None, "items": n_lights, "peer": None, "repeats": 3, "info": info,
+            "stored_bytes": lambda: stored[0]}

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from prtlab.bench import case, check_same_work, transfer_csr
+from prtlab.bench import case, check_same_work, floor, transfer_csr
 from prtlab.wavelet import encode_transfer, haar2d, ihaar2d, triple_product
 
 RES = 32
@@ -101,4 +101,9 @@ def sparse_dot(quick: bool) -> dict:
         "gflop": 2 * 3 * sparse.codes.size / 1e9,
         "items": n,
         "peer": ("scipy.sparse CSR float64 @ light", lambda: csr @ stacked),
+        # floor: 2 x 3 flops a stored entry; the stored transfer read once, the light (pulse and Haar) read and
+        # the radiance written (SparseTransfer.nbytes + 2 T 3 8 + 24 V bytes)
+        "floor": floor(6.0 * sparse.codes.size, sparse.nbytes + 2 * TEXELS * 3 * 8 + 24 * n,
+                       "6 E flops; SparseTransfer.nbytes + 48 T + 24 V bytes"),
+        "stored_bytes": sparse.nbytes,
     }
