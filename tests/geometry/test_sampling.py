@@ -97,11 +97,20 @@ def test_geodesic_92_structure():
     v = geodesic_directions(92)
     ico = geodesic_directions(12)
     np.testing.assert_allclose(v[:12], ico, atol=1e-12)  # icosahedron vertices first
-    # nearest-neighbour distances are nearly uniform (a good spherical design)
+    # the 3-frequency class I (flat subdivision, projected) chords of a unit sphere are A = 0.34862
+    # (at the 12 five-fold vertices), B = 0.40355, C = 0.41241 (Kenner, Geodesic Math and How to Use
+    # It, 1976, 3v icosahedron table, 5 digits); a vertex's nearest neighbour is at chord A or C
+    v3, f3 = geodesic_sphere(3)
+    edges = np.concatenate([f3[:, [0, 1]], f3[:, [1, 2]], f3[:, [2, 0]]])
+    chords = np.linalg.norm(v3[edges[:, 0]] - v3[edges[:, 1]], axis=1)
+    kenner = np.array([0.34862, 0.40355, 0.41241])
+    np.testing.assert_allclose(kenner[np.argmin(np.abs(chords[:, None] - kenner), axis=1)], chords, atol=5e-6)
+    assert set(np.unique(np.argmin(np.abs(chords[:, None] - kenner), axis=1))) == {0, 1, 2}
     dots = v @ v.T
     np.fill_diagonal(dots, -1)
-    nn = np.arccos(dots.max(axis=1))
-    assert nn.max() / nn.min() < 1.25
+    nn = 2 * np.sin(np.arccos(dots.max(axis=1)) / 2)  # nearest-neighbour chords
+    # every vertex and edge point has an A neighbour; the 20 face centres are ringed by C chords
+    np.testing.assert_allclose(np.sort(nn), kenner[[0] * 72 + [2] * 20], atol=5e-6)
 
 
 def test_geodesic_frequency_two_matches_icosphere_once_subdivided():

@@ -5,13 +5,17 @@ their combined standard errors. Per vertex and channel
 
     z = (own - mitsuba) / sqrt(se_own^2 + se_mitsuba^2),
 
-and, aggregated honestly over every vertex of the scene: (1) hardly any
-vertex has |z| > MC_SIGMAS (at most 1 % of the vertices, where a Gaussian
-would give 0.02 %: room for the heavy tails of small-light sampling, none for
-a real disagreement, which moves dozens of vertices); (2) the mean of z is
-within MC_SIGMAS standard errors of 0 (the vertices are independent, so the
-standard error of the mean is 1 / sqrt(n)); (3) the spread of z is not above
-1.5 (errors are not underestimated across the board).
+and, aggregated honestly over every vertex of the scene (z of two 256-sample
+means is Gaussian to within their excess kurtosis, measured 2.7..3.4 here):
+(1) the count of vertices with some |z| > MC_SIGMAS is within the binomial
+bound at two-sided significance CHI2_SIGNIFICANCE for a per-vertex rate of
+3 x P(|N(0,1)| > MC_SIGMAS) (Bonferroni over the channels; at most 1 of
+111 vertices, 2 of 189); (2) the mean of z is within MC_SIGMAS standard errors
+of 0 (the vertices are independent, so the standard error of the mean is
+1 / sqrt(n)); (3) the spread of z over the vertices whose estimates are not
+both exact lies in the chi-square band of n degrees of freedom at the same
+significance (channels are strongly correlated: n vertices, not 3 n values,
+the wider band), so errors are neither under- nor overestimated across the board.
 
 Scenes avoid two places where the conventions of the two renderers differ
 (see the report in the notebook ``01_ground_truth``): vertices lying exactly
@@ -28,6 +32,7 @@ import pytest
 from prtlab.geometry import builtin_mesh, equirect_directions
 from prtlab.scene import AreaLight, Camera, EnvironmentLight, Material, Scene, SceneObject, Transform
 from tests.conftest import MC_SIGMAS
+from tests.geometry.test_sampling import CHI2_SIGNIFICANCE
 
 pytestmark = pytest.mark.mitsuba
 
@@ -91,16 +96,23 @@ def z_scores(own, mitsuba, part: str) -> np.ndarray:
 
 
 def assert_agree(own, mitsuba, label: str) -> dict:
+    from scipy.stats import binom, chi2, norm
+
     stats = {}
     for part in _PARTS:
         z = z_scores(own, mitsuba, part)
         per_vertex = z.mean(axis=1)  # channels are strongly correlated: one number per vertex
         n = len(z)
-        outliers = np.mean(np.abs(z).max(axis=1) > MC_SIGMAS)
-        stats[part] = dict(mean_z=per_vertex.mean(), std_z=z.std(), frac_outliers=outliers)
-        assert outliers <= 0.01, f"{label}/{part}: {outliers:.1%} of the vertices have |z| > {MC_SIGMAS}"
+        outliers = int(np.sum(np.abs(z).max(axis=1) > MC_SIGMAS))
+        allowed = int(binom.isf(CHI2_SIGNIFICANCE / 2, n, 3 * 2 * norm.sf(MC_SIGMAS)))
+        noisy = z[np.any(z != 0, axis=1)]
+        std = float(np.sqrt(np.mean(noisy**2))) if len(noisy) else 0.0  # spread about the truth, 0
+        band = np.sqrt(chi2.ppf([CHI2_SIGNIFICANCE / 2, 1 - CHI2_SIGNIFICANCE / 2], len(noisy)) / max(len(noisy), 1))
+        stats[part] = dict(mean_z=per_vertex.mean(), std_z=std, outliers=outliers)
+        assert outliers <= allowed, f"{label}/{part}: {outliers} of {n} vertices have |z| > {MC_SIGMAS} (<= {allowed})"
         assert abs(per_vertex.mean()) <= MC_SIGMAS / np.sqrt(n), f"{label}/{part}: mean z = {per_vertex.mean():.3f}"
-        assert z.std() <= 1.5, f"{label}/{part}: std of z = {z.std():.2f}"
+        if len(noisy):
+            assert band[0] <= std <= band[1], f"{label}/{part}: rms of z = {std:.3f}, band {band[0]:.3f}..{band[1]:.3f}"
     return stats
 
 
@@ -144,5 +156,5 @@ def test_disagreement_is_detected(estimators):
     own = shade_reference(scene, bounces=0, n_samples=256, seed=1, progress=False)
     scene.objects[0].material = Material(albedo=np.array([0.8, 0.8, 0.8]) * 1.03)
     mit = shade_mitsuba(scene, bounces=0, spp=256, seed=2)
-    with pytest.raises(AssertionError):
+    with pytest.raises(AssertionError, match=r"perturbed/direct: \d+ of 189 vertices have \|z\| > 4"):
         assert_agree(own, mit, "perturbed")

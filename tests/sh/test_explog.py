@@ -96,7 +96,25 @@ def test_blocker_log_shapes():
     assert blocker_log_zh(np.zeros((0,)), 3, method="solve").shape == (0, 3)
     # small blockers have small logs that grow with the radius
     norms = np.linalg.norm(blocker_log_zh(np.radians([5, 20, 40, 60]), 4), axis=-1)
-    assert np.all(np.diff(norms) > 0) and norms[0] < 0.05
+    assert np.all(np.diff(norms) > 0)
+
+
+def test_small_blocker_log_is_minus_its_cap():
+    """log(1 - c) = -c - c*c/2 - ...: for the order-4 ZH ``c`` of a 5-degree cap (closed form
+    ``c_l = 2 pi sqrt((2l+1)/(4 pi)) (P_{l-1} - P_{l+1})(cos a) / (2l+1)``), each truncated product
+    ``c^{*k}`` has L2 norm at most ``s^{k-1} |c|`` with ``s = sum_l |c_l| sqrt((2l+1)/(4 pi)) >= sup |c|``,
+    so ``|log + c| <= |c| (-log(1 - s) / s - 1)``, plus the table's interpolation error (1e-4 relative)."""
+    from numpy.polynomial.legendre import legval
+
+    order, x = 4, np.cos(np.radians(5.0))
+    p = [legval(x, [0.0] * k + [1.0]) for k in range(order + 1)]
+    ell = np.arange(order)
+    integral = np.array([1 - x] + [(p[l - 1] - p[l + 1]) / (2 * l + 1) for l in range(1, order)])
+    cap = 2 * np.pi * np.sqrt((2 * ell + 1) / (4 * np.pi)) * integral
+    s = np.sum(np.abs(cap) * np.sqrt((2 * ell + 1) / (4 * np.pi)))
+    got = blocker_log_zh(np.radians(5.0), order)
+    bound = np.linalg.norm(cap) * (-np.log1p(-s) / s - 1) + 1e-4 * np.linalg.norm(got)
+    assert np.linalg.norm(got + cap) <= bound, (np.linalg.norm(got + cap), bound)
 
 
 # ----------------------------------------------------------------------------- exp: known answers and identities

@@ -158,13 +158,12 @@ def test_equirect_error_is_its_leading_term(rng):
     order = 8
     for _ in range(3):
         c = rng.normal(size=order * order)
-        errors = []
         for height in (128, 256):
             err = project_equirect(evaluate(c, equirect_directions(height, 2 * height)), order) - c
             lead = equirect_leading_error(c, order, height)
             assert np.abs(err - lead).max() <= PREDICTED * np.abs(lead).max(), height
-            errors.append(np.abs(err).max())
-        assert 3.5 < errors[0] / errors[1] < 4.5  # second order in 1/H
+        # second order in h: the leading term is h^2 times a function of c alone, so the checks above
+        # hold the error ratio to (255 / 127)^2 (1 +- PREDICTED) / (1 -+ PREDICTED)
 
 
 def test_cubemap_error_is_its_leading_term(rng):
@@ -172,14 +171,13 @@ def test_cubemap_error_is_its_leading_term(rng):
     order = 8
     for _ in range(3):
         c = rng.normal(size=(order * order, 3))
-        errors = []
         for res in (64, 128):
             err = project_cubemap(evaluate(c, cubemap_directions(res)), order) - c
             for ch in range(3):
                 lead = cubemap_leading_error(c[:, ch], order, res)
                 assert np.abs(err[:, ch] - lead).max() <= PREDICTED * np.abs(lead).max(), (res, ch)
-            errors.append(np.abs(err).max())
-        assert 3.5 < errors[0] / errors[1] < 4.5  # second order in 1/res
+        # second order in h: the leading term is h^2 times a function of c alone, so the checks above
+        # hold the error ratio to 4 (1 +- PREDICTED) / (1 -+ PREDICTED)
 
 
 def test_equirect_orientation(rng):

@@ -174,7 +174,14 @@ def test_supersampled_visibility_is_a_texel_average(ball):
     v1 = visibility_cubemaps(caster, np.zeros((1, 3)), 4, supersample=1)
     v4 = visibility_cubemaps(caster, np.zeros((1, 3)), 4, supersample=4)
     assert np.all((v4 >= 0) & (v4 <= 1)) and np.any((v4 > 0) & (v4 < 1))
-    assert abs(v4.mean() - v1.mean()) < 0.05
+    # the contract: each texel is the solid-angle average of its 4 x 4 texels of the 16^2 cubemap
+    from prtlab.geometry import cubemap_solid_angles
+
+    v16 = visibility_cubemaps(caster, np.zeros((1, 3)), 16, supersample=1).reshape(6, 4, 4, 4, 4)
+    w16 = cubemap_solid_angles(16).reshape(6, 4, 4, 4, 4)
+    want = (v16 * w16).sum(axis=(2, 4)) / w16.sum(axis=(2, 4))
+    np.testing.assert_allclose(v4.reshape(6, 4, 4), want, atol=1e-12)
+    np.testing.assert_array_equal(v1, np.round(v1))  # one ray per texel: 0 or 1
 
 
 def test_errors(ball, ball_field):
