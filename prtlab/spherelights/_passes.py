@@ -983,7 +983,7 @@ def _add_paper_averages(lights, tables, order, scratch):
                 ind[c, q] += rad[c, q] * vis[i, q] if theta[i, q] >= 0.0 else 0.0
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _add_cosine_averages(lights, tables, order, scratch):
     """``scratch.indirect +=`` the sum over the lights of the cosine-weighted irradiance times the visible
     fraction, ``E_n clip(V~ / V~', 0, 1)``, with ``E_n = s n.(Lu . K) - (n.b) L . K`` in the light's frame (see
