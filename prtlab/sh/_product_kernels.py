@@ -21,18 +21,26 @@ __all__: list[str] = []
 _TILE = 64
 
 
-@numba.njit(cache=True)
-def _tile_product(at, bt, gi, gj, gk, gv, ot):
-    """``ot[k, q] = sum_e gv[e] at[gi[e], q] bt[gj[e], q]`` over a tile of items q (ot zeroed here)."""
-    ot[:, :] = 0.0
-    n_lanes = ot.shape[1]
+@numba.njit(cache=True, inline="always")
+def _tile_product_prefix(at, bt, gi, gj, gk, gv, ot, width):
+    """``ot[k, q] = sum_e gv[e] at[gi[e], q] bt[gj[e], q]`` over the first ``width`` items q of a tile (those
+    columns of ot zeroed here, the others untouched)."""
+    for k in range(ot.shape[0]):
+        for q in range(width):
+            ot[k, q] = 0.0
     for e in range(gv.shape[0]):
         i = gi[e]
         j = gj[e]
         k = gk[e]
         v = gv[e]
-        for q in range(n_lanes):
+        for q in range(width):
             ot[k, q] += v * at[i, q] * bt[j, q]
+
+
+@numba.njit(cache=True)
+def _tile_product(at, bt, gi, gj, gk, gv, ot):
+    """``ot[k, q] = sum_e gv[e] at[gi[e], q] bt[gj[e], q]`` over a tile of items q (ot zeroed here)."""
+    _tile_product_prefix(at, bt, gi, gj, gk, gv, ot, ot.shape[1])
 
 
 @numba.njit(cache=True, parallel=True)

@@ -26,11 +26,16 @@ Every light is used with the per-receiver adjustment of
 
 The blocker accumulation (the paper's dominant cost) is one numba kernel,
 ``_accumulate_blockers``, parallel over receivers, with a numpy reference
-tier; the exponentials run in :func:`prtlab.sh.exp`'s batched kernels.
+tier; the exponentials run in :func:`prtlab.sh.exp`'s batched kernels. The
+fast tier, ``_second_pass_fused``, runs the whole pass per block of 32
+receivers (the SIMD lanes) in named steps (``_second_pass_block`` and below)
+over four structured inputs: the lights, the tables, the exponential's tables
+and the mode.
 """
 
 from __future__ import annotations
 
+import collections
 import functools
 import math
 
@@ -40,21 +45,24 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._explog import _HYB_THRESHOLD, _ol_table
 from prtlab.sh._gaunt import _gaunt_block
+from prtlab.sh._product_kernels import _tile_product_prefix
 
 from ._shadows import (
     _ZH_SCALE,
+    BlockerLanes,
+    LaneScratch,
     _add_rotated_zh,
     _adjust,
     _basis_lanes,
     _blocker_lanes,
     _blocker_log_knots,
     _lookup_log,
+    _rotated_zh_lanes,
     blocker_log_table,
     environment_transfer,
     transfer_matrix,
 )
 from ._tables import (
-    N_THETA_K,
     THETA_MAX_K,
     _irradiance_kernel_table,
     _w_theta_table,
@@ -529,33 +537,497 @@ def _front_lists(sl_object, intersect, per_object):
     return ptr, np.ascontiguousarray(np.nonzero(cand)[1], dtype=np.int64)
 
 
+# Structured inputs of the fused kernels (numba takes namedtuples of arrays and scalars as one argument).
+
+#: The spherical lights as emitters and blockers (world space): ``centres (S, 3)``, ``radii (S,)``,
+#: ``light_object (S,)`` int, ``object_centres (O, 3)``, the candidate front lists of :func:`_front_lists`
+#: (``front_ptr (S+1,)``, ``front_idx``), ``rotation (S, 3, 3)`` world-from-light, ``emission (S, n*n, 3)``
+#: ``L^c`` in the light's frame and ``emission_dir (S, (n+1)**2, 9)`` the SH of ``L^c(u) u_j``
+#: (:func:`emission_times_direction`, columns ``(j, c)``).
+_Lights = collections.namedtuple("_Lights", ["centres", "radii", "light_object", "object_centres", "front_ptr",
+                                             "front_idx", "rotation", "emission", "emission_dir"])
+#: Tables read per receiver: ``blocker_log`` (:func:`blocker_log_table`) and its knots ``blocker_knots``
+#: (:func:`_blocker_log_knots`), ``transfer ((2n-1)**2, 3 n*n)`` the environment transfer matrix
+#: (:func:`transfer_matrix`, columns ``(c, k)``), the clamped-cosine ZH of orders ``2n - 1`` (``cosine_hi``) and
+#: ``n`` (``cosine``), and the ZH tables of ``w_theta`` (Eq. 18) and of the irradiance kernel (the
+#: cosine-weighted average).
+_Tables = collections.namedtuple("_Tables", ["blocker_log", "blocker_knots", "transfer", "cosine_hi", "cosine",
+                                             "w_theta", "irradiance_kernel"])
+#: The OL / HYB exponential, as :func:`prtlab.sh.exp`: the OL table (``r_max``, ``ol_a``, ``ol_b``), the HYB
+#: threshold and the symmetric Gaunt pairs of a square (``sq_i, sq_j, sq_k, sq_v``, :func:`_symmetric_gaunt`).
+_ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "threshold", "sq_i", "sq_j", "sq_k",
+                                                   "sq_v"])
+#: What the pass computes: SH order, per-object blocking (else per sphere), the indirect light, HYB (else OL),
+#: the cosine-weighted average radiance (else the paper's Eq. 18), and the receivers per block.
+_Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes"])
+#: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``halved, value, square, out
+#: (n*n, M)``, ``norm (2, M)``, ``n_squarings, perm (M,)`` int.
+_HybScratch = collections.namedtuple("_HybScratch", ["halved", "value", "square", "norm", "n_squarings", "perm",
+                                                     "out"])
+#: Scratch of one parallel task, the lanes ``L`` last: ``recv (6, L)`` receiver points and normals,
+#: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
+#: SH basis at the normals, ``transfer (3 n*n, L)``, ``cosine (n*n, L)`` the rotated clamped cosine ``rho_n``;
+#: per object ``object_dist (O, L)``, ``object_order (O,)``, ``object_log, object_prefix (O, n*n, L)``,
+#: ``running (n*n,)``; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
+#: ``sums (4, L)`` per-lane sums, ``visibility (S, L)`` the ``V~`` of every light, ``light_dir (3, L)`` the
+#: direction light -> receiver in the light's frame, ``cos_na, open_visibility (L,)``, ``kernel (1, (n+1)**2,
+#: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
+#: the emission; ``direct, indirect (3, L)`` the block's results; ``exp_direct`` and ``exp_light`` the HYB scratch
+#: of ``L`` and ``2L`` columns.
+_BlockScratch = collections.namedtuple("_BlockScratch", [
+    "recv", "blockers", "lane", "normal_basis", "transfer", "cosine", "object_dist", "object_order",
+    "object_log", "object_prefix", "running", "front", "pair_log", "sums", "visibility", "light_dir", "cos_na",
+    "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light"])
+
+
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
                             exp_method, indirect, cosine):
+    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``."""
     order = math.isqrt(np.asarray(emission).shape[-2])
     c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
-    hi = 2 * order - 1
+    n_sph, hi = c.shape[0], 2 * order - 1
     transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3)
                                     .transpose(0, 2, 1).reshape(hi * hi, 3 * order * order))
-    r_max, tab_a, tab_b = _ol_table(order)
-    pi_, pj, pk, pv = _symmetric_gaunt(order)
+    # writeable C copies: one compiled signature whatever the caller passes
+    rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (n_sph, 3, 3)), order="C")
+    em = np.array(np.asarray(emission, dtype=np.float64).reshape(n_sph, order * order, 3), order="C")
+    if cosine and indirect and n_sph:
+        em_dir = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(n_sph, -1, 9))
+    else:
+        em_dir = np.zeros((n_sph, (order + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
+    lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir)
+    tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
+                     np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
+                     np.ascontiguousarray(_w_theta_table(order)),
+                     np.ascontiguousarray(_irradiance_kernel_table(order + 1)))
+    r_max, tab_a, tab_b = _ol_table(order)
+    exp_tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
+    mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
+                 bool(cosine), int(_LANES))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
-    # writeable C copies: one compiled signature whatever the caller passes
-    rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (c.shape[0], 3, 3)), order="C")
-    em = np.array(np.asarray(emission, dtype=np.float64).reshape(c.shape[0], order * order, 3), order="C")
-    if cosine and indirect and c.shape[0]:
-        lu = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(c.shape[0], -1, 9))
-    else:
-        lu = np.zeros((c.shape[0], (order + 1) ** 2, 9))
-    _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), np.array(c), np.array(r), np.array(obj),
-                       obj_centres, front_ptr, front_idx, blocker_log_table(order), _blocker_log_knots(), order,
-                       blocking == "object", transfer, np.ascontiguousarray(sh.clamped_cosine_zh(hi)),
-                       np.ascontiguousarray(sh.clamped_cosine_zh(order)), np.ascontiguousarray(_w_theta_table(order)),
-                       rot, em, bool(indirect and c.shape[0] > 0), exp_method == "hyb", r_max, tab_a, tab_b,
-                       _HYB_THRESHOLD, pi_, pj, pk, pv, bool(cosine),
-                       np.ascontiguousarray(_irradiance_kernel_table(order + 1)), lu, _LANES, direct, ind)
+    _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
     return direct, ind
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out):
+    """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``mode.n_lanes`` receivers, the receivers of a block
+    as the SIMD lanes of the inner loops: blocker logs, direct light, then per light the front sums,
+    exponentials, average visibility and average radiance. Same quantities, to rounding, as the composed tier
+    (``method="numba"``). ``n_lanes`` is a run-time value, not a compile-time constant: LLVM fully unrolls
+    constant 16-trip loops into scalar code instead of vectorising them.
+
+    Structure (measured, see the commits that split it): the per-block steps take the namedtuples and unpack
+    them into locals once per block (a namedtuple passed to a compiled call is flattened into hundreds of
+    arguments, and each unpacked array costs two atomic reference-count updates); they are inlined, except
+    :func:`_add_cosine_averages` (inlined, the one large function it made ran that step 19 % slower). The
+    per-light steps inside them take arrays."""
+    n_recv = points.shape[0]
+    n_lanes = mode.n_lanes
+    n_blocks = (n_recv + n_lanes - 1) // n_lanes
+    n_tasks = (n_blocks + _BLOCKS_PER_TASK - 1) // _BLOCKS_PER_TASK
+    for task in numba.prange(n_tasks):
+        scratch = _block_scratch(lights.centres.shape[0], lights.object_centres.shape[0], mode.order, n_lanes)
+        for block in range(task * _BLOCKS_PER_TASK, min(n_blocks, (task + 1) * _BLOCKS_PER_TASK)):
+            first = block * n_lanes
+            _second_pass_block(points, normals, first, min(n_lanes, n_recv - first), lights, tables, exp_tables,
+                               mode, scratch, direct_out, indirect_out)
+
+
+@numba.njit(cache=True)
+def _hyb_scratch(n2, m):
+    """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients."""
+    return _HybScratch(np.empty((n2, m)), np.empty((n2, m)), np.empty((n2, m)), np.empty((2, m)),
+                       np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((n2, m)))
+
+
+@numba.njit(cache=True)
+def _block_scratch(n_sph, n_obj, order, n_lanes):
+    """:data:`_BlockScratch` of one task."""
+    n2, n1, hi = order * order, (order + 1) * (order + 1), 2 * order - 1
+    blockers = BlockerLanes(np.empty((n_sph, n2, n_lanes)), np.empty((n2, n_lanes)), np.empty((n_sph, n_lanes)),
+                            np.empty((n_sph, n_lanes)), np.empty((n_sph, n_lanes)), np.empty((n_sph, n_lanes)),
+                            np.empty((n_sph, 3, n_lanes)))
+    lane = LaneScratch(np.empty((order + 1, n_lanes)), np.empty((n1, n_lanes)), np.empty((7, n_lanes)))
+    obj_log, obj_prefix = np.empty((n_obj, n2, n_lanes)), np.empty((n_obj, n2, n_lanes))
+    vis = np.empty((n_sph, n_lanes))
+    return _BlockScratch(
+        np.empty((6, n_lanes)), blockers, lane,  # recv, blockers, lane
+        np.empty((hi * hi, n_lanes)), np.empty((3 * n2, n_lanes)), np.empty((n2, n_lanes)),  # normal_basis .. cosine
+        np.empty((n_obj, n_lanes)), np.empty(n_obj, dtype=np.int64), obj_log, obj_prefix,  # object_*
+        np.empty(n2), np.empty((n2, n_lanes)), np.empty((n2, 2 * n_lanes)),  # running, front, pair_log
+        np.empty((4, n_lanes)), vis, np.empty((3, n_lanes)),  # sums, visibility, light_dir
+        np.empty(n_lanes), np.empty(n_lanes), np.empty((1, n1, n_lanes)),  # cos_na, open_visibility, kernel
+        np.empty((9, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)),
+        _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes))
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _second_pass_block(points, normals, first, n_valid, lights, tables, exp_tables, mode, scratch, direct_out,
+                       indirect_out):
+    """The second pass of the receivers ``first .. first + n_valid - 1`` (one block; a partial block repeats
+    its last receiver in the remaining lanes)."""
+    recv, direct, indirect = scratch.recv, scratch.direct, scratch.indirect
+    for q in range(recv.shape[1]):
+        b = first + min(q, n_valid - 1)
+        for t in range(3):
+            recv[t, q] = points[b, t]
+            recv[3 + t, q] = normals[b, t]
+    _blocker_lanes(recv, lights.centres, lights.radii, tables, mode.order, scratch.blockers, scratch.lane)
+    _direct_lanes(tables, exp_tables, mode.hyb, mode.order, scratch)
+    if mode.indirect:
+        _indirect_lanes(lights, tables, exp_tables, mode, scratch)
+    for q in range(n_valid):
+        for c in range(3):
+            direct_out[first + q, c] = direct[c, q]
+            indirect_out[first + q, c] = indirect[c, q] if mode.indirect else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _environment_transfer_lanes(cosine_hi, transfer, order, scratch):
+    """``T_n = cos_{2n-1}(n) @ M`` per lane into ``scratch.transfer`` (rows ``(c, k)``): the exact projection of
+    ``L cos`` (see :func:`environment_transfer`; the clamped cosine's odd bands > 1 vanish). Leaves the SH basis
+    at the normals in ``scratch.normal_basis``."""
+    basis, trans, row = scratch.normal_basis, scratch.transfer, scratch.sums
+    hi = 2 * order - 1
+    n_lanes = trans.shape[1]
+    _basis_lanes(scratch.recv, 3, hi, basis, scratch.lane.tmp)
+    for t in range(trans.shape[0]):
+        for q in range(n_lanes):
+            trans[t, q] = 0.0
+    for l in range(hi):
+        if cosine_hi[l] == 0.0:
+            continue
+        f = _ZH_SCALE[l] * cosine_hi[l]
+        for k in range(l * l, (l + 1) * (l + 1)):
+            for q in range(n_lanes):
+                row[0, q] = f * basis[k, q]
+            for t in range(trans.shape[0]):
+                m = transfer[k, t]
+                for q in range(n_lanes):
+                    trans[t, q] += row[0, q] * m
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _direct_lanes(tables, exp_tables, hyb, order, scratch):
+    """Direct irradiance ``E = T_n . exp*(sum of the blocker logs)`` per lane (Eq. 8) into ``scratch.direct``."""
+    _environment_transfer_lanes(tables.cosine_hi, tables.transfer, order, scratch)
+    n2 = order * order
+    total, trans, direct, sums = scratch.blockers.total_log, scratch.transfer, scratch.direct, scratch.sums
+    n_lanes = total.shape[1]
+    for c in range(3):
+        for q in range(n_lanes):
+            direct[c, q] = 0.0
+    if hyb:
+        _exp_hyb_columns(total, exp_tables, scratch.exp_direct)
+        vis = scratch.exp_direct.out
+        for c in range(3):
+            for k in range(n2):
+                for q in range(n_lanes):
+                    direct[c, q] += trans[c * n2 + k, q] * vis[k, q]
+        return
+    # OL: exp*(f) . T = e^(f_0 / sqrt(4 pi)) (a sqrt(4 pi) T_0 + b f^ . T^), a and b functions of |f^|
+    for q in range(n_lanes):
+        sums[1, q] = 0.0
+    for k in range(1, n2):
+        for q in range(n_lanes):
+            sums[1, q] += total[k, q] * total[k, q]
+    for c in range(3):
+        for k in range(1, n2):
+            for q in range(n_lanes):
+                direct[c, q] += trans[c * n2 + k, q] * total[k, q]
+    sqrt4pi = math.sqrt(4.0 * math.pi)
+    r_max, ol_a, ol_b = exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
+    for q in range(n_lanes):
+        a, b = _ol_coefficients(math.sqrt(sums[1, q]), r_max, ol_a, ol_b)
+        dc = math.exp(total[0, q] / sqrt4pi)
+        for c in range(3):
+            direct[c, q] = dc * (a * sqrt4pi * trans[c * n2, q] + b * direct[c, q])
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _indirect_lanes(lights, tables, exp_tables, mode, scratch):
+    """Indirect irradiance ``sum_i L~_i V~_i`` per lane (Eq. 14) into ``scratch.indirect``: the average
+    visibility of every light (front sums and exponentials, Eqs. 23-24), then its average radiance (Eq. 18 or
+    the cosine-weighted average)."""
+    n2 = mode.order * mode.order
+    ind = scratch.indirect
+    for c in range(3):
+        for q in range(ind.shape[1]):
+            ind[c, q] = 0.0
+    _rotated_cosine(tables.cosine, mode.order, scratch)
+    if mode.per_object:
+        _object_prefix_logs(lights, n2, scratch)
+    if mode.hyb:
+        _average_visibility_hyb(lights, exp_tables, mode.per_object, n2, scratch)
+    else:
+        _average_visibility_ol(lights, exp_tables, mode.per_object, n2, scratch)
+    if mode.cosine:
+        _add_cosine_averages(lights, tables, mode.order, scratch)
+    else:
+        _add_paper_averages(lights, tables, mode.order, scratch)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _rotated_cosine(cosine, order, scratch):
+    """The clamped cosine ``rho_n`` rotated to each lane's normal, ``scratch.cosine``, from ``normal_basis``."""
+    basis, rho = scratch.normal_basis, scratch.cosine
+    for l in range(order):
+        f = _ZH_SCALE[l] * cosine[l]
+        for k in range(l * l, (l + 1) * (l + 1)):
+            for q in range(rho.shape[1]):
+                rho[k, q] = f * basis[k, q]
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _object_prefix_logs(lights, n2, scratch):
+    """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
+    of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
+    the other tiers)."""
+    recv, log = scratch.recv, scratch.blockers.log
+    dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
+    by_dist, running = scratch.object_order, scratch.running
+    centres, light_object = lights.object_centres, lights.light_object
+    n_obj, n_lanes = dist2.shape
+    for o in range(n_obj):
+        cx, cy, cz = centres[o, 0], centres[o, 1], centres[o, 2]
+        for q in range(n_lanes):
+            ex = cx - recv[0, q]
+            ey = cy - recv[1, q]
+            ez = cz - recv[2, q]
+            dist2[o, q] = ex * ex + ey * ey + ez * ez
+        for k in range(n2):
+            for q in range(n_lanes):
+                obj_log[o, k, q] = 0.0
+    for s in range(light_object.shape[0]):
+        o = light_object[s]
+        for k in range(n2):
+            for q in range(n_lanes):
+                obj_log[o, k, q] += log[s, k, q]
+    for q in range(n_lanes):
+        for o in range(n_obj):
+            by_dist[o] = o
+        for o in range(1, n_obj):  # insertion sort by (distance, index)
+            t = by_dist[o]
+            j = o - 1
+            while j >= 0 and dist2[by_dist[j], q] > dist2[t, q]:
+                by_dist[j + 1] = by_dist[j]
+                j -= 1
+            by_dist[j + 1] = t
+        for k in range(n2):
+            running[k] = 0.0
+        for t in range(n_obj):
+            o = by_dist[t]
+            for k in range(n2):
+                prefix[o, k, q] = running[k]
+                running[k] += obj_log[o, k, q]
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _any_live(theta, i):
+    """Whether light ``i`` is seen (not culled) from any lane."""
+    for q in range(theta.shape[1]):
+        if theta[i, q] >= 0.0:
+            return True
+    return False
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, dist, front):
+    """``front[k, q]``: the sum of the logs in front of light ``i`` at lane ``q`` (Eq. 23): per object the
+    closer objects' ``prefix``, plus the lights of ``i``'s front list (``front_ptr``, ``front_idx``) closer to
+    the lane than ``i`` (centre distance ``dist``)."""
+    n2, n_lanes = front.shape
+    if per_object:
+        oi = light_object[i]
+        for k in range(n2):
+            for q in range(n_lanes):
+                front[k, q] = prefix[oi, k, q]
+    else:
+        for k in range(n2):
+            for q in range(n_lanes):
+                front[k, q] = 0.0
+    for e in range(front_ptr[i], front_ptr[i + 1]):
+        j = front_idx[e]
+        for k in range(n2):
+            for q in range(n_lanes):
+                front[k, q] += log[j, k, q] if dist[j, q] < dist[i, q] else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
+    """``scratch.visibility[i, q]``: ``V~_i = (exp*(front) - exp*(front + G_i)) . rho_n`` (Eqs. 23-24) of every
+    light at every lane, the two exponentials HYB (0 where the light is culled)."""
+    light_object, front_ptr, front_idx = lights.light_object, lights.front_ptr, lights.front_idx
+    log, dist, theta = scratch.blockers.log, scratch.blockers.dist, scratch.blockers.theta
+    front, prefix, pair, hyb = scratch.front, scratch.object_prefix, scratch.pair_log, scratch.exp_light
+    rho, vis, e = scratch.cosine, scratch.visibility, scratch.exp_light.out
+    n_lanes = front.shape[1]
+    for i in range(log.shape[0]):
+        for q in range(n_lanes):
+            vis[i, q] = 0.0
+        if not _any_live(theta, i):
+            continue
+        _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, dist, front)
+        for k in range(n2):
+            for q in range(n_lanes):
+                live = theta[i, q] >= 0.0
+                pair[k, q] = front[k, q] if live else 0.0
+                pair[k, n_lanes + q] = front[k, q] + log[i, k, q] if live else 0.0
+        _exp_hyb_columns(pair, exp_tables, hyb)
+        for k in range(n2):
+            for q in range(n_lanes):
+                vis[i, q] += (e[k, q] - e[k, n_lanes + q]) * rho[k, q]
+        for q in range(n_lanes):
+            vis[i, q] = vis[i, q] if theta[i, q] >= 0.0 else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _average_visibility_ol(lights, exp_tables, per_object, n2, scratch):
+    """:func:`_average_visibility_hyb` with OL exponentials. OL is linear in ``f^`` given ``|f^|``: ``exp*(f) .
+    rho = e^(f_0 / sqrt(4 pi)) (a sqrt(4 pi) rho_0 + b f^ . rho^)``, so only norms and dot products are
+    formed."""
+    light_object, front_ptr, front_idx = lights.light_object, lights.front_ptr, lights.front_idx
+    log, dist, theta = scratch.blockers.log, scratch.blockers.dist, scratch.blockers.theta
+    front, prefix, rho = scratch.front, scratch.object_prefix, scratch.cosine
+    sums, vis = scratch.sums, scratch.visibility
+    r_max, ol_a, ol_b = exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
+    n_lanes = front.shape[1]
+    sqrt4pi = math.sqrt(4.0 * math.pi)
+    for i in range(log.shape[0]):
+        if not _any_live(theta, i):
+            for q in range(n_lanes):
+                vis[i, q] = 0.0
+            continue
+        _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, dist, front)
+        for t in range(4):  # rows: |f^|^2, |o^|^2, f^ . rho^, o^ . rho^ (o = f + G_i)
+            for q in range(n_lanes):
+                sums[t, q] = 0.0
+        for k in range(1, n2):
+            for q in range(n_lanes):
+                f = front[k, q]
+                o = f + log[i, k, q]
+                cr = rho[k, q]
+                sums[0, q] += f * f
+                sums[1, q] += o * o
+                sums[2, q] += f * cr
+                sums[3, q] += o * cr
+        for q in range(n_lanes):
+            if theta[i, q] < 0.0:
+                vis[i, q] = 0.0
+                continue
+            af, bf = _ol_coefficients(math.sqrt(sums[0, q]), r_max, ol_a, ol_b)
+            ao, bo = _ol_coefficients(math.sqrt(sums[1, q]), r_max, ol_a, ol_b)
+            f0 = front[0, q]
+            o0 = f0 + log[i, 0, q]
+            c0 = sqrt4pi * rho[0, q]
+            vis[i, q] = (math.exp(f0 / sqrt4pi) * (af * c0 + bf * sums[2, q])
+                         - math.exp(o0 / sqrt4pi) * (ao * c0 + bo * sums[3, q]))
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _light_direction(rotation, i, axis, out):
+    """``out[:3, q]``: the direction light ``i`` -> receiver (``-axis[i, :, q]``) in the light's own frame
+    (Sec. 7.1)."""
+    r00, r01, r02 = rotation[i, 0, 0], rotation[i, 0, 1], rotation[i, 0, 2]
+    r10, r11, r12 = rotation[i, 1, 0], rotation[i, 1, 1], rotation[i, 1, 2]
+    r20, r21, r22 = rotation[i, 2, 0], rotation[i, 2, 1], rotation[i, 2, 2]
+    for q in range(out.shape[1]):
+        ax, ay, az = axis[i, 0, q], axis[i, 1, q], axis[i, 2, q]
+        out[0, q] = -(r00 * ax + r10 * ay + r20 * az)
+        out[1, q] = -(r01 * ax + r11 * ay + r21 * az)
+        out[2, q] = -(r02 * ax + r12 * ay + r22 * az)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _rotated_kernel(theta, i, table, theta_max, n_bands, dirs, zh, basis, tmp, kernel):
+    """``kernel[0]``: a ZH table (knots ``j theta_max / K``, ``j = 0..K``) linearly interpolated at
+    ``theta[i, q]`` clamped to ``[0, theta_max]`` and rotated to ``dirs[:3, q]`` (:func:`_rotated_zh_lanes`)."""
+    n_knots = table.shape[0] - 1
+    for q in range(zh.shape[1]):
+        u = min(max(theta[i, q], 0.0), theta_max) * (n_knots / theta_max)
+        j = min(int(math.floor(u)), n_knots - 1)
+        w = u - j
+        for l in range(n_bands):
+            zh[l, q] = (1.0 - w) * table[j, l] + w * table[j + 1, l]
+    _rotated_zh_lanes(dirs, 0, zh, n_bands, basis, tmp, kernel, 0)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _project_lanes(kernel, coeffs, i, n_coeffs, n_cols, out):
+    """``out[t, q] = sum_k kernel[0, k, q] coeffs[i, k, t]`` over the first ``n_coeffs`` coefficients, ``t <
+    n_cols`` (a constant at the call site: the loop over ``t`` is unrolled)."""
+    n_lanes = out.shape[1]
+    for t in range(n_cols):
+        for q in range(n_lanes):
+            out[t, q] = 0.0
+    for k in range(n_coeffs):
+        for t in range(n_cols):
+            m = coeffs[i, k, t]
+            for q in range(n_lanes):
+                out[t, q] += kernel[0, k, q] * m
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _add_paper_averages(lights, tables, order, scratch):
+    """``scratch.indirect += sum_i L~_i V~_i`` with ``L~_i = w'_theta . L^c_i`` (Eq. 18)."""
+    rotation, emission, w_table = lights.rotation, lights.emission, tables.w_theta
+    theta, axis, vis, ind = scratch.blockers.theta, scratch.blockers.axis, scratch.visibility, scratch.indirect
+    light_dir, kernel, rad = scratch.light_dir, scratch.kernel, scratch.radiance
+    zh, basis, tmp = scratch.lane.zh, scratch.lane.basis, scratch.lane.tmp
+    for i in range(theta.shape[0]):
+        if not _any_live(theta, i):
+            continue
+        _light_direction(rotation, i, axis, light_dir)
+        _rotated_kernel(theta, i, w_table, 0.5 * math.pi, order, light_dir, zh, basis, tmp, kernel)
+        _project_lanes(kernel, emission, i, order * order, 3, rad)
+        for c in range(3):
+            for q in range(ind.shape[1]):
+                ind[c, q] += rad[c, q] * vis[i, q] if theta[i, q] >= 0.0 else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _add_cosine_averages(lights, tables, order, scratch):
+    """``scratch.indirect +=`` the sum over the lights of the cosine-weighted irradiance times the visible
+    fraction, ``E_n clip(V~ / V~', 0, 1)``, with ``E_n = s n.(Lu . K) - (n.b) L . K`` in the light's frame (see
+    :func:`irradiance_kernel_zh` and :func:`light_terms`) and ``V~'`` the unoccluded visibility."""
+    rot, emission, emission_dir = lights.rotation, lights.emission, lights.emission_dir
+    b = scratch.blockers
+    theta, sin_t, cos_t, axis = b.theta, b.sin_theta, b.cos_theta, b.axis
+    recv, vis, ind, ld, kernel = scratch.recv, scratch.visibility, scratch.indirect, scratch.light_dir, scratch.kernel
+    lum_dir, lum, cos_na, v_open = scratch.radiance_dir, scratch.radiance, scratch.cos_na, scratch.open_visibility
+    zh, basis, tmp = scratch.lane.zh, scratch.lane.basis, scratch.lane.tmp
+    k_table, cos_zh = tables.irradiance_kernel, tables.cosine
+    sin_k_max = math.sin(THETA_MAX_K)
+    for i in range(theta.shape[0]):
+        if not _any_live(theta, i):
+            continue
+        _light_direction(rot, i, axis, ld)
+        _rotated_kernel(theta, i, k_table, THETA_MAX_K, order + 1, ld, zh, basis, tmp, kernel)
+        _project_lanes(kernel, emission_dir, i, (order + 1) * (order + 1), 9, lum_dir)
+        _project_lanes(kernel, emission, i, order * order, 3, lum)
+        for q in range(ind.shape[1]):
+            cos_na[q] = recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q] + recv[5, q] * axis[i, 2, q]
+        _cap_visibility_lanes(cos_t, i, cos_na, cos_zh, order, tmp, v_open)
+        r00, r01, r02 = rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2]
+        r10, r11, r12 = rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2]
+        r20, r21, r22 = rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2]
+        for q in range(ind.shape[1]):
+            nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
+            mx = r00 * nx + r10 * ny + r20 * nz  # the normal in the light's frame
+            my = r01 * nx + r11 * ny + r21 * nz
+            mz = r02 * nx + r12 * ny + r22 * nz
+            s_i = sin_t[i, q] if theta[i, q] <= THETA_MAX_K else sin_k_max
+            n_dot_b = mx * ld[0, q] + my * ld[1, q] + mz * ld[2, q]
+            proj = math.pi * s_i * s_i * cos_na[q]
+            ok = theta[i, q] >= 0.0 and proj > 0.0 and v_open[q] > 0.0
+            frac = min(max(vis[i, q] / v_open[q], 0.0), 1.0)
+            for c in range(3):
+                e_n = (s_i * (mx * lum_dir[c, q] + my * lum_dir[3 + c, q] + mz * lum_dir[6 + c, q])
+                       - n_dot_b * lum[c, q])
+                ind[c, q] += e_n * frac if ok else 0.0
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -572,25 +1044,28 @@ def _ol_coefficients(r, r_max, tab_a, tab_b):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _exp_hyb_columns(x, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, h, v, w, col, ks, perm, out):
-    """HYB ``exp*`` of the columns of ``x (n2, M)`` into ``out`` (as ``prtlab.sh``'s ``_exp_hyb``: ``k`` halvings
-    to ``|f^| <= threshold``, OL, ``k`` squarings, the DC factor). The columns are ordered by ``k``
+def _exp_hyb_columns(x, exp_tables, scratch):
+    """HYB ``exp*`` of the columns of ``x (n2, M)`` into ``scratch.out`` (as ``prtlab.sh``'s ``_exp_hyb``: ``k``
+    halvings to ``|f^| <= threshold``, OL, ``k`` squarings, the DC factor). The columns are ordered by ``k``
     (descending), so squaring ``t`` runs over the prefix of columns that still need it; a square uses the
-    symmetric Gaunt pairs ``(pi, pj, pk, pv)``. ``h, v, w (n2, M)``, ``col (2, M)``, ``ks, perm (M,)``: scratch."""
+    symmetric Gaunt pairs of ``exp_tables``. ``scratch``: a :data:`_HybScratch` of ``M`` columns."""
     n2, m = x.shape
+    norm, ks, perm = scratch.norm, scratch.n_squarings, scratch.perm
+    h, v, w, out = scratch.halved, scratch.value, scratch.square, scratch.out
     sqrt4pi = math.sqrt(4.0 * math.pi)
+    threshold, r_max, ol_a, ol_b = exp_tables.threshold, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
     for p in range(m):
-        col[0, p] = 0.0
+        norm[0, p] = 0.0
     for i in range(1, n2):
         for p in range(m):
-            col[0, p] += x[i, p] * x[i, p]
+            norm[0, p] += x[i, p] * x[i, p]
     k_max = 0
     for p in range(m):
-        norm = math.sqrt(col[0, p])
+        r = math.sqrt(norm[0, p])
         k = 0
-        if norm > threshold:
-            k = max(0, int(math.ceil(math.log2(norm / threshold))))
-            while norm / 2.0**k > threshold:  # guard against rounding in log2, as prtlab.sh
+        if r > threshold:
+            k = max(0, int(math.ceil(math.log2(r / threshold))))
+            while r / 2.0**k > threshold:  # guard against rounding in log2, as prtlab.sh
                 k += 1
         ks[p] = k
         k_max = max(k_max, k)
@@ -608,31 +1083,22 @@ def _exp_hyb_columns(x, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, h, v, w
             h[i, t] = x[i, p] * scale
     # OL of the scaled columns (DC 0: its factor exp(0) = 1)
     for t in range(m):
-        col[0, t] = 0.0
+        norm[0, t] = 0.0
     for i in range(1, n2):
         for t in range(m):
-            col[0, t] += h[i, t] * h[i, t]
+            norm[0, t] += h[i, t] * h[i, t]
     for t in range(m):
-        a, b = _ol_coefficients(math.sqrt(col[0, t]), r_max, tab_a, tab_b)
+        a, b = _ol_coefficients(math.sqrt(norm[0, t]), r_max, ol_a, ol_b)
         v[0, t] = a * sqrt4pi
-        col[1, t] = b
+        norm[1, t] = b
     for i in range(1, n2):
         for t in range(m):
-            v[i, t] = col[1, t] * h[i, t]
+            v[i, t] = norm[1, t] * h[i, t]
     n_act = m
     for step in range(k_max):
         while n_act > 0 and ks[perm[n_act - 1]] <= step:
             n_act -= 1
-        for k in range(n2):
-            for t in range(n_act):
-                w[k, t] = 0.0
-        for e in range(pv.shape[0]):
-            i = pi_[e]
-            j = pj[e]
-            k = pk[e]
-            val = pv[e]
-            for t in range(n_act):
-                w[k, t] += val * v[i, t] * v[j, t]
+        _tile_product_prefix(v, v, exp_tables.sq_i, exp_tables.sq_j, exp_tables.sq_k, exp_tables.sq_v, w, n_act)
         for k in range(n2):
             for t in range(n_act):
                 v[k, t] = w[k, t]
@@ -644,360 +1110,28 @@ def _exp_hyb_columns(x, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, h, v, w
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _cap_visibility_lanes(cos_t, i, lane, cos_zh, order, tmp):
-    """:func:`_cap_visibility` of the lanes: ``lane[8, q]`` for ``cos theta = cos_t[i, q]`` and ``cos_na =
-    lane[7, q]``; ``tmp (5, L)`` scratch (rows: P_(l-1), P_l at cos theta, P_(l-1), P_l at cos_na, P_(l-1))."""
-    n_lanes = lane.shape[1]
+def _cap_visibility_lanes(cos_theta, i, cos_na, cos_zh, order, tmp, out):
+    """:func:`_cap_visibility` of the lanes: ``out[q]`` for ``cos theta = cos_theta[i, q]`` and ``cos_na[q]``;
+    ``tmp (5, L)`` scratch (rows: P_(l-1), P_l at cos theta, P_(l-1), P_l at cos_na, P_(l-1))."""
+    n_lanes = out.shape[0]
     k0 = 2.0 * math.pi * math.sqrt(1.0 / (4.0 * math.pi))
     for q in range(n_lanes):
         tmp[0, q] = 1.0
-        tmp[1, q] = cos_t[i, q]
+        tmp[1, q] = cos_theta[i, q]
         tmp[2, q] = 1.0
-        tmp[3, q] = lane[7, q]
+        tmp[3, q] = cos_na[q]
         tmp[4, q] = 1.0
-        lane[8, q] = k0 * (1.0 - cos_t[i, q]) * cos_zh[0]
+        out[q] = k0 * (1.0 - cos_theta[i, q]) * cos_zh[0]
     for l in range(1, order):
         kl = 2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi))
         czl = cos_zh[l]
         for q in range(n_lanes):
             pc = tmp[1, q]
-            pc_next = ((2 * l + 1) * cos_t[i, q] * pc - l * tmp[0, q]) / (l + 1)
+            pc_next = ((2 * l + 1) * cos_theta[i, q] * pc - l * tmp[0, q]) / (l + 1)
             pa = tmp[3, q]
-            lane[8, q] += kl * (tmp[4, q] - pc_next) / (2 * l + 1) * czl * pa
+            out[q] += kl * (tmp[4, q] - pc_next) / (2 * l + 1) * czl * pa
             tmp[4, q] = pc
             tmp[0, q] = pc
             tmp[1, q] = pc_next
-            tmp[3, q] = ((2 * l + 1) * lane[7, q] * pa - l * tmp[2, q]) / (l + 1)
+            tmp[3, q] = ((2 * l + 1) * cos_na[q] * pa - l * tmp[2, q]) / (l + 1)
             tmp[2, q] = pa
-
-
-@numba.njit(cache=True, parallel=True, error_model="numpy")
-def _second_pass_fused(points, normals, centres, radii, sl_object, obj_centres, front_ptr, front_idx, table, u_knots,
-                       order, per_object, transfer_t, cos_zh_hi, cos_zh, w_table, rot, emission, indirect, hyb,
-                       r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, cosine, k_table, lu, n_lanes, direct_out,
-                       indirect_out):
-    """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``n_lanes`` receivers, the receivers of a block as the
-    SIMD lanes of the inner loops: blocker logs, front sums, exponentials, average visibility and average
-    radiance. Same quantities, to rounding, as the composed tier (``method="numba"``). ``n_lanes`` is an
-    argument, not a compile-time constant: LLVM fully unrolls constant 16-trip loops into scalar code
-    instead of vectorising them."""
-    n_recv = points.shape[0]
-    n_sph = centres.shape[0]
-    n_obj = obj_centres.shape[0]
-    n2 = order * order
-    n1 = (order + 1) * (order + 1)
-    hi = 2 * order - 1
-    n_theta = w_table.shape[0] - 1
-    sqrt4pi = math.sqrt(4.0 * math.pi)
-    sin_k_max = math.sin(THETA_MAX_K)
-    n_blocks = (n_recv + n_lanes - 1) // n_lanes
-    n_tasks = (n_blocks + _BLOCKS_PER_TASK - 1) // _BLOCKS_PER_TASK
-    for task in numba.prange(n_tasks):
-        recv = np.empty((6, n_lanes))
-        ynrm = np.empty((hi * hi, n_lanes))
-        ybuf = np.empty((max(n1, n2), n_lanes))
-        tmp = np.empty((7, n_lanes))
-        glog = np.empty((order + 1, n_lanes))
-        gs = np.empty((n_sph, n2, n_lanes))
-        dist = np.empty((n_sph, n_lanes))
-        theta = np.empty((n_sph, n_lanes))
-        sin_t = np.empty((n_sph, n_lanes))
-        cos_t = np.empty((n_sph, n_lanes))
-        axis = np.empty((n_sph, 3, n_lanes))
-        total = np.empty((n2, n_lanes))
-        trans = np.empty((3 * n2, n_lanes))
-        cosr = np.empty((n2, n_lanes))
-        lane = np.empty((12, n_lanes))
-        dsum = np.empty((3, n_lanes))
-        isum = np.empty((3, n_lanes))
-        od = np.empty((n_obj, n_lanes))
-        oidx = np.empty(n_obj, dtype=np.int64)
-        osum = np.empty((n_obj, n2, n_lanes))
-        pre = np.empty((n_obj, n2, n_lanes))
-        run = np.empty(n2)
-        fr = np.empty((n2, n_lanes))
-        vavg = np.empty((n_sph, n_lanes))
-        krot = np.empty((n1, n_lanes))
-        la = np.empty((9, n_lanes))
-        le = np.empty((3, n_lanes))
-        # HYB columns: the direct exponentials of a block (L), or one light's front and front + own (2 L)
-        xd, hd, vd, wd, ed = (np.empty((n2, n_lanes)), np.empty((n2, n_lanes)), np.empty((n2, n_lanes)),
-                              np.empty((n2, n_lanes)), np.empty((n2, n_lanes)))
-        xl, hl, vl, wl, el = (np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)),
-                              np.empty((n2, 2 * n_lanes)), np.empty((n2, 2 * n_lanes)))
-        cold = np.empty((2, n_lanes))
-        coll = np.empty((2, 2 * n_lanes))
-        ksd = np.empty(n_lanes, dtype=np.int64)
-        permd = np.empty(n_lanes, dtype=np.int64)
-        ksl = np.empty(2 * n_lanes, dtype=np.int64)
-        perml = np.empty(2 * n_lanes, dtype=np.int64)
-        for blk in range(task * _BLOCKS_PER_TASK, min(n_blocks, (task + 1) * _BLOCKS_PER_TASK)):
-            b0 = blk * n_lanes
-            nb = min(n_lanes, n_recv - b0)
-            for q in range(n_lanes):  # a partial block repeats its last receiver
-                b = b0 + min(q, nb - 1)
-                for t in range(3):
-                    recv[t, q] = points[b, t]
-                    recv[3 + t, q] = normals[b, t]
-            # blocker logs of every light (Eqs. 6-7, 20-22)
-            for k in range(n2):
-                for q in range(n_lanes):
-                    total[k, q] = 0.0
-            for s in range(n_sph):
-                _blocker_lanes(recv, s, centres[s, 0], centres[s, 1], centres[s, 2], radii[s], table, u_knots, order,
-                               glog, ybuf, tmp, gs, dist, theta, sin_t, cos_t, axis)
-                for k in range(n2):
-                    for q in range(n_lanes):
-                        total[k, q] += gs[s, k, q]
-            # direct (Eq. 8): T_n = cos_{2n-1}(n) @ M per lane (exact projection of L cos, see
-            # environment_transfer; the clamped cosine's odd bands > 1 vanish), then T_n . exp*(total)
-            _basis_lanes(recv, 3, hi, ynrm, tmp)
-            for t in range(3 * n2):
-                for q in range(n_lanes):
-                    trans[t, q] = 0.0
-            for l in range(hi):
-                if cos_zh_hi[l] == 0.0:
-                    continue
-                f = _ZH_SCALE[l] * cos_zh_hi[l]
-                for qq in range(l * l, (l + 1) * (l + 1)):
-                    for q in range(n_lanes):
-                        lane[0, q] = f * ynrm[qq, q]
-                    for t in range(3 * n2):
-                        m = transfer_t[qq, t]
-                        for q in range(n_lanes):
-                            trans[t, q] += lane[0, q] * m
-            if hyb:
-                for k in range(n2):
-                    for q in range(n_lanes):
-                        xd[k, q] = total[k, q]
-                _exp_hyb_columns(xd, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, hd, vd, wd, cold, ksd, permd,
-                                 ed)
-                for c in range(3):
-                    for q in range(n_lanes):
-                        dsum[c, q] = 0.0
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            dsum[c, q] += trans[c * n2 + k, q] * ed[k, q]
-            else:
-                for q in range(n_lanes):
-                    lane[1, q] = 0.0
-                for k in range(1, n2):
-                    for q in range(n_lanes):
-                        lane[1, q] += total[k, q] * total[k, q]
-                for c in range(3):
-                    for q in range(n_lanes):
-                        dsum[c, q] = 0.0
-                    for k in range(1, n2):
-                        for q in range(n_lanes):
-                            dsum[c, q] += trans[c * n2 + k, q] * total[k, q]
-                for q in range(n_lanes):
-                    a, b = _ol_coefficients(math.sqrt(lane[1, q]), r_max, tab_a, tab_b)
-                    dc = math.exp(total[0, q] / sqrt4pi)
-                    for c in range(3):
-                        dsum[c, q] = dc * (a * sqrt4pi * trans[c * n2, q] + b * dsum[c, q])
-            for q in range(nb):
-                for c in range(3):
-                    direct_out[b0 + q, c] = dsum[c, q]
-                    indirect_out[b0 + q, c] = 0.0
-            if not indirect:
-                continue
-            for l in range(order):
-                f = _ZH_SCALE[l] * cos_zh[l]
-                for k in range(l * l, (l + 1) * (l + 1)):
-                    for q in range(n_lanes):
-                        cosr[k, q] = f * ynrm[k, q]
-            # front sums (Eq. 23), per object or per sphere (Sec. 7.2): per object, the prefix sums of the object
-            # sums in (distance, index) order, then the closer non-intersecting lights of i's own object
-            if per_object:
-                for o in range(n_obj):
-                    for q in range(n_lanes):
-                        ex = obj_centres[o, 0] - recv[0, q]
-                        ey = obj_centres[o, 1] - recv[1, q]
-                        ez = obj_centres[o, 2] - recv[2, q]
-                        od[o, q] = ex * ex + ey * ey + ez * ez
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            osum[o, k, q] = 0.0
-                for s in range(n_sph):
-                    o = sl_object[s]
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            osum[o, k, q] += gs[s, k, q]
-                for q in range(n_lanes):
-                    for o in range(n_obj):
-                        oidx[o] = o
-                    for o in range(1, n_obj):  # insertion sort by (od, index): stable, as the other tiers
-                        t = oidx[o]
-                        j = o - 1
-                        while j >= 0 and od[oidx[j], q] > od[t, q]:
-                            oidx[j + 1] = oidx[j]
-                            j -= 1
-                        oidx[j + 1] = t
-                    for k in range(n2):
-                        run[k] = 0.0
-                    for t in range(n_obj):
-                        o = oidx[t]
-                        for k in range(n2):
-                            pre[o, k, q] = run[k]
-                            run[k] += osum[o, k, q]
-            # average visibility (Eqs. 23-24): V~_i = (exp*(front) - exp*(front + G_i)) . rho_n
-            for i in range(n_sph):
-                n_live = 0
-                for q in range(n_lanes):
-                    if theta[i, q] >= 0.0:
-                        n_live += 1
-                if n_live == 0:
-                    for q in range(n_lanes):
-                        vavg[i, q] = 0.0
-                    continue
-                if per_object:
-                    oi = sl_object[i]
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            fr[k, q] = pre[oi, k, q]
-                else:
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            fr[k, q] = 0.0
-                for e in range(front_ptr[i], front_ptr[i + 1]):
-                    j = front_idx[e]
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            fr[k, q] += gs[j, k, q] if dist[j, q] < dist[i, q] else 0.0
-                if hyb:
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            live = theta[i, q] >= 0.0
-                            xl[k, q] = fr[k, q] if live else 0.0
-                            xl[k, n_lanes + q] = fr[k, q] + gs[i, k, q] if live else 0.0
-                    _exp_hyb_columns(xl, r_max, tab_a, tab_b, threshold, pi_, pj, pk, pv, hl, vl, wl, coll, ksl,
-                                     perml, el)
-                    for q in range(n_lanes):
-                        lane[0, q] = 0.0
-                    for k in range(n2):
-                        for q in range(n_lanes):
-                            lane[0, q] += (el[k, q] - el[k, n_lanes + q]) * cosr[k, q]
-                    for q in range(n_lanes):
-                        vavg[i, q] = lane[0, q] if theta[i, q] >= 0.0 else 0.0
-                else:
-                    # OL is linear in f^ given |f^|: exp*(f) . rho = e^(f_0 / sqrt(4 pi)) (a sqrt(4 pi) rho_0
-                    # + b f^ . rho^), so only norms and dot products are formed
-                    for q in range(n_lanes):  # rows: |f^|^2, |o^|^2, f^ . rho^, o^ . rho^ (o = f + G_i)
-                        lane[0, q] = 0.0
-                        lane[1, q] = 0.0
-                        lane[2, q] = 0.0
-                        lane[3, q] = 0.0
-                    for k in range(1, n2):
-                        for q in range(n_lanes):
-                            f = fr[k, q]
-                            o = f + gs[i, k, q]
-                            cr = cosr[k, q]
-                            lane[0, q] += f * f
-                            lane[1, q] += o * o
-                            lane[2, q] += f * cr
-                            lane[3, q] += o * cr
-                    for q in range(n_lanes):
-                        if theta[i, q] < 0.0:
-                            vavg[i, q] = 0.0
-                            continue
-                        af, bf = _ol_coefficients(math.sqrt(lane[0, q]), r_max, tab_a, tab_b)
-                        ao, bo = _ol_coefficients(math.sqrt(lane[1, q]), r_max, tab_a, tab_b)
-                        f0 = fr[0, q]
-                        o0 = f0 + gs[i, 0, q]
-                        c0 = sqrt4pi * cosr[0, q]
-                        vavg[i, q] = (math.exp(f0 / sqrt4pi) * (af * c0 + bf * lane[2, q])
-                                      - math.exp(o0 / sqrt4pi) * (ao * c0 + bo * lane[3, q]))
-            # average radiance (Eq. 18, or the cosine-weighted average) times V~, summed over the lights (Eq. 14)
-            for c in range(3):
-                for q in range(n_lanes):
-                    isum[c, q] = 0.0
-            for i in range(n_sph):
-                n_live = 0
-                for q in range(n_lanes):
-                    if theta[i, q] >= 0.0:
-                        n_live += 1
-                if n_live == 0:
-                    continue
-                r00, r01, r02 = rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2]
-                r10, r11, r12 = rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2]
-                r20, r21, r22 = rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2]
-                for q in range(n_lanes):  # direction light -> receiver in the light's frame (Sec. 7.1)
-                    ax, ay, az = axis[i, 0, q], axis[i, 1, q], axis[i, 2, q]
-                    lane[4, q] = -(r00 * ax + r10 * ay + r20 * az)
-                    lane[5, q] = -(r01 * ax + r11 * ay + r21 * az)
-                    lane[6, q] = -(r02 * ax + r12 * ay + r22 * az)
-                if cosine:
-                    # E_n = s n.(Lu . K) - (n.b) L . K over pi s^2 (n . a), light frame (see irradiance_kernel_zh)
-                    for q in range(n_lanes):
-                        uk = min(max(theta[i, q], 0.0), THETA_MAX_K) * (N_THETA_K / THETA_MAX_K)
-                        jk = min(int(math.floor(uk)), N_THETA_K - 1)
-                        sk = uk - jk
-                        for l in range(order + 1):
-                            glog[l, q] = (1.0 - sk) * k_table[jk, l] + sk * k_table[jk + 1, l]
-                    _basis_lanes(lane, 4, order + 1, ybuf, tmp)
-                    for l in range(order + 1):
-                        zs = _ZH_SCALE[l]
-                        for k in range(l * l, (l + 1) * (l + 1)):
-                            for q in range(n_lanes):
-                                krot[k, q] = zs * glog[l, q] * ybuf[k, q]
-                    # la[j, c] = sum_k krot_k Lu[i, k, (j, c)] and le[c] = sum_k krot_k L[i, k, c]
-                    for t in range(9):
-                        for q in range(n_lanes):
-                            la[t, q] = 0.0
-                    for k in range(n1):
-                        for t in range(9):
-                            m = lu[i, k, t]
-                            for q in range(n_lanes):
-                                la[t, q] += krot[k, q] * m
-                    for c in range(3):
-                        for q in range(n_lanes):
-                            le[c, q] = 0.0
-                    for k in range(n2):
-                        for c in range(3):
-                            m = emission[i, k, c]
-                            for q in range(n_lanes):
-                                le[c, q] += krot[k, q] * m
-                    for q in range(n_lanes):  # rows 7, 8: n . a and the unoccluded V~' (_cap_visibility)
-                        lane[7, q] = (recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q]
-                                      + recv[5, q] * axis[i, 2, q])
-                    _cap_visibility_lanes(cos_t, i, lane, cos_zh, order, tmp)
-                    for q in range(n_lanes):
-                        nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
-                        mx = r00 * nx + r10 * ny + r20 * nz
-                        my = r01 * nx + r11 * ny + r21 * nz
-                        mz = r02 * nx + r12 * ny + r22 * nz
-                        s_i = sin_t[i, q] if theta[i, q] <= THETA_MAX_K else sin_k_max
-                        nb_ = mx * lane[4, q] + my * lane[5, q] + mz * lane[6, q]
-                        proj = math.pi * s_i * s_i * lane[7, q]
-                        ok = theta[i, q] >= 0.0 and proj > 0.0 and lane[8, q] > 0.0
-                        frac = min(max(vavg[i, q] / lane[8, q], 0.0), 1.0)
-                        for c in range(3):
-                            e_n = s_i * (mx * la[c, q] + my * la[3 + c, q] + mz * la[6 + c, q]) - nb_ * le[c, q]
-                            isum[c, q] += e_n * frac if ok else 0.0
-                else:
-                    for q in range(n_lanes):
-                        u = max(theta[i, q], 0.0) * (n_theta / (0.5 * math.pi))
-                        jt = min(int(math.floor(u)), n_theta - 1)
-                        st = u - jt
-                        for l in range(order):
-                            glog[l, q] = (1.0 - st) * w_table[jt, l] + st * w_table[jt + 1, l]
-                    _basis_lanes(lane, 4, order, ybuf, tmp)
-                    for l in range(order):
-                        zs = _ZH_SCALE[l]
-                        for k in range(l * l, (l + 1) * (l + 1)):
-                            for q in range(n_lanes):
-                                krot[k, q] = zs * glog[l, q] * ybuf[k, q]
-                    for c in range(3):
-                        for q in range(n_lanes):
-                            le[c, q] = 0.0
-                    for k in range(n2):
-                        for c in range(3):
-                            m = emission[i, k, c]
-                            for q in range(n_lanes):
-                                le[c, q] += krot[k, q] * m
-                    for c in range(3):
-                        for q in range(n_lanes):
-                            isum[c, q] += le[c, q] * vavg[i, q] if theta[i, q] >= 0.0 else 0.0
-            for q in range(nb):
-                for c in range(3):
-                    indirect_out[b0 + q, c] = isum[c, q]

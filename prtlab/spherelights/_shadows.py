@@ -41,6 +41,7 @@ spheres and see them culled.
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numba
@@ -215,66 +216,96 @@ def _basis_lanes(d, row, order, out, tmp):
                         out[base - m, q] = tmp[2, q] * tmp[1, q]
 
 
-@numba.njit(cache=True, error_model="numpy")
-def _blocker_lanes(recv, s, cx, cy, cz, radius, table, u_knots, order, glog, ybuf, tmp, out, dist, theta,
-                   sin_t, cos_t, axis):
-    """Rotated blocker log of one sphere at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
+#: Every light as a blocker at a block of ``L`` receivers, written by :func:`_blocker_lanes`: rotated log
+#: ``(S, n*n, L)`` (0 where culled) and the sum over the lights ``(n*n, L)``, centre distance ``(S, L)``,
+#: angular radius ``(S, L)`` (-1 where culled), its sine and cosine ``(S, L)``, unit axis receiver -> adjusted
+#: centre ``(S, 3, L)``.
+BlockerLanes = collections.namedtuple("BlockerLanes", ["log", "total_log", "dist", "theta", "sin_theta",
+                                                       "cos_theta", "axis"])
+#: Scratch of the lane kernels: ZH coefficients ``(bands, L)``, SH basis ``(coefficients, L)``, ``tmp (7, L)``.
+LaneScratch = collections.namedtuple("LaneScratch", ["zh", "basis", "tmp"])
 
-    recv : (6, L) receiver points and unit normals (x, y, z, nx, ny, nz). Writes row ``s`` of ``out (S, n*n, L)``
-    (0 where culled), of the centre distance ``dist (S, L)``, the angular radius ``theta (S, L)`` (-1 where
-    culled), its sine and cosine ``(S, L)`` and the unit axis ``(S, 3, L)``. The same quantities, to rounding,
-    as :func:`_adjust`, :func:`_lookup_log` and :func:`_add_rotated_zh` per receiver (``cos theta =
-    sqrt(1 - sin^2 theta)``). ``glog (order, L)``, ``ybuf (n*n, L)`` and ``tmp (7, L)`` (rows 4-6: the axis
-    for the basis) are scratch.
-    """
-    n_lanes = recv.shape[1]
-    r2 = radius * radius
-    for q in range(n_lanes):  # adjustment (see _adjust), distance, axis: branch-free, vectorised
-        px, py, pz = recv[0, q], recv[1, q], recv[2, q]
-        nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
-        ex, ey, ez = cx - px, cy - py, cz - pz
-        inside = ex * ex + ey * ey + ez * ez < r2
-        h = nx * ex + ny * ey + nz * ez
-        rn = 0.0 if inside or h <= -radius else (radius if h >= radius else 0.5 * (h + radius))
-        shift = rn - h if (not inside) and h < radius and h > -radius else 0.0
-        dx = (cx + shift * nx) - px
-        dy = (cy + shift * ny) - py
-        dz = (cz + shift * nz) - pz
-        d = math.sqrt(dx * dx + dy * dy + dz * dz)
-        dist[s, q] = d
-        live = rn > 0.0 and d > 0.0
-        inv = 1.0 / d if d > 0.0 else 0.0
-        axis[s, 0, q] = dx * inv
-        axis[s, 1, q] = dy * inv
-        axis[s, 2, q] = dz * inv
-        tmp[4, q] = dx * inv
-        tmp[5, q] = dy * inv
-        tmp[6, q] = dz * inv
-        st = min(rn * inv, 1.0) if live else -1.0
-        sin_t[s, q] = st
-        cos_t[s, q] = math.sqrt(1.0 - st * st) if live else 0.0
-    step = 0.5 * math.pi / N_RADII
-    for q in range(n_lanes):  # angular radius and table lookup (asin, gathers: scalar)
-        st = sin_t[s, q]
-        if st < 0.0:
-            theta[s, q] = -1.0
-            for l in range(order):
-                glog[l, q] = 0.0
-            continue
-        th = 0.5 * math.pi if st >= 1.0 else math.asin(st)
-        theta[s, q] = th
-        j = min(int(math.floor(th / step)), N_RADII - 1)
-        u0 = u_knots[j]
-        w = ((1.0 - cos_t[s, q]) - u0) / (u_knots[j + 1] - u0)
-        w = min(max(w, 0.0), 1.0)
-        for l in range(order):
-            glog[l, q] = (1.0 - w) * table[j, l] + w * table[j + 1, l]
-    _basis_lanes(tmp, 4, order, ybuf, tmp)
-    for l in range(order):
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _rotated_zh_lanes(dirs, row, zh, n_bands, basis, tmp, out, out_row):
+    """``out[out_row, k, q] = sqrt(4 pi / (2l + 1)) zh[l, q] Y_k(d_q)``: the ZH ``zh[:n_bands, q]`` of each lane
+    rotated to its unit direction ``d_q = dirs[row : row + 3, q]``. ``basis ((n_bands)**2, L)`` and rows 0-3 of
+    ``tmp`` are scratch."""
+    _basis_lanes(dirs, row, n_bands, basis, tmp)
+    n_lanes = basis.shape[1]
+    for l in range(n_bands):
         zs = _ZH_SCALE[l]
         for k in range(l * l, (l + 1) * (l + 1)):
             for q in range(n_lanes):
-                out[s, k, q] = zs * glog[l, q] * ybuf[k, q]
+                out[out_row, k, q] = zs * zh[l, q] * basis[k, q]
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _blocker_lanes(recv, centres, radii, tables, order, out, work):
+    """Rotated blocker log of every light at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
+
+    recv : (6, L) receiver points and unit normals (x, y, z, nx, ny, nz); centres (S, 3), radii (S,) the lights;
+    ``tables`` any namedtuple with ``blocker_log`` (:func:`blocker_log_table`) and ``blocker_knots``
+    (:func:`_blocker_log_knots`). Writes every array of ``out`` (a :class:`BlockerLanes`). The same quantities,
+    to rounding, as :func:`_adjust`, :func:`_lookup_log` and :func:`_add_rotated_zh` per receiver (``cos theta
+    = sqrt(1 - sin^2 theta)``). ``work`` (:class:`LaneScratch`; ``tmp`` rows 4-6: the axis for the basis) is
+    scratch. Namedtuples are unpacked once per call, outside the loops (each unpacked array costs a reference
+    count), so the loop over the lights is in here.
+    """
+    n_lanes = recv.shape[1]
+    log, total, dist, theta, axis = out.log, out.total_log, out.dist, out.theta, out.axis
+    sin_t, cos_t = out.sin_theta, out.cos_theta
+    table, knots, zh, basis, tmp = tables.blocker_log, tables.blocker_knots, work.zh, work.basis, work.tmp
+    step = 0.5 * math.pi / N_RADII
+    for k in range(order * order):
+        for q in range(n_lanes):
+            total[k, q] = 0.0
+    for s in range(centres.shape[0]):
+        cx, cy, cz, radius = centres[s, 0], centres[s, 1], centres[s, 2], radii[s]
+        r2 = radius * radius
+        for q in range(n_lanes):  # adjustment (see _adjust), distance, axis: branch-free, vectorised
+            px, py, pz = recv[0, q], recv[1, q], recv[2, q]
+            nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
+            ex, ey, ez = cx - px, cy - py, cz - pz
+            inside = ex * ex + ey * ey + ez * ez < r2
+            h = nx * ex + ny * ey + nz * ez
+            rn = 0.0 if inside or h <= -radius else (radius if h >= radius else 0.5 * (h + radius))
+            shift = rn - h if (not inside) and h < radius and h > -radius else 0.0
+            dx = (cx + shift * nx) - px
+            dy = (cy + shift * ny) - py
+            dz = (cz + shift * nz) - pz
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dist[s, q] = d
+            live = rn > 0.0 and d > 0.0
+            inv = 1.0 / d if d > 0.0 else 0.0
+            axis[s, 0, q] = dx * inv
+            axis[s, 1, q] = dy * inv
+            axis[s, 2, q] = dz * inv
+            tmp[4, q] = dx * inv
+            tmp[5, q] = dy * inv
+            tmp[6, q] = dz * inv
+            st = min(rn * inv, 1.0) if live else -1.0
+            sin_t[s, q] = st
+            cos_t[s, q] = math.sqrt(1.0 - st * st) if live else 0.0
+        for q in range(n_lanes):  # angular radius and table lookup (asin, gathers: scalar)
+            st = sin_t[s, q]
+            if st < 0.0:
+                theta[s, q] = -1.0
+                for l in range(order):
+                    zh[l, q] = 0.0
+                continue
+            th = 0.5 * math.pi if st >= 1.0 else math.asin(st)
+            theta[s, q] = th
+            j = min(int(math.floor(th / step)), N_RADII - 1)
+            u0 = knots[j]
+            w = ((1.0 - cos_t[s, q]) - u0) / (knots[j + 1] - u0)
+            w = min(max(w, 0.0), 1.0)
+            for l in range(order):
+                zh[l, q] = (1.0 - w) * table[j, l] + w * table[j + 1, l]
+        _rotated_zh_lanes(tmp, 4, zh, order, basis, tmp, log, s)
+        for k in range(order * order):
+            for q in range(n_lanes):
+                total[k, q] += log[s, k, q]
 
 
 def _blocker_log_knots() -> np.ndarray:
