@@ -199,10 +199,10 @@ def test_options_are_typed_by_the_method(scenes, tmp_path, monkeypatch, capsys):
     calls = _capture_shade(monkeypatch)
     out = tmp_path / "r.npz"
     code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "spherelights", "-o", "n_spheres={ball: 3}",
-                       "-o", "occluding_ground=no", "-o", "cut_threshold=0.5", "-o", "exp_method=ol",
+                       "-o", "ground=paper", "-o", "cut_threshold=0.5", "-o", "exp_method=ol",
                        "-o", "spherelights.order=3", "--out", out)
     assert code == 0, err
-    assert calls[0][2] == {"n_spheres": {"ball": 3}, "occluding_ground": False, "cut_threshold": 0.5,
+    assert calls[0][2] == {"n_spheres": {"ball": 3}, "ground": "paper", "cut_threshold": 0.5,
                            "exp_method": "ol", "order": 3, "progress": False}
     code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "reference", "-o", "env_sampling=bsdf",
                        "-o", "area_lights_block=false", "--out", out)

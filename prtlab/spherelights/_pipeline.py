@@ -1,9 +1,9 @@
 """The spherical-lights pipeline as a :class:`prtlab.pipeline.Precomputation` (Guerrero et al. 2008).
 
 Precomputation (Sec. 4), per *source* object (a closed mesh once coincident
-vertices are merged; open meshes
-such as ground planes and walls only receive, as in the paper's scenes, and
-neither block nor reflect):
+vertices are merged; open meshes such as ground planes and walls carry no
+spherical lights, as in the paper's scenes; a ground, flat and horizontal,
+takes part through the option ``ground``, see ``_ground``):
 
 * ``centres, radii`` of a variational bounding sphere set
   (:func:`fit_spheres`, object space);
@@ -20,7 +20,9 @@ Per frame (Secs. 5-7), with the object transforms of the frame state
 radii and samples move with their object; the lights' SH stay in object
 space and the receiver direction is rotated into it instead (``w_theta``
 rotated by the inverse rotation). Then :func:`first_pass` and
-:func:`second_pass`. The environment is the only scene light handled (area
+:func:`second_pass`, the grounds shaded first, and at the other receivers the
+ground's terms (:func:`ground_light`: the light it hides leaves the direct
+irradiance, the light it reflects joins the indirect). The environment is the only scene light handled (area
 and point lights raise); local lights are spherical lights with a user
 radiance (option ``local_lights``, Sec. 7.3).
 
@@ -29,7 +31,10 @@ grounds' rectangles are taken per frame): a moved state shades as a
 precomputation at the new pose would. The direct and indirect irradiance
 are clamped at 0 before the albedo: their order-n SH products (visibility
 from the exponentiated log visibility, times the environment) ring below 0
-beside a sphere on a ground, as in the interreflection pipeline's clamp.
+beside a sphere on a ground (down to -0.19 at the ground's vertices beside
+the spheres of ``spheres_on_plane_env`` fitted with 8 spheres each), and
+the ground's hidden light, found with binary visibility, is subtracted from
+a direct term found with the SH visibility.
 
 Soft deformations (Sec. 7.1, ``FrameState.deformations``, or ``shade(..., deformed=)``): each light of a
 deformed object turns and moves with the best-fit rotation and the mean
@@ -62,7 +67,7 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import ground_rectangles
+from ._ground import ground_light, ground_objects, ground_raster, ground_texture
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._passes import first_pass, second_pass
@@ -118,13 +123,17 @@ class SphereLightOptions:
         centre then gets the flat value exactly); ``k > 1`` adds ``k - 1`` farthest-point receivers and takes the
         least-squares best scaling (the paper's wording for ``t``), which is steadier where the centre sees a
         node near its horizon (the measurement behind the default: ``docs/NOTES.md``).
-    occluding_ground : bool
-        An extension, on by default: the scene's grounds (flat, horizontal,
-        receiving-only objects) hide the environment from the surface samples of
-        the first pass, as they do in a reference renderer (see ``_ground``). The
-        paper's ground neither blocks nor reflects; then objects resting on a
-        ground are lit from below in the first pass and their undersides
-        over-light the ground. No effect in a scene without a ground.
+    ground : {"reflects", "blocks", "paper"}
+        The scene's grounds (flat, horizontal, receiving-only objects) in light
+        transport, an extension (see ``_ground``). ``"reflects"`` (default): a
+        ground hides what lies beyond it (the environment below the horizon, a
+        local light under it) from the first pass's surface samples and from
+        every receiver above it, and its exit radiance reaches them as indirect
+        light (its direct light with one bounce, its total with two), blocked
+        by the spherical lights in between. ``"blocks"``: it hides but does not
+        reflect. ``"paper"``: it neither hides nor reflects, as in the paper
+        (Sec. 8: large flat surfaces only receive); objects on a ground are
+        then lit from below. No effect in a scene without a ground.
     """
 
     n_spheres: int | dict = 8
@@ -135,7 +144,7 @@ class SphereLightOptions:
     n_directions: int = 92
     fit_resolution: int = 40
     cube_resolution: int = 16
-    occluding_ground: bool = True
+    ground: str = "reflects"
     local_lights: tuple = ()
     hierarchy_children: int = 0
     cut_threshold: float = 0.25
@@ -156,7 +165,7 @@ class SphereLightOptions:
                              f"(12, 42, 92, 162, ...), got {self.n_directions!r}")
         check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
-        check_bool(self.occluding_ground, "option occluding_ground")
+        check_choice(self.ground, "option ground", ("reflects", "blocks", "paper"))
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
         if check_int(self.hierarchy_children, "option hierarchy_children", 0) == 1:
             raise ValueError("option hierarchy_children must be 0 (no hierarchy) or an int >= 2, got 1")
@@ -245,7 +254,7 @@ class WorldLights(NamedTuple):
 
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
-             "cluster_size", "reflection_ratio", "ratio_samples")
+             "cluster_size", "reflection_ratio", "ratio_samples", "ground")
 
 
 class SphereLights(Precomputation):
@@ -255,8 +264,9 @@ class SphereLights(Precomputation):
     format_version = 2
     max_bounces = 1
     options_type = SphereLightOptions
-    renamed_options = {"grid_resolution": "fit_resolution"}
+    renamed_options = {"grid_resolution": "fit_resolution", "occluding_ground": "ground"}
     supports_deformations = True
+    _RASTER = 128  # texels per edge of a ground's radiance texture (see ``_ground``)
 
     @classmethod
     def check_lights(cls, lights, options) -> None:
@@ -441,11 +451,10 @@ class SphereLights(Precomputation):
         all_rot = np.concatenate([rot, np.broadcast_to(np.eye(3), (n_loc, 3, 3))])
         local_only = np.concatenate([np.zeros((n_sl, opts.order**2, 3)), l_em])
         emission = np.zeros((n_sl, opts.order**2, 3))
+        grounds = [] if opts.ground == "paper" else ground_objects(
+            [o for o in self.scene.objects if o.name not in self.data["objects"] and not o.portal], state.transforms)
+        rects = np.array([row for _, row in grounds]).reshape(-1, 7)
         if bounces > 0 and n_sl:
-            ground = None
-            if opts.occluding_ground:
-                ground = ground_rectangles([o for o in self.scene.objects if o.name not in self.data["objects"]],
-                                           state.transforms)
             extra = None
             if n_loc and svalid.any():
                 # the second pass's computation at the surface samples, local lights only (Sec. 7.3)
@@ -455,14 +464,24 @@ class SphereLights(Precomputation):
                                                average=opts.average, indirect=True)
             emission = first_pass(spts, snrm, svalid, all_c, all_r, env,
                                   voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
-                                  exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
+                                  exp_method=opts.exp_method, ground=rects if len(rects) else None,
+                                  extra_irradiance=extra)
         emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
         t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
-                                   "blocking": opts.blocking, "average": opts.average})
+                                   "blocking": opts.blocking, "average": opts.average, "ground": opts.ground})
+        ground_names = [obj.name for obj, _ in grounds]
+        order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
+                       key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
+        textures = None
+        local_radiance = np.concatenate([np.full((n_sl, 3), np.nan), l_em[:, 0] / math.sqrt(4.0 * math.pi)])
         nodes = None
-        for obj in (o for o in self.scene.objects if not o.portal):  # portals are openings, not surfaces
+        for obj in order:
+            if textures is None and obj.name not in ground_names and len(grounds):
+                reflects = opts.ground == "reflects" and bounces > 0
+                textures = (self._ground_textures(grounds, result) if reflects
+                            else np.zeros((len(grounds), 1, 1, 3)))
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in deformed:
                 pts, nrm = _deformed_receivers(obj, deformed[obj.name], tr)
@@ -483,6 +502,12 @@ class SphereLights(Precomputation):
                                             blocking=opts.blocking, exp_method=opts.exp_method,
                                             average=opts.average, indirect=True)
                 direct = direct + from_local
+            if obj.name not in ground_names and len(grounds):
+                # the ground hides what lies beyond it and reflects its own light (see ``_ground``)
+                hidden, reflected = ground_light(pts, nrm, rects, textures, env, all_c, all_r, local_radiance)
+                direct = direct - hidden
+                if opts.ground == "reflects" and bounces > 0:
+                    indirect = indirect + reflected
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             # irradiance is never negative: clamp the order-n SH products' ringing (see the module docstring)
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
@@ -490,6 +515,18 @@ class SphereLights(Precomputation):
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
+
+    def _ground_textures(self, grounds, result) -> np.ndarray:
+        """``(G, R, R, 3)`` exit radiance over each ground's rectangle from its shaded vertices: its direct light
+        with one bounce (``result.direct``); rasters cached per ground mesh."""
+        cache = self.__dict__.setdefault("_raster_cache", {})
+        out = []
+        for obj, _ in grounds:
+            key = obj.name
+            if key not in cache or cache[key][0] is not obj.mesh:
+                cache[key] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
+            out.append(ground_texture(cache[key][1], result.direct[obj.name]))
+        return np.ascontiguousarray(np.stack(out))
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
 

@@ -114,17 +114,58 @@ def test_objects_with_different_sphere_counts():
     assert np.all(np.isfinite(pre.shade(bounces=1).total["plane"]))
 
 
-def test_occluding_ground_hides_the_environment_from_the_first_pass(pre):
+def test_ground_option_hides_and_reflects(pre):
+    """``ground="paper"``: the ground neither hides nor reflects (the paper); ``"blocks"``: it hides the environment
+    from the first pass's samples (less light on the ground) and from the objects (less direct light on them);
+    ``"reflects"`` (default): as ``"blocks"``, plus its light reaching the objects (more indirect light)."""
     from prtlab.spherelights import ground_rectangles
 
     rect = ground_rectangles([pre.scene.object("plane")])
     np.testing.assert_allclose(rect, [[0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 2.0]], atol=1e-12)  # 4 x 4 plane at y = 0
     assert ground_rectangles([pre.scene.object("ball")]).shape == (0, 7)  # not flat: no ground
-    off = SphereLights(pre.scene, SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16,
-                                                             "occluding_ground": False}), pre.data)
-    a, b = pre.shade(bounces=1), off.shade(bounces=1)
-    np.testing.assert_allclose(a.direct["plane"], b.direct["plane"])
-    assert a.indirect["plane"].sum() < b.indirect["plane"].sum()
+    assert pre.options.ground == "reflects"
+
+    def variant(ground):
+        opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground": ground})
+        return SphereLights(pre.scene, opts, pre.data).shade(bounces=1)
+
+    a, blocks, paper = pre.shade(bounces=1), variant("blocks"), variant("paper")
+    assert a.info["ground"] == "reflects" and paper.info["ground"] == "paper"
+    np.testing.assert_allclose(a.direct["plane"], paper.direct["plane"])
+    np.testing.assert_allclose(a.indirect["plane"], blocks.indirect["plane"])
+    assert a.indirect["plane"].sum() < paper.indirect["plane"].sum()
+    for name in ("ball", "box"):
+        np.testing.assert_allclose(a.direct[name], blocks.direct[name])
+        assert a.direct[name].sum() < paper.direct[name].sum()
+        assert a.indirect[name].sum() > blocks.indirect[name].sum()
+    with pytest.raises(ValueError, match="option ground must be one of"):
+        SphereLights.make_options({"ground": "mirror"})
+    with pytest.raises(ValueError, match="'occluding_ground' of method 'spherelights' is now called 'ground'"):
+        SphereLights.make_options({"occluding_ground": False})
+
+
+def test_no_negative_radiance_beside_a_sphere():
+    """Raw order-4 SH products ring below 0 at ground vertices beside a sphere resting on the ground (the
+    exponentiated visibility of a blocker covering most of the upper hemisphere undershoots where the true
+    visibility is 0), and the ground's hidden light is subtracted from the objects' direct light: every
+    radiance the pipeline returns is clamped at 0 (irradiance is non-negative)."""
+    from prtlab.spherelights import first_pass, ground_rectangles, second_pass, voronoi_cell_sums
+
+    sc = prtlab.load_scene("spheres_on_plane_env")
+    pre8 = SphereLights.precompute(sc, {"n_spheres": 8, "fit_resolution": 16}, cache=False, progress=False)
+    st = FrameState.from_scene(sc)
+    env = pre8._environment(st)
+    c, r, so, inter, rot, spts, snrm, sval, alb = pre8.world_lights(st)
+    em = first_pass(spts, snrm, sval, c, r, env, voronoi_cell_sums(4), alb,
+                    ground=ground_rectangles([sc.object("plane")]))
+    plane = sc.object("plane")
+    raw, _ = second_pass(plane.world_shading_points(plane.transform), plane.world_normals(plane.transform), c, r, so,
+                         inter, rot, em, env)
+    assert raw.min() < -0.05  # the ringing the clamp removes
+    res = pre8.shade(st, bounces=1)
+    for part in (res.direct, res.indirect, res.total):
+        for name, value in part.items():
+            assert np.all(value >= 0.0), name
 
 
 # ------------------------------------------------------------------ local lights (Sec. 7.3)
