@@ -134,6 +134,12 @@ class SphereLightOptions:
         reflect. ``"paper"``: it neither hides nor reflects, as in the paper
         (Sec. 8: large flat surfaces only receive); objects on a ground are
         then lit from below. No effect in a scene without a ground.
+    ground_texels : int
+        Where the ground's reflected light is read (``ground="reflects"``): ``k >= 2``
+        (default 64) shades a ``k x k`` grid of points over each ground (the direct
+        light, a shadows-only pass) and interpolates it bilinearly; 0 interpolates the
+        ground's shaded vertices over its mesh (cheaper; a coarse ground mesh blurs
+        the dark contact shadows under the objects).
     """
 
     n_spheres: int | dict = 8
@@ -145,6 +151,7 @@ class SphereLightOptions:
     fit_resolution: int = 40
     cube_resolution: int = 16
     ground: str = "reflects"
+    ground_texels: int = 64
     local_lights: tuple = ()
     hierarchy_children: int = 0
     cut_threshold: float = 0.25
@@ -166,6 +173,8 @@ class SphereLightOptions:
         check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
         check_choice(self.ground, "option ground", ("reflects", "blocks", "paper"))
+        if check_int(self.ground_texels, "option ground_texels", 0, meaning="0: the ground's vertices") == 1:
+            raise ValueError("option ground_texels must be 0 (the ground's vertices) or an int >= 2, got 1")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
         if check_int(self.hierarchy_children, "option hierarchy_children", 0) == 1:
             raise ValueError("option hierarchy_children must be 0 (no hierarchy) or an int >= 2, got 1")
@@ -254,7 +263,8 @@ class WorldLights(NamedTuple):
 
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
-             "cluster_size", "reflection_ratio", "ratio_samples", "ground")
+             "cluster_size", "reflection_ratio", "ratio_samples", "ground",
+             "ground_texels")
 
 
 class SphereLights(Precomputation):
@@ -472,6 +482,17 @@ class SphereLights(Precomputation):
                                    "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
                                    "blocking": opts.blocking, "average": opts.average, "ground": opts.ground})
         ground_names = [obj.name for obj, _ in grounds]
+
+        def direct_at(p, n):
+            """Direct irradiance (environment and local lights) at receivers, as the loop below computes it."""
+            e, _ = second_pass(p, n, all_c, all_r, all_obj, all_inter, all_rot, emission, env, blocking=opts.blocking,
+                               exp_method=opts.exp_method, average=opts.average, indirect=False)
+            if n_loc:
+                e = e + second_pass(p, n, all_c, all_r, all_obj, all_inter, all_rot, local_only, env,
+                                    blocking=opts.blocking, exp_method=opts.exp_method, average=opts.average,
+                                    indirect=True)[1]
+            return e
+
         order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
                        key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
         textures = None
@@ -480,7 +501,7 @@ class SphereLights(Precomputation):
         for obj in order:
             if textures is None and obj.name not in ground_names and len(grounds):
                 reflects = opts.ground == "reflects" and bounces > 0
-                textures = (self._ground_textures(grounds, result) if reflects
+                textures = (self._ground_textures(grounds, result, direct_at) if reflects
                             else np.zeros((len(grounds), 1, 1, 3)))
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in deformed:
@@ -516,16 +537,27 @@ class SphereLights(Precomputation):
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
 
-    def _ground_textures(self, grounds, result) -> np.ndarray:
-        """``(G, R, R, 3)`` exit radiance over each ground's rectangle from its shaded vertices: its direct light
-        with one bounce (``result.direct``); rasters cached per ground mesh."""
-        cache = self.__dict__.setdefault("_raster_cache", {})
+    def _ground_textures(self, grounds, result, direct_at) -> np.ndarray:
+        """``(G, R, R, 3)`` exit radiance over each ground's rectangle, its direct light (one bounce): with
+        ``ground_texels = k > 0`` the irradiance ``direct_at(points, normals)`` of a ``k x k`` grid of points over the
+        rectangle (its texel centres), else its shaded vertices (``result.direct``) interpolated over its mesh
+        (rasters cached per ground mesh)."""
+        k = self.options.ground_texels
         out = []
-        for obj, _ in grounds:
-            key = obj.name
-            if key not in cache or cache[key][0] is not obj.mesh:
-                cache[key] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
-            out.append(ground_texture(cache[key][1], result.direct[obj.name]))
+        for obj, row in grounds:
+            if k:
+                y0, cx, cz, ux, uz, vx, vz = row
+                a = -1.0 + (np.arange(k) + 0.5) * (2.0 / k)
+                aa, bb = np.meshgrid(a, a, indexing="ij")
+                pts = np.stack([cx + aa * ux + bb * vx, np.full_like(aa, y0), cz + aa * uz + bb * vz], -1)
+                albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
+                e = direct_at(pts.reshape(-1, 3), np.broadcast_to([0.0, 1.0, 0.0], (k * k, 3)))
+                out.append(np.maximum(e, 0.0).reshape(k, k, 3) * albedo)
+                continue
+            cache = self.__dict__.setdefault("_raster_cache", {})
+            if obj.name not in cache or cache[obj.name][0] is not obj.mesh:
+                cache[obj.name] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
+            out.append(ground_texture(cache[obj.name][1], result.direct[obj.name]))
         return np.ascontiguousarray(np.stack(out))
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)

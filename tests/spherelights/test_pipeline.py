@@ -142,6 +142,16 @@ def test_ground_option_hides_and_reflects(pre):
         SphereLights.make_options({"ground": "mirror"})
     with pytest.raises(ValueError, match="'occluding_ground' of method 'spherelights' is now called 'ground'"):
         SphereLights.make_options({"occluding_ground": False})
+    with pytest.raises(ValueError, match="option ground_texels must be 0 .* or an int >= 2, got 1"):
+        SphereLights.make_options({"ground_texels": 1})
+    with pytest.raises(TypeError, match="option ground_texels must be an int"):
+        SphereLights.make_options({"ground_texels": 2.5})
+    # the ground's light read from its shaded vertices instead of a grid of its points: the same light, blurred
+    opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground_texels": 0})
+    from_vertices = SphereLights(pre.scene, opts, pre.data).shade(bounces=1)
+    for name in ("ball", "box"):
+        np.testing.assert_allclose(from_vertices.direct[name], a.direct[name])
+        np.testing.assert_allclose(from_vertices.indirect[name].sum(), a.indirect[name].sum(), rtol=0.1)
 
 
 def test_no_negative_radiance_beside_a_sphere():
