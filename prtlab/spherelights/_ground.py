@@ -291,12 +291,14 @@ def _cosine_span(a, b):
 
 
 @numba.njit(cache=True, inline="always")
-def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, n_live, is_local):
-    """Along the ray ``p + t w`` (unit ``w``): whether a light (``live[:n_live]``: centre, radius) is hit before
-    ``t_ground``, and else the nearest local light hit beyond it (its index ``live_id[j]``, -1: none)."""
+def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand, is_local):
+    """Along the ray ``p + t w`` (unit ``w``): whether a light (rows ``cand[:n_cand]`` of ``live``: centre, radius)
+    is hit before ``t_ground``, and else the nearest local light hit beyond it (its index ``live_id[j]``, -1:
+    none)."""
     t_beyond = np.inf
     beyond = -1
-    for j in range(n_live):
+    for m in range(n_cand):
+        j = cand[m]
         ox, oy, oz = live[j, 0] - px, live[j, 1] - py, live[j, 2] - pz
         bb = ox * wx + oy * wy + oz * wz
         disc = bb * bb - (ox * ox + oy * oy + oz * oz - live[j, 3] * live[j, 3])
@@ -327,6 +329,7 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground):
         nx, ny, nz = normals[q, 0], normals[q, 1], normals[q, 2]
         live = np.empty((n_sph, 4))  # adjusted lights reaching below the receiver: centre, radius
         live_id = np.empty(n_sph, dtype=np.int64)
+        cand = np.empty(n_sph, dtype=np.int64)
         n_live = 0
         for s in range(n_sph):
             cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, scene.centres[s, 0], scene.centres[s, 1],
@@ -355,6 +358,12 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground):
                 if lo >= hi:
                     continue
                 half = 0.5 * (hi - lo)
+                n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
+                for j in range(n_live):
+                    ox, oz = live[j, 0] - px, live[j, 2] - pz
+                    if ox * ux + oz * uz > -live[j, 3] and abs(ox * uz - oz * ux) < live[j, 3]:
+                        cand[n_cand] = j
+                        n_cand += 1
                 for i in range(n_el):
                     e = lo + half * (quad.nodes[i] + 1.0)
                     ce, se = math.cos(e), math.sin(e)
@@ -363,7 +372,7 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground):
                     if wgt <= 0.0:
                         continue
                     t_ground = h / se
-                    blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, n_live,
+                    blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand,
                                                      scene.is_local)
                     if blocked:
                         continue
