@@ -545,10 +545,10 @@ def test_compare_skips_a_method_that_cannot_do_the_bounces(scenes, monkeypatch, 
         raise AssertionError("computed although no method can shade")
 
     monkeypatch.setattr(api, "shade", must_not_run)
-    code, _, err = run(capsys, "compare", scenes["tiny"], "--methods", "spherelights", "--bounces", "2")
+    code, _, err = run(capsys, "compare", scenes["tiny"], "--methods", "spherelights", "--bounces", "3")
     assert code == 1
     assert err.splitlines() == [
-        "prtlab compare: spherelights cannot shade this scene: method 'spherelights' computes at most 1 indirect "
-        "bounce(s), got bounces=2; use method='reference' for more",
-        "prtlab compare: no method can shade this scene with --bounces 2",
+        "prtlab compare: spherelights cannot shade this scene: method 'spherelights' computes at most 2 indirect "
+        "bounce(s), got bounces=3; use method='reference' for more",
+        "prtlab compare: no method can shade this scene with --bounces 3",
     ]
