@@ -501,10 +501,18 @@ def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radi
     ground). The lights block by ray-sphere tests (binary), not by the SH visibility. A receiver at or below a
     ground's height gets nothing from it; grounds seen through one another are each counted.
     """
+    from prtlab._validate import check_int
+
+    check_int(n_azimuth, "n_azimuth", 1)
+    check_int(n_elevation, "n_elevation", 1)
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True)) if len(n) else n
     rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
+    tex_shape = np.shape(textures)
+    if len(tex_shape) != 4 or tex_shape[0] != len(rects) or tex_shape[1] != tex_shape[2] or tex_shape[3] != 3 \
+            or tex_shape[1] < 1:
+        raise ValueError(f"textures must have shape (G, R, R, 3) with G = {len(rects)} rectangles, got {tex_shape}")
     hidden, reflected = np.zeros((p.shape[0], 3)), np.zeros((p.shape[0], 3))
     if p.shape[0] == 0 or rects.shape[0] == 0:
         return hidden, reflected

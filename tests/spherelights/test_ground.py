@@ -306,5 +306,12 @@ def test_errors():
     assert ground_blocked_transfer(np.zeros((0, 3)), np.zeros((0, 3)), WHITE, np.zeros((1, 7))).shape == (0, 16, 3)
     h, r = ground_light(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((1, 7)), np.zeros((1, 2, 2, 3)), WHITE)
     assert h.shape == r.shape == (0, 3)
+    rect = [[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0]]
+    with pytest.raises(ValueError, match=r"textures must have shape \(G, R, R, 3\) with G = 1 rectangles"):
+        ground_light([[0, 1.0, 0]], [[0, -1.0, 0]], rect, np.zeros((2, 2, 2, 3)), WHITE)
+    with pytest.raises(ValueError, match="n_azimuth must be an int >= 1"):
+        ground_light([[0, 1.0, 0]], [[0, -1.0, 0]], rect, np.zeros((1, 2, 2, 3)), WHITE, n_azimuth=0)
+    with pytest.raises(TypeError, match="n_elevation must be an int"):
+        ground_light([[0, 1.0, 0]], [[0, -1.0, 0]], rect, np.zeros((1, 2, 2, 3)), WHITE, n_elevation=2.0)
     assert geodesic_directions(92).shape == (92, 3)
     _ = sh  # noqa
