@@ -156,10 +156,10 @@ def test_options_are_typed_by_the_method(scenes, tmp_path, monkeypatch, capsys):
     calls = _capture_shade(monkeypatch)
     out = tmp_path / "r.npz"
     code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "spherelights", "-o", "n_spheres={ball: 3}",
-                       "-o", "occluding_ground=no", "-o", "cut_threshold=0.5", "-o", "exp_method=ol",
+                       "-o", "ground=paper", "-o", "cut_threshold=0.5", "-o", "exp_method=ol",
                        "-o", "spherelights.order=3", "--out", out)
     assert code == 0, err
-    assert calls[0][2] == {"n_spheres": {"ball": 3}, "occluding_ground": False, "cut_threshold": 0.5,
+    assert calls[0][2] == {"n_spheres": {"ball": 3}, "ground": "paper", "cut_threshold": 0.5,
                            "exp_method": "ol", "order": 3, "progress": False}
     code, _, err = run(capsys, "shade", scenes["tiny"], "--method", "reference", "-o", "env_sampling=bsdf",
                        "-o", "area_lights_block=false", "--out", out)
@@ -504,10 +504,10 @@ def test_compare_skips_a_method_that_cannot_do_the_bounces(scenes, monkeypatch, 
         raise AssertionError("computed although no method can shade")
 
     monkeypatch.setattr(api, "shade", must_not_run)
-    code, _, err = run(capsys, "compare", scenes["tiny"], "--methods", "spherelights", "--bounces", "2")
+    code, _, err = run(capsys, "compare", scenes["tiny"], "--methods", "spherelights", "--bounces", "3")
     assert code == 1
     assert err.splitlines() == [
-        "prtlab compare: spherelights cannot shade this scene: method 'spherelights' computes at most 1 indirect "
-        "bounce(s), got bounces=2; use method='reference' for more",
-        "prtlab compare: no method can shade this scene with --bounces 2",
+        "prtlab compare: spherelights cannot shade this scene: method 'spherelights' computes at most 2 indirect "
+        "bounce(s), got bounces=3; use method='reference' for more",
+        "prtlab compare: no method can shade this scene with --bounces 3",
     ]

@@ -5,7 +5,8 @@ order 4. Here: a squirrel-like object of 8 lights plus 6 balls of one
 light each (7 objects), 92 surface samples per light, receivers on a
 ground grid and around the objects (synthetic arrays, no precomputation).
 Cases: a whole frame (first pass + second pass) with per-object and
-per-sphere blocking, shadows only, and the precomputation of a real scene
+per-sphere blocking, shadows only, the per-object frame with the ground's
+terms (issue 16), and the precomputation of a real scene
 (``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
 precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 """
@@ -199,6 +200,30 @@ def frame_shadows_only(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object", indirect=False), "gflop": _frame_flops(a, "object", False),
             "items": _n(quick), "peer": None, "floor": floor(*frame_floor(a, "object", False), FLOOR_FORMULA)}
+
+
+@case("spherelights.frame.per_object_ground.21k")
+def frame_per_object_ground(quick: bool) -> dict:
+    """The per-object frame with the ground taking part (``ground="reflects"``): plus the ground's texture (a 64 x
+    64 shadows-only pass over the 6 x 6 ground) and ``ground_light`` at the receivers above it; peer: without."""
+    from prtlab.spherelights import ground_light
+
+    a = _scene_arrays(_n(quick))
+    g = 3.0 * (-1.0 + (np.arange(64) + 0.5) / 32.0)
+    texels = np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
+    up = np.broadcast_to([0.0, 1.0, 0.0], texels.shape)
+    above = a["points"][:, 1] > 0
+    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+
+    def run():
+        _frame(a, "object")
+        e, _ = second_pass(texels, up, a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
+                           np.zeros_like(a["albedo"]), a["env"], indirect=False)
+        tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
+        return ground_light(a["points"][above], a["normals"][above], rect, tex, a["env"], a["centres"], a["radii"])
+
+    return {"run": run, "gflop": None, "items": _n(quick),
+            "peer": ("without the ground terms", lambda: _frame(a, "object"))}
 
 
 def memory_per_object(objects: dict, arrays=None) -> dict:

@@ -3,7 +3,8 @@
 Sphere-set fitting (Sec. 4.1), surface samples and albedo (Sec. 4.2), the
 direct soft shadows of Ren et al. 2006 (Sec. 5.1, Eqs. 3-8), the tables
 (Eqs. 10, 16-17), the first and second pass (Eqs. 9-24, per-sphere and
-per-object blocking), local lights (Sec. 7.3, option ``local_lights``), hierarchies of lights with
+per-object blocking), the ground in light transport (option ``ground``, an extension), local lights (Sec. 7.3,
+option ``local_lights``), hierarchies of lights with
 the reflection ratio (Sec. 7.3, option ``hierarchy_children``), soft
 deformations (Sec. 7.1, ``SphereLights.shade(..., deformed=...)``) and the
 pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
@@ -11,7 +12,7 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
 from ._pipeline import SphereLightOptions, SphereLights, WorldLights, light_motions, precompute, shade_scene
-from ._ground import ground_blocked_transfer, ground_rectangles
+from ._ground import ground_blocked_transfer, ground_light, ground_raster, ground_rectangles, ground_texture
 from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
                          receiver_clusters, reflection_ratio, select_cut)
 from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
@@ -38,9 +39,12 @@ __all__ = [
     "segment_of",
     "surface_albedo_sh",
     "surface_samples",
-    # the ground as an occluder of the first pass (an extension)
+    # the ground in light transport: it hides and reflects (an extension)
     "ground_blocked_transfer",
+    "ground_light",
+    "ground_raster",
     "ground_rectangles",
+    "ground_texture",
     # hierarchies of spherical lights and the reflection ratio (Sec. 7.3)
     "LightHierarchy",
     "bounding_sphere",

@@ -1,9 +1,9 @@
 """The spherical-lights pipeline as a :class:`prtlab.pipeline.Precomputation` (Guerrero et al. 2008).
 
 Precomputation (Sec. 4), per *source* object (a closed mesh once coincident
-vertices are merged; open meshes
-such as ground planes and walls only receive, as in the paper's scenes, and
-neither block nor reflect):
+vertices are merged; open meshes such as ground planes and walls carry no
+spherical lights, as in the paper's scenes; a ground, flat and horizontal,
+takes part through the option ``ground``, see ``_ground``):
 
 * ``centres, radii`` of a variational bounding sphere set
   (:func:`fit_spheres`, object space);
@@ -20,7 +20,9 @@ Per frame (Secs. 5-7), with the object transforms of the frame state
 radii and samples move with their object; the lights' SH stay in object
 space and the receiver direction is rotated into it instead (``w_theta``
 rotated by the inverse rotation). Then :func:`first_pass` and
-:func:`second_pass`. The environment is the only scene light handled (area
+:func:`second_pass`, the grounds shaded first, and at the other receivers the
+ground's terms (:func:`ground_light`: the light it hides leaves the direct
+irradiance, the light it reflects joins the indirect). The environment is the only scene light handled (area
 and point lights raise); local lights are spherical lights with a user
 radiance (option ``local_lights``, Sec. 7.3).
 
@@ -29,7 +31,10 @@ grounds' rectangles are taken per frame): a moved state shades as a
 precomputation at the new pose would. The direct and indirect irradiance
 are clamped at 0 before the albedo: their order-n SH products (visibility
 from the exponentiated log visibility, times the environment) ring below 0
-beside a sphere on a ground, as in the interreflection pipeline's clamp.
+beside a sphere on a ground (down to -0.19 at the ground's vertices beside
+the spheres of ``spheres_on_plane_env`` fitted with 8 spheres each), and
+the ground's hidden light, found with binary visibility, is subtracted from
+a direct term found with the SH visibility.
 
 Soft deformations (Sec. 7.1, ``FrameState.deformations``, or ``shade(..., deformed=)``): each light of a
 deformed object turns and moves with the best-fit rotation and the mean
@@ -62,7 +67,7 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import ground_rectangles
+from ._ground import ground_light, ground_objects, ground_raster, ground_texture
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._passes import first_pass, second_pass
@@ -118,13 +123,23 @@ class SphereLightOptions:
         centre then gets the flat value exactly); ``k > 1`` adds ``k - 1`` farthest-point receivers and takes the
         least-squares best scaling (the paper's wording for ``t``), which is steadier where the centre sees a
         node near its horizon (the measurement behind the default: ``docs/NOTES.md``).
-    occluding_ground : bool
-        An extension, on by default: the scene's grounds (flat, horizontal,
-        receiving-only objects) hide the environment from the surface samples of
-        the first pass, as they do in a reference renderer (see ``_ground``). The
-        paper's ground neither blocks nor reflects; then objects resting on a
-        ground are lit from below in the first pass and their undersides
-        over-light the ground. No effect in a scene without a ground.
+    ground : {"reflects", "blocks", "paper"}
+        The scene's grounds (flat, horizontal, receiving-only objects) in light
+        transport, an extension (see ``_ground``). ``"reflects"`` (default): a
+        ground hides what lies beyond it (the environment below the horizon, a
+        local light under it) from the first pass's surface samples and from
+        every receiver above it, and its exit radiance reaches them as indirect
+        light (its direct light with one bounce, its total with two), blocked
+        by the spherical lights in between. ``"blocks"``: it hides but does not
+        reflect. ``"paper"``: it neither hides nor reflects, as in the paper
+        (Sec. 8: large flat surfaces only receive); objects on a ground are
+        then lit from below. No effect in a scene without a ground.
+    ground_texels : int
+        Where the ground's reflected light is read (``ground="reflects"``): ``k >= 2``
+        (default 64) shades a ``k x k`` grid of points over each ground (the direct
+        light, a shadows-only pass) and interpolates it bilinearly; 0 interpolates the
+        ground's shaded vertices over its mesh (cheaper; a coarse ground mesh blurs
+        the dark contact shadows under the objects).
     """
 
     n_spheres: int | dict = 8
@@ -135,7 +150,8 @@ class SphereLightOptions:
     n_directions: int = 92
     fit_resolution: int = 40
     cube_resolution: int = 16
-    occluding_ground: bool = True
+    ground: str = "reflects"
+    ground_texels: int = 64
     local_lights: tuple = ()
     hierarchy_children: int = 0
     cut_threshold: float = 0.25
@@ -156,7 +172,9 @@ class SphereLightOptions:
                              f"(12, 42, 92, 162, ...), got {self.n_directions!r}")
         check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
-        check_bool(self.occluding_ground, "option occluding_ground")
+        check_choice(self.ground, "option ground", ("reflects", "blocks", "paper"))
+        if check_int(self.ground_texels, "option ground_texels", 0, meaning="0: the ground's vertices") == 1:
+            raise ValueError("option ground_texels must be 0 (the ground's vertices) or an int >= 2, got 1")
         object.__setattr__(self, "local_lights", _check_local_lights(self.local_lights))
         if check_int(self.hierarchy_children, "option hierarchy_children", 0) == 1:
             raise ValueError("option hierarchy_children must be 0 (no hierarchy) or an int >= 2, got 1")
@@ -243,20 +261,39 @@ class WorldLights(NamedTuple):
     albedo_sh: np.ndarray  # (S, n*n, 3)
 
 
+class _FrameLights(NamedTuple):
+    """Every light of a frame as the second pass takes them: the spherical lights, then the local ones."""
+
+    centres: np.ndarray  # (S + L, 3)
+    radii: np.ndarray  # (S + L,)
+    object_index: np.ndarray  # (S + L,) int
+    intersect: np.ndarray  # (S + L, S + L) bool
+    rotations: np.ndarray  # (S + L, 3, 3)
+    env: np.ndarray  # (N*N, 3) environment SH
+    local_only: np.ndarray  # (S + L, n*n, 3): the local lights' emission, 0 for the spherical lights
+    local_radiance: np.ndarray  # (S + L, 3): a local light's radiance, NaN for a spherical light
+    n_sl: int
+    n_loc: int
+
+
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
-             "cluster_size", "reflection_ratio", "ratio_samples")
+             "cluster_size", "reflection_ratio", "ratio_samples", "ground",
+             "ground_texels")
 
 
 class SphereLights(Precomputation):
-    """Guerrero et al. 2008: soft shadows and one-bounce diffuse indirect light from spherical lights."""
+    """Guerrero et al. 2008: soft shadows and one-bounce diffuse indirect light from spherical lights; with a ground
+    taking part (option ``ground``), ``bounces=2`` adds the paths through it (object -> ground -> object, ground ->
+    object -> ground); light between objects stays one bounce."""
 
     method = "spherelights"
     format_version = 2
-    max_bounces = 1
+    max_bounces = 2
     options_type = SphereLightOptions
-    renamed_options = {"grid_resolution": "fit_resolution"}
+    renamed_options = {"grid_resolution": "fit_resolution", "occluding_ground": "ground"}
     supports_deformations = True
+    _RASTER = 128  # texels per edge of a ground's radiance texture (see ``_ground``)
 
     @classmethod
     def check_lights(cls, lights, options) -> None:
@@ -421,68 +458,109 @@ class SphereLights(Precomputation):
             emission[:, 0] = np.array([x[2] for x in ll]) * math.sqrt(4.0 * math.pi)
         return centres, radii, emission
 
-    def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6)."""
-        t_start = time.perf_counter()
+    def _frame_lights(self, state: FrameState) -> tuple[_FrameLights, WorldLights]:
+        """The frame's lights as the second pass takes them (spherical lights, then local ones) and the world
+        lights (with their surface samples)."""
         opts = self.options
-        deformed = state.deformations
-        env = self._environment(state)
-        centres, radii, sl_object, inter, rot, spts, snrm, svalid, albedo_sh = self.world_lights(state, deformed)
-        n_sl = len(radii)
+        world = self.world_lights(state, state.deformations)
+        n_sl = len(world.radii)
         # local lights (Sec. 7.3) join as lights of their own objects with a given emission
         l_c, l_r, l_em = self._local_lights()
         n_loc = len(l_r)
-        n_obj = int(sl_object.max()) + 1 if n_sl else 0
-        all_c = np.concatenate([centres, l_c])
-        all_r = np.concatenate([radii, l_r])
-        all_obj = np.concatenate([sl_object, n_obj + np.arange(n_loc)]).astype(np.int64)
-        all_inter = np.zeros((n_sl + n_loc, n_sl + n_loc), dtype=bool)
-        all_inter[:n_sl, :n_sl] = inter
-        all_rot = np.concatenate([rot, np.broadcast_to(np.eye(3), (n_loc, 3, 3))])
-        local_only = np.concatenate([np.zeros((n_sl, opts.order**2, 3)), l_em])
-        emission = np.zeros((n_sl, opts.order**2, 3))
+        n_obj = int(world.object_index.max()) + 1 if n_sl else 0
+        inter = np.zeros((n_sl + n_loc, n_sl + n_loc), dtype=bool)
+        inter[:n_sl, :n_sl] = world.intersect
+        lights = _FrameLights(
+            np.concatenate([world.centres, l_c]), np.concatenate([world.radii, l_r]),
+            np.concatenate([world.object_index, n_obj + np.arange(n_loc)]).astype(np.int64), inter,
+            np.concatenate([world.rotations, np.broadcast_to(np.eye(3), (n_loc, 3, 3))]), self._environment(state),
+            np.concatenate([np.zeros((n_sl, opts.order**2, 3)), l_em]),
+            np.concatenate([np.full((n_sl, 3), np.nan), l_em[:, 0] / math.sqrt(4.0 * math.pi)]), n_sl, n_loc)
+        return lights, world
+
+    def _pass(self, lights: _FrameLights, p, n, emission, indirect: bool):
+        """:func:`second_pass` at receivers ``p, n`` with the frame's lights and the options."""
+        o = self.options
+        return second_pass(p, n, lights.centres, lights.radii, lights.object_index, lights.intersect,
+                           lights.rotations, emission, lights.env, blocking=o.blocking, exp_method=o.exp_method,
+                           average=o.average, indirect=indirect)
+
+    def _irradiance(self, lights: _FrameLights, p, n, emission, indirect: bool):
+        """Direct (environment and local lights) and indirect irradiance at receivers."""
+        direct, ind = self._pass(lights, p, n, emission, indirect)
+        if lights.n_loc:
+            direct = direct + self._pass(lights, p, n, lights.local_only, True)[1]
+        return direct, ind
+
+    def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, transforms) -> np.ndarray:
+        """The first pass (Eqs. 3-11): emission ``(S, n*n, 3)`` of the spherical lights. The surface samples also
+        receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light."""
+        opts = self.options
+        spts, snrm, svalid = world.sample_points, world.sample_normals, world.sample_valid
+        extra = None
+        if svalid.any() and (lights.n_loc or ground_below):
+            extra = np.zeros(svalid.shape + (3,))
+            if lights.n_loc:  # the second pass's computation at the surface samples, local lights only
+                extra[svalid] = self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
+            if ground_below:  # ground -> object: the ground's direct light reaches the samples
+                tex = self._ground_textures(ground_below, lambda p, n: self._irradiance(
+                    lights, p, n, lights.local_only, False)[0], transforms)
+                extra[svalid] += ground_light(spts[svalid], snrm[svalid], rects, tex, lights.env, lights.centres,
+                                              lights.radii, lights.local_radiance)[1]
+        return first_pass(spts, snrm, svalid, lights.centres, lights.radii, lights.env,
+                          voronoi_cell_sums(opts.order, opts.n_directions), world.albedo_sh,
+                          exp_method=opts.exp_method, ground=rects if len(rects) else None, extra_irradiance=extra)
+
+    def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
+        """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6), the
+        grounds first; at the other receivers the ground's terms (``_ground``). With ``bounces=2`` the ground's
+        light also reaches the surface samples and the objects receive the ground's total light."""
+        t_start = time.perf_counter()
+        opts = self.options
+        lights, world = self._frame_lights(state)
+        n_sl = lights.n_sl
+        grounds = [] if opts.ground == "paper" else ground_objects(
+            [o for o in self.scene.objects if o.name not in self.data["objects"] and not o.portal], state.transforms)
+        rects = np.array([row for _, row in grounds]).reshape(-1, 7)
+        reflects = opts.ground == "reflects" and bounces > 0 and len(grounds) > 0
+        emission = np.zeros((n_sl + lights.n_loc, opts.order**2, 3))
         if bounces > 0 and n_sl:
-            ground = None
-            if opts.occluding_ground:
-                ground = ground_rectangles([o for o in self.scene.objects if o.name not in self.data["objects"]],
-                                           state.transforms)
-            extra = None
-            if n_loc and svalid.any():
-                # the second pass's computation at the surface samples, local lights only (Sec. 7.3)
-                extra = np.zeros(svalid.shape + (3,))
-                _, extra[svalid] = second_pass(spts[svalid], snrm[svalid], all_c, all_r, all_obj, all_inter, all_rot,
-                                               local_only, env, blocking=opts.blocking, exp_method=opts.exp_method,
-                                               average=opts.average, indirect=True)
-            emission = first_pass(spts, snrm, svalid, all_c, all_r, env,
-                                  voronoi_cell_sums(opts.order, opts.n_directions), albedo_sh,
-                                  exp_method=opts.exp_method, ground=ground, extra_irradiance=extra)
-        emission = np.concatenate([emission, np.zeros((n_loc, opts.order**2, 3))])
+            emission[:n_sl] = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [],
+                                             state.transforms)
         t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
-                                   "n_local_lights": int(n_loc), "exp_method": opts.exp_method,
-                                   "blocking": opts.blocking, "average": opts.average})
+                                   "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
+                                   "blocking": opts.blocking, "average": opts.average, "ground": opts.ground})
+        ground_names = [obj.name for obj, _ in grounds]
+        order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
+                       key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
+        textures = np.zeros((len(grounds), 1, 1, 3))
+        if reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
+            textures = self._ground_textures(grounds, lambda p, n: sum(
+                self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
         nodes = None
-        for obj in (o for o in self.scene.objects if not o.portal):  # portals are openings, not surfaces
+        for obj in order:
             tr = state.transforms.get(obj.name) or obj.transform
-            if obj.name in deformed:
-                pts, nrm = _deformed_receivers(obj, deformed[obj.name], tr)
+            if obj.name in state.deformations:
+                pts, nrm = _deformed_receivers(obj, state.deformations[obj.name], tr)
             else:
-                pts = obj.world_shading_points(tr)
-                nrm = obj.world_normals(tr)
+                pts, nrm = obj.world_shading_points(tr), obj.world_normals(tr)
             if opts.hierarchy_children and bounces > 0 and n_sl:
                 if nodes is None:
-                    nodes = self._hierarchy_nodes(state, deformed, all_c, all_r, all_obj, all_rot)
-                direct, indirect = self._hierarchical_second_pass(obj, pts, nrm, nodes, all_c, all_r, all_obj,
-                                                                  all_inter, all_rot, emission, env)
+                    nodes = self._hierarchy_nodes(state, state.deformations, lights.centres, lights.radii,
+                                                  lights.object_index, lights.rotations)
+                direct, indirect = self._hierarchical_second_pass(obj, pts, nrm, nodes, *lights[:5], emission,
+                                                                  lights.env)
+                if lights.n_loc:
+                    direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
             else:
-                direct, indirect = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, emission, env,
-                                               blocking=opts.blocking, exp_method=opts.exp_method,
-                                               average=opts.average, indirect=bounces > 0 and n_sl > 0)
-            if n_loc:
-                _, from_local = second_pass(pts, nrm, all_c, all_r, all_obj, all_inter, all_rot, local_only, env,
-                                            blocking=opts.blocking, exp_method=opts.exp_method,
-                                            average=opts.average, indirect=True)
-                direct = direct + from_local
+                direct, indirect = self._irradiance(lights, pts, nrm, emission, bounces > 0 and n_sl > 0)
+            if obj.name not in ground_names and len(grounds):
+                # the ground hides what lies beyond it and reflects its own light (see ``_ground``)
+                hidden, reflected = ground_light(pts, nrm, rects, textures, lights.env, lights.centres, lights.radii,
+                                                 lights.local_radiance)
+                direct = direct - hidden
+                indirect = indirect + reflected if reflects else indirect
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             # irradiance is never negative: clamp the order-n SH products' ringing (see the module docstring)
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
@@ -490,6 +568,27 @@ class SphereLights(Precomputation):
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
+
+    def _ground_textures(self, grounds, irradiance, transforms) -> np.ndarray:
+        """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals) (P, 3)``:
+        with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), else at
+        the ground's vertices, interpolated over its mesh (rasters cached per ground mesh)."""
+        k = self.options.ground_texels
+        out = []
+        for obj, row in grounds:
+            albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
+            if k:
+                pts = _rectangle_grid(row, k).reshape(-1, 3)
+                e = irradiance(pts, np.broadcast_to([0.0, 1.0, 0.0], pts.shape))
+                out.append(np.maximum(e, 0.0).reshape(k, k, 3) * albedo)
+                continue
+            tr = transforms.get(obj.name) or obj.transform
+            e = irradiance(obj.world_shading_points(tr), obj.world_normals(tr))
+            cache = self.__dict__.setdefault("_raster_cache", {})
+            if obj.name not in cache or cache[obj.name][0] is not obj.mesh:
+                cache[obj.name] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
+            out.append(ground_texture(cache[obj.name][1], np.maximum(e, 0.0) * albedo))
+        return np.ascontiguousarray(np.stack(out))
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
 
@@ -637,6 +736,14 @@ class SphereLights(Precomputation):
                 _, ind[sel] = second_pass(pts[sel], nrm[sel], cc, cr, co, inter, crot, em * tk[:, None, :], env,
                                           indirect=True, **kw)
         return direct, ind
+
+
+def _rectangle_grid(row, k: int) -> np.ndarray:
+    """``(k, k, 3)`` world points at the cell centres of a ground rectangle (a :func:`ground_rectangles` row)."""
+    y0, cx, cz, ux, uz, vx, vz = row
+    a = -1.0 + (np.arange(k) + 0.5) * (2.0 / k)
+    aa, bb = np.meshgrid(a, a, indexing="ij")
+    return np.stack([cx + aa * ux + bb * vx, np.full_like(aa, y0), cz + aa * uz + bb * vz], -1)
 
 
 def light_motions(verts, rest, vertex_light, n_lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -171,9 +171,9 @@ def test_spherelights_take_deformations_through_the_frame_state():
 # ------------------------------------------------------------------ refusals before any work (issue 13.9)
 
 
-def test_spherelights_refuse_two_bounces_before_precomputing(no_compute):
-    with pytest.raises(ValueError, match="method 'spherelights' computes at most 1 indirect bounce"):
-        prtlab.shade(_spheres_scene(), method="spherelights", bounces=2, cache=False, progress=False)
+def test_spherelights_refuse_three_bounces_before_precomputing(no_compute):
+    with pytest.raises(ValueError, match="method 'spherelights' computes at most 2 indirect bounce"):
+        prtlab.shade(_spheres_scene(), method="spherelights", bounces=3, cache=False, progress=False)
 
 
 def test_portals_refuse_more_bounces_than_the_option_before_precomputing(no_compute):
