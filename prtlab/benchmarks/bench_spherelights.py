@@ -222,8 +222,10 @@ def frame_per_object_ground(quick: bool) -> dict:
         tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
         return ground_light(a["points"][above], a["normals"][above], rect, tex, a["env"], a["centres"], a["radii"])
 
-    return {"run": run, "gflop": None, "items": _n(quick),
-            "peer": ("without the ground terms", lambda: _frame(a, "object"))}
+    # gflop and floor count the per-object frame only (the ground terms' work is not counted: a lower bound)
+    return {"run": run, "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("without the ground terms", lambda: _frame(a, "object")),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
 def memory_per_object(objects: dict, arrays=None) -> dict:
