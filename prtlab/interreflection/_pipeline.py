@@ -79,6 +79,7 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
+from ._residual import gather_residual, residual_hits
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -138,6 +139,10 @@ class InterreflectionOptions:
         needs ``shadows="haar"``).
     haar_radiance_keep : int
         Haar coefficients kept per (sample point, k, i) basis radiance cubemap of ``irradiance="haar"``.
+    residual_rays : int
+        Rays per receiver point of the residual gather (:mod:`prtlab.interreflection._residual`): the part of
+        each source's radiance that its PCA basis misses (the shadow of an object that moved since the basis
+        was trained) gathered per frame by ray casting (0: off, the paper; a run-time choice).
     """
 
     order: int = 4
@@ -160,10 +165,12 @@ class InterreflectionOptions:
     area_lights: str = "exact"
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
+    residual_rays: int = 0
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
                                  "cube_resolution", "haar_keep", "haar_radiance_keep"))
+        check_int(self.residual_rays, "option residual_rays", 0, meaning="rays per receiver point, 0: off")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -306,6 +313,10 @@ class FrameReuse:
     #: source -> k-d tree of its vertices / ray caster of its mesh (object frame, built on first use)
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
+    #: receiver -> (poses of every object, {source index: ResidualHits}) of the residual gather
+    residual_hits: dict = dataclasses.field(default_factory=dict)
+    #: (poses of every object, a ray caster of every object at them) for the residual gather
+    scene_caster: tuple | None = None
 
 
 class Interreflection(Precomputation):
@@ -320,7 +331,8 @@ class Interreflection(Precomputation):
     @classmethod
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
-        run_time = ("threshold", "near_field", "area_lights")  # per-frame options: not part of the precomputed data
+        # per-frame options: not part of the precomputed data
+        run_time = ("threshold", "near_field", "area_lights", "residual_rays")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -947,6 +959,7 @@ class Interreflection(Precomputation):
             t0 = time.perf_counter()
             weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
                        for o in self.objects}
+            residuals = self._residuals(light_k, weights) if self.options.residual_rays else {}
             t_weights += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
@@ -959,12 +972,46 @@ class Interreflection(Precomputation):
                     lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
                 else:
                     lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                if residuals:
+                    lk = lk + self._residual_light(geo, r, residuals)
                 lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
             light_k = new_light
             t_bounces += time.perf_counter() - t0
         return indirect, t_weights, t_bounces
+
+    # ------------------------------------------------------------------ residual gather (an extension)
+
+    def _residuals(self, light_k, weights) -> dict:
+        """Per source: ``colour_k L_k - P(colour_k L_k)`` (V, K, C) at its vertices, what its basis misses."""
+        return {s.name: light_k[s.name] * self.seps[s.name].colour[None]
+                - np.einsum("nv,knc->vkc", self.bases[s.name].basis, weights[s.name]) for s in self.objects}
+
+    def _scene_caster(self, geo, key):
+        if self.reuse.scene_caster is None or self.reuse.scene_caster[0] != key:
+            caster = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces)) for o in self.objects],
+                               transforms=[geo[o.name]["T"] for o in self.objects])
+            self.reuse.scene_caster = (key, caster)
+        return self.reuse.scene_caster[1]
+
+    def _residual_light(self, geo, r, residuals):
+        """The residual gather (V, K', C) on receiver ``r`` from every source (itself too with
+        ``self_interreflection``); its hits stand while every object's pose does."""
+        g = geo[r.name]
+        key = tuple(geo[o.name]["pose"] for o in self.objects)
+        cached = self.reuse.residual_hits.get(r.name)
+        if cached is None or cached[0] != key:
+            sources = {i: (np.asarray(s.mesh.faces), geo[s.name]["n"], self.seps[s.name])
+                       for i, s in enumerate(self.objects)
+                       if s.name != r.name or (self.options.self_interreflection and not self.flat[r.name])}
+            hits = residual_hits(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, key), sources,
+                                 self.options.residual_rays)
+            cached = self.reuse.residual_hits[r.name] = (key, hits)
+        out = np.zeros(g["g_cos"].shape[:2] + (3,))
+        for i, hits in cached[1].items():
+            out += gather_residual(hits, residuals[self.objects[i].name], len(g["x"]))
+        return out
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
