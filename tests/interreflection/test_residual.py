@@ -32,15 +32,16 @@ def test_cosine_directions_are_cosine_weighted():
     np.testing.assert_allclose(cos.mean(axis=1), 2.0 / 3.0, atol=0.005)  # stratified: well under 1/sqrt(n)
 
 
-@pytest.mark.parametrize("h", [0.05, 0.5, 2.0])
+@pytest.mark.parametrize("h", [0.05, 0.5, 2.0, 5.0])
 def test_gather_of_a_constant_residual_is_the_form_factor(h):
     """A square source of constant residual ``r`` (Lambertian, ``h_k = 1``) under a point facing it:
-    ``L = r F`` with F the point-to-square form factor, near (h = 0.05) and far (h = 2)."""
+    ``L = r F`` with F the point-to-square form factor: near (h = 0.05, 0.5: the point inside the source's
+    bounding sphere, hemisphere rays) and far (h = 2, 5: rays in the sphere's cone)."""
     a = 1.0
     plane = builtin_mesh("plane", size=[2 * a, 2 * a], resolution=[8, 8])
     caster = RayCaster([plane])
     point, normal = np.array([[0.0, h, 0.0]]), np.array([[0.0, -1.0, 0.0]])
-    sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT)}
+    sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT, np.zeros(3), np.sqrt(2.0))}
     hits = residual_hits(point, normal, LAMBERT, caster, sources, 4096)
     residual = np.full((len(plane.vertices), 1, 3), 0.3)
     light = gather_residual(hits[0], residual, 1)
@@ -51,7 +52,7 @@ def test_gather_of_a_constant_residual_is_the_form_factor(h):
 def test_the_back_of_a_source_sends_nothing():
     """A point below the plane (which faces +y) sees its back: no hits are kept."""
     plane = builtin_mesh("plane", size=[2, 2], resolution=[2, 2])
-    sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT)}
+    sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT, np.zeros(3), np.sqrt(2.0))}
     hits = residual_hits(np.array([[0.0, -0.5, 0.0]]), np.array([[0.0, 1.0, 0.0]]), LAMBERT, RayCaster([plane]),
                          sources, 64)
     assert hits == {}
