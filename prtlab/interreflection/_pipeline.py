@@ -607,7 +607,8 @@ class Interreflection(Precomputation):
                 else:  # only occluders moved, came or went: the points their fields reach, before or now
                     rows = self._changed_rows(g["x"], cached[2], now, self._within_reach)
                 factors = [(others[i], self._within_reach(g["x"][rows], geo[others[i]])
-                            & ~self._lit_past(geo, by_name[others[i]], g["x"][rows], light_points)) for i in idx]
+                            & ~self._lit_past(geo, by_name[others[i]], g["x"][rows], light_points, g["n"][rows]))
+                           for i in idx]
                 visibility = self._visibility(g, occ[r.name], factors, rows)
                 if len(rows) == len(g["x"]):
                     value = self._transfer(visibility, g["g_cos"])
@@ -633,11 +634,14 @@ class Interreflection(Precomputation):
                 points.append(np.asarray(light.position, float))
         return np.asarray(points, float).reshape(-1, 3)
 
-    def _lit_past(self, geo, o, x, light_points) -> np.ndarray:
+    def _lit_past(self, geo, o, x, light_points, normals=None) -> np.ndarray:
         """(V,) bool: the points ``x`` that flat object ``o`` cannot shadow from the lights spanned by
         ``light_points``: those in its plane, and those on the side of it where every light lies (a plane
         blocks no segment between two points on one side). Its occlusion field, interpolated across its
-        own plane, would darken a floor's row at the foot of a wall (``docs/notes/interreflection.md``)."""
+        own plane, would darken a floor's row at the foot of a wall (``docs/notes/interreflection.md``).
+        With ``normals`` (the SH direct step) only the points not facing the plane: at a point facing it
+        the plane's SH visibility, exact or not, cancels the ringing of the order-n transfer below the
+        point's horizon (measured in the notes)."""
         out = np.zeros(len(x), bool)
         if light_points is None or not self.flat[o.name] or not len(x):
             return out
@@ -648,7 +652,10 @@ class Interreflection(Precomputation):
         centre = v.mean(axis=0)
         side, lit = (x - centre) @ normal, (light_points - centre) @ normal
         eps = 1e-6 * max(float(np.ptp(v, axis=0).max()), 1e-300)
-        return (np.abs(side) <= eps) | ((side > 0) & bool(np.all(lit >= -eps))) | ((side < 0) & bool(np.all(lit <= eps)))
+        out = (np.abs(side) <= eps) | ((side > 0) & bool(np.all(lit >= -eps))) | ((side < 0) & bool(np.all(lit <= eps)))
+        if normals is not None:  # facing the plane: n . normal has the opposite sign of the point's side
+            out &= (normals @ normal) * np.where(side < 0, -1.0, 1.0) >= -1e-6
+        return out
 
     def direct_step(self, state: FrameState, geo, transfer):
         """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
