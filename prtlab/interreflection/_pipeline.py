@@ -30,7 +30,9 @@ skipped (Sec. 5.4; counted in ``info["skipped_pairs"]``).
 
 Extensions beyond the paper, each an option (how they were measured: ``docs/NOTES.md``):
 ``pca_occluders`` (PCA bases trained with the other objects' shadows), ``self_interreflection``,
-``near_field`` (ray-cast basis radiance near a source), ``shadows="haar"`` (all-frequency direct
+``near_field`` (ray-cast basis radiance near a source), ``residual_rays`` (the residual gather: per frame,
+by ray casting, the part of each source's radiance that its basis misses, so bounced light stays right
+when objects move; step 4), ``shadows="haar"`` (all-frequency direct
 shadows and point lights, :func:`prtlab.shadowfields.haar_direct`), ``irradiance="haar"``
 (all-frequency basis irradiance, :func:`prtlab.interreflection.haar_basis_irradiance`); and
 always: Lambertian light clamped at 0 (:meth:`Interreflection._clamp_diffuse`), a flat occluder
@@ -79,13 +81,15 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
+from ._residual import gather_residual, residual_hits
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
 
 @dataclass
 class InterreflectionOptions:
-    """Options of the interreflection pipeline (defaults as in the paper, Sec. 6).
+    """Options of the interreflection pipeline (defaults as in the paper, Sec. 6, but for the extensions
+    ``self_interreflection``, ``near_field`` and ``residual_rays``: ``docs/notes/interreflection.md``).
 
     Attributes
     ----------
@@ -110,9 +114,10 @@ class InterreflectionOptions:
         Sec. 5.4 skip threshold of source/receiver pairs (0: compute all; a run-time choice).
     pca_occluders : bool
         Train each object's PCA basis with the shadows the other objects cast on it in the scene as given
-        (True), or on the object alone as in the paper (False). Objects may still move per frame: the basis
-        then spans the shadows of the precomputed poses (an approximation, as any PCA basis is); with False a
-        moved state shades exactly as a precomputation at the new pose.
+        (True), or on the object alone as in the paper (False, the default). With True the basis spans the
+        shadows of the precomputed poses only, so a moved object's shadow is held only by the residual gather
+        (``residual_rays``); with False the precomputation does not depend on the poses and a moved state
+        shades exactly as a precomputation at the new pose.
     self_interreflection : bool
         Include the light an object bounces onto itself (True), or only light from the other objects as in the
         paper (False).
@@ -138,6 +143,11 @@ class InterreflectionOptions:
         needs ``shadows="haar"``).
     haar_radiance_keep : int
         Haar coefficients kept per (sample point, k, i) basis radiance cubemap of ``irradiance="haar"``.
+    residual_rays : int
+        Rays per receiver point and source of the residual gather (:mod:`prtlab.interreflection._residual`):
+        the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
+        per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
+        object moves.
     """
 
     order: int = 4
@@ -151,7 +161,7 @@ class InterreflectionOptions:
     spacing: str = "geometric"
     degree: int | None = None
     threshold: float = 0.0
-    pca_occluders: bool = True
+    pca_occluders: bool = False
     self_interreflection: bool = True
     near_field: float = 0.5
     shadows: str = "sh"
@@ -160,10 +170,12 @@ class InterreflectionOptions:
     area_lights: str = "exact"
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
+    residual_rays: int = 64
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
                                  "cube_resolution", "haar_keep", "haar_radiance_keep"))
+        check_int(self.residual_rays, "option residual_rays", 0, meaning="rays per receiver point, 0: off")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -306,6 +318,10 @@ class FrameReuse:
     #: source -> k-d tree of its vertices / ray caster of its mesh (object frame, built on first use)
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
+    #: receiver -> (poses of every object, {source index: ResidualHits}) of the residual gather
+    residual_hits: dict = dataclasses.field(default_factory=dict)
+    #: (poses of every object, a ray caster of every object at them) for the residual gather
+    scene_caster: tuple | None = None
 
 
 class Interreflection(Precomputation):
@@ -320,7 +336,8 @@ class Interreflection(Precomputation):
     @classmethod
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
-        run_time = ("threshold", "near_field", "area_lights")  # per-frame options: not part of the precomputed data
+        # per-frame options: not part of the precomputed data
+        run_time = ("threshold", "near_field", "area_lights", "residual_rays")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -567,22 +584,31 @@ class Interreflection(Precomputation):
             return np.zeros(g_cos.shape)
         return sh.product(np.broadcast_to(visibility[:, None, :], g_cos.shape), g_cos, order, channels=False)
 
-    def direct_transfer(self, geo, occ):
-        """``P_n(V_j G_jk)`` (V, K, n2) per object, with the visibility toward every other object."""
+    def direct_transfer(self, geo, occ, lights=None):
+        """``P_n(V_j G_jk)`` (V, K, n2) per object, with the visibility toward every other object.
+
+        With ``lights`` (no environment light among them) a flat occluder is left out at the points it cannot
+        shadow from any of them (:meth:`_lit_past`).
+        """
         transfer = {}
+        light_points = None if lights is None else self._light_points(lights)
+        light_key = None if light_points is None else light_points.tobytes()
+        by_name = {o.name: o for o in self.objects}
         for r in self.objects:
             g = geo[r.name]
             others = [o.name for o in self.objects if o.name != r.name and self._reaches(geo, o, r)]
-            key = (g["pose"], tuple((o, geo[o]["pose"]) for o in others))
+            key = (g["pose"], tuple((o, geo[o]["pose"]) for o in others), light_key)
             now = {o: geo[o] for o in others}
             cached = self.reuse.direct_transfer.get(r.name)
             if cached is None or cached[0] != key:
                 idx = occluder_order(g["center"], [geo[o]["center"] for o in others]) if others else []
-                if cached is None or cached[0][0] != g["pose"]:
+                if cached is None or cached[0][0] != g["pose"] or cached[0][2] != light_key:
                     rows = np.arange(len(g["x"]))
                 else:  # only occluders moved, came or went: the points their fields reach, before or now
                     rows = self._changed_rows(g["x"], cached[2], now, self._within_reach)
-                factors = [(others[i], self._within_reach(g["x"][rows], geo[others[i]])) for i in idx]
+                factors = [(others[i], self._within_reach(g["x"][rows], geo[others[i]])
+                            & ~self._lit_past(geo, by_name[others[i]], g["x"][rows], light_points, g["n"][rows]))
+                           for i in idx]
                 visibility = self._visibility(g, occ[r.name], factors, rows)
                 if len(rows) == len(g["x"]):
                     value = self._transfer(visibility, g["g_cos"])
@@ -592,6 +618,44 @@ class Interreflection(Precomputation):
                 cached = self.reuse.direct_transfer[r.name] = (key, value, now)
             transfer[r.name] = cached[1]
         return transfer
+
+    @staticmethod
+    def _light_points(lights):
+        """(P, 3) points whose convex hull holds every light (area-light corners, point-light positions);
+        None with an environment light (it lies on every side)."""
+        points = []
+        for light in lights:
+            if isinstance(light, EnvironmentLight):
+                return None
+            if isinstance(light, AreaLight):
+                c, u, v = (np.asarray(getattr(light, f), float) for f in ("center", "u", "v"))
+                points += [c + a * u + b * v for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
+            elif isinstance(light, PointLight):
+                points.append(np.asarray(light.position, float))
+        return np.asarray(points, float).reshape(-1, 3)
+
+    def _lit_past(self, geo, o, x, light_points, normals=None) -> np.ndarray:
+        """(V,) bool: the points ``x`` that flat object ``o`` cannot shadow from the lights spanned by
+        ``light_points``: those in its plane, and those on the side of it where every light lies (a plane
+        blocks no segment between two points on one side). Its occlusion field, interpolated across its
+        own plane, would darken a floor's row at the foot of a wall (``docs/notes/interreflection.md``).
+        With ``normals`` (the SH direct step) only the points not facing the plane: at a point facing it
+        the plane's SH visibility, exact or not, cancels the ringing of the order-n transfer below the
+        point's horizon (measured in the notes)."""
+        out = np.zeros(len(x), bool)
+        if light_points is None or not self.flat[o.name] or not len(x):
+            return out
+        go = geo[o.name]
+        v = go["T"].apply_points(np.asarray(o.mesh.vertices, float))
+        normal = np.mean(go["n"], axis=0)
+        normal /= max(float(np.linalg.norm(normal)), 1e-300)
+        centre = v.mean(axis=0)
+        side, lit = (x - centre) @ normal, (light_points - centre) @ normal
+        eps = 1e-6 * max(float(np.ptp(v, axis=0).max()), 1e-300)
+        out = (np.abs(side) <= eps) | ((side > 0) & bool(np.all(lit >= -eps))) | ((side < 0) & bool(np.all(lit <= eps)))
+        if normals is not None:  # facing the plane: n . normal has the opposite sign of the point's side
+            out &= (normals @ normal) * np.where(side < 0, -1.0, 1.0) >= -1e-6
+        return out
 
     def direct_step(self, state: FrameState, geo, transfer):
         """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
@@ -644,9 +708,22 @@ class Interreflection(Precomputation):
         light_k, radiance = {}, {}
         for r in self.objects:
             g = geo[r.name]
-            occluders = [(self.haar_fields[o.name], geo[o.name]["T"]) for o in self.objects if o.name != r.name]
-            lk = haar_direct(g["x"], g["n"], state.lights, self.seps[r.name], self_visibility=self.haar_self[r.name],
-                             self_transform=g["T"], occluders=occluders)
+            others = [o for o in self.objects if o.name != r.name]
+            light_points = self._light_points(state.lights)
+            # the flat occluders each point is left out of (_lit_past), as bits; one pass per distinct set
+            left_out = np.zeros(len(g["x"]), np.int64)
+            for i, o in enumerate(others):
+                left_out |= self._lit_past(geo, o, g["x"], light_points).astype(np.int64) << i
+            lk = np.zeros((len(g["x"]), self.seps[r.name].K, 3))
+            own = self.haar_self[r.name]
+            for bits in np.unique(left_out):
+                at = np.flatnonzero(left_out == bits)
+                occluders = [(self.haar_fields[o.name], geo[o.name]["T"]) for i, o in enumerate(others)
+                             if not (int(bits) >> i) & 1]
+                lk[at] = haar_direct(g["x"][at], g["n"][at], state.lights, self.seps[r.name],
+                                     self_visibility=SparseCubemaps(own.resolution, own.indices[at], own.values[at],
+                                                                    own.energy_lost[at]),
+                                     self_transform=g["T"], occluders=occluders)
             light_k[r.name] = self._clamp_diffuse(r, lk)
             radiance[r.name] = outgoing_radiance(light_k[r.name], g["h"], self.seps[r.name].colour)
         return light_k, radiance
@@ -947,6 +1024,7 @@ class Interreflection(Precomputation):
             t0 = time.perf_counter()
             weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
                        for o in self.objects}
+            residuals = self._residuals(light_k, weights) if self.options.residual_rays else {}
             t_weights += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
@@ -959,6 +1037,8 @@ class Interreflection(Precomputation):
                     lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
                 else:
                     lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                if residuals:
+                    lk = lk + self._residual_light(geo, r, residuals, phi[r.name])
                 lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
@@ -966,16 +1046,53 @@ class Interreflection(Precomputation):
             t_bounces += time.perf_counter() - t0
         return indirect, t_weights, t_bounces
 
+    # ------------------------------------------------------------------ residual gather (an extension)
+
+    def _residuals(self, light_k, weights) -> dict:
+        """Per source: ``colour_k L_k - P(colour_k L_k)`` (V, K, C) at its vertices, what its basis misses."""
+        return {s.name: light_k[s.name] * self.seps[s.name].colour[None]
+                - np.einsum("nv,knc->vkc", self.bases[s.name].basis, weights[s.name]) for s in self.objects}
+
+    def _scene_caster(self, geo, key):
+        if self.reuse.scene_caster is None or self.reuse.scene_caster[0] != key:
+            caster = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces)) for o in self.objects],
+                               transforms=[geo[o.name]["T"] for o in self.objects])
+            self.reuse.scene_caster = (key, caster)
+        return self.reuse.scene_caster[1]
+
+    def _residual_light(self, geo, r, residuals, phi_r):
+        """The residual gather (V, K', C) on receiver ``r`` from the sources of ``phi_r`` (the pairs not
+        skipped by ``threshold``; itself too with ``self_interreflection``); its hits stand while every
+        object's pose does."""
+        g = geo[r.name]
+        key = tuple(geo[o.name]["pose"] for o in self.objects)
+        key = (key, tuple(sorted(phi_r)))
+        cached = self.reuse.residual_hits.get(r.name)
+        if cached is None or cached[0] != key:
+            sources = {i: (np.asarray(s.mesh.faces), geo[s.name]["n"], self.seps[s.name], geo[s.name]["center"],
+                           geo[s.name]["radius"])
+                       for i, s in enumerate(self.objects)
+                       if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
+                                              and not self.flat[r.name])}
+            hits = residual_hits(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, key), sources,
+                                 self.options.residual_rays)
+            cached = self.reuse.residual_hits[r.name] = (key, hits)
+        out = np.zeros(g["g_cos"].shape[:2] + (3,))
+        for i, hits in cached[1].items():
+            out += gather_residual(hits, residuals[self.objects[i].name], len(g["x"]))
+        return out
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
         t0 = time.perf_counter()
-        key = self._pose_key(state)
+        light_points = self._light_points(state.lights)
+        key = (self._pose_key(state), None if light_points is None else light_points.tobytes())
         if self.reuse.frame is not None and self.reuse.frame[0] == key:
             geo, occ, transfer = self.reuse.frame[1]
-        else:  # poses or camera changed: look the fields up again
+        else:  # poses, camera or the lights' extent changed: look the fields up again
             geo = self._frame_geometry(state)
             occ = self._occlusion(geo)
-            transfer = self.direct_transfer(geo, occ)
+            transfer = self.direct_transfer(geo, occ, state.lights)
             self.reuse.frame = (key, (geo, occ, transfer))
         light_k, direct = self.direct_step(state, geo, transfer)
         times["direct"] = time.perf_counter() - t0

@@ -19,11 +19,15 @@ light, one bounce) with a 16 x 16 floor; the pose it ships in is pose B. Cases: 
 ``shadows="haar"`` at B (with ``irradiance="haar"`` too in the slow tier,
 ``tests/interreflection/test_haar_passes.py``: its precomputation is beyond this module's budget);
 precomputed with the bunny at pose A (moved and turned away) and moved to B by a
-:class:`prtlab.pipeline.FrameState`, at the defaults and with
-``pca_occluders=False`` (the paper's basis). The reference is Mitsuba at B for every case. Bunny
-vertices on the floor (y <= 0.01) are left out (``docs/DECISIONS.md``). Ball over floor
-(``tests/interreflection/test_pipeline.py``, quick options) against prtlab's own path tracer with 16,384
-paths per vertex.
+:class:`prtlab.pipeline.FrameState`: at the defaults (the paper's basis plus the residual gather), with the
+paper's method (``pca_occluders=False, residual_rays=0``) and with the basis trained with the other objects'
+shadows and no gather (the former defaults). The reference is Mitsuba at B for every case. Bunny
+vertices on the floor (y <= 0.01) are left out (``docs/DECISIONS.md``). The open room corner
+(``interreflection_corner``, issue 18: a torus 3 cm above the floor of a corner of two walls, a box, a near
+1 x 1 area light) precomputed in place and with the torus 1.16 m away then moved back by a FrameState,
+scored per object against the module's goals and the issue's binding bounds (total 10 %, indirect 20 %).
+Ball over floor (``tests/interreflection/test_pipeline.py``, quick options) against prtlab's own path
+tracer with 16,384 paths per vertex.
 """
 
 from __future__ import annotations
@@ -49,10 +53,13 @@ PATHS = 16384
 #: Pose A of the bunny (precompute pose of the moved cases): 1.1 m from pose B, turned 60 degrees
 POSE_A = Transform(translate=np.array([0.9, 0.0, -0.8]), rotate_deg=np.array([0.0, 60.0, 0.0]))
 
+#: the paper's method: its PCA basis (no occluders in the training) and no residual gather
+PAPER = {"pca_occluders": False, "residual_rays": 0}
 CASES = {
     "fig9": ({}, False),
     "moved": ({}, True),
-    "moved_paper_basis": ({"pca_occluders": False}, True),
+    "moved_paper": (PAPER, True),
+    "moved_occluders": ({"pca_occluders": True, "residual_rays": 0}, True),
     "fig9_haar": ({"shadows": "haar"}, False),
 }
 
@@ -61,37 +68,36 @@ def _measured(rel_rms, noise, error, mean, cause):
     return f"measured rel_rms {rel_rms} (noise {noise}, error {error}; mean {mean}): {cause}"
 
 
-_SH_DIRECT = "the order-4 SH direct light of the small area light (issue 18, item 2)"
-_DIRECT = {"floor": ("0.131", "0.005", "0.131", "-2 %"), "bunny": ("0.137", "0.004", "0.137", "-8 %")}
+_SH_DIRECT = "the order-4 SH direct light of the near area light (issue 18, item 2)"
+_LEAK = ("the SH direct light that leaks onto the bunny's bottom vertices (on the floor), which the residual gather "
+         "carries onto the covered floor vertices under the bunny (docs/notes/interreflection.md)")
 _MOVED = ("the PCA bases hold the other objects' shadows at the precompute pose (pca_occluders), not at the "
-          "new one (issue 18)")
+          "new one, and no residual gather (issue 18)")
 _PAPER = "the paper's basis (no occluders in the PCA training) cannot hold the bunny's shadow on the floor (issue 18)"
-#: Strict xfails of test_fig9_against_mitsuba: measured figures (SPP, seed 0) and causes.
-KNOWN: dict = {
-    **{(case, obj, "direct"): _measured(*_DIRECT[obj], _SH_DIRECT)
-       for case in ("fig9", "moved", "moved_paper_basis") for obj in _DIRECT},
-    ("fig9", "floor", "total"): _measured("0.131", "0.005", "0.131", "-2 %", f"its direct light, {_SH_DIRECT}"),
-    ("fig9", "bunny", "total"): _measured("0.146", "0.008", "0.146", "-5 %", f"its direct light, {_SH_DIRECT}"),
-    ("fig9", "floor", "indirect"): _measured("0.516", "0.234", "0.460", "-1 %", "mostly the bunny's direct light "
-                                             f"it re-emits, {_SH_DIRECT} (error 0.201 with shadows='haar')"),
-    ("fig9", "bunny", "indirect"): _measured("0.353", "0.040", "0.350", "+8 %", "not traced; not the direct light "
-                                             "(error 0.315 with shadows='haar')"),
-    ("fig9_haar", "floor", "indirect"): _measured("0.309", "0.234", "0.201", "+5 %", "not traced"),
-    ("fig9_haar", "bunny", "indirect"): _measured("0.317", "0.040", "0.315", "+8 %", "not traced (0.350 at the "
-                                                  "defaults: not the direct light)"),
-    ("fig9_haar", "bunny", "total"): _measured("0.054", "0.008", "0.054", "+1 %", "its indirect light (above)"),
-    ("moved", "floor", "total"): _measured("0.132", "0.005", "0.132", "-2 %", f"its direct light, {_SH_DIRECT}"),
-    ("moved", "bunny", "total"): _measured("0.170", "0.008", "0.170", "-4 %", f"{_SH_DIRECT}, and its indirect"),
-    ("moved", "floor", "indirect"): _measured("0.651", "0.234", "0.608", "+4 %", "not traced (0.460 in place; "
-                                              "the bunny's direct light, which it re-emits, is the same)"),
-    ("moved", "bunny", "indirect"): _measured("0.593", "0.040", "0.591", "+15 %", _MOVED),
-    ("moved_paper_basis", "floor", "total"): _measured("0.132", "0.005", "0.132", "-2 %",
-                                                       f"its direct light, {_SH_DIRECT}"),
-    ("moved_paper_basis", "bunny", "total"): _measured("0.162", "0.008", "0.162", "-4 %",
-                                                       f"{_SH_DIRECT}, and its indirect"),
-    ("moved_paper_basis", "floor", "indirect"): _measured("1.147", "0.234", "1.123", "+15 %", _PAPER),
-    ("moved_paper_basis", "bunny", "indirect"): _measured("0.527", "0.040", "0.526", "+13 %", _PAPER),
+_BUNNY = "not traced (0.193 with shadows='haar'; 0.350 with the former defaults in place)"
+#: Strict xfails of test_fig9_against_mitsuba: measured (SPP, seed 0) rel_rms, noise, error, mean; and causes.
+_FIG9 = {
+    "fig9": {("floor", "direct"): ("0.131", "0.005", "0.131", "-2 %", _SH_DIRECT),
+             ("floor", "indirect"): ("0.769", "0.234", "0.733", "+28 %", _LEAK),
+             ("floor", "total"): ("0.130", "0.005", "0.130", "-2 %", f"its direct light, {_SH_DIRECT}"),
+             ("bunny", "direct"): ("0.108", "0.004", "0.108", "+1 %", _SH_DIRECT),
+             ("bunny", "indirect"): ("0.226", "0.040", "0.223", "+5 %", _BUNNY),
+             ("bunny", "total"): ("0.111", "0.008", "0.110", "+1 %", f"its direct light, {_SH_DIRECT}")},
+    "moved_paper": {("floor", "indirect"): ("1.036", "0.234", "1.009", "+33 %", _PAPER),
+                    ("floor", "total"): ("0.132", "0.005", "0.132", "-2 %", f"its direct light, {_SH_DIRECT}"),
+                    ("bunny", "indirect"): ("0.525", "0.040", "0.523", "+14 %", _PAPER),
+                    ("bunny", "total"): ("0.140", "0.008", "0.139", "+3 %", f"{_SH_DIRECT}, and its indirect")},
+    "moved_occluders": {("floor", "indirect"): ("0.528", "0.234", "0.473", "+22 %", _LEAK),
+                        ("floor", "total"): ("0.131", "0.005", "0.131", "-2 %", f"its direct light, {_SH_DIRECT}"),
+                        ("bunny", "indirect"): ("0.590", "0.040", "0.589", "+17 %", _MOVED),
+                        ("bunny", "total"): ("0.147", "0.008", "0.147", "+4 %", f"{_SH_DIRECT}, and its indirect")},
+    "fig9_haar": {("floor", "indirect"): ("0.333", "0.234", "0.236", "+4 %", "not traced"),
+                  ("bunny", "indirect"): ("0.193", "0.040", "0.189", "+4 %", "not traced")},
 }
+_FIG9["moved"] = dict(_FIG9["fig9"])  # the paper's basis and the gather: the same figures after the move
+for _case in ("moved_paper", "moved_occluders"):
+    _FIG9[_case] = {**{k: v for k, v in _FIG9["fig9"].items() if k[1] == "direct"}, **_FIG9[_case]}
+KNOWN: dict = {(case, obj, part): _measured(*v) for case, rows in _FIG9.items() for (obj, part), v in rows.items()}
 
 
 def fig9_scene(bunny: Transform | None = None) -> Scene:
@@ -103,32 +109,41 @@ def fig9_scene(bunny: Transform | None = None) -> Scene:
     return Scene.from_dict(spec)
 
 
-@pytest.fixture(scope="module")
-def reference():
+def _mitsuba(scene: Scene, spp: int):
+    """``(scene, its one-bounce Mitsuba reference at spp samples per vertex, seed 0)``."""
     pytest.importorskip("mitsuba")
     from prtlab.reference import shade_mitsuba
 
-    scene = fig9_scene()
-    return scene, shade_mitsuba(scene, bounces=1, spp=SPP, seed=0)
+    return scene, shade_mitsuba(scene, bounces=1, spp=spp, seed=0)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return _mitsuba(fig9_scene(), SPP)
+
+
+def _shades(scene: Scene, cases: dict, moved_scene: Scene, name: str):
+    """``get(case)``: the case's shade with object ``name`` at its pose in ``scene``, computed once: precomputed
+    on ``scene``, or for a moved case on ``moved_scene`` and moved back by a FrameState."""
+    memo = {}
+
+    def get(case):
+        if case not in memo:
+            options, moved = cases[case]
+            source = moved_scene if moved else scene
+            pre = Interreflection.precompute(source, options, progress=False)
+            state = FrameState.from_scene(source)
+            state.transforms[name] = scene.object(name).transform
+            memo[case] = pre.shade(state, bounces=1)
+        return memo[case]
+
+    return get
 
 
 @pytest.fixture(scope="module")
 def shaded(reference):
     """``shaded(case)``: the case's shade at pose B, computed once per module."""
-    scene_b, _ = reference
-    memo = {}
-
-    def get(case):
-        if case not in memo:
-            options, moved = CASES[case]
-            scene = fig9_scene(POSE_A) if moved else scene_b
-            pre = Interreflection.precompute(scene, options, progress=False)
-            state = FrameState.from_scene(scene)
-            state.transforms["bunny"] = scene_b.object("bunny").transform
-            memo[case] = pre.shade(state, bounces=1)
-        return memo[case]
-
-    return get
+    return _shades(reference[0], CASES, fig9_scene(POSE_A), "bunny")
 
 
 def scored_vertices(scene: Scene) -> dict:
@@ -171,10 +186,8 @@ def test_fig9_against_mitsuba(reference, shaded, case, obj, part):
 
 # --------------------------------------------------------------------------- ball over floor, Monte Carlo
 
-BALL_KNOWN = {("floor", "indirect"): "measured rel_rms 0.301 (noise 0.043, error 0.298; mean +18 %): the ball's "
-                                    "bounce light on the floor is too bright; the floor is a plane (visibility 1, "
-                                    "exact transfer), so the error is in the ball as a source (its N = 8 PCA radiance "
-                                    "on the quick sample spheres), not traced further"}
+#: (measured rel_rms 0.148, noise 0.043, for the floor's indirect light; 0.301 without the residual gather)
+BALL_KNOWN: dict = {}
 
 
 @pytest.fixture(scope="module")
@@ -201,4 +214,101 @@ def test_ball_over_floor_against_monte_carlo(ball_over_floor, obj, part):
     print(f"\nball_over_floor {obj} {part}: rel_rms {row.rel_rms:.4f} noise {row.noise:.4f} error {row.error:.4f} "
           f"mean ratio {row.mean_ratio:.4f}")
     failures = comparison.check(GOAL[part])
+    assert not failures, failures
+
+
+# --------------------------------------------------------------------------- open room corner, moved torus
+
+#: Mitsuba samples per vertex of the corner: indirect noise <= 0.05 (goal / 3) on every object
+CORNER_SPP = 2048
+#: The torus's precompute pose of the moved corner cases: 1.16 m from its pose in the scene, raised, turned
+TORUS_AWAY = Transform(translate=np.array([1.2, 0.45, 1.1]), rotate_deg=np.array([20.0, 40.0, 0.0]))
+CORNER_OBJECTS = ("floor", "wall_back", "wall_left", "box", "torus")
+CORNER_CASES = {
+    "corner": ({}, False),
+    "corner_moved": ({}, True),
+    "corner_moved_paper": (PAPER, True),
+}
+#: The issue's binding bounds (issue 18), checked besides the goals (GOAL)
+BOUND = {"indirect": 0.20, "total": 0.10}
+_TORUS = ("its down-facing vertices see the floor 3 cm below, whose radiance is held per vertex at a 0.25 m "
+          "spacing, coarser than the torus's shadow ring (docs/notes/interreflection.md)")
+_CORNER_DIRECT = {"floor": ("0.111", "0.005", "0.111", "-3 %"), "wall_back": ("0.092", "0.006", "0.091", "-5 %"),
+                  "wall_left": ("0.093", "0.006", "0.093", "-5 %"), "box": ("0.096", "0.006", "0.096", "+8 %"),
+                  "torus": ("0.092", "0.003", "0.091", "+6 %")}
+#: Measured (CORNER_SPP, seed 0), the same in place and after the move: (obj, part, bound) -> figures, cause
+_CORNER = {
+    **{(o, "direct", "goal"): (*v, _SH_DIRECT) for o, v in _CORNER_DIRECT.items()},
+    ("floor", "indirect", "goal"): ("0.168", "0.033", "0.165", "-2 %", f"the other objects' direct light it "
+                                    f"gathers, {_SH_DIRECT} (0.094 with shadows='haar')"),
+    **{("floor", "total", b): ("0.105", "0.005", "0.105", "-2 %", f"its direct light, {_SH_DIRECT}")
+       for b in ("goal", "bound")},
+    ("wall_back", "total", "goal"): ("0.083", "0.010", "0.082", "-4 %", f"its direct light, {_SH_DIRECT}"),
+    ("wall_left", "total", "goal"): ("0.083", "0.011", "0.082", "-4 %", f"its direct light, {_SH_DIRECT}"),
+    ("box", "total", "goal"): ("0.068", "0.008", "0.068", "+4 %", f"its direct light, {_SH_DIRECT}"),
+    **{("torus", "indirect", b): ("0.300", "0.025", "0.299", "+2 %", _TORUS) for b in ("goal", "bound")},
+    **{("torus", "total", b): ("0.115", "0.008", "0.115", "+5 %", f"its indirect light ({_TORUS}) and {_SH_DIRECT}")
+       for b in ("goal", "bound")},
+}
+_CORNER_PAPER = {
+    **_CORNER,
+    ("floor", "indirect", "goal"): ("0.177", "0.033", "0.174", "-2 %", f"the other objects' direct light it "
+                                    f"gathers, {_SH_DIRECT}"),
+    ("wall_back", "total", "goal"): ("0.091", "0.010", "0.090", "-4 %", f"its direct light, {_SH_DIRECT}"),
+    ("wall_left", "total", "goal"): ("0.092", "0.011", "0.091", "-5 %", f"its direct light, {_SH_DIRECT}"),
+    ("box", "total", "goal"): ("0.068", "0.008", "0.067", "+2 %", f"its direct light, {_SH_DIRECT}"),
+    **{("torus", "indirect", b): ("0.760", "0.025", "0.760", "+35 %", "the paper's basis cannot hold the torus's "
+                                  "shadow on the floor under it (issue 18)") for b in ("goal", "bound")},
+    **{("torus", "total", b): ("0.245", "0.008", "0.245", "+14 %", "its indirect light: the paper's basis cannot "
+                               "hold the torus's shadow on the floor") for b in ("goal", "bound")},
+}
+CORNER_KNOWN: dict = {(case, *key): _measured(*v) for case, table in
+                      (("corner", _CORNER), ("corner_moved", _CORNER), ("corner_moved_paper", _CORNER_PAPER))
+                      for key, v in table.items()}
+
+
+def corner_scene(torus: Transform | None = None) -> Scene:
+    """``interreflection_corner`` (a 4 x 4 floor, two 3 m walls, a box, a torus 3 cm above the floor, a 1 x 1
+    area light 2.6 m up); ``torus`` overrides the torus's pose."""
+    spec = yaml.safe_load(prtlab.data.scene_path("interreflection_corner").read_text(encoding="utf-8"))
+    if torus is not None:
+        next(o for o in spec["objects"] if o["name"] == "torus")["transform"] = torus.to_dict()
+    return Scene.from_dict(spec)
+
+
+@pytest.fixture(scope="module")
+def corner_reference():
+    return _mitsuba(corner_scene(), CORNER_SPP)
+
+
+@pytest.fixture(scope="module")
+def corner_shaded(corner_reference):
+    """``corner_shaded(case)``: the case's shade with the torus at its scene pose, computed once per module."""
+    return _shades(corner_reference[0], CORNER_CASES, corner_scene(TORUS_AWAY), "torus")
+
+
+def _corner_param(case, obj, part, bound):
+    key = (case, obj, part, bound)
+    marks = [pytest.mark.xfail(strict=True, reason=CORNER_KNOWN[key])] if key in CORNER_KNOWN else []
+    return pytest.param(case, obj, part, bound, marks=marks, id=f"{case}-{obj}-{part}-{bound}")
+
+
+_CORNER_PARAMS = [_corner_param(c, o, p, b) for c in CORNER_CASES for o in CORNER_OBJECTS
+                  for p, b in [*((p, "goal") for p in PARTS), *((p, "bound") for p in BOUND)]]
+
+
+@pytest.mark.parametrize("case, obj, part, bound", _CORNER_PARAMS)
+def test_corner_against_mitsuba(corner_reference, corner_shaded, case, obj, part, bound):
+    """The open room corner against Mitsuba with the torus at its scene pose: precomputed there, and precomputed
+    with the torus 1.16 m away then moved back by a FrameState (defaults; the paper's method). ``bound``:
+    the module's goal (GOAL) or the issue's binding bound (BOUND). The box's bottom face, on the floor, is
+    left out (``docs/DECISIONS.md``)."""
+    scene, ref = corner_reference
+    ours = corner_shaded(case)
+    masks = {"box": scene.object("box").world_vertices()[:, 1] > 0.01}
+    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=masks)
+    row = comparison.row(obj, part)
+    print(f"\n{case} {obj} {part}: rel_rms {row.rel_rms:.4f} noise {row.noise:.4f} error {row.error:.4f} "
+          f"mean ratio {row.mean_ratio:.4f}")
+    failures = comparison.check(GOAL[part] if bound == "goal" else BOUND[part])
     assert not failures, failures
