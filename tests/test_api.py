@@ -56,8 +56,8 @@ def test_api_rejects_bad_bounces():
 
 
 def test_too_many_bounces_are_refused_before_loading_the_scene(tmp_path):
-    with pytest.raises(ValueError, match="method 'spherelights' computes at most 1 indirect bounce"):
-        api.shade(tmp_path / "never_read.yaml", method="spherelights", bounces=2)
+    with pytest.raises(ValueError, match="method 'spherelights' computes at most 2 indirect bounce"):
+        api.shade(tmp_path / "never_read.yaml", method="spherelights", bounces=3)
 
 
 def test_api_rejects_bad_scene_type():
@@ -103,8 +103,8 @@ def test_an_unreachable_scheduler_times_out_naming_its_address():
 def test_check_bounces():
     assert api.check_bounces("interreflection", 3) == 3
     assert api.check_bounces("reference", 0) == 0
-    with pytest.raises(ValueError, match="method 'spherelights' computes at most 1 indirect bounce"):
-        api.check_bounces("spherelights", 2)
+    with pytest.raises(ValueError, match="method 'spherelights' computes at most 2 indirect bounce"):
+        api.check_bounces("spherelights", 3)
     with pytest.raises(TypeError, match="bounces must be an int >= 0"):
         api.check_bounces("portals", True)
 
