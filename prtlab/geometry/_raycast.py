@@ -1,10 +1,20 @@
-"""Ray casting through Embree (``embreex``) for scenes of many rigid objects.
+"""Ray casting through Embree for scenes of many rigid objects.
 
 A :class:`RayCaster` holds one Embree triangle geometry per object, in world
 space, and one acceleration structure (BVH) per *pose* of the scene. It is
 rebuilt only when :meth:`RayCaster.update_transforms` changes a transform.
-Queries are batched: any number of rays with leading batch axes, cast in
-chunks of :data:`RAY_CHUNK` rays.
+Queries are batched: any number of rays with leading batch axes.
+
+Engines (``method=``)
+    ``"embree"`` (default) calls Embree 4's ``rtcIntersect1`` / ``rtcOccluded1``
+    from a numba ``prange`` kernel (:mod:`prtlab.geometry._embree`), so rays are
+    traced on every numba thread without the GIL. ``"embreex"`` traces the same
+    float32 rays through ``embreex``'s ``EmbreeScene.run``, which holds the GIL
+    (one core), in chunks of :data:`RAY_CHUNK` rays; its scene is built on first
+    use per pose. Both give the same hits ray by ray (same library, same robust
+    flag, same float32 rays). ``"numpy"`` is the float64 brute-force
+    specification. If the Embree 4 library cannot be loaded from beside
+    ``embreex``, the caster warns once and ``"embree"`` runs the ``embreex`` path.
 
 Self-intersection offset
     Rays that start on a surface are moved off it before they are cast:
@@ -25,7 +35,8 @@ Self-intersection offset
     geometry lying exactly at the light (a ceiling light on the ceiling) does
     not shadow it even at grazing angles.
     (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
-    per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
+    per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``;
+    the ``"embree"`` engine casts the same rays.)
 
 Ray start (``tnear``)
     Rays start at their (offset) origin: ``RAY_TNEAR_SCALE = 0``, and
@@ -56,11 +67,15 @@ Precision (float32)
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
 import numba
 import numpy as np
+
+from .._validate import check_choice
+from . import _embree
 
 __all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_TNEAR_SCALE", "RAY_CHUNK", "offset_origins"]
 
@@ -71,7 +86,7 @@ RAY_EPSILON_SCALE = 1e-4
 #: 0, so that no surface next to an origin is skipped (see the module docstring).
 RAY_TNEAR_SCALE = 0.0
 
-#: Rays per call into Embree (bounds the float32 staging buffers).
+#: Rays per call into ``embreex`` (``method="embreex"``; bounds its output buffers).
 RAY_CHUNK = 1 << 19
 
 
@@ -203,6 +218,10 @@ def _stage_rays(origins, dirs, normals, epsilon, tnear, o32, d32):
         elif bad[i] == 2:
             n_zero += 1
     return n_nonfinite, n_zero
+
+
+#: The query engines, fastest first (module docstring).
+METHODS = ("embree", "embreex", "numpy")
 
 
 @numba.njit(cache=True)
@@ -361,7 +380,7 @@ class RayCaster:
             self._faces.append(f)
         self._matrices = [_transform_matrix(t) for t in transforms]
         self.n_builds = 0
-        self._scene = None
+        self._scene = self._embreex_scene = None
         self._build()
 
     # ------------------------------------------------------------------ pickling
@@ -370,7 +389,7 @@ class RayCaster:
         """Everything but the Embree scene (a C object): a caster sent to another
         process (a Dask worker) rebuilds its acceleration structure there."""
         state = self.__dict__.copy()
-        state["_scene"] = None
+        state["_scene"] = state["_embreex_scene"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -386,12 +405,9 @@ class RayCaster:
         return len(self._faces)
 
     def _build(self) -> None:
-        from embreex import mesh_construction, rtcore_scene
-
         self._world_vertices = []
         self._face_normals = []
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        scene = rtcore_scene.EmbreeScene(robust=True)
         for v, f, m in zip(self._object_vertices, self._faces, self._matrices):
             w = v @ m[:3, :3].T + m[:3, 3]
             self._world_vertices.append(w)
@@ -404,13 +420,6 @@ class RayCaster:
                 lo, hi = np.minimum(lo, used.min(axis=0)), np.maximum(hi, used.max(axis=0))
             else:
                 self._face_normals.append(np.zeros((0, 3)))
-            # Every object gets a geometry so that Embree's geometry id is the
-            # object index; an empty mesh gets one zero-area triangle no ray hits.
-            if len(f):
-                mesh_construction.TriangleMesh(scene, w.astype(np.float32), f.astype(np.int32))
-            else:
-                tri = np.zeros((1, 3, 3), dtype=np.float32)
-                mesh_construction.TriangleMesh(scene, tri)
         self._bounds = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((2, 3))
         if np.all(np.isfinite(lo)):  # the sphere about the box centre through the farthest used vertex
             centre = 0.5 * (lo + hi)
@@ -425,8 +434,28 @@ class RayCaster:
             [f + off for f, off in zip(self._faces, vert_offset[:-1])] + [np.zeros((0, 3), dtype=np.int64)]
         )
         self._all_face_normals = np.concatenate(self._face_normals + [np.zeros((0, 3))])
-        self._scene = scene
+        self._scene = self._embreex_scene = None  # the previous pose's scenes are released here
+        try:
+            self._scene = _embree.EmbreeScene(list(zip(self._world_vertices, self._faces)))
+        except _embree.EmbreeUnavailable as err:
+            warnings.warn(f"{err}; RayCaster traces through embreex on one thread", RuntimeWarning, stacklevel=3)
         self.n_builds += 1
+
+    def _embreex(self):
+        """The ``embreex`` scene of the current pose, built on first use (``method="embreex"``)."""
+        if self._embreex_scene is None:
+            from embreex import mesh_construction, rtcore_scene
+
+            scene = rtcore_scene.EmbreeScene(robust=True)
+            for w, f in zip(self._world_vertices, self._faces):
+                # one geometry per object, so that Embree's geometry id is the object index;
+                # an empty mesh gets one zero-area triangle no ray hits
+                if len(f):
+                    mesh_construction.TriangleMesh(scene, w.astype(np.float32), f.astype(np.int32))
+                else:
+                    mesh_construction.TriangleMesh(scene, np.zeros((1, 3, 3), dtype=np.float32))
+            self._embreex_scene = scene
+        return self._embreex_scene
 
     @property
     def bounds(self) -> np.ndarray:
@@ -537,11 +566,9 @@ class RayCaster:
             raise ValueError(f"tmax of shape {t.shape} does not broadcast to the rays' shape {batch}") from None
         return np.broadcast_to(t, (n,)) if t.size != n else t
 
-    def _check_method(self, method):
-        if method not in ("embree", "numpy"):
-            raise ValueError(
-                f"method must be 'embree' (fast, float32) or 'numpy' (float64 brute force), got {method!r}"
-            )
+    @staticmethod
+    def _check_method(method):
+        check_choice(method, "method", METHODS)
 
     def _prepare64(self, origins, dirs, normals):
         o, d, n, batch = _as_rays(origins, dirs, normals)
@@ -610,8 +637,9 @@ class RayCaster:
         normals : (..., 3) float, optional
             Surface normals at the origins: if given, each origin is offset by
             ``epsilon`` along ``±normal`` on the side of its ray (module docstring).
-        method : {"embree", "numpy"}
-            Embree in float32 (fast), or a float64 brute-force test of every
+        method : {"embree", "embreex", "numpy"}
+            Embree in float32 on every numba thread (fast); the same through
+            ``embreex`` on one thread; or a float64 brute-force test of every
             triangle (the slow specification, for tests and small scenes).
 
         Returns
@@ -632,17 +660,30 @@ class RayCaster:
         prim = np.full(n, -1, dtype=np.int64)
         uv = np.zeros((n, 2))
         dist = np.full(n, np.inf)
-        for s in range(0, n, RAY_CHUNK):
-            e = min(n, s + RAY_CHUNK)
+        if method == "embree" and self._scene is not None:
+            _embree.intersect(self._scene, o, d, self._tfar32(t), geom, prim, uv, dist)
+        else:
+            self._closest_embreex(o, d, t, geom, prim, uv, dist)
+        dist += tnear  # distances from the (offset) origin, not from the tnear start
+        return self._hits(geom, prim, uv, dist, batch)
+
+    def _tfar32(self, t) -> np.ndarray:
+        """float32 ``tmax - tnear`` per ray, 0 (not cast) where that is not positive."""
+        ts = np.asarray(t, dtype=np.float64) - self.tnear
+        return np.where(ts > 0, ts, 0.0).astype(np.float32)
+
+    def _closest_embreex(self, o, d, t, geom, prim, uv, dist) -> None:
+        scene = self._embreex()
+        tnear = self.tnear
+        for s in range(0, len(o), RAY_CHUNK):
+            e = min(len(o), s + RAY_CHUNK)
             ts = np.asarray(t[s:e], dtype=np.float64) - tnear
             live = ts > 0
             ts = np.where(live, ts, 1e-30).astype(np.float32)
-            out = self._scene.run(o[s:e], d[s:e], dists=ts, output=1)
+            out = scene.run(o[s:e], d[s:e], dists=ts, output=1)
             out["geomID"][~live] = -1
             _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
                           geom[s:e], prim[s:e], uv[s:e], dist[s:e])
-        dist += tnear  # distances from the (offset) origin, not from the tnear start
-        return self._hits(geom, prim, uv, dist, batch)
 
     def _hits(self, geom, prim, uv, dist, batch) -> RayHits:
         n = len(geom)
@@ -673,7 +714,7 @@ class RayCaster:
             shadow ray toward a light at distance ``r`` use ``r - epsilon``.
         normals : (..., 3) float, optional
             As in :meth:`closest_hit`: offset origins by ``epsilon`` off their surface.
-        method : {"embree", "numpy"}
+        method : {"embree", "embreex", "numpy"}
             As in :meth:`closest_hit`.
 
         Returns
@@ -691,6 +732,9 @@ class RayCaster:
         t = self._tmax(tmax, batch, n)
         tnear = self.tnear
         result = np.zeros(n, dtype=bool)
+        if method == "embree" and self._scene is not None:
+            _embree.occluded(self._scene, o, d, self._tfar32(t), result)
+            return result.reshape(batch)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
             ts = np.asarray(t[s:e], dtype=np.float64) - tnear
@@ -698,6 +742,6 @@ class RayCaster:
             if not np.any(live):
                 continue
             ts = np.where(live, ts, 1e-30).astype(np.float32)
-            ids = self._scene.run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
+            ids = self._embreex().run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
             result[s:e] = (ids != -1) & live
         return result.reshape(batch)
