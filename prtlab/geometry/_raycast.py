@@ -668,20 +668,18 @@ class RayCaster:
         return self._hits(geom, prim, uv, dist, batch)
 
     def _tfar32(self, t) -> np.ndarray:
-        """float32 ``tmax - tnear`` per ray, 0 (not cast) where that is not positive."""
+        """float32 ``tmax - tnear`` per ray: 0 (not cast) where that is not positive, inf past float32's range."""
         ts = np.asarray(t, dtype=np.float64) - self.tnear
+        ts = np.where(ts > np.finfo(np.float32).max, np.inf, ts)
         return np.where(ts > 0, ts, 0.0).astype(np.float32)
 
     def _closest_embreex(self, o, d, t, geom, prim, uv, dist) -> None:
         scene = self._embreex()
-        tnear = self.tnear
         for s in range(0, len(o), RAY_CHUNK):
             e = min(len(o), s + RAY_CHUNK)
-            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
-            live = ts > 0
-            ts = np.where(live, ts, 1e-30).astype(np.float32)
+            ts = self._tfar32(t[s:e])
             out = scene.run(o[s:e], d[s:e], dists=ts, output=1)
-            out["geomID"][~live] = -1
+            out["geomID"][~(ts > 0)] = -1
             _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
                           geom[s:e], prim[s:e], uv[s:e], dist[s:e])
 
@@ -730,18 +728,16 @@ class RayCaster:
         o, d, batch = self._prepare(origins, dirs, normals)
         n = len(o)
         t = self._tmax(tmax, batch, n)
-        tnear = self.tnear
         result = np.zeros(n, dtype=bool)
         if method == "embree" and self._scene is not None:
             _embree.occluded(self._scene, o, d, self._tfar32(t), result)
             return result.reshape(batch)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
+            ts = self._tfar32(t[s:e])
             live = ts > 0
             if not np.any(live):
                 continue
-            ts = np.where(live, ts, 1e-30).astype(np.float32)
             ids = self._embreex().run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
             result[s:e] = (ids != -1) & live
         return result.reshape(batch)

@@ -13,7 +13,7 @@ from prtlab.scene import Material, Scene, SceneObject, Transform
 from tests.conftest import random_directions
 
 
-METHODS = pytest.mark.parametrize("method", ["embree", "numpy"])
+METHODS = pytest.mark.parametrize("method", ["embree", "embreex", "numpy"])
 
 
 # ------------------------------------------------------------------ known answers
