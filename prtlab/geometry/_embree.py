@@ -2,10 +2,12 @@
 
 :class:`EmbreeScene` builds one Embree scene (robust mode, one triangle
 geometry per object, geometry id = object index) with the C API of the Embree 4
-library that ships inside the ``embreex`` wheel. :func:`intersect` and
-:func:`occluded` cast float32 rays through ``rtcIntersect1`` / ``rtcOccluded1``
-from a numba ``prange`` kernel that calls the C functions through their
-addresses: no Python and no GIL per ray, so every numba thread traces.
+library that ships inside the ``embreex`` wheel. Numba kernels trace rays
+through ``rtcIntersect1`` / ``rtcOccluded1`` by their addresses
+(:func:`rtc_call`), each task through its own ``RTCRayHit`` slot
+(:func:`ray_slots`, :func:`set_ray`): no Python and no GIL per ray, so every
+numba thread of a ``prange`` loop traces (the kernels are in
+:mod:`prtlab.geometry._raycast`).
 
 Why not ``embreex``: its ``EmbreeScene.run`` holds the GIL while it traces, so
 Python threads over ray chunks run one at a time; Embree's own thread pool
@@ -13,8 +15,7 @@ Python threads over ray chunks run one at a time; Embree's own thread pool
 
 Contract and limits
     * Rays are float32 with ``tnear = 0`` (the caller offsets origins, see
-      :mod:`prtlab.geometry._raycast`); a ray with ``tfar <= 0`` is not cast
-      and reports a miss.
+      :mod:`prtlab.geometry._raycast`).
     * The library is found beside ``embreex`` (``embreex.libs/`` on Linux,
       ``embreex/.dylibs/`` on macOS, the ``embreex`` folder on Windows), else
       on the system path; :func:`load_library` raises :class:`EmbreeUnavailable`
@@ -40,7 +41,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "intersect", "occluded"]
+__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "ray_slots", "rtc_call", "set_ray"]
 
 RTC_SCENE_FLAG_ROBUST = 1 << 2
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
@@ -229,8 +230,10 @@ class EmbreeScene:
         self._finalizer()
 
 
-def _slots(n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-task ``RTCRayHit`` scratch: 64-byte aligned rows of 128 bytes, as float32 and uint32 views."""
+def ray_slots(n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+    """Scratch ``RTCRayHit`` slots for a query of ``n_rays``, one per task of :data:`RAYS_PER_TASK` rays:
+    64-byte aligned rows of 128 bytes, as float32 and uint32 views of the same memory."""
+    n_tasks = max(1, -(-n_rays // RAYS_PER_TASK))
     raw = np.zeros(n_tasks * SLOT_BYTES + SLOT_ALIGN, dtype=np.uint8)
     start = (-raw.ctypes.data) % SLOT_ALIGN
     block = raw[start : start + n_tasks * SLOT_BYTES].reshape(n_tasks, SLOT_BYTES)
@@ -238,9 +241,9 @@ def _slots(n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @intrinsic
-def _rtc_call(typingctx, function, scene, ray):
+def rtc_call(typingctx, function, scene, ray):
     """``function(scene, ray, NULL)`` for C functions ``void (*)(RTCScene, RTCRay[Hit]*, args*)`` given
-    as integer addresses (``rtcIntersect1``, ``rtcOccluded1``)."""
+    as integer addresses (``rtcIntersect1``, ``rtcOccluded1``); callable from nopython code only."""
     if not all(isinstance(t, types.Integer) for t in (function, scene, ray)):
         return None
 
@@ -255,87 +258,19 @@ def _rtc_call(typingctx, function, scene, ray):
     return types.void(function, scene, ray), codegen
 
 
+#: Offsets in an ``RTCRayHit`` slot, in 4-byte words.
+TFAR, HIT_U, HIT_V, HIT_PRIM, HIT_GEOM = 8, 15, 16, 17, 18
+
+#: ``RTC_INVALID_GEOMETRY_ID``: a miss.
+INVALID_ID = 0xFFFFFFFF
+
+
 @numba.njit(cache=True, inline="always")
-def _load_ray(f32, u32, origins, dirs, tfar, i):
-    """Fill an ``RTCRay`` slot with ray ``i`` (tnear 0, every mask bit, no flags) and reset its hit."""
-    for k in range(3):
-        f32[k] = origins[i, k]
-        f32[4 + k] = dirs[i, k]
-    f32[3] = 0.0  # tnear
-    f32[7] = 0.0  # time
-    f32[8] = tfar[i]
-    u32[9] = 0xFFFFFFFF  # mask
-    u32[10] = 0  # id
-    u32[11] = 0  # flags
-    u32[18] = 0xFFFFFFFF  # hit.geomID = RTC_INVALID_GEOMETRY_ID
-    u32[19] = 0xFFFFFFFF  # hit.instID[0]
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _intersect_kernel(function, scene, origins, dirs, tfar, slot_f32, slot_u32, geom, prim, uv, dist):
-    """Closest hits of float32 rays; per task ``t`` rays ``[t*step, (t+1)*step)`` through slot ``t``."""
-    n = origins.shape[0]
-    n_tasks = slot_f32.shape[0]
-    step = (n + n_tasks - 1) // n_tasks
-    for task in numba.prange(n_tasks):
-        f32, u32 = slot_f32[task], slot_u32[task]
-        address = f32.ctypes.data
-        for i in range(task * step, min(n, (task + 1) * step)):
-            if not tfar[i] > 0.0:
-                continue
-            _load_ray(f32, u32, origins, dirs, tfar, i)
-            _rtc_call(function, scene, address)
-            if u32[18] != 0xFFFFFFFF:
-                geom[i] = u32[18]
-                prim[i] = u32[17]
-                uv[i, 0] = f32[15]
-                uv[i, 1] = f32[16]
-                dist[i] = f32[8]
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _occluded_kernel(function, scene, origins, dirs, tfar, slot_f32, slot_u32, out):
-    """Any-hit of float32 rays: Embree sets ``tfar`` to ``-inf`` on an occluded ray."""
-    n = origins.shape[0]
-    n_tasks = slot_f32.shape[0]
-    step = (n + n_tasks - 1) // n_tasks
-    for task in numba.prange(n_tasks):
-        f32, u32 = slot_f32[task], slot_u32[task]
-        address = f32.ctypes.data
-        for i in range(task * step, min(n, (task + 1) * step)):
-            if not tfar[i] > 0.0:
-                continue
-            _load_ray(f32, u32, origins, dirs, tfar, i)
-            _rtc_call(function, scene, address)
-            out[i] = f32[8] < 0.0
-
-
-def _n_tasks(n: int) -> int:
-    return max(1, -(-n // RAYS_PER_TASK))
-
-
-def intersect(scene: EmbreeScene, origins, dirs, tfar, geom, prim, uv, dist) -> None:
-    """Closest hits of ``n`` float32 rays into preset outputs (left as they are on a miss).
-
-    Parameters
-    ----------
-    scene : EmbreeScene
-    origins, dirs : (n, 3) float32, C-contiguous
-    tfar : (n,) float32
-        End of each ray; rays with ``tfar <= 0`` are not cast.
-    geom, prim : (n,) int64
-        Geometry (object) and primitive (face) ids of each hit.
-    uv : (n, 2) float64
-    dist : (n,) float64
-    """
-    slot_f32, slot_u32 = _slots(_n_tasks(len(origins)))
-    with numba.parallel_chunksize(1):
-        _intersect_kernel(scene.intersect_fn, scene.handle, origins, dirs, tfar, slot_f32, slot_u32,
-                          geom, prim, uv, dist)
-
-
-def occluded(scene: EmbreeScene, origins, dirs, tfar, out) -> None:
-    """Any-hit of ``n`` float32 rays into ``out`` ((n,) bool, preset False); as :func:`intersect`."""
-    slot_f32, slot_u32 = _slots(_n_tasks(len(origins)))
-    with numba.parallel_chunksize(1):
-        _occluded_kernel(scene.occluded_fn, scene.handle, origins, dirs, tfar, slot_f32, slot_u32, out)
+def set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar):
+    """Write a float32 ray (tnear 0, every mask bit, no flags) into a slot and reset its hit."""
+    f32[0], f32[1], f32[2], f32[3] = ox, oy, oz, 0.0
+    f32[4], f32[5], f32[6], f32[7] = dx, dy, dz, 0.0
+    f32[TFAR] = tfar
+    u32[9], u32[10], u32[11] = INVALID_ID, 0, 0  # mask, id, flags
+    u32[HIT_GEOM] = INVALID_ID
+    u32[HIT_GEOM + 1] = INVALID_ID  # instID[0]

@@ -69,7 +69,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -136,8 +136,9 @@ def _as_rays(origins, dirs, normals=None):
             f"origins {origins.shape} and dirs {dirs.shape} do not broadcast; give both as (..., 3)"
         ) from None
     batch = shape[:-1]
-    # writeable C-contiguous float64 copies: one numba signature for every call
-    flat = lambda a: np.require(np.broadcast_to(a, shape).reshape(-1, 3), np.float64, ["C", "W"])  # noqa: E731
+
+    def flat(a):  # writeable C-contiguous float64 (one numba signature for every call), copied only if need be
+        return _writeable((a if a.shape == shape else np.broadcast_to(a, shape)).reshape(-1, 3))
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)
         if normals.ndim == 0 or normals.shape[-1] != 3:
@@ -148,6 +149,13 @@ def _as_rays(origins, dirs, normals=None):
             raise ValueError(f"normals {normals.shape} do not broadcast to the rays' shape {shape}") from None
         normals = flat(normals)
     return flat(origins), flat(dirs), normals, batch
+
+
+def _writeable(a: np.ndarray) -> np.ndarray:
+    """``a`` if it is a writeable C-contiguous float64 array, else such a copy."""
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
 
 
 @numba.njit(cache=True, parallel=True)
@@ -179,66 +187,177 @@ def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
             out[p, j] = ok
 
 
-@numba.njit(cache=True, parallel=True)
-def _stage_rays(origins, dirs, normals, epsilon, tnear, o32, d32):
-    """Unit float32 directions and float32 origins, offset off their surface and then ``tnear``
-    along the ray; returns (#non-finite, #zero dirs)."""
-    n = origins.shape[0]
-    bad = np.zeros(n, dtype=np.int64)
-    has_normals = normals.shape[0] == n
-    for i in numba.prange(n):
-        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        length = np.sqrt(dx * dx + dy * dy + dz * dz)
-        finite = np.isfinite(length)
-        for k in range(3):
-            finite = finite and np.isfinite(origins[i, k])
-        if not finite:
-            bad[i] = 1
-            continue
-        if length == 0.0:
-            bad[i] = 2
-            continue
-        dx /= length
-        dy /= length
-        dz /= length
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        if has_normals:
-            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-            side = epsilon if nx * dx + ny * dy + nz * dz >= 0.0 else -epsilon
-            ox += side * nx
-            oy += side * ny
-            oz += side * nz
-        o32[i, 0], o32[i, 1], o32[i, 2] = ox + tnear * dx, oy + tnear * dy, oz + tnear * dz
-        d32[i, 0], d32[i, 1], d32[i, 2] = dx, dy, dz
-    n_nonfinite = 0
-    n_zero = 0
-    for i in range(n):
-        if bad[i] == 1:
-            n_nonfinite += 1
-        elif bad[i] == 2:
-            n_zero += 1
-    return n_nonfinite, n_zero
-
-
 #: The query engines, fastest first (module docstring).
 METHODS = ("embree", "embreex", "numpy")
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
-@numba.njit(cache=True)
-def _collect_hits(g32, p32, u32, v32, t32, geom, prim, uv, dist):
-    """Embree's per-chunk float32 / int32 output into the float64 / int64 result (misses cleaned)."""
-    for i in range(g32.shape[0]):
-        if g32[i] >= 0:
-            geom[i] = g32[i]
-            prim[i] = p32[i]
-            uv[i, 0] = u32[i]
-            uv[i, 1] = v32[i]
-            dist[i] = t32[i]
+#: Per-ray status of staging: cast, not cast (empty segment), or one of three input errors.
+CAST, NOT_CAST, NONFINITE_RAY, ZERO_DIRECTION, NONFINITE_NORMAL = 0, 1, 2, 3, 4
+
+
+class _Rays(NamedTuple):
+    """Rays as numba kernels take them (float64, C-contiguous, writeable)."""
+
+    origins: np.ndarray  # (n, 3)
+    dirs: np.ndarray  # (n, 3), any nonzero length
+    normals: np.ndarray  # (n, 3), or (0, 3): no origin offset
+    tmax: np.ndarray  # (n,), or (1,): one for every ray
+    epsilon: float
+    tnear: float
+
+
+class _Mesh(NamedTuple):
+    """Every object's triangles in one float64 world-space mesh; object ``g``'s faces start at ``face_offset[g]``."""
+
+    face_offset: np.ndarray  # (n_objects + 1,) int64
+    faces: np.ndarray  # (n_faces, 3) int64
+    vertices: np.ndarray  # (n_vertices, 3) float64
+    face_normals: np.ndarray  # (n_faces, 3) float64
+
+
+class _Hits(NamedTuple):
+    """Flat outputs of a closest-hit query (see :class:`RayHits`)."""
+
+    hit: np.ndarray
+    geom: np.ndarray
+    prim: np.ndarray
+    uv: np.ndarray
+    dist: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "_Hits":
+        i64 = np.int64
+        return cls(np.empty(n, bool), np.empty(n, i64), np.empty(n, i64), np.empty((n, 2)), np.empty(n),
+                   np.empty((n, 3)), np.empty((n, 3)))
+
+
+class _Tracer(NamedTuple):
+    """An Embree query for a kernel: C function and scene addresses and one ray slot per task."""
+
+    function: int
+    scene: int
+    slot_f32: np.ndarray
+    slot_u32: np.ndarray
+
+
+@numba.njit(cache=True, inline="always")
+def _stage_ray(rays, i):
+    """Ray ``i``: unit direction, origin offset off its surface (``normals``) and moved ``tnear`` along the
+    ray, and ``tmax - tnear`` (inf past float32's range). Returns ``(status, ox, oy, oz, dx, dy, dz, tfar)``."""
+    dx, dy, dz = rays.dirs[i, 0], rays.dirs[i, 1], rays.dirs[i, 2]
+    ox, oy, oz = rays.origins[i, 0], rays.origins[i, 1], rays.origins[i, 2]
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    tfar = rays.tmax[np.int64(i) if rays.tmax.shape[0] > 1 else np.int64(0)] - rays.tnear
+    if not (np.isfinite(length) and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)):
+        return NONFINITE_RAY, ox, oy, oz, dx, dy, dz, tfar
+    if length == 0.0:
+        return ZERO_DIRECTION, ox, oy, oz, dx, dy, dz, tfar
+    dx /= length
+    dy /= length
+    dz /= length
+    if rays.normals.shape[0] > 0:
+        nx, ny, nz = rays.normals[i, 0], rays.normals[i, 1], rays.normals[i, 2]
+        if not (np.isfinite(nx) and np.isfinite(ny) and np.isfinite(nz)):
+            return NONFINITE_NORMAL, ox, oy, oz, dx, dy, dz, tfar
+        side = rays.epsilon if nx * dx + ny * dy + nz * dz >= 0.0 else -rays.epsilon
+        ox += side * nx
+        oy += side * ny
+        oz += side * nz
+    tnear = rays.tnear
+    if tfar > _FLOAT32_MAX:
+        tfar = np.inf
+    status = CAST if np.float32(tfar) > 0.0 else NOT_CAST
+    return status, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz, dx, dy, dz, tfar
+
+
+@numba.njit(cache=True, inline="always")
+def _store_hit(hit, geom, prim, uv, dist, i, g, face, u, v, t):
+    """Ray ``i`` hit face ``face`` of object ``g`` at distance ``t`` (``g < 0``: a miss).
+
+    The kernels pass ``_Hits`` fields as local arrays: numba 0.68 drops writes made inside a ``prange``
+    loop through a named tuple's fields (``out.geom[i] = g``)."""
+    hit[i] = g >= 0
+    geom[i] = g if g >= 0 else -1
+    prim[i] = face if g >= 0 else -1
+    uv[i, 0] = u if g >= 0 else 0.0
+    uv[i, 1] = v if g >= 0 else 0.0
+    dist[i] = t if g >= 0 else np.inf
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _closest_hit_kernel(tracer, rays, out, status):
+    """Closest hits through ``rtcIntersect1`` on every thread (``point`` and ``normal`` are left to
+    ``_resolve_points``); task ``t`` traces rays ``[t * step, (t + 1) * step)`` through slot ``t``."""
+    n = rays.origins.shape[0]
+    n_tasks = tracer.slot_f32.shape[0]
+    step = (n + n_tasks - 1) // n_tasks
+    hit, geom, prim, uv, dist = out.hit, out.geom, out.prim, out.uv, out.dist
+    for task in numba.prange(n_tasks):
+        f32, u32 = tracer.slot_f32[task], tracer.slot_u32[task]
+        address = f32.ctypes.data
+        for i in range(task * step, min(n, (task + 1) * step)):
+            state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+            status[i] = state
+            g = np.int64(-1)
+            if state == CAST:
+                _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
+                _embree.rtc_call(tracer.function, tracer.scene, address)
+                if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                    g = np.int64(u32[_embree.HIT_GEOM])
+            _store_hit(hit, geom, prim, uv, dist, i, g, np.int64(u32[_embree.HIT_PRIM]),
+                       np.float64(f32[_embree.HIT_U]), np.float64(f32[_embree.HIT_V]),
+                       np.float64(f32[_embree.TFAR]) + rays.tnear)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _occluded_kernel(tracer, rays, out, status):
+    """Any hit through ``rtcOccluded1`` (which sets ``tfar`` to ``-inf`` on a hit), as ``_closest_hit_kernel``."""
+    n = rays.origins.shape[0]
+    n_tasks = tracer.slot_f32.shape[0]
+    step = (n + n_tasks - 1) // n_tasks
+    for task in numba.prange(n_tasks):
+        f32, u32 = tracer.slot_f32[task], tracer.slot_u32[task]
+        address = f32.ctypes.data
+        for i in range(task * step, min(n, (task + 1) * step)):
+            state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+            status[i] = state
+            out[i] = False
+            if state == CAST:
+                _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
+                _embree.rtc_call(tracer.function, tracer.scene, address)
+                out[i] = f32[_embree.TFAR] < 0.0
 
 
 @numba.njit(cache=True, parallel=True)
-def _resolve_hits(geom, prim, uv, face_offset, faces, vertices, face_normals, point, normal):
-    """Hit points from barycentrics on the float64 triangles, and their unit face normals."""
+def _stage_rays(rays, o32, d32, t32, status):
+    """The float32 rays of ``_stage_ray`` in arrays (``method="embreex"``); ``t32 = 0`` for a ray not cast."""
+    for i in numba.prange(rays.origins.shape[0]):
+        state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+        status[i] = state
+        o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
+        d32[i, 0], d32[i, 1], d32[i, 2] = dx, dy, dz
+        t32[i] = tfar if state == CAST else 0.0
+
+
+@numba.njit(cache=True, parallel=True)
+def _collect_hits(start, g32, p32, u32, v32, t32, cast, tnear, out):
+    """``embreex``'s float32 / int32 output for rays ``start + j`` into ``out`` (rays not cast: misses)."""
+    hit, geom, prim, uv, dist = out.hit, out.geom, out.prim, out.uv, out.dist
+    for j in numba.prange(g32.shape[0]):
+        g = np.int64(g32[j]) if cast[j] > 0.0 else np.int64(-1)
+        _store_hit(hit, geom, prim, uv, dist, start + j, g, np.int64(p32[j]), np.float64(u32[j]), np.float64(v32[j]),
+                   np.float64(t32[j]) + tnear)
+
+
+@numba.njit(cache=True, parallel=True)
+def _resolve_points(mesh, geom, prim, uv, point, normal):
+    """Hit points from the barycentrics on the float64 triangles, and unit face normals (NaN and 0 on a miss).
+
+    A pass of its own: done inside the tracing loop it ran at half the speed (measured), its reads of
+    the mesh and Embree's of the BVH evicting each other from the caches."""
     for i in numba.prange(geom.shape[0]):
         g = geom[i]
         if g < 0:
@@ -246,13 +365,13 @@ def _resolve_hits(geom, prim, uv, face_offset, faces, vertices, face_normals, po
                 point[i, k] = np.nan
                 normal[i, k] = 0.0
             continue
-        f = face_offset[g] + prim[i]
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        f = mesh.face_offset[g] + prim[i]
+        a, b, c = mesh.faces[f, 0], mesh.faces[f, 1], mesh.faces[f, 2]
         u, v = uv[i, 0], uv[i, 1]
         w = 1.0 - u - v
         for k in range(3):
-            point[i, k] = w * vertices[a, k] + u * vertices[b, k] + v * vertices[c, k]
-            normal[i, k] = face_normals[f, k]
+            point[i, k] = w * mesh.vertices[a, k] + u * mesh.vertices[b, k] + v * mesh.vertices[c, k]
+            normal[i, k] = mesh.face_normals[f, k]
 
 
 def offset_origins(points, normals, dirs, epsilon: float) -> np.ndarray:
@@ -434,6 +553,7 @@ class RayCaster:
             [f + off for f, off in zip(self._faces, vert_offset[:-1])] + [np.zeros((0, 3), dtype=np.int64)]
         )
         self._all_face_normals = np.concatenate(self._face_normals + [np.zeros((0, 3))])
+        self._mesh = _Mesh(self._face_offset, self._all_faces, self._all_vertices, self._all_face_normals)
         self._scene = self._embreex_scene = None  # the previous pose's scenes are released here
         try:
             self._scene = _embree.EmbreeScene(list(zip(self._world_vertices, self._faces)))
@@ -540,20 +660,22 @@ class RayCaster:
 
     # --------------------------------------------------------------- queries
 
-    def _prepare(self, origins, dirs, normals):
+    def _rays(self, origins, dirs, tmax, normals):
+        """Validated rays for the kernels, and their batch shape."""
         o, d, n, batch = _as_rays(origins, dirs, normals)
-        o32 = np.empty(o.shape, dtype=np.float32)
-        d32 = np.empty(d.shape, dtype=np.float32)
-        nonfinite, zero = _stage_rays(
-            o, d, np.zeros((0, 3)) if n is None else n, self.epsilon, self.tnear, o32, d32
-        )
-        if nonfinite:
+        t = self._tmax(tmax, batch, len(o))
+        t = np.array([t[0]]) if len(t) and t.strides[0] == 0 else _writeable(t)  # one tmax for all: (1,)
+        return _Rays(o, d, np.zeros((0, 3)) if n is None else n, t, self.epsilon, self.tnear), batch
+
+    @staticmethod
+    def _check_status(status) -> None:
+        counts = np.bincount(status, minlength=5)
+        if counts[NONFINITE_RAY]:
             raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
-        if zero:
+        if counts[ZERO_DIRECTION]:
             raise ValueError("dirs contains zero vectors; every ray needs a nonzero direction")
-        if n is not None and not np.all(np.isfinite(n)):
+        if counts[NONFINITE_NORMAL]:
             raise ValueError("normals contain NaN or inf; pass finite normals")
-        return o32, d32, batch
 
     @staticmethod
     def _tmax(tmax, batch, n):
@@ -565,6 +687,10 @@ class RayCaster:
         except ValueError:
             raise ValueError(f"tmax of shape {t.shape} does not broadcast to the rays' shape {batch}") from None
         return np.broadcast_to(t, (n,)) if t.size != n else t
+
+    def _tracer(self, n: int, function: int) -> _Tracer:
+        slot_f32, slot_u32 = _embree.ray_slots(n)
+        return _Tracer(function, self._scene.handle, slot_f32, slot_u32)
 
     @staticmethod
     def _check_method(method):
@@ -651,53 +777,44 @@ class RayCaster:
         if method == "numpy":
             o, d, batch = self._prepare64(origins, dirs, normals)
             geom, prim, uv, dist = self._brute_force(o, d, self._tmax(tmax, batch, len(o)))
-            return self._hits(geom, prim, uv, dist, batch)
-        o, d, batch = self._prepare(origins, dirs, normals)
-        n = len(o)
-        tnear = self.tnear
-        t = self._tmax(tmax, batch, n)
-        geom = np.full(n, -1, dtype=np.int64)
-        prim = np.full(n, -1, dtype=np.int64)
-        uv = np.zeros((n, 2))
-        dist = np.full(n, np.inf)
+            return self._ray_hits(_Hits(geom >= 0, geom, prim, uv, dist, np.empty((len(o), 3)),
+                                        np.empty((len(o), 3))), batch)
+        rays, batch = self._rays(origins, dirs, tmax, normals)
+        n = len(rays.origins)
+        out = _Hits.empty(n)
+        status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
-            _embree.intersect(self._scene, o, d, self._tfar32(t), geom, prim, uv, dist)
-        else:
-            self._closest_embreex(o, d, t, geom, prim, uv, dist)
-        dist += tnear  # distances from the (offset) origin, not from the tnear start
-        return self._hits(geom, prim, uv, dist, batch)
-
-    def _tfar32(self, t) -> np.ndarray:
-        """float32 ``tmax - tnear`` per ray: 0 (not cast) where that is not positive, inf past float32's range."""
-        ts = np.asarray(t, dtype=np.float64) - self.tnear
-        ts = np.where(ts > np.finfo(np.float32).max, np.inf, ts)
-        return np.where(ts > 0, ts, 0.0).astype(np.float32)
-
-    def _closest_embreex(self, o, d, t, geom, prim, uv, dist) -> None:
+            _closest_hit_kernel(self._tracer(n, self._scene.intersect_fn), rays, out, status)
+            self._check_status(status)
+            return self._ray_hits(out, batch)
+        o32, d32, t32 = self._stage32(rays, status)
         scene = self._embreex()
-        for s in range(0, len(o), RAY_CHUNK):
-            e = min(len(o), s + RAY_CHUNK)
-            ts = self._tfar32(t[s:e])
-            out = scene.run(o[s:e], d[s:e], dists=ts, output=1)
-            out["geomID"][~(ts > 0)] = -1
-            _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
-                          geom[s:e], prim[s:e], uv[s:e], dist[s:e])
+        for s in range(0, n, RAY_CHUNK):
+            e = min(n, s + RAY_CHUNK)
+            hits = scene.run(o32[s:e], d32[s:e], dists=t32[s:e], output=1)
+            _collect_hits(s, hits["geomID"], hits["primID"], hits["u"], hits["v"], hits["tfar"], t32[s:e],
+                          rays.tnear, out)
+        return self._ray_hits(out, batch)
 
-    def _hits(self, geom, prim, uv, dist, batch) -> RayHits:
-        n = len(geom)
-        hit = geom >= 0
-        normal = np.empty((n, 3))
-        point = np.empty((n, 3))
-        _resolve_hits(geom, prim, uv, self._face_offset, self._all_faces,
-                      self._all_vertices, self._all_face_normals, point, normal)
+    def _stage32(self, rays, status):
+        """float32 origins, directions and ``tfar`` (0: not cast) for ``embreex``; input errors raised."""
+        n = len(rays.origins)
+        o32, d32, t32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
+        _stage_rays(rays, o32, d32, t32, status)
+        self._check_status(status)
+        return o32, d32, t32
+
+    def _ray_hits(self, out: _Hits, batch) -> RayHits:
+        """``out`` with its hit points and normals resolved, shaped as the rays."""
+        _resolve_points(self._mesh, out.geom, out.prim, out.uv, out.point, out.normal)
         return RayHits(
-            hit=hit.reshape(batch),
-            object=geom.reshape(batch),
-            triangle=prim.reshape(batch),
-            barycentric=uv.reshape(batch + (2,)),
-            distance=dist.reshape(batch),
-            normal=normal.reshape(batch + (3,)),
-            point=point.reshape(batch + (3,)),
+            hit=out.hit.reshape(batch),
+            object=out.geom.reshape(batch),
+            triangle=out.prim.reshape(batch),
+            barycentric=out.uv.reshape(batch + (2,)),
+            distance=out.dist.reshape(batch),
+            normal=out.normal.reshape(batch + (3,)),
+            point=out.point.reshape(batch + (3,)),
         )
 
     def occluded(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> np.ndarray:
@@ -725,19 +842,20 @@ class RayCaster:
             t = np.asarray(self._tmax(tmax, batch, len(o)), dtype=np.float64)
             dist = self._brute_force(o, d, t)[3]
             return ((dist < t) & (t > 0)).reshape(batch)
-        o, d, batch = self._prepare(origins, dirs, normals)
-        n = len(o)
-        t = self._tmax(tmax, batch, n)
-        result = np.zeros(n, dtype=bool)
+        rays, batch = self._rays(origins, dirs, tmax, normals)
+        n = len(rays.origins)
+        status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
-            _embree.occluded(self._scene, o, d, self._tfar32(t), result)
+            result = np.empty(n, dtype=bool)
+            _occluded_kernel(self._tracer(n, self._scene.occluded_fn), rays, result, status)
+            self._check_status(status)
             return result.reshape(batch)
+        o32, d32, t32 = self._stage32(rays, status)
+        result = np.zeros(n, dtype=bool)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = self._tfar32(t[s:e])
-            live = ts > 0
-            if not np.any(live):
-                continue
-            ids = self._embreex().run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
-            result[s:e] = (ids != -1) & live
+            live = t32[s:e] > 0
+            if np.any(live):
+                ids = self._embreex().run(o32[s:e], d32[s:e], dists=t32[s:e], query="OCCLUDED")
+                result[s:e] = (ids != -1) & live
         return result.reshape(batch)
