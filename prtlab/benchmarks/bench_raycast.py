@@ -17,11 +17,14 @@ directions (about a quarter hit).
 * ``raycast.threads.*``: the default engine on two threads against itself on
   one (``numba.set_num_threads``), interleaved; ``peer / ours`` is the speed-up
   of the second core. ``info`` gives both throughputs, the CPU time over the wall
-  time of the two-thread calls (2 when both cores traced throughout) and the
-  share of that CPU time spent by the busiest thread (0.5 when the work was
-  split evenly). On a machine shared with other sessions (Linux gives each
-  session an equal slice, however many threads it runs) the wall-time ratio
-  falls toward 1 while the CPU split still shows two threads tracing.
+  time of the two-thread calls (2 when both cores traced throughout), the share
+  of that CPU time spent by the busiest thread (0.5 when the work was split
+  evenly) and the CPU time per call on two threads over one (1 when the second
+  thread costs nothing; the speed-up on two idle cores is then about
+  ``2 / cpu_2_over_1``). On a machine shared with other sessions (Linux's
+  autogroup gives each session an equal slice, however many threads it runs)
+  the wall-time ratio falls toward 1 while the CPU figures still show two
+  threads tracing.
 """
 
 from __future__ import annotations
@@ -125,6 +128,7 @@ def _threads_case(quick: bool, query: str) -> dict:
     two = min(2, numba.config.NUMBA_NUM_THREADS)
     info: dict = {"threads": two}
     walls = {1: [], 2: []}
+    cpu_per_call = {1: [], 2: []}
     cpu = {"process": 0.0, "wall": 0.0, "threads": {}}
 
     def timed(threads: int):
@@ -134,11 +138,14 @@ def _threads_case(quick: bool, query: str) -> dict:
         try:
             fn(origins, dirs)
         finally:
-            wall = time.perf_counter() - t0
+            wall, spent = time.perf_counter() - t0, time.process_time() - p0
             numba.set_num_threads(previous)
         walls[threads].append(wall)
+        cpu_per_call[threads].append(spent)
+        if walls[1] and walls[2]:
+            info["cpu_2_over_1"] = float(np.median(cpu_per_call[2]) / np.median(cpu_per_call[1]))
         if threads == 2:
-            cpu["process"] += time.process_time() - p0
+            cpu["process"] += spent
             cpu["wall"] += wall
             for tid, seconds in _thread_cpu().items():
                 cpu["threads"][tid] = cpu["threads"].get(tid, 0.0) + seconds - before.get(tid, 0.0)

@@ -41,7 +41,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "ray_slots", "rtc_call", "set_ray"]
+__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "ray_slots", "rtc_call", "set_ray", "fetch_add"]
 
 RTC_SCENE_FLAG_ROBUST = 1 << 2
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
@@ -54,7 +54,7 @@ RTC_FORMAT_FLOAT3 = 0x9003
 SLOT_BYTES = 128
 SLOT_ALIGN = 64
 
-#: Rays a thread takes at a time from the queue of a query (dynamic scheduling).
+#: Rays a thread takes at a time from the queue of a query (:func:`fetch_add`).
 RAYS_PER_TASK = 256
 
 _SIGNATURES = {
@@ -256,6 +256,25 @@ def rtc_call(typingctx, function, scene, ray):
         return context.get_dummy_value()
 
     return types.void(function, scene, ray), codegen
+
+
+@intrinsic
+def fetch_add(typingctx, counter, increment):
+    """Atomically ``counter[0] += increment``, returning the previous value (``counter``: int64 array).
+
+    Threads of a ``prange`` loop take blocks of rays from one counter (dynamic scheduling): numba's
+    ``prange`` splits its range evenly between threads ahead of time, so a thread that the operating
+    system pauses, or that draws the costly rays, would otherwise hold up the whole query."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64
+            and isinstance(increment, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        step = context.cast(builder, args[1], signature.args[1], types.int64)
+        return builder.atomic_rmw("add", array.data, step, "monotonic")
+
+    return types.int64(counter, increment), codegen
 
 
 #: Offsets in an ``RTCRayHit`` slot, in 4-byte words.

@@ -228,19 +228,24 @@ class _Hits(NamedTuple):
     normal: np.ndarray
 
     @classmethod
-    def empty(cls, n: int) -> "_Hits":
+    def empty(cls, n: int, any_hit: bool = False) -> "_Hits":
+        """Outputs for ``n`` rays (``any_hit``: only ``hit``; the other fields hold no rays)."""
+        m = 0 if any_hit else n
         i64 = np.int64
-        return cls(np.empty(n, bool), np.empty(n, i64), np.empty(n, i64), np.empty((n, 2)), np.empty(n),
-                   np.empty((n, 3)), np.empty((n, 3)))
+        return cls(np.empty(n, bool), np.empty(m, i64), np.empty(m, i64), np.empty((m, 2)), np.empty(m),
+                   np.empty((m, 3)), np.empty((m, 3)))
 
 
 class _Tracer(NamedTuple):
-    """An Embree query for a kernel: C function and scene addresses and one ray slot per task."""
+    """An Embree query for a kernel: C function and scene addresses, one ray slot per block of rays and
+    the numba thread count (``numba.get_num_threads()`` inside a kernel would keep it from being cached)."""
 
     function: int
     scene: int
     slot_f32: np.ndarray
     slot_u32: np.ndarray
+    threads: int
+    any_hit: bool
 
 
 @numba.njit(cache=True, inline="always")
@@ -288,47 +293,40 @@ def _store_hit(hit, geom, prim, uv, dist, i, g, face, u, v, t):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _closest_hit_kernel(tracer, rays, out, status):
-    """Closest hits through ``rtcIntersect1`` on every thread (``point`` and ``normal`` are left to
-    ``_resolve_points``); task ``t`` traces rays ``[t * step, (t + 1) * step)`` through slot ``t``."""
+def _trace_kernel(tracer, rays, out, status):
+    """Closest hits through ``rtcIntersect1`` into ``out`` (``point`` and ``normal`` are left to
+    ``_resolve_points``), or with ``tracer.any_hit`` occlusion through ``rtcOccluded1`` (which sets
+    ``tfar`` to ``-inf`` on a hit) into ``out.hit`` only. Each thread takes the next block ``b`` of
+    ``RAYS_PER_TASK`` rays from a shared counter and traces it through slot ``b``."""
     n = rays.origins.shape[0]
-    n_tasks = tracer.slot_f32.shape[0]
-    step = (n + n_tasks - 1) // n_tasks
+    n_blocks = tracer.slot_f32.shape[0]
+    step = _embree.RAYS_PER_TASK
     hit, geom, prim, uv, dist = out.hit, out.geom, out.prim, out.uv, out.dist
-    for task in numba.prange(n_tasks):
-        f32, u32 = tracer.slot_f32[task], tracer.slot_u32[task]
-        address = f32.ctypes.data
-        for i in range(task * step, min(n, (task + 1) * step)):
-            state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
-            status[i] = state
-            g = np.int64(-1)
-            if state == CAST:
-                _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
-                _embree.rtc_call(tracer.function, tracer.scene, address)
-                if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
-                    g = np.int64(u32[_embree.HIT_GEOM])
-            _store_hit(hit, geom, prim, uv, dist, i, g, np.int64(u32[_embree.HIT_PRIM]),
-                       np.float64(f32[_embree.HIT_U]), np.float64(f32[_embree.HIT_V]),
-                       np.float64(f32[_embree.TFAR]) + rays.tnear)
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _occluded_kernel(tracer, rays, out, status):
-    """Any hit through ``rtcOccluded1`` (which sets ``tfar`` to ``-inf`` on a hit), as ``_closest_hit_kernel``."""
-    n = rays.origins.shape[0]
-    n_tasks = tracer.slot_f32.shape[0]
-    step = (n + n_tasks - 1) // n_tasks
-    for task in numba.prange(n_tasks):
-        f32, u32 = tracer.slot_f32[task], tracer.slot_u32[task]
-        address = f32.ctypes.data
-        for i in range(task * step, min(n, (task + 1) * step)):
-            state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
-            status[i] = state
-            out[i] = False
-            if state == CAST:
-                _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
-                _embree.rtc_call(tracer.function, tracer.scene, address)
-                out[i] = f32[_embree.TFAR] < 0.0
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(tracer.threads):
+        while True:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_blocks:
+                break
+            f32, u32 = tracer.slot_f32[block], tracer.slot_u32[block]
+            address = f32.ctypes.data
+            for i in range(block * step, min(n, (block + 1) * step)):
+                state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+                status[i] = state
+                g = np.int64(-1)
+                if state == CAST:
+                    _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
+                    _embree.rtc_call(tracer.function, tracer.scene, address)
+                    if tracer.any_hit:
+                        g = np.int64(0) if f32[_embree.TFAR] < 0.0 else np.int64(-1)
+                    elif u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                        g = np.int64(u32[_embree.HIT_GEOM])
+                if tracer.any_hit:
+                    hit[i] = g >= 0
+                else:
+                    _store_hit(hit, geom, prim, uv, dist, i, g, np.int64(u32[_embree.HIT_PRIM]),
+                               np.float64(f32[_embree.HIT_U]), np.float64(f32[_embree.HIT_V]),
+                               np.float64(f32[_embree.TFAR]) + rays.tnear)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -669,6 +667,8 @@ class RayCaster:
 
     @staticmethod
     def _check_status(status) -> None:
+        if not len(status) or status.max() <= NOT_CAST:
+            return
         counts = np.bincount(status, minlength=5)
         if counts[NONFINITE_RAY]:
             raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
@@ -688,9 +688,10 @@ class RayCaster:
             raise ValueError(f"tmax of shape {t.shape} does not broadcast to the rays' shape {batch}") from None
         return np.broadcast_to(t, (n,)) if t.size != n else t
 
-    def _tracer(self, n: int, function: int) -> _Tracer:
+    def _tracer(self, n: int, any_hit: bool) -> _Tracer:
         slot_f32, slot_u32 = _embree.ray_slots(n)
-        return _Tracer(function, self._scene.handle, slot_f32, slot_u32)
+        function = self._scene.occluded_fn if any_hit else self._scene.intersect_fn
+        return _Tracer(function, self._scene.handle, slot_f32, slot_u32, numba.get_num_threads(), any_hit)
 
     @staticmethod
     def _check_method(method):
@@ -784,7 +785,7 @@ class RayCaster:
         out = _Hits.empty(n)
         status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
-            _closest_hit_kernel(self._tracer(n, self._scene.intersect_fn), rays, out, status)
+            _trace_kernel(self._tracer(n, False), rays, out, status)
             self._check_status(status)
             return self._ray_hits(out, batch)
         o32, d32, t32 = self._stage32(rays, status)
@@ -846,10 +847,10 @@ class RayCaster:
         n = len(rays.origins)
         status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
-            result = np.empty(n, dtype=bool)
-            _occluded_kernel(self._tracer(n, self._scene.occluded_fn), rays, result, status)
+            out = _Hits.empty(n, any_hit=True)
+            _trace_kernel(self._tracer(n, True), rays, out, status)
             self._check_status(status)
-            return result.reshape(batch)
+            return out.hit.reshape(batch)
         o32, d32, t32 = self._stage32(rays, status)
         result = np.zeros(n, dtype=bool)
         for s in range(0, n, RAY_CHUNK):
