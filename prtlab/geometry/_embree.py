@@ -4,9 +4,10 @@
 geometry per object, geometry id = object index) with the C API of the Embree 4
 library that ships inside the ``embreex`` wheel. Numba kernels trace rays
 through ``rtcIntersect1`` / ``rtcOccluded1`` by their addresses
-(:func:`rtc_call`), each task through its own ``RTCRayHit`` slot
-(:func:`ray_slots`, :func:`set_ray`): no Python and no GIL per ray, so every
-numba thread of a ``prange`` loop traces (the kernels are in
+(:func:`rtc_call`), each block of :data:`RAYS_PER_TASK` rays through its own
+``RTCRayHit`` slot (:func:`ray_slots`, :func:`set_ray`), the threads of a
+``prange`` loop taking blocks from a shared counter (:func:`fetch_add`): no
+Python and no GIL per ray, so every numba thread traces (the kernels are in
 :mod:`prtlab.geometry._raycast`).
 
 Why not ``embreex``: its ``EmbreeScene.run`` holds the GIL while it traces, so
@@ -22,8 +23,8 @@ Contract and limits
       with one line saying what is missing.
     * Struct layouts follow ``embree4/rtcore_ray.h``: ``RTCRay`` is 48 bytes,
       ``RTCHit`` follows at byte 48 (``u, v`` at 60, 64; ``primID, geomID`` at
-      68, 72). Each thread's ``RTCRayHit`` lives in a 128-byte, 64-byte aligned
-      slot, larger than any Embree 4 build's struct.
+      68, 72). Each block's ``RTCRayHit`` lives in a 128-byte, 64-byte aligned
+      slot, larger than any Embree 4 build's struct (80 or 96 bytes).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ RTC_BUFFER_TYPE_VERTEX = 1
 RTC_FORMAT_UINT3 = 0x5003
 RTC_FORMAT_FLOAT3 = 0x9003
 
-#: Bytes of one ray slot (an ``RTCRayHit`` is 80 or 96 bytes, by build) and its alignment.
+#: Bytes of one ray slot and its alignment.
 SLOT_BYTES = 128
 SLOT_ALIGN = 64
 

@@ -8,13 +8,15 @@ Queries are batched: any number of rays with leading batch axes.
 Engines (``method=``)
     ``"embree"`` (default) calls Embree 4's ``rtcIntersect1`` / ``rtcOccluded1``
     from a numba ``prange`` kernel (:mod:`prtlab.geometry._embree`), so rays are
-    traced on every numba thread without the GIL. ``"embreex"`` traces the same
-    float32 rays through ``embreex``'s ``EmbreeScene.run``, which holds the GIL
-    (one core), in chunks of :data:`RAY_CHUNK` rays; its scene is built on first
-    use per pose. Both give the same hits ray by ray (same library, same robust
-    flag, same float32 rays). ``"numpy"`` is the float64 brute-force
-    specification. If the Embree 4 library cannot be loaded from beside
-    ``embreex``, the caster warns once and ``"embree"`` runs the ``embreex`` path.
+    traced on every numba thread without the GIL, each thread taking the next
+    block of 256 rays as it finishes one; results do not depend on the thread
+    count. ``"embreex"`` traces the same float32 rays through ``embreex``'s
+    ``EmbreeScene.run``, which holds the GIL (one core), in chunks of
+    :data:`RAY_CHUNK` rays; its scene is built on first use per pose. Both give
+    the same hits ray by ray (same library, robust flag and float32 rays).
+    ``"numpy"`` is the float64 brute-force specification. If the Embree 4
+    library cannot be loaded from beside ``embreex``, the caster warns and
+    ``"embree"`` runs the ``embreex`` path.
 
 Self-intersection offset
     Rays that start on a surface are moved off it before they are cast:
