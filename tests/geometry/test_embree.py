@@ -226,11 +226,17 @@ def test_results_do_not_depend_on_the_thread_count():
 # ------------------------------------------------------------------ library and fallback
 
 
-def test_library_is_found_beside_embreex():
+def test_library_is_found_beside_embreex_and_used_by_default():
     import embreex
 
-    lib = _embree.load_library()
-    assert os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__))) in lib._name or "embree4" in lib._name
+    site = os.path.dirname(os.path.dirname(os.path.abspath(embreex.__file__)))
+    candidates = _embree._candidates()
+    assert candidates and candidates[0].startswith(site)  # the wheel's own copy comes first
+    assert _embree.load_library()._name == candidates[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        caster = RayCaster([trimesh.creation.box()])
+    assert isinstance(caster._scene, _embree.EmbreeScene)
 
 
 def test_missing_library_or_symbols_are_one_line_errors():
@@ -292,3 +298,22 @@ def test_release_is_idempotent():
     assert scene.handle
     scene.release()
     scene.release()
+
+
+def test_thread_benchmark_reports_its_figures(monkeypatch):
+    import importlib.util
+    from pathlib import Path
+
+    import prtlab
+    import prtlab.bench
+
+    monkeypatch.setattr(prtlab.bench, "_CASES", {})  # register the cases apart from the runner's own
+    path = Path(prtlab.__file__).parent / "benchmarks" / "bench_raycast.py"
+    spec = importlib.util.spec_from_file_location("bench_raycast_under_test", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    case = module.threads_occluded_case(quick=True)
+    case["run"]()
+    case["peer"][1]()
+    assert set(case["info"]) >= {"threads", "cpu_per_wall_2", "cpu_2_over_1", "rays_per_s_1", "rays_per_s_2"}
+    assert case["info"]["rays_per_s_2"] > 0
