@@ -295,15 +295,16 @@ def _store_hit(hit, geom, prim, uv, dist, i, g, face, u, v, t):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _trace_kernel(tracer, rays, out, status):
-    """Closest hits through ``rtcIntersect1`` into ``out`` (``point`` and ``normal`` are left to
-    ``_resolve_points``), or with ``tracer.any_hit`` occlusion through ``rtcOccluded1`` (which sets
-    ``tfar`` to ``-inf`` on a hit) into ``out.hit`` only. Each thread takes the next block ``b`` of
-    ``RAYS_PER_TASK`` rays from a shared counter and traces it through slot ``b``."""
+def _trace_kernel(tracer, rays, mesh, out, status):
+    """Closest hits through ``rtcIntersect1`` into ``out``, or with ``tracer.any_hit`` occlusion through
+    ``rtcOccluded1`` (which sets ``tfar`` to ``-inf`` on a hit) into ``out.hit`` only. Each thread takes
+    the next block ``b`` of ``RAYS_PER_TASK`` rays from a shared counter, traces it through slot ``b``,
+    then resolves the block's hit points (``_resolve_point``; a loop of its own: done ray by ray between
+    the traces, the mesh's reads and the BVH's evict each other from the caches)."""
     n = rays.origins.shape[0]
     n_blocks = tracer.slot_f32.shape[0]
     step = _embree.RAYS_PER_TASK
-    hit, geom, prim, uv, dist = out.hit, out.geom, out.prim, out.uv, out.dist
+    hit, geom, prim, uv, dist, point, normal = out.hit, out.geom, out.prim, out.uv, out.dist, out.point, out.normal
     counter = np.zeros(1, dtype=np.int64)
     for _ in numba.prange(tracer.threads):
         while True:
@@ -329,6 +330,9 @@ def _trace_kernel(tracer, rays, out, status):
                     _store_hit(hit, geom, prim, uv, dist, i, g, np.int64(u32[_embree.HIT_PRIM]),
                                np.float64(f32[_embree.HIT_U]), np.float64(f32[_embree.HIT_V]),
                                np.float64(f32[_embree.TFAR]) + rays.tnear)
+            if not tracer.any_hit:
+                for i in range(block * step, min(n, (block + 1) * step)):
+                    _resolve_point(mesh, geom, prim, uv, point, normal, i)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -352,26 +356,30 @@ def _collect_hits(start, g32, p32, u32, v32, t32, cast, tnear, out):
                    np.float64(t32[j]) + tnear)
 
 
+@numba.njit(cache=True, inline="always")
+def _resolve_point(mesh, geom, prim, uv, point, normal, i):
+    """Ray ``i``'s hit point from its barycentrics on the float64 triangle, and the unit face normal
+    (NaN and 0 on a miss)."""
+    g = geom[i]
+    if g < 0:
+        for k in range(3):
+            point[i, k] = np.nan
+            normal[i, k] = 0.0
+        return
+    f = mesh.face_offset[g] + prim[i]
+    a, b, c = mesh.faces[f, 0], mesh.faces[f, 1], mesh.faces[f, 2]
+    u, v = uv[i, 0], uv[i, 1]
+    w = 1.0 - u - v
+    for k in range(3):
+        point[i, k] = w * mesh.vertices[a, k] + u * mesh.vertices[b, k] + v * mesh.vertices[c, k]
+        normal[i, k] = mesh.face_normals[f, k]
+
+
 @numba.njit(cache=True, parallel=True)
 def _resolve_points(mesh, geom, prim, uv, point, normal):
-    """Hit points from the barycentrics on the float64 triangles, and unit face normals (NaN and 0 on a miss).
-
-    A pass of its own: done inside the tracing loop it ran at half the speed (measured), its reads of
-    the mesh and Embree's of the BVH evicting each other from the caches."""
+    """``_resolve_point`` for every ray (the ``embreex`` and ``numpy`` engines)."""
     for i in numba.prange(geom.shape[0]):
-        g = geom[i]
-        if g < 0:
-            for k in range(3):
-                point[i, k] = np.nan
-                normal[i, k] = 0.0
-            continue
-        f = mesh.face_offset[g] + prim[i]
-        a, b, c = mesh.faces[f, 0], mesh.faces[f, 1], mesh.faces[f, 2]
-        u, v = uv[i, 0], uv[i, 1]
-        w = 1.0 - u - v
-        for k in range(3):
-            point[i, k] = w * mesh.vertices[a, k] + u * mesh.vertices[b, k] + v * mesh.vertices[c, k]
-            normal[i, k] = mesh.face_normals[f, k]
+        _resolve_point(mesh, geom, prim, uv, point, normal, i)
 
 
 def offset_origins(points, normals, dirs, epsilon: float) -> np.ndarray:
@@ -787,9 +795,9 @@ class RayCaster:
         out = _Hits.empty(n)
         status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
-            _trace_kernel(self._tracer(n, False), rays, out, status)
+            _trace_kernel(self._tracer(n, False), rays, self._mesh, out, status)
             self._check_status(status)
-            return self._ray_hits(out, batch)
+            return self._ray_hits(out, batch, resolved=True)
         o32, d32, t32 = self._stage32(rays, status)
         scene = self._embreex()
         for s in range(0, n, RAY_CHUNK):
@@ -807,9 +815,10 @@ class RayCaster:
         self._check_status(status)
         return o32, d32, t32
 
-    def _ray_hits(self, out: _Hits, batch) -> RayHits:
-        """``out`` with its hit points and normals resolved, shaped as the rays."""
-        _resolve_points(self._mesh, out.geom, out.prim, out.uv, out.point, out.normal)
+    def _ray_hits(self, out: _Hits, batch, resolved: bool = False) -> RayHits:
+        """``out`` with its hit points and normals resolved (unless they are), shaped as the rays."""
+        if not resolved:
+            _resolve_points(self._mesh, out.geom, out.prim, out.uv, out.point, out.normal)
         return RayHits(
             hit=out.hit.reshape(batch),
             object=out.geom.reshape(batch),
@@ -850,7 +859,7 @@ class RayCaster:
         status = np.empty(n, dtype=np.int8)
         if method == "embree" and self._scene is not None:
             out = _Hits.empty(n, any_hit=True)
-            _trace_kernel(self._tracer(n, True), rays, out, status)
+            _trace_kernel(self._tracer(n, True), rays, self._mesh, out, status)
             self._check_status(status)
             return out.hit.reshape(batch)
         o32, d32, t32 = self._stage32(rays, status)
