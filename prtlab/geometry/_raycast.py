@@ -1,10 +1,22 @@
-"""Ray casting through Embree (``embreex``) for scenes of many rigid objects.
+"""Ray casting through Embree for scenes of many rigid objects.
 
 A :class:`RayCaster` holds one Embree triangle geometry per object, in world
 space, and one acceleration structure (BVH) per *pose* of the scene. It is
 rebuilt only when :meth:`RayCaster.update_transforms` changes a transform.
-Queries are batched: any number of rays with leading batch axes, cast in
-chunks of :data:`RAY_CHUNK` rays.
+Queries are batched: any number of rays with leading batch axes.
+
+Engines (``method=``)
+    ``"embree"`` (default) calls Embree 4's ``rtcIntersect1`` / ``rtcOccluded1``
+    from a numba ``prange`` kernel (:mod:`prtlab.geometry._embree`), so rays are
+    traced on every numba thread without the GIL, each thread taking the next
+    block of 256 rays as it finishes one; results do not depend on the thread
+    count. ``"embreex"`` traces the same float32 rays through ``embreex``'s
+    ``EmbreeScene.run``, which holds the GIL (one core), in chunks of
+    :data:`RAY_CHUNK` rays; its scene is built on first use per pose. Both give
+    the same hits ray by ray (same library, robust flag and float32 rays).
+    ``"numpy"`` is the float64 brute-force specification. If the Embree 4
+    library cannot be loaded from beside ``embreex``, the caster warns and
+    ``"embree"`` runs the ``embreex`` path.
 
 Self-intersection offset
     Rays that start on a surface are moved off it before they are cast:
@@ -25,7 +37,8 @@ Self-intersection offset
     geometry lying exactly at the light (a ceiling light on the ceiling) does
     not shadow it even at grazing angles.
     (``embreex``'s ``run`` fixes Embree's ``tnear`` to 0 and takes only a
-    per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``.)
+    per-ray ``tfar``, so the offset moves the origin instead of raising ``tnear``;
+    the ``"embree"`` engine casts the same rays.)
 
 Ray start (``tnear``)
     Rays start at their (offset) origin: ``RAY_TNEAR_SCALE = 0``, and
@@ -56,11 +69,15 @@ Precision (float32)
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
+
+from .._validate import check_choice
+from . import _embree
 
 __all__ = ["RayCaster", "RayHits", "RAY_EPSILON_SCALE", "RAY_TNEAR_SCALE", "RAY_CHUNK", "offset_origins"]
 
@@ -71,7 +88,7 @@ RAY_EPSILON_SCALE = 1e-4
 #: 0, so that no surface next to an origin is skipped (see the module docstring).
 RAY_TNEAR_SCALE = 0.0
 
-#: Rays per call into Embree (bounds the float32 staging buffers).
+#: Rays per call into ``embreex`` (``method="embreex"``; bounds its output buffers).
 RAY_CHUNK = 1 << 19
 
 
@@ -121,8 +138,9 @@ def _as_rays(origins, dirs, normals=None):
             f"origins {origins.shape} and dirs {dirs.shape} do not broadcast; give both as (..., 3)"
         ) from None
     batch = shape[:-1]
-    # writeable C-contiguous float64 copies: one numba signature for every call
-    flat = lambda a: np.require(np.broadcast_to(a, shape).reshape(-1, 3), np.float64, ["C", "W"])  # noqa: E731
+
+    def flat(a):  # writeable C-contiguous float64 (one numba signature for every call), copied only if need be
+        return _writeable((a if a.shape == shape else np.broadcast_to(a, shape)).reshape(-1, 3))
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)
         if normals.ndim == 0 or normals.shape[-1] != 3:
@@ -142,6 +160,13 @@ def barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2):
     ny = b0 * vertex_normals[i0, 1] + b1 * vertex_normals[i1, 1] + b2 * vertex_normals[i2, 1]
     nz = b0 * vertex_normals[i0, 2] + b1 * vertex_normals[i1, 2] + b2 * vertex_normals[i2, 2]
     return nx, ny, nz
+
+
+def _writeable(a: np.ndarray) -> np.ndarray:
+    """``a`` if it is a writeable C-contiguous float64 array, else such a copy."""
+    if a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64, order="C")
 
 
 @numba.njit(cache=True, parallel=True)
@@ -173,76 +198,197 @@ def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
             out[p, j] = ok
 
 
+#: The query engines, fastest first (module docstring).
+METHODS = ("embree", "embreex", "numpy")
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+#: Per-ray status of staging: cast, not cast (empty segment), or one of three input errors.
+CAST, NOT_CAST, NONFINITE_RAY, ZERO_DIRECTION, NONFINITE_NORMAL = 0, 1, 2, 3, 4
+
+
+class _Rays(NamedTuple):
+    """Rays as numba kernels take them (float64, C-contiguous, writeable)."""
+
+    origins: np.ndarray  # (n, 3)
+    dirs: np.ndarray  # (n, 3), any nonzero length
+    normals: np.ndarray  # (n, 3), or (0, 3): no origin offset
+    tmax: np.ndarray  # (n,), or (1,): one for every ray
+    epsilon: float
+    tnear: float
+
+
+class _Mesh(NamedTuple):
+    """Every object's triangles in one float64 world-space mesh; object ``g``'s faces start at ``face_offset[g]``."""
+
+    face_offset: np.ndarray  # (n_objects + 1,) int64
+    faces: np.ndarray  # (n_faces, 3) int64
+    vertices: np.ndarray  # (n_vertices, 3) float64
+    face_normals: np.ndarray  # (n_faces, 3) float64
+
+
+class _Hits(NamedTuple):
+    """Flat outputs of a closest-hit query (see :class:`RayHits`)."""
+
+    hit: np.ndarray
+    geom: np.ndarray
+    prim: np.ndarray
+    uv: np.ndarray
+    dist: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int, any_hit: bool = False) -> "_Hits":
+        """Outputs for ``n`` rays (``any_hit``: only ``hit``; the other fields hold no rays)."""
+        m = 0 if any_hit else n
+        i64 = np.int64
+        return cls(np.empty(n, bool), np.empty(m, i64), np.empty(m, i64), np.empty((m, 2)), np.empty(m),
+                   np.empty((m, 3)), np.empty((m, 3)))
+
+
+class _Tracer(NamedTuple):
+    """An Embree query for a kernel: C function and scene addresses, one ray slot per block of rays and
+    the numba thread count (``numba.get_num_threads()`` inside a kernel would keep it from being cached)."""
+
+    function: int
+    scene: int
+    slot_f32: np.ndarray
+    slot_u32: np.ndarray
+    threads: int
+    any_hit: bool
+
+
+@numba.njit(cache=True, inline="always")
+def _stage_ray(rays, i):
+    """Ray ``i``: unit direction, origin offset off its surface (``normals``) and moved ``tnear`` along the
+    ray, and ``tmax - tnear`` (inf past float32's range). Returns ``(status, ox, oy, oz, dx, dy, dz, tfar)``."""
+    dx, dy, dz = rays.dirs[i, 0], rays.dirs[i, 1], rays.dirs[i, 2]
+    ox, oy, oz = rays.origins[i, 0], rays.origins[i, 1], rays.origins[i, 2]
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    tfar = rays.tmax[np.int64(i) if rays.tmax.shape[0] > 1 else np.int64(0)] - rays.tnear
+    if not (np.isfinite(length) and np.isfinite(ox) and np.isfinite(oy) and np.isfinite(oz)):
+        return NONFINITE_RAY, ox, oy, oz, dx, dy, dz, tfar
+    if length == 0.0:
+        return ZERO_DIRECTION, ox, oy, oz, dx, dy, dz, tfar
+    dx /= length
+    dy /= length
+    dz /= length
+    if rays.normals.shape[0] > 0:
+        nx, ny, nz = rays.normals[i, 0], rays.normals[i, 1], rays.normals[i, 2]
+        if not (np.isfinite(nx) and np.isfinite(ny) and np.isfinite(nz)):
+            return NONFINITE_NORMAL, ox, oy, oz, dx, dy, dz, tfar
+        side = rays.epsilon if nx * dx + ny * dy + nz * dz >= 0.0 else -rays.epsilon
+        ox += side * nx
+        oy += side * ny
+        oz += side * nz
+    tnear = rays.tnear
+    if tfar > _FLOAT32_MAX:
+        tfar = np.inf
+    status = CAST if np.float32(tfar) > 0.0 else NOT_CAST
+    return status, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz, dx, dy, dz, tfar
+
+
+@numba.njit(cache=True, inline="always")
+def _store_hit(hit, geom, prim, uv, dist, i, g, face, u, v, t):
+    """Ray ``i`` hit face ``face`` of object ``g`` at distance ``t`` (``g < 0``: a miss).
+
+    The kernels pass ``_Hits`` fields as local arrays: numba 0.68 drops writes made inside a ``prange``
+    loop through a named tuple's fields (``out.geom[i] = g``)."""
+    hit[i] = g >= 0
+    geom[i] = g if g >= 0 else -1
+    prim[i] = face if g >= 0 else -1
+    uv[i, 0] = u if g >= 0 else 0.0
+    uv[i, 1] = v if g >= 0 else 0.0
+    dist[i] = t if g >= 0 else np.inf
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _trace_kernel(tracer, rays, mesh, out, status):
+    """Closest hits through ``rtcIntersect1`` into ``out``, or with ``tracer.any_hit`` occlusion through
+    ``rtcOccluded1`` (which sets ``tfar`` to ``-inf`` on a hit) into ``out.hit`` only. Each thread takes
+    the next block ``b`` of ``RAYS_PER_TASK`` rays from a shared counter, traces it through slot ``b``,
+    then resolves the block's hit points (``_resolve_point``; a loop of its own: done ray by ray between
+    the traces, the mesh's reads and the BVH's evict each other from the caches)."""
+    n = rays.origins.shape[0]
+    n_blocks = tracer.slot_f32.shape[0]
+    step = _embree.RAYS_PER_TASK
+    hit, geom, prim, uv, dist, point, normal = out.hit, out.geom, out.prim, out.uv, out.dist, out.point, out.normal
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(tracer.threads):
+        while True:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_blocks:
+                break
+            f32, u32 = tracer.slot_f32[block], tracer.slot_u32[block]
+            address = f32.ctypes.data
+            for i in range(block * step, min(n, (block + 1) * step)):
+                state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+                status[i] = state
+                g = np.int64(-1)
+                if state == CAST:
+                    _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
+                    _embree.rtc_call(tracer.function, tracer.scene, address)
+                    if tracer.any_hit:
+                        g = np.int64(0) if f32[_embree.TFAR] < 0.0 else np.int64(-1)
+                    elif u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                        g = np.int64(u32[_embree.HIT_GEOM])
+                if tracer.any_hit:
+                    hit[i] = g >= 0
+                else:
+                    _store_hit(hit, geom, prim, uv, dist, i, g, np.int64(u32[_embree.HIT_PRIM]),
+                               np.float64(f32[_embree.HIT_U]), np.float64(f32[_embree.HIT_V]),
+                               np.float64(f32[_embree.TFAR]) + rays.tnear)
+            if not tracer.any_hit:
+                for i in range(block * step, min(n, (block + 1) * step)):
+                    _resolve_point(mesh, geom, prim, uv, point, normal, i)
+
+
 @numba.njit(cache=True, parallel=True)
-def _stage_rays(origins, dirs, normals, epsilon, tnear, o32, d32):
-    """Unit float32 directions and float32 origins, offset off their surface and then ``tnear``
-    along the ray; returns (#non-finite, #zero dirs)."""
-    n = origins.shape[0]
-    bad = np.zeros(n, dtype=np.int64)
-    has_normals = normals.shape[0] == n
-    for i in numba.prange(n):
-        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        length = np.sqrt(dx * dx + dy * dy + dz * dz)
-        finite = np.isfinite(length)
-        for k in range(3):
-            finite = finite and np.isfinite(origins[i, k])
-        if not finite:
-            bad[i] = 1
-            continue
-        if length == 0.0:
-            bad[i] = 2
-            continue
-        dx /= length
-        dy /= length
-        dz /= length
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        if has_normals:
-            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-            side = epsilon if nx * dx + ny * dy + nz * dz >= 0.0 else -epsilon
-            ox += side * nx
-            oy += side * ny
-            oz += side * nz
-        o32[i, 0], o32[i, 1], o32[i, 2] = ox + tnear * dx, oy + tnear * dy, oz + tnear * dz
+def _stage_rays(rays, o32, d32, t32, status):
+    """The float32 rays of ``_stage_ray`` in arrays (``method="embreex"``); ``t32 = 0`` for a ray not cast."""
+    for i in numba.prange(rays.origins.shape[0]):
+        state, ox, oy, oz, dx, dy, dz, tfar = _stage_ray(rays, i)
+        status[i] = state
+        o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
         d32[i, 0], d32[i, 1], d32[i, 2] = dx, dy, dz
-    n_nonfinite = 0
-    n_zero = 0
-    for i in range(n):
-        if bad[i] == 1:
-            n_nonfinite += 1
-        elif bad[i] == 2:
-            n_zero += 1
-    return n_nonfinite, n_zero
-
-
-@numba.njit(cache=True)
-def _collect_hits(g32, p32, u32, v32, t32, geom, prim, uv, dist):
-    """Embree's per-chunk float32 / int32 output into the float64 / int64 result (misses cleaned)."""
-    for i in range(g32.shape[0]):
-        if g32[i] >= 0:
-            geom[i] = g32[i]
-            prim[i] = p32[i]
-            uv[i, 0] = u32[i]
-            uv[i, 1] = v32[i]
-            dist[i] = t32[i]
+        t32[i] = tfar if state == CAST else 0.0
 
 
 @numba.njit(cache=True, parallel=True)
-def _resolve_hits(geom, prim, uv, face_offset, faces, vertices, face_normals, point, normal):
-    """Hit points from barycentrics on the float64 triangles, and their unit face normals."""
-    for i in numba.prange(geom.shape[0]):
-        g = geom[i]
-        if g < 0:
-            for k in range(3):
-                point[i, k] = np.nan
-                normal[i, k] = 0.0
-            continue
-        f = face_offset[g] + prim[i]
-        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-        u, v = uv[i, 0], uv[i, 1]
-        w = 1.0 - u - v
+def _collect_hits(start, g32, p32, u32, v32, t32, cast, tnear, out):
+    """``embreex``'s float32 / int32 output for rays ``start + j`` into ``out`` (rays not cast: misses)."""
+    hit, geom, prim, uv, dist = out.hit, out.geom, out.prim, out.uv, out.dist
+    for j in numba.prange(g32.shape[0]):
+        g = np.int64(g32[j]) if cast[j] > 0.0 else np.int64(-1)
+        _store_hit(hit, geom, prim, uv, dist, start + j, g, np.int64(p32[j]), np.float64(u32[j]), np.float64(v32[j]),
+                   np.float64(t32[j]) + tnear)
+
+
+@numba.njit(cache=True, inline="always")
+def _resolve_point(mesh, geom, prim, uv, point, normal, i):
+    """Ray ``i``'s hit point from its barycentrics on the float64 triangle, and the unit face normal
+    (NaN and 0 on a miss)."""
+    g = geom[i]
+    if g < 0:
         for k in range(3):
-            point[i, k] = w * vertices[a, k] + u * vertices[b, k] + v * vertices[c, k]
-            normal[i, k] = face_normals[f, k]
+            point[i, k] = np.nan
+            normal[i, k] = 0.0
+        return
+    f = mesh.face_offset[g] + prim[i]
+    a, b, c = mesh.faces[f, 0], mesh.faces[f, 1], mesh.faces[f, 2]
+    u, v = uv[i, 0], uv[i, 1]
+    w = 1.0 - u - v
+    for k in range(3):
+        point[i, k] = w * mesh.vertices[a, k] + u * mesh.vertices[b, k] + v * mesh.vertices[c, k]
+        normal[i, k] = mesh.face_normals[f, k]
+
+
+@numba.njit(cache=True, parallel=True)
+def _resolve_points(mesh, geom, prim, uv, point, normal):
+    """``_resolve_point`` for every ray (the ``embreex`` and ``numpy`` engines)."""
+    for i in numba.prange(geom.shape[0]):
+        _resolve_point(mesh, geom, prim, uv, point, normal, i)
 
 
 def offset_origins(points, normals, dirs, epsilon: float) -> np.ndarray:
@@ -370,7 +516,7 @@ class RayCaster:
             self._faces.append(f)
         self._matrices = [_transform_matrix(t) for t in transforms]
         self.n_builds = 0
-        self._scene = None
+        self._scene = self._embreex_scene = None
         self._build()
 
     # ------------------------------------------------------------------ pickling
@@ -379,7 +525,7 @@ class RayCaster:
         """Everything but the Embree scene (a C object): a caster sent to another
         process (a Dask worker) rebuilds its acceleration structure there."""
         state = self.__dict__.copy()
-        state["_scene"] = None
+        state["_scene"] = state["_embreex_scene"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -395,12 +541,9 @@ class RayCaster:
         return len(self._faces)
 
     def _build(self) -> None:
-        from embreex import mesh_construction, rtcore_scene
-
         self._world_vertices = []
         self._face_normals = []
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        scene = rtcore_scene.EmbreeScene(robust=True)
         for v, f, m in zip(self._object_vertices, self._faces, self._matrices):
             w = v @ m[:3, :3].T + m[:3, 3]
             self._world_vertices.append(w)
@@ -413,13 +556,6 @@ class RayCaster:
                 lo, hi = np.minimum(lo, used.min(axis=0)), np.maximum(hi, used.max(axis=0))
             else:
                 self._face_normals.append(np.zeros((0, 3)))
-            # Every object gets a geometry so that Embree's geometry id is the
-            # object index; an empty mesh gets one zero-area triangle no ray hits.
-            if len(f):
-                mesh_construction.TriangleMesh(scene, w.astype(np.float32), f.astype(np.int32))
-            else:
-                tri = np.zeros((1, 3, 3), dtype=np.float32)
-                mesh_construction.TriangleMesh(scene, tri)
         self._bounds = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((2, 3))
         if np.all(np.isfinite(lo)):  # the sphere about the box centre through the farthest used vertex
             centre = 0.5 * (lo + hi)
@@ -434,8 +570,29 @@ class RayCaster:
             [f + off for f, off in zip(self._faces, vert_offset[:-1])] + [np.zeros((0, 3), dtype=np.int64)]
         )
         self._all_face_normals = np.concatenate(self._face_normals + [np.zeros((0, 3))])
-        self._scene = scene
+        self._mesh = _Mesh(self._face_offset, self._all_faces, self._all_vertices, self._all_face_normals)
+        self._scene = self._embreex_scene = None  # the previous pose's scenes are released here
+        try:
+            self._scene = _embree.EmbreeScene(list(zip(self._world_vertices, self._faces)))
+        except _embree.EmbreeUnavailable as err:
+            warnings.warn(f"{err}; RayCaster traces through embreex on one thread", RuntimeWarning, stacklevel=3)
         self.n_builds += 1
+
+    def _embreex(self):
+        """The ``embreex`` scene of the current pose, built on first use (``method="embreex"``)."""
+        if self._embreex_scene is None:
+            from embreex import mesh_construction, rtcore_scene
+
+            scene = rtcore_scene.EmbreeScene(robust=True)
+            for w, f in zip(self._world_vertices, self._faces):
+                # one geometry per object, so that Embree's geometry id is the object index;
+                # an empty mesh gets one zero-area triangle no ray hits
+                if len(f):
+                    mesh_construction.TriangleMesh(scene, w.astype(np.float32), f.astype(np.int32))
+                else:
+                    mesh_construction.TriangleMesh(scene, np.zeros((1, 3, 3), dtype=np.float32))
+            self._embreex_scene = scene
+        return self._embreex_scene
 
     @property
     def bounds(self) -> np.ndarray:
@@ -520,20 +677,24 @@ class RayCaster:
 
     # --------------------------------------------------------------- queries
 
-    def _prepare(self, origins, dirs, normals):
+    def _rays(self, origins, dirs, tmax, normals):
+        """Validated rays for the kernels, and their batch shape."""
         o, d, n, batch = _as_rays(origins, dirs, normals)
-        o32 = np.empty(o.shape, dtype=np.float32)
-        d32 = np.empty(d.shape, dtype=np.float32)
-        nonfinite, zero = _stage_rays(
-            o, d, np.zeros((0, 3)) if n is None else n, self.epsilon, self.tnear, o32, d32
-        )
-        if nonfinite:
+        t = self._tmax(tmax, batch, len(o))
+        t = np.array([t[0]]) if len(t) and t.strides[0] == 0 else _writeable(t)  # one tmax for all: (1,)
+        return _Rays(o, d, np.zeros((0, 3)) if n is None else n, t, self.epsilon, self.tnear), batch
+
+    @staticmethod
+    def _check_status(status) -> None:
+        if not len(status) or status.max() <= NOT_CAST:
+            return
+        counts = np.bincount(status, minlength=5)
+        if counts[NONFINITE_RAY]:
             raise ValueError("origins or dirs contain NaN or inf; pass finite rays")
-        if zero:
+        if counts[ZERO_DIRECTION]:
             raise ValueError("dirs contains zero vectors; every ray needs a nonzero direction")
-        if n is not None and not np.all(np.isfinite(n)):
+        if counts[NONFINITE_NORMAL]:
             raise ValueError("normals contain NaN or inf; pass finite normals")
-        return o32, d32, batch
 
     @staticmethod
     def _tmax(tmax, batch, n):
@@ -546,11 +707,14 @@ class RayCaster:
             raise ValueError(f"tmax of shape {t.shape} does not broadcast to the rays' shape {batch}") from None
         return np.broadcast_to(t, (n,)) if t.size != n else t
 
-    def _check_method(self, method):
-        if method not in ("embree", "numpy"):
-            raise ValueError(
-                f"method must be 'embree' (fast, float32) or 'numpy' (float64 brute force), got {method!r}"
-            )
+    def _tracer(self, n: int, any_hit: bool) -> _Tracer:
+        slot_f32, slot_u32 = _embree.ray_slots(n)
+        function = self._scene.occluded_fn if any_hit else self._scene.intersect_fn
+        return _Tracer(function, self._scene.handle, slot_f32, slot_u32, numba.get_num_threads(), any_hit)
+
+    @staticmethod
+    def _check_method(method):
+        check_choice(method, "method", METHODS)
 
     def _prepare64(self, origins, dirs, normals):
         o, d, n, batch = _as_rays(origins, dirs, normals)
@@ -619,8 +783,9 @@ class RayCaster:
         normals : (..., 3) float, optional
             Surface normals at the origins: if given, each origin is offset by
             ``epsilon`` along ``±normal`` on the side of its ray (module docstring).
-        method : {"embree", "numpy"}
-            Embree in float32 (fast), or a float64 brute-force test of every
+        method : {"embree", "embreex", "numpy"}
+            Embree in float32 on every numba thread (fast); the same through
+            ``embreex`` on one thread; or a float64 brute-force test of every
             triangle (the slow specification, for tests and small scenes).
 
         Returns
@@ -632,42 +797,45 @@ class RayCaster:
         if method == "numpy":
             o, d, batch = self._prepare64(origins, dirs, normals)
             geom, prim, uv, dist = self._brute_force(o, d, self._tmax(tmax, batch, len(o)))
-            return self._hits(geom, prim, uv, dist, batch)
-        o, d, batch = self._prepare(origins, dirs, normals)
-        n = len(o)
-        tnear = self.tnear
-        t = self._tmax(tmax, batch, n)
-        geom = np.full(n, -1, dtype=np.int64)
-        prim = np.full(n, -1, dtype=np.int64)
-        uv = np.zeros((n, 2))
-        dist = np.full(n, np.inf)
+            return self._ray_hits(_Hits(geom >= 0, geom, prim, uv, dist, np.empty((len(o), 3)),
+                                        np.empty((len(o), 3))), batch)
+        rays, batch = self._rays(origins, dirs, tmax, normals)
+        n = len(rays.origins)
+        out = _Hits.empty(n)
+        status = np.empty(n, dtype=np.int8)
+        if method == "embree" and self._scene is not None:
+            _trace_kernel(self._tracer(n, False), rays, self._mesh, out, status)
+            self._check_status(status)
+            return self._ray_hits(out, batch, resolved=True)
+        o32, d32, t32 = self._stage32(rays, status)
+        scene = self._embreex()
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
-            live = ts > 0
-            ts = np.where(live, ts, 1e-30).astype(np.float32)
-            out = self._scene.run(o[s:e], d[s:e], dists=ts, output=1)
-            out["geomID"][~live] = -1
-            _collect_hits(out["geomID"], out["primID"], out["u"], out["v"], out["tfar"],
-                          geom[s:e], prim[s:e], uv[s:e], dist[s:e])
-        dist += tnear  # distances from the (offset) origin, not from the tnear start
-        return self._hits(geom, prim, uv, dist, batch)
+            hits = scene.run(o32[s:e], d32[s:e], dists=t32[s:e], output=1)
+            _collect_hits(s, hits["geomID"], hits["primID"], hits["u"], hits["v"], hits["tfar"], t32[s:e],
+                          rays.tnear, out)
+        return self._ray_hits(out, batch)
 
-    def _hits(self, geom, prim, uv, dist, batch) -> RayHits:
-        n = len(geom)
-        hit = geom >= 0
-        normal = np.empty((n, 3))
-        point = np.empty((n, 3))
-        _resolve_hits(geom, prim, uv, self._face_offset, self._all_faces,
-                      self._all_vertices, self._all_face_normals, point, normal)
+    def _stage32(self, rays, status):
+        """float32 origins, directions and ``tfar`` (0: not cast) for ``embreex``; input errors raised."""
+        n = len(rays.origins)
+        o32, d32, t32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
+        _stage_rays(rays, o32, d32, t32, status)
+        self._check_status(status)
+        return o32, d32, t32
+
+    def _ray_hits(self, out: _Hits, batch, resolved: bool = False) -> RayHits:
+        """``out`` with its hit points and normals resolved (unless they are), shaped as the rays."""
+        if not resolved:
+            _resolve_points(self._mesh, out.geom, out.prim, out.uv, out.point, out.normal)
         return RayHits(
-            hit=hit.reshape(batch),
-            object=geom.reshape(batch),
-            triangle=prim.reshape(batch),
-            barycentric=uv.reshape(batch + (2,)),
-            distance=dist.reshape(batch),
-            normal=normal.reshape(batch + (3,)),
-            point=point.reshape(batch + (3,)),
+            hit=out.hit.reshape(batch),
+            object=out.geom.reshape(batch),
+            triangle=out.prim.reshape(batch),
+            barycentric=out.uv.reshape(batch + (2,)),
+            distance=out.dist.reshape(batch),
+            normal=out.normal.reshape(batch + (3,)),
+            point=out.point.reshape(batch + (3,)),
         )
 
     def occluded(self, origins, dirs, tmax=np.inf, *, normals=None, method: str = "embree") -> np.ndarray:
@@ -682,7 +850,7 @@ class RayCaster:
             shadow ray toward a light at distance ``r`` use ``r - epsilon``.
         normals : (..., 3) float, optional
             As in :meth:`closest_hit`: offset origins by ``epsilon`` off their surface.
-        method : {"embree", "numpy"}
+        method : {"embree", "embreex", "numpy"}
             As in :meth:`closest_hit`.
 
         Returns
@@ -695,18 +863,20 @@ class RayCaster:
             t = np.asarray(self._tmax(tmax, batch, len(o)), dtype=np.float64)
             dist = self._brute_force(o, d, t)[3]
             return ((dist < t) & (t > 0)).reshape(batch)
-        o, d, batch = self._prepare(origins, dirs, normals)
-        n = len(o)
-        t = self._tmax(tmax, batch, n)
-        tnear = self.tnear
+        rays, batch = self._rays(origins, dirs, tmax, normals)
+        n = len(rays.origins)
+        status = np.empty(n, dtype=np.int8)
+        if method == "embree" and self._scene is not None:
+            out = _Hits.empty(n, any_hit=True)
+            _trace_kernel(self._tracer(n, True), rays, self._mesh, out, status)
+            self._check_status(status)
+            return out.hit.reshape(batch)
+        o32, d32, t32 = self._stage32(rays, status)
         result = np.zeros(n, dtype=bool)
         for s in range(0, n, RAY_CHUNK):
             e = min(n, s + RAY_CHUNK)
-            ts = np.asarray(t[s:e], dtype=np.float64) - tnear
-            live = ts > 0
-            if not np.any(live):
-                continue
-            ts = np.where(live, ts, 1e-30).astype(np.float32)
-            ids = self._scene.run(o[s:e], d[s:e], dists=ts, query="OCCLUDED")
-            result[s:e] = (ids != -1) & live
+            live = t32[s:e] > 0
+            if np.any(live):
+                ids = self._embreex().run(o32[s:e], d32[s:e], dists=t32[s:e], query="OCCLUDED")
+                result[s:e] = (ids != -1) & live
         return result.reshape(batch)

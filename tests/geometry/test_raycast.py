@@ -13,7 +13,7 @@ from prtlab.scene import Material, Scene, SceneObject, Transform
 from tests.conftest import random_directions
 
 
-METHODS = pytest.mark.parametrize("method", ["embree", "numpy"])
+METHODS = pytest.mark.parametrize("method", ["embree", "embreex", "numpy"])
 
 
 # ------------------------------------------------------------------ known answers
@@ -262,7 +262,7 @@ def test_errors():
         RayCaster([(np.full((3, 3), np.nan), np.zeros((1, 3), dtype=int))])
     with pytest.raises(ValueError, match=r"meshes\[0\] faces index vertices outside"):
         RayCaster([(np.zeros((3, 3)), np.full((1, 3), 7))])
-    with pytest.raises(ValueError, match="method must be 'embree'"):
+    with pytest.raises(ValueError, match="method must be one of"):
         caster.closest_hit(np.zeros(3), np.ones(3), method="optix")
     with pytest.raises(ValueError, match="normals contain NaN"):
         caster.occluded(np.zeros(3), np.ones(3), normals=[np.nan, 0.0, 1.0])
