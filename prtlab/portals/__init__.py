@@ -9,7 +9,8 @@ of dynamic exteriors (Section 6).
 
 from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
 from ._exterior import exterior_shell
-from ._indirect import PhotonMap, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate, trace_photons
+from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
+                        trace_photons)
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
@@ -34,6 +35,7 @@ __all__ = [
     "PhotonMap",
     "trace_photons",
     "radiance_estimate",
+    "disc_coverage",
     "final_gather",
     # run time
     "direct_pass",

@@ -198,7 +198,8 @@ def _photon_estimates(caster, interior: _Interior, portal, k: int, options: Port
     g = np.nonzero(interior.glossy)[0]
     exitance, glossy_exitance = radiance_estimate(
         photons, interior.points, interior.normals, interior.albedo, options.order, options.photon_k,
-        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order))
+        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order),
+        surface=(caster, np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))))
     return {"exitance": exitance, "glossy_exitance": glossy_exitance,
             "seconds": np.array(time.perf_counter() - t0), "n_photons_stored": np.array(len(photons))}
 
@@ -298,8 +299,8 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 4  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
-    # 4: photons reflect off glossy objects by their Phong lobe too
+    format_version = 5  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    # 4: photons reflect off glossy objects by their Phong lobe too; 5: edge-corrected radiance estimates
     max_bounces = None
     options_type = PortalsOptions
     renamed_options = {"res": "cube_resolution"}
