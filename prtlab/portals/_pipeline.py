@@ -59,8 +59,8 @@ from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import find_portals, shell_light, shell_sh
-from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, patch_gather, patch_operator, power_sum,
-                       vertex_areas)
+from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
+                       power_sum, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -299,10 +299,15 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
     out = {}
     if patch is not None:
         t0 = time.perf_counter()
+        rng = np.random.default_rng([options.seed, 3, i])
+        n_patches = int(patch.max()) + 1
         gather = patch_gather(caster, interior.points[rows], interior.normals[rows], interior.offsets,
-                              interior.normals, patch, int(patch.max()) + 1, options.gather_rays,
-                              np.random.default_rng([options.seed, 3, i]))
-        out["surface"] = {"gather": gather, "seconds": np.array([time.perf_counter() - t0])}
+                              interior.normals, patch, n_patches, options.gather_rays, rng)
+        points, normals, weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
+        sub = patch_gather(caster, points, normals, interior.offsets, interior.normals, patch, n_patches,
+                           max(16, options.gather_rays // _HAT_SPLIT**2), rng)
+        out["surface"] = {"gather": gather, "hat_gather": (weights @ sub).astype(np.float32),
+                          "seconds": np.array([time.perf_counter() - t0])}
     for k, portal in enumerate(portals):
         rng = np.random.default_rng([options.seed, k, 2, i])
         t0 = time.perf_counter()
@@ -318,15 +323,20 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
     return out
 
 
-def _surface_data(chunks: dict, interior: _Interior, patch, areas, options: PortalsOptions) -> dict:
-    """``indirect="surface"``: the gather ``F``, the patch operator ``H`` and ``S_B`` (:mod:`._surface`)."""
+def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, options: PortalsOptions) -> dict:
+    """``indirect="surface"``: the gather ``F``, the bounce operator ``K``, the projection of hat averages and
+    ``S_B`` (:mod:`._surface`)."""
     t0 = time.perf_counter()
     gather = chunks["surface"]["gather"]
-    operator = patch_operator(gather, interior.albedo, patch, areas, gather.shape[1])
-    total = power_sum(operator, options.bounces)
+    operator = patch_operator(chunks["surface"]["hat_gather"], interior.albedo, patch, areas, gather.shape[1],
+                              project)
+    total = power_sum(operator, options.bounces, project)
     seconds = float(np.sum(chunks["surface"]["seconds"])) + time.perf_counter() - t0
-    return {"gather": gather, "patch": patch, "areas": areas, "operator": operator.astype(np.float32),
-            "sum": total.astype(np.float32), "seconds": np.array(seconds)}
+    out = {"gather": gather, "patch": patch, "areas": areas, "operator": operator.astype(np.float32),
+           "sum": total.astype(np.float32), "seconds": np.array(seconds)}
+    if project is not None:
+        out["project"] = project.astype(np.float32)
+    return out
 
 
 def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
@@ -336,7 +346,7 @@ def _assemble(chunks: dict, estimates: list, interior: _Interior, options: Porta
     data: dict = {"n_portals": np.array(len(estimates)), "albedo": interior.albedo,
                   "glossy": interior.glossy.astype(np.uint8), "ks": interior.ks, "exponent": interior.exponent}
     if surface is not None and options.bounces > 0:
-        data["surface"] = _surface_data(chunks, interior, surface[0], surface[1], options)
+        data["surface"] = _surface_data(chunks, interior, *surface, options)
     for k, estimate in enumerate(estimates):
         c = chunks[f"portal{k}"]
         entry = {"indptr": np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64), "indices": c["indices"],
@@ -478,17 +488,18 @@ class Portals(Precomputation):
                                          dataclasses.replace(options, bounces=0) if surface else options)
             estimates.append(estimate() if options.bounces == 0 or surface else  # nothing to store
                              cls.run_part(store, key, ("exitance", k), "portals-photons", estimate))
-        patch = areas = None
+        patch = areas = project = None
         if surface and options.bounces > 0:
             objects = np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))
             patch = cluster_vertices(interior.points, interior.normals, objects, options.clusters, options.seed)
             areas = vertex_areas(caster)
+            project = hat_projection(caster, patch)
         size = cls.chunk_vertices
         n_chunks = max(1, -(-len(interior.points) // size))
         chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size, patch)
         chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
                                 chunking={"vertices": size})
-        return _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas))
+        return _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas, project))
 
     # ------------------------------------------------------------------ run time
 
@@ -525,7 +536,7 @@ class Portals(Precomputation):
         if "_surface" not in self.__dict__:
             e = self.data["surface"]
             self._surface = SurfaceTransfer(e["gather"], e["patch"], e["areas"], self.data["albedo"], e["operator"],
-                                            {self.options.bounces: e["sum"]})
+                                            {self.options.bounces: e["sum"]}, e.get("project"))
         return self._surface
 
     def _check_bounces(self, bounces):

@@ -105,25 +105,48 @@ def _patch_mean(patch, areas, n_patches):
     return areas / np.where(total > 0, total, 1.0)[patch]
 
 
-def patch_operator(gather, albedo, patch, areas, n_patches: int) -> np.ndarray:
-    """``H (C, C, 3)``: one bounce from the source patches to the patches, ``H_cd = sum_{v in c} a_v rho_v F_vd /
-    A_c`` (float64)."""
+def hat_projection(caster: RayCaster, patch) -> np.ndarray | None:
+    """``M^{-1} diag(a)`` (dense, ``(V, V)``) when the patches are the vertices (else None): hat averages
+    ``y_hat`` to the coefficients ``c`` of the linear interpolant with the same hat integrals, ``M c = a y_hat``
+    (:func:`mass_matrix`, ``a`` the vertex areas). Interpolating the hat averages themselves puts an edge vertex's
+    value where its one-sided hat's centroid is: the sunlit room's edge vertices came out 5% and corners 16% too
+    bright; nodal point values lose power (2.5% low): this projection gave 1.7% and 5% (``docs/notes/portals.md``).
+    """
+    patch = np.asarray(patch)
+    if len(patch) != int(patch.max(initial=-1)) + 1:
+        return None
+    mass = mass_matrix(caster).toarray()
+    return np.linalg.solve(mass, np.diag(mass.sum(axis=1)))
+
+
+def patch_operator(hat_gather, albedo, patch, areas, n_patches: int, project=None) -> np.ndarray:
+    """``K (C, C, 3)``: one bounce between the patches' light (float64).
+
+    With ``project`` (patches = vertices): ``K = M^{-1} diag(a rho) F_hat`` on the interpolant's coefficients,
+    ``F_hat`` the gather averaged over each vertex's hat (:func:`hat_points`). Otherwise (clusters) the
+    area-weighted mean over each patch, ``K_cd = sum_{v in c} a_v rho_v F_hat,vd / A_c``.
+    """
     from scipy.sparse import csr_matrix
 
     patch = np.asarray(patch, dtype=np.int64)
-    w = _patch_mean(patch, np.asarray(areas, dtype=np.float64), n_patches)
-    gather = np.asarray(gather, dtype=np.float64)
+    hat_gather = np.asarray(hat_gather, dtype=np.float64)
+    albedo = np.asarray(albedo, dtype=np.float64)
     out = np.zeros((n_patches, n_patches, 3))
+    if project is not None:
+        for ch in range(3):
+            out[:, :, ch] = project @ (albedo[:, ch][:, None] * hat_gather)
+        return out
+    w = _patch_mean(patch, np.asarray(areas, dtype=np.float64), n_patches)
     for ch in range(3):
-        mean = csr_matrix((w * np.asarray(albedo)[:, ch], (patch, np.arange(len(patch)))),
-                          shape=(n_patches, len(patch)))
-        out[:, :, ch] = mean @ gather
+        mean = csr_matrix((w * albedo[:, ch], (patch, np.arange(len(patch)))), shape=(n_patches, len(patch)))
+        out[:, :, ch] = mean @ hat_gather
     return out
 
 
-def power_sum(h, b: int) -> np.ndarray:
+def power_sum(h, b: int, project=None) -> np.ndarray:
     """``S_b = sum_{j=0}^{b-1} H^j`` per colour channel (``h (C, C, 3)``) by binary doubling (``S_{m + 2^i} = S_m
-    + H^m S_{2^i}``, ``S_{2^(i+1)} = S_{2^i} + H^{2^i} S_{2^i}``); ``b = 0`` gives zeros."""
+    + H^m S_{2^i}``, ``S_{2^(i+1)} = S_{2^i} + H^{2^i} S_{2^i}``), times ``project`` on the right if given;
+    ``b = 0`` gives zeros."""
     h = np.asarray(h, dtype=np.float64)
     c = h.shape[0]
     out = np.zeros_like(h)
@@ -140,7 +163,7 @@ def power_sum(h, b: int) -> np.ndarray:
             if i + 1 < len(bits):
                 s_block = s_block + p_block @ s_block
                 p_block = p_block @ p_block
-        out[:, :, ch] = total
+        out[:, :, ch] = total if project is None else total @ project
     return out
 
 
@@ -151,7 +174,7 @@ class SurfaceTransfer:
     ``operator (C, C, 3)`` (``H``), ``sums`` a dict ``b -> S_b (C, C, 3) float32``.
     """
 
-    def __init__(self, gather, patch, areas, albedo, operator, sums: dict):
+    def __init__(self, gather, patch, areas, albedo, operator, sums: dict, project=None):
         self.gather = np.ascontiguousarray(gather, dtype=np.float32)
         self.patch = np.asarray(patch, dtype=np.int64)
         self.n_patches = self.gather.shape[1]
@@ -160,11 +183,12 @@ class SurfaceTransfer:
         self.albedo = np.asarray(albedo, dtype=np.float64)
         self.operator = np.asarray(operator)
         self.sums = {int(b): np.ascontiguousarray(s, dtype=np.float32) for b, s in sums.items()}
+        self.project = None if project is None else np.asarray(project, dtype=np.float64)
 
     def bounce_sum(self, b: int) -> np.ndarray:
         """``S_b`` (computed from ``H`` and kept when not stored)."""
         if b not in self.sums:
-            self.sums[b] = power_sum(self.operator, b).astype(np.float32)
+            self.sums[b] = power_sum(self.operator, b, self.project).astype(np.float32)
         return self.sums[b]
 
     def indirect(self, direct, bounces: int) -> np.ndarray:
@@ -229,3 +253,23 @@ def hat_points(caster: RayCaster, vertex_offset, vertex_normals, rows: slice, sp
     weights = csr_matrix((w[mine] / a_u[u[mine]], (u[mine] - rows.start, x[mine])),
                          shape=(rows.stop - rows.start, len(points)))
     return points, normals, weights
+
+
+def mass_matrix(caster: RayCaster):
+    """The consistent mass matrix of linear (hat) elements over every caster object, ``M_uv = int phi_u phi_v``
+    (``A / 12 (1 + [u = v])`` per triangle), ``scipy.sparse.csr_matrix (N, N)``; its row sums are the vertex
+    areas (:func:`vertex_areas`)."""
+    from scipy.sparse import coo_matrix
+
+    rows, cols, vals, offset = [], [], [], 0
+    for i in range(caster.n_objects):
+        v, f = caster.world_vertices(i), caster.faces(i)
+        a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        for p in range(3):
+            for q in range(3):
+                rows.append(f[:, p] + offset)
+                cols.append(f[:, q] + offset)
+                vals.append(a / 12.0 * (2.0 if p == q else 1.0))
+        offset += len(v)
+    return coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(offset, offset)).tocsr()
