@@ -28,7 +28,9 @@ rho_v / pi E_lm(v)``. ``f`` is the part of the disc that lies on the vertex's
 own surface (probe rays, :func:`disc_coverage`): on a wall's edge photons come
 from half the disc, in a corner from a quarter. Dividing by the whole disc (and
 counting the ``k``-th photon, an excess ``k / (k - 1)``) made the tiny room's
-indirect light 10-15% too dark (``docs/notes/portals.md``). Final gathering at vertex ``v`` casts ``M`` cosine-weighted rays;
+indirect light 10-15% too dark (``docs/notes/portals.md``).
+
+Final gathering at vertex ``v`` casts ``M`` cosine-weighted rays;
 a ray hitting the front side of a triangle reads ``B`` interpolated
 (barycentrically) from the triangle's vertices; the transfer vector is
 

@@ -60,7 +60,7 @@ from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photo
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
-                       power_sum, vertex_areas)
+                       power_sum, quantize_rows, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -72,13 +72,15 @@ class PortalsOptions:
     Attributes
     ----------
     cube_resolution : int
-        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32].
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]. 64 by
+        default: at 32 a texel cut by the window's edge takes the shell light averaged over the whole texel, and
+        a bright sky near the sun put 16% too much light on the sunlit room's wall opposite the window.
     direct_samples : int
-        Portal points per vertex of the direct transfer [4096].
+        Portal points per vertex of the direct transfer [4096], jittered-stratified over the portal.
     n_photons : int
         Photons emitted per portal, shared by all SH bases [2M per basis].
     gather_rays : int
-        Final-gather rays per vertex [4096].
+        Final-gather rays per vertex [4096] (stratified for ``indirect="surface"``).
     order : int
         SH order of the indirect transfer [4].
     photon_k : int
@@ -109,10 +111,10 @@ class PortalsOptions:
         Random seed of the photons and of the direct and gather samples.
     """
 
-    cube_resolution: int = 32
-    direct_samples: int = 1024
+    cube_resolution: int = 64
+    direct_samples: int = 4096
     n_photons: int = 200_000
-    gather_rays: int = 256
+    gather_rays: int = 1024
     order: int = 4
     photon_k: int = 32
     bounces: int = 2
@@ -332,7 +334,9 @@ def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, opti
                               project)
     total = power_sum(operator, options.bounces, project)
     seconds = float(np.sum(chunks["surface"]["seconds"])) + time.perf_counter() - t0
-    out = {"gather": gather, "patch": patch, "areas": areas, "operator": operator.astype(np.float32),
+    codes, scale = quantize_rows(gather)
+    out = {"gather_codes": codes, "gather_scale": scale, "patch": patch, "areas": areas,
+           "operator": operator.astype(np.float32),
            "sum": total.astype(np.float32), "seconds": np.array(seconds)}
     if project is not None:
         out["project"] = project.astype(np.float32)
@@ -440,7 +444,10 @@ class Portals(Precomputation):
     def memory_needs(cls, scene: Scene, options) -> tuple[list[MemoryNeed], str]:
         """The per-bounce SH transfer and exitance, the photon map, the dense direct cubemaps of a chunk (and the
         encoder's work arrays, about 8 times their size), the encoded direct transfer (pulse worst case) and the
-        final-gather rays of a chunk. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
+        final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
+        rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
+        operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
+        hat-averaged source transfer. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
         bounces=40``: estimate 12 GB, peak resident memory 5.9 GB (the estimate bounds the photons by one per
         bounce)."""
         objs = _shaded(scene)
@@ -466,6 +473,17 @@ class Portals(Precomputation):
                                                                       max(float(CHUNK_BYTES), per_vertex_gather)),
                        ("gather_rays", "order", "bounces")),
         ]
+        if cls.indirect_mode(scene, options) == "surface":
+            needs = [n for n in needs if n.what not in ("the per-bounce SH transfer", "the photon map",
+                                                        "the final-gather rays")]
+            c = min(n_v, options.clusters) if b > 0 else 0
+            needs += [
+                MemoryNeed("the interior gather (vertices x clusters)", n_v * c * (4 + 4 + 8 + 2.0), ("clusters",)),
+                MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
+                           + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
+                MemoryNeed("the hat-averaged source transfer", n_p * n_v * texels * 5.0
+                           + (min(n_v, cls.chunk_vertices) + 512) * texels * 8.0, ("cube_resolution",)),
+            ]
         return needs, f"{n_v:,} vertices"
 
     @classmethod
@@ -535,7 +553,8 @@ class Portals(Precomputation):
             return None
         if "_surface" not in self.__dict__:
             e = self.data["surface"]
-            self._surface = SurfaceTransfer(e["gather"], e["patch"], e["areas"], self.data["albedo"], e["operator"],
+            self._surface = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"],
+                                            self.data["albedo"], e["operator"],
                                             {self.options.bounces: e["sum"]}, e.get("project"))
         return self._surface
 
