@@ -295,7 +295,8 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
                   i: int) -> dict:
     """Chunk ``i`` (vertices ``i size .. (i + 1) size``) of every portal: ``{"portal<k>": arrays}``, with the
     seconds of its direct and indirect parts; with ``patch`` (``indirect="surface"``) also the rows of the
-    interior gather over the source patches (``{"surface": {"gather", "seconds"}}``). One random stream per
+    interior gather over the source patches (``{"surface": {"gather", "gather_diff", "hat_gather", "seconds"}}``:
+    the gather from two independent halves of the rays, their difference giving its noise). One random stream per
     (portal, chunk), so a chunk's result does not depend on which process runs it."""
     rows = slice(i * size, min(len(interior.points), (i + 1) * size))
     out = {}
@@ -303,12 +304,16 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
         t0 = time.perf_counter()
         rng = np.random.default_rng([options.seed, 3, i])
         n_patches = int(patch.max()) + 1
-        gather = patch_gather(caster, interior.points[rows], interior.normals[rows], interior.offsets,
-                              interior.normals, patch, n_patches, options.gather_rays, rng)
-        points, normals, weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
+        halves = [patch_gather(caster, interior.points[rows], interior.normals[rows], interior.offsets,
+                               interior.normals, patch, n_patches, m, rng)
+                  for m in (options.gather_rays // 2, options.gather_rays - options.gather_rays // 2) if m > 0]
+        weights = [options.gather_rays // 2, options.gather_rays - options.gather_rays // 2][-len(halves):]
+        gather = sum(w * h for w, h in zip(weights, halves)) / options.gather_rays
+        diff = halves[0] - halves[-1]
+        points, normals, hat_weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
         sub = patch_gather(caster, points, normals, interior.offsets, interior.normals, patch, n_patches,
                            max(16, options.gather_rays // _HAT_SPLIT**2), rng)
-        out["surface"] = {"gather": gather, "hat_gather": (weights @ sub).astype(np.float32),
+        out["surface"] = {"gather": gather, "gather_diff": diff, "hat_gather": (hat_weights @ sub).astype(np.float32),
                           "seconds": np.array([time.perf_counter() - t0])}
     for k, portal in enumerate(portals):
         rng = np.random.default_rng([options.seed, k, 2, i])
@@ -341,6 +346,31 @@ def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, opti
     if project is not None:
         out["project"] = project.astype(np.float32)
     return out
+
+
+def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> dict:
+    """The surface transfer's gather noise under the scene's own light: ``stderr (V, 3)`` per vertex, ``|rho (F_1 -
+    F_2) S_B s| / 2`` from the two halves of the gather rays (the standard error of their mean), and ``noise``,
+    its RMS relative to the RMS indirect radiance (``bounces`` bounces)."""
+    e = data["surface"]
+    albedo = np.asarray(data["albedo"], dtype=np.float64)
+    if scene.environment is None:
+        return {"stderr": np.zeros(albedo.shape, np.float32), "noise": np.array(float("nan"))}
+    cube = shell_light(scene.environment, options.cube_resolution)
+    source = np.zeros_like(albedo)
+    for k in range(int(data["n_portals"])):
+        p = data[f"portal{k}"]
+        src = SparseTransfer(p["source_indptr"], p["source_indices"], p["source_codes"], p["source_scale"],
+                             p["source_basis"], options.cube_resolution)
+        source += direct_pass(src, albedo, cube)
+    st = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"], albedo, e["operator"],
+                         {options.bounces: e["sum"]}, e.get("project"))
+    u = st.patch_light(source, options.bounces).astype(np.float64)
+    indirect = st.indirect(source, options.bounces)
+    stderr = np.abs(albedo * (np.asarray(diff, dtype=np.float64) @ u)) / 2.0
+    scale = float(np.mean(indirect**2))
+    noise = float(np.sqrt(np.mean(stderr**2) / scale)) if scale > 0 else 0.0
+    return {"stderr": stderr.astype(np.float32), "noise": np.array(noise)}
 
 
 def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
@@ -517,7 +547,10 @@ class Portals(Precomputation):
         chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size, patch)
         chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
                                 chunking={"vertices": size})
-        return _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas, project))
+        data = _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas, project))
+        if "surface" in data:
+            data["surface"].update(_gather_noise(data, chunks["surface"]["gather_diff"], scene, options))
+        return data
 
     # ------------------------------------------------------------------ run time
 
@@ -631,6 +664,8 @@ class Portals(Precomputation):
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
         result.info = {"method": self.method, "bounces": bounces, "timings": timings}
+        if surface is not None:
+            result.info["indirect_noise"] = float(self.data["surface"]["noise"])  # under the scene's own light
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:

@@ -199,6 +199,17 @@ class SurfaceTransfer:
         direct = np.asarray(direct, dtype=np.float64)
         if bounces <= 0:
             return np.zeros_like(direct)
+        u = self.patch_light(direct, bounces)
+        out = np.empty((len(self.patch), 3))
+        from ._shade import _threads_for
+
+        with _threads_for(self.codes.size * 3):
+            _gather_product(self.codes, self.scale, u, self.albedo, out)
+        return out
+
+    def patch_light(self, direct, bounces: int) -> np.ndarray:
+        """``S_B Pbar L_d``, ``(C, 3)`` float32: the light the patches send after ``0 .. B-1`` bounces."""
+        direct = np.asarray(direct, dtype=np.float64)
         if self.identity:
             s = direct
         else:
@@ -209,12 +220,7 @@ class SurfaceTransfer:
         u = np.empty((self.n_patches, 3), dtype=np.float32)
         for ch in range(3):
             u[:, ch] = sb[:, :, ch] @ s[:, ch].astype(np.float32)
-        out = np.empty((len(self.patch), 3))
-        from ._shade import _threads_for
-
-        with _threads_for(self.codes.size * 3):
-            _gather_product(self.codes, self.scale, u, self.albedo, out)
-        return out
+        return u
 
 
 def quantize_rows(gather):

@@ -124,3 +124,35 @@ def test_surface_option_and_errors():
         Portals.precompute(scene, {**QUICK, "indirect": "photons"}, cache=False, progress=False)
     with pytest.raises(ValueError, match="option clusters"):
         Portals.precompute(scene, {**QUICK, "clusters": 0}, cache=False, progress=False)
+
+
+def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
+    """``indirect="surface"`` counts the interior gather (``V x min(V, clusters)``), the bounce operator and the
+    source transfer instead of photons and SH transfers, and a configuration over the limit is refused in one line
+    naming the options to lower, before any allocation."""
+    scene = window_box(cell=0.25)
+    opts = Portals.options_type(**{**QUICK, "cube_resolution": 64})
+    needs, context = Portals.memory_needs(scene, opts)
+    names = {n.what: n for n in needs}
+    n_v = scene.objects[0].n_vertices
+    assert names["the interior gather (vertices x clusters)"].nbytes == n_v * min(n_v, 1024) * 18
+    assert "the photon map" not in names and "the hat-averaged source transfer" in names
+    small = dict(Portals.memory_needs(scene, Portals.options_type(**{**QUICK, "clusters": 16}))[0][-3:-2][0]._asdict())
+    assert small["nbytes"] == n_v * 16 * 18
+    monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "0.01")
+    with pytest.raises(ValueError, match=rf"^portals: option .* needs ~.* for {n_v:,} vertices \(limit .*\): lower "):
+        Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
+
+
+def test_reported_gather_noise_matches_seed_spread():
+    """The gather noise the precomputation reports (two independent halves of the rays, under the scene's light)
+    agrees with the spread between two seeds: ``RMS(I_1 - I_2) / sqrt(2)`` over the vertices, within 30% (about
+    100 vertices, each a one-sample estimate of its deviation)."""
+    scene = window_box(cell=0.5)
+    pres = [Portals.precompute(scene, {**QUICK, "seed": s}, cache=False, progress=False) for s in (1, 2)]
+    ind = [p.shade(bounces=2).indirect["room"] for p in pres]
+    spread = np.sqrt(np.mean((ind[0] - ind[1]) ** 2) / 2)
+    reported = np.sqrt(np.mean(np.asarray(pres[0].data["surface"]["stderr"], dtype=np.float64) ** 2))
+    assert 0.7 < reported / spread < 1.3, (reported, spread)
+    noise = pres[0].shade(bounces=2).info["indirect_noise"]
+    assert np.isclose(noise, reported / np.sqrt(np.mean(ind[0] ** 2)), rtol=1e-3)
