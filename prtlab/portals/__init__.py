@@ -5,6 +5,12 @@ cubemaps per vertex (Section 4.1.2), the indirect transfer as SH vectors by
 photon tracing from the portal and final gathering (Section 4.1.1), run-time
 passes (Section 5), portal materials (Section 3.3) and the validity criteria
 of dynamic exteriors (Section 6).
+
+Departure (issue 17): by default a diffuse interior's indirect light is driven
+by each frame's direct radiance through a precomputed interior-to-interior
+transfer (``indirect="surface"``, :mod:`prtlab.portals._surface`), so a sharp
+sun bounces from where it lands; the paper's SH transfer is
+``indirect="paper"``. Measured in ``docs/notes/portals.md``.
 """
 
 from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
