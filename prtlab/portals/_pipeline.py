@@ -72,9 +72,11 @@ class PortalsOptions:
     Attributes
     ----------
     cube_resolution : int
-        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]. 64 by
-        default: at 32 a texel cut by the window's edge takes the shell light averaged over the whole texel, and
-        a bright sky near the sun put 16% too much light on the sunlit room's wall opposite the window.
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]; 0: 64 for
+        a diffuse interior, 32 with a glossy object (its cubemap per view direction grows as ``res^2``: the glossy
+        bunny box would need ~25 GB at 64). At 32 a texel cut by the window's edge takes the shell light averaged
+        over the whole texel, and a bright sky near the sun put 16% too much light on the sunlit room's wall
+        opposite the window.
     direct_samples : int
         Portal points per vertex of the direct transfer [4096], jittered-stratified over the portal.
     n_photons : int
@@ -111,7 +113,7 @@ class PortalsOptions:
         Random seed of the photons and of the direct and gather samples.
     """
 
-    cube_resolution: int = 64
+    cube_resolution: int = 0
     direct_samples: int = 4096
     n_photons: int = 200_000
     gather_rays: int = 1024
@@ -127,9 +129,9 @@ class PortalsOptions:
     seed: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("cube_resolution", "direct_samples", "n_photons", "gather_rays", "order", "photon_k",
+        check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "order", "photon_k",
                                  "view_res", "clusters"))
-        check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
+        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution"), minimum=0)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
@@ -156,6 +158,16 @@ def _is_glossy(obj) -> bool:
 
 #: glossy vertices per batch of the glossy direct transfer (bounds its dense (batch, J, 6, r, r) memory)
 _GLOSSY_BATCH = 16
+
+#: vertices per batch of the (dense, then encoded) direct and source transfers
+_DIRECT_BATCH = 512
+
+
+def _concat_encoded(parts, prefix: str = "") -> dict:
+    """Encoded transfers of consecutive row batches as one chunk entry (``counts`` per row for the CSR)."""
+    return {f"{prefix}counts": np.concatenate([np.diff(q.indptr) for q in parts]),
+            **{f"{prefix}{name}": np.concatenate([getattr(q, name) for q in parts])
+               for name in ("indices", "codes", "scale", "basis")}}
 
 
 @dataclass
@@ -224,11 +236,12 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     """Section 4.1.2 for the vertices ``rows``: the 8-bit direct transfer cubemaps, and for the glossy ones one
     cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
     res, basis = options.cube_resolution, options.direct_basis
-    dense = direct_transfer(caster, interior.points[rows], interior.normals[rows], portal, options.direct_samples,
-                            res, rng)
-    sparse = encode_transfer(dense, basis)
-    entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
-             "scale": sparse.scale, "basis": sparse.basis}
+    encoded = []
+    for b0 in range(rows.start, rows.stop, _DIRECT_BATCH):  # bounds the dense cubemaps and the encoder's arrays
+        b = slice(b0, min(rows.stop, b0 + _DIRECT_BATCH))
+        encoded.append(encode_transfer(direct_transfer(caster, interior.points[b], interior.normals[b], portal,
+                                                       options.direct_samples, res, rng), basis))
+    entry = _concat_encoded(encoded)
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
     parts = [encode_transfer(np.zeros((0, 6, res, res)), basis)]
@@ -256,17 +269,19 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     values at 0.5 m vertices put 4.5% less sun on the sunlit room's floor). ``direct_samples / split^2`` portal
     samples per sub-point (as many rays per vertex as the direct transfer, about twice over)."""
     res = options.cube_resolution
-    points, normals, weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
-    weights = weights.tocsc()
-    dense = np.zeros((rows.stop - rows.start, 6 * res * res))
     n_samples = max(1, options.direct_samples // _HAT_SPLIT**2)
-    for b0 in range(0, len(points), 512):
-        b = slice(b0, b0 + 512)
-        t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng)
-        dense += weights[:, b] @ t.reshape(len(t), -1)
-    sparse = encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis)
-    return {"source_counts": np.diff(sparse.indptr), "source_indices": sparse.indices, "source_codes": sparse.codes,
-            "source_scale": sparse.scale, "source_basis": sparse.basis}
+    encoded = []
+    for r0 in range(rows.start, rows.stop, _DIRECT_BATCH):
+        sub = slice(r0, min(rows.stop, r0 + _DIRECT_BATCH))
+        points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
+        weights = weights.tocsc()
+        dense = np.zeros((sub.stop - sub.start, 6 * res * res))
+        for b0 in range(0, len(points), 512):
+            b = slice(b0, b0 + 512)
+            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng)
+            dense += weights[:, b] @ t.reshape(len(t), -1)
+        encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
+    return _concat_encoded(encoded, "source_")
 
 
 def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng) -> dict:
@@ -452,6 +467,14 @@ class Portals(Precomputation):
             )
 
     @classmethod
+    def resolved(cls, scene: Scene, options):
+        """``options`` with ``cube_resolution=0`` resolved: 64 for a diffuse interior, 32 with a glossy object."""
+        if options.cube_resolution:
+            return options
+        glossy = any(_is_glossy(o) for o in _shaded(scene))
+        return dataclasses.replace(options, cube_resolution=32 if glossy else 64)
+
+    @classmethod
     def indirect_mode(cls, scene: Scene, options) -> str:
         """The ``indirect`` option resolved: ``"auto"`` is ``"surface"`` unless an interior object is glossy."""
         if options.indirect != "auto":
@@ -468,7 +491,7 @@ class Portals(Precomputation):
         if options.indirect == "surface" and glossy:
             raise ValueError(f"option indirect='surface' needs a diffuse interior, but {glossy[0]!r} is glossy: "
                              "use indirect='paper' (or 'auto')")
-        super().check_scene(scene, options)
+        super().check_scene(scene, cls.resolved(scene, options))
 
     @classmethod
     def memory_needs(cls, scene: Scene, options) -> tuple[list[MemoryNeed], str]:
@@ -480,6 +503,7 @@ class Portals(Precomputation):
         hat-averaged source transfer. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
         bounces=40``: estimate 12 GB, peak resident memory 5.9 GB (the estimate bounds the photons by one per
         bounce)."""
+        options = cls.resolved(scene, options)
         objs = _shaded(scene)
         n_v = sum(o.n_vertices for o in objs)
         n_g = sum(o.n_vertices for o in objs if _is_glossy(o))
@@ -493,7 +517,7 @@ class Portals(Precomputation):
             MemoryNeed("the per-bounce SH transfer", n_p * (n_v * b * n2 * 3 * 12.0 + n_g * b * n_out2 * n2 * 3 * 12.0)
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
-            MemoryNeed("the dense direct transfer cubemaps", min(n_v, cls.chunk_vertices) * texels * 8.0 * 8,
+            MemoryNeed("the dense direct transfer cubemaps", min(n_v, _DIRECT_BATCH) * texels * 8.0 * 8,
                        ("cube_resolution",)),
             MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0,
                        ("cube_resolution", "view_res")),
@@ -512,7 +536,9 @@ class Portals(Precomputation):
                 MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
                            + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
                 MemoryNeed("the hat-averaged source transfer", n_p * n_v * texels * 5.0
-                           + (min(n_v, cls.chunk_vertices) + 512) * texels * 8.0, ("cube_resolution",)),
+                           + (min(n_v, _DIRECT_BATCH) + 512) * texels * 8.0, ("cube_resolution",)),
+                MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
+                           ("gather_rays",)),
             ]
         return needs, f"{n_v:,} vertices"
 
@@ -525,6 +551,7 @@ class Portals(Precomputation):
         Each portal's estimates and each chunk are resumable cache parts (:meth:`Precomputation.run_part`,
         :meth:`Precomputation.run_chunks`); ``map_fn`` runs the chunks in parallel.
         """
+        options = cls.resolved(scene, options)
         names = [o.name for o in scene.objects if o.portal]
         portals = find_portals(scene, [names] if options.merge_portals and names else None)
         caster = RayCaster(scene)
@@ -669,7 +696,7 @@ class Portals(Precomputation):
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        cube = shell_light(state.lights[0], self.options.cube_resolution)
+        cube = shell_light(state.lights[0], int(self.data["portal0"]["res"]))
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod

@@ -127,9 +127,9 @@ def test_surface_option_and_errors():
 
 
 def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
-    """``indirect="surface"`` counts the interior gather (``V x min(V, clusters)``), the bounce operator and the
-    source transfer instead of photons and SH transfers, and a configuration over the limit is refused in one line
-    naming the options to lower, before any allocation."""
+    """``indirect="surface"`` counts the interior gather (``V x min(V, clusters)``), the bounce operator, the source
+    transfer and the gather rays instead of photons and SH transfers, and a configuration over the limit is refused
+    in one line naming the options to lower, before any allocation."""
     scene = window_box(cell=0.25)
     opts = Portals.options_type(**{**QUICK, "cube_resolution": 64})
     needs, context = Portals.memory_needs(scene, opts)
@@ -137,8 +137,9 @@ def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
     n_v = scene.objects[0].n_vertices
     assert names["the interior gather (vertices x clusters)"].nbytes == n_v * min(n_v, 1024) * 18
     assert "the photon map" not in names and "the hat-averaged source transfer" in names
-    small = dict(Portals.memory_needs(scene, Portals.options_type(**{**QUICK, "clusters": 16}))[0][-3:-2][0]._asdict())
-    assert small["nbytes"] == n_v * 16 * 18
+    small = {n.what: n for n in Portals.memory_needs(scene, Portals.options_type(**{**QUICK, "clusters": 16}))[0]}
+    assert small["the interior gather (vertices x clusters)"].nbytes == n_v * 16 * 18
+    assert names["the gather rays of a chunk"].options == ("gather_rays",)
     monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "0.01")
     with pytest.raises(ValueError, match=rf"^portals: option .* needs ~.* for {n_v:,} vertices \(limit .*\): lower "):
         Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
