@@ -37,8 +37,8 @@ def _tile(sparse: SparseTransfer, n: int) -> SparseTransfer:
 @lru_cache(maxsize=1)
 def _frame_data():
     scene = load_scene(SCENE)
-    pre = Portals.precompute(scene, {"direct_samples": 256, "n_photons": 50_000, "gather_rays": 32, "order": 4},
-                             progress=False)
+    pre = Portals.precompute(scene, {"direct_samples": 256, "n_photons": 50_000, "gather_rays": 32, "order": 4,
+                                     "cube_resolution": 32, "indirect": "paper"}, progress=False)
     reps = -(-PAPER_VERTICES // len(pre.data["albedo"]))
     sparse = _tile(pre.direct_transfer(0), PAPER_VERTICES)
     transfer = np.ascontiguousarray(np.tile(pre.indirect_transfer(0), (reps, 1, 1))[:PAPER_VERTICES])

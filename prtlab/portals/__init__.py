@@ -5,11 +5,18 @@ cubemaps per vertex (Section 4.1.2), the indirect transfer as SH vectors by
 photon tracing from the portal and final gathering (Section 4.1.1), run-time
 passes (Section 5), portal materials (Section 3.3) and the validity criteria
 of dynamic exteriors (Section 6).
+
+Departure (issue 17): by default a diffuse interior's indirect light is driven
+by each frame's direct radiance through a precomputed interior-to-interior
+transfer (``indirect="surface"``, :mod:`prtlab.portals._surface`), so a sharp
+sun bounces from where it lands; the paper's SH transfer is
+``indirect="paper"``. Measured in ``docs/notes/portals.md``.
 """
 
 from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
 from ._exterior import exterior_shell
-from ._indirect import PhotonMap, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate, trace_photons
+from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
+                        trace_photons)
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
@@ -34,6 +41,7 @@ __all__ = [
     "PhotonMap",
     "trace_photons",
     "radiance_estimate",
+    "disc_coverage",
     "final_gather",
     # run time
     "direct_pass",

@@ -41,7 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from prtlab._validate import check_int
-from prtlab.geometry import RayCaster, direction_to_cubemap, sample_mesh_area
+from prtlab.geometry import RayCaster, direction_to_cubemap
 
 from ._shell import Portal
 
@@ -60,6 +60,29 @@ def _check_points(points, normals):
     return points, normals
 
 
+def _stratified_portal_points(portal, nc, n_samples, rng):
+    """``n_samples`` points on the portal for each of ``nc`` vertices, uniform by area and jittered-stratified:
+    one point in each cell of a grid on the unit square, mapped to a face by the inverse CDF of the face areas
+    along its first axis and into the face by the area-preserving ``sqrt`` map. Returns points and unit face
+    normals, ``(nc, n_samples, 3)`` each. (Independent uniform points left the sun's texel of a sunlit floor vertex
+    with about ten samples at 1024: a 30% noise.)"""
+    from prtlab.geometry._sampling import _stratified_unit_square
+
+    v = np.asarray(portal.vertices, dtype=np.float64)
+    f = np.asarray(portal.faces, dtype=np.int64)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    cross = np.cross(b - a, c - a)
+    double_area = np.linalg.norm(cross, axis=1)
+    cdf = np.concatenate([[0.0], np.cumsum(double_area) / double_area.sum()])
+    u = _stratified_unit_square(n_samples, rng, (nc,))
+    face = np.clip(np.searchsorted(cdf, u[..., 0], side="right") - 1, 0, len(f) - 1)
+    r1 = np.clip((u[..., 0] - cdf[face]) / np.maximum(cdf[face + 1] - cdf[face], 1e-300), 0.0, 1.0)
+    s = np.sqrt(r1)[..., None]
+    r2 = u[..., 1:2]
+    points = (1.0 - s) * a[face] + s * (1.0 - r2) * b[face] + s * r2 * c[face]
+    return points, (cross / double_area[:, None])[face]
+
+
 def _visible_portal_samples(caster, portal, x, n, n_samples, rng):
     """Sample ``n_samples`` portal points per vertex and keep the unoccluded pairs.
 
@@ -74,9 +97,7 @@ def _visible_portal_samples(caster, portal, x, n, n_samples, rng):
     cos_v, cos_p, dist : (E,) float   cosines at vertex and portal, and distance
     """
     nc = len(x)
-    samples = sample_mesh_area((portal.vertices, portal.faces), nc * n_samples, rng)
-    p = samples.points.reshape(nc, n_samples, 3)
-    n_p = samples.normals.reshape(nc, n_samples, 3)
+    p, n_p = _stratified_portal_points(portal, nc, n_samples, rng)
     d = p - x[:, None, :]
     dist = np.linalg.norm(d, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -19,11 +19,18 @@ Photons are stored at every diffuse hit up to depth ``B - 1`` (``B``
 indirect bounces); records keep the emission direction and ``beta`` only,
 and ``Y_lm(-d)`` is evaluated when estimating.
 
-Radiance estimates at the vertices (Christensen 1999): the ``k`` nearest
-photons whose surface normal agrees with the vertex normal (``n_p . n_v >
-cos 45 deg``) give the irradiance response
-``E_lm(v) = sum Phi_lm / (pi r^2)`` and the exitance ``B_lm(v) = rho_v / pi
-E_lm(v)``. Final gathering at vertex ``v`` casts ``M`` cosine-weighted rays;
+Radiance estimates at the vertices (Christensen 1999): among the nearest
+photons, those whose surface normal agrees with the vertex normal (``n_p . n_v >
+cos 45 deg``) and that lie near the vertex's tangent plane; with ``r`` the
+distance of the ``k``-th of them, the ``k - 1`` nearer ones give the irradiance
+response ``E_lm(v) = sum Phi_lm / (f pi r^2)`` and the exitance ``B_lm(v) =
+rho_v / pi E_lm(v)``. ``f`` is the part of the disc that lies on the vertex's
+own surface (probe rays, :func:`disc_coverage`): on a wall's edge photons come
+from half the disc, in a corner from a quarter. Dividing by the whole disc (and
+counting the ``k``-th photon, an excess ``k / (k - 1)``) made the tiny room's
+indirect light 10-15% too dark (``docs/notes/portals.md``).
+
+Final gathering at vertex ``v`` casts ``M`` cosine-weighted rays;
 a ray hitting the front side of a triangle reads ``B`` interpolated
 (barycentrically) from the triangle's vertices; the transfer vector is
 
@@ -62,9 +69,55 @@ from prtlab.geometry import RayCaster, cosine_hemisphere, sample_mesh_area
 
 from ._shell import Portal
 
-__all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "final_gather", "phong_lobe_sample"]
+__all__ = ["trace_photons", "PhotonMap", "radiance_estimate", "disc_coverage", "final_gather",
+           "phong_lobe_sample"]
 
 _NORMAL_AGREEMENT = np.cos(np.radians(45.0))
+
+#: a photon whose height over a vertex's tangent plane exceeds this times its distance is not on its surface
+_PLANE_TOLERANCE = 0.25
+
+#: probe rays of :func:`disc_coverage`
+N_PROBES = 64
+
+
+def _sunflower(n: int) -> np.ndarray:
+    """``n`` points spread evenly over the unit disc (Vogel's spiral), ``(n, 2)``."""
+    i = np.arange(n) + 0.5
+    r, a = np.sqrt(i / n), i * np.pi * (3 - np.sqrt(5))
+    return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+
+def disc_coverage(caster: RayCaster, objects, points, normals, radius, n_probes: int = N_PROBES) -> np.ndarray:
+    """The fraction of each vertex's estimate disc that lies on its own surface, ``(V,)`` in ``[0, 1]``.
+
+    The disc of radius ``radius[v]`` about ``points[v]`` in its tangent plane is probed at ``n_probes`` evenly
+    spread points (a sunflower pattern): a ray from ``0.25 r`` above a probe point along ``-normal`` must meet
+    object ``objects[v]`` within ``0.5 r`` on a face whose normal agrees with the vertex's (``|n_f . n_v| > cos
+    45 deg``). Past a wall's edge, in a window opening or under an object standing on the surface the probe
+    misses (or meets another object), so an edge vertex gets about 1/2 and a corner about 1/4. A curved surface
+    counts where it stays within ``0.25 r`` of the plane. A vertex whose probes all miss gets 1 (no correction).
+    """
+    from prtlab.geometry import tangent_frame
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    radius = np.asarray(radius, dtype=np.float64).reshape(-1)
+    objects = np.asarray(objects, dtype=np.int64).reshape(-1)
+    if len(points) == 0:
+        return np.ones(0)
+    t1, t2 = tangent_frame(normals)
+    d = _sunflower(int(n_probes))
+    r = np.where(np.isfinite(radius) & (radius > 0), radius, 0.0)[:, None, None]
+    probe = points[:, None] + r * (d[None, :, :1] * t1[:, None] + d[None, :, 1:] * t2[:, None])
+    origin = probe + 0.25 * r * normals[:, None]
+    dirs = np.broadcast_to(-normals[:, None], origin.shape)
+    hits = caster.closest_hit(origin.reshape(-1, 3), dirs.reshape(-1, 3),
+                              np.repeat(0.5 * r[:, 0, 0], len(d)) + caster.epsilon)
+    agree = np.abs(np.einsum("vpk,vk->vp", hits.normal.reshape(origin.shape), normals)) > _NORMAL_AGREEMENT
+    on = hits.hit.reshape(len(points), -1) & (hits.object.reshape(len(points), -1) == objects[:, None]) & agree
+    f = on.mean(axis=1)
+    return np.where((f > 0) & (r[:, 0, 0] > 0), f, 1.0)
 
 #: bytes of the per-chunk work arrays of :func:`radiance_estimate` and :func:`final_gather`: their vertex
 #: chunks shrink (to one vertex at least) so that many bounces and SH bands stream instead of piling up
@@ -223,7 +276,7 @@ def phong_lobe_sample(axis, exponent, rng: np.random.Generator) -> np.ndarray:
 
 
 def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 32,
-                      chunk: int = 4096, depths: int | None = None, glossy=None):
+                      chunk: int = 4096, depths: int | None = None, glossy=None, surface=None):
     """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
 
     Parameters
@@ -234,7 +287,12 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
     order : int
         SH order ``n`` (``n*n`` coefficients).
     k : int
-        Photons per estimate.
+        Photons per estimate: the radius is the distance of the ``k``-th agreeing photon and the ``k - 1``
+        nearer ones are summed (unbiased for a uniform density; with fewer found, the last found sets the
+        radius).
+    surface : tuple (caster RayCaster, objects (V,) int), optional
+        The scene and each point's object in it: the disc area is scaled by the part of it on the point's
+        surface (:func:`disc_coverage`). Without it the whole disc is used (too dark at edges and corners).
     depths : int, optional
         Split the estimate by photon depth ``0 .. depths-1`` (the same ``k``
         nearest photons and radius; each photon counts toward its own depth), so
@@ -296,14 +354,19 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         dist = dist.reshape(len(x), q)
         idx = idx.reshape(len(x), q)
         ok = np.einsum("vqk,vk->vq", photons.normal[idx], nv) > _NORMAL_AGREEMENT
-        # radius: distance of the k-th agreeing photon (or of the last one found)
+        # radius: distance of the k-th agreeing photon near the tangent plane (or of the last one found)
+        height = np.abs(np.einsum("vqk,vk->vq", photons.position[idx] - x[:, None], nv))
+        ok &= height <= _PLANE_TOLERANCE * dist  # within ~14 degrees of the tangent plane
         rank = np.cumsum(ok, axis=1)
         have = rank[:, -1]
-        kth = np.argmax(rank >= np.minimum(k, np.maximum(have, 1))[:, None], axis=1)
+        m = np.minimum(k, np.maximum(have, 1))
+        kth = np.argmax(rank >= m[:, None], axis=1)
         radius = dist[np.arange(len(x)), kth]
-        use = ok & (rank <= k) & (have[:, None] > 0)
+        use = ok & (rank <= np.maximum(m - 1, 1)[:, None]) & (have[:, None] > 0)
+        cover = 1.0 if surface is None else disc_coverage(surface[0], np.asarray(surface[1])[start : start + chunk],
+                                                          x, nv, radius)
         with np.errstate(divide="ignore", invalid="ignore"):
-            area = np.where(radius > 0, np.pi * radius**2, np.inf)
+            area = np.where(radius > 0, cover * np.pi * radius**2, np.inf)
         w = use / area[:, None]  # (v, q)
         e = np.einsum("vq,vqd,vqc,vqi->vdic", w, onehot[idx], photons.throughput[idx], y[idx], optimize=True)
         out[start : start + chunk] = e * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, None, :]

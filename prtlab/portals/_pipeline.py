@@ -59,6 +59,8 @@ from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
 from ._shell import find_portals, shell_light, shell_sh
+from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
+                       power_sum, quantize_rows, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -70,13 +72,17 @@ class PortalsOptions:
     Attributes
     ----------
     cube_resolution : int
-        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32].
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]; 0: 64 for
+        a diffuse interior, 32 with a glossy object (its cubemap per view direction grows as ``res^2``: the glossy
+        bunny box would need ~25 GB at 64). At 32 a texel cut by the window's edge takes the shell light averaged
+        over the whole texel, and a bright sky near the sun put 16% too much light on the sunlit room's wall
+        opposite the window.
     direct_samples : int
-        Portal points per vertex of the direct transfer [4096].
+        Portal points per vertex of the direct transfer [4096], jittered-stratified over the portal.
     n_photons : int
         Photons emitted per portal, shared by all SH bases [2M per basis].
     gather_rays : int
-        Final-gather rays per vertex [4096].
+        Final-gather rays per vertex [4096] (stratified for ``indirect="surface"``).
     order : int
         SH order of the indirect transfer [4].
     photon_k : int
@@ -94,14 +100,23 @@ class PortalsOptions:
     glossy_order : int
         SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``); 0:
         ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects.
+    indirect : {"auto", "surface", "paper"}
+        The indirect transfer. ``"paper"``: SH transfer vectors from photons and final gathers (Section 4.1.1),
+        the shell light projected on ``order`` SH bands. ``"surface"``: bounces driven by each frame's direct
+        radiance of the interior through a precomputed interior-to-interior gather (exact where a sharp sun
+        lands; diffuse interiors only; :mod:`prtlab.portals._surface`). ``"auto"``: ``"surface"`` unless an
+        interior object is glossy. Measured against Mitsuba in ``docs/notes/portals.md``.
+    clusters : int
+        ``indirect="surface"``: source patches of the gather; an interior with more vertices is clustered to this
+        many (memory and per-frame cost grow as vertices x clusters).
     seed : int
         Random seed of the photons and of the direct and gather samples.
     """
 
-    cube_resolution: int = 32
-    direct_samples: int = 1024
+    cube_resolution: int = 0
+    direct_samples: int = 4096
     n_photons: int = 200_000
-    gather_rays: int = 256
+    gather_rays: int = 1024
     order: int = 4
     photon_k: int = 32
     bounces: int = 2
@@ -109,17 +124,20 @@ class PortalsOptions:
     merge_portals: bool = False
     view_res: int = 4
     glossy_order: int = 0
+    indirect: str = "auto"
+    clusters: int = 1024
     seed: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("cube_resolution", "direct_samples", "n_photons", "gather_rays", "order", "photon_k",
-                                 "view_res"))
-        check_int_options(self, ("seed", "bounces", "glossy_order"), minimum=0)
+        check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "order", "photon_k",
+                                 "view_res", "clusters"))
+        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution"), minimum=0)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
         check_bool(self.merge_portals, "option merge_portals")
         check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
+        check_choice(self.indirect, "option indirect", ("auto", "surface", "paper"))
 
 
 def n_photons_bytes(n_photons: int, bounces: int, n_coeffs: int) -> float:
@@ -140,6 +158,16 @@ def _is_glossy(obj) -> bool:
 
 #: glossy vertices per batch of the glossy direct transfer (bounds its dense (batch, J, 6, r, r) memory)
 _GLOSSY_BATCH = 16
+
+#: vertices per batch of the (dense, then encoded) direct and source transfers
+_DIRECT_BATCH = 512
+
+
+def _concat_encoded(parts, prefix: str = "") -> dict:
+    """Encoded transfers of consecutive row batches as one chunk entry (``counts`` per row for the CSR)."""
+    return {f"{prefix}counts": np.concatenate([np.diff(q.indptr) for q in parts]),
+            **{f"{prefix}{name}": np.concatenate([getattr(q, name) for q in parts])
+               for name in ("indices", "codes", "scale", "basis")}}
 
 
 @dataclass
@@ -198,7 +226,8 @@ def _photon_estimates(caster, interior: _Interior, portal, k: int, options: Port
     g = np.nonzero(interior.glossy)[0]
     exitance, glossy_exitance = radiance_estimate(
         photons, interior.points, interior.normals, interior.albedo, options.order, options.photon_k,
-        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order))
+        depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order),
+        surface=(caster, np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))))
     return {"exitance": exitance, "glossy_exitance": glossy_exitance,
             "seconds": np.array(time.perf_counter() - t0), "n_photons_stored": np.array(len(photons))}
 
@@ -207,11 +236,12 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     """Section 4.1.2 for the vertices ``rows``: the 8-bit direct transfer cubemaps, and for the glossy ones one
     cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
     res, basis = options.cube_resolution, options.direct_basis
-    dense = direct_transfer(caster, interior.points[rows], interior.normals[rows], portal, options.direct_samples,
-                            res, rng)
-    sparse = encode_transfer(dense, basis)
-    entry = {"counts": np.diff(sparse.indptr), "indices": sparse.indices, "codes": sparse.codes,
-             "scale": sparse.scale, "basis": sparse.basis}
+    encoded = []
+    for b0 in range(rows.start, rows.stop, _DIRECT_BATCH):  # bounds the dense cubemaps and the encoder's arrays
+        b = slice(b0, min(rows.stop, b0 + _DIRECT_BATCH))
+        encoded.append(encode_transfer(direct_transfer(caster, interior.points[b], interior.normals[b], portal,
+                                                       options.direct_samples, res, rng), basis))
+    entry = _concat_encoded(encoded)
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
     parts = [encode_transfer(np.zeros((0, 6, res, res)), basis)]
@@ -227,6 +257,31 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     for name in ("indices", "codes", "scale", "basis"):
         entry[f"glossy_{name}"] = np.concatenate([getattr(q, name) for q in parts])
     return entry
+
+
+#: sub-points per triangle edge of the hat-averaged source transfer (``indirect="surface"``)
+_HAT_SPLIT = 4
+
+
+def _source_part(caster, interior: _Interior, rows: slice, portal, options: PortalsOptions, rng) -> dict:
+    """``indirect="surface"``: the direct transfer averaged over each vertex's hat function (``source_*``, 8-bit
+    like the direct transfer), the light a vertex sends on: a sun patch's power is kept whatever the mesh (point
+    values at 0.5 m vertices put 4.5% less sun on the sunlit room's floor). ``direct_samples / split^2`` portal
+    samples per sub-point (as many rays per vertex as the direct transfer, about twice over)."""
+    res = options.cube_resolution
+    n_samples = max(1, options.direct_samples // _HAT_SPLIT**2)
+    encoded = []
+    for r0 in range(rows.start, rows.stop, _DIRECT_BATCH):
+        sub = slice(r0, min(rows.stop, r0 + _DIRECT_BATCH))
+        points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
+        weights = weights.tocsc()
+        dense = np.zeros((sub.stop - sub.start, 6 * res * res))
+        for b0 in range(0, len(points), 512):
+            b = slice(b0, b0 + 512)
+            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng)
+            dense += weights[:, b] @ t.reshape(len(t), -1)
+        encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
+    return _concat_encoded(encoded, "source_")
 
 
 def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng) -> dict:
@@ -251,31 +306,96 @@ def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, opt
     return {"indirect": indirect.astype(np.float32), "glossy_matrix": matrix.astype(np.float32)}
 
 
-def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: PortalsOptions, size: int,
+def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: PortalsOptions, size: int, patch,
                   i: int) -> dict:
     """Chunk ``i`` (vertices ``i size .. (i + 1) size``) of every portal: ``{"portal<k>": arrays}``, with the
-    seconds of its direct and indirect parts. One random stream per (portal, chunk), so a chunk's result does
-    not depend on which process runs it."""
+    seconds of its direct and indirect parts; with ``patch`` (``indirect="surface"``) also the rows of the
+    interior gather over the source patches (``{"surface": {"gather", "gather_diff", "hat_gather", "seconds"}}``:
+    the gather from two independent halves of the rays, their difference giving its noise). One random stream per
+    (portal, chunk), so a chunk's result does not depend on which process runs it."""
     rows = slice(i * size, min(len(interior.points), (i + 1) * size))
     out = {}
+    if patch is not None:
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([options.seed, 3, i])
+        n_patches = int(patch.max()) + 1
+        halves = [patch_gather(caster, interior.points[rows], interior.normals[rows], interior.offsets,
+                               interior.normals, patch, n_patches, m, rng)
+                  for m in (options.gather_rays // 2, options.gather_rays - options.gather_rays // 2) if m > 0]
+        weights = [options.gather_rays // 2, options.gather_rays - options.gather_rays // 2][-len(halves):]
+        gather = sum(w * h for w, h in zip(weights, halves)) / options.gather_rays
+        diff = halves[0] - halves[-1]
+        points, normals, hat_weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
+        sub = patch_gather(caster, points, normals, interior.offsets, interior.normals, patch, n_patches,
+                           max(16, options.gather_rays // _HAT_SPLIT**2), rng)
+        out["surface"] = {"gather": gather, "gather_diff": diff, "hat_gather": (hat_weights @ sub).astype(np.float32),
+                          "seconds": np.array([time.perf_counter() - t0])}
     for k, portal in enumerate(portals):
         rng = np.random.default_rng([options.seed, k, 2, i])
         t0 = time.perf_counter()
         entry = _direct_part(caster, interior, rows, portal, options, rng)
         t1 = time.perf_counter()
         entry["seconds_direct"] = np.array([t1 - t0])
-        if options.bounces > 0:
+        if options.bounces > 0 and estimates[k]["exitance"] is not None:
             entry.update(_indirect_part(caster, interior, rows, estimates[k], options, rng))
+        if patch is not None:
+            entry.update(_source_part(caster, interior, rows, portal, options, rng))
         entry["seconds_indirect"] = np.array([time.perf_counter() - t1])
         out[f"portal{k}"] = entry
     return out
 
 
-def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions) -> dict:
+def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, options: PortalsOptions) -> dict:
+    """``indirect="surface"``: the gather ``F``, the bounce operator ``K``, the projection of hat averages and
+    ``S_B`` (:mod:`._surface`)."""
+    t0 = time.perf_counter()
+    gather = chunks["surface"]["gather"]
+    operator = patch_operator(chunks["surface"]["hat_gather"], interior.albedo, patch, areas, gather.shape[1],
+                              project)
+    total = power_sum(operator, options.bounces, project)
+    seconds = float(np.sum(chunks["surface"]["seconds"])) + time.perf_counter() - t0
+    codes, scale = quantize_rows(gather)
+    out = {"gather_codes": codes, "gather_scale": scale, "patch": patch, "areas": areas,
+           "operator": operator.astype(np.float32),
+           "sum": total.astype(np.float32), "seconds": np.array(seconds)}
+    if project is not None:
+        out["project"] = project.astype(np.float32)
+    return out
+
+
+def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> dict:
+    """The surface transfer's gather noise under the scene's own light: ``stderr (V, 3)`` per vertex, ``|rho (F_1 -
+    F_2) S_B s| / 2`` from the two halves of the gather rays (the standard error of their mean), and ``noise``,
+    its RMS relative to the RMS indirect radiance (``bounces`` bounces)."""
+    e = data["surface"]
+    albedo = np.asarray(data["albedo"], dtype=np.float64)
+    if scene.environment is None:
+        return {"stderr": np.zeros(albedo.shape, np.float32), "noise": np.array(float("nan"))}
+    cube = shell_light(scene.environment, options.cube_resolution)
+    source = np.zeros_like(albedo)
+    for k in range(int(data["n_portals"])):
+        p = data[f"portal{k}"]
+        src = SparseTransfer(p["source_indptr"], p["source_indices"], p["source_codes"], p["source_scale"],
+                             p["source_basis"], options.cube_resolution)
+        source += direct_pass(src, albedo, cube)
+    st = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"], albedo, e["operator"],
+                         {options.bounces: e["sum"]}, e.get("project"))
+    u = st.patch_light(source, options.bounces).astype(np.float64)
+    indirect = st.indirect(source, options.bounces)
+    stderr = np.abs(albedo * (np.asarray(diff, dtype=np.float64) @ u)) / 2.0
+    scale = float(np.mean(indirect**2))
+    noise = float(np.sqrt(np.mean(stderr**2) / scale)) if scale > 0 else 0.0
+    return {"stderr": stderr.astype(np.float32), "noise": np.array(noise)}
+
+
+def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
     """The stored data: per portal the sparse direct transfer (CSR ``indptr`` from the chunks' counts), the
-    per-bounce indirect transfer, the seconds of each part; and the vertices' materials."""
+    per-bounce indirect transfer (``indirect="paper"``), the seconds of each part; the vertices' materials; and
+    with ``surface`` (``(patch, areas)``) the interior-to-interior transfer (:func:`_surface_data`)."""
     data: dict = {"n_portals": np.array(len(estimates)), "albedo": interior.albedo,
                   "glossy": interior.glossy.astype(np.uint8), "ks": interior.ks, "exponent": interior.exponent}
+    if surface is not None and options.bounces > 0:
+        data["surface"] = _surface_data(chunks, interior, *surface, options)
     for k, estimate in enumerate(estimates):
         c = chunks[f"portal{k}"]
         entry = {"indptr": np.concatenate([[0], np.cumsum(c["counts"])]).astype(np.int64), "indices": c["indices"],
@@ -287,7 +407,11 @@ def _assemble(chunks: dict, estimates: list, interior: _Interior, options: Porta
                  "glossy_indptr": np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)}
         for name in ("indices", "codes", "scale", "basis"):
             entry[f"glossy_{name}"] = c[f"glossy_{name}"]
-        if options.bounces > 0:
+        if "source_counts" in c:
+            entry["source_indptr"] = np.concatenate([[0], np.cumsum(c["source_counts"])]).astype(np.int64)
+            for name in ("indices", "codes", "scale", "basis"):
+                entry[f"source_{name}"] = c[f"source_{name}"]
+        if options.bounces > 0 and "indirect" in c:
             entry["indirect"] = c["indirect"]
             entry["glossy_matrix"] = c["glossy_matrix"]
         data[f"portal{k}"] = entry
@@ -298,8 +422,9 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 4  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
-    # 4: photons reflect off glossy objects by their Phong lobe too
+    format_version = 6  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    # 4: photons reflect off glossy objects by their Phong lobe too; 5: edge-corrected radiance estimates
+    # 6: indirect="surface"
     max_bounces = None
     options_type = PortalsOptions
     renamed_options = {"res": "cube_resolution"}
@@ -342,19 +467,43 @@ class Portals(Precomputation):
             )
 
     @classmethod
+    def resolved(cls, scene: Scene, options):
+        """``options`` with ``cube_resolution=0`` resolved: 64 for a diffuse interior, 32 with a glossy object."""
+        if options.cube_resolution:
+            return options
+        glossy = any(_is_glossy(o) for o in _shaded(scene))
+        return dataclasses.replace(options, cube_resolution=32 if glossy else 64)
+
+    @classmethod
+    def indirect_mode(cls, scene: Scene, options) -> str:
+        """The ``indirect`` option resolved: ``"auto"`` is ``"surface"`` unless an interior object is glossy."""
+        if options.indirect != "auto":
+            return options.indirect
+        return "paper" if any(_is_glossy(o) for o in _shaded(scene)) else "surface"
+
+    @classmethod
     def check_scene(cls, scene: Scene, options) -> None:
-        """A portal is needed; then the memory check (:meth:`memory_needs`)."""
+        """A portal is needed, and a diffuse interior for ``indirect="surface"``; then the memory check
+        (:meth:`memory_needs`)."""
         if not any(o.portal for o in scene.objects):
             raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
-        super().check_scene(scene, options)
+        glossy = [o.name for o in _shaded(scene) if _is_glossy(o)]
+        if options.indirect == "surface" and glossy:
+            raise ValueError(f"option indirect='surface' needs a diffuse interior, but {glossy[0]!r} is glossy: "
+                             "use indirect='paper' (or 'auto')")
+        super().check_scene(scene, cls.resolved(scene, options))
 
     @classmethod
     def memory_needs(cls, scene: Scene, options) -> tuple[list[MemoryNeed], str]:
         """The per-bounce SH transfer and exitance, the photon map, the dense direct cubemaps of a chunk (and the
         encoder's work arrays, about 8 times their size), the encoded direct transfer (pulse worst case) and the
-        final-gather rays of a chunk. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
+        final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
+        rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
+        operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
+        hat-averaged source transfer. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
         bounces=40``: estimate 12 GB, peak resident memory 5.9 GB (the estimate bounds the photons by one per
         bounce)."""
+        options = cls.resolved(scene, options)
         objs = _shaded(scene)
         n_v = sum(o.n_vertices for o in objs)
         n_g = sum(o.n_vertices for o in objs if _is_glossy(o))
@@ -368,7 +517,7 @@ class Portals(Precomputation):
             MemoryNeed("the per-bounce SH transfer", n_p * (n_v * b * n2 * 3 * 12.0 + n_g * b * n_out2 * n2 * 3 * 12.0)
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
-            MemoryNeed("the dense direct transfer cubemaps", min(n_v, cls.chunk_vertices) * texels * 8.0 * 8,
+            MemoryNeed("the dense direct transfer cubemaps", min(n_v, _DIRECT_BATCH) * texels * 8.0 * 8,
                        ("cube_resolution",)),
             MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0,
                        ("cube_resolution", "view_res")),
@@ -378,6 +527,19 @@ class Portals(Precomputation):
                                                                       max(float(CHUNK_BYTES), per_vertex_gather)),
                        ("gather_rays", "order", "bounces")),
         ]
+        if cls.indirect_mode(scene, options) == "surface":
+            needs = [n for n in needs if n.what not in ("the per-bounce SH transfer", "the photon map",
+                                                        "the final-gather rays")]
+            c = min(n_v, options.clusters) if b > 0 else 0
+            needs += [
+                MemoryNeed("the interior gather (vertices x clusters)", n_v * c * (4 + 4 + 8 + 2.0), ("clusters",)),
+                MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
+                           + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
+                MemoryNeed("the hat-averaged source transfer", n_p * n_v * texels * 5.0
+                           + (min(n_v, _DIRECT_BATCH) + 512) * texels * 8.0, ("cube_resolution",)),
+                MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
+                           ("gather_rays",)),
+            ]
         return needs, f"{n_v:,} vertices"
 
     @classmethod
@@ -389,34 +551,47 @@ class Portals(Precomputation):
         Each portal's estimates and each chunk are resumable cache parts (:meth:`Precomputation.run_part`,
         :meth:`Precomputation.run_chunks`); ``map_fn`` runs the chunks in parallel.
         """
+        options = cls.resolved(scene, options)
         names = [o.name for o in scene.objects if o.portal]
         portals = find_portals(scene, [names] if options.merge_portals and names else None)
         caster = RayCaster(scene)
         interior = _Interior.of(_shaded(scene))
+        surface = cls.indirect_mode(scene, options) == "surface"
         estimates = []
         for k, portal in enumerate(portals):
-            estimate = functools.partial(_photon_estimates, caster, interior, portal, k, options)
-            estimates.append(estimate() if options.bounces == 0 else  # nothing to store
+            estimate = functools.partial(_photon_estimates, caster, interior, portal, k,
+                                         dataclasses.replace(options, bounces=0) if surface else options)
+            estimates.append(estimate() if options.bounces == 0 or surface else  # nothing to store
                              cls.run_part(store, key, ("exitance", k), "portals-photons", estimate))
+        patch = areas = project = None
+        if surface and options.bounces > 0:
+            objects = np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))
+            patch = cluster_vertices(interior.points, interior.normals, objects, options.clusters, options.seed)
+            areas = vertex_areas(caster)
+            project = hat_projection(caster, patch)
         size = cls.chunk_vertices
         n_chunks = max(1, -(-len(interior.points) // size))
-        chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size)
+        chunk_fn = functools.partial(_vertex_chunk, caster, interior, portals, estimates, options, size, patch)
         chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
                                 chunking={"vertices": size})
-        return _assemble(chunks, estimates, interior, options)
+        data = _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas, project))
+        if "surface" in data:
+            data["surface"].update(_gather_noise(data, chunks["surface"]["gather_diff"], scene, options))
+        return data
 
     # ------------------------------------------------------------------ run time
 
-    def direct_transfer(self, k: int = 0, glossy: bool = False) -> SparseTransfer:
+    def direct_transfer(self, k: int = 0, glossy: bool = False, source: bool = False) -> SparseTransfer:
         """The 8-bit sparse direct transfer of portal ``k`` (``glossy``: the specular rows of the glossy
-        vertices, ``J = 6 view_res^2`` per vertex, vertex-major)."""
+        vertices, ``J = 6 view_res^2`` per vertex, vertex-major; ``source``: averaged over each vertex's hat
+        function, ``indirect="surface"``)."""
         cached = self.__dict__.setdefault("_direct_cache", {})
-        if (k, glossy) not in cached:
+        if (k, glossy, source) not in cached:
             e = self.data[f"portal{k}"]
-            p = "glossy_" if glossy else ""
-            cached[k, glossy] = SparseTransfer(np.asarray(e[p + "indptr"], np.int64), e[p + "indices"],
-                                               e[p + "codes"], e[p + "scale"], e[p + "basis"], int(e["res"]))
-        return cached[k, glossy]
+            p = "glossy_" if glossy else "source_" if source else ""
+            cached[k, glossy, source] = SparseTransfer(np.asarray(e[p + "indptr"], np.int64), e[p + "indices"],
+                                                       e[p + "codes"], e[p + "scale"], e[p + "basis"], int(e["res"]))
+        return cached[k, glossy, source]
 
     def indirect_transfer(self, k: int = 0, bounces: int | None = None, glossy: bool = False) -> np.ndarray:
         """Indirect transfer of portal ``k`` for light that bounced ``1..bounces`` times (default: all stored).
@@ -431,6 +606,17 @@ class Portals(Precomputation):
             cached[k, bounces, glossy] = np.ascontiguousarray(
                 np.asarray(per_bounce[:, :bounces], dtype=np.float64).sum(axis=1), dtype=np.float32)
         return cached[k, bounces, glossy]
+
+    def surface_transfer(self) -> SurfaceTransfer | None:
+        """The interior-to-interior transfer of ``indirect="surface"`` (None for ``"paper"``)."""
+        if "surface" not in self.data:
+            return None
+        if "_surface" not in self.__dict__:
+            e = self.data["surface"]
+            self._surface = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"],
+                                            self.data["albedo"], e["operator"],
+                                            {self.options.bounces: e["sum"]}, e.get("project"))
+        return self._surface
 
     def _check_bounces(self, bounces):
         return self.options.bounces if bounces is None else self.check_bounces(bounces, self.options)
@@ -474,6 +660,8 @@ class Portals(Precomputation):
             rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
         timings = {"direct": 0.0, "indirect": 0.0}
+        surface = self.surface_transfer() if bounces > 0 else None
+        source = np.zeros((n, 3))
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
@@ -482,7 +670,9 @@ class Portals(Precomputation):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()
-            if bounces > 0:
+            if surface is not None:
+                source += direct_pass(self.direct_transfer(k, source=True), albedo, cube, method=method)
+            elif bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
                 if len(g):
@@ -490,6 +680,10 @@ class Portals(Precomputation):
                                                         method=method)
             timings["direct"] += t1 - t0
             timings["indirect"] += time.perf_counter() - t1
+        if surface is not None:
+            t0 = time.perf_counter()
+            indirect = surface.indirect(source, bounces)
+            timings["indirect"] += time.perf_counter() - t0
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
         for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
@@ -497,10 +691,12 @@ class Portals(Precomputation):
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
         result.info = {"method": self.method, "bounces": bounces, "timings": timings}
+        if surface is not None:
+            result.info["indirect_noise"] = float(self.data["surface"]["noise"])  # under the scene's own light
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        cube = shell_light(state.lights[0], self.options.cube_resolution)
+        cube = shell_light(state.lights[0], int(self.data["portal0"]["res"]))
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
 
     @classmethod

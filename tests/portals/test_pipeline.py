@@ -145,8 +145,9 @@ def test_chunked_cache_resumes(tmp_path, monkeypatch):
     resumed = Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=counting)
     n_chunks = -(-scene.objects[0].n_vertices // 40)
     assert sorted(calls) == list(range(n_chunks))  # the two finished chunks were not recomputed
-    for name in ("indptr", "indices", "codes", "scale", "basis", "indirect"):
+    for name in ("indptr", "indices", "codes", "scale", "basis", "source_codes"):
         np.testing.assert_array_equal(resumed.data["portal0"][name], fresh.data["portal0"][name])
+    np.testing.assert_array_equal(resumed.data["surface"]["gather_codes"], fresh.data["surface"]["gather_codes"])
     again = Portals.precompute(scene, QUICK, cache=store, progress=False, map_fn=counting)
     assert len(calls) == n_chunks  # a hit: nothing recomputed
     np.testing.assert_array_equal(again.shade().total["room"], fresh.shade().total["room"])
@@ -185,8 +186,9 @@ def test_parallel_chunks_match_serial(tmp_path, monkeypatch):
 
     parallel = Portals.precompute(scene, QUICK, cache=Cache(tmp_path, progress=False), progress=False,
                                   map_fn=pool_map)
-    for name in ("indptr", "codes", "indirect"):
+    for name in ("indptr", "codes", "source_codes"):
         np.testing.assert_array_equal(parallel.data["portal0"][name], serial.data["portal0"][name])
+    np.testing.assert_array_equal(parallel.data["surface"]["gather_codes"], serial.data["surface"]["gather_codes"])
 
 
 def _glossy_box_scene():

@@ -220,9 +220,11 @@ def _fast(fn):
 
 
 @pytest.mark.parametrize("method, options, named", [
-    ("portals", dict(TINY_PORTALS, order=8, cube_resolution=64, bounces=40, n_photons=2_000_000, gather_rays=4096),
+    ("portals", dict(TINY_PORTALS, order=8, cube_resolution=64, bounces=40, n_photons=2_000_000, gather_rays=4096,
+                     indirect="paper"),
      r"portals: option (order|gather_rays|n_photons)=\d+ with .* needs ~[\d.,]+ GB for [\d,]+ vertices"),
-    ("portals", dict(TINY_PORTALS, bounces=10**6), r"portals: option .*bounces=1000000"),
+    ("portals", dict(TINY_PORTALS, bounces=10**6, indirect="paper"), r"portals: option .*bounces=1000000"),
+    ("portals", dict(TINY_PORTALS, gather_rays=10**9, indirect="surface"), r"portals: option gather_rays=1000000000 "),
     ("portals", dict(TINY_PORTALS, cube_resolution=2**16), r"portals: option cube_resolution=65536 .*needs ~[\d.,]+ GB"),
     ("spherelights", dict(TINY_SPHERES, fit_resolution=100_000), r"spherelights: option fit_resolution=100000 "),
     ("spherelights", dict(TINY_SPHERES, cube_resolution=100_000), r"spherelights: option cube_resolution=100000 "),
@@ -309,7 +311,7 @@ def test_portals_stream_the_photon_estimates_and_gathering_in_smaller_chunks_wit
     import prtlab.portals._indirect as indirect
 
     scene = window_box(cell=1.0)
-    options = dict(TINY_PORTALS, bounces=2, order=3)
+    options = dict(TINY_PORTALS, bounces=2, order=3, indirect="paper")
     whole = Portals.precompute(scene, options, cache=False, progress=False)
     monkeypatch.setattr(indirect, "CHUNK_BYTES", 1)  # one vertex per chunk
     streamed = Portals.precompute(scene, options, cache=False, progress=False)

@@ -45,7 +45,7 @@ def make_case(method: str):
         from tests.portals.conftest import window_box
 
         return Portals, window_box(cell=0.5), {"cube_resolution": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32,
-                                               "order": 3, "bounces": 1}
+                                               "order": 3, "bounces": 1, "indirect": "paper"}
     raise ValueError(method)
 
 

@@ -1,0 +1,320 @@
+"""Sun-accurate indirect light: bounces driven by the per-frame direct radiance of the interior (issue 17).
+
+The paper (Yue et al. 2009, Section 4.1.1) projects the shell light on a few SH bands and precomputes the
+indirect response to each band. A sun through a window is far sharper than order-4 SH: the projection spreads its
+light over directions it never comes from, and that light bounces (on the sunlit room the floor's indirect light
+was 25% too bright). Here instead the first bounce starts from where the light really lands: the direct radiance
+``L_d(u)`` that the direct pass computes exactly per vertex each frame (8-bit cubemaps at ``cube_resolution``).
+
+Precomputed, independent of the light (``indirect="surface"``):
+
+- ``F (V, C)``: the final gather of each vertex ``v`` over the *source patches* ``c``: ``F_vc = 1/M sum_rays
+  sum_corners w_corner [patch(corner) = c]`` for ``M`` stratified cosine-weighted rays; a ray reaching the front of
+  a triangle reads the patch of each of its corners by its barycentric weight. Patches are the vertices themselves
+  when the interior has at most ``clusters`` vertices (the gather is then exact up to its noise); otherwise
+  k-means clusters of the vertices (position and normal), the light of a cluster being its area-weighted mean.
+- ``H (C, C, 3) = Pbar diag(rho) F``: one bounce between patches (``Pbar`` the area-weighted mean over a patch).
+- ``S_B = sum_{b=0}^{B-1} H^b`` (binary doubling: ``2 log2 B`` products).
+
+Per frame: ``s = Pbar L_d`` (the patches' mean direct radiance), ``L_ind = rho * F (S_B s)``: light that bounced
+``1..B`` times, ``V C + C^2`` multiply-adds per colour channel.
+
+Limits: diffuse interiors only (a glossy vertex's radiance depends on the direction; use ``indirect="paper"``).
+Errors: the gather noise (``M`` rays, stratified); the linear interpolation of ``L_d`` between vertices across
+the sun patch's edge; with clusters, the sun's patch averaged over a cluster for the first bounce.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from prtlab.geometry import RayCaster, stratified_hemisphere
+
+__all__ = ["vertex_areas", "cluster_vertices", "patch_gather", "patch_operator", "power_sum", "SurfaceTransfer"]
+
+
+def vertex_areas(caster: RayCaster) -> np.ndarray:
+    """Area per vertex of every caster object, concatenated (a third of each adjacent triangle), ``(N,)``."""
+    out = []
+    for i in range(caster.n_objects):
+        v, f = caster.world_vertices(i), caster.faces(i)
+        a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        out.append(np.bincount(f.ravel(), weights=np.repeat(a / 3.0, 3), minlength=len(v)))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def cluster_vertices(points, normals, objects, n_clusters: int, seed: int = 0) -> np.ndarray:
+    """Patch of each vertex, ``(V,) int64`` in ``0 .. C-1``: the identity when ``V <= n_clusters``, else k-means
+    (10 iterations, k-means++ start) on position and normal (the normal scaled by the interior's diagonal, so a
+    patch does not fold round a corner) and object (one cluster never spans two objects' vertices when they are
+    far apart in that feature); empty clusters are dropped and the labels renumbered."""
+    from scipy.cluster.vq import kmeans2
+
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if n <= n_clusters:
+        return np.arange(n, dtype=np.int64)
+    diag = float(np.linalg.norm(points.max(0) - points.min(0))) or 1.0
+    feats = np.column_stack([points, 0.5 * diag * np.asarray(normals, dtype=np.float64),
+                             2.0 * diag * np.asarray(objects, dtype=np.float64)[:, None]])
+    _, labels = kmeans2(feats, int(n_clusters), iter=10, minit="++", seed=int(seed))
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels.astype(np.int64)
+
+
+def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_normals, patch, n_patches: int,
+                 n_rays: int, rng: np.random.Generator, chunk: int = 256) -> np.ndarray:
+    """``F (V, C)`` float32: the final gather of each point over the source patches (module docstring).
+
+    ``vertex_offset`` (``n_objects + 1``) and ``vertex_normals (N, 3)`` as in :func:`final_gather`; ``patch (N,)``
+    the patch of every caster vertex. Rays are jittered-stratified cosine-weighted (pdf ``cos / pi``), so a row
+    sums to the part of the hemisphere (cosine-weighted) that sees the front of the interior.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    patch = np.asarray(patch, dtype=np.int64)
+    out = np.zeros((len(points), int(n_patches)), dtype=np.float32)
+    faces_all = [caster.faces(i) for i in range(caster.n_objects)]
+    chunk = max(1, min(chunk, (1 << 22) // max(n_rays, 1)))
+    for start in range(0, len(points), chunk):
+        x, nv = points[start : start + chunk], normals[start : start + chunk]
+        nc = len(x)
+        dirs, _ = stratified_hemisphere(n_rays, rng, nv, cosine=True)
+        org = np.broadcast_to(x[:, None, :], dirs.shape).reshape(-1, 3)
+        hits = caster.closest_hit(org, dirs.reshape(-1, 3), normals=np.broadcast_to(nv[:, None, :],
+                                                                                     dirs.shape).reshape(-1, 3))
+        sel = np.nonzero(hits.hit)[0]
+        obj, tri = hits.object[sel], hits.triangle[sel]
+        u, v = hits.barycentric[sel, 0], hits.barycentric[sel, 1]
+        vid = np.empty((len(sel), 3), dtype=np.int64)
+        for i in np.unique(obj):
+            m = obj == i
+            vid[m] = faces_all[i][tri[m]] + vertex_offset[i]
+        bw = np.stack([1.0 - u - v, u, v], axis=-1)
+        n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
+        bw *= (np.einsum("rc,rc->r", n_hit, dirs.reshape(-1, 3)[sel]) < 0)[:, None]  # the front side only
+        flat = (sel // n_rays)[:, None] * n_patches + patch[vid]
+        out[start : start + nc] = (np.bincount(flat.ravel(), weights=bw.ravel(), minlength=nc * n_patches)
+                                   .reshape(nc, n_patches) / n_rays)
+    return out
+
+
+def _patch_mean(patch, areas, n_patches):
+    """Weights ``a_v / A_patch(v)`` of the area-weighted mean over each patch."""
+    total = np.bincount(patch, weights=areas, minlength=n_patches)
+    return areas / np.where(total > 0, total, 1.0)[patch]
+
+
+def hat_projection(caster: RayCaster, patch) -> np.ndarray | None:
+    """``M^{-1} diag(a)`` (dense, ``(V, V)``) when the patches are the vertices (else None): hat averages
+    ``y_hat`` to the coefficients ``c`` of the linear interpolant with the same hat integrals, ``M c = a y_hat``
+    (:func:`mass_matrix`, ``a`` the vertex areas). Interpolating the hat averages themselves puts an edge vertex's
+    value where its one-sided hat's centroid is: the sunlit room's edge vertices came out 5% and corners 16% too
+    bright; nodal point values lose power (2.5% low): this projection gave 1.7% and 5% (``docs/notes/portals.md``).
+    """
+    patch = np.asarray(patch)
+    if len(patch) != int(patch.max(initial=-1)) + 1:
+        return None
+    mass = mass_matrix(caster).toarray()
+    return np.linalg.solve(mass, np.diag(mass.sum(axis=1)))
+
+
+def patch_operator(hat_gather, albedo, patch, areas, n_patches: int, project=None) -> np.ndarray:
+    """``K (C, C, 3)``: one bounce between the patches' light (float64).
+
+    With ``project`` (patches = vertices): ``K = M^{-1} diag(a rho) F_hat`` on the interpolant's coefficients,
+    ``F_hat`` the gather averaged over each vertex's hat (:func:`hat_points`). Otherwise (clusters) the
+    area-weighted mean over each patch, ``K_cd = sum_{v in c} a_v rho_v F_hat,vd / A_c``.
+    """
+    from scipy.sparse import csr_matrix
+
+    patch = np.asarray(patch, dtype=np.int64)
+    hat_gather = np.asarray(hat_gather, dtype=np.float64)
+    albedo = np.asarray(albedo, dtype=np.float64)
+    out = np.zeros((n_patches, n_patches, 3))
+    if project is not None:
+        for ch in range(3):
+            out[:, :, ch] = project @ (albedo[:, ch][:, None] * hat_gather)
+        return out
+    w = _patch_mean(patch, np.asarray(areas, dtype=np.float64), n_patches)
+    for ch in range(3):
+        mean = csr_matrix((w * albedo[:, ch], (patch, np.arange(len(patch)))), shape=(n_patches, len(patch)))
+        out[:, :, ch] = mean @ hat_gather
+    return out
+
+
+def power_sum(h, b: int, project=None) -> np.ndarray:
+    """``S_b = sum_{j=0}^{b-1} H^j`` per colour channel (``h (C, C, 3)``) by binary doubling (``S_{m + 2^i} = S_m
+    + H^m S_{2^i}``, ``S_{2^(i+1)} = S_{2^i} + H^{2^i} S_{2^i}``), times ``project`` on the right if given;
+    ``b = 0`` gives zeros."""
+    h = np.asarray(h, dtype=np.float64)
+    c = h.shape[0]
+    out = np.zeros_like(h)
+    if b <= 0:
+        return out
+    bits = bin(int(b))[:1:-1]  # least significant first
+    for ch in range(h.shape[2]):
+        total, power = np.zeros((c, c)), np.eye(c)  # S_m, H^m for the bits done
+        s_block, p_block = np.eye(c), h[:, :, ch].copy()  # S_{2^i}, H^{2^i}
+        for i, bit in enumerate(bits):
+            if bit == "1":
+                total = total + power @ s_block
+                power = power @ p_block
+            if i + 1 < len(bits):
+                s_block = s_block + p_block @ s_block
+                p_block = p_block @ p_block
+        out[:, :, ch] = total if project is None else total @ project
+    return out
+
+
+class SurfaceTransfer:
+    """The stored interior-to-interior transfer and its per-frame product (module docstring).
+
+    ``gather (V, C)`` (or its ``(codes, scale)``), ``patch (V,)``, ``areas (V,)``, ``albedo (V, 3)``, ``operator
+    (C, C, 3)`` (``K``), ``sums``
+    a dict ``b -> S_b (C, C, 3)``, ``project`` (``M^-1 diag(a)`` or None). The gather is kept as 16-bit codes
+    with a scale per row (:func:`quantize_rows`): the per-frame product reads ``2 V C`` bytes.
+    """
+
+    def __init__(self, gather, patch, areas, albedo, operator, sums: dict, project=None):
+        self.codes, self.scale = gather if isinstance(gather, tuple) else quantize_rows(gather)
+        self.patch = np.asarray(patch, dtype=np.int64)
+        self.n_patches = self.codes.shape[1]
+        self.mean_weight = _patch_mean(self.patch, np.asarray(areas, dtype=np.float64), self.n_patches)
+        self.identity = self.n_patches == len(self.patch) and np.array_equal(self.patch, np.arange(len(self.patch)))
+        self.albedo = np.asarray(albedo, dtype=np.float64)
+        self.operator = np.asarray(operator)
+        self.sums = {int(b): np.ascontiguousarray(s, dtype=np.float32) for b, s in sums.items()}
+        self.project = None if project is None else np.asarray(project, dtype=np.float64)
+
+    def bounce_sum(self, b: int) -> np.ndarray:
+        """``S_b`` (computed from ``H`` and kept when not stored)."""
+        if b not in self.sums:
+            self.sums[b] = power_sum(self.operator, b, self.project).astype(np.float32)
+        return self.sums[b]
+
+    def indirect(self, direct, bounces: int) -> np.ndarray:
+        """``L_ind = rho * F (S_B Pbar L_d)``, ``(V, 3)`` float64, from the direct radiance ``direct (V, 3)``."""
+        direct = np.asarray(direct, dtype=np.float64)
+        if bounces <= 0:
+            return np.zeros_like(direct)
+        u = self.patch_light(direct, bounces)
+        out = np.empty((len(self.patch), 3))
+        from ._shade import _threads_for
+
+        with _threads_for(self.codes.size * 3):
+            _gather_product(self.codes, self.scale, u, self.albedo, out)
+        return out
+
+    def patch_light(self, direct, bounces: int) -> np.ndarray:
+        """``S_B Pbar L_d``, ``(C, 3)`` float32: the light the patches send after ``0 .. B-1`` bounces."""
+        direct = np.asarray(direct, dtype=np.float64)
+        if self.identity:
+            s = direct
+        else:
+            s = np.zeros((self.n_patches, 3))
+            for ch in range(3):
+                s[:, ch] = np.bincount(self.patch, weights=self.mean_weight * direct[:, ch], minlength=self.n_patches)
+        sb = self.bounce_sum(int(bounces))
+        u = np.empty((self.n_patches, 3), dtype=np.float32)
+        for ch in range(3):
+            u[:, ch] = sb[:, :, ch] @ s[:, ch].astype(np.float32)
+        return u
+
+
+def quantize_rows(gather):
+    """16-bit codes ``round(65535 F / max_row)`` (uint16, ``(V, C)``) and the per-row scales ``max_row / 65535``
+    (float32): each entry is off by at most ``max_row / 131070``. (8 bits were off by up to 1.2% per vertex on a
+    130-vertex closed room: a row has few large entries, so their rounding errors do not cancel.)"""
+    gather = np.asarray(gather, dtype=np.float64)
+    top = gather.max(axis=1, initial=0.0) if gather.size else np.zeros(len(gather))
+    scale = np.where(top > 0, top / 65535.0, 1.0)
+    codes = np.rint(gather / scale[:, None]).astype(np.uint16)
+    return np.ascontiguousarray(codes), scale.astype(np.float32)
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _gather_product(codes, scale, u, albedo, out):  # pragma: no cover - compiled
+    """``out[v] = albedo[v] scale[v] sum_c codes[v, c] u[c]`` (3 channels), one vertex per parallel iteration."""
+    n, m = codes.shape
+    for v in numba.prange(n):
+        a0 = np.float32(0.0)
+        a1 = np.float32(0.0)
+        a2 = np.float32(0.0)
+        for c in range(m):
+            g = np.float32(codes[v, c])
+            a0 += g * u[c, 0]
+            a1 += g * u[c, 1]
+            a2 += g * u[c, 2]
+        out[v, 0] = albedo[v, 0] * scale[v] * a0
+        out[v, 1] = albedo[v, 1] * scale[v] * a1
+        out[v, 2] = albedo[v, 2] * scale[v] * a2
+
+
+def _centroid_pattern(n: int) -> np.ndarray:
+    """Barycentrics ``(n^2, 3)`` of the centroids of the ``n^2`` equal sub-triangles of a triangle split ``n`` ways
+    per edge."""
+    uv = [((i + 1 / 3) / n, (j + 1 / 3) / n) for i in range(n) for j in range(n - i)]
+    uv += [((i + 2 / 3) / n, (j + 2 / 3) / n) for i in range(n - 1) for j in range(n - 1 - i)]
+    uv = np.array(uv)
+    return np.column_stack([1.0 - uv.sum(1), uv])
+
+
+def hat_points(caster: RayCaster, vertex_offset, vertex_normals, rows: slice, split: int = 4):
+    """Points that average a function over each vertex's hat function (its linear interpolation weight).
+
+    For the vertices ``rows`` (global caster order): every triangle touching one is split ``split`` ways per edge
+    and each sub-triangle's centroid ``x`` (normal: the vertex normals interpolated) gets, for each corner ``u`` in
+    ``rows``, the weight ``b_u(x) A / (split^2 a_u)`` (``b_u`` its barycentric, ``A`` the triangle's area, ``a_u`` a
+    third of the areas round ``u``), so that ``sum_x w_ux f(x)`` is the hat-weighted mean of ``f`` about ``u``.
+
+    Returns
+    -------
+    points, normals : (X, 3) float64
+    weights : scipy.sparse.csr_matrix (rows, X)
+    """
+    from scipy.sparse import csr_matrix
+
+    faces = np.concatenate([caster.faces(i) + vertex_offset[i] for i in range(caster.n_objects)])
+    verts = np.concatenate([caster.world_vertices(i) for i in range(caster.n_objects)])
+    touch = np.nonzero(np.any((faces >= rows.start) & (faces < rows.stop), axis=1))[0]
+    f = faces[touch]
+    pattern = _centroid_pattern(split)
+    s = len(pattern)
+    points = np.einsum("sk,tkc->tsc", pattern, verts[f]).reshape(-1, 3)
+    normals = np.einsum("sk,tkc->tsc", pattern, vertex_normals[f]).reshape(-1, 3)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    v = verts[f]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    a_u = np.bincount(faces.ravel(), weights=np.repeat(0.5 * np.linalg.norm(np.cross(
+        verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]), axis=1) / 3.0, 3),
+        minlength=len(verts))
+    x_index = np.arange(len(touch) * s).reshape(len(touch), s)
+    w = pattern[None, :, :] * (area / s)[:, None, None]  # (t, s, 3)
+    u = np.broadcast_to(f[:, None, :], w.shape)
+    x = np.broadcast_to(x_index[:, :, None], w.shape)
+    mine = (u >= rows.start) & (u < rows.stop)
+    weights = csr_matrix((w[mine] / a_u[u[mine]], (u[mine] - rows.start, x[mine])),
+                         shape=(rows.stop - rows.start, len(points)))
+    return points, normals, weights
+
+
+def mass_matrix(caster: RayCaster):
+    """The consistent mass matrix of linear (hat) elements over every caster object, ``M_uv = int phi_u phi_v``
+    (``A / 12 (1 + [u = v])`` per triangle), ``scipy.sparse.csr_matrix (N, N)``; its row sums are the vertex
+    areas (:func:`vertex_areas`)."""
+    from scipy.sparse import coo_matrix
+
+    rows, cols, vals, offset = [], [], [], 0
+    for i in range(caster.n_objects):
+        v, f = caster.world_vertices(i), caster.faces(i)
+        a = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+        for p in range(3):
+            for q in range(3):
+                rows.append(f[:, p] + offset)
+                cols.append(f[:, q] + offset)
+                vals.append(a / 12.0 * (2.0 if p == q else 1.0))
+        offset += len(v)
+    return coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(offset, offset)).tocsr()

@@ -1,0 +1,159 @@
+"""``indirect="surface"``: the interior-to-interior transfer driven by the direct radiance (issue 17).
+
+Closed forms: the power sum against the explicit series; hat points and the mass matrix against the areas; and a
+white-furnace-like room (closed, no window, every vertex sending radiance 1): every vertex receives exactly
+``sum_{b=1}^{B} rho^b`` (a closed room's gather rows sum to one, and the hat projection keeps constants).
+"""
+
+import numpy as np
+import pytest
+
+from prtlab.geometry import RayCaster
+from prtlab.portals import Portals
+from prtlab.portals._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
+                                     patch_gather, patch_operator, power_sum, vertex_areas)
+from prtlab.scene import Scene
+
+from .conftest import window_box
+
+
+def _closed_room(cell=0.5):
+    return Scene.from_dict({
+        "objects": [{"name": "room", "mesh": {"builtin": "room", "size": [2.0, 1.5, 2.0], "cell_size": cell,
+                                              "windows": []},
+                     "material": {"type": "diffuse", "albedo": [0.5, 0.6, 0.7]}}],
+        "lights": [{"type": "environment", "constant": [1.0, 1.0, 1.0]}],
+        "camera": {"position": [0, 1, 0], "look_at": [0, 0, -1], "up": [0, 1, 0], "fov_deg": 60,
+                   "resolution": [8, 8]},
+    })
+
+
+def test_power_sum_matches_the_series():
+    rng = np.random.default_rng(0)
+    h = rng.random((6, 6, 3)) * 0.15
+    proj = rng.random((6, 6))
+    for b in (0, 1, 2, 3, 6, 11):
+        want = np.zeros_like(h)
+        for ch in range(3):
+            p = np.eye(6)
+            for _ in range(b):
+                want[:, :, ch] += p
+                p = p @ h[:, :, ch]
+        np.testing.assert_allclose(power_sum(h, b), want, atol=1e-12)
+        np.testing.assert_allclose(power_sum(h, b, proj), np.einsum("abk,bc->ack", want, proj), atol=1e-12)
+
+
+def test_hat_points_and_mass_matrix():
+    """Hat weights of each vertex sum to one and average a linear function as ``int phi_u f / int phi_u = (M
+    f)_u / a_u`` within the midpoint rule's error on 16 sub-triangles (``phi_u f`` is quadratic: about ``h_s^2
+    |grad phi_u| |grad f| / 12 = 0.002`` with sub-triangle size ``h_s = 0.125``, ``|grad phi_u| = 2``, ``|grad f| =
+    0.79``; bound 0.005); the mass matrix's rows sum to the vertex areas, which sum to the room's area;
+    the hat projection keeps a constant."""
+    caster = RayCaster(_closed_room())
+    n = caster.world_vertices(0).shape[0]
+    offsets = np.array([0, n])
+    normals = np.tile([0.0, 1.0, 0.0], (n, 1))
+    points, _, w = hat_points(caster, offsets, normals, slice(0, n))
+    np.testing.assert_allclose(np.asarray(w.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    areas = vertex_areas(caster)
+    assert np.isclose(areas.sum(), 2 * (2 * 2 + 2 * 1.5 + 2 * 1.5))
+    mass = mass_matrix(caster)
+    np.testing.assert_allclose(np.asarray(mass.sum(axis=1)).ravel(), areas, rtol=1e-12)
+    # int phi_u f = (M f_nodal)_u for a linear f: the hat average of f is (M f)_u / a_u
+    f = caster.world_vertices(0) @ np.array([0.3, -0.2, 0.7])
+    np.testing.assert_allclose(w @ (points @ np.array([0.3, -0.2, 0.7])), (mass @ f) / areas, atol=0.005)
+    proj = hat_projection(caster, np.arange(n))
+    np.testing.assert_allclose(proj @ np.ones(n), 1.0, atol=1e-9)
+    assert hat_projection(caster, np.zeros(n, np.int64)) is None
+
+
+@pytest.mark.parametrize("clusters", [10_000, 24])
+def test_closed_room_constant_radiance(clusters):
+    """Closed room, every vertex sends radiance 1: each receives ``sum_{b=1}^B rho^b`` (per channel), with the
+    vertices as patches (hat projection) and with 24 k-means clusters (area-weighted means)."""
+    scene = _closed_room()
+    caster = RayCaster(scene)
+    room = scene.objects[0]
+    pts, nrm = room.world_shading_points(), room.world_normals()
+    n = len(pts)
+    offsets = np.array([0, n])
+    patch = cluster_vertices(pts, nrm, np.zeros(n, np.int64), clusters)
+    n_patches = int(patch.max()) + 1
+    rng = np.random.default_rng(1)
+    gather = patch_gather(caster, pts, nrm, offsets, nrm, patch, n_patches, 64, rng)
+    np.testing.assert_allclose(gather.sum(axis=1), 1.0, atol=1e-5)  # closed: every ray hits a front face
+    hp, hn, hw = hat_points(caster, offsets, nrm, slice(0, n))
+    hat = hw @ patch_gather(caster, hp, hn, offsets, nrm, patch, n_patches, 16, rng)
+    albedo = np.tile(room.material.albedo, (n, 1))
+    areas = vertex_areas(caster)
+    project = hat_projection(caster, patch)
+    assert (project is None) == (clusters < n)
+    op = patch_operator(hat, albedo, patch, areas, n_patches, project)
+    b = 5
+    st = SurfaceTransfer(gather, patch, areas, albedo, op, {b: power_sum(op, b, project)}, project)
+    rho = np.asarray(room.material.albedo)
+    for bounces in (1, 3, b):
+        want = sum(rho**j for j in range(1, bounces + 1))
+        np.testing.assert_allclose(st.indirect(np.ones((n, 3)), bounces), np.tile(want, (n, 1)), rtol=1e-4)
+    assert np.all(st.indirect(np.ones((n, 3)), 0) == 0)
+
+
+QUICK = {"cube_resolution": 8, "direct_samples": 64, "gather_rays": 32, "bounces": 2}
+
+
+def test_surface_option_and_errors():
+    """``auto`` resolves to ``surface`` on a diffuse interior, ``paper`` on a glossy one; ``surface`` with a glossy
+    object is refused naming it; bad values are refused in one line."""
+    scene = window_box(cell=0.5)
+    pre = Portals.precompute(scene, QUICK, cache=False, progress=False)
+    assert pre.surface_transfer() is not None and "indirect" not in pre.data["portal0"]
+    res = pre.shade(bounces=2)
+    assert res.indirect["room"].min() > 0
+    one = pre.shade(bounces=1).indirect["room"]
+    assert np.all(one < res.indirect["room"])
+    paper = Portals.precompute(scene, {**QUICK, "indirect": "paper", "n_photons": 20_000}, cache=False,
+                               progress=False)
+    assert paper.surface_transfer() is None and "indirect" in paper.data["portal0"]
+    d = scene.to_dict()
+    d["objects"][0]["material"] = {"type": "phong", "kd": [0.5, 0.5, 0.5], "ks": [0.2, 0.2, 0.2], "exponent": 10}
+    glossy = Scene.from_dict(d)
+    assert Portals.indirect_mode(glossy, Portals.options_type(**QUICK)) == "paper"
+    with pytest.raises(ValueError, match="option indirect='surface' needs a diffuse interior, but 'room' is glossy"):
+        Portals.precompute(glossy, {**QUICK, "indirect": "surface"}, cache=False, progress=False)
+    with pytest.raises(ValueError, match="option indirect"):
+        Portals.precompute(scene, {**QUICK, "indirect": "photons"}, cache=False, progress=False)
+    with pytest.raises(ValueError, match="option clusters"):
+        Portals.precompute(scene, {**QUICK, "clusters": 0}, cache=False, progress=False)
+
+
+def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
+    """``indirect="surface"`` counts the interior gather (``V x min(V, clusters)``), the bounce operator, the source
+    transfer and the gather rays instead of photons and SH transfers, and a configuration over the limit is refused
+    in one line naming the options to lower, before any allocation."""
+    scene = window_box(cell=0.25)
+    opts = Portals.options_type(**{**QUICK, "cube_resolution": 64})
+    needs, context = Portals.memory_needs(scene, opts)
+    names = {n.what: n for n in needs}
+    n_v = scene.objects[0].n_vertices
+    assert names["the interior gather (vertices x clusters)"].nbytes == n_v * min(n_v, 1024) * 18
+    assert "the photon map" not in names and "the hat-averaged source transfer" in names
+    small = {n.what: n for n in Portals.memory_needs(scene, Portals.options_type(**{**QUICK, "clusters": 16}))[0]}
+    assert small["the interior gather (vertices x clusters)"].nbytes == n_v * 16 * 18
+    assert names["the gather rays of a chunk"].options == ("gather_rays",)
+    monkeypatch.setenv("PRTLAB_MAX_MEMORY_GB", "0.01")
+    with pytest.raises(ValueError, match=rf"^portals: option .* needs ~.* for {n_v:,} vertices \(limit .*\): lower "):
+        Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
+
+
+def test_reported_gather_noise_matches_seed_spread():
+    """The gather noise the precomputation reports (two independent halves of the rays, under the scene's light)
+    agrees with the spread between two seeds: ``RMS(I_1 - I_2) / sqrt(2)`` over the vertices, within 30% (about
+    100 vertices, each a one-sample estimate of its deviation)."""
+    scene = window_box(cell=0.5)
+    pres = [Portals.precompute(scene, {**QUICK, "seed": s}, cache=False, progress=False) for s in (1, 2)]
+    ind = [p.shade(bounces=2).indirect["room"] for p in pres]
+    spread = np.sqrt(np.mean((ind[0] - ind[1]) ** 2) / 2)
+    reported = np.sqrt(np.mean(np.asarray(pres[0].data["surface"]["stderr"], dtype=np.float64) ** 2))
+    assert 0.7 < reported / spread < 1.3, (reported, spread)
+    noise = pres[0].shade(bounces=2).info["indirect_noise"]
+    assert np.isclose(noise, reported / np.sqrt(np.mean(ind[0] ** 2)), rtol=1e-3)
