@@ -46,9 +46,8 @@ glossy vertex also gets a specular exitance response ``S_ji`` (SH over the
 outgoing direction ``j`` times SH of the light ``i``) from the same photons;
 a gather ray reaching it reads ``B + sum_j Y_j(-d) S_j`` (its radiance
 toward the gathering point). Leaving both out (a Lambertian photon map with
-``kd``) made the Fig. 11 bunny's indirect light 4-5% low beyond the SH
-truncation of the shell light: about 4% was the bunny's own specular light
-reflected back onto it, 1% its specular light reflected via the walls.
+``kd``) loses the glossy objects' specular light reflected back onto them and
+via the walls (measured: ``docs/notes/portals.md``).
 
 Errors: the SH truncation of the shell light (Section 4.2), Monte Carlo noise
 of the gather (``M`` rays) and of the photons, and the bias of density
@@ -190,8 +189,7 @@ def trace_photons(
     ``(e + 1) / (2 pi) (r . w)^e``, its weight multiplied by
     ``f_s cos / (p_s pdf) = ks (e + 2) / (e + 1) max(0, n . w) / p_s``;
     otherwise by the cosine lobe, weight ``kd / (1 - p_s)``. (Without the
-    specular lobe, light a glossy object reflects onto the walls is lost: on
-    Fig. 11 this made the glossy bunny's indirect light 8% low.) Photons are
+    specular lobe, light a glossy object reflects onto the walls is lost.) Photons are
     stored at every hit, as diffuse flux (the radiance estimate is Lambertian).
     """
     check_int(n_photons, "n_photons", 1)

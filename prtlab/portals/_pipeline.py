@@ -500,9 +500,8 @@ class Portals(Precomputation):
         final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
         rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
         operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
-        hat-averaged source transfer. Measured on ``data/scenes/box_window_sky.yaml`` with ``order=8, res=64,
-        bounces=40``: estimate 12 GB, peak resident memory 5.9 GB (the estimate bounds the photons by one per
-        bounce)."""
+        hat-averaged source transfer. The estimate is an upper bound (photons bounded by one per
+        bounce); measured against the peak resident memory in ``docs/notes/portals.md``."""
         options = cls.resolved(scene, options)
         objs = _shaded(scene)
         n_v = sum(o.n_vertices for o in objs)

@@ -16,8 +16,8 @@ __all__ = ["direct_pass", "indirect_pass", "glossy_direct_pass", "glossy_indirec
 _METHODS = ("numba", "reference")
 
 #: multiply-adds below which a pass runs its (parallel) kernel on one thread: a parallel region waits for its
-#: slowest thread, which on a shared, busy machine costs a scheduler time slice (measured: ~3 ms of work took a
-#: 58 ms median on 2 threads, 17 ms on 1, with 3 other jobs running); above it the threads pay off.
+#: slowest thread, which on a shared, busy machine costs a scheduler time slice (``docs/notes/portals.md``); above
+#: it the threads pay off.
 PARALLEL_MIN_WORK = 1 << 22
 
 
