@@ -411,6 +411,23 @@ def phong_lobe_zh(exponent: float, order: int) -> np.ndarray:
     return 2.0 * np.pi * (legendre * (w * g)[:, None]).sum(axis=0)
 
 
+def front_hit_corners(hits, dirs, faces_all, vertex_offset, vertex_normals):
+    """``(sel, vid, bw)`` of the rays that hit: their indices ``sel``, the hit triangles' global vertex ids ``vid
+    (R, 3)`` and barycentric weights ``bw (R, 3)``, zero where the ray meets the back of the surface (by the
+    interpolated vertex normal). ``dirs (N, 3)``: the rays' directions."""
+    sel = np.nonzero(hits.hit)[0]
+    obj, tri = hits.object[sel], hits.triangle[sel]
+    u, v = hits.barycentric[sel, 0], hits.barycentric[sel, 1]
+    vid = np.empty((len(sel), 3), dtype=np.int64)
+    for i in np.unique(obj):
+        m = obj == i
+        vid[m] = faces_all[i][tri[m]] + vertex_offset[i]
+    bw = np.stack([1.0 - u - v, u, v], axis=-1)
+    n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
+    bw *= (np.einsum("rc,rc->r", n_hit, dirs[sel]) < 0)[:, None]
+    return sel, vid, bw
+
+
 def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_offset, vertex_normals,
                  n_rays: int, rng: np.random.Generator, chunk: int = 512, glossy=None, glossy_exitance=None):
     """Transfer vectors ``t(v) = rho_v mean_j B(h_j)`` by final gathering (Section 4.1.1, step 2).
@@ -476,18 +493,7 @@ def final_gather(caster: RayCaster, points, normals, albedo, exitance, vertex_of
         org = np.broadcast_to(x[:, None, :], dirs.shape)
         nrm = np.broadcast_to(nv[:, None, :], dirs.shape)
         hits = caster.closest_hit(org.reshape(-1, 3), dirs.reshape(-1, 3), normals=nrm.reshape(-1, 3))
-        sel = np.nonzero(hits.hit)[0]
-        obj = hits.object[sel]
-        tri = hits.triangle[sel]
-        u, v = hits.barycentric[sel, 0], hits.barycentric[sel, 1]
-        vid = np.empty((len(sel), 3), dtype=np.int64)
-        for i in np.unique(obj):
-            m = obj == i
-            vid[m] = faces_all[i][tri[m]] + vertex_offset[i]
-        bw = np.stack([1.0 - u - v, u, v], axis=-1)
-        n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
-        front = np.einsum("rc,rc->r", n_hit, dirs.reshape(-1, 3)[sel]) < 0
-        bw = bw * front[:, None]
+        sel, vid, bw = front_hit_corners(hits, dirs.reshape(-1, 3), faces_all, vertex_offset, vertex_normals)
         gathered = np.einsum("rk,rkx->rx", bw, exitance[vid])
         if glossy_exitance is not None:
             g_rows = glossy_exitance[0][vid]  # (R, 3): a triangle's vertices are all glossy or all not

@@ -31,6 +31,8 @@ import numpy as np
 
 from prtlab.geometry import RayCaster, stratified_hemisphere
 
+from ._indirect import front_hit_corners
+
 __all__ = ["vertex_areas", "cluster_vertices", "patch_gather", "patch_operator", "power_sum", "SurfaceTransfer"]
 
 
@@ -84,16 +86,7 @@ def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_norma
         org = np.broadcast_to(x[:, None, :], dirs.shape).reshape(-1, 3)
         hits = caster.closest_hit(org, dirs.reshape(-1, 3), normals=np.broadcast_to(nv[:, None, :],
                                                                                      dirs.shape).reshape(-1, 3))
-        sel = np.nonzero(hits.hit)[0]
-        obj, tri = hits.object[sel], hits.triangle[sel]
-        u, v = hits.barycentric[sel, 0], hits.barycentric[sel, 1]
-        vid = np.empty((len(sel), 3), dtype=np.int64)
-        for i in np.unique(obj):
-            m = obj == i
-            vid[m] = faces_all[i][tri[m]] + vertex_offset[i]
-        bw = np.stack([1.0 - u - v, u, v], axis=-1)
-        n_hit = np.einsum("rk,rkc->rc", bw, vertex_normals[vid])
-        bw *= (np.einsum("rc,rc->r", n_hit, dirs.reshape(-1, 3)[sel]) < 0)[:, None]  # the front side only
+        sel, vid, bw = front_hit_corners(hits, dirs.reshape(-1, 3), faces_all, vertex_offset, vertex_normals)
         flat = (sel // n_rays)[:, None] * n_patches + patch[vid]
         out[start : start + nc] = (np.bincount(flat.ravel(), weights=bw.ravel(), minlength=nc * n_patches)
                                    .reshape(nc, n_patches) / n_rays)
