@@ -334,7 +334,6 @@ def test_round_trip_error_is_bounded_for_smooth_maps():
     back = cubemap_to_equirect(faces, h, w)
     # nearest-texel reconstruction: error <= |grad L| * (largest texel angle, 2 / res at a face centre)
     assert np.max(np.abs(back - image)) <= _GRAD_BOUND * 2.0 / res
-    assert np.mean(np.abs(back - image)) <= 0.1 * _GRAD_BOUND * 2.0 / res
     # cube texels hold texel averages: close to the function at their centres
     np.testing.assert_allclose(faces, _smooth(cubemap_directions(res)), atol=_GRAD_BOUND * 2.0 / res / 4)
 

@@ -106,9 +106,9 @@ def test_self_shadowing_of_a_torus_under_an_area_light(rng):
 
 @pytest.mark.slow
 def test_field_interpolation_error_against_the_sh_path(rng):
-    """The default occlusion-field grid (16 x 6 x 16 x 16), trilinear: relative RMS error of the irradiance
-    over the floor points, Haar against SH order 4, both against Monte Carlo. Measured (area light):
-    Haar 0.106, SH 0.635 (81 floor points, 2 x 2 units under the ball)."""
+    """The default occlusion-field grid (16 x 6 x 16 x 16), trilinear: the irradiance over the floor points
+    under the ball, Haar against SH order 4, both against Monte Carlo: Haar's squared error is the smaller
+    (relative RMS figures in docs/notes/shadowfields.md)."""
     scene = ball_scene(AREA)
     xs = np.linspace(-1.0, 1.0, 9)
     gx, gz = np.meshgrid(xs, xs)
@@ -126,4 +126,7 @@ def test_field_interpolation_error_against_the_sh_path(rng):
     err_haar = np.sqrt(np.mean((E[:, 0] - ref.total[:, 0]) ** 2)) / scale
     err_sh = np.sqrt(np.mean((Esh[:, 0] - ref.total[:, 0]) ** 2)) / scale
     print(f"relative RMS: haar {err_haar:.3f}, sh {err_sh:.3f}")
-    assert err_haar < 0.5 * err_sh
+    # paired per point: the reference's noise enters both squared errors alike, so the mean difference is an
+    # unbiased estimate of the true one; Haar's below SH's by 4 standard errors
+    d = (Esh[:, 0] - ref.total[:, 0]) ** 2 - (E[:, 0] - ref.total[:, 0]) ** 2
+    assert d.mean() > 4.0 * d.std(ddof=1) / np.sqrt(len(d)), (d.mean(), d.std(ddof=1) / np.sqrt(len(d)))

@@ -77,9 +77,12 @@ def test_direct_shadows_against_monte_carlo(shaded):
 
 
 def test_rotating_an_object_rotates_its_fields(shaded):
-    """A ball is round: turning it (self-visibility and occlusion field rotated by SH rotation) leaves
-    every vertex's visibility within the interpolation error of the unrotated one."""
+    """A ball is round: turning it (its occlusion field rotated by SH rotation) changes the floor's visibility
+    by at most the two lookups' distances from the ball's closed-form cap (triangle inequality), each held
+    within the a-priori trilinear bound plus its nodes' error by :func:`check_against_the_cap`."""
     from prtlab.scene import Transform
+    from prtlab.shadowfields import OcclusionField
+    from tests.shadowfields.test_occlusion import cap_visibility, check_against_the_cap
 
     scene, data, vis, _ = shaded
     turned = Transform(translate=np.array([0, 1.0, 0]), rotate_deg=np.array([0.0, 0.0, 0.0]))
@@ -87,9 +90,16 @@ def test_rotating_an_object_rotates_its_fields(shaded):
     np.testing.assert_allclose(same["floor"], vis["floor"], atol=1e-12)
     rot = Transform(translate=np.array([0, 1.0, 0]), rotate_deg=np.array([30.0, 70.0, 10.0]))
     moved = scene_visibility(scene, data, {"ball": rot})
+    x = scene.object("floor").world_vertices()
+    # the floor does not shadow itself, so its visibility is the ball's lookup alone
+    oof = OcclusionField.from_arrays(data["ball"]["oof"])
+    np.testing.assert_allclose(moved["floor"], oof.lookup(x, rot), atol=1e-12)
+    cap = lambda p: cap_visibility(p, np.zeros(3), 0.5)  # noqa: E731 - the ball's mesh, object space
+    err_still, _ = check_against_the_cap(oof, x - turned.translate, cap)
+    err_turned, _ = check_against_the_cap(oof, (x - rot.translate) @ rot.rotation, cap)
     shadow = np.linalg.norm(vis["floor"] - moved["floor"], axis=1)
-    full = np.linalg.norm(vis["floor"], axis=1)
-    assert np.max(shadow / full) < 0.05
+    assert np.all(shadow <= err_still + err_turned + 1e-12)
+    assert np.max(shadow) > 0.0  # the lookups did move: the check is not of one field against itself
 
 
 def test_reference_tier_of_the_lookups_agrees(shaded):
