@@ -81,6 +81,7 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
+from ._direct_rays import ray_traced_light_k
 from ._residual import gather_residual, residual_hits
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -125,9 +126,11 @@ class InterreflectionOptions:
         Receiver points nearer a source's surface than ``near_field`` times their distance to its centre get
         its basis radiance by ray casting (:func:`basis_radiance_at`) instead of the field's interpolation
         (0: always interpolate, as the paper; a run-time choice).
-    shadows : {"sh", "haar"}
-        Direct shadows: order-n SH visibility (the paper) or all-frequency Haar visibility with point lights
-        (:func:`prtlab.shadowfields.haar_direct`).
+    shadows : {"sh", "haar", "rays"}
+        Direct shadows: order-n SH visibility (the paper), all-frequency Haar visibility with point lights
+        (:func:`prtlab.shadowfields.haar_direct`), or area and point lights by shadow rays at the frame's poses
+        with the environment in SH (:mod:`prtlab.interreflection._direct_rays`; the same precomputation as
+        ``"sh"``).
     cube_resolution : int
         Texels per face edge (a power of two) of the Haar visibility and basis radiance cubemaps of
         ``shadows="haar"`` and ``irradiance="haar"``.
@@ -148,6 +151,8 @@ class InterreflectionOptions:
         the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
         per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
         object moves.
+    light_samples : int
+        Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
     """
 
     order: int = 4
@@ -164,18 +169,20 @@ class InterreflectionOptions:
     pca_occluders: bool = False
     self_interreflection: bool = True
     near_field: float = 0.5
-    shadows: str = "sh"
+    shadows: str = "rays"
     cube_resolution: int = 32
     haar_keep: int = 512
     area_lights: str = "exact"
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
     residual_rays: int = 64
+    light_samples: int = 64
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
                                  "cube_resolution", "haar_keep", "haar_radiance_keep"))
         check_int(self.residual_rays, "option residual_rays", 0, meaning="rays per receiver point, 0: off")
+        check_int(self.light_samples, "option light_samples", 1, meaning="points per vertex on an area light")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -188,7 +195,7 @@ class InterreflectionOptions:
         check_float(self.near_field, "option near_field", 0.0)
         check_bool(self.pca_occluders, "option pca_occluders")
         check_bool(self.self_interreflection, "option self_interreflection")
-        check_choice(self.shadows, "option shadows", ("sh", "haar"))
+        check_choice(self.shadows, "option shadows", ("sh", "haar", "rays"))
         check_choice(self.irradiance, "option irradiance", ("sh", "haar"))
         if self.irradiance == "haar" and self.shadows != "haar":
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
@@ -322,6 +329,8 @@ class FrameReuse:
     residual_hits: dict = dataclasses.field(default_factory=dict)
     #: (poses of every object, a ray caster of every object at them) for the residual gather
     scene_caster: tuple | None = None
+    #: receiver -> (poses of every object and the lights, its ``L_k`` from area and point lights by rays)
+    direct_rays: dict = dataclasses.field(default_factory=dict)
 
 
 class Interreflection(Precomputation):
@@ -337,10 +346,12 @@ class Interreflection(Precomputation):
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
-        run_time = ("threshold", "near_field", "area_lights", "residual_rays")
+        run_time = ("threshold", "near_field", "area_lights", "residual_rays", "light_samples")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
+        if opts["shadows"] == "rays":  # precomputes what "sh" does
+            opts["shadows"] = "sh"
         parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene), opts]
         if options.pca_occluders:
             parts.append([o.transform.to_dict() for o in scene.objects])
@@ -348,11 +359,11 @@ class Interreflection(Precomputation):
 
     @classmethod
     def check_lights(cls, lights, options) -> None:
-        """Point lights need the all-frequency direct shadows (``shadows="haar"``)."""
+        """Point lights need the all-frequency direct shadows (``shadows="haar"`` or ``"rays"``)."""
         if options.shadows == "sh" and any(isinstance(light, PointLight) for light in lights):
             raise ValueError("the interreflection pipeline with shadows='sh' supports environment and area "
-                             "lights, not point lights; pass shadows='haar' (or replace the point light by "
-                             "a small area light)")
+                             "lights, not point lights; pass shadows='rays' or 'haar' (or replace the point "
+                             "light by a small area light)")
 
     @classmethod
     def memory_needs(cls, scene, options):
@@ -661,6 +672,8 @@ class Interreflection(Precomputation):
         """Step 1: ``L_k`` (V, K, C) per object from the environment and area lights, and the radiance."""
         if self.options.shadows == "haar":
             return self.direct_step_haar(state, geo)
+        if self.options.shadows == "rays":
+            return self.direct_step_rays(state, geo, transfer)
         order = self.options.order
         lights = state.lights  # no point lights (check_lights)
         env = [light for light in lights if isinstance(light, EnvironmentLight)]
@@ -701,6 +714,30 @@ class Interreflection(Precomputation):
                                           r_max=o.r_max, spacing=o.spacing)
             self.reuse.source_fields.append(field)
         return field.lookup(light, points)
+
+    def direct_step_rays(self, state: FrameState, geo, transfer):
+        """Step 1 with ``shadows="rays"``: area and point lights by shadow rays against every object at the
+        frame's poses (:func:`ray_traced_light_k`), the environment through the SH transfer as the paper;
+        each receiver's ray-traced part stands while every pose and light does."""
+        env = [light for light in state.lights if isinstance(light, EnvironmentLight)]
+        near = [light for light in state.lights if isinstance(light, (AreaLight, PointLight))]
+        env_sh = environment_sh(env[0], self.options.order) if env else None
+        poses = tuple(geo[o.name]["pose"] for o in self.objects)
+        key = (poses, repr([light.to_dict() for light in near]))
+        light_k, radiance = {}, {}
+        for r in self.objects:
+            g = geo[r.name]
+            cached = self.reuse.direct_rays.get(r.name)
+            if cached is None or cached[0] != key:
+                lk = ray_traced_light_k(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, poses), near,
+                                        self.options.light_samples)
+                cached = self.reuse.direct_rays[r.name] = (key, lk)
+            lk = cached[1]
+            if env_sh is not None:
+                lk = lk + np.einsum("vki,ic->vkc", transfer[r.name], env_sh)
+            light_k[r.name] = self._clamp_diffuse(r, lk)
+            radiance[r.name] = outgoing_radiance(light_k[r.name], g["h"], self.seps[r.name].colour)
+        return light_k, radiance
 
     def direct_step_haar(self, state: FrameState, geo):
         """Step 1 with all-frequency shadows: ``L_k`` (V, K, C) per object from every light (Zhou et al. 2005
@@ -1074,7 +1111,7 @@ class Interreflection(Precomputation):
                        for i, s in enumerate(self.objects)
                        if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
                                               and not self.flat[r.name])}
-            hits = residual_hits(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, key), sources,
+            hits = residual_hits(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, key[0]), sources,
                                  self.options.residual_rays)
             cached = self.reuse.residual_hits[r.name] = (key, hits)
         out = np.zeros(g["g_cos"].shape[:2] + (3,))
@@ -1092,7 +1129,10 @@ class Interreflection(Precomputation):
         else:  # poses, camera or the lights' extent changed: look the fields up again
             geo = self._frame_geometry(state)
             occ = self._occlusion(geo)
-            transfer = self.direct_transfer(geo, occ, state.lights)
+            # shadows="rays" needs the SH transfer for an environment light alone
+            rays_only = self.options.shadows == "rays" and not any(isinstance(light, EnvironmentLight)
+                                                                   for light in state.lights)
+            transfer = None if rays_only else self.direct_transfer(geo, occ, state.lights)
             self.reuse.frame = (key, (geo, occ, transfer))
         light_k, direct = self.direct_step(state, geo, transfer)
         times["direct"] = time.perf_counter() - t0

@@ -216,6 +216,8 @@ def test_api_entry_point(pre, cache_root, monkeypatch):
 
 
 def test_errors(pre):
+    import dataclasses
+
     with pytest.raises(ValueError, match="option order must be an int >= 1"):
         InterreflectionOptions(order=0)
     with pytest.raises(ValueError, match="option threshold must be"):
@@ -224,9 +226,10 @@ def test_errors(pre):
         Interreflection.make_options({"n_basiss": 3})
     state = FrameState.from_scene(pre.scene)
     state.lights = [PointLight(position=np.array([0, 3.0, 0]), intensity=np.ones(3))]
-    with pytest.raises(ValueError, match="not point lights; pass shadows='haar'"):
-        pre.shade(state, bounces=1)
-    with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', got 'wavelet'"):
+    paper = Interreflection(pre.scene, dataclasses.replace(pre.options, shadows="sh"), pre.data)
+    with pytest.raises(ValueError, match="not point lights; pass shadows='rays' or 'haar'"):
+        paper.shade(state, bounces=1)
+    with pytest.raises(ValueError, match="option shadows must be one of 'sh', 'haar', 'rays', got 'wavelet'"):
         InterreflectionOptions(shadows="wavelet")
     with pytest.raises(ValueError, match="option cube_resolution must be a power of two"):
         InterreflectionOptions(cube_resolution=12)
@@ -705,7 +708,8 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
     from prtlab.scene import AreaLight
 
     sc = pre.scene
-    exact = Interreflection(sc, pre.options, pre.data)
+    paper = dataclasses.replace(pre.options, shadows="sh")  # the option of the SH direct light
+    exact = Interreflection(sc, paper, pre.data)
     light = AreaLight(center=np.array([0.2, 2.0, 0.1]), u=np.array([0.3, 0, 0]), v=np.array([0, 0, 0.3]),
                       radiance=np.full(3, 5.0))
     R = Transform(rotate_deg=np.array([20.0, 30.0, 0.0])).rotation
@@ -714,7 +718,7 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
     # the objects' fields are precomputed: at run time n_radii and resolution size only the light's field
     errors = []
     for spheres in ({}, {"n_radii": 16, "resolution": 16}):
-        field = Interreflection(sc, dataclasses.replace(pre.options, area_lights="field", **spheres), pre.data)
+        field = Interreflection(sc, dataclasses.replace(paper, area_lights="field", **spheres), pre.data)
         errors.append({})
         for i, lit in enumerate((light, turned)):
             state = FrameState.from_scene(sc)
