@@ -11,7 +11,9 @@ the term ``L_k`` (V, K, C) that the SH path computes as ``P_n(V G_k) . L`` (:met
 ``V`` from shadow rays against every object at the frame's poses (so self-shadows and a moved object's
 shadow are exact). An area light is sampled by area, ``m`` points per vertex on a grid of the parallelogram
 jittered per vertex (unbiased at each vertex, stratified across the light); the estimator is ``L_e A / m sum_j g_k cos_x cos_l V / d^2``. A point light takes one
-shadow ray. The environment stays in SH (low frequency: the paper's form).
+shadow ray. The same samples give the radiance toward the camera with the material's BRDF itself, so a
+glossy receiver's direct light is not limited by its K-term separable form (which still carries the light
+into the bounces). The environment stays in SH (low frequency: the paper's form).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 from prtlab import brdf
 from prtlab.scene import AreaLight, PointLight
 
-__all__ = ["ray_traced_light_k"]
+__all__ = ["ray_traced_direct"]
 
 #: vertices per chunk: bounds the (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
@@ -35,8 +37,9 @@ def _grid(m: int) -> np.ndarray:
     return np.stack([i.ravel() / rows, j.ravel() / side], axis=1), np.array([1.0 / rows, 1.0 / side])
 
 
-def _area_light(x, n, sep, caster, light: AreaLight, m: int, rng) -> np.ndarray:
-    """(V, K, C) ``L_k`` of one area light at points ``x`` with normals ``n``."""
+def _area_light(x, n, wo, f, sep, caster, light: AreaLight, m: int, rng):
+    """``L_k`` (V, K, C) and the radiance toward ``wo`` (V, C) of one area light at points ``x`` with normals
+    ``n`` (``f``: the BRDF)."""
     corner, cell = _grid(m)
     st = (corner[None] + rng.random((len(x), len(corner), 2)) * cell) * 2.0 - 1.0  # (V, m, 2) in [-1, 1]^2
     c, u, v = (np.asarray(getattr(light, f), float) for f in ("center", "u", "v"))
@@ -53,11 +56,13 @@ def _area_light(x, n, sep, caster, light: AreaLight, m: int, rng) -> np.ndarray:
         blocked = caster.occluded(x[rows], w[rows, cols], dist[rows, cols] - caster.epsilon, normals=n[rows])
         weight[rows[blocked], cols[blocked]] = 0.0
     g = sep.g(brdf.to_local(w, np.broadcast_to(n[:, None], w.shape)))  # (V, m, K)
-    return np.einsum("vm,vmk,c->vkc", weight, g, np.asarray(light.radiance, float))
+    radiance = np.asarray(light.radiance, float)
+    out = np.einsum("vm,vmc,c->vc", weight, f.eval(w, wo[:, None], n[:, None]), radiance)
+    return np.einsum("vm,vmk,c->vkc", weight, g, radiance), out
 
 
-def _point_light(x, n, sep, caster, light: PointLight) -> np.ndarray:
-    """(V, K, C) ``L_k`` of one point light: ``I g_k cos_x V / d^2``."""
+def _point_light(x, n, wo, f, sep, caster, light: PointLight):
+    """``L_k`` (V, K, C) of one point light, ``I g_k cos_x V / d^2``, and the radiance toward ``wo`` (V, C)."""
     d = np.asarray(light.position, float) - x
     dist = np.linalg.norm(d, axis=1)
     w = d / np.maximum(dist, 1e-300)[:, None]
@@ -68,25 +73,32 @@ def _point_light(x, n, sep, caster, light: PointLight) -> np.ndarray:
         blocked = caster.occluded(x[lit], w[lit], dist[lit] - caster.epsilon, normals=n[lit])
         weight[lit[blocked]] = 0.0
     g = sep.g(brdf.to_local(w, n))  # (V, K)
-    return np.einsum("v,vk,c->vkc", weight, g, np.asarray(light.intensity, float))
+    intensity = np.asarray(light.intensity, float)
+    return np.einsum("v,vk,c->vkc", weight, g, intensity), np.einsum("v,vc,c->vc", weight, f.eval(w, wo, n), intensity)
 
 
-def ray_traced_light_k(points, normals, sep, caster, lights, samples: int, seed: int = 0) -> np.ndarray:
-    """``L_k`` (V, K, C) at world ``points`` with unit ``normals`` from the area and point lights of ``lights``
-    (others are left out) with shadow rays against ``caster`` (every object at its pose).
+def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int, seed: int = 0):
+    """``(L_k (V, K, C), radiance toward wo (V, C))`` at world ``points`` with unit ``normals`` from the area
+    and point lights of ``lights`` (others are left out), with shadow rays against ``caster`` (every object at
+    its pose).
 
-    ``samples`` points per vertex on each area light (a ``rows x side <= samples`` grid jittered per vertex;
-    a fixed ``seed``, so a frame is deterministic); ``sep`` is the receiver's separable BRDF.
+    ``wo`` (V, 3): unit directions toward the camera; ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and
+    ``sep`` its separable form. ``samples`` points per vertex on each area light (a ``rows x side <=
+    samples`` grid jittered per vertex; a fixed ``seed``, so a frame is deterministic).
     """
-    x = np.asarray(points, float)
-    n = np.asarray(normals, float)
-    out = np.zeros((len(x), sep.K, 3))
+    x, n, wo = (np.asarray(a, float) for a in (points, normals, wo))
+    light_k, radiance = np.zeros((len(x), sep.K, 3)), np.zeros((len(x), 3))
     rng = np.random.default_rng(seed)
     for lo in range(0, len(x), _CHUNK):
         part = slice(lo, lo + _CHUNK)
         for light in lights:
+            args = (x[part], n[part], wo[part], f, sep, caster, light)
             if isinstance(light, AreaLight):
-                out[part] += _area_light(x[part], n[part], sep, caster, light, samples, rng)
+                lk, out = _area_light(*args, samples, rng)
             elif isinstance(light, PointLight):
-                out[part] += _point_light(x[part], n[part], sep, caster, light)
-    return out
+                lk, out = _point_light(*args)
+            else:
+                continue
+            light_k[part] += lk
+            radiance[part] += out
+    return light_k, radiance

@@ -81,7 +81,7 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import ray_traced_light_k
+from ._direct_rays import ray_traced_direct
 from ._residual import gather_residual, residual_hits
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -329,7 +329,7 @@ class FrameReuse:
     residual_hits: dict = dataclasses.field(default_factory=dict)
     #: (poses of every object, a ray caster of every object at them) for the residual gather
     scene_caster: tuple | None = None
-    #: receiver -> (poses of every object and the lights, its ``L_k`` from area and point lights by rays)
+    #: receiver -> (poses, camera and lights, its ``L_k`` and radiance from area and point lights by rays)
     direct_rays: dict = dataclasses.field(default_factory=dict)
 
 
@@ -519,7 +519,7 @@ class Interreflection(Precomputation):
             if len(own):
                 own = sh.rotate(own, T.rotation, channels=False)
             grid = self.fields[o.name].grid
-            geo[o.name] = {"T": T, "pose": key[0], "x": x, "n": n, "self": own,
+            geo[o.name] = {"T": T, "pose": key[0], "x": x, "n": n, "wo": wo, "self": own,
                            "g_cos": brdf.project_g_cos(sep, n, order), "h": brdf.project_h(sep, wo, n),
                            "center": T.apply_points(grid.center), "radius": grid.radius * float(T.scale),
                            "reach": grid.radii[-1] * float(T.scale)}
@@ -717,26 +717,28 @@ class Interreflection(Precomputation):
 
     def direct_step_rays(self, state: FrameState, geo, transfer):
         """Step 1 with ``shadows="rays"``: area and point lights by shadow rays against every object at the
-        frame's poses (:func:`ray_traced_light_k`), the environment through the SH transfer as the paper;
-        each receiver's ray-traced part stands while every pose and light does."""
+        frame's poses (:func:`ray_traced_direct`; their radiance toward the camera with the BRDF itself), the
+        environment through the SH transfer as the paper; each receiver's ray-traced part stands while every
+        pose, light and the camera do."""
         env = [light for light in state.lights if isinstance(light, EnvironmentLight)]
         near = [light for light in state.lights if isinstance(light, (AreaLight, PointLight))]
         env_sh = environment_sh(env[0], self.options.order) if env else None
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
-        key = (poses, repr([light.to_dict() for light in near]))
         light_k, radiance = {}, {}
         for r in self.objects:
             g = geo[r.name]
+            key = (poses, g["wo"].tobytes(), repr([light.to_dict() for light in near]))
             cached = self.reuse.direct_rays.get(r.name)
             if cached is None or cached[0] != key:
-                lk = ray_traced_light_k(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, poses), near,
-                                        self.options.light_samples)
-                cached = self.reuse.direct_rays[r.name] = (key, lk)
-            lk = cached[1]
+                cached = self.reuse.direct_rays[r.name] = (key, *ray_traced_direct(
+                    g["x"], g["n"], g["wo"], brdf.from_material(r.material), self.seps[r.name],
+                    self._scene_caster(geo, poses), near, self.options.light_samples))
+            lk, rad = cached[1], cached[2]
             if env_sh is not None:
-                lk = lk + np.einsum("vki,ic->vkc", transfer[r.name], env_sh)
-            light_k[r.name] = self._clamp_diffuse(r, lk)
-            radiance[r.name] = outgoing_radiance(light_k[r.name], g["h"], self.seps[r.name].colour)
+                env_k = self._clamp_diffuse(r, np.einsum("vki,ic->vkc", transfer[r.name], env_sh))
+                lk = lk + env_k
+                rad = rad + outgoing_radiance(env_k, g["h"], self.seps[r.name].colour)
+            light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
 
     def direct_step_haar(self, state: FrameState, geo):

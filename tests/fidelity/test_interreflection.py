@@ -53,8 +53,8 @@ PATHS = 16384
 #: Pose A of the bunny (precompute pose of the moved cases): 1.1 m from pose B, turned 60 degrees
 POSE_A = Transform(translate=np.array([0.9, 0.0, -0.8]), rotate_deg=np.array([0.0, 60.0, 0.0]))
 
-#: the paper's method: its PCA basis (no occluders in the training) and no residual gather
-PAPER = {"pca_occluders": False, "residual_rays": 0}
+#: the paper's method: its PCA basis (no occluders in the training), no residual gather, SH direct light
+PAPER = {"pca_occluders": False, "residual_rays": 0, "shadows": "sh"}
 CASES = {
     "fig9": ({}, False),
     "moved": ({}, True),

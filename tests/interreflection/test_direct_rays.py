@@ -16,7 +16,7 @@ from prtlab import brdf
 from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster, builtin_mesh
 from prtlab.interreflection import Interreflection, InterreflectionOptions
-from prtlab.interreflection._direct_rays import ray_traced_light_k
+from prtlab.interreflection._direct_rays import ray_traced_direct
 from prtlab.scene import AreaLight, Material, PointLight, Transform
 from tests.conftest import MC_SIGMAS
 from tests.scenes import floor_and_ball
@@ -32,9 +32,9 @@ def _floor_points(n=7, size=3.0):
     return points, np.tile([0.0, 1.0, 0.0], (len(points), 1))
 
 
-def _moments(light, sep, points, normals, n_nodes):
-    """``(int F dA, int F^2 dA)`` (V, K) of the area-light integrand ``F = g_k cos_x cos_l / d^2`` (unit
-    radiance), by a tensor Gauss-Legendre rule over the parallelogram."""
+def _moments(light, factor, points, normals, n_nodes):
+    """``(int F dA, int F^2 dA)`` (V, J) of the area-light integrand ``F = q_j(w) cos_x cos_l / d^2`` (unit
+    radiance; ``factor(w)`` (V, P, J) gives ``q``), by a tensor Gauss-Legendre rule over the parallelogram."""
     t, w = np.polynomial.legendre.leggauss(n_nodes)
     s_, t_ = np.meshgrid(t, t, indexing="ij")
     y = light.center + s_.reshape(-1, 1) * light.u + t_.reshape(-1, 1) * light.v
@@ -43,7 +43,7 @@ def _moments(light, sep, points, normals, n_nodes):
     r2 = np.sum(d * d, axis=-1)
     wy = d / np.sqrt(r2)[..., None]
     F = (np.maximum(np.einsum("vpi,vi->vp", wy, normals), 0.0) * np.maximum(-(wy @ light.normal), 0.0) / r2)[..., None]
-    F = F * sep.g(brdf.to_local(wy, np.broadcast_to(normals[:, None], wy.shape)))
+    F = F * factor(wy)
     return np.einsum("vpk,p->vk", F, dA), np.einsum("vpk,p->vk", F**2, dA)
 
 
@@ -52,17 +52,28 @@ def _moments(light, sep, points, normals, n_nodes):
                                                exponent=10.0)], ids=["lambert", "phong"])
 @pytest.mark.parametrize("samples", [16, 256])
 def test_an_unoccluded_area_light_is_its_integral_within_the_estimators_error(material, samples):
-    sep = brdf.separable(brdf.from_material(material), K=4 if material.type == "phong" else 1)
+    """Both outputs, ``L_k`` (the separable terms ``g_k``) and the radiance toward the viewer (the BRDF
+    itself), each within the estimator's standard error bound of the integral."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
     points, normals = _floor_points()
+    wo = np.array([0.2, 1.0, 0.9]) - 0.1 * points
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
     caster = RayCaster(builtin_mesh("icosphere", subdivisions=1), transforms=[Transform(translate=[0, -50, 0])])
-    ours = ray_traced_light_k(points, normals, sep, caster, [LIGHT], samples)
-    first, second = _moments(LIGHT, sep, points, normals, 48)
-    quadrature = np.abs(first - _moments(LIGHT, sep, points, normals, 24)[0])
+    light_k, radiance = ray_traced_direct(points, normals, wo, f, sep, caster, [LIGHT], samples)
     m = int(np.sqrt(samples)) ** 2
-    sigma = np.sqrt(np.maximum(LIGHT.area * second - first**2, 0.0) / m)
-    err = np.abs(ours - first[..., None] * LIGHT.radiance)
-    assert np.all(err <= (MC_SIGMAS * sigma + quadrature)[..., None] * LIGHT.radiance + 1e-12)
-    assert np.all(first[:, 0] > 0.0)  # every point sees the light: the check is not of zeros
+
+    def integral_and_bound(factor):
+        first, second = _moments(LIGHT, factor, points, normals, 48)
+        quadrature = np.abs(first - _moments(LIGHT, factor, points, normals, 24)[0])
+        sigma = np.sqrt(np.maximum(LIGHT.area * second - first**2, 0.0) / m)
+        assert np.all(first[:, 0] > 0.0)  # every point sees the light: the check is not of zeros
+        return first, MC_SIGMAS * sigma + quadrature
+
+    first, bound = integral_and_bound(lambda w: sep.g(brdf.to_local(w, np.broadcast_to(normals[:, None], w.shape))))
+    assert np.all(np.abs(light_k - first[..., None] * LIGHT.radiance) <= bound[..., None] * LIGHT.radiance + 1e-12)
+    first, bound = integral_and_bound(lambda w: f.eval(w, wo[:, None], normals[:, None]))  # (V, P, C)
+    assert np.all(np.abs(radiance - first * LIGHT.radiance) <= bound * LIGHT.radiance + 1e-12)
 
 
 def _segment_hits_box(a, b, lo, hi) -> np.ndarray:
@@ -84,7 +95,8 @@ def test_a_point_light_is_shadowed_exactly_by_a_moved_box():
     box = builtin_mesh("box", size=[0.6, 0.6, 0.6])
     pose = Transform(translate=np.array([0.5, 1.0, 0.3]))
     caster = RayCaster([box], transforms=[pose])
-    ours = ray_traced_light_k(points, normals, sep, caster, [light], 1)[:, 0, 0]
+    f = brdf.from_material(Material(albedo=np.array([0.7, 0.7, 0.7])))
+    ours = ray_traced_direct(points, normals, normals, f, sep, caster, [light], 1)[0][:, 0, 0]
     d = light.position - points
     r2 = np.sum(d * d, axis=1)
     lit = light.intensity[0] * (d[:, 1] / np.sqrt(r2)) / r2 / np.pi  # g = 1 / pi for a Lambertian term
@@ -100,7 +112,7 @@ def test_a_point_light_is_shadowed_exactly_by_a_moved_box():
     # of it (the box's shadow on the light's plane is convex and holds the corners)
     small = AreaLight(center=light.position, u=np.array([0.1, 0.0, 0.0]), v=np.array([0.0, 0.0, 0.1]),
                       radiance=np.array([1.0, 1.0, 1.0]))
-    area = ray_traced_light_k(points, normals, sep, caster, [small], 64)[:, 0, 0]
+    area = ray_traced_direct(points, normals, normals, f, sep, caster, [small], 64)[0][:, 0, 0]
     corners = [small.center + a * small.u + b * small.v for a in (-1, 1) for b in (-1, 1)]
     umbra = np.all([_segment_hits_box(points, np.broadcast_to(c, points.shape), lo + 0.02, hi - 0.02)
                     for c in corners], axis=0)

@@ -364,23 +364,14 @@ def test_pca_basis_with_occluders_spans_their_shadows():
 #: Mitsuba samples per vertex of the room: relative noise at most 0.035 (indirect) and 0.011 (direct,
 #: total), within a third of the goals (``Comparison.check``).
 ROOM_SPP = 2048
-_DIRECT_SH = "the order-4 SH direct light of the small area light"
-#: (object, part): measured figure (defaults, Mitsuba 256 spp) and cause; strict, so a fix fails loudly. Not yet
-#: measured at ROOM_SPP: the direct parts and the indirect parts under quadrature (the issue measured the floor's
-#: indirect 0.21, noise 0.10, against its budget hypot(0.15, 0.035) = 0.159 here).
-_KNOWN = {(o, "total"): f"measured rel_rms {v} (noise 0.01-0.03): the direct light is 0.16-0.28 off, {_DIRECT_SH}"
-          for o, v in (("floor", 0.18), ("wall_back", 0.14), ("wall_left", 0.15), ("box", 0.24), ("teapot", 0.18),
-                       ("bunny", 0.18))}
-#: Measured at ROOM_SPP with the residual gather (issue 18): direct and indirect rel_rms (noise), mean not printed
-_MEASURED = {("floor", "direct"): ("0.144", "0.004"), ("wall_back", "direct"): ("0.088", "0.005"),
-             ("wall_left", "direct"): ("0.115", "0.005"), ("box", "direct"): ("0.117", "0.005"),
-             ("teapot", "direct"): ("0.177", "0.004"), ("bunny", "direct"): ("0.192", "0.006"),
-             ("floor", "indirect"): ("0.173", "0.034"), ("teapot", "indirect"): ("0.158", "0.023"),
-             ("bunny", "indirect"): ("0.174", "0.023")}
-_KNOWN.update({key: f"measured rel_rms {v} (noise {n}): " + (_DIRECT_SH if key[1] == "direct" else
-                                                            f"not traced; the sources re-emit their direct light "
-                                                            f"({_DIRECT_SH})")
-               for key, (v, n) in _MEASURED.items()})
+#: (object, part): measured at ROOM_SPP at the defaults (rel_rms, noise) and cause; strict, so a fix fails loudly.
+#: Every direct part is within 0.9 % (the ray-traced direct light, ``shadows="rays"``); with the paper's order-4
+#: SH direct light (``shadows="sh"``) it was 0.09-0.19 and every total missed.
+_MEASURED = {("teapot", "indirect"): ("0.190", "0.023", "not traced (mean +4 %)"),
+             ("bunny", "indirect"): ("0.169", "0.023", "not traced (mean -4 %)"),
+             ("teapot", "total"): ("0.064", "0.009", "its indirect light (0.190)"),
+             ("bunny", "total"): ("0.063", "0.010", "its indirect light (0.169)")}
+_KNOWN = {key: f"measured rel_rms {v} (noise {n}): {cause}" for key, (v, n, cause) in _MEASURED.items()}
 _ROOM_OBJECTS = ("floor", "wall_back", "wall_left", "box", "teapot", "bunny")
 
 
