@@ -57,7 +57,8 @@ from prtlab.wavelet import SparseTransfer, encode_transfer
 
 from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
-from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
+from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass, glossy_indirect_pass,
+                     indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
                        power_sum, quantize_rows, vertex_areas)
@@ -617,6 +618,14 @@ class Portals(Precomputation):
                                             {self.options.bounces: e["sum"]}, e.get("project"))
         return self._surface
 
+    def source_operator(self, k: int = 0):
+        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k`` (:class:`prtlab.portals._surface.
+        SourceOperator`), built on first use from the stored source transfer and kept."""
+        cached = self.__dict__.setdefault("_source_cache", {})
+        if k not in cached:
+            cached[k] = self.surface_transfer().source_operator(self.direct_transfer(k, source=True))
+        return cached[k]
+
     def _check_bounces(self, bounces):
         return self.options.bounces if bounces is None else self.check_bounces(bounces, self.options)
 
@@ -644,6 +653,7 @@ class Portals(Precomputation):
         stored per bounce). ``camera``: the viewer of glossy vertices (default the scene's).
         """
         bounces = self._check_bounces(bounces)
+        _check_method(method)
         shells = list(shells)
         if len(shells) != self.n_portals:
             raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
@@ -660,17 +670,26 @@ class Portals(Precomputation):
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
         timings = {"direct": 0.0, "indirect": 0.0}
         surface = self.surface_transfer() if bounces > 0 else None
-        source = np.zeros((n, 3))
+        source = np.zeros((surface.n_patches if surface is not None else 0, 3))
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
-            direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            if method == "reference" or (surface is None and not len(g)):
+                direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
+                _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
+                light = shell_coefficients(cube)
+                direct += direct_from_light(self.direct_transfer(k), albedo, light)
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()
             if surface is not None:
-                source += direct_pass(self.direct_transfer(k, source=True), albedo, cube, method=method)
+                if method == "reference":
+                    source += surface.patch_source(direct_pass(self.direct_transfer(k, source=True), albedo, cube,
+                                                               method="reference"))
+                else:
+                    source += self.source_operator(k).apply(light)
             elif bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
@@ -681,7 +700,7 @@ class Portals(Precomputation):
             timings["indirect"] += time.perf_counter() - t1
         if surface is not None:
             t0 = time.perf_counter()
-            indirect = surface.indirect(source, bounces)
+            indirect = surface.frame(source, bounces, method=method)
             timings["indirect"] += time.perf_counter() - t0
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
