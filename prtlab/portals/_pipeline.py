@@ -435,6 +435,30 @@ class Portals(Precomputation):
     #: vertices per precomputation chunk (one resumable cache part each)
     chunk_vertices: int = 2048
 
+    def __init__(self, scene: Scene, options, data):
+        super().__init__(scene, options, data)
+        #: every object's pose when the transfer was made (its matrix, copied: the scene may be edited in place)
+        self._baked_poses = {o.name: np.array(o.transform.matrix(), dtype=np.float64) for o in scene.objects}
+
+    def moved_objects(self, state: FrameState) -> list[str]:
+        """The objects whose pose in ``state``, or in :attr:`scene` itself (edited in place after the
+        precomputation), differs from the pose the transfer was made at (objects added since count as moved)."""
+        moved = []
+        for o in self.scene.objects:
+            baked = self._baked_poses.get(o.name)
+            poses = [o.transform] + ([state.transforms[o.name]] if o.name in state.transforms else [])
+            tol = 1e-12 * max(1.0, float(np.abs(baked).max())) if baked is not None else 0.0
+            if baked is None or any(not np.allclose(t.matrix(), baked, rtol=0.0, atol=tol) for t in poses):
+                moved.append(o.name)
+        return moved
+
+    def _check_not_moved(self) -> None:
+        """Refuse to shade once an object of :attr:`scene` moved (or was added) after the precomputation."""
+        moved = self.moved_objects(FrameState())
+        if moved:
+            raise ValueError(f"{self.baked_reason}: object {moved[0]!r} moved after the precomputation; put it back "
+                             "or re-precompute at the new pose (e.g. precompute(scene.at_frame(i, n)))")
+
     @classmethod
     def cache_key_parts(cls, scene: Scene, options) -> list:
         """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
@@ -654,6 +678,7 @@ class Portals(Precomputation):
         """
         bounces = self._check_bounces(bounces)
         _check_method(method)
+        self._check_not_moved()
         shells = list(shells)
         if len(shells) != self.n_portals:
             raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
