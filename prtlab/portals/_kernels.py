@@ -57,7 +57,7 @@ def _signed_row_dot(indptr, indices, codes, sign_bit, light, row, offset):
     return b0, b1, b2
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, fastmath=True)
 def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, albedo, out):
     """Sparse 8-bit direct transfer times the shell light, times the albedo (3 channels).
 
@@ -65,6 +65,8 @@ def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, al
     coefficients; ``basis[v]`` (0 pulse, 1 Haar) picks the half. ``indices`` carry the sign in ``sign_bit``::
 
         out[v, c] = albedo[v, c] * scale[v] / 255 * sum_e (+-codes[e]) light[basis[v] N + index(e), c]
+
+    ``fastmath``: the sums may be reassociated (float64 roundoff; inputs are finite, checked by the callers).
     """
     n_vertices = indptr.shape[0] - 1
     n = light.shape[0] // 2

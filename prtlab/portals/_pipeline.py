@@ -18,8 +18,10 @@ vertex has a specular part (:func:`radiance_estimate`) that gather rays read
 toward the gathering point.
 
 The interior is static: every object's transform is in the cache key, and
-``shade(state)`` refuses a state in which an object moved (re-precompute at the
-new pose, e.g. on ``scene.at_frame(i, n)``). The camera may move; the light is
+``shade(state)`` and :meth:`Portals.shade_shells` refuse, in one line, a state in
+which an object moved, or a scene whose object was moved in place after the
+precomputation (re-precompute at the new pose, e.g. on ``scene.at_frame(i, n)``);
+nothing is updated incrementally. The camera may move; the light is
 one environment seen through the portals (or user-given shell cubemaps,
 :meth:`Portals.shade_shells`: a dynamic exterior from
 :func:`prtlab.portals.exterior_shell`, portal materials :func:`prtlab.portals.tint`,
@@ -57,8 +59,8 @@ from prtlab.wavelet import SparseTransfer, encode_transfer
 
 from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
-from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass, glossy_indirect_pass,
-                     indirect_pass, shell_coefficients)
+from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
+                     glossy_indirect_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
                        power_sum, quantize_rows, vertex_areas)

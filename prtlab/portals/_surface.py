@@ -16,8 +16,11 @@ Precomputed, independent of the light (``indirect="surface"``):
 - ``H (C, C, 3) = Pbar diag(rho) F``: one bounce between patches (``Pbar`` the area-weighted mean over a patch).
 - ``S_B = sum_{b=0}^{B-1} H^b`` (binary doubling: ``2 log2 B`` products).
 
-Per frame: ``s = Pbar L_d`` (the patches' mean direct radiance), ``L_ind = rho * F (S_B s)``: light that bounced
-``1..B`` times, ``V C + C^2`` multiply-adds per colour channel.
+Per frame: ``s = Pbar L_d`` (the patches' mean direct radiance of the hat-averaged source transfer), ``L_ind = rho
+* F (S_B s)``: light that bounced ``1..B`` times, ``V C + C^2`` multiply-adds per colour channel. ``s`` is read
+straight from the shell light through ``G = Pbar diag(rho) T_src`` (:class:`SourceOperator`, built once when
+shading starts: ``C`` rows instead of the source pass over ``V`` vertices); :meth:`SurfaceTransfer.frame` keeps a
+float64 reference tier.
 
 Limits: diffuse interiors only (a glossy vertex's radiance depends on the direction; use ``indirect="paper"``).
 Errors: the gather noise (``M`` rays, stratified); the linear interpolation of ``L_d`` between vertices across
