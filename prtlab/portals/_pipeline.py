@@ -645,8 +645,8 @@ class Portals(Precomputation):
         return self._surface
 
     def source_operator(self, k: int = 0):
-        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k`` (:class:`prtlab.portals._surface.
-        SourceOperator`), built on first use from the stored source transfer and kept."""
+        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k``
+        (:class:`prtlab.portals._surface.SourceOperator`), built on first use from the stored source transfer."""
         cached = self.__dict__.setdefault("_source_cache", {})
         if k not in cached:
             cached[k] = self.surface_transfer().source_operator(self.direct_transfer(k, source=True))
@@ -677,6 +677,8 @@ class Portals(Precomputation):
         centre) or portal materials: ``tint(cube, colour)``, ``frosted(cube, sigma_deg)``.
         ``bounces``: any ``0 <= bounces <=`` the precomputed number (the transfer is
         stored per bounce). ``camera``: the viewer of glossy vertices (default the scene's).
+        ``method``: ``"numba"`` (the fast passes) or ``"reference"`` (every pass's float64 reference tier).
+        Refused once an object of the scene moved after the precomputation.
         """
         bounces = self._check_bounces(bounces)
         _check_method(method)

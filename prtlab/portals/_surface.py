@@ -248,10 +248,9 @@ class SurfaceTransfer:
 class SourceOperator:
     """``G = Pbar diag(rho) T_src`` as a CSR matrix ``(C, 2 T)`` with one float64 value per colour channel.
 
-    The patches' source light ``s = Pbar (rho * T_src L)`` is then ``G [L_pulse; L_haar]`` per frame: ``C`` rows of
-    the union of their vertices' entries (about 480 a patch for the window box at 1,024 clusters, against 360 a
-    vertex for every one of ``V`` vertices), the same sums reassociated (float64 roundoff). ``T = 6 r^2``; a vertex
-    stored in Haar has its entries in columns ``T..2T-1``.
+    The patches' source light ``s = Pbar (rho * T_src L)`` is then ``G [L_pulse; L_haar]`` per frame: ``C`` rows,
+    each the union of its vertices' entries, instead of a pass over all ``V`` vertices; the same sums reassociated
+    (float64 roundoff). ``T = 6 r^2``; a vertex stored in Haar has its entries in columns ``T..2T-1``.
 
     Parameters
     ----------
