@@ -1,6 +1,10 @@
 """Benchmarks of prtlab.portals: one relighting frame of the window box at the paper's size (about 45k
 vertices, Table 1: 70 fps), per pass and whole, and the memory of the 8-bit direct transfer.
 
+Two frames: ``portals.frame.default_surface.45k`` is the default (``indirect="auto"``, which is ``"surface"`` for
+this diffuse box: ``cube_resolution`` 64, 1,024 clusters; issue 17's goal: 14 ms on 2 cores); ``portals.frame.45k``
+is the paper's mode (``indirect="paper"``, ``cube_resolution`` 32, order-4 SH; issue 20: at most 5 ms).
+
 The transfer of the box scene (``data/scenes/box_window_sky.yaml``, 2,058 vertices) is precomputed with small
 sample counts and its vertices are repeated to the paper's 44,763 (the per-frame cost depends on the vertex
 count and on the stored entries per vertex, not on where the vertices are). Peers: the 8-bit direct transfer
@@ -18,6 +22,8 @@ import prtlab.data
 from prtlab.bench import case, check_same_work, floor, transfer_csr
 from prtlab.wavelet import haar2d
 from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
+from prtlab.portals._shade import direct_from_light, shell_coefficients
+from prtlab.portals._surface import SurfaceTransfer
 from prtlab.scene import load_scene
 from prtlab.wavelet import SparseTransfer
 
@@ -86,6 +92,7 @@ INDIRECT_FORMULA = "6 n^2 V flops; V n^2 3 itemsize + 24 V bytes"
 
 @case("portals.frame.45k")
 def frame(quick: bool) -> dict:
+    """The paper's mode (``indirect="paper"``, ``cube_resolution=32``, order 4): not the default frame."""
     scene, sparse, transfer, albedo = _frame_data()
     env = scene.environment
     csr = _direct_csr()
@@ -130,6 +137,106 @@ def indirect(quick: bool) -> dict:
     return {"run": lambda: indirect_pass(transfer, c), "gflop": 2 * transfer.size / 1e9, "items": PAPER_VERTICES,
             "peer": ("numpy einsum (float32 transfer, float64 light)", lambda: _einsum_indirect(transfer, c)),
             "floor": floor(*_indirect_floor(transfer), INDIRECT_FORMULA), "stored_bytes": transfer.nbytes}
+
+
+# ------------------------------------------------------------------ the default frame: indirect="surface"
+
+
+@lru_cache(maxsize=1)
+def _surface_frame_data():
+    """The default frame's data at 44,763 vertices: direct and hat-averaged source transfers (res 64, 4096 portal
+    samples: their entries per vertex are the defaults'), the interior gather over 1,024 clusters, rows tiled.
+    ``gather_rays`` is lowered for the precomputation's sake: the frame reads the dense (V, C) gather whatever its
+    ray count. The source operator ``Pbar diag(rho) T_src`` is built from the tiled rows (tiled copies fall in the
+    same clusters, so it is the untiled box's: a cluster's entries are the union over its region, set by the
+    cluster's extent, not by how many vertices sample it)."""
+    scene = load_scene(SCENE)
+    pre = Portals.precompute(scene, {"indirect": "surface", "gather_rays": 64}, progress=False)
+    n0 = len(pre.data["albedo"])
+    reps = -(-PAPER_VERTICES // n0)
+
+    def tile(a):
+        return np.ascontiguousarray(np.tile(a, (reps,) + (1,) * (np.ndim(a) - 1))[:PAPER_VERTICES])
+
+    e, st = pre.data["surface"], pre.surface_transfer()
+    albedo = tile(pre.data["albedo"])
+    surface = SurfaceTransfer((tile(st.codes), tile(st.scale)), tile(st.patch), tile(e["areas"]), albedo,
+                              e["operator"], {pre.options.bounces: e["sum"]})
+    direct = _tile(pre.direct_transfer(0), PAPER_VERTICES)
+    source = _tile(pre.direct_transfer(0, source=True), PAPER_VERTICES)
+    return scene, direct, source, surface, surface.source_operator(source), albedo, pre.options
+
+
+def surface_frame(env, direct, source_operator, surface, albedo, res: int, bounces: int) -> np.ndarray:
+    """One default frame as :meth:`Portals.shade_shells` runs it (numba tiers): the shell light, its pulse and Haar
+    coefficients once, the direct pass, the patches' source light ``G L``, then ``rho F S_B s``; total radiance."""
+    light = shell_coefficients(shell_light(env, res))
+    return direct_from_light(direct, albedo, light) + surface.frame(source_operator.apply(light), bounces)
+
+
+@lru_cache(maxsize=1)
+def _surface_peer_data():
+    """The peer's operands, decoded once: CSR float64 direct and source transfers, the patch mean as a CSR matrix,
+    the gather as float32 ``(V, C)`` (codes times their row scale), ``S_B`` float32 per channel."""
+    import scipy.sparse
+
+    _, direct, source, surface, _, _, options = _surface_frame_data()
+    mean = scipy.sparse.csr_matrix((surface.mean_weight, (surface.patch, np.arange(len(surface.patch)))),
+                                   shape=(surface.n_patches, len(surface.patch)))
+    gather = surface.codes.astype(np.float32) * surface.scale[:, None]
+    sums = np.ascontiguousarray(surface.bounce_sum(options.bounces).transpose(2, 0, 1))
+    return transfer_csr(direct), transfer_csr(source), mean, gather, sums
+
+
+def _peer_surface_frame(env, res, albedo):
+    """The default frame as a user would write it with scipy and numpy from the transfers decoded once."""
+    direct_csr, source_csr, mean, gather, sums = _surface_peer_data()
+    cube = shell_light(env, res)
+    light = np.concatenate([cube.reshape(-1, 3), haar2d(cube, channels=True).reshape(-1, 3)])
+    s = (mean @ ((source_csr @ light) * albedo)).astype(np.float32)
+    u = np.stack([sums[ch] @ s[:, ch] for ch in range(3)], axis=1)
+    return (direct_csr @ light) * albedo + (gather @ u) * albedo
+
+
+# The default frame's floor: V vertices, E direct entries, T texels, C clusters, E_G entries of the source operator
+# (3 float64 values and a 4-byte column each), 3 colours. Flops: the direct pass (6 E + 6 V), the source light
+# (6 E_G), the bounce sum S_B s (6 C^2) and the gather (6 V C; scale and albedo 6 V). Bytes: the direct transfer
+# (``SparseTransfer.nbytes``) and the light (2 x 2 T x 24: written, read), the source operator (28 E_G), S_B (12
+# C^2), the 16-bit gather and its scales (2 V C + 4 V), albedo read (24 V) and the radiance written (24 V).
+SURFACE_FORMULA = ("6 E + 12 V + 6 E_G + 6 C^2 + 6 V C flops; SparseTransfer.nbytes + 96 T + 28 E_G + 12 C^2 + "
+                   "2 V C + 52 V bytes")
+
+
+def _surface_floor(direct, source_operator, surface) -> tuple[float, float]:
+    v, e, t = direct.n_vertices, len(direct.codes), 6 * direct.res**2
+    e_g, c = len(source_operator.columns), surface.n_patches
+    flop = 6.0 * e + 12.0 * v + 6.0 * e_g + 6.0 * c * c + 6.0 * v * c
+    nbytes = direct.nbytes + 96.0 * t + 28.0 * e_g + 12.0 * c * c + 2.0 * v * c + 52.0 * v
+    return flop, nbytes
+
+
+@case("portals.frame.default_surface.45k")
+def frame_default_surface(quick: bool) -> dict:
+    """The default frame (``indirect="surface"``, res 64, 1,024 clusters) at 44,763 vertices; issue 17: 14 ms."""
+    scene, direct, source, surface, source_operator, albedo, options = _surface_frame_data()
+    env, res, bounces = scene.environment, direct.res, options.bounces
+
+    def run():
+        return surface_frame(env, direct, source_operator, surface, albedo, res, bounces)
+
+    def peer():
+        return _peer_surface_frame(env, res, albedo)
+
+    ours = run()
+    check_same_work(ours, peer(), "portals.frame.default_surface", rtol=1e-4, atol=1e-6 * float(np.max(ours)))
+    return {"run": run, "gflop": _surface_floor(direct, source_operator, surface)[0] / 1e9, "items": PAPER_VERTICES,
+            "peer": ("scipy.sparse CSR direct and source + float32 BLAS gather (all decoded once)", peer),
+            "floor": floor(*_surface_floor(direct, source_operator, surface), SURFACE_FORMULA),
+            "stored_bytes": direct.nbytes + source.nbytes + surface.codes.nbytes + surface.scale.nbytes
+            + surface.bounce_sum(bounces).nbytes,
+            "info": {"direct_entries_per_vertex": len(direct.codes) / PAPER_VERTICES,
+                     "source_operator_entries": len(source_operator.columns), "clusters": surface.n_patches,
+                     "source_operator_mb": source_operator.nbytes / 1e6}}
 
 
 def direct_transfer_memory() -> dict:

@@ -11,6 +11,10 @@ by each frame's direct radiance through a precomputed interior-to-interior
 transfer (``indirect="surface"``, :mod:`prtlab.portals._surface`), so a sharp
 sun bounces from where it lands; the paper's SH transfer is
 ``indirect="paper"``. Measured in ``docs/notes/portals.md``.
+
+Per frame only the light (the environment, or shell cubemaps per portal) and the camera change. Objects inside
+are precomputed: moving one (a pose in the ``FrameState``, or the scene's object edited in place) is refused with
+a one-line error; re-precompute at the new pose.
 """
 
 from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation

@@ -57,7 +57,7 @@ def _signed_row_dot(indptr, indices, codes, sign_bit, light, row, offset):
     return b0, b1, b2
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, fastmath=True)
 def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, albedo, out):
     """Sparse 8-bit direct transfer times the shell light, times the albedo (3 channels).
 
@@ -65,6 +65,8 @@ def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, al
     coefficients; ``basis[v]`` (0 pulse, 1 Haar) picks the half. ``indices`` carry the sign in ``sign_bit``::
 
         out[v, c] = albedo[v, c] * scale[v] / 255 * sum_e (+-codes[e]) light[basis[v] N + index(e), c]
+
+    ``fastmath``: the sums may be reassociated (float64 roundoff; inputs are finite, checked by the callers).
     """
     n_vertices = indptr.shape[0] - 1
     n = light.shape[0] // 2
@@ -118,3 +120,64 @@ def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
         out[v, 0] = a0
         out[v, 1] = a1
         out[v, 2] = a2
+
+
+@numba.njit(cache=True, parallel=True)
+def source_light_kernel(indptr, columns, values, light, out):
+    """``out[c, ch] = sum_e values[e, ch] light[columns[e], ch]`` over the CSR rows ``c`` (the patches' mean direct
+    radiance from the shell light's pulse and Haar coefficients, :class:`prtlab.portals._surface.SourceOperator`)."""
+    n_rows = indptr.shape[0] - 1
+    for c in numba.prange(n_rows):
+        a0 = a1 = a2 = 0.0
+        for e in range(indptr[c], indptr[c + 1]):
+            k = columns[e]
+            a0 += values[e, 0] * light[k, 0]
+            a1 += values[e, 1] * light[k, 1]
+            a2 += values[e, 2] * light[k, 2]
+        out[c, 0] = a0
+        out[c, 1] = a1
+        out[c, 2] = a2
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def bounce_light_kernel(sums, source, out):
+    """``out[ch, c] = sum_d sums[c, d, ch] float32(source[d, ch])`` in float32 (``S_B s``, channel-major out)."""
+    n = sums.shape[0]
+    s0 = source[:, 0].astype(np.float32)
+    s1 = source[:, 1].astype(np.float32)
+    s2 = source[:, 2].astype(np.float32)
+    for c in numba.prange(n):
+        a0 = np.float32(0.0)
+        a1 = np.float32(0.0)
+        a2 = np.float32(0.0)
+        for d in range(n):
+            a0 += sums[c, d, 0] * s0[d]
+            a1 += sums[c, d, 1] * s1[d]
+            a2 += sums[c, d, 2] * s2[d]
+        out[0, c] = a0
+        out[1, c] = a1
+        out[2, c] = a2
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def gather_product_kernel(codes, scale, light_t, albedo, out):
+    """``out[v, ch] = albedo[v, ch] scale[v] sum_c codes[v, c] light_t[ch, c]`` (float32 sums over the 16-bit
+    codes, channel-major ``light_t (3, C)`` so that the sum over ``c`` reads contiguous memory and vectorises)."""
+    n, m = codes.shape
+    u0 = light_t[0]
+    u1 = light_t[1]
+    u2 = light_t[2]
+    for v in numba.prange(n):
+        a0 = np.float32(0.0)
+        a1 = np.float32(0.0)
+        a2 = np.float32(0.0)
+        row = codes[v]
+        for c in range(m):
+            g = np.float32(row[c])
+            a0 += g * u0[c]
+            a1 += g * u1[c]
+            a2 += g * u2[c]
+        s = np.float64(scale[v])
+        out[v, 0] = albedo[v, 0] * s * a0
+        out[v, 1] = albedo[v, 1] * s * a1
+        out[v, 2] = albedo[v, 2] * s * a2

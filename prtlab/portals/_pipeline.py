@@ -18,8 +18,10 @@ vertex has a specular part (:func:`radiance_estimate`) that gather rays read
 toward the gathering point.
 
 The interior is static: every object's transform is in the cache key, and
-``shade(state)`` refuses a state in which an object moved (re-precompute at the
-new pose, e.g. on ``scene.at_frame(i, n)``). The camera may move; the light is
+``shade(state)`` and :meth:`Portals.shade_shells` refuse, in one line, a state in
+which an object moved, or a scene whose object was moved in place after the
+precomputation (re-precompute at the new pose, e.g. on ``scene.at_frame(i, n)``);
+nothing is updated incrementally. The camera may move; the light is
 one environment seen through the portals (or user-given shell cubemaps,
 :meth:`Portals.shade_shells`: a dynamic exterior from
 :func:`prtlab.portals.exterior_shell`, portal materials :func:`prtlab.portals.tint`,
@@ -57,7 +59,8 @@ from prtlab.wavelet import SparseTransfer, encode_transfer
 
 from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
-from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
+from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
+                     glossy_indirect_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
                        power_sum, quantize_rows, vertex_areas)
@@ -434,6 +437,30 @@ class Portals(Precomputation):
     #: vertices per precomputation chunk (one resumable cache part each)
     chunk_vertices: int = 2048
 
+    def __init__(self, scene: Scene, options, data):
+        super().__init__(scene, options, data)
+        #: every object's pose when the transfer was made (its matrix, copied: the scene may be edited in place)
+        self._baked_poses = {o.name: np.array(o.transform.matrix(), dtype=np.float64) for o in scene.objects}
+
+    def moved_objects(self, state: FrameState) -> list[str]:
+        """The objects whose pose in ``state``, or in :attr:`scene` itself (edited in place after the
+        precomputation), differs from the pose the transfer was made at (objects added since count as moved)."""
+        moved = []
+        for o in self.scene.objects:
+            baked = self._baked_poses.get(o.name)
+            poses = [o.transform] + ([state.transforms[o.name]] if o.name in state.transforms else [])
+            tol = 1e-12 * max(1.0, float(np.abs(baked).max())) if baked is not None else 0.0
+            if baked is None or any(not np.allclose(t.matrix(), baked, rtol=0.0, atol=tol) for t in poses):
+                moved.append(o.name)
+        return moved
+
+    def _check_not_moved(self) -> None:
+        """Refuse to shade once an object of :attr:`scene` moved (or was added) after the precomputation."""
+        moved = self.moved_objects(FrameState())
+        if moved:
+            raise ValueError(f"{self.baked_reason}: object {moved[0]!r} moved after the precomputation; put it back "
+                             "or re-precompute at the new pose (e.g. precompute(scene.at_frame(i, n)))")
+
     @classmethod
     def cache_key_parts(cls, scene: Scene, options) -> list:
         """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
@@ -617,6 +644,14 @@ class Portals(Precomputation):
                                             {self.options.bounces: e["sum"]}, e.get("project"))
         return self._surface
 
+    def source_operator(self, k: int = 0):
+        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k``
+        (:class:`prtlab.portals._surface.SourceOperator`), built on first use from the stored source transfer."""
+        cached = self.__dict__.setdefault("_source_cache", {})
+        if k not in cached:
+            cached[k] = self.surface_transfer().source_operator(self.direct_transfer(k, source=True))
+        return cached[k]
+
     def _check_bounces(self, bounces):
         return self.options.bounces if bounces is None else self.check_bounces(bounces, self.options)
 
@@ -642,8 +677,12 @@ class Portals(Precomputation):
         centre) or portal materials: ``tint(cube, colour)``, ``frosted(cube, sigma_deg)``.
         ``bounces``: any ``0 <= bounces <=`` the precomputed number (the transfer is
         stored per bounce). ``camera``: the viewer of glossy vertices (default the scene's).
+        ``method``: ``"numba"`` (the fast passes) or ``"reference"`` (every pass's float64 reference tier).
+        Refused once an object of the scene moved after the precomputation.
         """
         bounces = self._check_bounces(bounces)
+        _check_method(method)
+        self._check_not_moved()
         shells = list(shells)
         if len(shells) != self.n_portals:
             raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
@@ -660,17 +699,26 @@ class Portals(Precomputation):
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
         timings = {"direct": 0.0, "indirect": 0.0}
         surface = self.surface_transfer() if bounces > 0 else None
-        source = np.zeros((n, 3))
+        source = np.zeros((surface.n_patches if surface is not None else 0, 3))
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
-            direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            if method == "reference" or (surface is None and not len(g)):
+                direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+            else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
+                _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
+                light = shell_coefficients(cube)
+                direct += direct_from_light(self.direct_transfer(k), albedo, light)
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()
             if surface is not None:
-                source += direct_pass(self.direct_transfer(k, source=True), albedo, cube, method=method)
+                if method == "reference":
+                    source += surface.patch_source(direct_pass(self.direct_transfer(k, source=True), albedo, cube,
+                                                               method="reference"))
+                else:
+                    source += self.source_operator(k).apply(light)
             elif bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
@@ -681,7 +729,7 @@ class Portals(Precomputation):
             timings["indirect"] += time.perf_counter() - t1
         if surface is not None:
             t0 = time.perf_counter()
-            indirect = surface.indirect(source, bounces)
+            indirect = surface.frame(source, bounces, method=method)
             timings["indirect"] += time.perf_counter() - t0
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])

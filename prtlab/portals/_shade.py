@@ -81,11 +81,26 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
     cube = _check_cube(shell_cube, direct.res)
     if method == "reference":
         return direct.dot(cube, method="reference") * albedo
-    n = 6 * direct.res * direct.res
+    return direct_from_light(direct, albedo, shell_coefficients(cube, haar=bool(np.any(direct.basis == direct.HAAR))))
+
+
+def shell_coefficients(shell_cube, haar: bool = True) -> np.ndarray:
+    """The shell light in both bases of the 8-bit transfers, ``(2 T, 3)`` float64 (``T = 6 r^2``): rows ``0..T-1``
+    the texels (pulse), rows ``T..2T-1`` the Haar coefficients (:func:`prtlab.wavelet.haar2d`; zeros unless
+    ``haar``). Computed once per frame and portal, shared by the direct pass and the surface source."""
+    cube = np.asarray(shell_cube, dtype=np.float64)
+    n = cube.shape[0] * cube.shape[1] * cube.shape[2]
     light = np.zeros((2 * n, 3))
     light[:n] = cube.reshape(n, 3)
-    if np.any(direct.basis == direct.HAAR):  # the Haar coefficients only when some vertex stores Haar
-        light[n:] = haar2d(cube, channels=True).reshape(n, 3)
+    if haar:
+        with _threads_for(0):  # ~0.1 ms of work: a parallel region's start-up would cost more
+            light[n:] = haar2d(cube, channels=True).reshape(n, 3)
+    return light
+
+
+def direct_from_light(direct: SparseTransfer, albedo, light) -> np.ndarray:
+    """:func:`direct_pass` (numba tier) from the shell light's coefficients ``light`` (:func:`shell_coefficients`,
+    ``(2 T, 3)``) and a checked ``(V, 3)`` float64 ``albedo``."""
     out = np.empty((direct.n_vertices, 3))
     if direct.n_vertices:
         with _threads_for(3 * len(direct.codes)):

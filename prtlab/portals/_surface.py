@@ -16,8 +16,11 @@ Precomputed, independent of the light (``indirect="surface"``):
 - ``H (C, C, 3) = Pbar diag(rho) F``: one bounce between patches (``Pbar`` the area-weighted mean over a patch).
 - ``S_B = sum_{b=0}^{B-1} H^b`` (binary doubling: ``2 log2 B`` products).
 
-Per frame: ``s = Pbar L_d`` (the patches' mean direct radiance), ``L_ind = rho * F (S_B s)``: light that bounced
-``1..B`` times, ``V C + C^2`` multiply-adds per colour channel.
+Per frame: ``s = Pbar L_d`` (the patches' mean direct radiance of the hat-averaged source transfer), ``L_ind = rho
+* F (S_B s)``: light that bounced ``1..B`` times, ``V C + C^2`` multiply-adds per colour channel. ``s`` is read
+straight from the shell light through ``G = Pbar diag(rho) T_src`` (:class:`SourceOperator`, built once when
+shading starts: ``C`` rows instead of the source pass over ``V`` vertices); :meth:`SurfaceTransfer.frame` keeps a
+float64 reference tier.
 
 Limits: diffuse interiors only (a glossy vertex's radiance depends on the direction; use ``indirect="paper"``).
 Errors: the gather noise (``M`` rays, stratified); the linear interpolation of ``L_d`` between vertices across
@@ -26,14 +29,15 @@ the sun patch's edge; with clusters, the sun's patch averaged over a cluster for
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from prtlab.geometry import RayCaster, stratified_hemisphere
 
+from . import _kernels
 from ._indirect import front_hit_corners
 
-__all__ = ["vertex_areas", "cluster_vertices", "patch_gather", "patch_operator", "power_sum", "SurfaceTransfer"]
+__all__ = ["vertex_areas", "cluster_vertices", "patch_gather", "patch_operator", "power_sum", "SurfaceTransfer",
+           "SourceOperator"]
 
 
 def vertex_areas(caster: RayCaster) -> np.ndarray:
@@ -187,33 +191,110 @@ class SurfaceTransfer:
             self.sums[b] = power_sum(self.operator, b, self.project).astype(np.float32)
         return self.sums[b]
 
-    def indirect(self, direct, bounces: int) -> np.ndarray:
-        """``L_ind = rho * F (S_B Pbar L_d)``, ``(V, 3)`` float64, from the direct radiance ``direct (V, 3)``."""
+    def patch_source(self, direct) -> np.ndarray:
+        """``s = Pbar L_d``, ``(C, 3)`` float64: the patches' area-weighted mean of the per-vertex ``direct (V, 3)``."""
         direct = np.asarray(direct, dtype=np.float64)
+        if self.identity:
+            return direct.copy()
+        s = np.zeros((self.n_patches, 3))
+        for ch in range(3):
+            s[:, ch] = np.bincount(self.patch, weights=self.mean_weight * direct[:, ch], minlength=self.n_patches)
+        return s
+
+    def indirect(self, direct, bounces: int, method: str = "numba") -> np.ndarray:
+        """``L_ind = rho * F (S_B Pbar L_d)``, ``(V, 3)`` float64, from the direct radiance ``direct (V, 3)``."""
+        return self.frame(self.patch_source(direct), bounces, method)
+
+    def frame(self, source, bounces: int, method: str = "numba") -> np.ndarray:
+        """``L_ind = rho * F (S_B s)``, ``(V, 3)`` float64, from the patches' source light ``source (C, 3)``
+        (:meth:`patch_source`, or :meth:`SourceOperator.apply` straight from the shell light).
+
+        ``method="numba"``: ``S_B s`` and the product with the 16-bit gather in float32 sums (forward error at most
+        ``(C + 2) eps_32`` times the same sums of absolute values, each); ``"reference"``: the stored (float32, 16-bit)
+        data decoded to float64, float64 throughout.
+        """
+        source = np.asarray(source, dtype=np.float64)
+        n = len(self.patch)
         if bounces <= 0:
-            return np.zeros_like(direct)
-        u = self.patch_light(direct, bounces)
-        out = np.empty((len(self.patch), 3))
+            return np.zeros((n, 3))
+        sums = self.bounce_sum(int(bounces))
+        if method == "reference":
+            light = np.einsum("cdk,dk->ck", sums.astype(np.float64), source)
+            gather = self.codes.astype(np.float64) * self.scale.astype(np.float64)[:, None]
+            return self.albedo * (gather @ light)
+        if method != "numba":
+            raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
         from ._shade import _threads_for
 
+        light_t = np.empty((3, self.n_patches), dtype=np.float32)
+        with _threads_for(sums.size):
+            _kernels.bounce_light_kernel(sums, np.ascontiguousarray(source), light_t)
+        out = np.empty((n, 3))
         with _threads_for(self.codes.size * 3):
-            _gather_product(self.codes, self.scale, u, self.albedo, out)
+            _kernels.gather_product_kernel(self.codes, self.scale, light_t, self.albedo, out)
         return out
 
     def patch_light(self, direct, bounces: int) -> np.ndarray:
-        """``S_B Pbar L_d``, ``(C, 3)`` float32: the light the patches send after ``0 .. B-1`` bounces."""
-        direct = np.asarray(direct, dtype=np.float64)
-        if self.identity:
-            s = direct
-        else:
-            s = np.zeros((self.n_patches, 3))
-            for ch in range(3):
-                s[:, ch] = np.bincount(self.patch, weights=self.mean_weight * direct[:, ch], minlength=self.n_patches)
-        sb = self.bounce_sum(int(bounces))
-        u = np.empty((self.n_patches, 3), dtype=np.float32)
+        """``S_B Pbar L_d``, ``(C, 3)`` float64 from the stored float32 ``S_B``: the light the patches send after
+        ``0 .. B-1`` bounces."""
+        return np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), self.patch_source(direct))
+
+    def source_operator(self, source) -> "SourceOperator":
+        """The per-frame-invariant product ``Pbar diag(rho) T_src`` of a hat-averaged source transfer ``source``
+        (:class:`prtlab.wavelet.SparseTransfer`, ``V`` rows): :class:`SourceOperator`."""
+        return SourceOperator(source, self.patch, self.mean_weight, self.albedo, self.n_patches)
+
+
+class SourceOperator:
+    """``G = Pbar diag(rho) T_src`` as a CSR matrix ``(C, 2 T)`` with one float64 value per colour channel.
+
+    The patches' source light ``s = Pbar (rho * T_src L)`` is then ``G [L_pulse; L_haar]`` per frame: ``C`` rows,
+    each the union of its vertices' entries, instead of a pass over all ``V`` vertices; the same sums reassociated
+    (float64 roundoff). ``T = 6 r^2``; a vertex stored in Haar has its entries in columns ``T..2T-1``.
+
+    Parameters
+    ----------
+    source : SparseTransfer
+        The 8-bit hat-averaged source transfer, ``V`` rows.
+    patch : (V,) int
+    mean_weight : (V,) float
+        ``a_v / A_patch(v)``.
+    albedo : (V, 3) float
+    n_patches : int
+    """
+
+    def __init__(self, source, patch, mean_weight, albedo, n_patches: int):
+        n_texels = 6 * source.res * source.res
+        counts = np.diff(source.indptr)
+        rows = np.repeat(np.arange(source.n_vertices), counts)
+        raw = source.indices.astype(np.int64)
+        columns = (raw & (source.sign_bit - 1)) + n_texels * source.basis.astype(np.int64)[rows]
+        code = np.where(raw >= source.sign_bit, -1.0, 1.0) * source.codes
+        weight = np.asarray(mean_weight, dtype=np.float64) * source.scale.astype(np.float64) / 255.0
+        key = np.asarray(patch, dtype=np.int64)[rows] * (2 * n_texels) + columns
+        keys, where = np.unique(key, return_inverse=True)
+        albedo = np.asarray(albedo, dtype=np.float64)
+        self.values = np.empty((len(keys), 3))
         for ch in range(3):
-            u[:, ch] = sb[:, :, ch] @ s[:, ch].astype(np.float32)
-        return u
+            self.values[:, ch] = np.bincount(where, weights=code * (weight * albedo[:, ch])[rows],
+                                             minlength=len(keys))
+        self.columns = (keys % (2 * n_texels)).astype(np.int32)
+        self.indptr = np.searchsorted(keys // (2 * n_texels), np.arange(n_patches + 1)).astype(np.int64)
+        self.res = int(source.res)
+
+    @property
+    def nbytes(self) -> int:
+        return self.values.nbytes + self.columns.nbytes + self.indptr.nbytes
+
+    def apply(self, light) -> np.ndarray:
+        """``s = G light``, ``(C, 3)`` float64, from the shell light's coefficients ``light (2 T, 3)``
+        (:func:`prtlab.portals._shade.shell_coefficients`)."""
+        from ._shade import _threads_for
+
+        out = np.empty((len(self.indptr) - 1, 3))
+        with _threads_for(3 * len(self.columns)):
+            _kernels.source_light_kernel(self.indptr, self.columns, self.values, np.ascontiguousarray(light), out)
+        return out
 
 
 def quantize_rows(gather):
@@ -225,24 +306,6 @@ def quantize_rows(gather):
     scale = np.where(top > 0, top / 65535.0, 1.0)
     codes = np.rint(gather / scale[:, None]).astype(np.uint16)
     return np.ascontiguousarray(codes), scale.astype(np.float32)
-
-
-@numba.njit(parallel=True, fastmath=True, cache=True)
-def _gather_product(codes, scale, u, albedo, out):  # pragma: no cover - compiled
-    """``out[v] = albedo[v] scale[v] sum_c codes[v, c] u[c]`` (3 channels), one vertex per parallel iteration."""
-    n, m = codes.shape
-    for v in numba.prange(n):
-        a0 = np.float32(0.0)
-        a1 = np.float32(0.0)
-        a2 = np.float32(0.0)
-        for c in range(m):
-            g = np.float32(codes[v, c])
-            a0 += g * u[c, 0]
-            a1 += g * u[c, 1]
-            a2 += g * u[c, 2]
-        out[v, 0] = albedo[v, 0] * scale[v] * a0
-        out[v, 1] = albedo[v, 1] * scale[v] * a1
-        out[v, 2] = albedo[v, 2] * scale[v] * a2
 
 
 def _centroid_pattern(n: int) -> np.ndarray:

@@ -24,6 +24,10 @@ window point is unoccluded and the direct radiance is ``rho / pi int_window L(d)
 Mitsuba's. A surface the sky cannot reach directly (the ceiling: below the horizon through the window; the window's
 own wall) has a black direct reference: ours must be black there too.
 
+A second sun elevation (:data:`HIGH_ELEVATION`, the patch on the floor close under the window) is shaded from the
+same precomputation (the light is per-frame state) and scored on the same rows against its own Mitsuba reference
+at :data:`HIGH_BOUNCES` bounces (both sides), which costs about a third of the 12-bounce one.
+
 Motion: the method bakes every object's pose into its transfer, so ``shade(FrameState)`` with the block moved is
 refused.
 """
@@ -52,6 +56,8 @@ PARTS = ("direct", "indirect", "total")
 SURFACES = {"floor": (1, 1.0), "ceiling": (1, -1.0), "wall+x": (0, -1.0), "wall-x": (0, 1.0),
             "wall-z": (2, 1.0), "wall+z": (2, -1.0)}  # (axis, sign of the inward normal); the window is on -z
 UNLIT = ("ceiling", "wall-z")  # no direct light: the window shows them only the ground (black)
+HIGH_ELEVATION = 60  # the second sun elevation of the sunlit room
+HIGH_BOUNCES = 4
 
 
 def window_room(sun: bool = False, pose: str = "first") -> Scene:
@@ -113,19 +119,48 @@ def sky(sky_pre):
 
 
 @pytest.fixture(scope="module")
-def sunlit():
-    """The sunlit room: ours (defaults) and the reference, split per surface."""
-    scene = prtlab.load_scene("sunlit_window_room")
-    pre = prtlab.api.precompute(scene, "portals", progress=False, bounces=SUN_BOUNCES)
+def sunlit_pre():
+    """The sunlit room's precomputation (defaults, :data:`SUN_BOUNCES`); the light is per-frame state."""
+    return prtlab.api.precompute(prtlab.load_scene("sunlit_window_room"), "portals", progress=False,
+                                 bounces=SUN_BOUNCES)
+
+
+def _sunlit_comparison(pre, scene: Scene, bounces: int, seed: int, label: str):
+    """Ours (``pre`` shaded under ``scene``'s sky) and the reference (Mitsuba; the direct light by the window
+    quadrature), split per surface: ``(ours, ref, comparison)``."""
     normals = scene.object("room").world_normals()
-    ours = by_surface(pre.shade(bounces=SUN_BOUNCES), normals)
-    mitsuba = shade_mitsuba(scene, bounces=SUN_BOUNCES, spp=SPP, seed=3)
+    state = FrameState.from_scene(pre.scene)
+    state.lights = list(scene.lights)
+    ours = by_surface(pre.shade(state, bounces=bounces), normals)
+    mitsuba = shade_mitsuba(scene, bounces=bounces, spp=SPP, seed=seed)
     fine, coarse = window_quadrature(scene, 128), window_quadrature(scene, 64)
     mitsuba.direct["room"], mitsuba.stderr["direct"]["room"] = fine, np.abs(fine - coarse)
     ref = by_surface(mitsuba, normals)
     comparison = prtlab.compare(ours, ref)
-    print(f"\nsunlit_window_room ({SPP} spp, {SUN_BOUNCES} bounces)\n{comparison.table()}")
+    print(f"\nsunlit_window_room, {label} ({SPP} spp, {bounces} bounces)\n{comparison.table()}")
     return ours, ref, comparison
+
+
+@pytest.fixture(scope="module")
+def sunlit(sunlit_pre):
+    """The sunlit room (sun at 35 degrees): ours (defaults) and the reference, split per surface."""
+    return _sunlit_comparison(sunlit_pre, prtlab.load_scene("sunlit_window_room"), SUN_BOUNCES, 3, "sun 35 deg")
+
+
+def sunlit_room_at(elevation_deg: float) -> Scene:
+    """``sunlit_window_room`` with its sun at ``elevation_deg`` (same azimuth)."""
+    d = prtlab.load_scene("sunlit_window_room").to_dict()
+    d["lights"][0]["sky"]["sun_elevation_deg"] = float(elevation_deg)
+    return Scene.from_dict(d)
+
+
+@pytest.fixture(scope="module")
+def sunlit_high(sunlit_pre):
+    """The sunlit room with the sun at :data:`HIGH_ELEVATION` (its patch on the floor close under the window),
+    shaded from the same precomputation (the light is per-frame state), :data:`HIGH_BOUNCES` bounces on both sides
+    (fewer than :data:`SUN_BOUNCES`: the reference's run time grows with them)."""
+    return _sunlit_comparison(sunlit_pre, sunlit_room_at(HIGH_ELEVATION), HIGH_BOUNCES, 5,
+                              f"sun {HIGH_ELEVATION} deg")
 
 
 # Measured (this module, the seeds above, the defaults): relative RMS per vertex, the reference's relative noise,
@@ -163,6 +198,10 @@ SUN_CASES = [(s, p) for s in SURFACES for p in PARTS if not (s in UNLIT and p ==
 def test_sunlit_room_against_mitsuba(sunlit, surface, part):
     """Every surface of the sunlit room, each part it receives, within ``hypot(SUN_GOAL, noise)``; and the whole
     room's total."""
+    _check_sunlit_row(sunlit, surface, part)
+
+
+def _check_sunlit_row(sunlit, surface, part):
     ours, ref, comparison = sunlit
     if surface == "all":
         ours_all, ref_all = ShadeResult(), ShadeResult()
@@ -173,6 +212,45 @@ def test_sunlit_room_against_mitsuba(sunlit, surface, part):
         assert whole.check(SUN_GOAL) == [], whole.table()
         return
     assert comparison.check(SUN_GOAL, parts=(part,), objects=(surface,)) == [], comparison.table()
+
+
+# Measured at HIGH_ELEVATION (this module, seed 5, the defaults, 4 bounces): (surface, part) -> (rel_rms, noise,
+# mean ratio). Misses of the goal (AssertionError):
+MISSED_HIGH = {
+    ("floor", "direct"): (0.041, 0.0001, 1.005), ("floor", "total"): (0.041, 0.005, 1.008),
+    ("all", "total"): (0.081, 0.007, None),
+}
+MISSED_HIGH_CAUSE = ("not yet analysed: the floor's direct light misses on its own (window quadrature reference) and "
+                     "the window's wall's indirect light (0.358, mean 0.93) dominates the whole room's total")
+# Rows whose reference (65,536 spp) is noisier than goal / 3, so that ``check`` refuses them (ValueError); ours
+# measured against it all the same. Judging them needs about 3-4 times the samples, over this tier's time budget.
+NOISY_HIGH = {
+    ("floor", "indirect"): (0.048, 0.017, 1.02), ("ceiling", "indirect"): (0.028, 0.017, 1.01),
+    ("ceiling", "total"): (0.028, 0.017, 1.01), ("wall+x", "indirect"): (0.040, 0.017, 1.02),
+    ("wall+x", "total"): (0.033, 0.015, 1.02), ("wall-x", "indirect"): (0.041, 0.017, 1.02),
+    ("wall-x", "total"): (0.035, 0.015, 1.02), ("wall-z", "indirect"): (0.358, 0.015, 0.93),
+    ("wall-z", "total"): (0.358, 0.015, 0.93), ("wall+z", "indirect"): (0.044, 0.018, 1.02),
+    ("wall+z", "total"): (0.033, 0.015, 1.01),
+}
+
+
+def _high_case(surface, part):
+    for table, raises in ((MISSED_HIGH, AssertionError), (NOISY_HIGH, ValueError)):
+        if (surface, part) in table:
+            rel_rms, noise, ratio = table[surface, part]
+            figure = f"measured rel_rms {rel_rms:.3f} (noise {noise:.4f}" + (
+                f", mean ratio {ratio:.2f})" if ratio is not None else ")")
+            reason = (f"{figure} > goal {SUN_GOAL}: {MISSED_HIGH_CAUSE}" if raises is AssertionError else
+                      f"{figure}: the reference's noise > goal / 3 at {SPP} spp, refused by check")
+            return pytest.param(surface, part, marks=pytest.mark.xfail(strict=True, raises=raises, reason=reason))
+    return (surface, part)
+
+
+@pytest.mark.parametrize("surface, part", [_high_case(s, p) for s, p in SUN_CASES])
+def test_sunlit_room_second_elevation_against_mitsuba(sunlit_high, surface, part):
+    """The sun at :data:`HIGH_ELEVATION`: every surface and part it receives, and the whole room's total, within
+    ``hypot(SUN_GOAL, noise)`` (the same rows as at 35 degrees)."""
+    _check_sunlit_row(sunlit_high, surface, part)
 
 
 def test_sunlit_room_unlit_surfaces_black(sunlit):

@@ -266,3 +266,80 @@ def test_dask_workers_match_serial(tmp_path, monkeypatch):
     for name in ("indptr", "codes", "indirect", "glossy_indptr", "glossy_codes", "glossy_matrix"):
         np.testing.assert_array_equal(distributed.data["portal0"][name], serial.data["portal0"][name])
     np.testing.assert_array_equal(distributed.shade(bounces=2).total["block"], serial.shade(bounces=2).total["block"])
+
+
+# ------------------------------------------------------------------ objects moved after the precomputation (issue 17)
+
+
+def test_an_object_moved_after_the_precomputation_is_refused_not_ignored():
+    """The interior is baked: a pose given in the frame state, or the scene's own object moved in place (its
+    transform replaced or its arrays edited) after the precomputation, is refused in one line by ``shade`` and by
+    ``shade_shells``; put back, it shades as before."""
+    from prtlab.scene import Transform
+    from tests.robustness.test_pipelines import TINY_PORTALS, _room_with_box
+
+    aside = Transform(translate=np.array([1.0, 0.3, 1.0]))
+    blocking = Transform(translate=np.array([0.0, 1.4, -1.2]))
+    scene = _room_with_box(aside)
+    pre = Portals.precompute(scene, TINY_PORTALS, cache=False, progress=False)
+    before = pre.shade(bounces=1).total["room"]
+    cube = shell_light(scene.environment, 4)
+    state = FrameState.from_scene(scene)
+    state.transforms["box"] = blocking
+    with pytest.raises(ValueError, match="^the portals method precomputes the interior: object 'box' moved; keep it"):
+        pre.shade(state, bounces=1)
+    scene.object("box").transform = blocking  # the scene edited in place
+    with pytest.raises(ValueError, match="^the portals method precomputes the interior: object 'box' moved; keep it"):
+        pre.shade(bounces=1)
+    with pytest.raises(ValueError, match="^the portals method precomputes the interior: object 'box' moved after "
+                                         r"the precomputation; put it back or re-precompute at the new pose"):
+        pre.shade_shells([cube], 1)
+    scene.object("box").transform = Transform(translate=np.array([1.0, 0.3, 1.0]))
+    np.testing.assert_array_equal(pre.shade(bounces=1).total["room"], before)
+    scene.object("box").transform.translate[1] += 0.5  # an in-place edit of the pose's arrays
+    with pytest.raises(ValueError, match="object 'box' moved after the precomputation"):
+        pre.shade_shells([cube], 1)
+    scene.object("box").transform.translate[1] -= 0.5
+    np.testing.assert_array_equal(pre.shade_shells([cube], 1).total["room"], before)
+    assert pre.moved_objects(FrameState()) == []
+
+
+# ------------------------------------------------------------------ the default frame's tiers
+
+
+def test_surface_frame_numba_tier_within_its_float32_bound_of_the_float64_reference():
+    """``indirect="surface"``: the numba frame (shell light coefficients once, the source operator ``Pbar diag(rho)
+    T_src``, float32 sums) against the float64 reference tier (per-vertex source pass, patch mean, float64
+    products). The source light agrees to float64 roundoff (1e-12 of the sums of absolute terms); the indirect light
+    within the float32 sums' forward error bound ``2 (C + 2) eps_32`` times the same products of absolute values."""
+    scene = window_box(cell=0.5)
+    pre = Portals.precompute(scene, {**QUICK, "bounces": 2, "indirect": "surface", "clusters": 24}, cache=False,
+                             progress=False)
+    surface = pre.surface_transfer()
+    assert surface.n_patches == 24 and not surface.identity
+    from prtlab.bench import transfer_csr
+    from prtlab.portals._shade import shell_coefficients
+
+    cube = shell_light(scene.environment, 8)
+    albedo = np.asarray(pre.data["albedo"], dtype=np.float64)
+    source_t = pre.direct_transfer(0, source=True)
+    from prtlab.portals import direct_pass
+
+    s_ref = surface.patch_source(direct_pass(source_t, albedo, cube, method="reference"))
+    light = shell_coefficients(cube)
+    s_abs = surface.patch_source((abs(transfer_csr(source_t)) @ np.abs(light)) * albedo)  # sums of |terms|
+    s = pre.source_operator(0).apply(light)
+    assert np.all(np.abs(s - s_ref) <= 1e-12 * s_abs)
+    ours, ref = surface.frame(s, 2), surface.frame(s_ref, 2, method="reference")
+    sums = np.abs(surface.bounce_sum(2).astype(np.float64))
+    bound_light = np.einsum("cdk,dk->ck", sums, np.abs(s_ref))
+    gather = surface.codes.astype(np.float64) * surface.scale.astype(np.float64)[:, None]
+    bound = 2 * (surface.n_patches + 2) * np.finfo(np.float32).eps * albedo * (gather @ bound_light)
+    assert np.all(np.abs(ours - ref) <= bound)
+    numba_frame, ref_frame = pre.shade(bounces=2), pre.shade_shells([cube], 2, method="reference")
+    np.testing.assert_allclose(numba_frame.direct["room"], ref_frame.direct["room"], rtol=1e-12, atol=1e-15)
+    assert np.all(np.abs(numba_frame.indirect["room"] - ref_frame.indirect["room"]) <= bound)
+    with pytest.raises(ValueError, match="method must be 'numba' or 'reference', got 'fast'"):
+        pre.shade_shells([cube], 2, method="fast")
+    with pytest.raises(ValueError, match="method must be 'numba' or 'reference', got 'fast'"):
+        surface.frame(s, 2, method="fast")
