@@ -76,7 +76,14 @@ from prtlab.shadowfields import (
     source_radiance_field,
 )
 
-from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
+from ._fields import (
+    STORAGES,
+    StoredBasisRadiance,
+    basis_radiance_at,
+    basis_radiance_field,
+    self_basis_irradiance,
+    store_basis_radiance,
+)
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
@@ -148,6 +155,11 @@ class InterreflectionOptions:
         the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
         per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
         object moves.
+    storage : {"int16", "float32", "float64"}
+        Format of the basis radiance fields, at rest and in memory (:func:`store_basis_radiance`; sample points
+        where a field is 0 are not stored in any): per ``(point, k, i)`` block integers times a float32 scale
+        (absolute error at most half the block's step, ``max |S| / 65534``), float32, or every float64 value
+        as computed (the reference). The other arrays are kept in float64.
     """
 
     order: int = 4
@@ -171,6 +183,7 @@ class InterreflectionOptions:
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
     residual_rays: int = 64
+    storage: str = "int16"
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
@@ -194,6 +207,7 @@ class InterreflectionOptions:
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
+        check_choice(self.storage, "option storage", STORAGES)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
@@ -328,7 +342,7 @@ class Interreflection(Precomputation):
     """Iwasaki et al. 2007: PRT for dynamic scenes with interreflections (module docstring)."""
 
     method = "interreflection"
-    format_version = 3
+    format_version = 4  # 4: basis radiance fields stored sparse, in the format of option ``storage``
     max_bounces = None
     options_type = InterreflectionOptions
     renamed_options = {"haar_resolution": "cube_resolution"}
@@ -370,8 +384,11 @@ class Interreflection(Precomputation):
         n_o = len(objs)
         needs = [
             MemoryNeed("the occlusion fields", n_o * texels * n2 * 8.0, ("n_radii", "resolution", "order")),
-            MemoryNeed("the basis radiance fields", n_o * texels * n_b * k * n2 * 8.0 * 2,
-                       ("n_radii", "resolution", "n_basis")),
+            # one object's dense float64 field (and its projection) while it is computed, every object's stored
+            MemoryNeed("the basis radiance fields",
+                       texels * n_b * k * n2 * (8.0 * 2 + n_o * {"float64": 8.0, "float32": 4.0}.get(options.storage,
+                                                                                                    2.25)),
+                       ("n_radii", "resolution", "n_basis", "storage")),
             MemoryNeed("the PCA training renders", 3.0 * 8 * options.n_lights * v_max, ("n_lights",)),
             MemoryNeed("the visibility projection", 2.0 * 8 * v_max * quadrature, ("degree",)),
             MemoryNeed("the self-interreflection", n_v * k * k * n_b * 8.0, ("n_basis", "K_glossy")),
@@ -414,8 +431,11 @@ class Interreflection(Precomputation):
             own = np.zeros((len(points), sep.K, sep.K, basis.n_basis))
             if options.self_interreflection and not _is_flat(mesh):  # a plane sees none of itself
                 own = self_basis_irradiance(mesh, basis.basis, sep, points, normals, degree=options.degree)
+            stored = store_basis_radiance(field, options.storage)
+            del field
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
-                              "pca_samples": basis.samples, "basis_radiance": field, "self_irradiance": own}
+                              "pca_samples": np.asarray(basis.samples, np.int32),
+                              "basis_radiance": stored.to_arrays(), "self_irradiance": own}
             if options.shadows == "haar":
                 haar = {"resolution": options.cube_resolution, "keep": options.haar_keep}
                 data[obj.name]["haar_oof"] = haar_occlusion_field(
@@ -432,6 +452,8 @@ class Interreflection(Precomputation):
         super().__init__(scene, options, data)
         self.objects = [o for o in scene.objects if not o.portal]
         self.fields = {o.name: OcclusionField.from_arrays(data[o.name]["oof"]) for o in self.objects}
+        self.radiance = {o.name: StoredBasisRadiance.from_arrays(data[o.name]["basis_radiance"])
+                         for o in self.objects}
         self.bases = {}
         for o in self.objects:
             b = np.asarray(data[o.name]["pca_basis"], float)
@@ -473,7 +495,7 @@ class Interreflection(Precomputation):
             oof["order"] = np.int64(o)
             data[obj.name] = {"oof": oof, "self_visibility": np.asarray(d["self_visibility"])[:, :n2],
                               "pca_basis": np.asarray(d["pca_basis"])[:n], "pca_samples": d["pca_samples"],
-                              "basis_radiance": np.asarray(d["basis_radiance"])[..., :n, :n2],
+                              "basis_radiance": self.radiance[obj.name].truncated(n, o).to_arrays(),
                               "self_irradiance": np.asarray(d["self_irradiance"])[..., :n]}
             for key in ("haar_oof", "haar_self"):  # the all-frequency direct shadows do not depend on n, N
                 if key in d:
@@ -759,7 +781,7 @@ class Interreflection(Precomputation):
         g_c = brdf.project_g_cos(self.seps[r.name], wc, self.options.order)  # (K', n2), world frame
         # S at the centre as the basis irradiance sees it: the field's interpolation (with its 1 / r^2
         # beyond the outermost sphere), not a ray-cast quadrature that may miss a small, far source
-        phi_c = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid,
+        phi_c = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid,
                                  gr["center"][None], g_c[None], gs["T"])
         return float(np.max(np.abs(phi_c)))
 
@@ -926,7 +948,7 @@ class Interreflection(Precomputation):
         factors = [(o, self._may_block(g["x"][rows], geo[o], gs)) for o in blockers]
         vis = self._visibility(g, occ[r.name], factors, rows)
         transfer = self._transfer(vis, g["g_cos"][rows])
-        value = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid, g["x"][rows],
+        value = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid, g["x"][rows],
                                  transfer, gs["T"])
         self._near_field(s, gs["T"], g["x"], rows, transfer, value)
         return value
