@@ -238,6 +238,18 @@ def _separables(objects, K_glossy: int) -> dict:
     return out
 
 
+def _object_space_key(mesh, sep) -> str:
+    """A hash of what an object's precomputed arrays depend on (without ``pca_occluders``): its mesh and its
+    BRDF's ``g_k``, ``h_k`` (not its colour)."""
+    from prtlab.cache import cache_key
+
+    return cache_key(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64),
+                     np.asarray(mesh.vertex_normals, np.float64), int(sep.K), str(sep.parameterisation),
+                     *(np.asarray(getattr(sep, f), np.float64) for f in (
+                         "theta_in", "theta_out", "weights_in", "weights_out", "g_radial", "h_radial", "freq",
+                         "parity")))
+
+
 def _local_shading_points(mesh) -> np.ndarray:
     """Object-space shading points of a mesh (``docs/DECISIONS.md``), placed per frame like the vertices."""
     return shading_points(mesh.vertices, np.asarray(mesh.faces), mesh.vertex_normals)
@@ -413,7 +425,14 @@ class Interreflection(Precomputation):
             it = tqdm(objs, desc="interreflection precompute", unit="object")
         seps = _separables(objs, options.K_glossy)
         data = {}
-        for obj in it:
+        first = {}  # object-space inputs -> index of the first object with them
+        for i, obj in enumerate(it):
+            if not options.pca_occluders:  # else the basis depends on the other objects' poses
+                inputs = _object_space_key(obj.mesh, seps[obj.name])
+                if inputs in first:  # the same mesh and BRDF terms (albedo apart): the same arrays, stored once
+                    data[obj.name] = {"same_as": np.int64(first[inputs])}
+                    continue
+                first[inputs] = i
             mesh = obj.mesh
             oof = occlusion_field(mesh, options.order, n_radii=options.n_radii, resolution=options.resolution,
                                   r_min=options.r_min, r_max=options.r_max, spacing=options.spacing,
@@ -451,26 +470,41 @@ class Interreflection(Precomputation):
     def __init__(self, scene, options, data):
         super().__init__(scene, options, data)
         self.objects = [o for o in scene.objects if not o.portal]
-        self.fields = {o.name: OcclusionField.from_arrays(data[o.name]["oof"]) for o in self.objects}
-        self.radiance = {o.name: StoredBasisRadiance.from_arrays(data[o.name]["basis_radiance"])
-                         for o in self.objects}
-        self.bases = {}
-        for o in self.objects:
-            b = np.asarray(data[o.name]["pca_basis"], float)
-            samples = np.asarray(data[o.name]["pca_samples"])
+        #: object -> its precomputed arrays (an object stored ``same_as`` another reads the other's)
+        self.entries = {o.name: data[self.objects[int(data[o.name]["same_as"])].name] if "same_as" in data[o.name]
+                        else data[o.name] for o in self.objects}
+        built: dict = {}
+
+        def shared(kind, o, make):
+            """One object per stored entry: objects that share their arrays share what is built from them."""
+            key = (kind, id(self.entries[o.name]))
+            if key not in built:
+                built[key] = make(self.entries[o.name])
+            return built[key]
+
+        def pca_basis(d):
+            b = np.asarray(d["pca_basis"], float)
+            samples = np.asarray(d["pca_samples"], np.int64)
             # the fit's spectrum and training lights are not needed per frame: basis and A^-1 only
-            self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
-                                              pca.WeightSolver.from_basis(b, samples))
+            return pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
+                                pca.WeightSolver.from_basis(b, samples))
+
+        self.fields = {o.name: shared("oof", o, lambda d: OcclusionField.from_arrays(d["oof"])) for o in self.objects}
+        self.radiance = {o.name: shared("radiance", o, lambda d: StoredBasisRadiance.from_arrays(d["basis_radiance"]))
+                         for o in self.objects}
+        self.bases = {o.name: shared("pca", o, pca_basis) for o in self.objects}
         self.seps = _separables(self.objects, options.K_glossy)
         self.local_points = {o.name: _local_shading_points(o.mesh) for o in self.objects}
-        self.self_irradiance = {o.name: np.ascontiguousarray(data[o.name]["self_irradiance"], dtype=float)
+        self.self_irradiance = {o.name: shared("self", o, lambda d: np.ascontiguousarray(d["self_irradiance"],
+                                                                                         dtype=float))
                                 for o in self.objects}
         haar = options.shadows == "haar"
-        self.haar_fields = {o.name: HaarOcclusionField.from_arrays(data[o.name]["haar_oof"])
+        self.haar_fields = {o.name: shared("haar_oof", o, lambda d: HaarOcclusionField.from_arrays(d["haar_oof"]))
                             for o in self.objects} if haar else {}
-        self.haar_self = {o.name: SparseCubemaps.from_arrays(data[o.name]["haar_self"])
+        self.haar_self = {o.name: shared("haar_self", o, lambda d: SparseCubemaps.from_arrays(d["haar_self"]))
                           for o in self.objects} if haar else {}
-        self.haar_radiance = {o.name: HaarBasisRadianceField.from_arrays(data[o.name]["haar_radiance"])
+        self.haar_radiance = {o.name: shared("haar_radiance", o,
+                                             lambda d: HaarBasisRadianceField.from_arrays(d["haar_radiance"]))
                               for o in self.objects} if options.irradiance == "haar" else {}
         self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
         self.reuse = FrameReuse()
@@ -489,6 +523,9 @@ class Interreflection(Precomputation):
         n2 = o * o
         data = {}
         for obj in self.objects:
+            if "same_as" in self.data[obj.name]:
+                data[obj.name] = self.data[obj.name]
+                continue
             d = self.data[obj.name]
             oof = dict(d["oof"])
             oof["coeffs"] = np.asarray(oof["coeffs"])[..., :n2]
@@ -526,7 +563,7 @@ class Interreflection(Precomputation):
             sep = self.seps[o.name]
             wo = np.asarray(camera.position, float) - x
             wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-300)
-            own = np.asarray(self.data[o.name]["self_visibility"], float)
+            own = np.asarray(self.entries[o.name]["self_visibility"], float)
             if len(own):
                 own = sh.rotate(own, T.rotation, channels=False)
             grid = self.fields[o.name].grid
