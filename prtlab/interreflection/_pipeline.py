@@ -5,7 +5,11 @@ Precomputation, per (non-portal) object, in object space (:meth:`Interreflection
 * the occlusion field and the vertices' self-visibility (:mod:`prtlab.shadowfields`);
 * the PCA basis of its surface intensity, ``N`` functions from ``n_lights`` point
   lights (:func:`prtlab.pca.fit_pca_basis`; lights on a grid for a flat object);
-* the basis radiance field ``S_(k,i)`` on its sample spheres (:mod:`._fields`).
+* the basis radiance field ``S_(k,i)`` on its sample spheres (:mod:`._fields`), stored without its zero
+  sample points in the format of option ``storage`` (:class:`._fields.StoredBasisRadiance`).
+
+Objects of one mesh and one BRDF's ``g_k``, ``h_k`` (albedo apart) share one stored entry (``same_as``), unless
+``pca_occluders`` makes each basis depend on the poses.
 
 Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
 
@@ -156,7 +160,8 @@ class InterreflectionOptions:
         per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
         object moves.
     storage : {"int16", "float32", "float64"}
-        Format of the basis radiance fields, at rest and in memory (:func:`store_basis_radiance`; sample points
+        Format of the basis radiance fields, at rest and in memory
+        (:func:`prtlab.interreflection._fields.store_basis_radiance`; sample points
         where a field is 0 are not stored in any): per ``(point, k, i)`` block integers times a float32 scale
         (absolute error at most half the block's step, ``max |S| / 65534``), float32, or every float64 value
         as computed (the reference). The other arrays are kept in float64.
