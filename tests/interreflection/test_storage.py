@@ -176,3 +176,37 @@ def test_shaded_result_with_int16_storage_within_the_bound_of_float64_storage(mo
         diff = np.abs(r16.indirect[name] - r64.indirect[name])
         assert np.all(diff <= bound + slack), (name, np.max(diff - bound - slack))
         assert np.max(diff) > 0.0
+
+
+def test_cache_keys_tell_the_formats_apart():
+    """A cache file of another storage, or of the dense float64 layout before format 4, is never read as this one."""
+    from prtlab.cache import cache_key
+
+    scene = _scene()
+    keys = {storage: cache_key(*Interreflection.cache_key_parts(
+        scene, pipeline_module.InterreflectionOptions(**dict(QUICK, storage=storage))))
+        for storage in ("float64", "float32", "int16")}
+    assert len(set(keys.values())) == 3
+    assert Interreflection.format_version >= 4
+    parts = Interreflection.cache_key_parts(scene, pipeline_module.InterreflectionOptions())
+    assert Interreflection.format_version in parts and parts[-1]["storage"] == "int16"
+
+
+def test_objects_of_one_mesh_share_one_entry_and_shade_as_when_stored_apart():
+    """Two balls of one mesh and different albedos: one stored entry (``same_as``) holding what the second ball
+    computes alone, and the same shading as with each ball's entry stored apart."""
+    d = _scene().to_dict()
+    ball2 = dict(d["objects"][1], name="ball2", transform={"translate": [1.2, 0.7, 0.3]},
+                 material={"type": "diffuse", "albedo": [0.2, 0.6, 0.9]})
+    scene = Scene.from_dict({**d, "objects": d["objects"] + [ball2]})
+    pre = Interreflection.precompute(scene, dict(QUICK, storage="float64"), cache=False, progress=False)
+    assert set(pre.data["ball2"]) == {"same_as"} and int(pre.data["ball2"]["same_as"]) == 1
+    assert pre.radiance["ball2"] is pre.radiance["ball"] and pre.entries["ball2"] is pre.data["ball"]
+    alone = Interreflection.compute(Scene.from_dict({**d, "objects": [ball2]}), pre.options, progress=False)["ball2"]
+    for key in ("pca_basis", "self_visibility", "self_irradiance"):
+        np.testing.assert_array_equal(alone[key], pre.data["ball"][key])
+    np.testing.assert_array_equal(alone["basis_radiance"]["values"], pre.data["ball"]["basis_radiance"]["values"])
+    apart = Interreflection(scene, pre.options, {**pre.data, "ball2": alone})
+    a, b = pre.shade(bounces=1), apart.shade(bounces=1)
+    for name in ("floor", "ball", "ball2"):
+        np.testing.assert_array_equal(a.total[name], b.total[name])
