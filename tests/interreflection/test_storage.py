@@ -210,3 +210,20 @@ def test_objects_of_one_mesh_share_one_entry_and_shade_as_when_stored_apart():
     a, b = pre.shade(bounces=1), apart.shade(bounces=1)
     for name in ("floor", "ball", "ball2"):
         np.testing.assert_array_equal(a.total[name], b.total[name])
+
+
+def test_stored_fields_read_back_from_the_cache_shade_the_same(tmp_path):
+    from prtlab.cache import Cache
+
+    cache = Cache(tmp_path, progress=False)
+    d = _scene().to_dict()
+    scene = Scene.from_dict({**d, "objects": d["objects"] + [dict(d["objects"][1], name="ball2",
+                                                                   transform={"translate": [1.2, 0.7, 0.3]})]})
+    made = Interreflection.precompute(scene, QUICK, cache=cache, progress=False)
+    read = Interreflection.precompute(scene, QUICK, cache=cache, progress=False)
+    stored = read.radiance["ball"]
+    assert stored.storage == "int16" and stored.values.dtype == np.int16 and stored.rows.dtype == np.int32
+    assert read.radiance["ball2"] is stored
+    a, b = made.shade(bounces=1), read.shade(bounces=1)
+    for name in ("floor", "ball", "ball2"):
+        np.testing.assert_array_equal(a.total[name], b.total[name])
