@@ -42,6 +42,8 @@ Self-interreflection (an extension)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from prtlab import brdf, sh
@@ -51,7 +53,12 @@ from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
 from ._kernels import hit_basis_kernel, project_hits_kernel
 
-__all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance"]
+__all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance", "StoredBasisRadiance",
+           "store_basis_radiance", "STORAGES"]
+
+#: Formats of a stored basis radiance field (:func:`store_basis_radiance`)
+STORAGES = ("float64", "float32", "int16")
+_INT16_STEPS = 32767
 
 _RAYS_PER_BATCH = 1 << 19
 
@@ -243,3 +250,101 @@ def self_basis_irradiance(mesh, basis, sep, points, normals, receiver_sep=None, 
         rows, starts = np.unique(sel[0], return_index=True)  # sel[0] is sorted (row-major nonzero)
         out[a + rows] = np.add.reduceat(contrib, starts, axis=0).reshape(len(rows), n_kp, n_k, n_b)
     return out
+
+
+@dataclass(frozen=True)
+class StoredBasisRadiance:
+    """A basis radiance field as the pipeline stores it: only its non-zero sample points, in one format.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        The dense field's shape ``(n_r, 6, res, res, K, N, n*n)``.
+    rows : (n_r, 6, res, res) int32
+        Row of each sample point in ``values``; -1 where ``S_(k,i) = 0`` for every ``(k, i)`` (behind a flat
+        source, inside a closed one), a point that is not stored.
+    values : (n_rows, K N, n*n) float64, float32 or int16
+        ``S`` at the stored points (``storage`` "float64", "float32"), or its quantised form (``"int16"``).
+    scale : (n_rows, K N) float32
+        ``"int16"``: ``S = scale * values`` per ``(point, k, i)``, ``scale`` the block's largest ``|S|`` over
+        32767 rounded up to float32, so ``|S - scale * values| <= scale / 2``; else empty, (0, K N).
+    """
+
+    shape: tuple
+    rows: np.ndarray
+    values: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def storage(self) -> str:
+        return {"f8": "float64", "f4": "float32", "i2": "int16"}[self.values.dtype.str[1:]]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.rows.nbytes + self.values.nbytes + self.scale.nbytes)
+
+    def dense(self) -> np.ndarray:
+        """The field ``(n_r, 6, res, res, K, N, n*n)`` float64 as stored (0 at the points not stored)."""
+        flat = np.zeros((int(np.prod(self.shape[:4])),) + self.values.shape[1:])
+        at = self.rows.ravel()
+        kept = at >= 0
+        values = self.values.astype(np.float64)
+        if self.storage == "int16":
+            values *= self.scale[..., None]
+        flat[kept] = values[at[kept]]
+        return flat.reshape(self.shape)
+
+    def truncated(self, n_basis: int, order: int) -> "StoredBasisRadiance":
+        """The first ``n_basis`` basis functions and ``order**2`` SH coefficients (no requantisation)."""
+        n_r, f, r1, r2, n_k, n_b, _ = self.shape
+        n_basis, n2 = min(int(n_basis), n_b), order * order
+        values = self.values.reshape(len(self.values), n_k, n_b, -1)[:, :, :n_basis, :n2]
+        scale = self.scale.reshape(len(self.scale), n_k, n_b)[:, :, :n_basis]
+        return StoredBasisRadiance((n_r, f, r1, r2, n_k, n_basis, n2), self.rows,
+                                   np.ascontiguousarray(values.reshape(len(values), n_k * n_basis, n2)),
+                                   np.ascontiguousarray(scale.reshape(len(scale), n_k * n_basis)))
+
+    def to_arrays(self) -> dict:
+        return {"shape": np.asarray(self.shape, np.int64), "rows": self.rows, "values": self.values,
+                "scale": self.scale}
+
+    @classmethod
+    def from_arrays(cls, d) -> "StoredBasisRadiance":
+        shape = tuple(int(x) for x in np.asarray(d["shape"]))
+        values = np.ascontiguousarray(d["values"])
+        if values.dtype.str[1:] not in ("f8", "f4", "i2") or len(shape) != 7:
+            raise ValueError(f"not a stored basis radiance field: shape {shape}, values of dtype {values.dtype}")
+        return cls(shape, np.ascontiguousarray(d["rows"], dtype=np.int32), values,
+                   np.ascontiguousarray(d["scale"], dtype=np.float32))
+
+
+def store_basis_radiance(field, storage: str = "int16") -> StoredBasisRadiance:
+    """A dense basis radiance field (:func:`basis_radiance_field`) in a :class:`StoredBasisRadiance` format.
+
+    ``"float64"`` keeps every value (the reference); ``"float32"`` rounds each to float32 (relative error at
+    most ``2^-24``); ``"int16"`` quantises each ``(point, k, i)`` block of ``n*n`` coefficients to integers
+    times a float32 scale, an absolute error at most half the block's step, ``max |S| / 65534`` (rounded up).
+    Sample points where every ``S_(k,i)`` is 0 are dropped in every format (without loss).
+    """
+    if storage not in STORAGES:
+        raise ValueError(f"storage must be one of {', '.join(map(repr, STORAGES))}, got {storage!r}")
+    field = np.asarray(field, dtype=np.float64)
+    if field.ndim != 7:
+        raise ValueError(f"field must be (n_r, 6, res, res, K, N, n*n), got shape {field.shape}")
+    m, n2 = field.shape[4] * field.shape[5], field.shape[6]
+    flat = field.reshape(-1, m, n2)
+    kept = np.flatnonzero(np.any(flat != 0.0, axis=(1, 2)))
+    rows = np.full(len(flat), -1, np.int32)
+    rows[kept] = np.arange(len(kept), dtype=np.int32)
+    block = flat[kept]
+    scale = np.zeros((0, m), np.float32)
+    if storage == "int16":
+        step = np.max(np.abs(block), axis=2) / _INT16_STEPS  # (rows, M)
+        scale = step.astype(np.float32)
+        low = scale < step  # rounded down: one float32 ulp up, so |S| / scale <= 32767
+        scale[low] = np.nextafter(scale[low], np.float32(np.inf))
+        safe = np.where(scale > 0, scale, 1.0).astype(np.float64)
+        values = np.rint(block / safe[..., None]).astype(np.int16)
+    else:
+        values = block.astype(storage)
+    return StoredBasisRadiance(field.shape, rows.reshape(field.shape[:4]), np.ascontiguousarray(values), scale)

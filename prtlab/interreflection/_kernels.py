@@ -47,6 +47,43 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
 
 
 @numba.njit(cache=True, parallel=True)
+def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale, out):
+    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), accumulating in float64.
+
+    rows : (n_r, 6, res, res) int32 row of each sample point in ``values``, -1 where the field is 0
+    values : (n_rows, M, n2) float64, float32 or int16
+    column_scale : (n_rows, M) float32, the factor of each row's block when ``scaled`` (int16 storage)
+    rpos, face, s, t, transfer, scale, out : as :func:`basis_irradiance_kernel`
+    """
+    n_r, _, res, _ = rows.shape
+    n_m, n2 = values.shape[1], values.shape[2]
+    n_kp = transfer.shape[1]
+    for v in numba.prange(rpos.shape[0]):
+        r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[v], s[v], t[v], n_r, res)
+        f = face[v]
+        for kp in range(n_kp):
+            for m in range(n_m):
+                out[v, kp, m] = 0.0
+        for c in range(8):
+            rr = r1 if c & 4 else r0
+            ii = i1 if c & 2 else i0
+            jj = j1 if c & 1 else j0
+            w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
+            row = rows[rr, f, ii, jj]
+            if w == 0.0 or row < 0:
+                continue
+            w *= scale[v]
+            for kp in range(n_kp):
+                for m in range(n_m):
+                    acc = 0.0
+                    for i in range(n2):
+                        acc += np.float64(values[row, m, i]) * transfer[v, kp, i]
+                    if scaled:
+                        acc *= np.float64(column_scale[row, m])
+                    out[v, kp, m] += w * acc
+
+
+@numba.njit(cache=True, parallel=True)
 def bounce_kernel(irradiance, weights, out):
     """Eq. 12 before the view factors: ``out[v, k', c] += sum_m irradiance[v, k', m] weights[m, c]``.
 

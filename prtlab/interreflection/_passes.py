@@ -26,7 +26,8 @@ import numpy as np
 from prtlab import sh
 from prtlab.shadowfields import SphereGrid, interpolate_field
 
-from ._kernels import basis_irradiance_kernel, bounce_kernel
+from ._fields import StoredBasisRadiance
+from ._kernels import basis_irradiance_kernel, bounce_kernel, stored_basis_irradiance_kernel
 
 __all__ = ["basis_irradiance", "reflected_light", "fit_weights", "outgoing_radiance"]
 
@@ -45,8 +46,9 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
 
     Parameters
     ----------
-    field : (n_r, 6, res, res, K, N, n*n) float
-        The source's basis radiance field (object space).
+    field : (n_r, 6, res, res, K, N, n*n) float, or StoredBasisRadiance
+        The source's basis radiance field (object space), dense or as stored (read in its format,
+        accumulated in float64).
     grid : SphereGrid
         Its sample spheres.
     points : (V, 3) float
@@ -65,10 +67,13 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
         distant source falls off as ``1 / r^2``; its radiance does not change).
     """
     _check_method(method)
-    field = np.asarray(field, dtype=np.float64)
-    if field.ndim != 7 or field.shape[:4] != grid.shape:
-        raise ValueError(f"field must be {grid.shape} + (K, N, n*n), got shape {field.shape}")
-    n_k, n_b, n2 = field.shape[4:]
+    stored = field if isinstance(field, StoredBasisRadiance) else None
+    if stored is None:
+        field = np.asarray(field, dtype=np.float64)
+    shape = stored.shape if stored is not None else field.shape
+    if len(shape) != 7 or tuple(shape[:4]) != grid.shape:
+        raise ValueError(f"field must be {grid.shape} + (K, N, n*n), got shape {tuple(shape)}")
+    n_k, n_b, n2 = shape[4:]
     points = np.asarray(points, dtype=np.float64)
     transfer = np.asarray(transfer, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -88,13 +93,18 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
     r = np.linalg.norm(local - grid.center, axis=1)
     scale = (grid.radii[-1] / np.maximum(r, grid.radii[-1])) ** 2  # 1 inside the outermost sphere
     if method == "reference":
+        field = stored.dense() if stored is not None else field
         s_at, _ = interpolate_field(grid, field.reshape(grid.shape + (n_k * n_b, n2)), local, method="reference")
         phi = np.einsum("vmi,vki->vkm", s_at, transfer) * scale[:, None, None]
         return phi.reshape(len(points), n_kp, n_k, n_b)
     rpos, face, s, t, _ = grid.locate(local)
     out = np.empty((len(points), n_kp, n_k * n_b))
-    basis_irradiance_kernel(np.ascontiguousarray(field.reshape(grid.shape + (n_k * n_b, n2))), rpos, face, s, t,
-                            np.ascontiguousarray(transfer), scale, out)
+    if stored is not None:
+        stored_basis_irradiance_kernel(stored.rows, stored.values, stored.scale, stored.storage == "int16", rpos,
+                                       face, s, t, np.ascontiguousarray(transfer), scale, out)
+    else:
+        basis_irradiance_kernel(np.ascontiguousarray(field.reshape(grid.shape + (n_k * n_b, n2))), rpos, face, s,
+                                t, np.ascontiguousarray(transfer), scale, out)
     return out.reshape(len(points), n_kp, n_k, n_b)
 
 

@@ -5,7 +5,11 @@ Precomputation, per (non-portal) object, in object space (:meth:`Interreflection
 * the occlusion field and the vertices' self-visibility (:mod:`prtlab.shadowfields`);
 * the PCA basis of its surface intensity, ``N`` functions from ``n_lights`` point
   lights (:func:`prtlab.pca.fit_pca_basis`; lights on a grid for a flat object);
-* the basis radiance field ``S_(k,i)`` on its sample spheres (:mod:`._fields`).
+* the basis radiance field ``S_(k,i)`` on its sample spheres (:mod:`._fields`), stored without its zero
+  sample points in the format of option ``storage`` (:class:`._fields.StoredBasisRadiance`).
+
+Objects of one mesh and one BRDF's ``g_k``, ``h_k`` (albedo apart) share one stored entry (``same_as``), unless
+``pca_occluders`` makes each basis depend on the poses.
 
 Per frame (:meth:`Interreflection.shade_frame`), Fig. 4 of the paper:
 
@@ -76,7 +80,14 @@ from prtlab.shadowfields import (
     source_radiance_field,
 )
 
-from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
+from ._fields import (
+    STORAGES,
+    StoredBasisRadiance,
+    basis_radiance_at,
+    basis_radiance_field,
+    self_basis_irradiance,
+    store_basis_radiance,
+)
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
@@ -153,6 +164,12 @@ class InterreflectionOptions:
         object moves.
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
+    storage : {"int16", "float32", "float64"}
+        Format of the basis radiance fields, at rest and in memory
+        (:func:`prtlab.interreflection._fields.store_basis_radiance`; sample points
+        where a field is 0 are not stored in any): per ``(point, k, i)`` block integers times a float32 scale
+        (absolute error at most half the block's step, ``max |S| / 65534``), float32, or every float64 value
+        as computed (the reference). The other arrays are kept in float64.
     """
 
     order: int = 4
@@ -177,6 +194,7 @@ class InterreflectionOptions:
     haar_radiance_keep: int = 64
     residual_rays: int = 64
     light_samples: int = 64
+    storage: str = "int16"
 
     def __post_init__(self):
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
@@ -201,6 +219,7 @@ class InterreflectionOptions:
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
+        check_choice(self.storage, "option storage", STORAGES)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
@@ -229,6 +248,18 @@ def _separables(objects, K_glossy: int) -> dict:
             by_material[key] = brdf.separable(brdf.from_material(obj.material), K)
         out[obj.name] = by_material[key]
     return out
+
+
+def _object_space_key(mesh, sep) -> str:
+    """A hash of what an object's precomputed arrays depend on (without ``pca_occluders``): its mesh and its
+    BRDF's ``g_k``, ``h_k`` (not its colour)."""
+    from prtlab.cache import cache_key
+
+    return cache_key(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64),
+                     np.asarray(mesh.vertex_normals, np.float64), int(sep.K), str(sep.parameterisation),
+                     *(np.asarray(getattr(sep, f), np.float64) for f in (
+                         "theta_in", "theta_out", "weights_in", "weights_out", "g_radial", "h_radial", "freq",
+                         "parity")))
 
 
 def _local_shading_points(mesh) -> np.ndarray:
@@ -337,7 +368,7 @@ class Interreflection(Precomputation):
     """Iwasaki et al. 2007: PRT for dynamic scenes with interreflections (module docstring)."""
 
     method = "interreflection"
-    format_version = 3
+    format_version = 4  # 4: basis radiance fields stored sparse, in the format of option ``storage``
     max_bounces = None
     options_type = InterreflectionOptions
     renamed_options = {"haar_resolution": "cube_resolution"}
@@ -381,8 +412,11 @@ class Interreflection(Precomputation):
         n_o = len(objs)
         needs = [
             MemoryNeed("the occlusion fields", n_o * texels * n2 * 8.0, ("n_radii", "resolution", "order")),
-            MemoryNeed("the basis radiance fields", n_o * texels * n_b * k * n2 * 8.0 * 2,
-                       ("n_radii", "resolution", "n_basis")),
+            # one object's dense float64 field (and its projection) while it is computed, every object's stored
+            MemoryNeed("the basis radiance fields",
+                       texels * n_b * k * n2 * (8.0 * 2 + n_o * {"float64": 8.0, "float32": 4.0}.get(options.storage,
+                                                                                                    2.25)),
+                       ("n_radii", "resolution", "n_basis", "storage")),
             MemoryNeed("the PCA training renders", 3.0 * 8 * options.n_lights * v_max, ("n_lights",)),
             MemoryNeed("the visibility projection", 2.0 * 8 * v_max * quadrature, ("degree",)),
             MemoryNeed("the self-interreflection", n_v * k * k * n_b * 8.0, ("n_basis", "K_glossy")),
@@ -407,7 +441,14 @@ class Interreflection(Precomputation):
             it = tqdm(objs, desc="interreflection precompute", unit="object")
         seps = _separables(objs, options.K_glossy)
         data = {}
-        for obj in it:
+        first = {}  # object-space inputs -> index of the first object with them
+        for i, obj in enumerate(it):
+            if not options.pca_occluders:  # else the basis depends on the other objects' poses
+                inputs = _object_space_key(obj.mesh, seps[obj.name])
+                if inputs in first:  # the same mesh and BRDF terms (albedo apart): the same arrays, stored once
+                    data[obj.name] = {"same_as": np.int64(first[inputs])}
+                    continue
+                first[inputs] = i
             mesh = obj.mesh
             oof = occlusion_field(mesh, options.order, n_radii=options.n_radii, resolution=options.resolution,
                                   r_min=options.r_min, r_max=options.r_max, spacing=options.spacing,
@@ -425,8 +466,11 @@ class Interreflection(Precomputation):
             own = np.zeros((len(points), sep.K, sep.K, basis.n_basis))
             if options.self_interreflection and not _is_flat(mesh):  # a plane sees none of itself
                 own = self_basis_irradiance(mesh, basis.basis, sep, points, normals, degree=options.degree)
+            stored = store_basis_radiance(field, options.storage)
+            del field
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
-                              "pca_samples": basis.samples, "basis_radiance": field, "self_irradiance": own}
+                              "pca_samples": np.asarray(basis.samples, np.int32),
+                              "basis_radiance": stored.to_arrays(), "self_irradiance": own}
             if options.shadows == "haar":
                 haar = {"resolution": options.cube_resolution, "keep": options.haar_keep}
                 data[obj.name]["haar_oof"] = haar_occlusion_field(
@@ -442,24 +486,41 @@ class Interreflection(Precomputation):
     def __init__(self, scene, options, data):
         super().__init__(scene, options, data)
         self.objects = [o for o in scene.objects if not o.portal]
-        self.fields = {o.name: OcclusionField.from_arrays(data[o.name]["oof"]) for o in self.objects}
-        self.bases = {}
-        for o in self.objects:
-            b = np.asarray(data[o.name]["pca_basis"], float)
-            samples = np.asarray(data[o.name]["pca_samples"])
+        #: object -> its precomputed arrays (an object stored ``same_as`` another reads the other's)
+        self.entries = {o.name: data[self.objects[int(data[o.name]["same_as"])].name] if "same_as" in data[o.name]
+                        else data[o.name] for o in self.objects}
+        built: dict = {}
+
+        def shared(kind, o, make):
+            """One object per stored entry: objects that share their arrays share what is built from them."""
+            key = (kind, id(self.entries[o.name]))
+            if key not in built:
+                built[key] = make(self.entries[o.name])
+            return built[key]
+
+        def pca_basis(d):
+            b = np.asarray(d["pca_basis"], float)
+            samples = np.asarray(d["pca_samples"], np.int64)
             # the fit's spectrum and training lights are not needed per frame: basis and A^-1 only
-            self.bases[o.name] = pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
-                                              pca.WeightSolver.from_basis(b, samples))
+            return pca.PCABasis(b, np.zeros(0), np.zeros(len(b)), samples, np.zeros((0, 3)),
+                                pca.WeightSolver.from_basis(b, samples))
+
+        self.fields = {o.name: shared("oof", o, lambda d: OcclusionField.from_arrays(d["oof"])) for o in self.objects}
+        self.radiance = {o.name: shared("radiance", o, lambda d: StoredBasisRadiance.from_arrays(d["basis_radiance"]))
+                         for o in self.objects}
+        self.bases = {o.name: shared("pca", o, pca_basis) for o in self.objects}
         self.seps = _separables(self.objects, options.K_glossy)
         self.local_points = {o.name: _local_shading_points(o.mesh) for o in self.objects}
-        self.self_irradiance = {o.name: np.ascontiguousarray(data[o.name]["self_irradiance"], dtype=float)
+        self.self_irradiance = {o.name: shared("self", o, lambda d: np.ascontiguousarray(d["self_irradiance"],
+                                                                                         dtype=float))
                                 for o in self.objects}
         haar = options.shadows == "haar"
-        self.haar_fields = {o.name: HaarOcclusionField.from_arrays(data[o.name]["haar_oof"])
+        self.haar_fields = {o.name: shared("haar_oof", o, lambda d: HaarOcclusionField.from_arrays(d["haar_oof"]))
                             for o in self.objects} if haar else {}
-        self.haar_self = {o.name: SparseCubemaps.from_arrays(data[o.name]["haar_self"])
+        self.haar_self = {o.name: shared("haar_self", o, lambda d: SparseCubemaps.from_arrays(d["haar_self"]))
                           for o in self.objects} if haar else {}
-        self.haar_radiance = {o.name: HaarBasisRadianceField.from_arrays(data[o.name]["haar_radiance"])
+        self.haar_radiance = {o.name: shared("haar_radiance", o,
+                                             lambda d: HaarBasisRadianceField.from_arrays(d["haar_radiance"]))
                               for o in self.objects} if options.irradiance == "haar" else {}
         self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
         self.reuse = FrameReuse()
@@ -478,13 +539,16 @@ class Interreflection(Precomputation):
         n2 = o * o
         data = {}
         for obj in self.objects:
+            if "same_as" in self.data[obj.name]:
+                data[obj.name] = self.data[obj.name]
+                continue
             d = self.data[obj.name]
             oof = dict(d["oof"])
             oof["coeffs"] = np.asarray(oof["coeffs"])[..., :n2]
             oof["order"] = np.int64(o)
             data[obj.name] = {"oof": oof, "self_visibility": np.asarray(d["self_visibility"])[:, :n2],
                               "pca_basis": np.asarray(d["pca_basis"])[:n], "pca_samples": d["pca_samples"],
-                              "basis_radiance": np.asarray(d["basis_radiance"])[..., :n, :n2],
+                              "basis_radiance": self.radiance[obj.name].truncated(n, o).to_arrays(),
                               "self_irradiance": np.asarray(d["self_irradiance"])[..., :n]}
             for key in ("haar_oof", "haar_self"):  # the all-frequency direct shadows do not depend on n, N
                 if key in d:
@@ -515,7 +579,7 @@ class Interreflection(Precomputation):
             sep = self.seps[o.name]
             wo = np.asarray(camera.position, float) - x
             wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-300)
-            own = np.asarray(self.data[o.name]["self_visibility"], float)
+            own = np.asarray(self.entries[o.name]["self_visibility"], float)
             if len(own):
                 own = sh.rotate(own, T.rotation, channels=False)
             grid = self.fields[o.name].grid
@@ -798,7 +862,7 @@ class Interreflection(Precomputation):
         g_c = brdf.project_g_cos(self.seps[r.name], wc, self.options.order)  # (K', n2), world frame
         # S at the centre as the basis irradiance sees it: the field's interpolation (with its 1 / r^2
         # beyond the outermost sphere), not a ray-cast quadrature that may miss a small, far source
-        phi_c = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid,
+        phi_c = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid,
                                  gr["center"][None], g_c[None], gs["T"])
         return float(np.max(np.abs(phi_c)))
 
@@ -965,7 +1029,7 @@ class Interreflection(Precomputation):
         factors = [(o, self._may_block(g["x"][rows], geo[o], gs)) for o in blockers]
         vis = self._visibility(g, occ[r.name], factors, rows)
         transfer = self._transfer(vis, g["g_cos"][rows])
-        value = basis_irradiance(self.data[s.name]["basis_radiance"], self.fields[s.name].grid, g["x"][rows],
+        value = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid, g["x"][rows],
                                  transfer, gs["T"])
         self._near_field(s, gs["T"], g["x"], rows, transfer, value)
         return value

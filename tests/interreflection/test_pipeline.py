@@ -278,7 +278,7 @@ def test_error_falls_as_the_basis_and_the_order_grow(pre, reference):
 
 def test_truncated_precomputation(pre):
     small = pre.truncated(n_basis=4, order=3)
-    assert small.data["ball"]["basis_radiance"].shape[-2:] == (4, 9)
+    assert small.radiance["ball"].shape[-2:] == (4, 9)
     res = small.shade(bounces=1)
     assert np.all(np.isfinite(res.total["ball"])) and res.indirect["ball"].mean() > 0
     same = pre.truncated()
@@ -323,7 +323,7 @@ def test_near_field_receivers_get_the_ray_cast_basis_radiance(pre):
     s = basis_radiance_at(floor.mesh, near.bases["floor"].basis, near.seps["floor"], g["x"], near.options.order,
                           near.options.degree)
     np.testing.assert_allclose(phi_near["ball"]["floor"], np.einsum("vkni,vqi->vqkn", s, transfer), atol=1e-12)
-    interpolated = basis_irradiance(pre.data["floor"]["basis_radiance"], pre.fields["floor"].grid, g["x"], transfer,
+    interpolated = basis_irradiance(pre.radiance["floor"], pre.fields["floor"].grid, g["x"], transfer,
                                     geo["floor"]["T"])
     np.testing.assert_allclose(phi_far["ball"]["floor"], interpolated, atol=1e-12)
     with pytest.raises(ValueError, match="option near_field must be"):
@@ -643,7 +643,7 @@ def test_planes_meeting_at_an_edge_get_their_bounce_light(cache_root):
                                      progress=False)
     for name, axis, at in (("floor", 2, -2.0), ("wall", 1, 0.0)):
         edge = np.abs(pre.scene.object(name).world_vertices()[:, axis] - at) < 1e-9
-        assert edge.sum() == 13 and np.all(pre.data[name]["pca_basis"][0][edge] > 0)  # the mean render is lit
+        assert edge.sum() == 13 and np.all(pre.entries[name]["pca_basis"][0][edge] > 0)  # the mean render is lit
     res = pre.shade(bounces=1)
     ref = path_trace(pre.scene, 1, 128, np.random.default_rng(5))
     for name in ("floor", "wall"):
