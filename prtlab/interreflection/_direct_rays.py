@@ -82,11 +82,15 @@ def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int,
     and point lights of ``lights`` (others are left out), with shadow rays against ``caster`` (every object at
     its pose).
 
-    ``wo`` (V, 3): unit directions toward the camera; ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and
-    ``sep`` its separable form. ``samples`` points per vertex on each area light (a ``rows x side <=
+    ``wo`` (V, 3): unit directions toward the camera, mirrored above a vertex's horizon where they are below
+    it (the BRDFs are two-sided: a Lambertian vertex seen from behind keeps its radiance, as the separable
+    form's horizon value does); ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and ``sep`` its separable
+    form. ``samples`` points per vertex on each area light (a ``rows x side <=
     samples`` grid jittered per vertex; a fixed ``seed``, so a frame is deterministic).
     """
     x, n, wo = (np.asarray(a, float) for a in (points, normals, wo))
+    below = np.minimum(np.einsum("vi,vi->v", wo, n), 0.0)
+    wo = wo - 2.0 * below[:, None] * n
     light_k, radiance = np.zeros((len(x), sep.K, 3)), np.zeros((len(x), 3))
     rng = np.random.default_rng(seed)
     for lo in range(0, len(x), _CHUNK):

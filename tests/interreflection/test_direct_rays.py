@@ -76,6 +76,19 @@ def test_an_unoccluded_area_light_is_its_integral_within_the_estimators_error(ma
     assert np.all(np.abs(radiance - first * LIGHT.radiance) <= bound * LIGHT.radiance + 1e-12)
 
 
+def test_a_lambertian_vertex_seen_from_behind_keeps_its_radiance():
+    """The camera below a floor: its Lambertian radiance is the same as seen from above (two-sided BRDF)."""
+    f = brdf.from_material(Material(albedo=np.array([0.7, 0.6, 0.5])))
+    sep = brdf.separable(f, K=1)
+    points, normals = _floor_points()
+    caster = RayCaster(builtin_mesh("icosphere", subdivisions=1), transforms=[Transform(translate=[0, -50, 0])])
+    above = ray_traced_direct(points, normals, normals, f, sep, caster, [LIGHT], 16)
+    below = ray_traced_direct(points, normals, -normals, f, sep, caster, [LIGHT], 16)
+    np.testing.assert_array_equal(below[1], above[1])
+    np.testing.assert_allclose(above[1], np.einsum("vkc,kc->vc", above[0], sep.colour), rtol=1e-12)
+    assert np.all(above[1] > 0.0)
+
+
 def _segment_hits_box(a, b, lo, hi) -> np.ndarray:
     """Whether the open segments ``a -> b`` (V, 3) meet the axis-aligned box ``[lo, hi]`` (slab test)."""
     d = b - a
