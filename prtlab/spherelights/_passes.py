@@ -62,6 +62,7 @@ from ._shadows import (
     environment_transfer,
     transfer_matrix,
 )
+from ._square_kernels import SQUARE_COLUMNS, SQUARE_ORDERS, square_columns
 from ._tables import (
     THETA_MAX_K,
     _irradiance_kernel_table,
@@ -638,8 +639,9 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
 
 @numba.njit(cache=True)
 def _hyb_scratch(n2, m):
-    """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients."""
-    return _HybScratch(np.empty((n2, m)), np.empty((n2, m)), np.empty((n2, m)), np.empty((2, m)),
+    """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients (``value``: at least ``SQUARE_COLUMNS``
+    columns, the row stride of the generated squares)."""
+    return _HybScratch(np.empty((n2, m)), np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((2, m)),
                        np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((n2, m)))
 
 
@@ -1048,7 +1050,9 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     """HYB ``exp*`` of the columns of ``x (n2, M)`` into ``scratch.out`` (as ``prtlab.sh``'s ``_exp_hyb``: ``k``
     halvings to ``|f^| <= threshold``, OL, ``k`` squarings, the DC factor). The columns are ordered by ``k``
     (descending), so squaring ``t`` runs over the prefix of columns that still need it; a square uses the
-    symmetric Gaunt pairs of ``exp_tables``. ``scratch``: a :data:`_HybScratch` of ``M`` columns."""
+    symmetric Gaunt pairs of ``exp_tables``, through the generated straight-line squares of
+    :mod:`._square_kernels` where ``scratch.value`` has their row stride and the order has one. ``scratch``: a
+    :data:`_HybScratch` of ``M`` columns."""
     n2, m = x.shape
     norm, ks, perm = scratch.norm, scratch.n_squarings, scratch.perm
     h, v, w, out = scratch.halved, scratch.value, scratch.square, scratch.out
@@ -1095,9 +1099,15 @@ def _exp_hyb_columns(x, exp_tables, scratch):
         for t in range(m):
             v[i, t] = norm[1, t] * h[i, t]
     n_act = m
+    order = int(math.sqrt(n2) + 0.5)
+    generated = v.shape[1] == SQUARE_COLUMNS and order <= SQUARE_ORDERS[-1]
+    v_flat = v.reshape(-1)
     for step in range(k_max):
         while n_act > 0 and ks[perm[n_act - 1]] <= step:
             n_act -= 1
+        if generated:
+            square_columns(v_flat, order, n_act)
+            continue
         _tile_product_prefix(v, v, exp_tables.sq_i, exp_tables.sq_j, exp_tables.sq_k, exp_tables.sq_v, w, n_act)
         for k in range(n2):
             for t in range(n_act):

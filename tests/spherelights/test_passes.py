@@ -359,3 +359,28 @@ def _const_env():
     env = np.zeros((16, 3))
     env[0] = np.sqrt(4 * np.pi)
     return env
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 6])
+def test_generated_squares_match_the_gaunt_product(order, rng):
+    """The straight-line squares of ``_square_kernels`` are ``sh.product(v, v)`` truncated to the order (the
+    generic Gaunt tier) on the columns they are given, and leave the other columns alone."""
+    from prtlab.spherelights._square_kernels import SQUARE_COLUMNS, square_columns
+
+    n2, width = order * order, 37
+    v = rng.normal(size=(n2, SQUARE_COLUMNS))
+    expect = sh.product(v[:, :width].T, v[:, :width].T, order=order, channels=False).T
+    got = v.copy()
+    square_columns(got.reshape(-1), order, width)
+    np.testing.assert_allclose(got[:, :width], expect, rtol=1e-13, atol=1e-13 * np.abs(expect).max())
+    np.testing.assert_array_equal(got[:, width:], v[:, width:])
+
+
+def test_square_kernels_are_generated():
+    """``_square_kernels.py`` is the output of its generator (regenerate it after changing either)."""
+    from pathlib import Path
+
+    from prtlab.spherelights import _square_kernels
+    from prtlab.spherelights._square_source import square_kernel_source
+
+    assert Path(_square_kernels.__file__).read_text() == square_kernel_source()
