@@ -506,6 +506,8 @@ def _light_arrays(centres, radii, sl_object, intersect):
 
 #: Receivers per SIMD block of the fused second pass: the lanes of its innermost loops.
 _LANES = 32
+#: Most squarings of a HYB exponential (a bound: ``|f^| <= threshold 2^1100`` for every finite ``|f^|``).
+_MAX_SQUARINGS = 1100
 #: Blocks per parallel task (the scratch arrays are allocated once per task).
 _BLOCKS_PER_TASK = 8
 
@@ -561,9 +563,10 @@ _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "thr
 #: What the pass computes: SH order, per-object blocking (else per sphere), the indirect light, HYB (else OL),
 #: the cosine-weighted average radiance (else the paper's Eq. 18), and the receivers per block.
 _Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes"])
-#: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``halved, value, square, out
-#: (n*n, M)``, ``norm (2, M)``, ``n_squarings, perm (M,)`` int.
-_HybScratch = collections.namedtuple("_HybScratch", ["halved", "value", "square", "norm", "n_squarings", "perm",
+#: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
+#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (2, M)``, ``n_squarings (M,)`` and ``perm
+#: (M + _MAX_SQUARINGS + 2,)`` int.
+_HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", "n_squarings", "perm",
                                                      "out"])
 #: Scratch of one parallel task, the lanes ``L`` last: ``recv (6, L)`` receiver points and normals,
 #: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
@@ -641,8 +644,8 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
 def _hyb_scratch(n2, m):
     """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients (``value``: at least ``SQUARE_COLUMNS``
     columns, the row stride of the generated squares)."""
-    return _HybScratch(np.empty((n2, m)), np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((2, m)),
-                       np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((n2, m)))
+    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((2, m)),
+                       np.empty(m, dtype=np.int64), np.empty(m + _MAX_SQUARINGS + 2, dtype=np.int64), np.empty((n2, m)))
 
 
 @numba.njit(cache=True)
@@ -1055,7 +1058,7 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     :data:`_HybScratch` of ``M`` columns."""
     n2, m = x.shape
     norm, ks, perm = scratch.norm, scratch.n_squarings, scratch.perm
-    h, v, w, out = scratch.halved, scratch.value, scratch.square, scratch.out
+    v, w, out = scratch.value, scratch.square, scratch.out
     sqrt4pi = math.sqrt(4.0 * math.pi)
     threshold, r_max, ol_a, ol_b = exp_tables.threshold, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
     for p in range(m):
@@ -1063,41 +1066,42 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     for i in range(1, n2):
         for p in range(m):
             norm[0, p] += x[i, p] * x[i, p]
+    for p in range(m):
+        norm[1, p] = math.sqrt(norm[0, p])
+    # k: the fewest halvings with |f^| / 2^k <= threshold, i.e. |f^| <= threshold 2^k (both sides exact: powers of
+    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; norm[1]: the scale 2^-k
     k_max = 0
     for p in range(m):
-        r = math.sqrt(norm[0, p])
+        r = norm[1, p]
         k = 0
-        if r > threshold:
-            k = max(0, int(math.ceil(math.log2(r / threshold))))
-            while r / 2.0**k > threshold:  # guard against rounding in log2, as prtlab.sh
-                k += 1
+        limit = threshold
+        scale = 1.0
+        while r > limit:
+            limit *= 2.0
+            scale *= 0.5
+            k += 1
         ks[p] = k
+        norm[1, p] = scale
         k_max = max(k_max, k)
-    pos = 0
-    for kk in range(k_max, -1, -1):
-        for p in range(m):
-            if ks[p] == kk:
-                perm[pos] = p
-                pos += 1
+    # columns by k descending, stable (a counting sort; perm's tail is its scratch)
+    for kk in range(k_max + 2):
+        perm[m + kk] = 0
+    for p in range(m):
+        perm[m + k_max - ks[p] + 1] += 1
+    for kk in range(1, k_max + 2):
+        perm[m + kk] += perm[m + kk - 1]
+    for p in range(m):
+        slot = m + k_max - ks[p]
+        perm[perm[slot]] = p
+        perm[slot] += 1
+    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly
     for t in range(m):
         p = perm[t]
-        scale = 1.0 / 2.0 ** ks[p]
-        h[0, t] = 0.0
-        for i in range(1, n2):
-            h[i, t] = x[i, p] * scale
-    # OL of the scaled columns (DC 0: its factor exp(0) = 1)
-    for t in range(m):
-        norm[0, t] = 0.0
-    for i in range(1, n2):
-        for t in range(m):
-            norm[0, t] += h[i, t] * h[i, t]
-    for t in range(m):
-        a, b = _ol_coefficients(math.sqrt(norm[0, t]), r_max, ol_a, ol_b)
+        scale = norm[1, p]
+        a, b = _ol_coefficients(math.sqrt(norm[0, p] * (scale * scale)), r_max, ol_a, ol_b)
         v[0, t] = a * sqrt4pi
-        norm[1, t] = b
-    for i in range(1, n2):
-        for t in range(m):
-            v[i, t] = norm[1, t] * h[i, t]
+        for i in range(1, n2):
+            v[i, t] = b * (x[i, p] * scale)
     n_act = m
     order = int(math.sqrt(n2) + 0.5)
     generated = v.shape[1] == SQUARE_COLUMNS and order <= SQUARE_ORDERS[-1]
