@@ -546,9 +546,9 @@ def _front_lists(sl_object, intersect, per_object):
 #: ``light_object (S,)`` int, ``object_centres (O, 3)``, the candidate front lists of :func:`_front_lists`
 #: (``front_ptr (S+1,)``, ``front_idx``), ``rotation (S, 3, 3)`` world-from-light, ``emission (S, n*n, 3)``
 #: ``L^c`` in the light's frame and ``emission_dir (S, (n+1)**2, 9)`` the SH of ``L^c(u) u_j``
-#: (:func:`emission_times_direction`, columns ``(j, c)``).
+#: (:func:`emission_times_direction`, columns ``(j, c)``), ``alone (S,)`` bool: the light is its object's only one.
 _Lights = collections.namedtuple("_Lights", ["centres", "radii", "light_object", "object_centres", "front_ptr",
-                                             "front_idx", "rotation", "emission", "emission_dir"])
+                                             "front_idx", "rotation", "emission", "emission_dir", "alone"])
 #: Tables read per receiver: ``blocker_log`` (:func:`blocker_log_table`) and its knots ``blocker_knots``
 #: (:func:`_blocker_log_knots`), ``transfer ((2n-1)**2, 3 n*n)`` the environment transfer matrix
 #: (:func:`transfer_matrix`, columns ``(c, k)``), the clamped-cosine ZH of orders ``2n - 1`` (``cosine_hi``) and
@@ -561,8 +561,11 @@ _Tables = collections.namedtuple("_Tables", ["blocker_log", "blocker_knots", "tr
 _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "threshold", "sq_i", "sq_j", "sq_k",
                                                    "sq_v"])
 #: What the pass computes: SH order, per-object blocking (else per sphere), the indirect light, HYB (else OL),
-#: the cosine-weighted average radiance (else the paper's Eq. 18), and the receivers per block.
-_Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes"])
+#: the cosine-weighted average radiance (else the paper's Eq. 18), the receivers per block, and ``object_chain``
+#: (per object, HYB): the exponentials of the objects' prefix sums are formed once per lane and read by the lights
+#: alone in their object (see :func:`_chain_exponentials`).
+_Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
+                                         "object_chain"])
 #: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
 #: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (2, M)``, ``n_squarings (M,)`` and ``perm
 #: (M + _MAX_SQUARINGS + 2,)`` int.
@@ -572,7 +575,8 @@ _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", 
 #: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
 #: SH basis at the normals, ``transfer (3 n*n, L)``, ``cosine (n*n, L)`` the rotated clamped cosine ``rho_n``;
 #: per object ``object_dist (O, L)``, ``object_order (O,)``, ``object_log, object_prefix (O, n*n, L)``,
-#: ``running (n*n,)``; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
+#: ``running (n*n,)``, ``object_rank (O, L)`` int (position in the lane's order), ``chain, chain_exp (O + 1, n*n,
+#: L)`` the prefix sums by rank (``chain[O]``: all the logs) and their HYB exponentials; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
 #: ``sums (4, L)`` per-lane sums, ``visibility (S, L)`` the ``V~`` of every light, ``light_dir (3, L)`` the
 #: direction light -> receiver in the light's frame, ``cos_na, open_visibility (L,)``, ``kernel (1, (n+1)**2,
 #: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
@@ -581,7 +585,8 @@ _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", 
 _BlockScratch = collections.namedtuple("_BlockScratch", [
     "recv", "blockers", "lane", "normal_basis", "transfer", "cosine", "object_dist", "object_order",
     "object_log", "object_prefix", "running", "front", "pair_log", "sums", "visibility", "light_dir", "cos_na",
-    "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light"])
+    "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light",
+    "object_rank", "chain", "chain_exp"])
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
@@ -600,7 +605,10 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     else:
         em_dir = np.zeros((n_sph, (order + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
-    lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir)
+    n_obj = obj_centres.shape[0]
+    alone = np.bincount(obj, minlength=n_obj)[obj] == 1
+    lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir,
+                     np.ascontiguousarray(alone))
     tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
                      np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
                      np.ascontiguousarray(_w_theta_table(order)),
@@ -608,7 +616,8 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     r_max, tab_a, tab_b = _ol_table(order)
     exp_tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
     mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
-                 bool(cosine), int(_LANES))
+                 bool(cosine), int(_LANES), bool(blocking == "object" and exp_method == "hyb" and
+                                                 2 * int(alone.sum()) > n_obj + 1))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
@@ -666,7 +675,9 @@ def _block_scratch(n_sph, n_obj, order, n_lanes):
         np.empty((4, n_lanes)), vis, np.empty((3, n_lanes)),  # sums, visibility, light_dir
         np.empty(n_lanes), np.empty(n_lanes), np.empty((1, n1, n_lanes)),  # cos_na, open_visibility, kernel
         np.empty((9, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)),
-        _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes))
+        _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes),
+        np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj + 1, n2, n_lanes)),  # object_rank, chain
+        np.empty((n_obj + 1, n2, n_lanes)))  # chain_exp
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -766,7 +777,9 @@ def _indirect_lanes(lights, tables, exp_tables, mode, scratch):
     if mode.per_object:
         _object_prefix_logs(lights, n2, scratch)
     if mode.hyb:
-        _average_visibility_hyb(lights, exp_tables, mode.per_object, n2, scratch)
+        if mode.object_chain:
+            _chain_exponentials(exp_tables, n2, scratch)
+        _average_visibility_hyb(lights, exp_tables, mode.per_object, mode.object_chain, n2, scratch)
     else:
         _average_visibility_ol(lights, exp_tables, mode.per_object, n2, scratch)
     if mode.cosine:
@@ -790,10 +803,11 @@ def _rotated_cosine(cosine, order, scratch):
 def _object_prefix_logs(lights, n2, scratch):
     """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
     of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
-    the other tiers)."""
+    the other tiers); ``scratch.chain[t]`` the same sums by rank ``t`` (``object_rank``), ``chain[O]`` all the
+    logs."""
     recv, log = scratch.recv, scratch.blockers.log
     dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
-    by_dist, running = scratch.object_order, scratch.running
+    by_dist, running, rank, chain = scratch.object_order, scratch.running, scratch.object_rank, scratch.chain
     centres, light_object = lights.object_centres, lights.light_object
     n_obj, n_lanes = dist2.shape
     for o in range(n_obj):
@@ -825,9 +839,13 @@ def _object_prefix_logs(lights, n2, scratch):
             running[k] = 0.0
         for t in range(n_obj):
             o = by_dist[t]
+            rank[o, q] = t
             for k in range(n2):
                 prefix[o, k, q] = running[k]
+                chain[t, k, q] = running[k]
                 running[k] += obj_log[o, k, q]
+        for k in range(n2):
+            chain[n_obj, k, q] = running[k]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -862,10 +880,13 @@ def _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, d
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
+def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, scratch):
     """``scratch.visibility[i, q]``: ``V~_i = (exp*(front) - exp*(front + G_i)) . rho_n`` (Eqs. 23-24) of every
-    light at every lane, the two exponentials HYB (0 where the light is culled)."""
+    light at every lane, the two exponentials HYB (0 where the light is culled). With ``object_chain``, a light
+    alone in its object reads them from ``scratch.chain_exp`` at its object's rank and the next (its front is the
+    prefix of its object and its front + own the next prefix, the same sums)."""
     light_object, front_ptr, front_idx = lights.light_object, lights.front_ptr, lights.front_idx
+    rank, chain_exp, alone = scratch.object_rank, scratch.chain_exp, lights.alone
     log, dist, theta = scratch.blockers.log, scratch.blockers.dist, scratch.blockers.theta
     front, prefix, pair, hyb = scratch.front, scratch.object_prefix, scratch.pair_log, scratch.exp_light
     rho, vis, e = scratch.cosine, scratch.visibility, scratch.exp_light.out
@@ -874,6 +895,15 @@ def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
         for q in range(n_lanes):
             vis[i, q] = 0.0
         if not _any_live(theta, i):
+            continue
+        if object_chain and alone[i]:
+            oi = light_object[i]
+            for k in range(n2):
+                for q in range(n_lanes):
+                    t = rank[oi, q]
+                    vis[i, q] += (chain_exp[t, k, q] - chain_exp[t + 1, k, q]) * rho[k, q]
+            for q in range(n_lanes):
+                vis[i, q] = vis[i, q] if theta[i, q] >= 0.0 else 0.0
             continue
         _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, dist, front)
         for k in range(n2):
@@ -887,6 +917,27 @@ def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
                 vis[i, q] += (e[k, q] - e[k, n_lanes + q]) * rho[k, q]
         for q in range(n_lanes):
             vis[i, q] = vis[i, q] if theta[i, q] >= 0.0 else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _chain_exponentials(exp_tables, n2, scratch):
+    """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB), two ranks per exponential of ``2L`` columns (an odd last
+    rank with itself)."""
+    chain, chain_exp, pair, hyb = scratch.chain, scratch.chain_exp, scratch.pair_log, scratch.exp_light
+    e = hyb.out
+    n_lanes = pair.shape[1] // 2
+    n_rank = chain.shape[0]
+    for t in range(0, n_rank, 2):
+        u = min(t + 1, n_rank - 1)
+        for k in range(n2):
+            for q in range(n_lanes):
+                pair[k, q] = chain[t, k, q]
+                pair[k, n_lanes + q] = chain[u, k, q]
+        _exp_hyb_columns(pair, exp_tables, hyb)
+        for k in range(n2):
+            for q in range(n_lanes):
+                chain_exp[t, k, q] = e[k, q]
+                chain_exp[u, k, q] = e[k, n_lanes + q]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")

@@ -384,3 +384,30 @@ def test_square_kernels_are_generated():
     from prtlab.spherelights._square_source import square_kernel_source
 
     assert Path(_square_kernels.__file__).read_text() == square_kernel_source()
+
+
+@pytest.mark.parametrize("obj", [[0, 0, 0, 1, 2, 3, 4], [0, 0, 1, 2, 3]])
+@pytest.mark.parametrize("average", ["cosine", "paper"])
+def test_fused_second_pass_object_chain_matches_composed_tier(obj, average, rng):
+    """Per object, HYB, most objects of one light: the fused tier reads those lights' exponentials from the
+    objects' prefix chain (``_Mode.object_chain``; an even and an odd number of ranks) and agrees with the
+    composed tier."""
+    from prtlab.spherelights._passes import _LANES
+
+    obj = np.array(obj)
+    n_sph, n_recv = len(obj), 2 * _LANES + 7
+    p = rng.uniform(-2, 2, size=(n_recv, 3))
+    n = random_directions(rng, n_recv)
+    c = rng.normal(size=(n_sph, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, n_sph)
+    inter = np.zeros((n_sph, n_sph), dtype=bool)
+    inter[0, 1] = inter[1, 0] = True
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(n_sph)])
+    em = rng.normal(size=(n_sph, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    args = (p, n, c, r, obj, inter, rot, em, _env_sh())
+    d1, i1 = second_pass(*args, blocking="object", exp_method="hyb", method="fused", average=average)
+    d2, i2 = second_pass(*args, blocking="object", exp_method="hyb", method="numba", average=average)
+    np.testing.assert_allclose(d1, d2, atol=1e-11)
+    np.testing.assert_allclose(i1, i2, atol=1e-11)
+    assert np.abs(i1).max() > 0.1
