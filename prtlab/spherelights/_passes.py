@@ -775,7 +775,7 @@ def _indirect_lanes(lights, tables, exp_tables, mode, scratch):
             ind[c, q] = 0.0
     _rotated_cosine(tables.cosine, mode.order, scratch)
     if mode.per_object:
-        _object_prefix_logs(lights, n2, scratch)
+        _object_prefix_logs(lights, n2, mode.object_chain, scratch)
     if mode.hyb:
         if mode.object_chain:
             _chain_exponentials(exp_tables, n2, scratch)
@@ -800,11 +800,11 @@ def _rotated_cosine(cosine, order, scratch):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _object_prefix_logs(lights, n2, scratch):
+def _object_prefix_logs(lights, n2, object_chain, scratch):
     """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
     of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
-    the other tiers); ``scratch.chain[t]`` the same sums by rank ``t`` (``object_rank``), ``chain[O]`` all the
-    logs."""
+    the other tiers); with ``object_chain`` also ``scratch.chain[t]``, the same sums by rank ``t``
+    (``object_rank``), ``chain[O]`` all the logs."""
     recv, log = scratch.recv, scratch.blockers.log
     dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
     by_dist, running, rank, chain = scratch.object_order, scratch.running, scratch.object_rank, scratch.chain
@@ -842,10 +842,14 @@ def _object_prefix_logs(lights, n2, scratch):
             rank[o, q] = t
             for k in range(n2):
                 prefix[o, k, q] = running[k]
-                chain[t, k, q] = running[k]
                 running[k] += obj_log[o, k, q]
-        for k in range(n2):
-            chain[n_obj, k, q] = running[k]
+        if object_chain:
+            for t in range(n_obj):
+                o = by_dist[t]
+                for k in range(n2):
+                    chain[t, k, q] = prefix[o, k, q]
+            for k in range(n2):
+                chain[n_obj, k, q] = running[k]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
