@@ -80,7 +80,9 @@ def _frame(a, blocking, indirect=True, exp_method="hyb"):
 
 
 # Counted work (flops, an FMA = 2) of the fused second pass as it runs: blocks of receivers as SIMD lanes, so the
-# per-light vector work is done for every lane of a block (culled pairs included) once any lane needs it.
+# per-light vector work is done for every lane of a block (culled pairs included) once any lane needs it. Per object
+# with HYB, a light alone in its object is counted with its own two exponentials, which the pass reads from the
+# objects' prefix chain (``_Mode.object_chain``): an overcount of a few per cent on this scene.
 _BLOCKER = 130  # per receiver and light: adjustment, axis, table lookup, order-4 basis, ZH scaling, sum
 _DIRECT = 2 * 31 * 48 + 150 + 30 + 90  # per receiver: T_n = cos_7(n) @ M (31 non-zero rows), order-7 basis, dots
 _OL = 30  # one OL exponential given |f^| (norm counted apart): lookup, exp, scale

@@ -62,6 +62,7 @@ from ._shadows import (
     environment_transfer,
     transfer_matrix,
 )
+from ._square_kernels import SQUARE_COLUMNS, SQUARE_ORDERS, square_columns
 from ._tables import (
     THETA_MAX_K,
     _irradiance_kernel_table,
@@ -505,6 +506,8 @@ def _light_arrays(centres, radii, sl_object, intersect):
 
 #: Receivers per SIMD block of the fused second pass: the lanes of its innermost loops.
 _LANES = 32
+#: Most squarings of a HYB exponential (a bound: ``|f^| <= threshold 2^1100`` for every finite ``|f^|``).
+_MAX_SQUARINGS = 1100
 #: Blocks per parallel task (the scratch arrays are allocated once per task).
 _BLOCKS_PER_TASK = 8
 
@@ -543,9 +546,9 @@ def _front_lists(sl_object, intersect, per_object):
 #: ``light_object (S,)`` int, ``object_centres (O, 3)``, the candidate front lists of :func:`_front_lists`
 #: (``front_ptr (S+1,)``, ``front_idx``), ``rotation (S, 3, 3)`` world-from-light, ``emission (S, n*n, 3)``
 #: ``L^c`` in the light's frame and ``emission_dir (S, (n+1)**2, 9)`` the SH of ``L^c(u) u_j``
-#: (:func:`emission_times_direction`, columns ``(j, c)``).
+#: (:func:`emission_times_direction`, columns ``(j, c)``), ``alone (S,)`` bool: the light is its object's only one.
 _Lights = collections.namedtuple("_Lights", ["centres", "radii", "light_object", "object_centres", "front_ptr",
-                                             "front_idx", "rotation", "emission", "emission_dir"])
+                                             "front_idx", "rotation", "emission", "emission_dir", "alone"])
 #: Tables read per receiver: ``blocker_log`` (:func:`blocker_log_table`) and its knots ``blocker_knots``
 #: (:func:`_blocker_log_knots`), ``transfer ((2n-1)**2, 3 n*n)`` the environment transfer matrix
 #: (:func:`transfer_matrix`, columns ``(c, k)``), the clamped-cosine ZH of orders ``2n - 1`` (``cosine_hi``) and
@@ -558,17 +561,22 @@ _Tables = collections.namedtuple("_Tables", ["blocker_log", "blocker_knots", "tr
 _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "threshold", "sq_i", "sq_j", "sq_k",
                                                    "sq_v"])
 #: What the pass computes: SH order, per-object blocking (else per sphere), the indirect light, HYB (else OL),
-#: the cosine-weighted average radiance (else the paper's Eq. 18), and the receivers per block.
-_Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes"])
-#: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``halved, value, square, out
-#: (n*n, M)``, ``norm (2, M)``, ``n_squarings, perm (M,)`` int.
-_HybScratch = collections.namedtuple("_HybScratch", ["halved", "value", "square", "norm", "n_squarings", "perm",
+#: the cosine-weighted average radiance (else the paper's Eq. 18), the receivers per block, and ``object_chain``
+#: (per object, HYB): the exponentials of the objects' prefix sums are formed once per lane and read by the lights
+#: alone in their object (see :func:`_chain_exponentials`).
+_Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
+                                         "object_chain"])
+#: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
+#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (2, M)``, ``n_squarings (M,)`` and ``perm
+#: (M + _MAX_SQUARINGS + 2,)`` int.
+_HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", "n_squarings", "perm",
                                                      "out"])
 #: Scratch of one parallel task, the lanes ``L`` last: ``recv (6, L)`` receiver points and normals,
 #: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
 #: SH basis at the normals, ``transfer (3 n*n, L)``, ``cosine (n*n, L)`` the rotated clamped cosine ``rho_n``;
 #: per object ``object_dist (O, L)``, ``object_order (O,)``, ``object_log, object_prefix (O, n*n, L)``,
-#: ``running (n*n,)``; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
+#: ``running (n*n,)``, ``object_rank (O, L)`` int (position in the lane's order), ``chain, chain_exp (O + 1, n*n,
+#: L)`` the prefix sums by rank (``chain[O]``: all the logs) and their HYB exponentials; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
 #: ``sums (4, L)`` per-lane sums, ``visibility (S, L)`` the ``V~`` of every light, ``light_dir (3, L)`` the
 #: direction light -> receiver in the light's frame, ``cos_na, open_visibility (L,)``, ``kernel (1, (n+1)**2,
 #: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
@@ -577,7 +585,8 @@ _HybScratch = collections.namedtuple("_HybScratch", ["halved", "value", "square"
 _BlockScratch = collections.namedtuple("_BlockScratch", [
     "recv", "blockers", "lane", "normal_basis", "transfer", "cosine", "object_dist", "object_order",
     "object_log", "object_prefix", "running", "front", "pair_log", "sums", "visibility", "light_dir", "cos_na",
-    "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light"])
+    "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light",
+    "object_rank", "chain", "chain_exp"])
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
@@ -596,7 +605,10 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     else:
         em_dir = np.zeros((n_sph, (order + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
-    lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir)
+    n_obj = obj_centres.shape[0]
+    alone = np.bincount(obj, minlength=n_obj)[obj] == 1
+    lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir,
+                     np.ascontiguousarray(alone))
     tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
                      np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
                      np.ascontiguousarray(_w_theta_table(order)),
@@ -604,7 +616,8 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     r_max, tab_a, tab_b = _ol_table(order)
     exp_tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
     mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
-                 bool(cosine), int(_LANES))
+                 bool(cosine), int(_LANES), bool(blocking == "object" and exp_method == "hyb" and
+                                                 2 * int(alone.sum()) > n_obj + 1))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
@@ -638,9 +651,10 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
 
 @numba.njit(cache=True)
 def _hyb_scratch(n2, m):
-    """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients."""
-    return _HybScratch(np.empty((n2, m)), np.empty((n2, m)), np.empty((n2, m)), np.empty((2, m)),
-                       np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty((n2, m)))
+    """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients (``value``: at least ``SQUARE_COLUMNS``
+    columns, the row stride of the generated squares)."""
+    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((2, m)),
+                       np.empty(m, dtype=np.int64), np.empty(m + _MAX_SQUARINGS + 2, dtype=np.int64), np.empty((n2, m)))
 
 
 @numba.njit(cache=True)
@@ -661,7 +675,9 @@ def _block_scratch(n_sph, n_obj, order, n_lanes):
         np.empty((4, n_lanes)), vis, np.empty((3, n_lanes)),  # sums, visibility, light_dir
         np.empty(n_lanes), np.empty(n_lanes), np.empty((1, n1, n_lanes)),  # cos_na, open_visibility, kernel
         np.empty((9, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)),
-        _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes))
+        _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes),
+        np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj + 1, n2, n_lanes)),  # object_rank, chain
+        np.empty((n_obj + 1, n2, n_lanes)))  # chain_exp
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -759,9 +775,11 @@ def _indirect_lanes(lights, tables, exp_tables, mode, scratch):
             ind[c, q] = 0.0
     _rotated_cosine(tables.cosine, mode.order, scratch)
     if mode.per_object:
-        _object_prefix_logs(lights, n2, scratch)
+        _object_prefix_logs(lights, n2, mode.object_chain, scratch)
     if mode.hyb:
-        _average_visibility_hyb(lights, exp_tables, mode.per_object, n2, scratch)
+        if mode.object_chain:
+            _chain_exponentials(exp_tables, n2, scratch)
+        _average_visibility_hyb(lights, exp_tables, mode.per_object, mode.object_chain, n2, scratch)
     else:
         _average_visibility_ol(lights, exp_tables, mode.per_object, n2, scratch)
     if mode.cosine:
@@ -782,13 +800,14 @@ def _rotated_cosine(cosine, order, scratch):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _object_prefix_logs(lights, n2, scratch):
+def _object_prefix_logs(lights, n2, object_chain, scratch):
     """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
     of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
-    the other tiers)."""
+    the other tiers); with ``object_chain`` also ``scratch.chain[t]``, the same sums by rank ``t``
+    (``object_rank``), ``chain[O]`` all the logs."""
     recv, log = scratch.recv, scratch.blockers.log
     dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
-    by_dist, running = scratch.object_order, scratch.running
+    by_dist, running, rank, chain = scratch.object_order, scratch.running, scratch.object_rank, scratch.chain
     centres, light_object = lights.object_centres, lights.light_object
     n_obj, n_lanes = dist2.shape
     for o in range(n_obj):
@@ -820,9 +839,17 @@ def _object_prefix_logs(lights, n2, scratch):
             running[k] = 0.0
         for t in range(n_obj):
             o = by_dist[t]
+            rank[o, q] = t
             for k in range(n2):
                 prefix[o, k, q] = running[k]
                 running[k] += obj_log[o, k, q]
+        if object_chain:
+            for t in range(n_obj):
+                o = by_dist[t]
+                for k in range(n2):
+                    chain[t, k, q] = prefix[o, k, q]
+            for k in range(n2):
+                chain[n_obj, k, q] = running[k]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -857,10 +884,13 @@ def _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, d
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
+def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, scratch):
     """``scratch.visibility[i, q]``: ``V~_i = (exp*(front) - exp*(front + G_i)) . rho_n`` (Eqs. 23-24) of every
-    light at every lane, the two exponentials HYB (0 where the light is culled)."""
+    light at every lane, the two exponentials HYB (0 where the light is culled). With ``object_chain``, a light
+    alone in its object reads them from ``scratch.chain_exp`` at its object's rank and the next (its front is the
+    prefix of its object and its front + own the next prefix, the same sums)."""
     light_object, front_ptr, front_idx = lights.light_object, lights.front_ptr, lights.front_idx
+    rank, chain_exp, alone = scratch.object_rank, scratch.chain_exp, lights.alone
     log, dist, theta = scratch.blockers.log, scratch.blockers.dist, scratch.blockers.theta
     front, prefix, pair, hyb = scratch.front, scratch.object_prefix, scratch.pair_log, scratch.exp_light
     rho, vis, e = scratch.cosine, scratch.visibility, scratch.exp_light.out
@@ -869,6 +899,15 @@ def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
         for q in range(n_lanes):
             vis[i, q] = 0.0
         if not _any_live(theta, i):
+            continue
+        if object_chain and alone[i]:
+            oi = light_object[i]
+            for k in range(n2):
+                for q in range(n_lanes):
+                    t = rank[oi, q]
+                    vis[i, q] += (chain_exp[t, k, q] - chain_exp[t + 1, k, q]) * rho[k, q]
+            for q in range(n_lanes):
+                vis[i, q] = vis[i, q] if theta[i, q] >= 0.0 else 0.0
             continue
         _front_log(i, per_object, light_object, front_ptr, front_idx, prefix, log, dist, front)
         for k in range(n2):
@@ -882,6 +921,27 @@ def _average_visibility_hyb(lights, exp_tables, per_object, n2, scratch):
                 vis[i, q] += (e[k, q] - e[k, n_lanes + q]) * rho[k, q]
         for q in range(n_lanes):
             vis[i, q] = vis[i, q] if theta[i, q] >= 0.0 else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _chain_exponentials(exp_tables, n2, scratch):
+    """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB), two ranks per exponential of ``2L`` columns (an odd last
+    rank with itself)."""
+    chain, chain_exp, pair, hyb = scratch.chain, scratch.chain_exp, scratch.pair_log, scratch.exp_light
+    e = hyb.out
+    n_lanes = pair.shape[1] // 2
+    n_rank = chain.shape[0]
+    for t in range(0, n_rank, 2):
+        u = min(t + 1, n_rank - 1)
+        for k in range(n2):
+            for q in range(n_lanes):
+                pair[k, q] = chain[t, k, q]
+                pair[k, n_lanes + q] = chain[u, k, q]
+        _exp_hyb_columns(pair, exp_tables, hyb)
+        for k in range(n2):
+            for q in range(n_lanes):
+                chain_exp[t, k, q] = e[k, q]
+                chain_exp[u, k, q] = e[k, n_lanes + q]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -1048,10 +1108,12 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     """HYB ``exp*`` of the columns of ``x (n2, M)`` into ``scratch.out`` (as ``prtlab.sh``'s ``_exp_hyb``: ``k``
     halvings to ``|f^| <= threshold``, OL, ``k`` squarings, the DC factor). The columns are ordered by ``k``
     (descending), so squaring ``t`` runs over the prefix of columns that still need it; a square uses the
-    symmetric Gaunt pairs of ``exp_tables``. ``scratch``: a :data:`_HybScratch` of ``M`` columns."""
+    symmetric Gaunt pairs of ``exp_tables``, through the generated straight-line squares of
+    :mod:`._square_kernels` where ``scratch.value`` has their row stride and the order has one. ``scratch``: a
+    :data:`_HybScratch` of ``M`` columns."""
     n2, m = x.shape
     norm, ks, perm = scratch.norm, scratch.n_squarings, scratch.perm
-    h, v, w, out = scratch.halved, scratch.value, scratch.square, scratch.out
+    v, w, out = scratch.value, scratch.square, scratch.out
     sqrt4pi = math.sqrt(4.0 * math.pi)
     threshold, r_max, ol_a, ol_b = exp_tables.threshold, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
     for p in range(m):
@@ -1059,45 +1121,52 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     for i in range(1, n2):
         for p in range(m):
             norm[0, p] += x[i, p] * x[i, p]
+    for p in range(m):
+        norm[1, p] = math.sqrt(norm[0, p])
+    # k: the fewest halvings with |f^| / 2^k <= threshold, i.e. |f^| <= threshold 2^k (both sides exact: powers of
+    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; norm[1]: the scale 2^-k
     k_max = 0
     for p in range(m):
-        r = math.sqrt(norm[0, p])
+        r = norm[1, p]
         k = 0
-        if r > threshold:
-            k = max(0, int(math.ceil(math.log2(r / threshold))))
-            while r / 2.0**k > threshold:  # guard against rounding in log2, as prtlab.sh
-                k += 1
+        limit = threshold
+        scale = 1.0
+        while r > limit:
+            limit *= 2.0
+            scale *= 0.5
+            k += 1
         ks[p] = k
+        norm[1, p] = scale
         k_max = max(k_max, k)
-    pos = 0
-    for kk in range(k_max, -1, -1):
-        for p in range(m):
-            if ks[p] == kk:
-                perm[pos] = p
-                pos += 1
+    # columns by k descending, stable (a counting sort; perm's tail is its scratch)
+    for kk in range(k_max + 2):
+        perm[m + kk] = 0
+    for p in range(m):
+        perm[m + k_max - ks[p] + 1] += 1
+    for kk in range(1, k_max + 2):
+        perm[m + kk] += perm[m + kk - 1]
+    for p in range(m):
+        slot = m + k_max - ks[p]
+        perm[perm[slot]] = p
+        perm[slot] += 1
+    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly
     for t in range(m):
         p = perm[t]
-        scale = 1.0 / 2.0 ** ks[p]
-        h[0, t] = 0.0
-        for i in range(1, n2):
-            h[i, t] = x[i, p] * scale
-    # OL of the scaled columns (DC 0: its factor exp(0) = 1)
-    for t in range(m):
-        norm[0, t] = 0.0
-    for i in range(1, n2):
-        for t in range(m):
-            norm[0, t] += h[i, t] * h[i, t]
-    for t in range(m):
-        a, b = _ol_coefficients(math.sqrt(norm[0, t]), r_max, ol_a, ol_b)
+        scale = norm[1, p]
+        a, b = _ol_coefficients(math.sqrt(norm[0, p] * (scale * scale)), r_max, ol_a, ol_b)
         v[0, t] = a * sqrt4pi
-        norm[1, t] = b
-    for i in range(1, n2):
-        for t in range(m):
-            v[i, t] = norm[1, t] * h[i, t]
+        for i in range(1, n2):
+            v[i, t] = b * (x[i, p] * scale)
     n_act = m
+    order = int(math.sqrt(n2) + 0.5)
+    generated = v.shape[1] == SQUARE_COLUMNS and order <= SQUARE_ORDERS[-1]
+    v_flat = v.reshape(-1)
     for step in range(k_max):
         while n_act > 0 and ks[perm[n_act - 1]] <= step:
             n_act -= 1
+        if generated:
+            square_columns(v_flat, order, n_act)
+            continue
         _tile_product_prefix(v, v, exp_tables.sq_i, exp_tables.sq_j, exp_tables.sq_k, exp_tables.sq_v, w, n_act)
         for k in range(n2):
             for t in range(n_act):

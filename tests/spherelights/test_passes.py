@@ -359,3 +359,55 @@ def _const_env():
     env = np.zeros((16, 3))
     env[0] = np.sqrt(4 * np.pi)
     return env
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 6])
+def test_generated_squares_match_the_gaunt_product(order, rng):
+    """The straight-line squares of ``_square_kernels`` are ``sh.product(v, v)`` truncated to the order (the
+    generic Gaunt tier) on the columns they are given, and leave the other columns alone."""
+    from prtlab.spherelights._square_kernels import SQUARE_COLUMNS, square_columns
+
+    n2, width = order * order, 37
+    v = rng.normal(size=(n2, SQUARE_COLUMNS))
+    expect = sh.product(v[:, :width].T, v[:, :width].T, order=order, channels=False).T
+    got = v.copy()
+    square_columns(got.reshape(-1), order, width)
+    np.testing.assert_allclose(got[:, :width], expect, rtol=1e-13, atol=1e-13 * np.abs(expect).max())
+    np.testing.assert_array_equal(got[:, width:], v[:, width:])
+
+
+def test_square_kernels_are_generated():
+    """``_square_kernels.py`` is the output of its generator (regenerate it after changing either)."""
+    from pathlib import Path
+
+    from prtlab.spherelights import _square_kernels
+    from prtlab.spherelights._square_source import square_kernel_source
+
+    assert Path(_square_kernels.__file__).read_text() == square_kernel_source()
+
+
+@pytest.mark.parametrize("obj", [[0, 0, 0, 1, 2, 3, 4], [0, 0, 1, 2, 3]])
+@pytest.mark.parametrize("average", ["cosine", "paper"])
+def test_fused_second_pass_object_chain_matches_composed_tier(obj, average, rng):
+    """Per object, HYB, most objects of one light: the fused tier reads those lights' exponentials from the
+    objects' prefix chain (``_Mode.object_chain``; an even and an odd number of ranks) and agrees with the
+    composed tier."""
+    from prtlab.spherelights._passes import _LANES
+
+    obj = np.array(obj)
+    n_sph, n_recv = len(obj), 2 * _LANES + 7
+    p = rng.uniform(-2, 2, size=(n_recv, 3))
+    n = random_directions(rng, n_recv)
+    c = rng.normal(size=(n_sph, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, n_sph)
+    inter = np.zeros((n_sph, n_sph), dtype=bool)
+    inter[0, 1] = inter[1, 0] = True
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(n_sph)])
+    em = rng.normal(size=(n_sph, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    args = (p, n, c, r, obj, inter, rot, em, _env_sh())
+    d1, i1 = second_pass(*args, blocking="object", exp_method="hyb", method="fused", average=average)
+    d2, i2 = second_pass(*args, blocking="object", exp_method="hyb", method="numba", average=average)
+    np.testing.assert_allclose(d1, d2, atol=1e-11)
+    np.testing.assert_allclose(i1, i2, atol=1e-11)
+    assert np.abs(i1).max() > 0.1
