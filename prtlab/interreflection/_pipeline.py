@@ -1105,7 +1105,7 @@ class Interreflection(Precomputation):
             if previous is not None and previous.get(i) is h:
                 operators[i] = entry["operators"][i]
             else:
-                operators[i] = gather_operator(h, len(g["x"]), self.objects[i].n_vertices)
+                operators[i] = gather_operator(h, len(g["x"]))
         entry = {"poses": poses, "sources": sources, "offsets": offsets, "spheres": spheres, "hits": hits,
                  "operators": operators}
         self.reuse.residual_hits[r.name] = entry
@@ -1113,7 +1113,7 @@ class Interreflection(Precomputation):
 
     def _residual_light(self, geo, r, residuals, phi_r, method: str = "numba"):
         """The residual gather (V, K', C) on receiver ``r`` from the sources of ``phi_r`` (the pairs not
-        skipped by ``threshold``; itself too with ``self_interreflection``): one sparse product per source
+        skipped by ``threshold``; itself too with ``self_interreflection``): one pass over the hits per source
         (:func:`apply_gather`), or with ``method="reference"`` the float64 sum over the hits
         (:func:`gather_residual`)."""
         g = geo[r.name]

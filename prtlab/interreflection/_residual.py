@@ -18,7 +18,7 @@ final gather of that residual alone:
 The hits (:class:`ResidualHits`) depend on the poses only and are reused while they stand; when objects
 move, only the rays whose first hit they may change are cast again (``previous=`` of
 :func:`residual_hits`). Per bounce the gather is a fixed sparse linear map of the residual
-(:func:`gather_operator`, applied by :func:`apply_gather`); :func:`gather_residual` is its float64
+(:func:`gather_operator`, its hits in compact form, applied by :func:`apply_gather`); :func:`gather_residual` is its float64
 specification. The noise of ``n`` rays falls on the residual alone, which is small where the basis holds
 the radiance.
 """
@@ -39,26 +39,43 @@ __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits
 @dataclass(frozen=True)
 class ResidualHits:
     """Rays of one receiver that hit the front of one source, in the order of their ``rays`` ids
-    (``point * m + j``, ``m`` rays a point): ``rows`` (H,) receiver points, ``vertices`` (H, 3) and ``bary``
-    (H, 3) of the hit on the source, ``factor`` (H, K', K) ``g_k'(w) h_k(-w)`` times the ray's weight
-    ``(n . w)+ / (m pdf)``."""
+    (``point * m + j``, ``m`` rays a point): ``rows`` (H,) receiver points, ``factor`` (H, K', K)
+    ``g_k'(w) h_k(-w)`` times the ray's weight ``(n . w)+ / (m pdf)``, the hit ``triangles`` (H,) of the source's
+    ``faces`` (F, 3) and their ``uv`` (H, 2) (the caster's barycentrics); ``vertices`` (H, 3) and ``bary``
+    (H, 3) of the hits follow."""
 
     rows: np.ndarray
-    vertices: np.ndarray
-    bary: np.ndarray
     factor: np.ndarray
     rays: np.ndarray
+    triangles: np.ndarray
+    uv: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return np.asarray(self.faces, np.int64)[self.triangles]
+
+    @property
+    def bary(self) -> np.ndarray:
+        return np.stack([1.0 - self.uv[:, 0] - self.uv[:, 1], self.uv[:, 0], self.uv[:, 1]], axis=1)
+
+    def arrays(self) -> tuple:
+        """The per-hit arrays (``faces`` is the source's)."""
+        return self.rows, self.factor, self.rays, self.triangles, self.uv
 
 
 @dataclass(frozen=True)
 class GatherOperator:
-    """The gather of one source on one receiver as a CSR matrix ``(V_r K', V_s K)`` (duplicates summed):
-    ``L[v, k', c] = sum A[v K' + k', u K + k] r[u, k, c]``."""
+    """The gather of one source on one receiver in compact form: the hits of each receiver point ``v`` are
+    ``starts[v]:starts[v + 1]``, each a ``triangle`` of ``faces`` (int32), its ``uv`` (float32 when the caster's
+    barycentrics are float32 values, as Embree's are, else float64) and ``factor`` (H, K', K); 20 bytes a hit
+    for K = K' = 1. ``L[v, k', c] = sum_h factor[h, k', k] sum_j bary_j(h) r[faces[triangle[h], j], k, c]``."""
 
-    indptr: np.ndarray
-    indices: np.ndarray
-    data: np.ndarray
-    shape: tuple
+    starts: np.ndarray
+    faces: np.ndarray
+    triangles: np.ndarray
+    uv: np.ndarray
+    factor: np.ndarray
 
 
 # ------------------------------------------------------------------ kernels (counter-based rays)
@@ -162,45 +179,22 @@ def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, 
             flags[i, j] = hit
 
 
-@numba.njit(cache=True)
-def _build_kernel(starts, vertices, bary, factor, n_cols, indptr, indices, data):
-    """CSR rows ``v K' + k'`` of the hits of each receiver point ``v`` (``starts``: (V+1,) offsets into the
-    hits), duplicate columns summed in the order of the hits; ``indptr`` filled, returns the entries used."""
-    n_v = starts.shape[0] - 1
-    n_kp, n_k = factor.shape[1], factor.shape[2]
-    slot = np.full(n_cols, -1, np.int64)
-    nnz = 0
-    for v in range(n_v):
-        for kp in range(n_kp):
-            row = v * n_kp + kp
-            begin = nnz
-            for h in range(starts[v], starts[v + 1]):
-                for c in range(3):
-                    for k in range(n_k):
-                        col = vertices[h, c] * n_k + k
-                        value = factor[h, kp, k] * bary[h, c]
-                        at = slot[col]
-                        if at < begin:
-                            slot[col] = nnz
-                            indices[nnz] = col
-                            data[nnz] = value
-                            nnz += 1
-                        else:
-                            data[at] += value
-            indptr[row + 1] = nnz
-    return nnz
-
-
 @numba.njit(cache=True, parallel=True)
-def _apply_kernel(indptr, indices, data, x, out):
-    """``out += A x`` of a CSR ``A``; ``x`` (n_cols, C), ``out`` (n_rows, C)."""
-    n_c = x.shape[1]
-    for row in numba.prange(indptr.shape[0] - 1):
-        for c in range(n_c):
-            acc = 0.0
-            for e in range(indptr[row], indptr[row + 1]):
-                acc += data[e] * x[indices[e], c]
-            out[row, c] += acc
+def _apply_kernel(starts, faces, triangles, uv, factor, x, out):
+    """``out[v, k', c] += sum_h factor[h, k', k] (b0 x[a, k, c] + u x[b, k, c] + w x[c, k, c])`` over the hits
+    ``h`` of each receiver point ``v`` (``b0 = 1 - u - w``, the triangle's vertices ``a, b, c``)."""
+    n_kp, n_k, n_c = factor.shape[1], factor.shape[2], x.shape[2]
+    for v in numba.prange(starts.shape[0] - 1):
+        for h in range(starts[v], starts[v + 1]):
+            f = triangles[h]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, w = float(uv[h, 0]), float(uv[h, 1])
+            b0 = 1.0 - u - w
+            for k in range(n_k):
+                for c in range(n_c):
+                    at = b0 * x[i0, k, c] + u * x[i1, k, c] + w * x[i2, k, c]
+                    for kp in range(n_kp):
+                        out[v, kp, c] += factor[h, kp, k] * at
 
 
 # ------------------------------------------------------------------ rays
@@ -270,7 +264,8 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     sel = np.flatnonzero(hits.hit & (hits.object == s))
     if not len(sel):
         return None
-    tri = np.asarray(faces, np.int64)[hits.triangle[sel]]
+    triangles = hits.triangle[sel]
+    tri = np.asarray(faces, np.int64)[triangles]
     uv = hits.barycentric[sel]
     bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
     shading = np.einsum("hc,hcx->hx", bary, np.asarray(vertex_normals, float)[tri])
@@ -280,11 +275,12 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     if not np.any(front):
         return None
     sel, tri, bary, w, shading = sel[front], tri[front], bary[front], w[front], shading[front]
+    triangles, uv = triangles[front], uv[front]
     rows = point[live[sel]]
     g = receiver_sep.g(brdf.to_local(w, normals[rows]))  # (H, K')
     h = sep.h(brdf.to_local(-w, shading))  # (H, K)
     factor = buf[sel, 6][:, None, None] * g[:, :, None] * h[:, None, :]
-    return ResidualHits(rows, tri, bary, factor, ids[live[sel]])
+    return ResidualHits(rows, factor, ids[live[sel]], triangles, uv, faces)
 
 
 def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
@@ -294,22 +290,21 @@ def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | Non
         keep = ~np.isin(old.rays, recast, assume_unique=False)
         if np.all(keep) and new is None:
             return old
-        parts.append(tuple(a[keep] for a in (old.rows, old.vertices, old.bary, old.factor, old.rays)))
+        parts.append(tuple(a[keep] for a in old.arrays()))
     if new is not None:
-        parts.append((new.rows, new.vertices, new.bary, new.factor, new.rays))
+        parts.append(new.arrays())
     parts = [p for p in parts if len(p[0])]
     if not parts:
         return None
-    joined = [np.concatenate([p[i] for p in parts]) for i in range(5)]
-    order = np.argsort(joined[4], kind="stable")
-    return ResidualHits(*(a[order] for a in joined))
+    joined = [np.concatenate([p[i] for p in parts]) for i in range(len(parts[0]))]
+    order = np.argsort(joined[2], kind="stable")
+    return ResidualHits(*(a[order] for a in joined), (old or new).faces)
 
 
 def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
     if a is None or b is None:
         return a is b
-    return all(np.array_equal(x, y) for x, y in zip((a.rows, a.vertices, a.bary, a.factor, a.rays),
-                                                    (b.rows, b.vertices, b.bary, b.factor, b.rays)))
+    return all(np.array_equal(x, y) for x, y in zip(a.arrays(), b.arrays()))
 
 
 def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: int, seed: int = 0, *,
@@ -404,23 +399,18 @@ def gather_residual(hits: ResidualHits, residual, n_points: int) -> np.ndarray:
     return out
 
 
-def gather_operator(hits: ResidualHits, n_points: int, n_vertices: int) -> GatherOperator:
-    """The linear map of :func:`gather_residual` as a CSR matrix ``(n_points K', n_vertices K)``."""
-    n_kp, n_k = hits.factor.shape[1], hits.factor.shape[2]
-    starts = np.searchsorted(hits.rows, np.arange(n_points + 1)).astype(np.int64)
-    size = 3 * len(hits.rows) * n_k * n_kp
-    indptr = np.zeros(n_points * n_kp + 1, np.int64)
-    indices = np.empty(size, np.int64)
-    data = np.empty(size)
-    nnz = _build_kernel(starts, np.ascontiguousarray(hits.vertices, np.int64), np.ascontiguousarray(hits.bary),
-                        np.ascontiguousarray(hits.factor), n_vertices * n_k, indptr, indices, data)
-    cols = indices[:nnz].astype(np.int32) if n_vertices * n_k < 2**31 else indices[:nnz].copy()
-    return GatherOperator(indptr, cols, data[:nnz].copy(), (n_points * n_kp, n_vertices * n_k))
+def gather_operator(hits: ResidualHits, n_points: int) -> GatherOperator:
+    """The compact form of ``hits`` (:class:`GatherOperator`) on ``n_points`` receiver points."""
+    uv = np.asarray(hits.uv)
+    uv32 = uv.astype(np.float32)
+    exact = np.array_equal(uv32.astype(np.float64), uv)
+    return GatherOperator(np.searchsorted(hits.rows, np.arange(n_points + 1)).astype(np.int64),
+                          np.ascontiguousarray(hits.faces, np.int32), np.ascontiguousarray(hits.triangles, np.int32),
+                          np.ascontiguousarray(uv32 if exact else uv), np.ascontiguousarray(hits.factor, np.float64))
 
 
 def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
     """``out`` (V_r, K', C) += the gather of ``residual`` (V_s, K, C) through ``op``; returns ``out``."""
-    residual = np.ascontiguousarray(residual, dtype=np.float64)
-    flat = out.reshape(op.shape[0], -1)
-    _apply_kernel(op.indptr, op.indices, op.data, residual.reshape(op.shape[1], -1), flat)
+    _apply_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor,
+                  np.ascontiguousarray(residual, dtype=np.float64), out)
     return out
