@@ -146,8 +146,8 @@ class InterreflectionOptions:
     residual_rays : int
         Rays per receiver point and source of the residual gather (:mod:`prtlab.interreflection._residual`):
         the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
-        per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
-        object moves.
+        per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). When objects move,
+        the rays whose first hit they may change are cast again.
     """
 
     order: int = 4
