@@ -218,9 +218,9 @@ def pose_floor(pre, mover: str) -> tuple[float, float]:
 
 
 def _frame_info(info: dict, result) -> None:
-    """Keep the pair counts of the last timed frame (``computed_pairs``, ``updated_pairs``, ``reused_pairs``):
-    they say which work a frame did and which it reused."""
-    for k in ("computed_pairs", "updated_pairs", "reused_pairs", "skipped_pairs"):
+    """Keep the pair counts of the last timed frame (``computed_pairs``, ``updated_pairs``, ``reused_pairs``) and
+    the residual gather's rays cast: they say which work a frame did and which it reused."""
+    for k in ("computed_pairs", "updated_pairs", "reused_pairs", "skipped_pairs", "residual_rays_cast"):
         info[k] = int(result.info.get(k, 0))
 
 

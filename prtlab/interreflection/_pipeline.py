@@ -93,7 +93,7 @@ from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irrad
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import ray_traced_direct
-from ._residual import gather_residual, residual_hits
+from ._residual import _bounding_radius, apply_gather, gather_operator, gather_residual, residual_hits
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -160,8 +160,8 @@ class InterreflectionOptions:
     residual_rays : int
         Rays per receiver point and source of the residual gather (:mod:`prtlab.interreflection._residual`):
         the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
-        per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). Recast when any
-        object moves.
+        per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). When objects move,
+        the rays whose first hit they may change are cast again.
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
     storage : {"int16", "float32", "float64"}
@@ -356,12 +356,16 @@ class FrameReuse:
     #: source -> k-d tree of its vertices / ray caster of its mesh (object frame, built on first use)
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
-    #: receiver -> (poses of every object, {source index: ResidualHits}) of the residual gather
+    #: receiver -> {poses of every object, its sources, the caster's offsets, the objects' bounding spheres,
+    #: {source index: ResidualHits}, {source index: GatherOperator}} of the residual gather
     residual_hits: dict = dataclasses.field(default_factory=dict)
-    #: (poses of every object, a ray caster of every object at them) for the residual gather
+    #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
+    #: residual gather
     scene_caster: tuple | None = None
     #: receiver -> (poses, camera and lights, its ``L_k`` and radiance from area and point lights by rays)
     direct_rays: dict = dataclasses.field(default_factory=dict)
+    #: the residual gather's rays cast in the last frame (``info["residual_rays_cast"]``)
+    residual_counts: dict = dataclasses.field(default_factory=lambda: {"rays_cast": 0})
 
 
 class Interreflection(Precomputation):
@@ -796,7 +800,7 @@ class Interreflection(Precomputation):
             if cached is None or cached[0] != key:
                 cached = self.reuse.direct_rays[r.name] = (key, *ray_traced_direct(
                     g["x"], g["n"], g["wo"], brdf.from_material(r.material), self.seps[r.name],
-                    self._scene_caster(geo, poses), near, self.options.light_samples))
+                    self._scene_caster(geo, poses)[0], near, self.options.light_samples))
             lk, rad = cached[1], cached[2]
             if env_sh is not None:
                 env_k = self._clamp_diffuse(r, np.einsum("vki,ic->vkc", transfer[r.name], env_sh))
@@ -1157,36 +1161,78 @@ class Interreflection(Precomputation):
                 - np.einsum("nv,knc->vkc", self.bases[s.name].basis, weights[s.name]) for s in self.objects}
 
     def _scene_caster(self, geo, key):
+        """``(caster, spheres)``: a ray caster of every object at the poses ``key`` and their bounding spheres
+        (n_objects, 4: centre, radius through the farthest vertex), built once per pose set."""
         if self.reuse.scene_caster is None or self.reuse.scene_caster[0] != key:
             caster = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces)) for o in self.objects],
                                transforms=[geo[o.name]["T"] for o in self.objects])
-            self.reuse.scene_caster = (key, caster)
-        return self.reuse.scene_caster[1]
+            spheres = np.array([[*geo[o.name]["center"], _bounding_radius(caster.world_vertices(i), geo[o.name]["center"])]
+                                for i, o in enumerate(self.objects)]).reshape(-1, 4)
+            self.reuse.scene_caster = (key, caster, spheres)
+        return self.reuse.scene_caster[1], self.reuse.scene_caster[2]
 
-    def _residual_light(self, geo, r, residuals, phi_r):
-        """The residual gather (V, K', C) on receiver ``r`` from the sources of ``phi_r`` (the pairs not
-        skipped by ``threshold``; itself too with ``self_interreflection``); its hits stand while every
-        object's pose does."""
+    def _residual_entry(self, geo, r, phi_r):
+        """The receiver's residual-gather entry at the frame's poses (``FrameReuse.residual_hits``): its hits
+        and their gather operators, made again only where a pose change may have changed them.
+
+        When objects other than ``r`` moved and the caster's offsets stand, only the rays they may block or
+        unblock are cast again (:func:`residual_hits` with ``previous``), and a source whose hits did not change
+        keeps its operator; else every ray is cast."""
+        poses = tuple(geo[o.name]["pose"] for o in self.objects)
+        sources = tuple(i for i, s in enumerate(self.objects)
+                        if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
+                                               and not self.flat[r.name]))
+        entry = self.reuse.residual_hits.get(r.name)
+        if entry is not None and entry["poses"] == poses and entry["sources"] == sources:
+            return entry
         g = geo[r.name]
-        key = tuple(geo[o.name]["pose"] for o in self.objects)
-        key = (key, tuple(sorted(phi_r)))
-        cached = self.reuse.residual_hits.get(r.name)
-        if cached is None or cached[0] != key:
-            sources = {i: (np.asarray(s.mesh.faces), geo[s.name]["n"], self.seps[s.name], geo[s.name]["center"],
-                           geo[s.name]["radius"])
-                       for i, s in enumerate(self.objects)
-                       if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
-                                              and not self.flat[r.name])}
-            hits = residual_hits(g["x"], g["n"], self.seps[r.name], self._scene_caster(geo, key[0]), sources,
-                                 self.options.residual_rays)
-            cached = self.reuse.residual_hits[r.name] = (key, hits)
+        caster, spheres = self._scene_caster(geo, poses)
+        offsets = (caster.epsilon, caster.tnear)
+        me = next(i for i, o in enumerate(self.objects) if o.name == r.name)
+        previous = moved = None
+        if entry is not None and entry["sources"] == sources and entry["offsets"] == offsets \
+                and entry["poses"][me] == poses[me]:
+            moved = {i: np.stack([entry["spheres"][i], spheres[i]]) for i in range(len(poses))
+                     if entry["poses"][i] != poses[i]}
+            if len(moved) <= len(poses) // 2:  # else casting everything again is as cheap
+                previous = entry["hits"]
+            else:
+                moved = None
+        src = {i: (np.asarray(self.objects[i].mesh.faces), geo[self.objects[i].name]["n"],
+                   self.seps[self.objects[i].name], geo[self.objects[i].name]["center"],
+                   geo[self.objects[i].name]["radius"]) for i in sources}
+        hits = residual_hits(g["x"], g["n"], self.seps[r.name], caster, src, self.options.residual_rays,
+                             previous=previous, moved=moved, stats=self.reuse.residual_counts)
+        operators = {}
+        for i, h in hits.items():
+            if previous is not None and previous.get(i) is h:
+                operators[i] = entry["operators"][i]
+            else:
+                operators[i] = gather_operator(h, len(g["x"]))
+        entry = {"poses": poses, "sources": sources, "offsets": offsets, "spheres": spheres, "hits": hits,
+                 "operators": operators}
+        self.reuse.residual_hits[r.name] = entry
+        return entry
+
+    def _residual_light(self, geo, r, residuals, phi_r, method: str = "numba"):
+        """The residual gather (V, K', C) on receiver ``r`` from the sources of ``phi_r`` (the pairs not
+        skipped by ``threshold``; itself too with ``self_interreflection``): one pass over the hits per source
+        (:func:`apply_gather`), or with ``method="reference"`` the float64 sum over the hits
+        (:func:`gather_residual`)."""
+        g = geo[r.name]
+        entry = self._residual_entry(geo, r, phi_r)
         out = np.zeros(g["g_cos"].shape[:2] + (3,))
-        for i, hits in cached[1].items():
-            out += gather_residual(hits, residuals[self.objects[i].name], len(g["x"]))
+        for i, op in entry["operators"].items():
+            residual = residuals[self.objects[i].name]
+            if method == "reference":
+                out += gather_residual(entry["hits"][i], residual, len(g["x"]))
+            else:
+                apply_gather(op, residual, out)
         return out
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
+        self.reuse.residual_counts = {"rays_cast": 0}
         t0 = time.perf_counter()
         light_points = self._light_points(state.lights)
         key = (self._pose_key(state), None if light_points is None else light_points.tobytes())
@@ -1213,7 +1259,8 @@ class Interreflection(Precomputation):
             result.direct[o.name] = direct[o.name]
             result.indirect[o.name] = indirect[o.name]
             result.total[o.name] = direct[o.name] + indirect[o.name]
-        result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts}
+        result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts,
+                       "residual_rays_cast": self.reuse.residual_counts["rays_cast"]}
         return result
 
 

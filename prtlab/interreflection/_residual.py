@@ -7,84 +7,329 @@ light in a pose the training never saw) is lost. Per frame and bounce the residu
 ``r_k = colour_k L_k - P(colour_k L_k)`` at the sources' vertices is gathered instead, as a one-bounce
 final gather of that residual alone:
 
-* every receiver point casts ``n`` rays per source (stratified, a fixed seed) into the scene at the
+* every receiver point casts ``n`` rays per source (stratified: a jittered grid whose random numbers are a
+  hash of ``(seed, source, point, ray)``, so one ray can be made again alone) into the scene at the
   frame's poses: uniform in the cone of the source's bounding sphere, or cosine-weighted over the
   hemisphere from a point inside that sphere; a ray whose first hit is the front of the source carries
   the residual interpolated at the hit (barycentrically, as the basis radiance fields interpolate ``Psi``);
 * ``L_k'(x) += sum_rays g_k'(w) (n . w)+ / (n pdf(w)) sum_k h_k(-w) r_k(hit)``: unbiased for the
   residual with exact visibility, near or far (a source 3 cm away as well as a small one far off).
 
-The hits (:class:`ResidualHits`) depend on the poses only and are reused while they stand; per bounce
-the gather is one weighted sum over them. The noise of ``n`` rays falls on the residual alone, which is
-small where the basis holds the radiance.
+The hits (:class:`ResidualHits`) depend on the poses only and are reused while they stand; when objects
+move, only the rays whose first hit they may change are cast again (``previous=`` of
+:func:`residual_hits`). Per bounce the gather is a fixed sparse linear map of the residual
+(:func:`gather_operator`, its hits in compact form, applied by :func:`apply_gather`); :func:`gather_residual` is its float64
+specification. The noise of ``n`` rays falls on the residual alone, which is small where the basis holds
+the radiance.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from prtlab import brdf
-from prtlab.geometry import offset_origins
 
-__all__ = ["ResidualHits", "cosine_directions", "residual_hits", "gather_residual"]
-
+__all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
+           "gather_operator", "apply_gather"]
 
 @dataclass(frozen=True)
 class ResidualHits:
-    """Rays of one receiver that hit the front of one source: ``rows`` (H,) receiver points, ``vertices``
-    (H, 3) and ``bary`` (H, 3) of the hit on the source, ``factor`` (H, K', K) ``g_k'(w) h_k(-w)`` times the
-    ray's weight ``(n . w)+ / (n pdf)``."""
+    """Rays of one receiver that hit the front of one source, in the order of their ``rays`` ids
+    (``point * m + j``, ``m`` rays a point): ``rows`` (H,) receiver points, ``factor`` (H, K', K)
+    ``g_k'(w) h_k(-w)`` times the ray's weight ``(n . w)+ / (m pdf)``, the hit ``triangles`` (H,) of the source's
+    ``faces`` (F, 3) and their ``uv`` (H, 2) (the caster's barycentrics); ``vertices`` (H, 3) and ``bary``
+    (H, 3) of the hits follow."""
 
     rows: np.ndarray
-    vertices: np.ndarray
-    bary: np.ndarray
+    factor: np.ndarray
+    rays: np.ndarray
+    triangles: np.ndarray
+    uv: np.ndarray
+    faces: np.ndarray
+
+    @property
+    def vertices(self) -> np.ndarray:
+        return np.asarray(self.faces, np.int64)[self.triangles]
+
+    @property
+    def bary(self) -> np.ndarray:
+        return np.stack([1.0 - self.uv[:, 0] - self.uv[:, 1], self.uv[:, 0], self.uv[:, 1]], axis=1)
+
+    def arrays(self) -> tuple:
+        """The per-hit arrays (``faces`` is the source's)."""
+        return self.rows, self.factor, self.rays, self.triangles, self.uv
+
+
+@dataclass(frozen=True)
+class GatherOperator:
+    """The gather of one source on one receiver in compact form: the hits of each receiver point ``v`` are
+    ``starts[v]:starts[v + 1]``, each a ``triangle`` of ``faces`` (int32), its ``uv`` (float32 when the caster's
+    barycentrics are float32 values, as Embree's are, else float64) and ``factor`` (H, K', K); 20 bytes a hit
+    for K = K' = 1. ``L[v, k', c] = sum_h factor[h, k', k] sum_j bary_j(h) r[faces[triangle[h], j], k, c]``."""
+
+    starts: np.ndarray
+    faces: np.ndarray
+    triangles: np.ndarray
+    uv: np.ndarray
     factor: np.ndarray
 
 
-def _jittered(n_points: int, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
-    """(V, m) pairs ``(u1, u2)`` of a jittered ``rows x side`` grid of the unit square, ``m = rows side <= n``."""
+# ------------------------------------------------------------------ kernels (counter-based rays)
+
+
+@numba.njit(cache=True, inline="always")
+def _mix(z):
+    """SplitMix64's finaliser (uint64 -> uint64)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@numba.njit(cache=True, inline="always")
+def _uniform(key, counter):
+    """A uniform double in [0, 1) of stream ``key`` at ``counter`` (SplitMix64)."""
+    z = _mix(key + (counter + np.uint64(1)) * np.uint64(0x9E3779B97F4A7C15))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _frame(nx, ny, nz):
+    """Tangents ``(t, b)`` of a unit normal (Duff et al. 2017)."""
+    sign = 1.0 if nz >= 0.0 else -1.0
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    return 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
+
+
+@numba.njit(cache=True, inline="always")
+def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, out):
+    """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
+
+    Uniform in the cone of the sphere ``(centre, radius)``, cosine-weighted on the hemisphere from inside it;
+    the origin is moved ``eps`` off the surface on the ray's side (:func:`prtlab.geometry.offset_origins`);
+    ``tmax`` is where the ray leaves the sphere ``(centre, bound)`` (0: it misses it, or weight 0).
+    """
+    m = rows * side
+    x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
+    n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
+    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    stream = _mix(key ^ _mix(np.uint64(p)))
+    u1 = ((j // side) + _uniform(stream, np.uint64(2 * j))) / rows
+    u2 = ((j % side) + _uniform(stream, np.uint64(2 * j + 1))) / side
+    phi = 2.0 * math.pi * u2
+    if dist <= 1.0001 * radius:  # inside the sphere: cosine-weighted about the normal
+        r = math.sqrt(u1)
+        l0, l1, l2 = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(1.0 - u1, 0.0))
+        a0, a1, a2 = n0, n1, n2
+        weight = math.pi / m
+    else:
+        q = radius / max(dist, radius)
+        cos_max = math.sqrt(max(1.0 - q * q, 0.0))
+        cos_t = 1.0 - u1 * (1.0 - cos_max)
+        sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
+        l0, l1, l2 = sin_t * math.cos(phi), sin_t * math.sin(phi), cos_t
+        a0, a1, a2 = d0 / dist, d1 / dist, d2 / dist
+        weight = 2.0 * math.pi * (1.0 - cos_max) / m
+    t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
+    w0 = t0 * l0 + b0 * l1 + a0 * l2
+    w1 = t1 * l0 + b1 * l1 + a1 * l2
+    w2 = t2 * l0 + b2 * l1 + a2 * l2
+    cos_n = w0 * n0 + w1 * n1 + w2 * n2
+    weight = weight * max(cos_n, 0.0) if dist > 1.0001 * radius else weight
+    s = -1.0 if cos_n < 0.0 else 1.0
+    o0, o1, o2 = x0 + eps * s * n0, x1 + eps * s * n1, x2 + eps * s * n2
+    # leaving the bounding sphere: t = -b + sqrt(b^2 - c)
+    e0, e1, e2 = o0 - centre[0], o1 - centre[1], o2 - centre[2]
+    bb = e0 * w0 + e1 * w1 + e2 * w2
+    disc = bb * bb - (e0 * e0 + e1 * e1 + e2 * e2 - bound * bound)
+    tmax = -bb + math.sqrt(disc) if disc >= 0.0 and weight > 0.0 else 0.0
+    out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = o0, o1, o2, w0, w1, w2, weight, max(tmax, 0.0)
+
+
+@numba.njit(cache=True, parallel=True)
+def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, out):
+    """``_ray`` for each ``(point[i], ray[i])``: ``out`` (Q, 8)."""
+    for i in numba.prange(point.shape[0]):
+        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, out[i])
+
+
+@numba.njit(cache=True, parallel=True)
+def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, spheres, flags):
+    """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
+    (S, 4: centre, radius)."""
+    m = rows * side
+    for i in numba.prange(candidates.shape[0]):
+        buf = np.empty(8)
+        for j in range(m):
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, buf)
+            hit = False
+            if buf[7] > 0.0:
+                for k in range(spheres.shape[0]):
+                    c0, c1, c2 = spheres[k, 0] - buf[0], spheres[k, 1] - buf[1], spheres[k, 2] - buf[2]
+                    t = min(max(c0 * buf[3] + c1 * buf[4] + c2 * buf[5], 0.0), buf[7])
+                    g0, g1, g2 = c0 - t * buf[3], c1 - t * buf[4], c2 - t * buf[5]
+                    if g0 * g0 + g1 * g1 + g2 * g2 <= spheres[k, 3] * spheres[k, 3]:
+                        hit = True
+                        break
+            flags[i, j] = hit
+
+
+@numba.njit(cache=True, parallel=True)
+def _apply_kernel(starts, faces, triangles, uv, factor, x, out):
+    """``out[v, k', c] += sum_h factor[h, k', k] (b0 x[a, k, c] + u x[b, k, c] + w x[c, k, c])`` over the hits
+    ``h`` of each receiver point ``v`` (``b0 = 1 - u - w``, the triangle's vertices ``a, b, c``)."""
+    n_kp, n_k, n_c = factor.shape[1], factor.shape[2], x.shape[2]
+    for v in numba.prange(starts.shape[0] - 1):
+        for h in range(starts[v], starts[v + 1]):
+            f = triangles[h]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, w = float(uv[h, 0]), float(uv[h, 1])
+            b0 = 1.0 - u - w
+            for k in range(n_k):
+                for c in range(n_c):
+                    at = b0 * x[i0, k, c] + u * x[i1, k, c] + w * x[i2, k, c]
+                    for kp in range(n_kp):
+                        out[v, kp, c] += factor[h, kp, k] * at
+
+
+@numba.njit(cache=True, parallel=True)
+def _apply_rgb_kernel(starts, faces, triangles, uv, factor, x, out):
+    """``_apply_kernel`` for ``K = K' = 1`` and 3 colours, on ``factor`` (H,), ``x`` (V_s, 3), ``out`` (V_r, 3)."""
+    for v in numba.prange(starts.shape[0] - 1):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for h in range(starts[v], starts[v + 1]):
+            f = triangles[h]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, w = float(uv[h, 0]), float(uv[h, 1])
+            b0 = 1.0 - u - w
+            g = factor[h]
+            a0 += g * (b0 * x[i0, 0] + u * x[i1, 0] + w * x[i2, 0])
+            a1 += g * (b0 * x[i0, 1] + u * x[i1, 1] + w * x[i2, 1])
+            a2 += g * (b0 * x[i0, 2] + u * x[i1, 2] + w * x[i2, 2])
+        out[v, 0] += a0
+        out[v, 1] += a1
+        out[v, 2] += a2
+
+
+# ------------------------------------------------------------------ rays
+
+
+def _grid(n: int) -> tuple[int, int]:
+    """``(rows, side)`` of the jittered grid of ``n`` rays (``rows side <= n``)."""
     side = max(1, int(np.sqrt(n)))
-    rows = max(1, n // side)
-    i, j = np.meshgrid(np.arange(rows), np.arange(side), indexing="ij")
-    u1 = (i.ravel()[None] + rng.random((n_points, rows * side))) / rows
-    u2 = (j.ravel()[None] + rng.random((n_points, rows * side))) / side
-    return u1, u2
+    return max(1, n // side), side
+
+
+def _mix_int(z: int) -> int:
+    """SplitMix64's finaliser on a Python int (as ``_mix``)."""
+    mask = 0xFFFFFFFFFFFFFFFF
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+    return z ^ (z >> 31)
+
+
+def _key(seed: int, source: int) -> np.uint64:
+    """The stream key of one source's rays."""
+    mask = 0xFFFFFFFFFFFFFFFF
+    return np.uint64(_mix_int((int(seed) & mask) ^ _mix_int(((int(source) + 1) * 0x9E3779B97F4A7C15) & mask)))
 
 
 def cosine_directions(normals, n: int, seed: int = 0) -> np.ndarray:
-    """(V, m, 3) cosine-weighted directions about each unit normal: a jittered grid of the unit square
-    (:func:`_jittered`, ``m <= n``) lifted to the hemisphere (Malley)."""
-    normals = np.asarray(normals, float)
-    u1, u2 = _jittered(len(normals), n, np.random.default_rng(seed))
-    r, phi = np.sqrt(u1), 2.0 * np.pi * u2
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u1, 0.0))], axis=-1)
-    return brdf.to_world(local, np.broadcast_to(normals[:, None], local.shape))
+    """(V, m, 3) cosine-weighted directions about each unit normal: a jittered ``rows x side`` grid of the
+    unit square (``m = rows side <= n``) lifted to the hemisphere (Malley), as the gather's rays from a
+    point inside a source's bounding sphere."""
+    normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
+    rows, side = _grid(n)
+    m = rows * side
+    point, ray = np.repeat(np.arange(len(normals)), m), np.tile(np.arange(m), len(normals))
+    out = np.empty((len(point), 8))
+    inside = np.zeros(3)  # a point at the sphere's centre
+    _rays_kernel(np.zeros_like(normals), normals, point, ray, inside, 1.0, 1.0, _key(seed, 0), rows, side, 0.0, out)
+    return out[:, 3:6].reshape(len(normals), m, 3)
 
 
-def _rays(points, normals, centre, radius, n: int, rng):
-    """Directions (V, m, 3) and their weights ``max(n . w, 0) / (m pdf)`` (V, m) toward a source's bounding
-    sphere: uniform in its cone from a point outside it, cosine-weighted on the hemisphere from inside."""
-    d = centre[None] - points
-    dist = np.linalg.norm(d, axis=1)
-    inside = dist <= 1.0001 * radius
-    u1, u2 = _jittered(len(points), n, rng)
-    m = u1.shape[1]
-    cos_max = np.sqrt(np.maximum(1.0 - (radius / np.maximum(dist, radius)) ** 2, 0.0))  # cone half-angle
-    cos_t = 1.0 - u1 * (1.0 - cos_max)[:, None]
-    sin_t, phi = np.sqrt(np.maximum(1.0 - cos_t**2, 0.0)), 2.0 * np.pi * u2
-    local = np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
-    axis = np.where(inside[:, None], normals, d / np.maximum(dist, 1e-300)[:, None])
-    dirs = brdf.to_world(local, np.broadcast_to(axis[:, None], local.shape))
-    weight = np.maximum(np.einsum("vmi,vi->vm", dirs, normals), 0.0) * (2.0 * np.pi * (1.0 - cos_max))[:, None] / m
-    if np.any(inside):
-        cosine = cosine_directions(normals[inside], n, int(rng.integers(2**31)))
-        dirs[inside], weight[inside] = cosine, np.pi / m
-    return dirs, weight
+def _bounding_radius(vertices, centre) -> float:
+    """Radius about ``centre`` of the sphere through the farthest vertex."""
+    v = np.asarray(vertices, float)
+    return float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1)))) if len(v) else 0.0
 
 
-def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: int, seed: int = 0) -> dict:
+def _margin(caster, centre, radius) -> float:
+    """Widening of a bounding sphere for float32 hits and origin offsets."""
+    return 2.0 * caster.epsilon + 1e-5 * (float(np.max(np.abs(centre))) + radius) + 1e-12
+
+
+def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats) -> ResidualHits | None:
+    """The hits on the front of source ``s`` of the rays ``(point, ray)`` (ids ``ids``), ids ascending."""
+    faces, vertex_normals, sep, centre, radius = source
+    centre = np.asarray(centre, float)
+    bound = _bounding_radius(caster.world_vertices(s), centre)
+    bound += _margin(caster, centre, bound)
+    buf = np.empty((len(point), 8))
+    if len(point):
+        _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
+                     float(caster.epsilon), buf)
+    live = np.flatnonzero(buf[:, 7] > 0.0)
+    if not len(live):
+        return None
+    buf = buf[live]
+    stats["rays_cast"] += len(live)
+    hits = caster.closest_hit(buf[:, :3], buf[:, 3:6], tmax=buf[:, 7])
+    sel = np.flatnonzero(hits.hit & (hits.object == s))
+    if not len(sel):
+        return None
+    triangles = hits.triangle[sel]
+    tri = np.asarray(faces, np.int64)[triangles]
+    uv = hits.barycentric[sel]
+    bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+    shading = np.einsum("hc,hcx->hx", bary, np.asarray(vertex_normals, float)[tri])
+    shading /= np.maximum(np.linalg.norm(shading, axis=1, keepdims=True), 1e-300)
+    w = buf[sel, 3:6]
+    front = np.einsum("hx,hx->h", shading, w) < 0.0  # the back of a surface emits nothing
+    if not np.any(front):
+        return None
+    sel, tri, bary, w, shading = sel[front], tri[front], bary[front], w[front], shading[front]
+    triangles, uv = triangles[front], uv[front]
+    rows = point[live[sel]]
+    g = receiver_sep.g(brdf.to_local(w, normals[rows]))  # (H, K')
+    h = sep.h(brdf.to_local(-w, shading))  # (H, K)
+    factor = buf[sel, 6][:, None, None] * g[:, :, None] * h[:, None, :]
+    return ResidualHits(rows, factor, ids[live[sel]], triangles, uv, faces)
+
+
+def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
+    """``old`` without the rays ``recast`` (sorted ids), with ``new`` (their hits now), in the order of the ids."""
+    parts = []
+    if old is not None:
+        keep = ~np.isin(old.rays, recast, assume_unique=False)
+        if np.all(keep) and new is None:
+            return old
+        parts.append(tuple(a[keep] for a in old.arrays()))
+    if new is not None:
+        parts.append(new.arrays())
+    parts = [p for p in parts if len(p[0])]
+    if not parts:
+        return None
+    joined = [np.concatenate([p[i] for p in parts]) for i in range(len(parts[0]))]
+    order = np.argsort(joined[2], kind="stable")
+    return ResidualHits(*(a[order] for a in joined), (old or new).faces)
+
+
+def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    return all(np.array_equal(x, y) for x, y in zip(a.arrays(), b.arrays()))
+
+
+def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: int, seed: int = 0, *,
+                  previous: dict | None = None, moved: dict | None = None, stats: dict | None = None) -> dict:
     """``{source index: ResidualHits}`` of ``n_rays`` rays per receiver point and source.
 
     ``caster`` holds every object at its pose (its object index is the key); ``sources`` maps the indices
@@ -92,41 +337,105 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     centre, radius)``. Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
     over the hemisphere from a point inside it), so a small far source gets all of them; a ray counts
     when its first hit is the front of that source.
+
+    With ``previous`` (this function's result for the same receiver points, sources' geometry, seed and
+    caster epsilon, at earlier poses) and ``moved`` (``{object index: (S, 4) array}``: the old and new
+    bounding spheres, centre and radius, of every object whose pose changed since; the receiver not among
+    them) only the rays whose first hit may have changed are cast again: every ray toward a moved source,
+    and the rays of the other sources whose path up to the source meets a moved object's old or new
+    bounding sphere. The result equals a full cast (the same rays, the same hits) but for float32 ties
+    between triangles at one distance. An unchanged source keeps its ``ResidualHits`` object. ``stats``
+    (a dict) gets ``rays_cast`` added.
     """
-    points = np.asarray(points, float)
-    normals = np.asarray(normals, float)
-    rng = np.random.default_rng(seed)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    grid = _grid(n_rays)
+    m = grid[0] * grid[1]
     out = {}
     if len(points) == 0:
         return out
-    for s, (faces, vertex_normals, sep, centre, radius) in sources.items():
-        dirs, weight = _rays(points, normals, np.asarray(centre, float), float(radius), n_rays, rng)
-        origins = offset_origins(points[:, None], normals[:, None], dirs, caster.epsilon)
-        hits = caster.closest_hit(origins, dirs)
-        sel = np.nonzero(hits.hit & (hits.object == s) & (weight > 0))
-        if not len(sel[0]):
-            continue
-        tri = np.asarray(faces, np.int64)[hits.triangle[sel]]
-        uv = hits.barycentric[sel]
-        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        shading = np.einsum("hc,hcx->hx", bary, vertex_normals[tri])
-        shading /= np.maximum(np.linalg.norm(shading, axis=1, keepdims=True), 1e-300)
-        w = dirs[sel]
-        front = np.einsum("hx,hx->h", shading, w) < 0.0  # the back of a surface emits nothing
-        if not np.any(front):
-            continue
-        rows, tri, bary, w, shading = sel[0][front], tri[front], bary[front], w[front], shading[front]
-        g = receiver_sep.g(brdf.to_local(w, normals[rows]))  # (H, K')
-        h = sep.h(brdf.to_local(-w, shading))  # (H, K)
-        out[s] = ResidualHits(rows, tri, bary, weight[sel][front][:, None, None] * g[:, :, None] * h[:, None, :])
+    stats = {} if stats is None else stats
+    stats.setdefault("rays_cast", 0)
+    incremental = previous is not None and moved is not None
+    spheres = np.concatenate(list(moved.values())) if incremental and moved else np.zeros((0, 4))
+    for s, source in sources.items():
+        key = _key(seed, s)
+        if not incremental or s in moved:
+            point, ray = np.repeat(np.arange(len(points)), m), np.tile(np.arange(m), len(points))
+            hits = _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid,
+                         np.arange(len(points) * m, dtype=np.int64), stats)
+        elif not len(spheres):
+            hits = previous.get(s)
+        else:
+            hits = _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, previous.get(s),
+                           stats)
+        if hits is not None:
+            out[s] = hits
     return out
 
 
+def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats):
+    """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
+    centre, radius = np.asarray(source[3], float), float(source[4])
+    m = grid[0] * grid[1]
+    bound = _bounding_radius(caster.world_vertices(s), centre)
+    bound += _margin(caster, centre, bound)
+    widened = spheres.copy()
+    widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
+    # every ray of a point lies, up to its tmax, in the capsule of radius `bound` about the segment to the centre
+    d = centre[None] - points
+    dd = np.maximum(np.einsum("vi,vi->v", d, d), 1e-300)
+    near = np.zeros(len(points), bool)
+    for c in widened:
+        t = np.clip(np.einsum("vi,vi->v", c[None, :3] - points, d) / dd, 0.0, 1.0)
+        gap = points + t[:, None] * d - c[None, :3]
+        near |= np.einsum("vi,vi->v", gap, gap) <= (bound + c[3] + caster.epsilon) ** 2
+    candidates = np.flatnonzero(near)
+    if not len(candidates):
+        return old
+    flags = np.empty((len(candidates), m), np.bool_)
+    _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
+                 widened, flags)
+    i, j = np.nonzero(flags)
+    if not len(i):
+        return old
+    point, ray = candidates[i], j.astype(np.int64)
+    ids = point * m + ray
+    new = _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats)
+    merged = _merge(old, ids, new)
+    return old if _same(merged, old) else merged
+
+
+# ------------------------------------------------------------------ the gather
+
+
 def gather_residual(hits: ResidualHits, residual, n_points: int) -> np.ndarray:
-    """``L_k',c`` (n_points, K', C) gathered from a source's per-vertex ``residual`` (V_s, K, C)."""
+    """``L_k',c`` (n_points, K', C) gathered from a source's per-vertex ``residual`` (V_s, K, C): the float64
+    specification of :func:`apply_gather`."""
     residual = np.asarray(residual, float)
     at_hit = np.einsum("hv,hvkc->hkc", hits.bary, residual[hits.vertices])
     per_ray = np.einsum("hqk,hkc->hqc", hits.factor, at_hit)
     out = np.zeros((n_points,) + per_ray.shape[1:])
     np.add.at(out, hits.rows, per_ray)
+    return out
+
+
+def gather_operator(hits: ResidualHits, n_points: int) -> GatherOperator:
+    """The compact form of ``hits`` (:class:`GatherOperator`) on ``n_points`` receiver points."""
+    uv = np.asarray(hits.uv)
+    uv32 = uv.astype(np.float32)
+    exact = np.array_equal(uv32.astype(np.float64), uv)
+    return GatherOperator(np.searchsorted(hits.rows, np.arange(n_points + 1)).astype(np.int64),
+                          np.ascontiguousarray(hits.faces, np.int32), np.ascontiguousarray(hits.triangles, np.int32),
+                          np.ascontiguousarray(uv32 if exact else uv), np.ascontiguousarray(hits.factor, np.float64))
+
+
+def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
+    """``out`` (V_r, K', C) += the gather of ``residual`` (V_s, K, C) through ``op``; returns ``out``."""
+    residual = np.ascontiguousarray(residual, dtype=np.float64)
+    if op.factor.shape[1:] == (1, 1) and residual.shape[1:] == (1, 3) and out.flags.c_contiguous:
+        _apply_rgb_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), residual.reshape(-1, 3),
+                          out.reshape(-1, 3))
+    else:
+        _apply_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor, residual, out)
     return out

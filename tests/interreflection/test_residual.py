@@ -61,3 +61,186 @@ def test_the_back_of_a_source_sends_nothing():
 def test_residual_rays_is_validated():
     with pytest.raises(ValueError, match="residual_rays"):
         InterreflectionOptions(residual_rays=-1)
+
+
+# ------------------------------------------------------------------ the fast gather and the incremental cast
+
+PHONG = brdf.separable(brdf.phong([0.4, 0.4, 0.4], [0.3, 0.3, 0.3], 20.0), 3)
+
+
+def _objects():
+    """A floor, a ball and a box (object space) and the box's poses: in place, moved (translated and rotated)
+    far from the ball, moved against the ball."""
+    from prtlab.scene import Transform
+
+    floor = builtin_mesh("plane", size=[3.0, 3.0], resolution=[6, 6])
+    ball = builtin_mesh("icosphere", radius=0.4, subdivisions=2)
+    box = builtin_mesh("box", size=[0.4, 0.4, 0.4], subdivisions=1)
+    poses = [Transform(), Transform(translate=np.array([0.0, 0.5, 0.0])),
+             Transform(translate=np.array([0.9, 0.25, 0.6]), rotate_deg=np.array([0.0, 20.0, 0.0]))]
+    moves = {"translated and rotated": Transform(translate=np.array([-0.8, 0.3, -0.7]),
+                                                 rotate_deg=np.array([10.0, 65.0, 0.0])),
+             "next to the ball": Transform(translate=np.array([0.62, 0.25, 0.05]),
+                                           rotate_deg=np.array([0.0, 35.0, 0.0]))}
+    return [floor, ball, box], poses, moves
+
+
+def _sources(meshes, poses, indices, seps):
+    out = {}
+    for i in indices:
+        T = poses[i]
+        world = T.apply_points(np.asarray(meshes[i].vertices, float))
+        centre = 0.5 * (world.min(axis=0) + world.max(axis=0))
+        normals = np.asarray(meshes[i].vertex_normals, float) @ T.rotation.T
+        out[i] = (np.asarray(meshes[i].faces), normals, seps[i], centre,
+                  float(np.max(np.linalg.norm(world - centre, axis=1))))
+    return out
+
+
+def _receiver(meshes, poses, r):
+    T = poses[r]
+    n = np.asarray(meshes[r].vertex_normals, float) @ T.rotation.T
+    return T.apply_points(np.asarray(meshes[r].vertices, float)) + 1e-4 * n, n
+
+
+def _sphere(caster, source):
+    centre = np.asarray(source[3], float)
+    return np.array([*centre, np.max(np.linalg.norm(caster.world_vertices(2) - centre, axis=1))])
+
+
+@pytest.mark.parametrize("seps", [(LAMBERT, LAMBERT, LAMBERT), (LAMBERT, PHONG, PHONG)])
+def test_gather_operator_equals_the_reference_gather(seps):
+    """The compact gather applied to a random residual equals the float64 sum over the hits, for K' = K = 1 and
+    for glossy K' = K = 3."""
+    from prtlab.interreflection._residual import apply_gather, gather_operator
+
+    meshes, poses, _ = _objects()
+    caster = RayCaster(meshes, transforms=poses)
+    rng = np.random.default_rng(3)
+    for r in (0, 1):
+        x, n = _receiver(meshes, poses, r)
+        srcs = _sources(meshes, poses, [i for i in range(3) if i != r], seps)
+        hits = residual_hits(x, n, seps[r], caster, srcs, 64)
+        assert set(hits) == set(srcs)
+        for i, h in hits.items():
+            residual = rng.normal(size=(len(meshes[i].vertices), seps[i].K, 3))
+            ref = gather_residual(h, residual, len(x))
+            op = gather_operator(h, len(x))
+            assert op.uv.dtype == np.float32  # Embree's barycentrics, held exactly
+            fast = apply_gather(op, residual, np.zeros_like(ref))
+            at_hit = np.einsum("hv,hvkc->hkc", np.abs(h.bary), np.abs(residual)[h.vertices])
+            scale = np.zeros_like(ref)
+            np.add.at(scale, h.rows, np.einsum("hqk,hkc->hqc", np.abs(h.factor), at_hit))
+            assert np.all(np.abs(fast - ref) <= 1e-12 * scale + 1e-300)
+
+
+def test_gather_of_nothing_is_zero():
+    """A receiver with no hits gets an empty operator; applying it adds nothing."""
+    from prtlab.interreflection._residual import ResidualHits, apply_gather, gather_operator
+
+    empty = ResidualHits(np.zeros(0, np.int64), np.zeros((0, 1, 1)), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                         np.zeros((0, 2)), np.zeros((2, 3), np.int64))
+    op = gather_operator(empty, 4)
+    out = apply_gather(op, np.ones((5, 1, 3)), np.zeros((4, 1, 3)))
+    np.testing.assert_array_equal(out, 0.0)
+
+
+@pytest.mark.parametrize("move", ["translated and rotated", "next to the ball"])
+@pytest.mark.parametrize("r", [0, 1])
+def test_incremental_cast_equals_a_full_cast(move, r):
+    """After the box moves, casting only the rays it may block or unblock gives the hits of a full cast with
+    the same seed (the same arrays), so the gathered light agrees to 1e-12, and fewer rays are cast."""
+    meshes, poses, moves = _objects()
+    seps = (LAMBERT, PHONG, LAMBERT)
+    before = RayCaster(meshes, transforms=poses)
+    after_poses = [poses[0], poses[1], moves[move]]
+    after = RayCaster(meshes, transforms=after_poses)
+    assert (before.epsilon, before.tnear) == (after.epsilon, after.tnear)  # the precondition of `previous`
+    x, n = _receiver(meshes, poses, r)
+    src_before = _sources(meshes, poses, [i for i in range(3) if i != r], seps)
+    src_after = _sources(meshes, after_poses, [i for i in range(3) if i != r], seps)
+    old = residual_hits(x, n, seps[r], before, src_before, 64, seed=5)
+    moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])}
+    full_stats, inc_stats = {}, {}
+    full = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, stats=full_stats)
+    inc = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, previous=old, moved=moved, stats=inc_stats)
+    assert set(inc) == set(full)
+    rng = np.random.default_rng(1)
+    for i in full:
+        for a, b in zip(full[i].arrays(), inc[i].arrays()):
+            np.testing.assert_array_equal(a, b)
+        residual = rng.normal(size=(len(meshes[i].vertices), seps[i].K, 3))
+        ref = gather_residual(full[i], residual, len(x))
+        np.testing.assert_allclose(gather_residual(inc[i], residual, len(x)), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    assert inc_stats["rays_cast"] < full_stats["rays_cast"]
+
+
+def test_rays_depend_on_the_point_and_source_alone():
+    """A ray is a function of (seed, source, point, ray index): the rays of a subset of the points are those
+    of the whole set (what the incremental cast relies on)."""
+    from prtlab.interreflection._residual import _grid, _key, _rays_kernel
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(50, 3))
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    rows, side = _grid(16)
+    point, ray = np.repeat(np.arange(50), 16), np.tile(np.arange(16), 50)
+    whole = np.empty((800, 8))
+    _rays_kernel(x, n, point, ray, np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, whole)
+    pick = np.array([3, 517, 799, 100])
+    part = np.empty((4, 8))
+    _rays_kernel(x, n, point[pick], ray[pick], np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, part)
+    np.testing.assert_array_equal(part, whole[pick])
+    np.testing.assert_allclose(np.linalg.norm(whole[:, 3:6], axis=1), 1.0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def two_balls(tmp_path_factory):
+    """The quick ball over a floor with a second ball (the first one's precomputation), the options QUICK."""
+    from prtlab.cache import Cache
+    from prtlab.interreflection import Interreflection
+    from prtlab.scene import SceneObject, Transform
+    from tests.scenes import ball_over_floor
+
+    quick = dict(n_radii=8, resolution=8, degree=31, n_lights=64, n_basis=8, residual_rays=16)
+    base = ball_over_floor({"type": "diffuse", "albedo": [0.8, 0.3, 0.3]})
+    pre = Interreflection.precompute(base, quick, cache=Cache(tmp_path_factory.mktemp("cache"), progress=False),
+                                     progress=False)
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([1.2, 0.6, 0.3])),
+                        base.object("ball").material)
+    scene = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    return scene, pre.options, {**pre.data, "other": pre.data["ball"]}
+
+
+@pytest.mark.parametrize("where", [[-1.1, 0.7, -0.6], [0.9, 0.8, 0.2]])
+def test_moving_an_object_recasts_only_what_it_may_change(two_balls, where):
+    """Frames that move one ball (far, then against the other ball): the residual gather casts fewer rays than
+    a fresh shade and the light equals the fresh shade's to 1e-12; the fast gather equals the reference."""
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+    from prtlab.scene import Transform
+
+    scene, options, data = two_balls
+    ir = Interreflection(scene, options, data)
+    state = FrameState.from_scene(scene)
+    ir.shade(state, bounces=2)
+    state.transforms["other"] = Transform(translate=np.array(where), rotate_deg=np.array([0.0, 30.0, 10.0]))
+    moved = ir.shade(state, bounces=2)
+    fresh_ir = Interreflection(scene, options, data)
+    fresh = fresh_ir.shade(state, bounces=2)
+    assert 0 < moved.info["residual_rays_cast"] < fresh.info["residual_rays_cast"]
+    for name in ("floor", "ball", "other"):
+        np.testing.assert_allclose(moved.indirect[name], fresh.indirect[name], rtol=1e-12,
+                                   atol=1e-12 * np.abs(fresh.indirect[name]).max())
+    relit = ir.shade(state, bounces=2)
+    assert relit.info["residual_rays_cast"] == 0
+    # the fast gather of every receiver against the reference sum over its hits
+    geo = ir.reuse.frame[1][0]
+    rng = np.random.default_rng(0)
+    residuals = {o.name: rng.normal(size=(o.n_vertices, 1, 3)) for o in ir.objects}
+    phi = {o.name: {s.name: None for s in ir.objects if s is not o} for o in ir.objects}
+    for r in ir.objects:
+        fast = ir._residual_light(geo, r, residuals, phi[r.name])
+        ref = ir._residual_light(geo, r, residuals, phi[r.name], method="reference")
+        np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
