@@ -7,7 +7,13 @@ of :mod:`prtlab.shadowfields` for visibility and direct light.
 ``prtlab.shade(scene, method="interreflection", bounces=1)`` runs it.
 """
 
-from ._fields import basis_radiance_at, basis_radiance_field, self_basis_irradiance
+from ._fields import (
+    StoredBasisRadiance,
+    basis_radiance_at,
+    basis_radiance_field,
+    self_basis_irradiance,
+    store_basis_radiance,
+)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance, reflected_light
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_cubemaps, haar_basis_radiance_field
 from ._haar_passes import (
@@ -24,6 +30,8 @@ __all__ = [
     "basis_radiance_at",
     "basis_radiance_field",
     "self_basis_irradiance",
+    "StoredBasisRadiance",
+    "store_basis_radiance",
     # per-frame passes (Sec. 5)
     "basis_irradiance",
     "reflected_light",
