@@ -181,19 +181,20 @@ def test_portals_refuse_more_bounces_than_the_option_before_precomputing(no_comp
         Portals.shade_once(window_box(cell=1.0), TINY_PORTALS, bounces=2, cache=False, progress=False)
 
 
-@pytest.mark.parametrize("method, light, message", [
-    ("spherelights", {"type": "point", "position": [0, 3, 0], "intensity": [1, 1, 1]}, "environment lighting only"),
-    ("interreflection", {"type": "point", "position": [0, 3, 0], "intensity": [1, 1, 1]},
-     "not point lights; pass shadows='haar'"),
-    ("portals", {"type": "area", "center": [0, 2.4, 0], "u": [0.2, 0, 0], "v": [0, 0, 0.2],
-                 "radiance": [1, 1, 1]}, "exactly one environment light"),
+@pytest.mark.parametrize("method, options, light, message", [
+    ("spherelights", {}, {"type": "point", "position": [0, 3, 0], "intensity": [1, 1, 1]},
+     "environment lighting only"),
+    ("interreflection", {"shadows": "sh"}, {"type": "point", "position": [0, 3, 0], "intensity": [1, 1, 1]},
+     "not point lights; pass shadows='rays' or 'haar'"),
+    ("portals", {}, {"type": "area", "center": [0, 2.4, 0], "u": [0.2, 0, 0], "v": [0, 0, 0.2],
+                     "radiance": [1, 1, 1]}, "exactly one environment light"),
 ])
-def test_unsupported_lights_are_refused_before_precomputing(no_compute, method, light, message):
+def test_unsupported_lights_are_refused_before_precomputing(no_compute, method, options, light, message):
     scene = window_box(cell=1.0) if method == "portals" else _spheres_scene()
     plane = {"name": "plane", "mesh": {"builtin": "plane", "size": [1, 1], "resolution": [1, 1]}}
     scene.lights = Scene.from_dict({"objects": [plane], "lights": [light]}).lights
     with pytest.raises(ValueError, match=message):
-        prtlab.shade(scene, method=method, bounces=1, cache=False, progress=False)
+        prtlab.shade(scene, method=method, bounces=1, cache=False, progress=False, **options)
 
 
 def test_portals_refuse_a_scene_without_portal_before_precomputing(no_compute):
