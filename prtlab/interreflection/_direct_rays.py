@@ -29,8 +29,9 @@ __all__ = ["ray_traced_direct"]
 _CHUNK = 8192
 
 
-def _grid(m: int) -> np.ndarray:
-    """(rows * side, 2) cell corners of a ``rows x side`` grid of the unit square, ``rows * side <= m``."""
+def _grid(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(corners (rows * side, 2), cell size (2,))`` of a ``rows x side`` grid of the unit square,
+    ``rows * side <= m``."""
     side = max(1, int(np.sqrt(m)))
     rows = max(1, m // side)
     i, j = np.meshgrid(np.arange(rows), np.arange(side), indexing="ij")
@@ -42,7 +43,7 @@ def _area_light(x, n, wo, f, sep, caster, light: AreaLight, m: int, rng):
     ``n`` (``f``: the BRDF)."""
     corner, cell = _grid(m)
     st = (corner[None] + rng.random((len(x), len(corner), 2)) * cell) * 2.0 - 1.0  # (V, m, 2) in [-1, 1]^2
-    c, u, v = (np.asarray(getattr(light, f), float) for f in ("center", "u", "v"))
+    c, u, v = (np.asarray(getattr(light, name), float) for name in ("center", "u", "v"))
     y = c + st[..., :1] * u + st[..., 1:] * v
     d = y - x[:, None]
     dist = np.linalg.norm(d, axis=-1)
@@ -85,8 +86,8 @@ def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int,
     ``wo`` (V, 3): unit directions toward the camera, mirrored above a vertex's horizon where they are below
     it (the BRDFs are two-sided: a Lambertian vertex seen from behind keeps its radiance, as the separable
     form's horizon value does); ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and ``sep`` its separable
-    form. ``samples`` points per vertex on each area light (a ``rows x side <=
-    samples`` grid jittered per vertex; a fixed ``seed``, so a frame is deterministic).
+    form. ``samples`` points per vertex on each area light (a ``rows x side <= samples`` grid jittered per
+    vertex; a fixed ``seed``, so a frame is deterministic).
     """
     x, n, wo = (np.asarray(a, float) for a in (points, normals, wo))
     below = np.minimum(np.einsum("vi,vi->v", wo, n), 0.0)
