@@ -350,9 +350,10 @@ def move_frame_paper(quick: bool) -> dict:
 
 @case("interreflection.frame.move_light")
 def move_light_frame(quick: bool) -> dict:
-    """The area light moves (poses do not) with ``area_lights="field"``: its SH radiance at every vertex from
-    its source radiance field, then 3 bounces; peer: the exact per-vertex projection (the default). Each frame
-    a new light position and a new ``FrameState``."""
+    """The area light moves (poses do not) at the defaults: its direct light by shadow rays at every vertex
+    (``shadows="rays"``), then 3 bounces; peer: the paper's SH direct light with the light's source radiance
+    field (``shadows="sh", area_lights="field"``, its fastest form). Each frame a new light position and a
+    new ``FrameState``."""
     import dataclasses
 
     from prtlab.interreflection import Interreflection
@@ -360,33 +361,33 @@ def move_light_frame(quick: bool) -> dict:
     base = _precomputed(quick)
     frames = {}
 
-    def mover(area_lights):
-        pre = Interreflection(base.scene, dataclasses.replace(base.options, area_lights=area_lights), base.data)
+    def mover(name, **options):
+        pre = Interreflection(base.scene, dataclasses.replace(base.options, **options), base.data)
         light = base.scene.lights[1]
         centres = iter([light.center + [dx, 0.0, 0.0] for dx in np.linspace(0.0, 0.5, 10_000)])
 
         def setup():
             state = FrameState.from_scene(pre.scene)
             state.lights[1] = type(light)(center=next(centres), u=light.u, v=light.v, radiance=light.radiance)
-            frames[area_lights] = state
+            frames[name] = state
 
         def run():
-            return pre.shade(frames[area_lights], bounces=3)
+            return pre.shade(frames[name], bounces=3)
 
         return setup, run, pre
 
-    setup_field, run_field, pre_field = mover("field")
-    setup_exact, run_exact, _ = mover("exact")
+    setup_rays, run_rays, pre_rays = mover("rays")
+    setup_sh, run_sh, _ = mover("sh", shadows="sh", area_lights="field")
 
     def setup():
-        setup_field()
-        setup_exact()
+        setup_rays()
+        setup_sh()
 
-    setup_field()
-    run_field()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
-    return {"run": run_field, "setup": setup, "gflop": None, "items": _vertices(base),
-            "peer": ("exact area_light_sh", run_exact),
-            "floor": floor(*frame_floor(pre_field, 3, 2), FRAME_FORMULA),
+    setup_rays()
+    run_rays()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
+    return {"run": run_rays, "setup": setup, "gflop": None, "items": _vertices(base),
+            "peer": ("shadows='sh', area_lights='field'", run_sh),
+            "floor": floor(*frame_floor(pre_rays, 3, 2), FRAME_FORMULA),
             "stored_bytes": _stored_bytes(base)}
 
 
