@@ -18,8 +18,15 @@ Subpackages are imported on first use, so ``import prtlab`` is cheap.
 from __future__ import annotations
 
 import importlib
+import os
 
 __version__ = "0.1.0"
+
+# numba's OpenMP threads spin after each parallel loop by default and then compete with OpenBLAS's and
+# Embree's threads for the two cores: a frame of a few hundred short parallel loops ran 4x slower on two
+# threads than on one (docs/DECISIONS.md). Sleeping at once costs microseconds per loop. It takes effect
+# when prtlab is imported before the OpenMP runtime loads; the user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 _SUBPACKAGES = {
     "sh", "wavelet", "brdf", "pca", "geometry", "scene", "shadowfields", "interreflection",
