@@ -244,7 +244,7 @@ def _frames(pre, next_state):
 def _relight(pre, env_only: bool):
     """``setup`` and ``run`` of a relighting frame: poses stay, so every pair's basis irradiance is reused (the
     paper's relighting); the environment's scale changes every frame and, unless ``env_only``, the area light
-    moves to a position no earlier frame had (its SH at every vertex and the direct light are recomputed).
+    moves to a position no earlier frame had (its direct light is recomputed).
     ``env_only`` shades the environment alone. Each repeat gets a new ``FrameState``."""
     env, area = pre.scene.lights[0], pre.scene.lights[1]
     steps = iter(range(1, 1_000_000))
@@ -288,8 +288,9 @@ def _relight_case(quick: bool, env_only: bool) -> dict:
 
 @case("interreflection.frame.relight")
 def relight_frame(quick: bool) -> dict:
-    """Light changes, poses do not: the area light moves (exact SH at every vertex, the default) and the
-    environment changes, then weights and 3 bounces; every pair's basis irradiance reused (``reused_pairs``)."""
+    """Light changes, poses do not: the area light moves (its direct light ray-traced at every vertex, the
+    default ``shadows="rays"``) and the environment changes, then weights and 3 bounces; every pair's basis
+    irradiance reused (``reused_pairs``)."""
     return _relight_case(quick, env_only=False)
 
 

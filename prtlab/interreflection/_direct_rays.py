@@ -9,73 +9,441 @@ docs/FIDELITY.md). Here each vertex integrates the lights itself:
 
 the term ``L_k`` (V, K, C) that the SH path computes as ``P_n(V G_k) . L`` (:meth:`direct_step`), with
 ``V`` from shadow rays against every object at the frame's poses (so self-shadows and a moved object's
-shadow are exact). An area light is sampled by area, ``m`` points per vertex on a grid of the parallelogram
-jittered per vertex (unbiased at each vertex, stratified across the light); the estimator is ``L_e A / m sum_j g_k cos_x cos_l V / d^2``. A point light takes one
-shadow ray. The same samples give the radiance toward the camera with the material's BRDF itself, so a
-glossy receiver's direct light is not limited by its K-term separable form (which still carries the light
-into the bounces). The environment stays in SH (low frequency: the paper's form).
+shadow are exact). An area light is sampled by area, ``m`` points per vertex on a ``rows x side <= m`` grid
+of the parallelogram jittered per vertex (unbiased at each vertex, stratified across the light); the
+estimator is ``L_e A / m sum_j g_k cos_x cos_l V / d^2``. A point light takes one shadow ray. The same
+samples give the radiance toward the camera with the material's BRDF itself, so a glossy receiver's direct
+light is not limited by its K-term separable form (which still carries the light into the bounces). The
+environment stays in SH (low frequency: the paper's form).
+
+Random numbers: the jitter of sample ``j`` of vertex ``p`` for light ``i`` is a counter-based hash of
+``(seed, i, p, j)`` (SplitMix64), so results do not depend on chunks, threads or which vertices a call
+recomputes.
+
+Tiers: :func:`light_terms` is one numba kernel per light (parallel over vertices: samples, weights, the
+shadow ray traced in the kernel through Embree, ``g_k`` and the BRDF), for :class:`prtlab.brdf.Phong` /
+Lambert receivers and a caster with an Embree scene; :func:`light_terms_reference` is its float64 numpy
+specification (shadow rays through :meth:`RayCaster.occluded`) and the fallback for anything else. Both
+return the per-light terms at unit radiance, ``S`` (V, K) and ``F`` (V, C), and the per-sample shadow mask,
+so a caller can rescale by a new radiance without casting (relighting), shade a new camera from the mask,
+and re-cast only the samples whose segment meets a moved object's bounding sphere (``visibility``/``moved``).
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from prtlab import brdf
+from prtlab.geometry import _embree
 from prtlab.scene import AreaLight, PointLight
 
-__all__ = ["ray_traced_direct"]
+__all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "light_terms_reference",
+           "mirror_wo", "sample_count", "widened_sphere"]
 
-#: vertices per chunk: bounds the (chunk, m, 3) sample arrays (about 50 MB at m = 256)
+#: vertices per chunk of the reference tier: bounds its (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
 
+#: vertices a thread of the kernel takes at a time (each block traces through its own Embree ray slot)
+_VERTICES_PER_TASK = 8
 
-def _grid(m: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(corners (rows * side, 2), cell size (2,))`` of a ``rows x side`` grid of the unit square,
-    ``rows * side <= m``."""
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+_GOLDEN = 0x9E3779B97F4A7C15
+_MASK64 = 0xFFFFFFFFFFFFFFFF
+
+
+# ------------------------------------------------------------------------------------------- sampling
+
+
+def _grid_shape(m: int) -> tuple[int, int]:
+    """``(rows, side)`` of the jittered grid, ``rows * side <= m``."""
     side = max(1, int(np.sqrt(m)))
-    rows = max(1, m // side)
-    i, j = np.meshgrid(np.arange(rows), np.arange(side), indexing="ij")
-    return np.stack([i.ravel() / rows, j.ravel() / side], axis=1), np.array([1.0 / rows, 1.0 / side])
+    return max(1, m // side), side
 
 
-def _area_light(x, n, wo, f, sep, caster, light: AreaLight, m: int, rng):
-    """``L_k`` (V, K, C) and the radiance toward ``wo`` (V, C) of one area light at points ``x`` with normals
-    ``n`` (``f``: the BRDF)."""
-    corner, cell = _grid(m)
-    st = (corner[None] + rng.random((len(x), len(corner), 2)) * cell) * 2.0 - 1.0  # (V, m, 2) in [-1, 1]^2
-    c, u, v = (np.asarray(getattr(light, name), float) for name in ("center", "u", "v"))
-    y = c + st[..., :1] * u + st[..., 1:] * v
+def sample_count(light, samples: int) -> int:
+    """Samples per vertex actually taken on ``light``: ``rows * side`` of the grid (1 for a point light)."""
+    if isinstance(light, PointLight):
+        return 1
+    rows, side = _grid_shape(samples)
+    return rows * side
+
+
+def _mix_int(z: int) -> int:
+    """SplitMix64's finaliser on a Python int."""
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return z ^ (z >> 31)
+
+
+def _key(seed: int, light: int) -> int:
+    """The stream key of light number ``light`` (uint64 as a Python int)."""
+    return _mix_int((int(seed) & _MASK64) ^ _mix_int(((int(light) + 1) * _GOLDEN) & _MASK64))
+
+
+@numba.njit(cache=True, inline="always")
+def _mix(z):
+    """SplitMix64's finaliser (uint64 -> uint64)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@numba.njit(cache=True, inline="always")
+def _uniform(stream, counter):
+    """A uniform double in [0, 1) of ``stream`` at ``counter`` (both uint64)."""
+    z = _mix(stream + (counter + np.uint64(1)) * np.uint64(_GOLDEN))
+    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+
+
+def _mix_numpy(z: np.ndarray) -> np.ndarray:
+    """:func:`_mix` on uint64 arrays (wrapping arithmetic)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def jitter(seed: int, light: int, rows: np.ndarray, m: int) -> np.ndarray:
+    """(len(rows), m, 2) uniforms in [0, 1) of vertices ``rows`` (their indices in the call's points):
+    the numpy specification of the kernel's hash, bit for bit."""
+    stream = _mix_numpy(np.uint64(_key(seed, light)) ^ _mix_numpy(np.asarray(rows, dtype=np.uint64)))
+    counter = np.arange(2 * m, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        z = _mix_numpy(stream[:, None] + (counter[None] + np.uint64(1)) * np.uint64(_GOLDEN))
+    return ((z >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)).reshape(len(stream), m, 2)
+
+
+def _light_geometry(light, samples: int) -> tuple[np.ndarray, int, int, bool]:
+    """``(params (13,), rows, side, area)``: centre (or position), u, v, normal and the weight scale
+    ``A / m`` (1 for a point light), the grid and whether the light is an area light."""
+    if isinstance(light, AreaLight):
+        rows, side = _grid_shape(samples)
+        params = np.concatenate([np.asarray(getattr(light, f), float) for f in ("center", "u", "v")]
+                                + [np.asarray(light.normal, float), [light.area / (rows * side)]])
+        return params, rows, side, True
+    params = np.zeros(13)
+    params[:3] = np.asarray(light.position, float)
+    params[12] = 1.0
+    return params, 1, 1, False
+
+
+def _emission(light) -> np.ndarray:
+    return np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
+
+
+def mirror_wo(wo, normals) -> np.ndarray:
+    """``wo`` mirrored above the horizon of ``normals`` where it is below it (two-sided BRDFs)."""
+    wo, n = np.asarray(wo, float), np.asarray(normals, float)
+    below = np.minimum(np.einsum("vi,vi->v", wo, n), 0.0)
+    return wo - 2.0 * below[:, None] * n
+
+
+def widened_sphere(sphere, epsilon: float) -> np.ndarray:
+    """A bounding sphere (centre, radius) widened for ``moved=`` of :func:`light_terms`: by twice the rays'
+    origin offset ``epsilon`` and a relative ``1e-5`` of the coordinates (Embree's float32 rays)."""
+    c, r = np.asarray(sphere[:3], float), float(sphere[3])
+    return np.array([*c, r + 2.0 * epsilon + 1e-5 * (float(np.max(np.abs(c))) + r) + 1e-12])
+
+
+def _check(points, normals, wo):
+    x, n, wo = (np.ascontiguousarray(a, dtype=np.float64) for a in (points, normals, wo))
+    if x.ndim != 2 or x.shape[1] != 3 or n.shape != x.shape or wo.shape != x.shape:
+        raise ValueError(f"points, normals and wo must be (V, 3) arrays of one shape, got {x.shape}, {n.shape}, "
+                         f"{wo.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(n)) and np.all(np.isfinite(wo))):
+        raise ValueError("points, normals or wo contain NaN or inf; pass finite arrays")
+    return x, n, wo
+
+
+def _check_reuse(visibility, moved, n_points: int, m: int):
+    if visibility is None:
+        if moved is not None:
+            raise ValueError("moved= needs the previous visibility= of the same points and light")
+        return None, None
+    visibility = np.asarray(visibility)
+    if visibility.dtype != np.bool_ or visibility.shape != (n_points, m):
+        raise ValueError(f"visibility must be the ({n_points}, {m}) bool mask of an earlier call, got "
+                         f"{visibility.dtype} {visibility.shape}")
+    moved = np.zeros((0, 4)) if moved is None else np.ascontiguousarray(moved, dtype=np.float64).reshape(-1, 4)
+    return np.ascontiguousarray(visibility), moved
+
+
+# ------------------------------------------------------------------------------------------- reference tier
+
+
+def _segments_meet(x, y, spheres) -> np.ndarray:
+    """(V, m) whether the segment ``x -> y`` (x (V, 3), y (V, m, 3)) meets any sphere (S, 4) (centre, radius)."""
+    out = np.zeros(y.shape[:2], dtype=bool)
     d = y - x[:, None]
-    dist = np.linalg.norm(d, axis=-1)
-    w = d / np.maximum(dist, 1e-300)[..., None]
-    cos_x = np.einsum("vmi,vi->vm", w, n)
-    cos_l = -w @ light.normal
-    live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0)
-    weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * (light.area / len(corner))
-    rows, cols = np.nonzero(live)
-    if len(rows):
-        blocked = caster.occluded(x[rows], w[rows, cols], dist[rows, cols] - caster.epsilon, normals=n[rows])
-        weight[rows[blocked], cols[blocked]] = 0.0
-    g = sep.g(brdf.to_local(w, np.broadcast_to(n[:, None], w.shape)))  # (V, m, K)
-    radiance = np.asarray(light.radiance, float)
-    out = np.einsum("vm,vmc,c->vc", weight, f.eval(w, wo[:, None], n[:, None]), radiance)
-    return np.einsum("vm,vmk,c->vkc", weight, g, radiance), out
+    dd = np.maximum(np.einsum("vmi,vmi->vm", d, d), 1e-300)
+    for c0, c1, c2, r in spheres:
+        cx = np.array([c0, c1, c2]) - x  # (V, 3)
+        t = np.clip(np.einsum("vmi,vi->vm", d, cx) / dd, 0.0, 1.0)
+        gap = cx[:, None] - t[..., None] * d
+        out |= np.einsum("vmi,vmi->vm", gap, gap) <= r * r
+    return out
 
 
-def _point_light(x, n, wo, f, sep, caster, light: PointLight):
-    """``L_k`` (V, K, C) of one point light, ``I g_k cos_x V / d^2``, and the radiance toward ``wo`` (V, C)."""
-    d = np.asarray(light.position, float) - x
-    dist = np.linalg.norm(d, axis=1)
-    w = d / np.maximum(dist, 1e-300)[:, None]
-    cos_x = np.einsum("vi,vi->v", w, n)
-    weight = np.where((cos_x > 0.0) & (dist > 0.0), cos_x / np.maximum(dist, 1e-300) ** 2, 0.0)
-    lit = np.flatnonzero(weight > 0.0)
-    if len(lit):
-        blocked = caster.occluded(x[lit], w[lit], dist[lit] - caster.epsilon, normals=n[lit])
-        weight[lit[blocked]] = 0.0
-    g = sep.g(brdf.to_local(w, n))  # (V, K)
-    intensity = np.asarray(light.intensity, float)
-    return np.einsum("v,vk,c->vkc", weight, g, intensity), np.einsum("v,vc,c->vc", weight, f.eval(w, wo, n), intensity)
+def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
+                          visibility=None, moved=None, stats: dict | None = None):
+    """Float64 numpy specification of :func:`light_terms` (same arguments and results)."""
+    x, n, wo = _check(points, normals, wo)
+    params, rows, side, area = _light_geometry(light, samples)
+    m = rows * side
+    visibility, moved = _check_reuse(visibility, moved, len(x), m)
+    c, u, v, normal, scale = params[:3], params[3:6], params[6:9], params[9:12], params[12]
+    corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
+                                                       indexing="ij")], axis=1)  # (m, 2)
+    cell = np.array([1.0 / rows, 1.0 / side])
+    S, F = np.zeros((len(x), sep.K)), np.zeros((len(x), f.channels))
+    blocked_all = np.zeros((len(x), m), dtype=bool)
+    for lo in range(0, len(x), _CHUNK):
+        part = slice(lo, lo + _CHUNK)
+        xp, np_, wop = x[part], n[part], wo[part]
+        if area:
+            st = (corner[None] + jitter(seed, index, np.arange(lo, lo + len(xp)), m) * cell) * 2.0 - 1.0
+            y = c + st[..., :1] * u + st[..., 1:] * v  # (V, m, 3)
+        else:
+            y = np.broadcast_to(c, (len(xp), 1, 3))
+        d = y - xp[:, None]
+        dist = np.linalg.norm(d, axis=-1)
+        w = d / np.maximum(dist, 1e-300)[..., None]
+        cos_x = np.einsum("vmi,vi->vm", w, np_)
+        cos_l = -w @ normal if area else np.ones_like(cos_x)
+        live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0)
+        weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
+        trace = live.copy()
+        if visibility is not None:
+            trace &= _segments_meet(xp, y, moved)
+        blocked = np.zeros_like(live)
+        r_, c_ = np.nonzero(trace)
+        if stats is not None:
+            stats["rays_cast"] = stats.get("rays_cast", 0) + len(r_)
+        if len(r_):
+            blocked[r_, c_] = caster.occluded(xp[r_], w[r_, c_], dist[r_, c_] - caster.epsilon, normals=np_[r_])
+        if visibility is not None:
+            blocked |= visibility[part] & live & ~trace
+        weight[blocked] = 0.0
+        blocked_all[part] = blocked
+        g = sep.g(brdf.to_local(w, np.broadcast_to(np_[:, None], w.shape)))  # (V, m, K)
+        S[part] = np.einsum("vm,vmk->vk", weight, g)
+        F[part] = np.einsum("vm,vmc->vc", weight, f.eval(w, wop[:, None], np_[:, None]))
+    return S, F, blocked_all
+
+
+# ------------------------------------------------------------------------------------------- numba tier
+
+
+@numba.njit(cache=True, inline="always")
+def _segment_meets(x0, x1, x2, y0, y1, y2, spheres):
+    """Whether the segment ``x -> y`` meets any sphere of ``spheres`` (S, 4) (as :func:`_segments_meet`)."""
+    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for s in range(spheres.shape[0]):
+        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
+        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
+        if g0 * g0 + g1 * g1 + g2 * g2 <= spheres[s, 3] * spheres[s, 3]:
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _factor(nodes, values, k, theta, phi, freq, parity):
+    """``g_k`` at ``(theta, phi)`` (:func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
+    last = nodes.shape[0] - 1
+    if theta <= nodes[0]:
+        j, t = 0, 0.0
+    elif theta >= nodes[last]:
+        j, t = last - 1, 1.0
+    else:
+        j = np.searchsorted(nodes, theta) - 1
+        t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+    radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
+    if parity[k] == 0:
+        return radial * (1.0 if freq[k] == 0 else np.cos(freq[k] * phi))
+    return radial * np.sin(freq[k] * phi)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _terms_kernel(x, n, wo, params, area, rows, side, key, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
+                  eps, tnear, visibility, moved, nodes, values, freq, parity, kd, ks, exponent, S, F, blocked, cast):
+    """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
+    the previous mask, re-cast only where a segment meets a sphere of ``moved``; ``cast`` (V,): the samples
+    traced per vertex. Threads take blocks of
+    ``_VERTICES_PER_TASK`` vertices from a shared counter; block ``b`` traces through slot ``b``."""
+    n_points = x.shape[0]
+    m = rows * side
+    reuse = visibility.shape[0] > 0
+    n_terms = values.shape[0]
+    n_channels = kd.shape[0]
+    any_phi = False
+    for k in range(n_terms):
+        if freq[k] != 0 or parity[k] != 0:
+            any_phi = True
+    step = _VERTICES_PER_TASK
+    n_blocks = (n_points + step - 1) // step
+    c0, c1, c2 = params[0], params[1], params[2]
+    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
+    l0, l1, l2, scale = params[9], params[10], params[11], params[12]
+    norm = (exponent + 2.0) * 0.5 / np.pi
+    glossy = False
+    for c in range(n_channels):
+        if ks[c] != 0.0:
+            glossy = True
+    inv_pi = 1.0 / np.pi
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(threads):
+        while True:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_blocks:
+                break
+            f32, u32 = slot_f32[block], slot_u32[block]
+            address = f32.ctypes.data
+            for p in range(block * step, min(n_points, (block + 1) * step)):
+                for k in range(n_terms):
+                    S[p, k] = 0.0
+                for c in range(n_channels):
+                    F[p, c] = 0.0
+                cast[p] = 0
+                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
+                n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
+                length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+                a0, a1, a2 = n0 / length, n1 / length, n2 / length  # unit normal: the BRDF's frame
+                sign = 1.0 if a2 >= 0.0 else -1.0  # tangents (Duff et al. 2017), as brdf.local_frame
+                fa = -1.0 / (sign + a2)
+                fb = a0 * a1 * fa
+                t0, t1, t2 = 1.0 + sign * a0 * a0 * fa, sign * fb, -sign * a0
+                b0, b1, b2 = fb, sign + a1 * a1 * fa, -a1
+                o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
+                length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+                o0, o1, o2 = o0 / length, o1 / length, o2 / length
+                co = a0 * o0 + a1 * o1 + a2 * o2
+                stream = _mix(np.uint64(key) ^ _mix(np.uint64(p)))
+                for j in range(m):
+                    blocked[p, j] = False
+                    if area:
+                        row, col = divmod(j, side)
+                        s = (row / rows + _uniform(stream, np.uint64(2 * j)) * (1.0 / rows)) * 2.0 - 1.0
+                        t = (col / side + _uniform(stream, np.uint64(2 * j + 1)) * (1.0 / side)) * 2.0 - 1.0
+                        y0, y1, y2 = c0 + s * u0 + t * v0, c1 + s * u1 + t * v1, c2 + s * u2 + t * v2
+                    else:
+                        y0, y1, y2 = c0, c1, c2
+                    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+                    dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                    safe = max(dist, 1e-300)
+                    w0, w1, w2 = d0 / safe, d1 / safe, d2 / safe
+                    cos_x = w0 * n0 + w1 * n1 + w2 * n2
+                    cos_l = -(w0 * l0 + w1 * l1 + w2 * l2) if area else 1.0
+                    if not (cos_x > 0.0 and cos_l > 0.0 and dist > 0.0):
+                        continue
+                    weight = cos_x * cos_l / max(dist, 1e-300) ** 2 * scale
+                    if reuse and not _segment_meets(x0, x1, x2, y0, y1, y2, moved):
+                        hit = visibility[p, j]
+                    else:  # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar
+                        cast[p] += 1
+                        length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+                        e0, e1, e2 = w0 / length, w1 / length, w2 / length
+                        off = eps if n0 * e0 + n1 * e1 + n2 * e2 >= 0.0 else -eps
+                        tfar = dist - eps - tnear
+                        if tfar > _FLOAT32_MAX:
+                            tfar = np.inf
+                        hit = False
+                        if np.float32(tfar) > 0.0:
+                            _embree.set_ray(f32, u32, x0 + off * n0 + tnear * e0, x1 + off * n1 + tnear * e1,
+                                            x2 + off * n2 + tnear * e2, e0, e1, e2, tfar)
+                            _embree.rtc_call(tracer_fn, tracer_scene, address)
+                            hit = f32[_embree.TFAR] < 0.0
+                    if hit:
+                        blocked[p, j] = True
+                        continue
+                    # the local direction (brdf.to_local) and g_k (factor_eval_kernel)
+                    length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+                    e0, e1, e2 = w0 / length, w1 / length, w2 / length
+                    lx, ly, lz = t0 * e0 + t1 * e1 + t2 * e2, b0 * e0 + b1 * e1 + b2 * e2, a0 * e0 + a1 * e1 + a2 * e2
+                    theta = np.arctan2(np.sqrt(lx * lx + ly * ly), lz)
+                    phi = np.arctan2(ly, lx) if any_phi else 0.0
+                    for k in range(n_terms):
+                        S[p, k] += weight * _factor(nodes, values, k, theta, phi, freq, parity)
+                    # the Phong BRDF (phong_eval_kernel)
+                    ci = a0 * e0 + a1 * e1 + a2 * e2
+                    if ci * co < 0.0:
+                        continue
+                    rdot = (2.0 * ci * a0 - e0) * o0 + (2.0 * ci * a1 - e1) * o1 + (2.0 * ci * a2 - e2) * o2
+                    lobe = norm * rdot**exponent if rdot > 0.0 and glossy else 0.0  # ks = 0: f = kd / pi exactly
+                    for c in range(n_channels):
+                        F[p, c] += weight * (kd[c] * inv_pi + ks[c] * lobe)
+
+
+def _kernel_ready(f, sep, caster) -> bool:
+    """Whether :func:`light_terms` runs the kernel (a Phong/Lambert BRDF, a separable form, Embree)."""
+    return (isinstance(f, brdf.Phong) and isinstance(sep, brdf.SeparableBRDF)
+            and getattr(caster, "_scene", None) is not None)
+
+
+def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
+                visibility=None, moved=None, stats: dict | None = None):
+    """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
+
+    ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
+    light seen from ``points`` (``W``: the estimator's weight ``A / m cos_x cos_l / d^2``, or ``cos_x / d^2``
+    for a point light, 0 where the shadow ray is blocked); times the light's radiance (intensity) they are
+    the light's ``L_k`` and radiance toward ``wo`` of :func:`ray_traced_direct`. ``wo`` is used as given
+    (:func:`mirror_wo` first). ``index``: the light's number in its list (its random stream), ``m``:
+    :func:`sample_count`. ``blocked`` says which samples were shadowed (False where a sample is below a
+    horizon). With ``visibility`` (the ``blocked`` of an earlier call at the same points, light, samples and
+    seed, casters with the same offsets), only the samples whose segment meets one of the spheres ``moved``
+    (S, 4: centre, radius; the moved objects' bounding spheres before and after, widened for float32 and
+    the origin offset) are cast again; without ``moved`` none are (a new ``wo`` or radiance).
+
+    The numba kernel needs a :class:`prtlab.brdf.Phong` (or Lambert) ``f``, a
+    :class:`prtlab.brdf.SeparableBRDF` ``sep`` and a caster with an Embree scene; otherwise this is
+    :func:`light_terms_reference`.
+    """
+    if not _kernel_ready(f, sep, caster):
+        return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
+                                     visibility, moved, stats)
+    x, n, wo = _check(points, normals, wo)
+    params, rows, side, area = _light_geometry(light, samples)
+    m = rows * side
+    visibility, moved = _check_reuse(visibility, moved, len(x), m)
+    S, F = np.empty((len(x), sep.K)), np.empty((len(x), f.channels))
+    blocked, cast = np.empty((len(x), m), dtype=np.bool_), np.zeros(len(x), dtype=np.int64)
+    if not len(x):
+        return S, F, blocked
+    nodes, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    n_blocks = -(-len(x) // _VERTICES_PER_TASK)
+    slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
+    scene = caster._scene
+    _terms_kernel(x, n, wo, params, area, rows, side, np.uint64(_key(seed, index)), scene.occluded_fn, scene.handle,
+                  slot_f32, slot_u32, numba.get_num_threads(), float(caster.epsilon), float(caster.tnear),
+                  np.zeros((0, m), np.bool_) if visibility is None else visibility,
+                  np.zeros((0, 4)) if moved is None else moved, nodes, values,
+                  np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
+                  np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
+                  blocked, cast)
+    if stats is not None:
+        stats["rays_cast"] = stats.get("rays_cast", 0) + int(cast.sum())
+    return S, F, blocked
+
+
+# ------------------------------------------------------------------------------------------- the direct light
+
+
+def _direct(terms, points, normals, wo, f, sep, caster, lights, samples, seed):
+    x = np.asarray(points, float)
+    wo = mirror_wo(wo, normals)
+    light_k, radiance = np.zeros((len(x), sep.K, 3)), np.zeros((len(x), 3))
+    for i, light in enumerate(lights):
+        if not isinstance(light, (AreaLight, PointLight)):
+            continue
+        S, F, _ = terms(x, normals, wo, f, sep, caster, light, i, samples, seed)
+        e = _emission(light)
+        light_k += S[:, :, None] * e
+        radiance += F * e
+    return light_k, radiance
 
 
 def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int, seed: int = 0):
@@ -87,23 +455,12 @@ def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int,
     it (the BRDFs are two-sided: a Lambertian vertex seen from behind keeps its radiance, as the separable
     form's horizon value does); ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and ``sep`` its separable
     form. ``samples`` points per vertex on each area light (a ``rows x side <= samples`` grid jittered per
-    vertex; a fixed ``seed``, so a frame is deterministic).
+    vertex by a hash of ``(seed, light number, vertex, sample)``, so a frame is deterministic). The sum over
+    the lights of :func:`light_terms` times their radiance.
     """
-    x, n, wo = (np.asarray(a, float) for a in (points, normals, wo))
-    below = np.minimum(np.einsum("vi,vi->v", wo, n), 0.0)
-    wo = wo - 2.0 * below[:, None] * n
-    light_k, radiance = np.zeros((len(x), sep.K, 3)), np.zeros((len(x), 3))
-    rng = np.random.default_rng(seed)
-    for lo in range(0, len(x), _CHUNK):
-        part = slice(lo, lo + _CHUNK)
-        for light in lights:
-            args = (x[part], n[part], wo[part], f, sep, caster, light)
-            if isinstance(light, AreaLight):
-                lk, out = _area_light(*args, samples, rng)
-            elif isinstance(light, PointLight):
-                lk, out = _point_light(*args)
-            else:
-                continue
-            light_k[part] += lk
-            radiance[part] += out
-    return light_k, radiance
+    return _direct(light_terms, points, normals, wo, f, sep, caster, lights, samples, seed)
+
+
+def ray_traced_direct_reference(points, normals, wo, f, sep, caster, lights, samples: int, seed: int = 0):
+    """:func:`ray_traced_direct` by :func:`light_terms_reference` (float64 numpy; the same samples)."""
+    return _direct(light_terms_reference, points, normals, wo, f, sep, caster, lights, samples, seed)

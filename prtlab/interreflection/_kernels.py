@@ -12,6 +12,13 @@ from prtlab.sh._product_kernels import _tile_product
 from prtlab.shadowfields._kernels import sample_corners
 
 
+@numba.njit(cache=True, inline="always")
+def _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj):
+    """Corner ``c`` (0..7) of a trilinear cell from :func:`sample_corners`: ``(r, i, j, weight)``."""
+    w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
+    return (r1 if c & 4 else r0), (i1 if c & 2 else i0), (j1 if c & 1 else j0), w
+
+
 @numba.njit(cache=True, parallel=True)
 def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
     """Eq. 13 per receiver vertex: interpolate ``S`` (trilinear) and integrate against ``P_n(V G_k')``.
@@ -31,10 +38,7 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
             for m in range(n_m):
                 out[v, kp, m] = 0.0
         for c in range(8):
-            rr = r1 if c & 4 else r0
-            ii = i1 if c & 2 else i0
-            jj = j1 if c & 1 else j0
-            w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
+            rr, ii, jj, w = _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj)
             if w == 0.0:
                 continue
             w *= scale[v]
@@ -65,10 +69,7 @@ def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, fac
             for m in range(n_m):
                 out[v, kp, m] = 0.0
         for c in range(8):
-            rr = r1 if c & 4 else r0
-            ii = i1 if c & 2 else i0
-            jj = j1 if c & 1 else j0
-            w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
+            rr, ii, jj, w = _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj)
             row = rows[rr, f, ii, jj]
             if w == 0.0 or row < 0:
                 continue

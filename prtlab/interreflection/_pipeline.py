@@ -36,7 +36,8 @@ Extensions beyond the paper, each an option (how they were measured: ``docs/NOTE
 ``pca_occluders`` (PCA bases trained with the other objects' shadows), ``self_interreflection``,
 ``near_field`` (ray-cast basis radiance near a source), ``residual_rays`` (the residual gather: per frame,
 by ray casting, the part of each source's radiance that its basis misses, so bounced light stays right
-when objects move; step 4), ``shadows="haar"`` (all-frequency direct
+when objects move; step 4), ``residual_near`` (its first-bounce hits near the receiver carry the source's
+direct light evaluated at the hit, not interpolated from its vertices), ``shadows="haar"`` (all-frequency direct
 shadows and point lights, :func:`prtlab.shadowfields.haar_direct`), ``irradiance="haar"``
 (all-frequency basis irradiance, :func:`prtlab.interreflection.haar_basis_irradiance`); and
 always: Lambertian light clamped at 0 (:meth:`Interreflection._clamp_diffuse`), a flat occluder
@@ -92,8 +93,9 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import ray_traced_direct
-from ._residual import _bounding_radius, apply_gather, gather_operator, gather_residual, residual_hits
+from ._direct_rays import light_terms, mirror_wo, ray_traced_direct, widened_sphere
+from ._residual import (_bounding_radius, apply_gather, gather_operator, gather_residual, near_hit_correction,
+                        near_hits, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -164,6 +166,18 @@ class InterreflectionOptions:
         the rays whose first hit they may change are cast again.
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
+    residual_near : float
+        With ``shadows="rays"`` and the residual gather, its first-bounce rays whose hit lies nearer the receiver
+        point than ``residual_near`` times the hit triangle's longest edge carry the source's radiance from the
+        area and point lights evaluated at the hit (shadow rays from the hit point) instead of its interpolation
+        between the source's vertices (:func:`prtlab.interreflection._residual.near_hit_correction`; 0: off,
+        every hit interpolated; a run-time choice).
+    residual_near_samples : int
+        Points on each area light per near hit of ``residual_near`` (a jittered grid; a run-time choice).
+    residual_whole : bool
+        With ``residual_near``: at the receiver points with a near hit on a source, gather the source's whole
+        radiance by the residual gather's rays (every bounce) in place of its basis irradiance ``Phi w`` plus the
+        gathered residual (False: the basis part stays; a run-time choice).
     storage : {"int16", "float32", "float64"}
         Format of the basis radiance fields, at rest and in memory
         (:func:`prtlab.interreflection._fields.store_basis_radiance`; sample points
@@ -194,6 +208,9 @@ class InterreflectionOptions:
     haar_radiance_keep: int = 64
     residual_rays: int = 64
     light_samples: int = 64
+    residual_near: float = 2.0
+    residual_near_samples: int = 4
+    residual_whole: bool = False
     storage: str = "int16"
 
     def __post_init__(self):
@@ -201,6 +218,10 @@ class InterreflectionOptions:
                                  "cube_resolution", "haar_keep", "haar_radiance_keep"))
         check_int(self.residual_rays, "option residual_rays", 0, meaning="rays per receiver point, 0: off")
         check_int(self.light_samples, "option light_samples", 1, meaning="points per vertex on an area light")
+        check_float(self.residual_near, "option residual_near", 0.0, meaning="in edge lengths, 0: off")
+        check_int(self.residual_near_samples, "option residual_near_samples", 1,
+                  meaning="points per near hit on an area light")
+        check_bool(self.residual_whole, "option residual_whole")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -362,10 +383,19 @@ class FrameReuse:
     #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
     #: residual gather
     scene_caster: tuple | None = None
-    #: receiver -> (poses, camera and lights, its ``L_k`` and radiance from area and point lights by rays)
+    #: receiver -> {poses of every object, the caster's offsets, light_samples, the objects' bounding spheres,
+    #: lights: {light index: {its geometry, camera, S and F at unit emission, per-sample shadow mask}},
+    #: light_k: the frame's ``L_k`` (V, K, C) from those lights} of the direct light by rays
+    #: (:meth:`Interreflection.direct_step_rays`)
     direct_rays: dict = dataclasses.field(default_factory=dict)
+    #: the direct light's shadow rays cast in the last frame (``info["direct_rays_cast"]``)
+    direct_counts: dict = dataclasses.field(default_factory=lambda: {"rays_cast": 0})
     #: the residual gather's rays cast in the last frame (``info["residual_rays_cast"]``)
     residual_counts: dict = dataclasses.field(default_factory=lambda: {"rays_cast": 0})
+    #: {"key": (poses, sources, lights), "corrections": {receiver: (V, K', C)}} of ``residual_near``
+    near_exact: dict = dataclasses.field(default_factory=dict)
+    #: (receiver, source index) -> (its ResidualHits, residual_near, their near hits) of ``residual_near``
+    near_hits: dict = dataclasses.field(default_factory=dict)
 
 
 class Interreflection(Precomputation):
@@ -381,7 +411,8 @@ class Interreflection(Precomputation):
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
-        run_time = ("threshold", "near_field", "area_lights", "residual_rays", "light_samples")
+        run_time = ("threshold", "near_field", "area_lights", "residual_rays", "light_samples", "residual_near",
+                    "residual_near_samples", "residual_whole")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -785,23 +816,55 @@ class Interreflection(Precomputation):
 
     def direct_step_rays(self, state: FrameState, geo, transfer):
         """Step 1 with ``shadows="rays"``: area and point lights by shadow rays against every object at the
-        frame's poses (:func:`ray_traced_direct`; their radiance toward the camera with the BRDF itself), the
-        environment through the SH transfer as the paper; each receiver's ray-traced part stands while every
-        pose, light and the camera do."""
+        frame's poses (:func:`light_terms`; their radiance toward the camera with the BRDF itself), the
+        environment through the SH transfer as the paper.
+
+        Each receiver keeps, per light, its terms at unit emission and its per-sample shadow mask
+        (``FrameReuse.direct_rays``): a light whose emission alone changed is rescaled (no rays), a new camera
+        reshades from the mask (no rays), and when other objects moved only the samples whose segment meets
+        a moved object's bounding sphere (before or after) are cast again; a moved light or receiver, or new
+        ray offsets, cast every sample."""
         env = [light for light in state.lights if isinstance(light, EnvironmentLight)]
         near = [light for light in state.lights if isinstance(light, (AreaLight, PointLight))]
         env_sh = environment_sh(env[0], self.options.order) if env else None
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
-        light_k, radiance = {}, {}
-        for r in self.objects:
+        caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
+        offsets = None if caster is None else (caster.epsilon, caster.tnear)
+        samples, light_k, radiance = self.options.light_samples, {}, {}
+        self.reuse.direct_counts = {"rays_cast": 0}
+        for me, r in enumerate(self.objects):
             g = geo[r.name]
-            key = (poses, g["wo"].tobytes(), repr([light.to_dict() for light in near]))
-            cached = self.reuse.direct_rays.get(r.name)
-            if cached is None or cached[0] != key:
-                cached = self.reuse.direct_rays[r.name] = (key, *ray_traced_direct(
-                    g["x"], g["n"], g["wo"], brdf.from_material(r.material), self.seps[r.name],
-                    self._scene_caster(geo, poses)[0], near, self.options.light_samples))
-            lk, rad = cached[1], cached[2]
+            lk, rad = np.zeros(g["g_cos"].shape[:2] + (3,)), np.zeros((len(g["x"]), 3))
+            entry = self.reuse.direct_rays.get(r.name)
+            if entry is not None and not (caster is not None and entry["offsets"] == offsets
+                                          and entry["samples"] == samples and entry["poses"][me] == poses[me]):
+                entry = None  # the receiver's points or the rays' offsets changed: every sample is cast
+            moved = None
+            if entry is not None:
+                changed = [i for i in range(len(poses)) if entry["poses"][i] != poses[i]]
+                moved = np.array([widened_sphere(sphere, caster.epsilon) for i in changed
+                                  for sphere in (entry["spheres"][i], spheres[i])]).reshape(-1, 4)
+            terms = {}
+            for i, light in enumerate(near):
+                key = (type(light).__name__, *(np.asarray(getattr(light, f), float).tobytes()
+                                               for f in ("center", "u", "v", "position") if hasattr(light, f)))
+                old = None if entry is None else entry["lights"].get(i)
+                if old is not None and old["key"] == key and not len(moved) and old["wo"] == g["wo"].tobytes():
+                    new = old  # the emission alone may have changed
+                else:
+                    new = dict(key=key, wo=g["wo"].tobytes())
+                    reuse = old is not None and old["key"] == key
+                    new["S"], new["F"], new["mask"] = light_terms(
+                        g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
+                        self.seps[r.name], caster, light, i, samples,
+                        visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
+                        stats=self.reuse.direct_counts)
+                terms[i] = new
+                emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
+                lk += new["S"][:, :, None] * emission
+                rad += new["F"] * emission
+            self.reuse.direct_rays[r.name] = dict(poses=poses, offsets=offsets, samples=samples, spheres=spheres,
+                                                  lights=terms, light_k=lk)
             if env_sh is not None:
                 env_k = self._clamp_diffuse(r, np.einsum("vki,ic->vkc", transfer[r.name], env_sh))
                 lk = lk + env_k
@@ -1118,21 +1181,27 @@ class Interreflection(Precomputation):
                       for o in self.objects)
         return poses, tuple(np.asarray(camera.position, float))
 
-    def _bounces(self, geo, phi, light_k, bounces: int):
-        """Steps 3-4 (Sec. 5.3): the indirect radiance of ``bounces`` bounces, and the seconds of each step.
+    def _bounces(self, geo, phi, light_k, bounces: int, lights=()):
+        """Steps 3-4 (Sec. 5.3): the indirect radiance of ``bounces`` bounces, and the seconds of each step (the
+        weights, the bounces, the near hits).
 
         Bounce ``b`` reflects ``L^(b) = max(0, sum_s Phi^s w^s(b-1))`` (Eq. 12; the clamp for a Lambertian
         receiver), one ``(V K', M) x (M, 3)`` product per receiver, and its weights ``w(b)`` (Eq. 14) are
-        fitted to it at the PCA sample vertices (every vertex, as the pipeline builds its bases).
+        fitted to it at the PCA sample vertices (every vertex, as the pipeline builds its bases). With
+        ``residual_near`` the first bounce adds :meth:`_near_corrections` (``lights``: the frame's lights).
         """
         indirect = {o.name: np.zeros((o.n_vertices, 3)) for o in self.objects}
-        t_weights = t_bounces = 0.0
-        for _ in range(bounces):
+        t_weights = t_bounces = t_near = 0.0
+        for bounce in range(bounces):
             t0 = time.perf_counter()
             weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
                        for o in self.objects}
             residuals = self._residuals(light_k, weights) if self.options.residual_rays else {}
             t_weights += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            corrections = self._near_corrections(geo, phi, lights) if residuals and bounce == 0 \
+                and self._near_on(lights) else {}
+            t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
             for r in self.objects:
@@ -1146,12 +1215,16 @@ class Interreflection(Precomputation):
                     lk = np.zeros(g["g_cos"].shape[:2] + (3,))
                 if residuals:
                     lk = lk + self._residual_light(geo, r, residuals, phi[r.name])
+                    if corrections:
+                        lk = lk + corrections[r.name]
+                    if self.options.residual_whole and self._near_on(lights):
+                        lk = lk + self._whole_light(geo, r, phi[r.name], weights)
                 lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
             light_k = new_light
             t_bounces += time.perf_counter() - t0
-        return indirect, t_weights, t_bounces
+        return indirect, t_weights, t_bounces, t_near
 
     # ------------------------------------------------------------------ residual gather (an extension)
 
@@ -1230,6 +1303,74 @@ class Interreflection(Precomputation):
                 apply_gather(op, residual, out)
         return out
 
+    def _whole_light(self, geo, r, phi_r, weights):
+        """``residual_whole``: on the receiver points with a near hit on a source (:meth:`_near_corrections`'s
+        near hits), the ray gather of the source's projected radiance ``P(colour L)`` less its basis irradiance
+        ``Phi w`` (V, K', C), so that with the residual gather those points gather the whole radiance."""
+        g = geo[r.name]
+        entry = self._residual_entry(geo, r, phi_r)
+        out = np.zeros(g["g_cos"].shape[:2] + (3,))
+        for i, op in entry["operators"].items():
+            s = self.objects[i]
+            near = self.reuse.near_hits.get((r.name, i))
+            if near is None or near[0] is not entry["hits"][i] or not len(near[2][0]):
+                continue
+            rows = np.unique(near[0].rows[near[2][0]])
+            w = weights[s.name]  # (K, N, C)
+            basis = phi_r.get(s.name) if s.name != r.name else self.self_irradiance[r.name]
+            projected = np.einsum("nv,knc->vkc", self.bases[s.name].basis, w)
+            gathered = apply_gather(op, projected, np.zeros_like(out))
+            out[rows] += gathered[rows]
+            if basis is not None:
+                out[rows] -= np.einsum("vqkn,knc->vqc", np.asarray(basis)[rows], w)
+        return out
+
+    def _near_on(self, lights) -> bool:
+        """Whether ``residual_near`` applies: the ray-traced direct light and an area or point light."""
+        return (self.options.residual_near > 0 and self.options.shadows == "rays"
+                and any(isinstance(light, (AreaLight, PointLight)) for light in lights))
+
+    def _near_corrections(self, geo, phi, lights) -> dict:
+        """The first bounce's near-hit corrections ``{receiver: (V, K', C)}``: over the residual gather's hits nearer
+        than ``residual_near`` edge lengths, each source's ``colour_k L_k`` from the area and point lights by
+        shadow rays at the hit point (:func:`ray_traced_direct`, ``residual_near_samples`` per area light; one
+        call per source over every receiver's near hits) less its interpolation from the source's vertices
+        (:func:`near_hit_correction`). Stand while the poses, the sources and the lights do; the near hits
+        (:func:`near_hits`) while the receiver's hits do."""
+        near = [light for light in lights if isinstance(light, (AreaLight, PointLight))]
+        entries = {r.name: self._residual_entry(geo, r, phi[r.name]) for r in self.objects}
+        key = (tuple(geo[o.name]["pose"] for o in self.objects), tuple(e["sources"] for e in entries.values()),
+               repr([light.to_dict() for light in near]))
+        if self.reuse.near_exact.get("key") == key:
+            return self.reuse.near_exact["corrections"]
+        caster = self._scene_caster(geo, key[0])[0]
+        selected = {}  # source index -> [(receiver, hits, index, points, normals)]
+        for r in self.objects:
+            for i, hits in entries[r.name]["hits"].items():
+                cached = self.reuse.near_hits.get((r.name, i))
+                if cached is None or cached[0] is not hits or cached[1] != self.options.residual_near:
+                    cached = self.reuse.near_hits[(r.name, i)] = (hits, self.options.residual_near, near_hits(
+                        hits, geo[r.name]["x"], caster.world_vertices(i), geo[self.objects[i].name]["n"],
+                        self.options.residual_near))
+                if len(cached[2][0]):
+                    selected.setdefault(i, []).append((r.name, hits, *cached[2]))
+        out = {r.name: np.zeros(geo[r.name]["g_cos"].shape[:2] + (3,)) for r in self.objects}
+        stats = self.reuse.residual_counts
+        for i, parts in selected.items():
+            s = self.objects[i]
+            sep = self.seps[s.name]
+            at, normals = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
+            stats["near_hits"] = stats.get("near_hits", 0) + len(at)
+            exact, _ = ray_traced_direct(at, normals, normals, brdf.from_material(s.material), sep, caster, near,
+                                         self.options.residual_near_samples, seed=1 + i)
+            colour = np.asarray(sep.colour, float)[None]
+            vertex = self.reuse.direct_rays[s.name]["light_k"] * colour  # the same lights' L_k at its vertices
+            bounds = np.cumsum([0] + [len(p[2]) for p in parts])
+            for (name, hits, index, _, _), a, b in zip(parts, bounds[:-1], bounds[1:]):
+                out[name] += near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
+        self.reuse.near_exact = {"key": key, "corrections": out}
+        return out
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
         self.reuse.residual_counts = {"rays_cast": 0}
@@ -1252,15 +1393,17 @@ class Interreflection(Precomputation):
         phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},
                                                                             {})
         times["basis_irradiance"] = time.perf_counter() - t0
-        indirect, t_weights, t_bounces = self._bounces(geo, phi, light_k, bounces)
-        times["weights"], times["bounces"] = t_weights, t_bounces
+        indirect, t_weights, t_bounces, t_near = self._bounces(geo, phi, light_k, bounces, state.lights)
+        times["weights"], times["bounces"], times["near_hits"] = t_weights, t_bounces, t_near
         result = ShadeResult()
         for o in self.objects:
             result.direct[o.name] = direct[o.name]
             result.indirect[o.name] = indirect[o.name]
             result.total[o.name] = direct[o.name] + indirect[o.name]
         result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts,
-                       "residual_rays_cast": self.reuse.residual_counts["rays_cast"]}
+                       "residual_rays_cast": self.reuse.residual_counts["rays_cast"],
+                       "residual_near_hits": self.reuse.residual_counts.get("near_hits", 0),
+                       "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
 
 

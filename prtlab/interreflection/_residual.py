@@ -21,6 +21,13 @@ move, only the rays whose first hit they may change are cast again (``previous=`
 (:func:`gather_operator`, its hits in compact form, applied by :func:`apply_gather`); :func:`gather_residual` is its float64
 specification. The noise of ``n`` rays falls on the residual alone, which is small where the basis holds
 the radiance.
+
+Near hits: a source's radiance is held per vertex, so a receiver a few centimetres above it (the torus over
+its own shadow on the floor) gathers the radiance interpolated between vertices coarser than that shadow.
+:func:`near_hits` picks the hits nearer their receiver point than a multiple of the hit triangle's longest
+edge, and :func:`near_hit_correction` adds over those rays ``factor (e - interp(v))``: the source's radiance
+``e`` evaluated at the hit point less the vertex-interpolated ``v`` that the basis and the residual together
+carry there, so that each such ray carries ``e``, counted once.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ import numpy as np
 from prtlab import brdf
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
-           "gather_operator", "apply_gather"]
+           "gather_operator", "apply_gather", "near_hits", "near_hit_correction"]
 
 @dataclass(frozen=True)
 class ResidualHits:
@@ -438,4 +445,38 @@ def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
                           out.reshape(-1, 3))
     else:
         _apply_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor, residual, out)
+    return out
+
+
+# ------------------------------------------------------------------ near hits
+
+
+def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near: float):
+    """``(index (Q,), positions (Q, 3), normals (Q, 3))`` of the hits nearer their receiver point
+    (``points[rows]``) than ``near`` times the longest edge of the hit triangle: indices into ``hits``, the hit
+    points on the source's triangles (world ``source_vertices`` (V_s, 3)) and the unit shading normals there
+    (``source_normals`` (V_s, 3) interpolated)."""
+    if not near > 0.0:
+        raise ValueError(f"near must be a positive multiple of the edge length, got {near!r}")
+    tri = np.asarray(source_vertices, float)[hits.vertices]  # (H, 3, 3)
+    edge2 = np.max(np.stack([np.sum((tri[:, (i + 1) % 3] - tri[:, i]) ** 2, axis=1) for i in range(3)]), axis=0)
+    bary = hits.bary
+    at = np.einsum("hc,hcx->hx", bary, tri)
+    gap2 = np.sum((at - np.asarray(points, float)[hits.rows]) ** 2, axis=1)
+    index = np.flatnonzero(gap2 < near * near * edge2)
+    normals = np.einsum("hc,hcx->hx", bary[index], np.asarray(source_normals, float)[hits.vertices[index]])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    return index, at[index], normals
+
+
+def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int) -> np.ndarray:
+    """``L_k',c`` (n_points, K', C): over the hits ``index`` of ``hits``, ``factor (exact - interp)``, with
+    ``exact`` (Q, K, C) a source's radiance term ``colour_k L_k`` evaluated at those hits and ``interp`` the
+    barycentric interpolation of ``vertex_values`` (V_s, K, C), the same term at its vertices."""
+    index = np.asarray(index, np.int64)
+    values = np.asarray(vertex_values, float)
+    at = np.einsum("hv,hvkc->hkc", hits.bary[index], values[hits.vertices[index]])
+    per_ray = np.einsum("hqk,hkc->hqc", hits.factor[index], np.asarray(exact, float) - at)
+    out = np.zeros((n_points,) + per_ray.shape[1:])
+    np.add.at(out, hits.rows[index], per_ray)
     return out

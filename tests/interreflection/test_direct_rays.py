@@ -16,7 +16,9 @@ from prtlab import brdf
 from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster, builtin_mesh
 from prtlab.interreflection import Interreflection, InterreflectionOptions
-from prtlab.interreflection._direct_rays import ray_traced_direct
+from prtlab.interreflection._direct_rays import (jitter, light_terms, light_terms_reference, mirror_wo,
+                                                ray_traced_direct, ray_traced_direct_reference, sample_count,
+                                                widened_sphere)
 from prtlab.scene import AreaLight, Material, PointLight, Transform
 from tests.conftest import MC_SIGMAS
 from tests.scenes import floor_and_ball
@@ -147,3 +149,147 @@ def test_rays_precompute_what_sh_does_and_take_point_lights():
         Interreflection.check_lights(light, InterreflectionOptions(shadows="sh"))
     with pytest.raises(ValueError, match="light_samples"):
         InterreflectionOptions(light_samples=0)
+
+
+# ------------------------------------------------------------------ the numba kernel and the reference tier
+
+def _tier_scene():
+    """Points on a 4 m floor (every fifth normal facing down, every seventh tilted), view directions some below
+    the horizon, a box and a ball casting shadows, two static specks fixing the casters' bounding box (so their
+    ray offsets stay when the box moves), and an area light, a tilted one and a point light."""
+    points, normals = _floor_points(25, 4.0)
+    normals[::5] *= -1.0
+    normals[::7] = normals[::7] + [0.3, 0.0, -0.2]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    wo = np.random.default_rng(5).normal(size=points.shape)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    meshes = [builtin_mesh("box", size=[0.6, 0.6, 0.6]), builtin_mesh("icosphere", radius=0.3, subdivisions=2),
+              builtin_mesh("icosphere", radius=0.05, subdivisions=0), builtin_mesh("icosphere", radius=0.05,
+                                                                                   subdivisions=0)]
+    poses = [Transform(translate=np.array([0.5, 1.0, 0.3])), Transform(translate=np.array([-0.8, 0.6, -0.5])),
+             Transform(translate=np.array([-4.0, -1.0, -4.0])), Transform(translate=np.array([4.0, 5.0, 4.0]))]
+    tilted = AreaLight(center=np.array([-1.0, 2.0, 1.0]), u=np.array([0.2, 0.1, 0.0]), v=np.array([0.0, 0.1, 0.25]),
+                       radiance=np.array([3.0, 4.0, 5.0]))
+    point = PointLight(position=np.array([0.2, 3.0, -0.1]), intensity=np.array([5.0, 4.0, 3.0]))
+    return points, normals, wo, meshes, poses, [LIGHT, tilted, point]
+
+
+MATERIALS = [Material(albedo=np.array([0.7, 0.6, 0.5])),
+             Material(type="phong", kd=np.array([0.3, 0.2, 0.1]), ks=np.array([0.5, 0.4, 0.3]), exponent=10.0)]
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_the_kernel_equals_the_float64_reference_tier(material):
+    """Same samples (the hash of ``jitter``), same rays: the per-light masks are equal and the sums agree to
+    1e-12 of their largest value (only the order of float64 roundings differs)."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    ours = ray_traced_direct(points, normals, wo, f, sep, caster, lights, 64, seed=3)
+    ref = ray_traced_direct_reference(points, normals, wo, f, sep, caster, lights, 64, seed=3)
+    for a, b in zip(ours, ref):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12 * np.abs(b).max())
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        S, F, blocked = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3)
+        S_ref, F_ref, blocked_ref = light_terms_reference(points, normals, wo, f, sep, caster, light, i, 64, seed=3)
+        np.testing.assert_array_equal(blocked, blocked_ref)
+        assert blocked.shape == (len(points), sample_count(light, 64)) and blocked.any()
+        assert np.any(S[:, 0] > 0.0)  # lit somewhere: not a check of zeros
+        np.testing.assert_allclose(S, S_ref, rtol=0.0, atol=1e-12 * np.abs(S_ref).max())
+        np.testing.assert_allclose(F, F_ref, rtol=0.0, atol=1e-12 * np.abs(F_ref).max())
+
+
+def test_the_jitter_hash_is_uniform_and_independent_of_the_rows_asked():
+    """The numpy hash: a vertex's numbers do not depend on which other rows are asked (chunks, subsets), and
+    they are uniform: the mean of 2 x 10^5 within MC_SIGMAS standard errors (1 / sqrt(12 n)) of 1/2."""
+    all_rows = jitter(7, 1, np.arange(3125), 64)
+    np.testing.assert_array_equal(jitter(7, 1, np.array([17, 3000]), 64), all_rows[[17, 3000]])
+    assert not np.array_equal(jitter(7, 2, np.arange(10), 64), all_rows[:10])  # another light, other numbers
+    assert np.all((all_rows >= 0.0) & (all_rows < 1.0))
+    assert abs(all_rows.mean() - 0.5) <= MC_SIGMAS / np.sqrt(12.0 * all_rows.size)
+
+
+@pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
+def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
+    """The box moves: the previous mask re-cast only where a sample's segment meets the box's bounding sphere
+    before or after (widened) equals casting every sample at the new poses, and most samples were not cast.
+    Without ``moved`` no ray is cast: the mask of a caster of other geometry gives the same terms."""
+    f = brdf.from_material(MATERIALS[1])
+    sep = brdf.separable(f, K=4)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    before = RayCaster(meshes, transforms=poses)
+    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
+    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
+    assert before.epsilon == after.epsilon and before.tnear == after.tnear
+    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        old = terms(points, normals, wo, f, sep, before, light, i, 64)
+        fresh = terms(points, normals, wo, f, sep, after, light, i, 64)
+        assert not np.array_equal(old[2], fresh[2])  # the move changed some shadows
+        partial = terms(points, normals, wo, f, sep, after, light, i, 64, visibility=old[2], moved=spheres)
+        for a, b in zip(partial, fresh):
+            np.testing.assert_array_equal(a, b)
+        # a new camera from the mask alone: the caster is never asked (this one holds nothing near)
+        elsewhere = RayCaster([meshes[2]], transforms=[Transform(translate=np.array([50.0, 0.0, 0.0]))])
+        reshaded = terms(points, normals, -wo, f, sep, elsewhere, light, i, 64, visibility=fresh[2])
+        direct = terms(points, normals, -wo, f, sep, after, light, i, 64)
+        for a, b in zip(reshaded, direct):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_light_terms_refuse_bad_input():
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    with pytest.raises(ValueError, match="must be \\(V, 3\\) arrays of one shape"):
+        light_terms(points, normals[:-1], wo, f, sep, caster, LIGHT, 0, 16)
+    with pytest.raises(ValueError, match="contain NaN or inf"):
+        light_terms(points * np.nan, normals, wo, f, sep, caster, LIGHT, 0, 16)
+    with pytest.raises(ValueError, match="visibility must be the \\(625, 16\\) bool mask"):
+        light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, visibility=np.zeros((625, 64), bool))
+    with pytest.raises(ValueError, match="moved= needs the previous visibility="):
+        light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, moved=np.zeros((1, 4)))
+
+
+def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
+    """Relighting (the area light's radiance doubles) rescales the kept terms; moving the ball re-casts only
+    near it; a new camera reshades from the masks: each frame equals a fresh shade of the same state."""
+    from prtlab.pipeline import FrameState
+
+    lights = [{"type": "environment", "constant": [0.2, 0.2, 0.2]},
+              {"type": "area", "center": [0.3, 2.5, 0.4], "u": [0.3, 0, 0], "v": [0, 0, 0.3], "radiance": [30, 20, 10]},
+              {"type": "point", "position": [-1.0, 2.0, 0.5], "intensity": [2.0, 2.0, 2.0]}]
+    scene = floor_and_ball(8, 2, (1.3, 0.7, 1.2), lights=lights, dynamic=True)
+    options = dict(n_radii=4, resolution=6, degree=15, n_lights=16, n_basis=4, light_samples=16)
+    pre = Interreflection.precompute(scene, options, cache=False, progress=False)
+    state = FrameState.from_scene(scene)
+    first = pre.shade(state, bounces=0)
+    assert first.info["direct_rays_cast"] > 0
+    masks = {r: {i: e["mask"] for i, e in entry["lights"].items()} for r, entry in pre.reuse.direct_rays.items()}
+
+    def fresh(state):
+        return Interreflection(scene, pre.options, pre.data).shade(state, bounces=0)
+
+    area = state.lights[1]
+    state.lights[1] = type(area)(center=area.center, u=area.u, v=area.v, radiance=2.0 * area.radiance)
+    relit = pre.shade(state, bounces=0)
+    assert all(pre.reuse.direct_rays[r]["lights"][i]["mask"] is m for r in masks for i, m in masks[r].items())
+    assert relit.info["direct_rays_cast"] == 0
+    np.testing.assert_allclose(relit.direct["floor"], fresh(state).direct["floor"], rtol=1e-12)
+    assert np.any(relit.direct["floor"] != first.direct["floor"])
+    state.transforms["ball"] = Transform(translate=np.array([1.1, 0.7, 1.3]))  # in the box: same ray offsets
+    moved = pre.shade(state, bounces=0)
+    # the ball's own samples and the floor's near the ball, not all of the floor's
+    floor_samples = sum(e["mask"].size for e in pre.reuse.direct_rays["floor"]["lights"].values())
+    assert 0 < moved.info["direct_rays_cast"] < first.info["direct_rays_cast"] - floor_samples // 4
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(moved.direct[name], fresh(state).direct[name])
+    state.camera = type(scene.camera)(position=np.array([2.0, 3.0, -4.0]), look_at=np.zeros(3))
+    turned = pre.shade(state, bounces=0)
+    assert turned.info["direct_rays_cast"] == 0
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(turned.direct[name], fresh(state).direct[name])
