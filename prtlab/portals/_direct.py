@@ -60,21 +60,78 @@ def _check_points(points, normals):
     return points, normals
 
 
-def _stratified_portal_points(portal, nc, n_samples, rng):
-    """``n_samples`` points on the portal for each of ``nc`` vertices, uniform by area and jittered-stratified:
-    one point in each cell of a grid on the unit square, mapped to a face by the inverse CDF of the face areas
-    along its first axis and into the face by the area-preserving ``sqrt`` map. Returns points and unit face
-    normals, ``(nc, n_samples, 3)`` each. (Independent uniform points left the sun's texel of a sunlit floor vertex
-    with about ten samples at 1024: a 30% noise.)"""
+#: the portal samplers of :func:`direct_transfer` (``sampler``)
+PORTAL_SAMPLERS = ("sobol", "jittered", "random")
+
+
+def _parallelogram(portal):
+    """``(corner, edge1, edge2)`` when the portal is one planar parallelogram (two triangles sharing a diagonal,
+    the same facing), else ``None``."""
+    f = np.asarray(portal.faces, dtype=np.int64)
+    if len(f) != 2:
+        return None
+    shared = np.intersect1d(f[0], f[1])
+    if len(shared) != 2 or len(np.unique(f)) != 4:
+        return None
+    v = np.asarray(portal.vertices, dtype=np.float64)
+    a, b = v[np.setdiff1d(f[0], shared)[0]], v[np.setdiff1d(f[1], shared)[0]]
+    s0, s1 = v[shared[0]], v[shared[1]]
+    normals = portal.face_normals
+    if np.linalg.norm(a + b - s0 - s1) > 1e-9 * portal.size or normals[0] @ normals[1] < 1.0 - 1e-9:
+        return None
+    return a, s0 - a, s1 - a
+
+
+def _sobol_unit_square(n_samples, nc, rng):
+    """``(nc, n_samples, 2)`` points of one scrambled Sobol' set (scipy's linear matrix scramble, seeded from
+    ``rng``), each vertex's copy digitally shifted by its own random 32-bit XOR per axis and spread uniformly
+    within the last bit: every point is uniform on the unit square (unbiased), and each vertex's set keeps the
+    net's stratification (every dyadic box of the set's volume ``2^-m`` holds one point for ``n = 2^m``)."""
+    import warnings
+
+    from scipy.stats import qmc
+
+    with warnings.catch_warnings():  # n not a power of two: still uniform points, fewer balanced boxes
+        warnings.simplefilter("ignore", UserWarning)
+        base = qmc.Sobol(2, scramble=True, seed=rng).random(n_samples)
+    bits = np.floor(base * 2.0**32).astype(np.uint64)
+    shift = rng.integers(0, 2**32, size=(nc, 1, 2), dtype=np.uint64)
+    return ((bits[None] ^ shift) + rng.random((nc, n_samples, 2))) / 2.0**32
+
+
+def _portal_points(portal, nc, n_samples, rng, sampler="sobol"):
+    """``n_samples`` points on the portal for each of ``nc`` vertices, uniform by area. ``sampler``:
+
+    - ``"sobol"``: scrambled Sobol' points (:func:`_sobol_unit_square`), mapped affinely onto a parallelogram
+      portal (a window: its edges fall on the net's box edges) and otherwise like ``"jittered"``;
+    - ``"jittered"``: one point in each cell of a grid on the unit square, mapped to a face by the inverse CDF of
+      the face areas along its first axis and into the face by the area-preserving ``sqrt`` map (the sampler
+      before the Sobol' one);
+    - ``"random"``: independent uniform points by the same map (the paper's "uniformly sampled" portal points).
+
+    Returns points and unit face normals, ``(nc, n_samples, 3)`` each. (Independent uniform points left the
+    sun's texel of a sunlit floor vertex with about ten samples at 1024: a 30% noise.)"""
     from prtlab.geometry._sampling import _stratified_unit_square
 
+    if sampler not in PORTAL_SAMPLERS:
+        raise ValueError(f"sampler must be one of {PORTAL_SAMPLERS}, got {sampler!r}")
+    if sampler == "sobol":
+        u = _sobol_unit_square(n_samples, nc, rng)
+        quad = _parallelogram(portal)
+        if quad is not None:
+            corner, e1, e2 = quad
+            points = corner + u[..., 0:1] * e1 + u[..., 1:2] * e2
+            return points, np.broadcast_to(portal.face_normals[0], points.shape)
+    elif sampler == "jittered":
+        u = _stratified_unit_square(n_samples, rng, (nc,))
+    else:
+        u = rng.random((nc, n_samples, 2))
     v = np.asarray(portal.vertices, dtype=np.float64)
     f = np.asarray(portal.faces, dtype=np.int64)
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     cross = np.cross(b - a, c - a)
     double_area = np.linalg.norm(cross, axis=1)
     cdf = np.concatenate([[0.0], np.cumsum(double_area) / double_area.sum()])
-    u = _stratified_unit_square(n_samples, rng, (nc,))
     face = np.clip(np.searchsorted(cdf, u[..., 0], side="right") - 1, 0, len(f) - 1)
     r1 = np.clip((u[..., 0] - cdf[face]) / np.maximum(cdf[face + 1] - cdf[face], 1e-300), 0.0, 1.0)
     s = np.sqrt(r1)[..., None]
@@ -83,7 +140,7 @@ def _stratified_portal_points(portal, nc, n_samples, rng):
     return points, (cross / double_area[:, None])[face]
 
 
-def _visible_portal_samples(caster, portal, x, n, n_samples, rng):
+def _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler):
     """Sample ``n_samples`` portal points per vertex and keep the unoccluded pairs.
 
     A pair (vertex ``v``, portal point ``p``) counts when ``p`` is in front of the
@@ -97,7 +154,7 @@ def _visible_portal_samples(caster, portal, x, n, n_samples, rng):
     cos_v, cos_p, dist : (E,) float   cosines at vertex and portal, and distance
     """
     nc = len(x)
-    p, n_p = _stratified_portal_points(portal, nc, n_samples, rng)
+    p, n_p = _portal_points(portal, nc, n_samples, rng, sampler)
     d = p - x[:, None, :]
     dist = np.linalg.norm(d, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -122,6 +179,7 @@ def direct_transfer(
     res: int,
     rng: np.random.Generator,
     chunk: int = 256,
+    sampler: str = "sobol",
 ) -> np.ndarray:
     """Per-vertex direct transfer cubemaps ``T`` (Section 4.1.2, steps 1-3).
 
@@ -139,6 +197,9 @@ def direct_transfer(
     rng : numpy.random.Generator
     chunk : int
         Vertices per batch of rays.
+    sampler : {"sobol", "jittered", "random"}
+        How the portal points are drawn (:func:`_portal_points`); all are uniform by area, so ``T`` is
+        unbiased with each.
 
     Returns
     -------
@@ -150,6 +211,8 @@ def direct_transfer(
     if not isinstance(caster, RayCaster):
         raise TypeError(f"caster must be a prtlab.geometry.RayCaster, got {type(caster).__name__}")
     check_int(n_samples, "n_samples", 1)
+    if sampler not in PORTAL_SAMPLERS:
+        raise ValueError(f"sampler must be one of {PORTAL_SAMPLERS}, got {sampler!r}")
     n_texels = 6 * res * res
     n_vertices = len(points)
     out = np.zeros((n_vertices, n_texels))
@@ -157,7 +220,7 @@ def direct_transfer(
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        vi, dl, cos_v, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng)
+        vi, dl, cos_v, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cos_v * cos_p * portal.area / (np.pi * n_samples * dist**2)
         face, _, _, i, j = direction_to_cubemap(dl, res)
         flat = vi * n_texels + face * res * res + i * res + j
@@ -166,12 +229,13 @@ def direct_transfer(
 
 
 def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, view_dirs, exponent: float,
-                           n_samples: int, res: int, rng: np.random.Generator, chunk: int = 8) -> np.ndarray:
+                           n_samples: int, res: int, rng: np.random.Generator, chunk: int = 8,
+                           sampler: str = "sobol") -> np.ndarray:
     """Specular direct transfer of Phong vertices, one cubemap per discretised view direction (Section 4.1.2).
 
     Parameters
     ----------
-    caster, points, normals, portal, n_samples, res, rng
+    caster, points, normals, portal, n_samples, res, rng, sampler
         As in :func:`direct_transfer`.
     view_dirs : (J, 3) float
         The discretised outgoing directions ``w_o`` (toward the viewer), e.g. the
@@ -195,6 +259,8 @@ def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, v
     if not (np.isfinite(exponent) and exponent >= 0):
         raise ValueError(f"exponent must be a finite number >= 0, got {exponent!r}")
     check_int(n_samples, "n_samples", 1)
+    if sampler not in PORTAL_SAMPLERS:
+        raise ValueError(f"sampler must be one of {PORTAL_SAMPLERS}, got {sampler!r}")
     n_texels = 6 * res * res
     n_views = len(view_dirs)
     out = np.zeros((len(points), n_views * n_texels))
@@ -203,7 +269,7 @@ def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, v
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        vi, dl, cv, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng)
+        vi, dl, cv, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cv * cos_p * portal.area / (n_samples * dist**2)  # cos dw / pdf, no 1/pi
         mirror = 2.0 * cv[:, None] * n[vi] - dl
         lobe = norm * np.maximum(mirror @ view_dirs.T, 0.0) ** exponent  # (E, J)

@@ -57,13 +57,13 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_op
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
-from ._direct import direct_transfer, glossy_direct_transfer, view_interpolation
+from ._direct import PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, view_interpolation
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
                      glossy_indirect_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
-from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, patch_gather, patch_operator,
-                       power_sum, quantize_rows, vertex_areas)
+from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix, patch_gather,
+                       patch_operator, power_sum, quantize_rows, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -81,7 +81,13 @@ class PortalsOptions:
         over the whole texel, and a bright sky near the sun put 16% too much light on the sunlit room's wall
         opposite the window.
     direct_samples : int
-        Portal points per vertex of the direct transfer [4096], jittered-stratified over the portal.
+        Portal points per vertex of the direct transfer [4096], drawn by ``portal_sampler``.
+    portal_sampler : {"sobol", "jittered", "random"}
+        How the direct transfer's portal points are drawn, uniform by area with each: ``"sobol"`` scrambled
+        Sobol' points (on a parallelogram portal mapped affinely, so its edges fall on the net's boxes);
+        ``"jittered"`` one point per cell of a grid mapped over the portal's triangles (the sampler before);
+        ``"random"`` independent points, the paper's uniform portal samples [random]. Sobol' has the least noise
+        at a given count (``docs/notes/portals.md``, section 8).
     n_photons : int
         Photons emitted per portal, shared by all SH bases [2M per basis].
     gather_rays : int
@@ -118,6 +124,7 @@ class PortalsOptions:
 
     cube_resolution: int = 0
     direct_samples: int = 4096
+    portal_sampler: str = "sobol"
     n_photons: int = 200_000
     gather_rays: int = 1024
     order: int = 4
@@ -141,6 +148,7 @@ class PortalsOptions:
         check_bool(self.merge_portals, "option merge_portals")
         check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
         check_choice(self.indirect, "option indirect", ("auto", "surface", "paper"))
+        check_choice(self.portal_sampler, "option portal_sampler", PORTAL_SAMPLERS)
 
 
 def n_photons_bytes(n_photons: int, bounces: int, n_coeffs: int) -> float:
@@ -243,7 +251,8 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     for b0 in range(rows.start, rows.stop, _DIRECT_BATCH):  # bounds the dense cubemaps and the encoder's arrays
         b = slice(b0, min(rows.stop, b0 + _DIRECT_BATCH))
         encoded.append(encode_transfer(direct_transfer(caster, interior.points[b], interior.normals[b], portal,
-                                                       options.direct_samples, res, rng), basis))
+                                                       options.direct_samples, res, rng,
+                                                       sampler=options.portal_sampler), basis))
     entry = _concat_encoded(encoded)
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
@@ -254,7 +263,8 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
         for e in np.unique(interior.exponent[gb]):
             m = interior.exponent[gb] == e
             spec[m] = glossy_direct_transfer(caster, interior.points[gb[m]], interior.normals[gb[m]], portal,
-                                             view_dirs, float(e), options.direct_samples, res, rng)
+                                             view_dirs, float(e), options.direct_samples, res, rng,
+                                             sampler=options.portal_sampler)
         parts.append(encode_transfer(spec.reshape(-1, 6, res, res), basis))
     entry["glossy_counts"] = np.concatenate([np.diff(q.indptr) for q in parts])
     for name in ("indices", "codes", "scale", "basis"):
@@ -281,7 +291,8 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
         dense = np.zeros((sub.stop - sub.start, 6 * res * res))
         for b0 in range(0, len(points), 512):
             b = slice(b0, b0 + 512)
-            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng)
+            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng,
+                                sampler=options.portal_sampler)
             dense += weights[:, b] @ t.reshape(len(t), -1)
         encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
     return _concat_encoded(encoded, "source_")
@@ -425,9 +436,9 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 6  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    format_version = 7  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
     # 4: photons reflect off glossy objects by their Phong lobe too; 5: edge-corrected radiance estimates
-    # 6: indirect="surface"
+    # 6: indirect="surface"; 7: Sobol' portal samples of the direct transfer (portal_sampler)
     max_bounces = None
     options_type = PortalsOptions
     renamed_options = {"res": "cube_resolution"}
@@ -639,9 +650,11 @@ class Portals(Precomputation):
             return None
         if "_surface" not in self.__dict__:
             e = self.data["surface"]
+            project = e.get("project")
+            mass = mass_matrix(RayCaster(self.scene)) if project is not None else None
             self._surface = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"],
                                             self.data["albedo"], e["operator"],
-                                            {self.options.bounces: e["sum"]}, e.get("project"))
+                                            {self.options.bounces: e["sum"]}, project, mass)
         return self._surface
 
     def source_operator(self, k: int = 0):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import weakref
 from contextlib import contextmanager
 
 import numba
@@ -61,7 +62,8 @@ def direct_pass(direct: SparseTransfer, albedo, shell_cube, method: str = "numba
         Texel averages of the shell light (:func:`prtlab.portals.shell_light`).
     method : {"numba", "reference"}
         ``"numba"``: one fused kernel (``prange`` over vertices) reading only the
-        stored 8-bit entries, the albedo folded in; ``"reference"``: dense float64
+        stored 8-bit entries, the albedo folded in (pulse rows summed in float32:
+        :func:`direct_from_light`); ``"reference"``: dense float64
         coefficients (:meth:`prtlab.wavelet.SparseTransfer.dot`).
 
     Returns
@@ -98,14 +100,49 @@ def shell_coefficients(shell_cube, haar: bool = True) -> np.ndarray:
     return light
 
 
+#: the texel runs of each SparseTransfer (:func:`texel_runs`), built on first use
+_RUNS: "weakref.WeakKeyDictionary[SparseTransfer, tuple]" = weakref.WeakKeyDictionary()
+
+
+def texel_runs(direct: SparseTransfer) -> tuple:
+    """``(run_ptr (V + 1,) int64, run_start (R,) int32, run_len (R,) int32)``: the pulse rows of ``direct`` as runs
+    of consecutive texels (a run per maximal stretch of consecutive indices; Haar rows have none), for
+    :func:`prtlab.portals._kernels.direct_runs_kernel`. Cached per transfer object."""
+    if direct in _RUNS:
+        return _RUNS[direct]
+    counts = np.diff(direct.indptr)
+    row = np.repeat(np.arange(direct.n_vertices), counts)
+    raw = direct.indices.astype(np.int64)
+    pulse = direct.basis[row] == SparseTransfer.PULSE
+    start = np.ones(len(raw), dtype=bool)
+    start[1:] = (row[1:] != row[:-1]) | (raw[1:] != raw[:-1] + 1)
+    first = np.nonzero(start & pulse)[0]
+    ends = np.nonzero(start)[0]
+    length = np.diff(np.append(ends, len(raw)))[np.searchsorted(ends, first)]
+    run_ptr = np.searchsorted(row[first], np.arange(direct.n_vertices + 1)).astype(np.int64)
+    out = (run_ptr, raw[first].astype(np.int32), length.astype(np.int32))
+    _RUNS[direct] = out
+    return out
+
+
 def direct_from_light(direct: SparseTransfer, albedo, light) -> np.ndarray:
     """:func:`direct_pass` (numba tier) from the shell light's coefficients ``light`` (:func:`shell_coefficients`,
-    ``(2 T, 3)``) and a checked ``(V, 3)`` float64 ``albedo``."""
+    ``(2 T, 3)``) and a checked ``(V, 3)`` float64 ``albedo``: pulse rows as texel runs, those the light leaves
+    black skipped, summed in float32 (:func:`prtlab.portals._kernels.direct_runs_kernel`: within ``(n + 2) eps_32``
+    of a row's sum of absolute terms); Haar rows in float64."""
     out = np.empty((direct.n_vertices, 3))
     if direct.n_vertices:
+        run_ptr, run_start, run_len = texel_runs(direct)
+        light = np.asarray(light, dtype=np.float64)
+        n = len(light) // 2
+        lit = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(np.any(light[:n] != 0.0, axis=1), out=lit[1:])
         with _threads_for(3 * len(direct.codes)):
-            _kernels.direct_pass_kernel(direct.indptr, direct.indices, direct.codes, direct.scale, direct.basis,
-                                        np.int64(direct.sign_bit), light, np.ascontiguousarray(albedo), out)
+            _kernels.direct_runs_kernel(direct.indptr, run_ptr, run_start, run_len, direct.indices, direct.codes,
+                                        direct.scale, direct.basis, np.int64(direct.sign_bit),
+                                        np.ascontiguousarray(light.T), lit,
+                                        np.ascontiguousarray(light[:n].T, dtype=np.float32),
+                                        np.ascontiguousarray(albedo), out)
     return out
 
 

@@ -37,7 +37,7 @@ from . import _kernels
 from ._indirect import front_hit_corners
 
 __all__ = ["vertex_areas", "cluster_vertices", "patch_gather", "patch_operator", "power_sum", "SurfaceTransfer",
-           "SourceOperator"]
+           "SourceOperator", "limited_projection"]
 
 
 def vertex_areas(caster: RayCaster) -> np.ndarray:
@@ -117,6 +117,52 @@ def hat_projection(caster: RayCaster, patch) -> np.ndarray | None:
     return np.linalg.solve(mass, np.diag(mass.sum(axis=1)))
 
 
+def limited_projection(hat_values, mass, areas=None, consistent=None) -> np.ndarray:
+    """Hat averages ``hat_values (V, k)`` to non-negative interpolant coefficients with the same total power: the
+    consistent projection ``M^-1 diag(a) y`` (:func:`hat_projection`) limited by flux correction (Zalesak's limiter,
+    bounds ``[0, inf)``), float64.
+
+    The lumped coefficients ``y`` (non-negative, same power) are corrected by the antidiffusive fluxes ``f_uv = m_uv
+    (c_u - c_v)`` (``c`` the consistent coefficients, ``m_uv`` the off-diagonal mass-matrix entries), each scaled
+    by ``alpha_uv = alpha_vu`` in ``[0, 1]`` so that no coefficient goes below 0: ``c_u = y_u + sum_v alpha_uv f_uv
+    / a_u``. The fluxes are antisymmetric, so ``sum_u a_u c_u = sum_u a_u y_u`` whatever ``alpha``; where no bound
+    is hit, ``alpha = 1`` and ``c`` is the consistent projection. Contract: ``y >= 0`` gives ``c >= 0``.
+
+    Why: next to a sharp sun patch the consistent projection rings below zero (on the sunlit room at a 60-degree
+    sun the floor's row along the window wall came out at -1.1 against a hat average of +0.06), and a vertex on an
+    edge, half of whose hemisphere sees the adjacent surface at a millimetre, reads those coefficients
+    (``docs/notes/portals.md``).
+
+    ``mass``: the consistent mass matrix (:func:`mass_matrix`, sparse ``(V, V)``); ``areas``: its row sums (the
+    vertex areas; computed when not given); ``consistent``: ``M^-1 diag(a) y`` if known (solved when not given).
+    """
+    from scipy.sparse import coo_matrix
+
+    y = np.asarray(hat_values, dtype=np.float64)
+    squeeze = y.ndim == 1
+    y = y[:, None] if squeeze else y
+    m = coo_matrix(mass)
+    if m.shape != (len(y), len(y)):
+        raise ValueError(f"mass must be ({len(y)}, {len(y)}) to match hat_values, got {m.shape}")
+    a = np.asarray(m.sum(axis=1)).ravel() if areas is None else np.asarray(areas, dtype=np.float64)
+    off = m.row != m.col
+    i, j, w = m.row[off], m.col[off], m.data[off]
+    if consistent is None:
+        consistent = np.linalg.solve(m.toarray(), a[:, None] * y) if len(y) else y.copy()
+    consistent = np.asarray(consistent, dtype=np.float64).reshape(y.shape)
+    out = np.empty_like(y)
+    n = len(y)
+    for k in range(y.shape[1]):
+        low, high = y[:, k], consistent[:, k]
+        flux = w * (high[i] - high[j])  # into u = i from its neighbour j
+        lack = np.bincount(i, weights=np.minimum(flux, 0.0), minlength=n)  # <= 0
+        room = -a * np.maximum(low, 0.0)  # the most a vertex may lose and stay >= 0
+        r_minus = np.where(lack < 0, np.minimum(1.0, room / np.where(lack < 0, lack, -1.0)), 1.0)
+        alpha = np.where(flux < 0, r_minus[i], r_minus[j])  # the upper bound is infinite: R+ = 1
+        out[:, k] = low + np.bincount(i, weights=alpha * flux, minlength=n) / np.where(a > 0, a, 1.0)
+    return out[:, 0] if squeeze else out
+
+
 def patch_operator(hat_gather, albedo, patch, areas, n_patches: int, project=None) -> np.ndarray:
     """``K (C, C, 3)``: one bounce between the patches' light (float64).
 
@@ -172,9 +218,14 @@ class SurfaceTransfer:
     (C, C, 3)`` (``K``), ``sums``
     a dict ``b -> S_b (C, C, 3)``, ``project`` (``M^-1 diag(a)`` or None). The gather is kept as 16-bit codes
     with a scale per row (:func:`quantize_rows`): the per-frame product reads ``2 V C`` bytes.
+
+    ``mass`` (patches = vertices; the consistent mass matrix, :func:`mass_matrix`): the direct light's term of the
+    bounce sum (``b = 0``, the source of the first bounce) is projected by :func:`limited_projection` instead of
+    ``project`` (``limit=False``: the unlimited consistent projection, kept for measurement), per frame.
     """
 
-    def __init__(self, gather, patch, areas, albedo, operator, sums: dict, project=None):
+    def __init__(self, gather, patch, areas, albedo, operator, sums: dict, project=None, mass=None,
+                 limit: bool = True):
         self.codes, self.scale = gather if isinstance(gather, tuple) else quantize_rows(gather)
         self.patch = np.asarray(patch, dtype=np.int64)
         self.n_patches = self.codes.shape[1]
@@ -184,6 +235,8 @@ class SurfaceTransfer:
         self.operator = np.asarray(operator)
         self.sums = {int(b): np.ascontiguousarray(s, dtype=np.float32) for b, s in sums.items()}
         self.project = None if project is None else np.asarray(project, dtype=np.float64)
+        self.mass = mass if (limit and mass is not None and self.project is not None) else None
+        self.areas = np.asarray(areas, dtype=np.float64)
 
     def bounce_sum(self, b: int) -> np.ndarray:
         """``S_b`` (computed from ``H`` and kept when not stored)."""
@@ -218,26 +271,43 @@ class SurfaceTransfer:
         if bounces <= 0:
             return np.zeros((n, 3))
         sums = self.bounce_sum(int(bounces))
+        if method not in ("numba", "reference"):
+            raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
+        correction = self.source_correction(source)
         if method == "reference":
             light = np.einsum("cdk,dk->ck", sums.astype(np.float64), source)
+            if correction is not None:
+                light += correction
             gather = self.codes.astype(np.float64) * self.scale.astype(np.float64)[:, None]
             return self.albedo * (gather @ light)
-        if method != "numba":
-            raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
         from ._shade import _threads_for
 
         light_t = np.empty((3, self.n_patches), dtype=np.float32)
         with _threads_for(sums.size):
             _kernels.bounce_light_kernel(sums, np.ascontiguousarray(source), light_t)
+        if correction is not None:
+            light_t += correction.T.astype(np.float32)
         out = np.empty((n, 3))
         with _threads_for(self.codes.size * 3):
             _kernels.gather_product_kernel(self.codes, self.scale, light_t, self.albedo, out)
         return out
 
+    def source_correction(self, source):
+        """With ``mass``: ``limited_projection(s) - project s`` (``(C, 3)`` float64), what turns the bounce sum's
+        ``b = 0`` term from the consistent projection into the limited one; else None."""
+        if self.mass is None:
+            return None
+        source = np.asarray(source, dtype=np.float64)
+        consistent = self.project @ source
+        return limited_projection(source, self.mass, self.areas, consistent) - consistent
+
     def patch_light(self, direct, bounces: int) -> np.ndarray:
         """``S_B Pbar L_d``, ``(C, 3)`` float64 from the stored float32 ``S_B``: the light the patches send after
-        ``0 .. B-1`` bounces."""
-        return np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), self.patch_source(direct))
+        ``0 .. B-1`` bounces (the ``b = 0`` term limited as in :meth:`frame`)."""
+        s = self.patch_source(direct)
+        out = np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), s)
+        correction = self.source_correction(s) if bounces > 0 else None
+        return out if correction is None else out + correction
 
     def source_operator(self, source) -> "SourceOperator":
         """The per-frame-invariant product ``Pbar diag(rho) T_src`` of a hat-averaged source transfer ``source``

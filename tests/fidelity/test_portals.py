@@ -164,10 +164,12 @@ def sunlit_high(sunlit_pre):
 
 
 # Measured (this module, the seeds above, the defaults): relative RMS per vertex, the reference's relative noise,
-# mean ratio. The tiny room's direct light: room 0.012, block 0.008; the room's total 0.037 (both within the goal).
+# mean ratio. The tiny room's direct light: room 0.012, block 0.008; the room's total 0.030 (both within the goal).
+# Before the direct light's limited projection (docs/notes/portals.md): room indirect 0.073, block indirect 0.158,
+# block total 0.054.
 MEASURED = {
-    ("sky", "room", "indirect"): (0.073, 0.016, 1.00), ("sky", "block", "indirect"): (0.158, 0.013, 0.92),
-    ("sky", "block", "total"): (0.054, 0.008, 0.97),
+    ("sky", "room", "indirect"): (0.059, 0.016, 1.00), ("sky", "block", "indirect"): (0.165, 0.013, 0.93),
+    ("sky", "block", "total"): (0.057, 0.008, 0.97),
 }
 CAUSE = ("per-vertex light interpolated linearly over 0.5 m cells: a floor vertex inside the block's footprint is "
          "dark and darkens the floor round the block, which the block (24 vertices, all on its corners) gathers "
@@ -215,22 +217,23 @@ def _check_sunlit_row(sunlit, surface, part):
 
 
 # Measured at HIGH_ELEVATION (this module, seed 5, the defaults, 4 bounces): (surface, part) -> (rel_rms, noise,
-# mean ratio). Misses of the goal (AssertionError):
-MISSED_HIGH = {
-    ("floor", "direct"): (0.041, 0.0001, 1.005), ("floor", "total"): (0.041, 0.005, 1.008),
-    ("all", "total"): (0.081, 0.007, None),
-}
-MISSED_HIGH_CAUSE = ("not yet analysed: the floor's direct light misses on its own (window quadrature reference) and "
-                     "the window's wall's indirect light (0.358, mean 0.93) dominates the whole room's total")
+# mean ratio). Misses of the goal (AssertionError): none. With the jittered portal samples the floor's direct light
+# (0.041), the floor's total (0.041) and the room's total (0.041) missed: the direct transfer's portal-sample noise
+# in the few texels that hold the sun; with the Sobol' ones (the default) 0.0065, 0.0085 and 0.015
+# (docs/notes/portals.md, section 8).
+MISSED_HIGH: dict = {}
+MISSED_HIGH_CAUSE = "see docs/notes/portals.md"
 # Rows whose reference (65,536 spp) is noisier than goal / 3, so that ``check`` refuses them (ValueError); ours
 # measured against it all the same. Judging them needs about 3-4 times the samples, over this tier's time budget.
+# With the noise removed in quadrature, the walls' indirect light is 0.033 (+-x) and 0.036 (+z), the floor's 0.042
+# and the window wall's 0.049: above the goal even so, by little on the side walls.
 NOISY_HIGH = {
-    ("floor", "indirect"): (0.048, 0.017, 1.02), ("ceiling", "indirect"): (0.028, 0.017, 1.01),
-    ("ceiling", "total"): (0.028, 0.017, 1.01), ("wall+x", "indirect"): (0.040, 0.017, 1.02),
-    ("wall+x", "total"): (0.033, 0.015, 1.02), ("wall-x", "indirect"): (0.041, 0.017, 1.02),
-    ("wall-x", "total"): (0.035, 0.015, 1.02), ("wall-z", "indirect"): (0.358, 0.015, 0.93),
-    ("wall-z", "total"): (0.358, 0.015, 0.93), ("wall+z", "indirect"): (0.044, 0.018, 1.02),
-    ("wall+z", "total"): (0.033, 0.015, 1.01),
+    ("floor", "indirect"): (0.046, 0.017, 1.02), ("ceiling", "indirect"): (0.026, 0.017, 1.00),
+    ("ceiling", "total"): (0.026, 0.017, 1.00), ("wall+x", "indirect"): (0.037, 0.017, 1.01),
+    ("wall+x", "total"): (0.030, 0.015, 1.01), ("wall-x", "indirect"): (0.038, 0.017, 1.01),
+    ("wall-x", "total"): (0.032, 0.015, 1.01), ("wall-z", "indirect"): (0.051, 0.015, 1.01),
+    ("wall-z", "total"): (0.051, 0.015, 1.01), ("wall+z", "indirect"): (0.041, 0.018, 1.01),
+    ("wall+z", "total"): (0.031, 0.015, 1.01),
 }
 
 

@@ -10,8 +10,9 @@ import pytest
 
 from prtlab.geometry import RayCaster
 from prtlab.portals import Portals
-from prtlab.portals._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
-                                     patch_gather, patch_operator, power_sum, vertex_areas)
+from prtlab.portals._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection,
+                                     limited_projection, mass_matrix, patch_gather, patch_operator, power_sum,
+                                     vertex_areas)
 from prtlab.scene import Scene
 
 from .conftest import window_box
@@ -96,6 +97,63 @@ def test_closed_room_constant_radiance(clusters):
         want = sum(rho**j for j in range(1, bounces + 1))
         np.testing.assert_allclose(st.indirect(np.ones((n, 3)), bounces), np.tile(want, (n, 1)), rtol=1e-4)
     assert np.all(st.indirect(np.ones((n, 3)), 0) == 0)
+
+
+def test_limited_projection_positive_and_power_conserving():
+    """A sharp patch (radiance 10 on the floor's cells beyond x > 0.1, 0.01 elsewhere): its consistent projection
+    rings below zero next to the edge (the precondition); the limited one is >= 0 and keeps the power ``sum a c =
+    sum a y`` (antisymmetric fluxes; exact up to roundoff); a constant and a smooth positive field are left as the
+    consistent projection (no bound hit: ``alpha = 1``)."""
+    caster = RayCaster(_closed_room(cell=0.25))
+    mass = mass_matrix(caster)
+    areas = vertex_areas(caster)
+    v = caster.world_vertices(0)
+    n = len(v)
+    offsets = np.array([0, n])
+    normals = np.tile([0.0, 1.0, 0.0], (n, 1))
+    points, _, w = hat_points(caster, offsets, normals, slice(0, n), split=8)
+    f = np.where((points[:, 1] < 1e-9) & (points[:, 0] > 0.1), 10.0, 0.01)
+    y = np.column_stack([w @ f, 0.5 * (w @ f), np.full(n, 2.0)])
+    consistent = hat_projection(caster, np.arange(n)) @ y
+    assert consistent[:, 0].min() < -0.1  # the ringing the limiter is for
+    c = limited_projection(y, mass, areas)
+    assert c.min() >= -1e-12 * y.max()  # >= 0 up to roundoff
+    np.testing.assert_allclose(areas @ c, areas @ y, rtol=1e-12)
+    np.testing.assert_allclose(c[:, 2], 2.0, rtol=1e-12)  # a constant: no flux
+    smooth = 5.0 + 0.3 * v[:, 0] - 0.2 * v[:, 2]  # hat averages of a linear field: consistent = nodal values
+    np.testing.assert_allclose(limited_projection((mass @ smooth) / areas, mass, areas), smooth, rtol=1e-10)
+    with pytest.raises(ValueError, match=r"mass must be \(3, 3\) to match hat_values"):
+        limited_projection(np.ones((3, 3)), mass)
+
+
+def test_surface_transfer_limits_only_the_direct_term():
+    """With the mass matrix, ``frame`` adds ``limited_projection(s) - project s`` to ``S_B s`` (numba and
+    reference tiers alike); ``limit=False`` is the consistent projection."""
+    scene = _closed_room()
+    caster = RayCaster(scene)
+    room = scene.objects[0]
+    pts, nrm = room.world_shading_points(), room.world_normals()
+    n = len(pts)
+    offsets, patch = np.array([0, n]), np.arange(n)
+    rng = np.random.default_rng(2)
+    gather = patch_gather(caster, pts, nrm, offsets, nrm, patch, n, 32, rng)
+    hp, hn, hw = hat_points(caster, offsets, nrm, slice(0, n))
+    hat = hw @ patch_gather(caster, hp, hn, offsets, nrm, patch, n, 16, rng)
+    albedo = np.tile(room.material.albedo, (n, 1))
+    areas, project, mass = vertex_areas(caster), hat_projection(caster, patch), mass_matrix(caster)
+    op = patch_operator(hat, albedo, patch, areas, n, project)
+    sums = {3: power_sum(op, 3, project)}
+    limited = SurfaceTransfer(gather, patch, areas, albedo, op, sums, project, mass)
+    plain = SurfaceTransfer(gather, patch, areas, albedo, op, sums, project, mass, limit=False)
+    s = np.zeros((n, 3))
+    s[pts[:, 0] > 0.2] = 4.0  # sharp: the consistent projection rings
+    correction = limited.source_correction(s)
+    assert plain.source_correction(s) is None and np.abs(correction).max() > 0
+    f64 = gather.astype(np.float64)
+    want = albedo * (f64 @ (plain.patch_light(s, 3) + correction))
+    for method in ("numba", "reference"):
+        np.testing.assert_allclose(limited.frame(s, 3, method), want, rtol=2e-4, atol=1e-6 * np.abs(want).max())
+    np.testing.assert_allclose(limited.patch_light(s, 3), plain.patch_light(s, 3) + correction, rtol=1e-12)
 
 
 QUICK = {"cube_resolution": 8, "direct_samples": 64, "gather_rays": 32, "bounces": 2}
