@@ -230,6 +230,42 @@ def frame_per_object_ground(quick: bool) -> dict:
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
+@case("spherelights.frame.per_object_ground_near.21k")
+def frame_per_object_ground_near(quick: bool) -> dict:
+    """The per-object frame with the ground as the pipeline shades it by default (``near_blockers=2``): the direct
+    light at the receivers and the ground's texels with the two nearest one-sphere lights (the 6 balls) as exact
+    caps (``near_blocker_direct``), the ground's terms testing those lights unadjusted; peer: the paper's direct
+    light (``near_blockers=0``, the case ``per_object_ground``). Like the pipeline, the exact pass reruns only the
+    receivers with a one-sphere blocker of angular radius at least ``MIN_ANGLE_DEG``."""
+    from prtlab.spherelights import ground_light
+    from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
+
+    a = _scene_arrays(_n(quick))
+    g = 3.0 * (-1.0 + (np.arange(64) + 0.5) / 32.0)
+    texels = np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
+    up = np.broadcast_to([0.0, 1.0, 0.0], texels.shape)
+    above = a["points"][:, 1] > 0
+    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+    balls = a["sl_object"] > 0  # the one-sphere objects
+
+    def run(near):
+        direct, _ = _frame(a, "object")
+        e, _ = second_pass(texels, up, a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
+                           np.zeros_like(a["albedo"]), a["env"], indirect=False)
+        if near:  # as the pipeline: the receivers with a large one-sphere blocker again
+            for pts, nrm, out in ((a["points"], a["normals"], direct), (texels, up, e)):
+                sel = has_near_blocker(pts, nrm, a["centres"], a["radii"], balls)
+                out[sel] = near_blocker_direct(pts[sel], nrm[sel], a["centres"], a["radii"], a["env"], ORDER, 2,
+                                               eligible=balls)
+        tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
+        return ground_light(a["points"][above], a["normals"][above], rect, tex, a["env"], a["centres"], a["radii"],
+                            unadjusted=balls if near else None)
+
+    return {"run": lambda: run(True), "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("the paper's direct light (near_blockers=0)", lambda: run(False)),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
+
+
 def memory_per_object(objects: dict, arrays=None) -> dict:
     """Bytes of each object's precomputed arrays (``SphereLights.data["objects"]``): all of them, or the names in
     ``arrays`` (``FRAME_ARRAYS``, ``SHADOW_ARRAYS``)."""

@@ -314,7 +314,7 @@ def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand
 
 
 @numba.njit(cache=True, parallel=True)
-def _ground_light(points, normals, quad, scene, out_env, out_ground):
+def _ground_light(points, normals, quad, scene, out_env, out_ground, unadjusted):
     """Per receiver ``q`` (``out_env``, ``out_ground`` (B, 3)): over the directions ``w`` that meet a ground rectangle
     before any (adjusted) spherical light, weighted by ``max(0, n . w) dw``, the radiance the second pass gave them
     (the environment's, or a local light's seen beyond the ground) and the ground's radiance at the hit point.
@@ -334,8 +334,13 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground):
         cand = np.empty(n_sph, dtype=np.int64)
         n_live = 0
         for s in range(n_sph):
-            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, scene.centres[s, 0], scene.centres[s, 1],
-                                    scene.centres[s, 2], scene.radii[s])
+            if not unadjusted[s]:
+                cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, scene.centres[s, 0], scene.centres[s, 1],
+                                        scene.centres[s, 2], scene.radii[s])
+            else:  # the true sphere, culled when it holds the receiver
+                cx, cy, cz, r = scene.centres[s, 0], scene.centres[s, 1], scene.centres[s, 2], scene.radii[s]
+                if (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2 < r * r:
+                    r = 0.0
             if r > 0.0 and cy - r < py:
                 live[n_live, 0], live[n_live, 1], live[n_live, 2], live[n_live, 3] = cx, cy, cz, r
                 live_id[n_live] = s
@@ -464,7 +469,7 @@ def environment_table(env_sh, quad: GroundQuadrature, n_elevation: int = 64) -> 
 
 
 def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radii=(), local_radiance=None, *,
-                 n_azimuth: int = 24, n_elevation: int = 6) -> tuple[np.ndarray, np.ndarray]:
+                 n_azimuth: int = 24, n_elevation: int = 6, unadjusted=None) -> tuple[np.ndarray, np.ndarray]:
     """The ground's part of the light at receivers above it: what it hides and what it reflects (an extension).
 
     Parameters
@@ -479,6 +484,9 @@ def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radi
         Environment radiance.
     centres, radii : (S, 3), (S,) float
         Spherical lights (world space) as opaque blockers, adjusted per receiver as in the second pass.
+    unadjusted : (S,) bool, optional
+        Lights tested as the true spheres (culled only where they hold the receiver), not adjusted: those the
+        direct light takes exactly (the option ``near_blockers``). Default none.
     local_radiance : (S, 3) float, optional
         Constant radiance of the local lights (NaN rows: an object's light).
     n_azimuth, n_elevation : int
@@ -525,5 +533,8 @@ def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radi
     quad = ground_quadrature(int(n_azimuth), int(n_elevation), math.atan2(rects[0, 4], rects[0, 3]))
     scene = GroundScene(rects, np.ascontiguousarray(textures, dtype=np.float64), c, r,
                         np.ascontiguousarray(np.nan_to_num(loc)), is_local, environment_table(env_sh, quad))
-    _ground_light(p, n, quad, scene, hidden, reflected)
+    exact = np.zeros(len(r), dtype=bool) if unadjusted is None else np.asarray(unadjusted, dtype=bool).reshape(-1)
+    if exact.shape != (len(r),):
+        raise ValueError(f"unadjusted must be a bool array of shape ({len(r)},), got {np.shape(unadjusted)}")
+    _ground_light(p, n, quad, scene, hidden, reflected, np.ascontiguousarray(exact))
     return hidden, reflected
