@@ -18,9 +18,11 @@ import numpy as np
 import prtlab.data
 from prtlab.bench import case, floor
 from prtlab.geometry import geodesic_directions
-from prtlab.spherelights import first_pass, second_pass, voronoi_cell_sums
+from prtlab.spherelights import SphereLightOptions, first_pass, second_pass, voronoi_cell_sums
 
 ORDER = 4
+#: the lights' emission order of the pipeline's defaults (``emission_order``; the paper's: ``ORDER``)
+EMISSION_ORDER = SphereLightOptions().light_order
 N_LIGHTS = 14
 N_RECEIVERS = 21_000
 SCENE = prtlab.data.scene_path("bunny_spheres_env")
@@ -60,7 +62,7 @@ def _scene_arrays(n_receivers: int):
     spts = centres[:, None] + 0.9 * radii[:, None, None] * sd[None]
     snrm = np.broadcast_to(sd, spts.shape).copy()
     valid = np.ones((N_LIGHTS, 92), dtype=bool)
-    albedo = np.zeros((N_LIGHTS, ORDER * ORDER, 3))
+    albedo = np.zeros((N_LIGHTS, EMISSION_ORDER**2, 3))  # uniform: the first k*k rows are the order-k albedo
     albedo[:, 0] = 0.7 * np.sqrt(4 * np.pi)
     env = np.zeros((ORDER * ORDER, 3))
     env[0] = [3.0, 2.8, 2.5]
@@ -70,13 +72,15 @@ def _scene_arrays(n_receivers: int):
                 rot=rot, spts=spts, snrm=snrm, valid=valid, albedo=albedo, env=env)
 
 
-def _frame(a, blocking, indirect=True, exp_method="hyb"):
+def _frame(a, blocking, indirect=True, exp_method="hyb", emission_order=EMISSION_ORDER):
+    """First and second pass, the visibility at ``ORDER`` and the lights' emission at ``emission_order``."""
     emission = np.zeros((N_LIGHTS, ORDER * ORDER, 3))
     if indirect:
         emission = first_pass(a["spts"], a["snrm"], a["valid"], a["centres"], a["radii"], a["env"],
-                              voronoi_cell_sums(ORDER), a["albedo"], exp_method=exp_method)
+                              voronoi_cell_sums(emission_order), a["albedo"][:, : emission_order**2],
+                              exp_method=exp_method, order=ORDER)
     return second_pass(a["points"], a["normals"], a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
-                       emission, a["env"], blocking=blocking, exp_method=exp_method, indirect=indirect)
+                       emission, a["env"], blocking=blocking, exp_method=exp_method, indirect=indirect, order=ORDER)
 
 
 # Counted work (flops, an FMA = 2) of the fused second pass as it runs: blocks of receivers as SIMD lanes, so the
@@ -89,7 +93,8 @@ _OL = 30  # one OL exponential given |f^| (norm counted apart): lookup, exp, sca
 _OL_VISIBILITY = 15 * 9 + 2 * _OL  # per pair: norms and rho-dots of front and front + own, two OL factors
 _SQUARE = 3 * 194  # one order-4 square: 194 symmetric Gaunt pairs, 3 flops each
 _HYB_FIXED = 30 + 15 + 32 + 16  # per HYB exponential besides its squarings: norm, halving, OL, DC factor
-_AVERAGE = {"cosine": 15 + 15 + 60 + 50 + 2 * 25 * 9 + 2 * 16 * 3 + 60 + 40, "paper": 12 + 30 + 32 + 2 * 16 * 3 + 6}
+_AVERAGE = {"cosine": lambda m: 15 + 15 + 60 + 50 + 2 * (m + 1) ** 2 * 9 + 2 * m * m * 3 + 60 + 40,
+            "paper": lambda m: 12 + 30 + 32 + 2 * m * m * 3 + 6}  # per pair, emission order m
 
 
 def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", average: str = "cosine") -> float:
@@ -114,7 +119,7 @@ def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", aver
         ptr, _ = _front_lists(obj, inter, blocking == "object")
         n_obj = obj_centres.shape[0]
         fronts = (n_obj * 8 + s * n2 + 2 * n_obj * n2 if blocking == "object" else 0) + (s + ptr[-1]) * n2
-        flops += b * (16 + fronts + s * _AVERAGE[average])
+        flops += b * (16 + fronts + s * _AVERAGE[average](EMISSION_ORDER))
         if exp_method == "hyb":
             live = theta >= 0
             front = np.where(live, _squarings(gf), 0.0)
@@ -134,11 +139,13 @@ def _frame_flops(a, blocking: str, indirect: bool, exp_method: str = "hyb", aver
 # order-7 clamped cosine's 31 non-zero coefficients; the basis at n not counted), one exponential of the summed
 # logs and the dot V . T_n (2 x 3 n^2). Per live pair: the light's log (its order-4 basis, ZH scaling and sum into
 # the total: 4 n^2); with indirect light also the front sum and front + own (2 n^2), two exponentials, their
-# difference dotted with rho_n (3 n^2), the average radiance (2 x 3 n^2) and its product (6). First pass: per
+# difference dotted with rho_n (3 n^2), the average radiance (2 x 3 m^2, m the emission's order) and its
+# product (6). First pass: per
 # surface sample (S x 92) the receiver's per-receiver work, no blocker counted. Bytes: points and normals read,
 # direct and indirect written (96 B); the lights' arrays are a few KB.
-FLOOR_FORMULA = ("B (2 31 3 n^2 + E + 6 n^2) + 4 n^2 L [+ L (2 n^2 + 2 E + 3 n^2 + 6 n^2 + 6) + 92 S (2 31 3 n^2 + "
-                 "E + 6 n^2) with indirect] flops, E = 3 n^2 (+ 582 a HYB squaring); 96 B bytes")
+FLOOR_FORMULA = ("B (2 31 3 n^2 + E + 6 n^2) + 4 n^2 L [+ L (2 n^2 + 2 E + 3 n^2 + 6 m^2 + 6) + 92 S (2 31 3 n^2 + "
+                 "E + 6 n^2) with indirect] flops, E = 3 n^2 (+ 582 a HYB squaring), m the emission's order; "
+                 "96 B bytes")
 
 
 def _squarings(x):
@@ -163,7 +170,8 @@ def frame_floor(a, blocking: str, indirect: bool, exp_method: str = "hyb") -> tu
     if exp_method == "hyb":
         flop += square * _squarings(gs.sum(axis=1)).sum()
     if indirect:
-        flop += live.sum() * (2 * n2 + 2 * exp_cost + 3 * n2 + 6 * n2 + 6) + N_LIGHTS * 92 * per_receiver
+        flop += (live.sum() * (2 * n2 + 2 * exp_cost + 3 * n2 + 6 * EMISSION_ORDER**2 + 6)
+                 + N_LIGHTS * 92 * per_receiver)
         if exp_method == "hyb":
             flop += square * np.where(live, _squarings(gf) + _squarings(gf + gs), 0.0).sum()
     return float(flop), 96.0 * b
@@ -178,6 +186,16 @@ def frame_per_object(quick: bool) -> dict:
     a = _scene_arrays(_n(quick))
     return {"run": lambda: _frame(a, "object"), "gflop": _frame_flops(a, "object", True),
             "items": _n(quick), "peer": ("per-sphere blocking", lambda: _frame(a, "sphere")),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
+
+
+@case("spherelights.frame.emission_order.21k")
+def frame_emission_order(quick: bool) -> dict:
+    """The per-object frame at the default emission order (``emission_order``, 6); peer: the paper's single order
+    (4), the accuracy/speed trade-off of the option."""
+    a = _scene_arrays(_n(quick))
+    return {"run": lambda: _frame(a, "object"), "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("the paper's emission order (4)", lambda: _frame(a, "object", emission_order=ORDER)),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 

@@ -318,7 +318,8 @@ def reflection_ratio(leaf_values, node_values, max_ratio: float = 4.0) -> np.nda
 
 
 def per_light_indirect(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
-                       blocking: str = "object", exp_method: str = "hyb", average: str = "cosine") -> np.ndarray:
+                       blocking: str = "object", exp_method: str = "hyb", average: str = "cosine",
+                       order: int | None = None) -> np.ndarray:
     """Each light's diffuse reflection ``L~_i V~_i`` at each receiver (the terms of Eq. 14).
 
     The batched numpy form of :func:`prtlab.spherelights.second_pass` (its ``method="numba"`` tier) that keeps
@@ -338,7 +339,7 @@ def per_light_indirect(points, normals, centres, radii, sl_object, intersect, sl
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     em = np.asarray(emission, dtype=np.float64)
-    order = math.isqrt(em.shape[-2])
+    order = math.isqrt(em.shape[-2]) if order is None else int(order)  # the visibility's (the emission's may be higher)
     B, S = p.shape[0], em.shape[0]
     out = np.zeros((B, S, 3))
     if B == 0 or S == 0:

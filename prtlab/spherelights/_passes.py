@@ -238,7 +238,7 @@ _SERIAL_BELOW = 8192
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
-               exp_method: str = "hyb", ground=None, extra_irradiance=None) -> np.ndarray:
+               exp_method: str = "hyb", ground=None, extra_irradiance=None, order: int | None = None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -252,9 +252,10 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     env_sh : (N*N, 3) float
         Environment radiance of any order ``N >= n`` (``3n - 2``: the exact
         transfer, see :func:`prtlab.spherelights.environment_transfer`).
-    cell_sums : (m, n*n) float
-        Voronoi-cell sums ``(4 pi / N) Y_j`` (:func:`voronoi_cell_sums`), in the light's own frame.
-    albedo_sh : (S, n*n, 3) float
+    cell_sums : (m, k*k) float
+        Voronoi-cell sums ``(4 pi / N) Y_j`` (:func:`voronoi_cell_sums`), in the light's own frame, of the
+        emission's SH order ``k``.
+    albedo_sh : (S, k*k, 3) float
         Surface-albedo SH of each light, own frame.
     exp_method : {"hyb", "ol", "exact"}
     ground : (G, 7) float, optional
@@ -263,10 +264,12 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     extra_irradiance : (S, m, 3) float, optional
         Irradiance at the samples from other sources, added to the environment's
         (the local lights of Sec. 7.3, computed by :func:`second_pass` at the samples).
+    order : int, optional
+        SH order ``n <= k`` of the samples' visibility (Eq. 6); default the emission's order ``k``.
 
     Returns
     -------
-    emission : (S, n*n, 3) float64
+    emission : (S, k*k, 3) float64
         ``L^c_S = (sum_j L_{p_j} (4 pi / N) Y_j) * c_S`` (Eqs. 10-11) with
         ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
         (Eq. 8; the albedo enters through ``c_S``); own frame of each light.
@@ -281,7 +284,8 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     try:
         S, m = sample_valid.shape
         env = np.asarray(env_sh, dtype=np.float64)
-        order = math.isqrt(np.asarray(albedo_sh).shape[1])
+        k = math.isqrt(np.asarray(albedo_sh).shape[1])
+        order = k if order is None else int(order)
         radiance = np.zeros((S, m, 3))
         if sample_valid.any():
             pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
@@ -301,12 +305,13 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
         light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     finally:
         numba.set_num_threads(threads)
-    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(order), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
+    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
 
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
                 blocking: str = "object", exp_method: str = "hyb", indirect: bool = True,
-                average: str = "cosine", method: str = "fused") -> tuple[np.ndarray, np.ndarray]:
+                average: str = "cosine", method: str = "fused", order: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Direct and indirect irradiance at receivers (Eqs. 8, 12-24).
 
     Parameters
@@ -316,11 +321,10 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         As :func:`accumulate_blockers`.
     sl_rotation : (S, 3, 3) float
         World-from-light rotation of each light (its object's rotation).
-    emission : (S, n*n, 3) float
-        ``L^c`` of each light in its own frame (:func:`first_pass`).
+    emission : (S, m*m, 3) float
+        ``L^c`` of each light in its own frame (:func:`first_pass`), of SH order ``m >= n``.
     env_sh : (N*N, 3) float
-        Environment radiance of any order ``N >= n`` (``3n - 2``: exact transfer). The order ``n``
-        is the emission's.
+        Environment radiance of any order ``N >= n`` (``3n - 2``: exact transfer).
     blocking : {"object", "sphere"}
     exp_method : {"hyb", "ol", "exact"}
     indirect : bool
@@ -340,6 +344,10 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         to ``"numba"``); ``"numba"``: the accumulation kernel, then batched
         :func:`prtlab.sh.exp` and numpy (the specification of the fused tier);
         ``"reference"``: the same with the numpy accumulation.
+    order : int, optional
+        SH order ``n`` of the visibility (the direct light and ``V~``); default the emission's. A higher
+        emission order ``m`` sharpens the lights' radiance (their average radiance, Eq. 18 or the cosine form)
+        at no cost to the exponentials (the paper: one order for both).
 
     Returns
     -------
@@ -355,7 +363,10 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     env = np.asarray(env_sh, dtype=np.float64)
-    order = math.isqrt(np.asarray(emission).shape[-2])
+    m = math.isqrt(np.asarray(emission).shape[-2])
+    order = m if order is None else int(order)
+    if not 1 <= order <= m:
+        raise ValueError(f"order must be between 1 and the emission's SH order {m}, got {order}")
     B, S = p.shape[0], np.asarray(centres).reshape(-1, 3).shape[0]
     if B == 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
@@ -365,7 +376,7 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         raise ValueError(f"average must be 'cosine' or 'paper', got {average!r}")
     if method == "fused" and exp_method in ("hyb", "ol"):
         return _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env,
-                                       blocking, exp_method, indirect, average == "cosine")
+                                       blocking, exp_method, indirect, average == "cosine", order)
     method = "numba" if method == "fused" else method
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
                                                          blocking=blocking, method=method)
@@ -390,12 +401,12 @@ def light_terms(n, g_sphere, g_front, theta, axis, sl_rotation, emission, order:
     and ``terms (T, 3)``, whose sum over the lights of a receiver is its indirect irradiance (Eq. 14):
     ``V~_i = (exp(G_front) - exp(G_front + G_i)) . rho_n`` (Eqs. 23-24) times ``w'_theta . L^c_i`` (Eq. 18,
     ``average="paper"``), or the light's cosine-weighted irradiance times the visible fraction ``V~_i / V~'_i``
-    (``"cosine"``).
+    (``"cosine"``). ``order`` is the visibility's; the emission may have a higher one (its own shape).
     """
     rows_b, rows_s = np.nonzero(theta >= 0)
     if rows_b.size == 0:
         return rows_b, rows_s, np.zeros((0, 3))
-    n2 = order * order
+    m = math.isqrt(np.asarray(emission).shape[1])  # the emission's order (>= order)
     gf = g_front[rows_b, rows_s]
     e = sh.exp(np.concatenate([gf, gf + g_sphere[rows_b, rows_s]], axis=0), method=exp_method, channels=False)
     v_sl = e[: rows_b.size] - e[rows_b.size :]  # Eq. 23
@@ -407,16 +418,16 @@ def light_terms(n, g_sphere, g_front, theta, axis, sl_rotation, emission, order:
     local = np.einsum("tji,tj->ti", rot[rows_s], -axis[rows_b, rows_s])
     th = theta[rows_b, rows_s]
     if average == "paper":
-        w = sh.zh_rotate(w_theta_zh(th, order), local)
+        w = sh.zh_rotate(w_theta_zh(th, m), local)
         l_avg = np.einsum("tk,tkc->tc", w, em[rows_s])
     else:
         # E_n = s n.(Lu . K) - (n.b) L . K in the light's frame, over pi s^2 (n . a)
-        k = sh.zh_rotate(irradiance_kernel_zh(th, order + 1), local)
+        k = sh.zh_rotate(irradiance_kernel_zh(th, m + 1), local)
         lu = emission_times_direction(em)
         n_loc = np.einsum("tji,tj->ti", rot[rows_s], n[rows_b])
         s_t = np.sin(np.minimum(th, THETA_MAX_K))
         e_n = (s_t[:, None] * np.einsum("tj,tjkc,tk->tc", n_loc, lu[rows_s], k)
-               - np.einsum("tj,tj->t", n_loc, local)[:, None] * np.einsum("tkc,tk->tc", em[rows_s], k[:, :n2]))
+               - np.einsum("tj,tj->t", n_loc, local)[:, None] * np.einsum("tkc,tk->tc", em[rows_s], k[:, :m * m]))
         cos_na = np.einsum("tj,tj->t", n[rows_b], axis[rows_b, rows_s])
         proj = np.pi * s_t**2 * cos_na
         l_avg = np.where(proj[:, None] > 0, e_n / np.where(proj > 0, proj, 1.0)[:, None], 0.0)
@@ -560,12 +571,12 @@ _Tables = collections.namedtuple("_Tables", ["blocker_log", "blocker_knots", "tr
 #: threshold and the symmetric Gaunt pairs of a square (``sq_i, sq_j, sq_k, sq_v``, :func:`_symmetric_gaunt`).
 _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "threshold", "sq_i", "sq_j", "sq_k",
                                                    "sq_v"])
-#: What the pass computes: SH order, per-object blocking (else per sphere), the indirect light, HYB (else OL),
-#: the cosine-weighted average radiance (else the paper's Eq. 18), the receivers per block, and ``object_chain``
+#: What the pass computes: SH order (of the visibility), per-object blocking (else per sphere), the indirect light,
+#: HYB (else OL), the cosine-weighted average radiance (else the paper's Eq. 18), the receivers per block, ``object_chain``
 #: (per object, HYB): the exponentials of the objects' prefix sums are formed once per lane and read by the lights
-#: alone in their object (see :func:`_chain_exponentials`).
+#: alone in their object (see :func:`_chain_exponentials`), and the SH order of the emission (at least ``order``).
 _Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
-                                         "object_chain"])
+                                         "object_chain", "emission_order"])
 #: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
 #: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (2, M)``, ``n_squarings (M,)`` and ``perm
 #: (M + _MAX_SQUARINGS + 2,)`` int.
@@ -590,20 +601,21 @@ _BlockScratch = collections.namedtuple("_BlockScratch", [
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
-                            exp_method, indirect, cosine):
-    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``."""
-    order = math.isqrt(np.asarray(emission).shape[-2])
+                            exp_method, indirect, cosine, order):
+    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``;
+    ``order``: the visibility's SH order (the emission's may be higher)."""
+    m = math.isqrt(np.asarray(emission).shape[-2])
     c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
     n_sph, hi = c.shape[0], 2 * order - 1
     transfer = np.ascontiguousarray(transfer_matrix(env, order).reshape(hi * hi, order * order, 3)
                                     .transpose(0, 2, 1).reshape(hi * hi, 3 * order * order))
     # writeable C copies: one compiled signature whatever the caller passes
     rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (n_sph, 3, 3)), order="C")
-    em = np.array(np.asarray(emission, dtype=np.float64).reshape(n_sph, order * order, 3), order="C")
+    em = np.array(np.asarray(emission, dtype=np.float64).reshape(n_sph, m * m, 3), order="C")
     if cosine and indirect and n_sph:
         em_dir = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(n_sph, -1, 9))
     else:
-        em_dir = np.zeros((n_sph, (order + 1) ** 2, 9))
+        em_dir = np.zeros((n_sph, (m + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
     n_obj = obj_centres.shape[0]
     alone = np.bincount(obj, minlength=n_obj)[obj] == 1
@@ -611,13 +623,13 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
                      np.ascontiguousarray(alone))
     tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
                      np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
-                     np.ascontiguousarray(_w_theta_table(order)),
-                     np.ascontiguousarray(_irradiance_kernel_table(order + 1)))
+                     np.ascontiguousarray(_w_theta_table(m)),
+                     np.ascontiguousarray(_irradiance_kernel_table(m + 1)))
     r_max, tab_a, tab_b = _ol_table(order)
     exp_tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
     mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
                  bool(cosine), int(_LANES), bool(blocking == "object" and exp_method == "hyb" and
-                                                 2 * int(alone.sum()) > n_obj + 1))
+                                                 2 * int(alone.sum()) > n_obj + 1), int(m))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
     _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
@@ -642,7 +654,8 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
     n_blocks = (n_recv + n_lanes - 1) // n_lanes
     n_tasks = (n_blocks + _BLOCKS_PER_TASK - 1) // _BLOCKS_PER_TASK
     for task in numba.prange(n_tasks):
-        scratch = _block_scratch(lights.centres.shape[0], lights.object_centres.shape[0], mode.order, n_lanes)
+        scratch = _block_scratch(lights.centres.shape[0], lights.object_centres.shape[0], mode.order,
+                                 mode.emission_order, n_lanes)
         for block in range(task * _BLOCKS_PER_TASK, min(n_blocks, (task + 1) * _BLOCKS_PER_TASK)):
             first = block * n_lanes
             _second_pass_block(points, normals, first, min(n_lanes, n_recv - first), lights, tables, exp_tables,
@@ -658,13 +671,15 @@ def _hyb_scratch(n2, m):
 
 
 @numba.njit(cache=True)
-def _block_scratch(n_sph, n_obj, order, n_lanes):
-    """:data:`_BlockScratch` of one task."""
-    n2, n1, hi = order * order, (order + 1) * (order + 1), 2 * order - 1
+def _block_scratch(n_sph, n_obj, order, emission_order, n_lanes):
+    """:data:`_BlockScratch` of one task (the lane's ZH buffers and the kernel sized for the larger order)."""
+    n2, hi = order * order, 2 * order - 1
+    top = max(order, emission_order) + 1
+    n1 = top * top
     blockers = BlockerLanes(np.empty((n_sph, n2, n_lanes)), np.empty((n2, n_lanes)), np.empty((n_sph, n_lanes)),
                             np.empty((n_sph, n_lanes)), np.empty((n_sph, n_lanes)), np.empty((n_sph, n_lanes)),
                             np.empty((n_sph, 3, n_lanes)))
-    lane = LaneScratch(np.empty((order + 1, n_lanes)), np.empty((n1, n_lanes)), np.empty((7, n_lanes)))
+    lane = LaneScratch(np.empty((top, n_lanes)), np.empty((n1, n_lanes)), np.empty((7, n_lanes)))
     obj_log, obj_prefix = np.empty((n_obj, n2, n_lanes)), np.empty((n_obj, n2, n_lanes))
     vis = np.empty((n_sph, n_lanes))
     return _BlockScratch(
@@ -783,9 +798,9 @@ def _indirect_lanes(lights, tables, exp_tables, mode, scratch):
     else:
         _average_visibility_ol(lights, exp_tables, mode.per_object, n2, scratch)
     if mode.cosine:
-        _add_cosine_averages(lights, tables, mode.order, scratch)
+        _add_cosine_averages(lights, tables, mode.order, mode.emission_order, scratch)
     else:
-        _add_paper_averages(lights, tables, mode.order, scratch)
+        _add_paper_averages(lights, tables, mode.emission_order, scratch)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -1032,7 +1047,8 @@ def _project_lanes(kernel, coeffs, i, n_coeffs, n_cols, out):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _add_paper_averages(lights, tables, order, scratch):
-    """``scratch.indirect += sum_i L~_i V~_i`` with ``L~_i = w'_theta . L^c_i`` (Eq. 18)."""
+    """``scratch.indirect += sum_i L~_i V~_i`` with ``L~_i = w'_theta . L^c_i`` (Eq. 18); ``order``: the
+    emission's."""
     rotation, emission, w_table = lights.rotation, lights.emission, tables.w_theta
     theta, axis, vis, ind = scratch.blockers.theta, scratch.blockers.axis, scratch.visibility, scratch.indirect
     light_dir, kernel, rad = scratch.light_dir, scratch.kernel, scratch.radiance
@@ -1049,10 +1065,11 @@ def _add_paper_averages(lights, tables, order, scratch):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _add_cosine_averages(lights, tables, order, scratch):
+def _add_cosine_averages(lights, tables, order, emission_order, scratch):
     """``scratch.indirect +=`` the sum over the lights of the cosine-weighted irradiance times the visible
     fraction, ``E_n clip(V~ / V~', 0, 1)``, with ``E_n = s n.(Lu . K) - (n.b) L . K`` in the light's frame (see
-    :func:`irradiance_kernel_zh` and :func:`light_terms`) and ``V~'`` the unoccluded visibility."""
+    :func:`irradiance_kernel_zh` and :func:`light_terms`; ``K`` of order ``emission_order + 1``) and ``V~'`` the
+    unoccluded visibility (of order ``order``, as ``V~``)."""
     rot, emission, emission_dir = lights.rotation, lights.emission, lights.emission_dir
     b = scratch.blockers
     theta, sin_t, cos_t, axis = b.theta, b.sin_theta, b.cos_theta, b.axis
@@ -1065,9 +1082,9 @@ def _add_cosine_averages(lights, tables, order, scratch):
         if not _any_live(theta, i):
             continue
         _light_direction(rot, i, axis, ld)
-        _rotated_kernel(theta, i, k_table, THETA_MAX_K, order + 1, ld, zh, basis, tmp, kernel)
-        _project_lanes(kernel, emission_dir, i, (order + 1) * (order + 1), 9, lum_dir)
-        _project_lanes(kernel, emission, i, order * order, 3, lum)
+        _rotated_kernel(theta, i, k_table, THETA_MAX_K, emission_order + 1, ld, zh, basis, tmp, kernel)
+        _project_lanes(kernel, emission_dir, i, (emission_order + 1) * (emission_order + 1), 9, lum_dir)
+        _project_lanes(kernel, emission, i, emission_order * emission_order, 3, lum)
         for q in range(ind.shape[1]):
             cos_na[q] = recv[3, q] * axis[i, 0, q] + recv[4, q] * axis[i, 1, q] + recv[5, q] * axis[i, 2, q]
         _cap_visibility_lanes(cos_t, i, cos_na, cos_zh, order, tmp, v_open)

@@ -87,7 +87,13 @@ class SphereLightOptions:
     n_spheres : int or dict
         Spheres per source object (or a ``{"object name": n}`` dict, default 8).
     order : int
-        SH order (the paper: 4).
+        SH order of the visibility (the shadows and the exponentiation; the paper: 4).
+    emission_order : int
+        SH order of the lights' emission (their light intensity distributions, Eqs. 10-11) and of the kernel
+        of their average radiance (an extension): default 6; 0 (or anything up to ``order``) is the paper's
+        single order. The emission of a light beside a touching neighbour varies faster than order 4 holds (its
+        dark contact side), and the error bounces onto every receiver; a higher emission order costs only the
+        per-light kernel (``(m + 1)^2`` coefficients), not the exponentials (docs/DECISIONS.md).
     exp_method : {"hyb", "ol", "exact"}
         SH exponentiation (a run-time choice; not part of the cache key's precomputed data).
     blocking : {"object", "sphere"}
@@ -143,8 +149,8 @@ class SphereLightOptions:
         the dark contact shadows under the objects).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
-        ``_nearcaps``): 0 (default) is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (2
-        recommended) takes at each receiver the ``k`` spheres of largest angular radius (at least 10 degrees) out
+        ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
+        takes at each receiver the ``k`` spheres of largest angular radius (at least 10 degrees) out
         of the exponentiated log sum and removes their caps from the lighting-times-cosine exactly
         (``E = V_rest . (T_n - Q)``), and the ground's terms then test those lights unadjusted. Only lights of
         other objects fitted with one sphere are taken (a multi-sphere set's outside volume would shadow exactly
@@ -156,6 +162,7 @@ class SphereLightOptions:
 
     n_spheres: int | dict = 8
     order: int = 4
+    emission_order: int = 6
     exp_method: str = "hyb"
     blocking: str = "object"
     average: str = "cosine"
@@ -164,7 +171,7 @@ class SphereLightOptions:
     cube_resolution: int = 16
     ground: str = "reflects"
     ground_texels: int = 64
-    near_blockers: int = 0
+    near_blockers: int = 2
     local_lights: tuple = ()
     hierarchy_children: int = 0
     cut_threshold: float = 0.25
@@ -175,6 +182,7 @@ class SphereLightOptions:
     def __post_init__(self):
         _check_n_spheres(self.n_spheres)
         check_int(self.order, "option order", 1, 8)
+        check_int(self.emission_order, "option emission_order", 0, 8, meaning="0: the visibility's order")
         check_choice(self.exp_method, "option exp_method", ("hyb", "ol", "exact"))
         check_choice(self.blocking, "option blocking", ("object", "sphere"))
         check_choice(self.average, "option average", ("cosine", "paper"))
@@ -197,6 +205,11 @@ class SphereLightOptions:
         check_int(self.cluster_size, "option cluster_size", 1, meaning="receivers per cluster")
         check_int(self.ratio_samples, "option ratio_samples", 1, meaning="1: the cluster centre, Eq. 25")
         check_bool(self.reflection_ratio, "option reflection_ratio")
+
+    @property
+    def light_order(self) -> int:
+        """The SH order of the lights' emission: ``max(order, emission_order)``."""
+        return max(self.order, self.emission_order)
 
 
 def _check_n_spheres(n_spheres) -> None:
@@ -373,7 +386,7 @@ class SphereLights(Precomputation):
             n = min(n, len(mesh.faces))
             fit = fit_spheres(mesh, n, grid_resolution=options.fit_resolution)
             pts, nrm, valid = surface_samples(mesh, fit.centres, fit.radii, dirs)
-            albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.order,
+            albedo = surface_albedo_sh(mesh, fit.centres, fit.radii, obj.material.diffuse_albedo, options.light_order,
                                        options.cube_resolution)
             d = np.linalg.norm(fit.centres[:, None] - fit.centres[None], axis=2)
             inter = d < (fit.radii[:, None] + fit.radii[None])
@@ -427,7 +440,7 @@ class SphereLights(Precomputation):
             m = self.options.n_directions
             return WorldLights(np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros((0, 0), bool),
                                np.zeros((0, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool),
-                               np.zeros((0, order * order, 3)))
+                               np.zeros((0, self.options.light_order**2, 3)))
         s_total = sum(len(p[1]) for p in parts)
         inter = np.zeros((s_total, s_total), dtype=bool)
         i = 0
@@ -462,9 +475,9 @@ class SphereLights(Precomputation):
         return super().shade(state, bounces)
 
     def _local_lights(self):
-        """The option's local lights: centres (L, 3), radii (L,), emission SH (L, n*n, 3) (constant radiance)."""
+        """The option's local lights: centres (L, 3), radii (L,), emission SH (L, m*m, 3) (constant radiance)."""
         ll = self.options.local_lights
-        n2 = self.options.order ** 2
+        n2 = self.options.light_order ** 2
         centres = np.array([x[0] for x in ll], dtype=np.float64).reshape(-1, 3)
         radii = np.array([x[1] for x in ll], dtype=np.float64).reshape(-1)
         emission = np.zeros((len(ll), n2, 3))
@@ -488,7 +501,7 @@ class SphereLights(Precomputation):
             np.concatenate([world.centres, l_c]), np.concatenate([world.radii, l_r]),
             np.concatenate([world.object_index, n_obj + np.arange(n_loc)]).astype(np.int64), inter,
             np.concatenate([world.rotations, np.broadcast_to(np.eye(3), (n_loc, 3, 3))]), self._environment(state),
-            np.concatenate([np.zeros((n_sl, opts.order**2, 3)), l_em]),
+            np.concatenate([np.zeros((n_sl, opts.light_order**2, 3)), l_em]),
             np.concatenate([np.full((n_sl, 3), np.nan), l_em[:, 0] / math.sqrt(4.0 * math.pi)]), n_sl, n_loc)
         return lights, world
 
@@ -497,7 +510,7 @@ class SphereLights(Precomputation):
         o = self.options
         return second_pass(p, n, lights.centres, lights.radii, lights.object_index, lights.intersect,
                            lights.rotations, emission, lights.env, blocking=o.blocking, exp_method=o.exp_method,
-                           average=o.average, indirect=indirect)
+                           average=o.average, indirect=indirect, order=o.order)
 
     def _near_eligible(self, lights: _FrameLights, own: int) -> np.ndarray:
         """(S,) the lights the direct light may take exactly (``near_blockers``): those of objects other than the
@@ -531,8 +544,11 @@ class SphereLights(Precomputation):
         opts = self.options
         spts, snrm, svalid = world.sample_points, world.sample_normals, world.sample_valid
         extra = None
+        near = self._near_samples(lights, spts, snrm, svalid)
+        if near is not None:
+            extra = near
         if svalid.any() and (lights.n_loc or ground_below):
-            extra = np.zeros(svalid.shape + (3,))
+            extra = np.zeros(svalid.shape + (3,)) if extra is None else extra
             if lights.n_loc:  # the second pass's computation at the surface samples, local lights only
                 extra[svalid] = self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
             if ground_below:  # ground -> object: the ground's direct light reaches the samples
@@ -540,9 +556,40 @@ class SphereLights(Precomputation):
                     lights, p, n, lights.local_only, False, near=False)[0], transforms)
                 extra[svalid] += ground_light(spts[svalid], snrm[svalid], rects, tex, lights.env, lights.centres,
                                               lights.radii, lights.local_radiance)[1]
+        m = opts.light_order
+        if world.albedo_sh.shape[1] < m * m:
+            raise ValueError(f"the precomputed albedo SH has order {math.isqrt(world.albedo_sh.shape[1])}, below the "
+                             f"emission order {m} of the options (emission_order): precompute with these options")
         return first_pass(spts, snrm, svalid, lights.centres, lights.radii, lights.env,
-                          voronoi_cell_sums(opts.order, opts.n_directions), world.albedo_sh,
-                          exp_method=opts.exp_method, ground=rects if len(rects) else None, extra_irradiance=extra)
+                          voronoi_cell_sums(m, opts.n_directions), world.albedo_sh[:, : m * m],  # SH nest by order
+                          exp_method=opts.exp_method, ground=rects if len(rects) else None, extra_irradiance=extra,
+                          order=opts.order)
+
+    def _near_samples(self, lights: _FrameLights, spts, snrm, svalid):
+        """``(S, m, 3)`` correction of the surface samples' direct irradiance for ``near_blockers`` (the nearest
+        one-sphere lights of other objects as exact caps, less the paper's ``V_n . T_n``), or None. The ground's
+        hidden light stays the first pass's (``V_n`` of every blocker times the ground's transfer)."""
+        k = self.options.near_blockers
+        if not k or not svalid.any():
+            return None
+        out = np.zeros(svalid.shape + (3,))
+        obj = lights.object_index
+        for own in np.unique(obj[: svalid.shape[0]]):
+            rows = np.nonzero(obj[: svalid.shape[0]] == own)[0]
+            mask = np.zeros(svalid.shape, dtype=bool)
+            mask[rows] = svalid[rows]
+            elig = self._near_eligible(lights, int(own))
+            p, n = spts[mask], snrm[mask]
+            n = n / np.linalg.norm(n, axis=1, keepdims=True)
+            sel = has_near_blocker(p, n, lights.centres, lights.radii, elig)
+            if not sel.any():
+                continue
+            args = (p[sel], n[sel], lights.centres, lights.radii, lights.env, self.options.order)
+            corr = np.zeros((len(p), 3))
+            corr[sel] = (near_blocker_direct(*args, k, eligible=elig, exp_method=self.options.exp_method)
+                         - near_blocker_direct(*args, 0, eligible=elig, exp_method=self.options.exp_method))
+            out[mask] = corr
+        return out
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6), the
@@ -556,7 +603,7 @@ class SphereLights(Precomputation):
             [o for o in self.scene.objects if o.name not in self.data["objects"] and not o.portal], state.transforms)
         rects = np.array([row for _, row in grounds]).reshape(-1, 7)
         reflects = opts.ground == "reflects" and bounces > 0 and len(grounds) > 0
-        emission = np.zeros((n_sl + lights.n_loc, opts.order**2, 3))
+        emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
         if bounces > 0 and n_sl:
             emission[:n_sl] = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [],
                                              state.transforms)
@@ -717,7 +764,7 @@ class SphereLights(Precomputation):
         pass exactly; the others take their direct light from the leaves (shadows-only pass) and their indirect
         light from their cut."""
         opts = self.options
-        kw = dict(blocking=opts.blocking, exp_method=opts.exp_method, average=opts.average)
+        kw = dict(blocking=opts.blocking, exp_method=opts.exp_method, average=opts.average, order=opts.order)
         node_c, node_r, node_o, node_rot, node_w, trees = nodes
         S = len(all_r)
         labels, medoid, samples = self._clusters(obj)

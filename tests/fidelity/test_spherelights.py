@@ -1,7 +1,9 @@
 """The spherical-lights pipeline (Guerrero et al. 2008) against Mitsuba 3 on its paper's Fig. 8 scenes at
 reduced size, plus three touching spheres (``three_spheres_env``) and the tiny ball with two bounces (through the
 ground, ``bounces=2``), every object scored (the ground and each
-object; direct, indirect and total), with the default options (the ground hides and reflects, ``ground="reflects"``).
+object; direct, indirect and total), with the default options (the ground hides and reflects, ``ground="reflects"``;
+each receiver's two largest one-sphere neighbours block exactly, ``near_blockers=2``), and the paper's direct light
+(``near_blockers=0``) on the scenes of one-sphere objects.
 
 Goals (issue 16, binding for objects on a ground under a low-frequency sky, one bounce): direct within 5 %
 and indirect within 15 % relative RMS on every object (20 % indirect for the bunny with 16 spheres). The
@@ -120,31 +122,8 @@ def _fig(rel_rms, noise, error, ratio):
 
 
 _XFAIL: dict[tuple[str, str, str], str] = {
-    ("spheres", "sphere_red", "direct"): _fig(0.060, 0.013, 0.059, 0.97) + _ORDER + "0.052"
-    + "; with near_blockers=2 (the exact nearest caps): 0.026",
-    ("spheres", "sphere_white", "direct"): _fig(0.089, 0.013, 0.088, 1.04) + _ORDER + "0.059 (the side facing the "
-    "blue sphere is 1.31 times too bright; exact exponentiation: 0.087)"
-    + "; with near_blockers=2 (the exact nearest caps): 0.025",
-    ("spheres", "sphere_white", "total"): _fig(0.083, 0.012, 0.082, 1.03) + _BOTH
-    + "; with near_blockers=2 (the exact nearest caps): 0.025",
-    ("three touching spheres", "plane", "direct"): _fig(0.054, 0.013, 0.053, 1.00) + _ORDER + "0.029"
-    + "; with near_blockers=2 (the exact nearest caps): 0.027",
-    ("three touching spheres", "sphere_left", "direct"): _fig(0.089, 0.013, 0.088, 1.01) + _ORDER + "0.077"
-    + "; with near_blockers=2 (the exact nearest caps): 0.026",
-    ("three touching spheres", "sphere_left", "indirect"): _fig(0.197, 0.019, 0.196, 1.00) + _TOUCH + "0.134"
-    + "; with near_blockers=2 (the exact nearest caps): 0.173",
-    ("three touching spheres", "sphere_left", "total"): _fig(0.091, 0.011, 0.090, 1.00) + _BOTH
-    + "; with near_blockers=2 (the exact nearest caps): 0.042",
-    ("three touching spheres", "sphere_middle", "direct"): _fig(0.079, 0.012, 0.078, 1.04) + _ORDER + "0.068"
-    + "; with near_blockers=2 (the exact nearest caps): 0.022",
-    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.205, 0.021, 0.204, 1.02) + _TOUCH + "0.138"
-    + "; with near_blockers=2 (the exact nearest caps): 0.178",
-    ("three touching spheres", "sphere_middle", "total"): _fig(0.082, 0.011, 0.081, 1.04) + _BOTH
-    + "; with near_blockers=2 (the exact nearest caps): 0.042",
-    ("moved sphere", "sphere_white", "direct"): _fig(0.112, 0.009, 0.111, 1.07) + _ORDER + "0.075"
-    + "; with near_blockers=2 (the exact nearest caps): 0.025",
-    ("moved sphere", "sphere_white", "total"): _fig(0.103, 0.009, 0.103, 1.06) + _BOTH
-    + "; with near_blockers=2 (the exact nearest caps): 0.026",
+    ("three touching spheres", "sphere_left", "indirect"): _fig(0.173, 0.019, 0.172, 0.98) + _TOUCH + "0.134",
+    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.178, 0.021, 0.177, 0.97) + _TOUCH + "0.138",
     ("cube (8 spheres)", "plane", "direct"): _fig(0.157, 0.012, 0.156, 0.95)
     + "8 bounding spheres shadow the ground as a cluster of balls, not a box (their outside volume; Fig. 10)",
     ("cube (8 spheres)", "plane", "indirect"): _fig(0.480, 0.049, 0.478, 1.59)
@@ -211,45 +190,56 @@ def _params():
                 yield pytest.param(name, obj, part, marks=marks, id=f"{name}-{obj}-{part}")
 
 
-#: the option ``near_blockers=2`` (the direct light's two nearest one-sphere lights as exact caps, ``_nearcaps``)
-#: scored against the same references on the scenes of one-sphere objects (the default: 0, the paper's)
-NEAR = {"near_blockers": 2}
-NEAR_CASES = ("tiny ball", "spheres", "three touching spheres", "moved sphere")
-_NEAR_XFAIL: dict[tuple[str, str, str], str] = {
-    ("three touching spheres", "sphere_left", "indirect"): _fig(0.173, 0.019, 0.172, 0.98) + _TOUCH + "0.134 "
-    "(the option changes the indirect light only through the ground's texture)",
-    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.178, 0.021, 0.177, 0.97) + _TOUCH + "0.138 "
-    "(the option changes the indirect light only through the ground's texture)",
+#: the paper's direct light (``near_blockers=0``: every blocker in the exponentiated SH visibility) scored against
+#: the same references on the scenes of one-sphere objects (the default, ``near_blockers=2``, takes each receiver's
+#: two largest one-sphere neighbours exactly, ``_nearcaps``)
+PAPER_DIRECT = {"near_blockers": 0}
+PAPER_DIRECT_CASES = ("tiny ball", "spheres", "three touching spheres", "moved sphere")
+_PAPER_DIRECT_XFAIL: dict[tuple[str, str, str], str] = {
+    ("spheres", "sphere_red", "direct"): _fig(0.060, 0.013, 0.059, 0.97) + _ORDER + "0.052",
+    ("spheres", "sphere_white", "direct"): _fig(0.089, 0.013, 0.088, 1.04) + _ORDER + "0.059 (the side facing the "
+    "blue sphere is 1.31 times too bright; exact exponentiation: 0.087)",
+    ("spheres", "sphere_white", "total"): _fig(0.083, 0.012, 0.082, 1.03) + _BOTH,
+    ("three touching spheres", "plane", "direct"): _fig(0.054, 0.013, 0.053, 1.00) + _ORDER + "0.029",
+    ("three touching spheres", "sphere_left", "direct"): _fig(0.089, 0.013, 0.088, 1.01) + _ORDER + "0.077",
+    ("three touching spheres", "sphere_left", "indirect"): _fig(0.197, 0.019, 0.196, 1.00) + _TOUCH + "0.134",
+    ("three touching spheres", "sphere_left", "total"): _fig(0.091, 0.011, 0.090, 1.00) + _BOTH,
+    ("three touching spheres", "sphere_middle", "direct"): _fig(0.079, 0.012, 0.078, 1.04) + _ORDER + "0.068",
+    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.205, 0.021, 0.204, 1.02) + _TOUCH + "0.138",
+    ("three touching spheres", "sphere_middle", "total"): _fig(0.082, 0.011, 0.081, 1.04) + _BOTH,
+    ("moved sphere", "sphere_white", "direct"): _fig(0.112, 0.009, 0.111, 1.07) + _ORDER + "0.075",
+    ("moved sphere", "sphere_white", "total"): _fig(0.103, 0.009, 0.103, 1.06) + _BOTH,
 }
 
 
 @pytest.fixture(scope="module")
-def near_comparisons(comparisons):
+def paper_direct_comparisons(comparisons):
     out = {}
-    for name in NEAR_CASES:
+    for name in PAPER_DIRECT_CASES:
         make, opts, _, moves = CASES[name]
         sc = make()
-        pre = SphereLights.precompute(sc, dict(opts, fit_resolution=GRID, **NEAR), cache=False, progress=False)
+        pre = SphereLights.precompute(sc, dict(opts, fit_resolution=GRID, **PAPER_DIRECT), cache=False,
+                                      progress=False)
         state = FrameState.from_scene(sc)
         state.transforms.update({k: copy.deepcopy(v) for k, v in moves.items()})
         ref = comparisons[name][1]
         out[name] = (prtlab.compare(pre.shade(state, bounces=BOUNCES.get(name, 1)), ref, objects=OBJECTS[name]), ref)
-        print(f"\n{name}, near_blockers=2\n{out[name][0].table()}")
+        print(f"\n{name}, near_blockers=0\n{out[name][0].table()}")
     return out
 
 
-def _near_params():
-    for name in NEAR_CASES:
+def _paper_direct_params():
+    for name in PAPER_DIRECT_CASES:
         for obj in OBJECTS[name]:
             for part in ("direct", "indirect", "total"):
-                reason = _NEAR_XFAIL.get((name, obj, part))
+                reason = _PAPER_DIRECT_XFAIL.get((name, obj, part))
                 marks = [pytest.mark.xfail(strict=True, raises=AssertionError, reason=reason)] if reason else []
-                yield pytest.param(name, obj, part, marks=marks, id=f"near-{name}-{obj}-{part}")
+                yield pytest.param(name, obj, part, marks=marks, id=f"paper_direct-{name}-{obj}-{part}")
 
 
-@pytest.mark.parametrize("name,obj,part", list(_near_params()))
-def test_near_blockers_against_mitsuba(near_comparisons, name, obj, part):
-    cmp, ref = near_comparisons[name]
+@pytest.mark.parametrize("name,obj,part", list(_paper_direct_params()))
+def test_papers_direct_light_against_mitsuba(paper_direct_comparisons, name, obj, part):
+    cmp, ref = paper_direct_comparisons[name]
     failures = cmp.check(_goal(name, obj, part, ref), parts=[part], objects=[obj])
     assert not failures, failures
 

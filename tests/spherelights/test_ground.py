@@ -124,7 +124,8 @@ def test_one_sphere_on_an_infinite_ground_against_closed_form():
     quadrature error (bounded by its refinement, times int W_n)."""
     alb = 0.8
     sc = _scene(plane_size=2e6, albedo=alb)
-    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16}, cache=False, progress=False)
+    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16, "emission_order": 0}, cache=False,
+                                  progress=False)  # the emission at ORDER, as the truth
     c, r, so, inter, rot, spts, snrm, sval, albsh = pre.world_lights(FrameState.from_scene(sc))
     rect = ground_rectangles([sc.object("plane")])
     em = first_pass(spts, snrm, sval, c, r, WHITE, voronoi_cell_sums(ORDER), albsh, exp_method="exact", ground=rect)

@@ -210,13 +210,15 @@ def test_fused_second_pass_matches_composed_tier_property(seed, n_recv, n_sph, b
     np.testing.assert_allclose(i1, i2, atol=1e-11)
 
 
-@given(seed=st.integers(0, 2**31), order=st.integers(1, 6), indirect=st.booleans(),
+@given(seed=st.integers(0, 2**31), order=st.integers(1, 6), extra=st.integers(0, 2), indirect=st.booleans(),
        blocking=st.sampled_from(["object", "sphere"]), exp_method=st.sampled_from(["ol", "hyb"]),
        average=st.sampled_from(["cosine", "paper"]))
 @settings(max_examples=40, deadline=None)
-def test_fused_second_pass_matches_composed_tier_every_order(seed, order, indirect, blocking, exp_method, average):
+def test_fused_second_pass_matches_composed_tier_every_order(seed, order, extra, indirect, blocking, exp_method,
+                                                             average):
     """The fused tier against the composed one at orders 1-6 (closed-form and recurrence bases, bands above the
-    order-4 closed forms), shadows only and with indirect light, receivers in partial blocks (> 32 lanes)."""
+    order-4 closed forms), an emission of the same or a higher order (``extra`` bands more), shadows only and with
+    indirect light, receivers in partial blocks (> 32 lanes)."""
     rng = np.random.default_rng(seed)
     n_recv, n_sph = 40, 5
     p = rng.uniform(-2, 2, size=(n_recv, 3))
@@ -227,19 +229,45 @@ def test_fused_second_pass_matches_composed_tier_every_order(seed, order, indire
     inter = np.zeros((n_sph, n_sph), dtype=bool)
     inter[0, 1] = inter[1, 0] = True
     rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(n_sph)])
-    em = rng.normal(size=(n_sph, order * order, 3)) * 0.1
+    m = order + extra
+    em = rng.normal(size=(n_sph, m * m, 3)) * 0.1
     em[:, 0] += 1.0
     env = np.zeros(((3 * order - 2) ** 2, 3))  # the exact-transfer order of the environment
     env[:16] = _env_sh()[: env.shape[0]]
     env[0] = [3.0, 2.5, 2.0]
     args = (p, n, c, r, obj, inter, rot, em, env)
-    kw = dict(blocking=blocking, exp_method=exp_method, average=average, indirect=indirect)
+    kw = dict(blocking=blocking, exp_method=exp_method, average=average, indirect=indirect, order=order)
     d1, i1 = second_pass(*args, method="fused", **kw)
     d2, i2 = second_pass(*args, method="numba", **kw)
     np.testing.assert_allclose(d1, d2, atol=1e-11)
     np.testing.assert_allclose(i1, i2, atol=1e-11)
     if not indirect:
         assert np.all(i1 == 0)
+
+
+@pytest.mark.parametrize("average", ["cosine", "paper"])
+@pytest.mark.parametrize("method", ["fused", "numba"])
+def test_an_emission_padded_with_zeros_changes_nothing(average, method, rng):
+    """An order-6 emission whose bands 4-5 are 0 gives the order-4 emission's light (the visibility at order 4):
+    the higher-order kernel only meets the emission's own bands."""
+    p = rng.uniform(-2, 2, size=(50, 3))
+    n = random_directions(rng, 50)
+    c = rng.normal(size=(5, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, 5)
+    obj = np.array([0, 0, 1, 2, 2])
+    inter = np.zeros((5, 5), dtype=bool)
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
+    em = rng.normal(size=(5, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    padded = np.concatenate([em, np.zeros((5, 20, 3))], axis=1)
+    env = _env_sh()
+    kw = dict(average=average, method=method)
+    d4, i4 = second_pass(p, n, c, r, obj, inter, rot, em, env, **kw)
+    d6, i6 = second_pass(p, n, c, r, obj, inter, rot, padded, env, order=4, **kw)
+    np.testing.assert_array_equal(d4, d6)
+    np.testing.assert_allclose(i6, i4, rtol=1e-12, atol=1e-12 * np.abs(i4).max())
+    with pytest.raises(ValueError, match="order must be between 1 and the emission's"):
+        second_pass(p, n, c, r, obj, inter, rot, em, env, order=5)
 
 
 def _cosine_directions(n, count, rng):
@@ -352,6 +380,29 @@ def test_first_pass_extra_irradiance():
     np.testing.assert_allclose(em, const, atol=1e-12)
     with pytest.raises(ValueError, match="extra_irradiance must have shape"):
         first_pass(pts, nrm, valid, c, r, env, voronoi_cell_sums(ORDER), alb, extra_irradiance=extra[:, :5])
+
+
+def test_first_pass_emission_of_a_higher_order():
+    """``first_pass(order=n)`` with the cell sums and albedo of order ``k > n``: the samples' radiance (visibility of
+    order ``n``) projected to order ``k``; with a uniform albedo its first ``n * n`` coefficients are the order-``n``
+    emission's."""
+    mesh = builtin_mesh("icosphere", subdivisions=3)
+    mesh.apply_scale(0.5)
+    c, r = np.array([[0.0, 1.0, 0.0], [0.9, 1.2, 0.0]]), np.array([0.5, 0.4])
+    pts, nrm, valid = surface_samples(mesh, c[:1], r[:1], geodesic_directions(92))
+    env = np.zeros((100, 3))  # an order-10 sky, brighter above
+    env[0], env[2] = [3.0, 2.5, 2.0], [1.0, 0.8, 0.6]
+
+    def uniform(order):
+        alb = np.zeros((1, order * order, 3))
+        alb[0, 0] = np.array([0.8, 0.5, 0.3]) * np.sqrt(4 * np.pi)
+        return alb
+
+    em4 = first_pass(pts, nrm, valid, c, r, env, voronoi_cell_sums(4), uniform(4))
+    em6 = first_pass(pts, nrm, valid, c, r, env, voronoi_cell_sums(6), uniform(6), order=4)
+    assert em6.shape == (1, 36, 3)
+    np.testing.assert_allclose(em6[:, :16], em4, rtol=1e-12, atol=1e-13)
+    assert np.abs(em6[:, 16:]).max() > 1e-3 * np.abs(em4).max()  # the neighbour's shadow has higher bands
 
 
 def _const_env():

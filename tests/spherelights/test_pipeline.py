@@ -51,6 +51,31 @@ def test_shade_through_the_api(tmp_path):
     np.testing.assert_allclose(res0.direct["plane"], res.direct["plane"])
 
 
+def test_emission_order():
+    """``emission_order`` up to ``order`` is the paper's single order (the same result); a higher one changes only
+    the indirect light, and is part of the cache key (the albedo SH is precomputed at it)."""
+    sc = _scene(lights=[{"type": "environment", "sky": {"sun_elevation_deg": 40.0, "sun": False,
+                                                        "height": 32, "width": 64}}])
+    opts = {"n_spheres": 2, "fit_resolution": 16}
+    pres = {m: SphereLights.precompute(sc, dict(opts, emission_order=m), cache=False, progress=False) for m in (0, 4, 6)}
+    res = {m: pre.shade(bounces=1) for m, pre in pres.items()}
+    for name in ("plane", "ball", "box"):
+        np.testing.assert_array_equal(res[0].total[name], res[4].total[name])
+        np.testing.assert_array_equal(res[6].direct[name], res[4].direct[name])
+    assert any(np.abs(res[6].indirect[n] - res[4].indirect[n]).max() > 1e-4 for n in ("plane", "ball", "box"))
+    key = {m: SphereLights.cache_key_parts(sc, SphereLights.make_options(dict(opts, emission_order=m)))[-1]
+           for m in (4, 6)}
+    assert key[4]["emission_order"] == 4 and key[6]["emission_order"] == 6
+    with pytest.raises(ValueError, match="emission_order"):
+        SphereLights.make_options({"emission_order": 9})
+    # data precomputed at a higher emission order shades a lower one exactly (the SH nest by order), not the reverse
+    lower = SphereLights(sc, pres[4].options, pres[6].data).shade(bounces=1)
+    for name in ("plane", "ball", "box"):
+        np.testing.assert_array_equal(lower.total[name], res[4].total[name])
+    with pytest.raises(ValueError, match="below the emission order 6"):
+        SphereLights(sc, pres[6].options, pres[4].data).shade(bounces=1)
+
+
 def test_unoccluded_plane_vertex_gets_the_constant_environment(pre):
     res = pre.shade(bounces=0)
     # far corner of the plane: tiny spheres' shadow; E = pi L for a constant environment
@@ -182,11 +207,12 @@ def test_no_negative_radiance_beside_a_sphere():
     st = FrameState.from_scene(sc)
     env = pre8._environment(st)
     c, r, so, inter, rot, spts, snrm, sval, alb = pre8.world_lights(st)
-    em = first_pass(spts, snrm, sval, c, r, env, voronoi_cell_sums(4), alb,
-                    ground=ground_rectangles([sc.object("plane")]))
+    opts = pre8.options
+    em = first_pass(spts, snrm, sval, c, r, env, voronoi_cell_sums(opts.light_order), alb,
+                    ground=ground_rectangles([sc.object("plane")]), order=opts.order)
     plane = sc.object("plane")
     raw, _ = second_pass(plane.world_shading_points(plane.transform), plane.world_normals(plane.transform), c, r, so,
-                         inter, rot, em, env)
+                         inter, rot, em, env, order=opts.order)
     assert raw.min() < -0.05  # the ringing the clamp removes
     res = pre8.shade(st, bounces=1)
     for part in (res.direct, res.indirect, res.total):
