@@ -706,13 +706,28 @@ def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
 # ------------------------------------------------------------------ near hits
 
 
-def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near: float):
+def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near: float, method: str = "numba"):
     """``(index (Q,), positions (Q, 3), normals (Q, 3))`` of the hits nearer their receiver point
     (``points[rows]``) than ``near`` times the longest edge of the hit triangle: indices into ``hits``, the hit
     points on the source's triangles (world ``source_vertices`` (V_s, 3)) and the unit shading normals there
-    (``source_normals`` (V_s, 3) interpolated)."""
+    (``source_normals`` (V_s, 3) interpolated). ``method="numba"`` runs :func:`_near_kernel`, ``"reference"`` numpy
+    (the specification; the same arrays)."""
     if not near > 0.0:
         raise ValueError(f"near must be a positive multiple of the edge length, got {near!r}")
+    check_choice(method, "method", ("numba", "reference"))
+    if method == "numba":
+        vertices = np.ascontiguousarray(source_vertices, np.float64)
+        vertex_normals = np.ascontiguousarray(source_normals, np.float64)
+        faces = np.ascontiguousarray(hits.faces, np.int64)
+        points = np.ascontiguousarray(points, np.float64)
+        rows, triangles = np.ascontiguousarray(hits.rows, np.int64), np.ascontiguousarray(hits.triangles, np.int64)
+        uv = np.ascontiguousarray(hits.uv, np.float64)
+        flags = np.empty(len(rows), np.bool_)
+        _near_kernel(points, vertices, faces, rows, triangles, uv, float(near), flags)
+        index = np.flatnonzero(flags)
+        at, normals = np.empty((len(index), 3)), np.empty((len(index), 3))
+        _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals)
+        return index, at, normals
     tri = np.asarray(source_vertices, float)[hits.vertices]  # (H, 3, 3)
     edge2 = np.max(np.stack([np.sum((tri[:, (i + 1) % 3] - tri[:, i]) ** 2, axis=1) for i in range(3)]), axis=0)
     bary = hits.bary
@@ -722,6 +737,51 @@ def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near:
     normals = np.einsum("hc,hcx->hx", bary[index], np.asarray(source_normals, float)[hits.vertices[index]])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     return index, at[index], normals
+
+
+@numba.njit(cache=True, inline="always")
+def _barycentric_point(vertices, i0, i1, i2, b0, u, v, x):
+    """Coordinate ``x`` of ``b0 p[i0] + u p[i1] + v p[i2]``."""
+    return b0 * vertices[i0, x] + u * vertices[i1, x] + v * vertices[i2, x]
+
+
+@numba.njit(cache=True, parallel=True)
+def _near_kernel(points, vertices, faces, rows, triangles, uv, near, flags):
+    """``flags[h]``: hit ``h`` lies nearer its receiver point than ``near`` times its triangle's longest edge
+    (``near_hits``'s numpy test)."""
+    for h in numba.prange(rows.shape[0]):
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        edge2 = 0.0
+        for a, b in ((i0, i1), (i1, i2), (i2, i0)):
+            e0 = vertices[b, 0] - vertices[a, 0]
+            e1 = vertices[b, 1] - vertices[a, 1]
+            e2 = vertices[b, 2] - vertices[a, 2]
+            edge2 = max(edge2, e0 ** 2 + e1 ** 2 + e2 ** 2)
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        p = rows[h]
+        g0 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 0) - points[p, 0]
+        g1 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 1) - points[p, 1]
+        g2 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 2) - points[p, 2]
+        flags[h] = g0 ** 2 + g1 ** 2 + g2 ** 2 < near * near * edge2
+
+
+@numba.njit(cache=True, parallel=True)
+def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals):
+    """The hit points ``at`` and unit interpolated normals of the hits ``index`` (``near_hits``)."""
+    for q in numba.prange(index.shape[0]):
+        h = index[q]
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        for x in range(3):
+            at[q, x] = _barycentric_point(vertices, i0, i1, i2, b0, u, v, x)
+            normals[q, x] = _barycentric_point(vertex_normals, i0, i1, i2, b0, u, v, x)
+        length = max(np.sqrt(normals[q, 0] ** 2 + normals[q, 1] ** 2 + normals[q, 2] ** 2), 1e-300)
+        for x in range(3):
+            normals[q, x] /= length
 
 
 def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int) -> np.ndarray:

@@ -447,3 +447,26 @@ def test_residual_hits_method_is_validated():
     x, n = _receiver(meshes, poses, 0)
     with pytest.raises(ValueError, match="method"):
         residual_hits(x, n, LAMBERT, RayCaster(meshes, transforms=poses), {}, 16, method="embree")
+
+
+@pytest.mark.parametrize("near", [0.5, 2.0, 8.0])
+def test_near_hits_kernel_equals_the_reference(near):
+    """``near_hits``'s kernels select the same hits as its numpy tier and give the same points and normals, bit for
+    bit, on every receiver and source of the floor, ball and box."""
+    from prtlab.interreflection._residual import near_hits
+
+    meshes, poses, _ = _objects()
+    seps = (LAMBERT, PHONG, LAMBERT)
+    caster = RayCaster(meshes, transforms=poses)
+    selected = 0
+    for r in range(3):
+        x, n = _receiver(meshes, poses, r)
+        srcs = _sources(meshes, poses, [i for i in range(3) if i != r], seps)
+        for i, hits in residual_hits(x, n, seps[r], caster, srcs, 64, seed=2).items():
+            ref = near_hits(hits, x, caster.world_vertices(i), srcs[i][1], near, method="reference")
+            fast = near_hits(hits, x, caster.world_vertices(i), srcs[i][1], near)
+            for a, b in zip(ref, fast):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+            selected += len(ref[0])
+    assert selected > 0
