@@ -50,7 +50,10 @@ def factor_at(nodes, values, freq, parity, x, y, z, out):
     """``out[k]`` = the separable factors at one unit direction ``(x, y, z)`` (see :func:`factor_eval_kernel`)."""
     last = nodes.shape[0] - 1
     theta = np.arctan2(np.sqrt(x * x + y * y), z)
-    phi = np.arctan2(y, x)
+    azimuthal = False
+    for k in range(freq.shape[0]):
+        azimuthal = azimuthal or freq[k] != 0
+    phi = np.arctan2(y, x) if azimuthal else 0.0  # freq 0: cos(0 phi) = 1, sin(0 phi) = 0 for any finite phi
     if theta <= nodes[0]:
         j = 0
         t = 0.0
