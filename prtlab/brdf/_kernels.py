@@ -45,6 +45,32 @@ def phong_eval_numpy(wi, wo, n, kd, ks, exponent):
     return np.where((ci * co < 0.0)[..., None], 0.0, f)
 
 
+@numba.njit(cache=True, inline="always")
+def factor_at(nodes, values, freq, parity, x, y, z, out):
+    """``out[k]`` = the separable factors at one unit direction ``(x, y, z)`` (see :func:`factor_eval_kernel`)."""
+    last = nodes.shape[0] - 1
+    theta = np.arctan2(np.sqrt(x * x + y * y), z)
+    azimuthal = False
+    for k in range(freq.shape[0]):
+        azimuthal = azimuthal or freq[k] != 0
+    phi = np.arctan2(y, x) if azimuthal else 0.0  # freq 0: cos(0 phi) = 1, sin(0 phi) = 0 for any finite phi
+    if theta <= nodes[0]:
+        j = 0
+        t = 0.0
+    elif theta >= nodes[last]:
+        j = last - 1
+        t = 1.0
+    else:
+        j = np.searchsorted(nodes, theta) - 1
+        t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+    for k in range(values.shape[0]):
+        radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
+        if parity[k] == 0:
+            out[k] = radial * np.cos(freq[k] * phi)
+        else:
+            out[k] = radial * np.sin(freq[k] * phi)
+
+
 @numba.njit(cache=True, parallel=True)
 def factor_eval_kernel(nodes, values, freq, parity, dirs, out):
     """Separable factors at unit directions.
@@ -53,29 +79,8 @@ def factor_eval_kernel(nodes, values, freq, parity, dirs, out):
     with ``trig = cos`` (parity 0) or ``sin`` (parity 1), ``theta`` clamped to
     ``[nodes[0], nodes[-1]]``; nodes (P,) increasing, values (K, P), dirs (N, 3).
     """
-    n_terms = values.shape[0]
-    last = nodes.shape[0] - 1
     for p in numba.prange(dirs.shape[0]):
-        x = dirs[p, 0]
-        y = dirs[p, 1]
-        z = dirs[p, 2]
-        theta = np.arctan2(np.sqrt(x * x + y * y), z)
-        phi = np.arctan2(y, x)
-        if theta <= nodes[0]:
-            j = 0
-            t = 0.0
-        elif theta >= nodes[last]:
-            j = last - 1
-            t = 1.0
-        else:
-            j = np.searchsorted(nodes, theta) - 1
-            t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
-        for k in range(n_terms):
-            radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
-            if parity[k] == 0:
-                out[p, k] = radial * np.cos(freq[k] * phi)
-            else:
-                out[p, k] = radial * np.sin(freq[k] * phi)
+        factor_at(nodes, values, freq, parity, dirs[p, 0], dirs[p, 1], dirs[p, 2], out[p])
 
 
 def factor_eval_numpy(nodes, values, freq, parity, dirs):

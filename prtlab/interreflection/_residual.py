@@ -39,6 +39,9 @@ import numba
 import numpy as np
 
 from prtlab import brdf
+from prtlab._validate import check_choice
+from prtlab.brdf._kernels import factor_at
+from prtlab.geometry import _embree
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
            "gather_operator", "apply_gather", "near_hits", "near_hit_correction"]
@@ -165,6 +168,188 @@ def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, 
         _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, out[i])
 
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+#: ``_cast_kernel``'s per-ray state: not cast (``tmax`` 0), cast without hitting the source, hit the source.
+_NOT_LIVE, _CAST, _HIT = 0, 1, 2
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, tnear, source,
+                 function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+    """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
+    ``point`` empty ``(i // m, i % m)`` (every ray of every point). ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not
+    cast), ``_CAST`` or ``_HIT`` (the first hit is object ``source``: its ``triangle[i]`` and float32 ``uv[i]``).
+    Each ray is staged as ``_stage_ray`` stages it (no normals: the origin is already offset) and traced through
+    ``rtcIntersect1`` (``function``, ``scene``); threads take blocks of ``RAYS_PER_TASK`` rays as ``_trace_kernel``."""
+    m = rows * side
+    full = point.shape[0] == 0
+    step = _embree.RAYS_PER_TASK
+    n_blocks = (n_rays + step - 1) // step
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(threads):
+        buf = np.empty(8)
+        while True:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_blocks:
+                break
+            f32, u32 = slot_f32[block], slot_u32[block]
+            address = f32.ctypes.data
+            for i in range(block * step, min(n_rays, (block + 1) * step)):
+                p = i // m if full else point[i]
+                j = i % m if full else ray[i]
+                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, buf)
+                state[i] = _NOT_LIVE
+                if not buf[7] > 0.0:
+                    continue
+                state[i] = _CAST
+                dx, dy, dz = buf[3], buf[4], buf[5]
+                length = np.sqrt(dx * dx + dy * dy + dz * dz)
+                dx /= length
+                dy /= length
+                dz /= length
+                tfar = buf[7] - tnear
+                if tfar > _FLOAT32_MAX:
+                    tfar = np.inf
+                if not np.float32(tfar) > 0.0:
+                    continue
+                _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy, dz,
+                                tfar)
+                _embree.rtc_call(function, scene, address)
+                if u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source:
+                    state[i] = _HIT
+                    triangle[i] = np.int32(u32[_embree.HIT_PRIM])
+                    uv[i, 0] = f32[_embree.HIT_U]
+                    uv[i, 1] = f32[_embree.HIT_V]
+
+
+@numba.njit(cache=True, inline="always")
+def _local_unit(x, y, z, n0, n1, n2):
+    """``(x, y, z)`` in the local frame of the normal ``n`` (``brdf.to_local``: both normalised, the tangents of
+    ``tangent_frame``), normalised again, as :meth:`SeparableBRDF.g` and ``h`` take it."""
+    length = np.sqrt(x * x + y * y + z * z)
+    x, y, z = x / length, y / length, z / length
+    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    n0, n1, n2 = n0 / length, n1 / length, n2 / length
+    sign = 1.0 if n2 >= 0.0 else -1.0
+    a = -1.0 / (sign + n2)
+    b = n0 * n1 * a
+    t0, t1, t2 = 1.0 + sign * n0 * n0 * a, sign * b, -sign * n0
+    b0, b1, b2 = b, sign + n1 * n1 * a, -n1
+    lx = t0 * x + t1 * y + t2 * z
+    ly = b0 * x + b1 * y + b2 * z
+    lz = n0 * x + n1 * y + n2 * z
+    length = np.sqrt(lx * lx + ly * ly + lz * lz)
+    return lx / length, ly / length, lz / length
+
+
+@numba.njit(cache=True, parallel=True)
+def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, faces,
+                       vertex_normals, triangle, uv, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq,
+                       h_parity, front, factor):
+    """For each hit ``i`` (ray ``ray[i]`` of point ``point[i]``, made again by ``_ray``, on ``triangle[i]`` of the
+    source at barycentrics ``uv[i]``): ``front[i]``, whether the ray meets the front of the interpolated shading
+    normal, and ``factor[i, k', k] = weight g_k'(w) h_k(-w)`` in the receiver's and the source's local frames
+    (``_cast``'s numpy weighing, by :func:`prtlab.brdf._kernels.factor_at`)."""
+    n_hits = point.shape[0]
+    chunk = 256
+    for c in numba.prange((n_hits + chunk - 1) // chunk):
+        buf = np.empty(8)
+        g = np.empty(g_values.shape[0])
+        h = np.empty(h_values.shape[0])
+        for i in range(c * chunk, min(n_hits, (c + 1) * chunk)):
+            p = point[i]
+            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, buf)
+            f = triangle[i]
+            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, v = uv[i, 0], uv[i, 1]
+            b0 = 1.0 - u - v
+            s0 = b0 * vertex_normals[i0, 0] + u * vertex_normals[i1, 0] + v * vertex_normals[i2, 0]
+            s1 = b0 * vertex_normals[i0, 1] + u * vertex_normals[i1, 1] + v * vertex_normals[i2, 1]
+            s2 = b0 * vertex_normals[i0, 2] + u * vertex_normals[i1, 2] + v * vertex_normals[i2, 2]
+            length = max(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 1e-300)
+            s0, s1, s2 = s0 / length, s1 / length, s2 / length
+            w0, w1, w2 = buf[3], buf[4], buf[5]
+            front[i] = s0 * w0 + s1 * w1 + s2 * w2 < 0.0  # the back of a surface emits nothing
+            if not front[i]:
+                continue
+            x, y, z = _local_unit(w0, w1, w2, normals[p, 0], normals[p, 1], normals[p, 2])
+            factor_at(g_nodes, g_values, g_freq, g_parity, x, y, z, g)
+            x, y, z = _local_unit(-w0, -w1, -w2, s0, s1, s2)
+            factor_at(h_nodes, h_values, h_freq, h_parity, x, y, z, h)
+            for kp in range(g.shape[0]):
+                for k in range(h.shape[0]):
+                    factor[i, kp, k] = buf[6] * g[kp] * h[k]
+
+
+#: ``_recast_kernel``'s per-ray state: not flagged, flagged and not cast (``tmax`` 0), cast, hit the source.
+_UNFLAGGED, _FLAGGED, _FLAGGED_CAST, _FLAGGED_HIT = 0, 1, 2, 3
+
+#: Candidate points a thread takes at a time in ``_recast_kernel`` (one ray slot each).
+_POINTS_PER_TASK = 4
+
+
+@numba.njit(cache=True, inline="always")
+def _meets(buf, spheres):
+    """Whether the ray ``buf`` (``_ray``'s output), up to its ``tmax``, meets any of ``spheres`` (S, 4)."""
+    if buf[7] > 0.0:
+        for k in range(spheres.shape[0]):
+            c0, c1, c2 = spheres[k, 0] - buf[0], spheres[k, 1] - buf[1], spheres[k, 2] - buf[2]
+            t = min(max(c0 * buf[3] + c1 * buf[4] + c2 * buf[5], 0.0), buf[7])
+            g0, g1, g2 = c0 - t * buf[3], c1 - t * buf[4], c2 - t * buf[5]
+            if g0 * g0 + g1 * g1 + g2 * g2 <= spheres[k, 3] * spheres[k, 3]:
+                return True
+    return False
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, tnear, source, spheres,
+                   function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+    """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
+    ``_flag_kernel`` flags is traced at once; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax``
+    0), ``_FLAGGED_CAST`` or ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
+    m = rows * side
+    n = candidates.shape[0]
+    n_blocks = (n + _POINTS_PER_TASK - 1) // _POINTS_PER_TASK
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(threads):
+        buf = np.empty(8)
+        while True:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_blocks:
+                break
+            f32, u32 = slot_f32[block], slot_u32[block]
+            address = f32.ctypes.data
+            for i in range(block * _POINTS_PER_TASK, min(n, (block + 1) * _POINTS_PER_TASK)):
+                for j in range(m):
+                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, buf)
+                    state[i, j] = _UNFLAGGED
+                    if not _meets(buf, spheres):
+                        continue
+                    state[i, j] = _FLAGGED
+                    if not buf[7] > 0.0:
+                        continue
+                    state[i, j] = _FLAGGED_CAST
+                    dx, dy, dz = buf[3], buf[4], buf[5]
+                    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    dx /= length
+                    dy /= length
+                    dz /= length
+                    tfar = buf[7] - tnear
+                    if tfar > _FLOAT32_MAX:
+                        tfar = np.inf
+                    if not np.float32(tfar) > 0.0:
+                        continue
+                    _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy,
+                                    dz, tfar)
+                    _embree.rtc_call(function, scene, address)
+                    if u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source:
+                        state[i, j] = _FLAGGED_HIT
+                        triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
+                        uv[i, j, 0] = f32[_embree.HIT_U]
+                        uv[i, j, 1] = f32[_embree.HIT_V]
+
+
 @numba.njit(cache=True, parallel=True)
 def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, spheres, flags):
     """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
@@ -174,16 +359,7 @@ def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, 
         buf = np.empty(8)
         for j in range(m):
             _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, buf)
-            hit = False
-            if buf[7] > 0.0:
-                for k in range(spheres.shape[0]):
-                    c0, c1, c2 = spheres[k, 0] - buf[0], spheres[k, 1] - buf[1], spheres[k, 2] - buf[2]
-                    t = min(max(c0 * buf[3] + c1 * buf[4] + c2 * buf[5], 0.0), buf[7])
-                    g0, g1, g2 = c0 - t * buf[3], c1 - t * buf[4], c2 - t * buf[5]
-                    if g0 * g0 + g1 * g1 + g2 * g2 <= spheres[k, 3] * spheres[k, 3]:
-                        hit = True
-                        break
-            flags[i, j] = hit
+            flags[i, j] = _meets(buf, spheres)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -273,12 +449,25 @@ def _margin(caster, centre, radius) -> float:
     return 2.0 * caster.epsilon + 1e-5 * (float(np.max(np.abs(centre))) + radius) + 1e-12
 
 
-def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats) -> ResidualHits | None:
-    """The hits on the front of source ``s`` of the rays ``(point, ray)`` (ids ``ids``), ids ascending."""
+def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats,
+          method: str = "numba") -> ResidualHits | None:
+    """The hits on the front of source ``s`` of the rays ``(point, ray)`` (ids ``ids``; ``point`` None: every ray
+    of every point, ids ``point * m + ray``), ids ascending. ``method="numba"`` (with Embree) makes and traces
+    the rays in one kernel (:func:`_cast_kernel`) and weighs the hits in another (:func:`_hit_factor_kernel`);
+    ``"reference"`` makes them (``_rays_kernel``), traces them through ``RayCaster.closest_hit`` and weighs the
+    hits with numpy and :class:`prtlab.brdf.SeparableBRDF`, the specification: the same hits, factors within
+    float64 rounding."""
     faces, vertex_normals, sep, centre, radius = source
     centre = np.asarray(centre, float)
     bound = _bounding_radius(caster.world_vertices(s), centre)
     bound += _margin(caster, centre, bound)
+    m = grid[0] * grid[1]
+    if method == "numba" and getattr(caster, "_scene", None) is not None:
+        return _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats,
+                           centre, bound)
+    if point is None:
+        point, ray = np.repeat(np.arange(len(points)), m), np.tile(np.arange(m), len(points))
+        ids = np.arange(len(points) * m, dtype=np.int64)
     buf = np.empty((len(point), 8))
     if len(point):
         _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
@@ -302,13 +491,57 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     front = np.einsum("hx,hx->h", shading, w) < 0.0  # the back of a surface emits nothing
     if not np.any(front):
         return None
-    sel, tri, bary, w, shading = sel[front], tri[front], bary[front], w[front], shading[front]
+    sel, w, shading = sel[front], w[front], shading[front]
     triangles, uv = triangles[front], uv[front]
     rows = point[live[sel]]
     g = receiver_sep.g(brdf.to_local(w, normals[rows]))  # (H, K')
     h = sep.h(brdf.to_local(-w, shading))  # (H, K)
     factor = buf[sel, 6][:, None, None] * g[:, :, None] * h[:, None, :]
     return ResidualHits(rows, factor, ids[live[sel]], triangles, uv, faces)
+
+
+def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, centre, bound):
+    """``_cast`` by :func:`_cast_kernel` and :func:`_hit_factor_kernel`."""
+    m = grid[0] * grid[1]
+    n_rays = len(points) * m if point is None else len(point)
+    state = np.empty(n_rays, np.int8)
+    triangle = np.empty(n_rays, np.int32)
+    uv32 = np.empty((n_rays, 2), np.float32)
+    slot_f32, slot_u32 = _embree.ray_slots(n_rays)
+    empty = np.zeros(0, np.int64)
+    _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
+                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), float(caster.tnear), s,
+                 caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
+                 state, triangle, uv32)
+    stats["rays_cast"] += int(np.count_nonzero(state))
+    at = np.flatnonzero(state == _HIT)
+    rows, j = (at // m, at % m) if point is None else (point[at], ray[at])
+    return _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound, rows, j,
+                  at if point is None else ids[at], triangle[at], uv32[at])
+
+
+def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound, rows, j, rays, triangle, uv32):
+    """The :class:`ResidualHits` of the rays ``rays`` (ray ``j`` of point ``rows``) whose first hit is the source,
+    on ``triangle`` at ``uv32``: those on its front, weighed by :func:`_hit_factor_kernel` (None if none)."""
+    if not len(rows):
+        return None
+    faces, vertex_normals, sep, _, radius = source
+    triangles, uv = triangle.astype(np.int64), uv32.astype(np.float64)
+    g_nodes, g_values = receiver_sep._ext(receiver_sep.theta_in, receiver_sep.g_radial, 0.5 * np.pi)
+    h_max = 0.5 * np.pi if sep.parameterisation == "plain" else np.pi
+    h_nodes, h_values = sep._ext(sep.theta_out, sep.h_radial, h_max)
+    front = np.empty(len(rows), np.bool_)
+    factor = np.empty((len(rows), receiver_sep.K, sep.K))
+    _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps,
+                       np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(vertex_normals, np.float64),
+                       triangles, uv, g_nodes, g_values, np.ascontiguousarray(receiver_sep.freq, np.int64),
+                       np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
+                       np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64), front,
+                       factor)
+    if not np.any(front):
+        return None
+    keep = np.flatnonzero(front)
+    return ResidualHits(rows[keep], factor[keep], rays[keep].astype(np.int64), triangles[keep], uv[keep], faces)
 
 
 def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
@@ -336,7 +569,8 @@ def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
 
 
 def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: int, seed: int = 0, *,
-                  previous: dict | None = None, moved: dict | None = None, stats: dict | None = None) -> dict:
+                  previous: dict | None = None, moved: dict | None = None, stats: dict | None = None,
+                  method: str = "numba") -> dict:
     """``{source index: ResidualHits}`` of ``n_rays`` rays per receiver point and source.
 
     ``caster`` holds every object at its pose (its object index is the key); ``sources`` maps the indices
@@ -352,12 +586,14 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     and the rays of the other sources whose path up to the source meets a moved object's old or new
     bounding sphere. The result equals a full cast (the same rays, the same hits) but for float32 ties
     between triangles at one distance. An unchanged source keeps its ``ResidualHits`` object. ``stats``
-    (a dict) gets ``rays_cast`` added.
+    (a dict) gets ``rays_cast`` added. ``method="numba"`` makes and traces the rays in one kernel (with Embree;
+    else as ``"reference"``), ``"reference"`` makes them apart and traces them through ``RayCaster.closest_hit``:
+    the same hits.
     """
+    check_choice(method, "method", ("numba", "reference"))
     points = np.ascontiguousarray(points, dtype=np.float64)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     grid = _grid(n_rays)
-    m = grid[0] * grid[1]
     out = {}
     if len(points) == 0:
         return out
@@ -368,20 +604,19 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     for s, source in sources.items():
         key = _key(seed, s)
         if not incremental or s in moved:
-            point, ray = np.repeat(np.arange(len(points)), m), np.tile(np.arange(m), len(points))
-            hits = _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid,
-                         np.arange(len(points) * m, dtype=np.int64), stats)
+            hits = _cast(points, normals, receiver_sep, caster, s, source, None, None, key, grid, None, stats,
+                         method)
         elif not len(spheres):
             hits = previous.get(s)
         else:
             hits = _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, previous.get(s),
-                           stats)
+                           stats, method)
         if hits is not None:
             out[s] = hits
     return out
 
 
-def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats):
+def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
     centre, radius = np.asarray(source[3], float), float(source[4])
     m = grid[0] * grid[1]
@@ -400,6 +635,26 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
     candidates = np.flatnonzero(near)
     if not len(candidates):
         return old
+    if method == "numba" and getattr(caster, "_scene", None) is not None:
+        state = np.empty((len(candidates), m), np.int8)
+        triangle = np.empty((len(candidates), m), np.int32)
+        uv32 = np.empty((len(candidates), m, 2), np.float32)
+        n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
+        slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
+        _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
+                       float(caster.epsilon), float(caster.tnear), s, widened, caster._scene.intersect_fn,
+                       caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(), state, triangle, uv32)
+        i, j = np.nonzero(state)
+        if not len(i):
+            return old
+        stats["rays_cast"] += int(np.count_nonzero(state >= _FLAGGED_CAST))
+        ids = candidates[i] * m + j
+        hit = np.flatnonzero(state[i, j] == _FLAGGED_HIT)
+        new = _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound,
+                     candidates[i[hit]], j[hit].astype(np.int64), ids[hit], triangle[i[hit], j[hit]],
+                     uv32[i[hit], j[hit]])
+        merged = _merge(old, ids, new)
+        return old if _same(merged, old) else merged
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
                  widened, flags)
@@ -408,7 +663,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         return old
     point, ray = candidates[i], j.astype(np.int64)
     ids = point * m + ray
-    new = _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats)
+    new = _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, method)
     merged = _merge(old, ids, new)
     return old if _same(merged, old) else merged
 
@@ -451,13 +706,28 @@ def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
 # ------------------------------------------------------------------ near hits
 
 
-def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near: float):
+def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near: float, method: str = "numba"):
     """``(index (Q,), positions (Q, 3), normals (Q, 3))`` of the hits nearer their receiver point
     (``points[rows]``) than ``near`` times the longest edge of the hit triangle: indices into ``hits``, the hit
     points on the source's triangles (world ``source_vertices`` (V_s, 3)) and the unit shading normals there
-    (``source_normals`` (V_s, 3) interpolated)."""
+    (``source_normals`` (V_s, 3) interpolated). ``method="numba"`` runs :func:`_near_kernel`, ``"reference"`` numpy
+    (the specification; the same arrays)."""
     if not near > 0.0:
         raise ValueError(f"near must be a positive multiple of the edge length, got {near!r}")
+    check_choice(method, "method", ("numba", "reference"))
+    if method == "numba":
+        vertices = np.ascontiguousarray(source_vertices, np.float64)
+        vertex_normals = np.ascontiguousarray(source_normals, np.float64)
+        faces = np.ascontiguousarray(hits.faces, np.int64)
+        points = np.ascontiguousarray(points, np.float64)
+        rows, triangles = np.ascontiguousarray(hits.rows, np.int64), np.ascontiguousarray(hits.triangles, np.int64)
+        uv = np.ascontiguousarray(hits.uv, np.float64)
+        flags = np.empty(len(rows), np.bool_)
+        _near_kernel(points, vertices, faces, rows, triangles, uv, float(near), flags)
+        index = np.flatnonzero(flags)
+        at, normals = np.empty((len(index), 3)), np.empty((len(index), 3))
+        _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals)
+        return index, at, normals
     tri = np.asarray(source_vertices, float)[hits.vertices]  # (H, 3, 3)
     edge2 = np.max(np.stack([np.sum((tri[:, (i + 1) % 3] - tri[:, i]) ** 2, axis=1) for i in range(3)]), axis=0)
     bary = hits.bary
@@ -467,6 +737,51 @@ def near_hits(hits: ResidualHits, points, source_vertices, source_normals, near:
     normals = np.einsum("hc,hcx->hx", bary[index], np.asarray(source_normals, float)[hits.vertices[index]])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     return index, at[index], normals
+
+
+@numba.njit(cache=True, inline="always")
+def _barycentric_point(vertices, i0, i1, i2, b0, u, v, x):
+    """Coordinate ``x`` of ``b0 p[i0] + u p[i1] + v p[i2]``."""
+    return b0 * vertices[i0, x] + u * vertices[i1, x] + v * vertices[i2, x]
+
+
+@numba.njit(cache=True, parallel=True)
+def _near_kernel(points, vertices, faces, rows, triangles, uv, near, flags):
+    """``flags[h]``: hit ``h`` lies nearer its receiver point than ``near`` times its triangle's longest edge
+    (``near_hits``'s numpy test)."""
+    for h in numba.prange(rows.shape[0]):
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        edge2 = 0.0
+        for a, b in ((i0, i1), (i1, i2), (i2, i0)):
+            e0 = vertices[b, 0] - vertices[a, 0]
+            e1 = vertices[b, 1] - vertices[a, 1]
+            e2 = vertices[b, 2] - vertices[a, 2]
+            edge2 = max(edge2, e0 ** 2 + e1 ** 2 + e2 ** 2)
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        p = rows[h]
+        g0 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 0) - points[p, 0]
+        g1 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 1) - points[p, 1]
+        g2 = _barycentric_point(vertices, i0, i1, i2, b0, u, v, 2) - points[p, 2]
+        flags[h] = g0 ** 2 + g1 ** 2 + g2 ** 2 < near * near * edge2
+
+
+@numba.njit(cache=True, parallel=True)
+def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals):
+    """The hit points ``at`` and unit interpolated normals of the hits ``index`` (``near_hits``)."""
+    for q in numba.prange(index.shape[0]):
+        h = index[q]
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        for x in range(3):
+            at[q, x] = _barycentric_point(vertices, i0, i1, i2, b0, u, v, x)
+            normals[q, x] = _barycentric_point(vertex_normals, i0, i1, i2, b0, u, v, x)
+        length = max(np.sqrt(normals[q, 0] ** 2 + normals[q, 1] ** 2 + normals[q, 2] ** 2), 1e-300)
+        for x in range(3):
+            normals[q, x] /= length
 
 
 def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int) -> np.ndarray:

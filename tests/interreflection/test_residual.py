@@ -410,3 +410,63 @@ def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball):
     assert not np.allclose(floor_light(2, False)[0][rows], floor_light(None, False)[0][rows], rtol=1e-3)
     with pytest.raises(TypeError, match="residual_whole"):
         InterreflectionOptions(residual_whole=1)
+
+
+@pytest.mark.parametrize("seps", [(LAMBERT, PHONG, LAMBERT), (PHONG, PHONG, PHONG)])
+@pytest.mark.parametrize("r", [0, 1, 2])
+def test_fused_cast_equals_the_reference_cast(seps, r):
+    """``residual_hits``'s kernels (rays made, traced and weighed in numba) give the arrays of the reference (rays
+    traced through ``RayCaster.closest_hit``, weighed with numpy), bit for bit, and count the same rays: a full cast
+    (the ball a source of itself) and, after the box moves, the incremental cast."""
+    meshes, poses, moves = _objects()
+    after_poses = [poses[0], poses[1], moves["next to the ball"]]
+    before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
+    x, n = _receiver(meshes, poses, r)
+    indices = [i for i in range(3) if i != r or r == 1]
+    src_before = _sources(meshes, poses, indices, seps)
+    src_after = _sources(meshes, after_poses, indices, seps)
+    runs = {}
+    for method in ("reference", "numba"):
+        stats = {}
+        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, method=method)
+        moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
+        new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
+                            moved=moved, stats=stats, method=method)
+        runs[method] = (old, new, stats["rays_cast"])
+    assert runs["numba"][2] == runs["reference"][2]
+    for ref, fast in zip(runs["reference"][:2], runs["numba"][:2]):
+        assert set(ref) == set(fast) and ref
+        for i in ref:
+            for a, b in zip(ref[i].arrays(), fast[i].arrays()):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+
+
+def test_residual_hits_method_is_validated():
+    meshes, poses, _ = _objects()
+    x, n = _receiver(meshes, poses, 0)
+    with pytest.raises(ValueError, match="method"):
+        residual_hits(x, n, LAMBERT, RayCaster(meshes, transforms=poses), {}, 16, method="embree")
+
+
+@pytest.mark.parametrize("near", [0.5, 2.0, 8.0])
+def test_near_hits_kernel_equals_the_reference(near):
+    """``near_hits``'s kernels select the same hits as its numpy tier and give the same points and normals, bit for
+    bit, on every receiver and source of the floor, ball and box."""
+    from prtlab.interreflection._residual import near_hits
+
+    meshes, poses, _ = _objects()
+    seps = (LAMBERT, PHONG, LAMBERT)
+    caster = RayCaster(meshes, transforms=poses)
+    selected = 0
+    for r in range(3):
+        x, n = _receiver(meshes, poses, r)
+        srcs = _sources(meshes, poses, [i for i in range(3) if i != r], seps)
+        for i, hits in residual_hits(x, n, seps[r], caster, srcs, 64, seed=2).items():
+            ref = near_hits(hits, x, caster.world_vertices(i), srcs[i][1], near, method="reference")
+            fast = near_hits(hits, x, caster.world_vertices(i), srcs[i][1], near)
+            for a, b in zip(ref, fast):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+            selected += len(ref[0])
+    assert selected > 0
