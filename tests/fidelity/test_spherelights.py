@@ -112,7 +112,6 @@ OBJECTS = {
 }
 
 _ORDER = "the order-4 SH shadows of the neighbouring spheres (Ren et al. 2006, the paper's visibility); with order=6: "
-_TOUCH = "the order-4 SH visibility and light of the touching neighbours; with order=6: "
 _NOT_ORDER = "not the SH order (with order=6: {}); cause not isolated"
 _BOTH = "the direct and indirect errors above"
 
@@ -122,27 +121,27 @@ def _fig(rel_rms, noise, error, ratio):
 
 
 _XFAIL: dict[tuple[str, str, str], str] = {
-    ("three touching spheres", "sphere_left", "indirect"): _fig(0.173, 0.019, 0.172, 0.98) + _TOUCH + "0.134",
-    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.178, 0.021, 0.177, 0.97) + _TOUCH + "0.138",
     ("cube (8 spheres)", "plane", "direct"): _fig(0.157, 0.012, 0.156, 0.95)
     + "8 bounding spheres shadow the ground as a cluster of balls, not a box (their outside volume; Fig. 10)",
-    ("cube (8 spheres)", "plane", "indirect"): _fig(0.480, 0.049, 0.478, 1.59)
+    ("cube (8 spheres)", "plane", "indirect"): _fig(0.556, 0.049, 0.554, 1.65)
     + "8 intersecting lights with precomputed mutual occlusion over-light the ground (the paper's Fig. 7), and "
-    "their outside volume emits from where the box is not",
-    ("cube (8 spheres)", "plane", "total"): _fig(0.153, 0.012, 0.153, 0.96) + _BOTH,
-    ("bunny (16 spheres)", "plane", "indirect"): _fig(0.237, 0.041, 0.234, 1.23)
+    "their outside volume emits from where the box is not (0.480 at the paper's emission order: a sharper "
+    "emission puts more of it there)",
+    ("cube (8 spheres)", "plane", "total"): _fig(0.154, 0.012, 0.154, 0.96) + _BOTH,
+    ("bunny (16 spheres)", "plane", "indirect"): _fig(0.226, 0.041, 0.222, 1.24)
     + "the precomputed occlusion of the bunny's 16 intersecting lights brightens their emission (the paper's "
     "Fig. 7) and their outside volume lights the ground from where the bunny is not",
     ("bunny (16 spheres)", "bunny", "direct"): _fig(0.099, 0.009, 0.099, 0.98) + _NOT_ORDER.format("0.098"),
-    ("bunny (16 spheres)", "bunny", "indirect"): _fig(0.262, 0.016, 0.262, 0.93)
+    ("bunny (16 spheres)", "bunny", "indirect"): _fig(0.263, 0.016, 0.262, 0.92)
     + "the 207 vertices of the bunny's flat base, facing the ground below 0.05, carry 57 % of the squared error "
     "(0.096 against 0.044): the ground under the base lies inside the bunny's lights, which the second pass culls "
     "there, so it is shaded lit and reflects onto the base (the other vertices: 0.183)",
-    ("bunny (16 spheres)", "bunny", "total"): _fig(0.100, 0.008, 0.099, 0.97) + _BOTH,
+    ("bunny (16 spheres)", "bunny", "total"): _fig(0.101, 0.008, 0.100, 0.96) + _BOTH,
     ("bunny (16 spheres)", "sphere_green", "direct"): _fig(0.061, 0.008, 0.060, 0.97) + _NOT_ORDER.format("0.082"),
-    ("bunny (16 spheres)", "sphere_green", "indirect"): _fig(0.220, 0.014, 0.220, 1.03)
+    ("bunny (16 spheres)", "sphere_green", "indirect"): _fig(0.218, 0.014, 0.218, 1.04)
     + _NOT_ORDER.format("0.223"),
-    ("bunny (16 spheres)", "sphere_orange", "direct"): _fig(0.072, 0.011, 0.071, 1.01) + _ORDER + "0.045",
+    ("bunny (16 spheres)", "sphere_orange", "direct"): _fig(0.072, 0.011, 0.071, 1.01) + _ORDER + "0.045 (the "
+    "bunny's 16 lights stay in the SH visibility: near_blockers takes one-sphere lights only)",
 }
 
 
@@ -202,11 +201,11 @@ _PAPER_DIRECT_XFAIL: dict[tuple[str, str, str], str] = {
     ("spheres", "sphere_white", "total"): _fig(0.083, 0.012, 0.082, 1.03) + _BOTH,
     ("three touching spheres", "plane", "direct"): _fig(0.054, 0.013, 0.053, 1.00) + _ORDER + "0.029",
     ("three touching spheres", "sphere_left", "direct"): _fig(0.089, 0.013, 0.088, 1.01) + _ORDER + "0.077",
-    ("three touching spheres", "sphere_left", "indirect"): _fig(0.197, 0.019, 0.196, 1.00) + _TOUCH + "0.134",
-    ("three touching spheres", "sphere_left", "total"): _fig(0.091, 0.011, 0.090, 1.00) + _BOTH,
+    ("three touching spheres", "sphere_left", "total"): _fig(0.083, 0.011, 0.082, 1.00) + _BOTH,
     ("three touching spheres", "sphere_middle", "direct"): _fig(0.079, 0.012, 0.078, 1.04) + _ORDER + "0.068",
-    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.205, 0.021, 0.204, 1.02) + _TOUCH + "0.138",
-    ("three touching spheres", "sphere_middle", "total"): _fig(0.082, 0.011, 0.081, 1.04) + _BOTH,
+    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.175, 0.021, 0.173, 1.00)
+    + "the order-4 SH visibility of the touching neighbours at the surface samples (0.143 with near_blockers=2)",
+    ("three touching spheres", "sphere_middle", "total"): _fig(0.078, 0.011, 0.077, 1.03) + _BOTH,
     ("moved sphere", "sphere_white", "direct"): _fig(0.112, 0.009, 0.111, 1.07) + _ORDER + "0.075",
     ("moved sphere", "sphere_white", "total"): _fig(0.103, 0.009, 0.103, 1.06) + _BOTH,
 }
