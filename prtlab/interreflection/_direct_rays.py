@@ -31,14 +31,14 @@ and re-cast only the samples whose segment meets a moved object's bounding spher
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
 from prtlab import brdf
 from prtlab.geometry import _embree
 from prtlab.scene import AreaLight, PointLight
+
+from ._residual import _mix, _uniform  # SplitMix64, the residual gather's counter-based streams
 
 __all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "light_terms_reference",
            "mirror_wo", "sample_count", "widened_sphere"]
@@ -81,21 +81,6 @@ def _mix_int(z: int) -> int:
 def _key(seed: int, light: int) -> int:
     """The stream key of light number ``light`` (uint64 as a Python int)."""
     return _mix_int((int(seed) & _MASK64) ^ _mix_int(((int(light) + 1) * _GOLDEN) & _MASK64))
-
-
-@numba.njit(cache=True, inline="always")
-def _mix(z):
-    """SplitMix64's finaliser (uint64 -> uint64)."""
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-@numba.njit(cache=True, inline="always")
-def _uniform(stream, counter):
-    """A uniform double in [0, 1) of ``stream`` at ``counter`` (both uint64)."""
-    z = _mix(stream + (counter + np.uint64(1)) * np.uint64(_GOLDEN))
-    return float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
 def _mix_numpy(z: np.ndarray) -> np.ndarray:

@@ -174,6 +174,26 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 _NOT_LIVE, _CAST, _HIT = 0, 1, 2
 
 
+@numba.njit(cache=True, inline="always")
+def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
+    """Traces the ray ``buf`` (``_ray``'s output, ``tmax > 0``) from ``tnear`` on through ``rtcIntersect1``
+    (staged as ``_stage_ray`` stages it, in the ray slot ``f32``/``u32`` at ``address``): whether its first hit is
+    object ``source`` (then ``u32``/``f32`` hold its triangle and barycentrics)."""
+    dx, dy, dz = buf[3], buf[4], buf[5]
+    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+    dx /= length
+    dy /= length
+    dz /= length
+    tfar = buf[7] - tnear
+    if tfar > _FLOAT32_MAX:
+        tfar = np.inf
+    if not np.float32(tfar) > 0.0:
+        return False
+    _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy, dz, tfar)
+    _embree.rtc_call(function, scene, address)
+    return u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, tnear, source,
                  function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
@@ -203,20 +223,7 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                 if not buf[7] > 0.0:
                     continue
                 state[i] = _CAST
-                dx, dy, dz = buf[3], buf[4], buf[5]
-                length = np.sqrt(dx * dx + dy * dy + dz * dz)
-                dx /= length
-                dy /= length
-                dz /= length
-                tfar = buf[7] - tnear
-                if tfar > _FLOAT32_MAX:
-                    tfar = np.inf
-                if not np.float32(tfar) > 0.0:
-                    continue
-                _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy, dz,
-                                tfar)
-                _embree.rtc_call(function, scene, address)
-                if u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source:
+                if _hits_source(buf, tnear, source, function, scene, f32, u32, address):
                     state[i] = _HIT
                     triangle[i] = np.int32(u32[_embree.HIT_PRIM])
                     uv[i, 0] = f32[_embree.HIT_U]
@@ -330,20 +337,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                     if not buf[7] > 0.0:
                         continue
                     state[i, j] = _FLAGGED_CAST
-                    dx, dy, dz = buf[3], buf[4], buf[5]
-                    length = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    dx /= length
-                    dy /= length
-                    dz /= length
-                    tfar = buf[7] - tnear
-                    if tfar > _FLOAT32_MAX:
-                        tfar = np.inf
-                    if not np.float32(tfar) > 0.0:
-                        continue
-                    _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy,
-                                    dz, tfar)
-                    _embree.rtc_call(function, scene, address)
-                    if u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source:
+                    if _hits_source(buf, tnear, source, function, scene, f32, u32, address):
                         state[i, j] = _FLAGGED_HIT
                         triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
                         uv[i, j, 0] = f32[_embree.HIT_U]

@@ -29,8 +29,8 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._kernels import _A, _B, _PMM, LOW_BANDS, _high_bands, _low_bands
 
-from ._shadows import _add_rotated_zh, _adjust, _lookup_log, _receivers, _as_spheres, _check_order, \
-    blocker_log_table, environment_transfer
+from ._shadows import _add_blocker_log, _as_spheres, _check_order, _receivers, blocker_log_table, \
+    environment_transfer
 
 __all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct"]
 
@@ -137,19 +137,8 @@ def _near_split(points, normals, centres, radii, eligible, min_sin, table, order
         for k in range(order * order):
             g_rest[b, k] = 0.0
         for s in range(n_sph):
-            if chosen[s]:
-                continue
-            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
-            if r <= 0.0:
-                continue
-            dx, dy, dz = cx - px, cy - py, cz - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if d <= 0.0:
-                continue
-            st = r / d
-            theta = 0.5 * math.pi if st >= 1.0 else math.asin(st)
-            _lookup_log(theta, table, order, g)
-            _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, g_rest[b])
+            if not chosen[s]:
+                _add_blocker_log(points[b], normals[b], centres[s], radii[s], table, order, g, ybuf, g_rest[b])
 
 
 @numba.njit(cache=True, inline="always")

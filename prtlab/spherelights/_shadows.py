@@ -323,20 +323,27 @@ def _blocker_log_sum(points, normals, centres, radii, table, order, out):
         g = np.empty(order)
         for k in range(order * order):
             out[b, k] = 0.0
-        px, py, pz = points[b, 0], points[b, 1], points[b, 2]
-        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
         for s in range(n_sph):
-            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, centres[s, 0], centres[s, 1], centres[s, 2], radii[s])
-            if r <= 0.0:
-                continue
-            dx, dy, dz = cx - px, cy - py, cz - pz
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if d <= 0.0:
-                continue
-            sin_t = r / d
-            theta = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
-            _lookup_log(theta, table, order, g)
-            _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, out[b])
+            _add_blocker_log(points[b], normals[b], centres[s], radii[s], table, order, g, ybuf, out[b])
+
+
+@numba.njit(cache=True, inline="always")
+def _add_blocker_log(point, normal, centre, radius, table, order, g, ybuf, out):
+    """``out += rot(g(theta))``: the log of one blocker (``centre``, ``radius``) horizon-adjusted at the receiver
+    (Eqs. 6-7, Ren et al.'s rule); nothing where it lies below the horizon or at the receiver. ``g (order,)`` and
+    ``ybuf (1, order**2)`` are scratch."""
+    px, py, pz = point[0], point[1], point[2]
+    cx, cy, cz, r = _adjust(px, py, pz, normal[0], normal[1], normal[2], centre[0], centre[1], centre[2], radius)
+    if r <= 0.0:
+        return
+    dx, dy, dz = cx - px, cy - py, cz - pz
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if d <= 0.0:
+        return
+    sin_t = r / d
+    theta = 0.5 * math.pi if sin_t >= 1.0 else math.asin(sin_t)
+    _lookup_log(theta, table, order, g)
+    _add_rotated_zh(g, dx / d, dy / d, dz / d, order, ybuf, 1.0, out)
 
 
 # --------------------------------------------------------------------------- validation
