@@ -25,17 +25,24 @@ def indirect_pass_kernel(transfer, light_sh, out):
 def shell_resample_kernel(image, taps, weights, out):
     """out[t, c] = sum_s weights[t, s] * image[taps[t, s], c]: equirect pixels to cubemap texel averages.
 
-    Serial on purpose: ~3e5 multiply-adds per frame (32^2 texels x 16 taps x 3), well under a millisecond,
-    where a parallel region's start-up and a descheduled worker thread on a shared machine cost more.
+    Serial on purpose: ~1e6 multiply-adds per frame at res 64 (well under a millisecond), where a parallel region's
+    start-up and a descheduled worker thread on a shared machine cost more. The three channels share each tap's
+    load; the tap index is read as unsigned (no negative-index branch); sums in the order of the taps.
     """
     n_texels, n_taps = taps.shape
-    n_channels = image.shape[1]
     for t in range(n_texels):
-        for c in range(n_channels):
-            acc = 0.0
-            for s in range(n_taps):
-                acc += weights[t, s] * image[taps[t, s], c]
-            out[t, c] = acc
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for s in range(n_taps):
+            w = weights[t, s]
+            p = np.uint64(taps[t, s])
+            a0 += w * image[p, 0]
+            a1 += w * image[p, 1]
+            a2 += w * image[p, 2]
+        out[t, 0] = a0
+        out[t, 1] = a1
+        out[t, 2] = a2
 
 
 @numba.njit(cache=True, inline="always")
@@ -189,15 +196,17 @@ def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
         out[v, 2] = a2
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, fastmath=True)
 def source_light_kernel(indptr, columns, values, light, out):
     """``out[c, ch] = sum_e values[e, ch] light[columns[e], ch]`` over the CSR rows ``c`` (the patches' mean direct
-    radiance from the shell light's pulse and Haar coefficients, :class:`prtlab.portals._surface.SourceOperator`)."""
+    radiance from the shell light's pulse and Haar coefficients, :class:`prtlab.portals._surface.SourceOperator`).
+    ``columns`` unsigned (uint32): a signed index costs a negative-index branch per entry. ``fastmath``: the sums
+    may be reassociated (float64 roundoff; inputs are finite)."""
     n_rows = indptr.shape[0] - 1
     for c in numba.prange(n_rows):
         a0 = a1 = a2 = 0.0
-        for e in range(indptr[c], indptr[c + 1]):
-            k = columns[e]
+        for e in range(np.uint64(indptr[c]), np.uint64(indptr[c + 1])):
+            k = np.uint64(columns[e])
             a0 += values[e, 0] * light[k, 0]
             a1 += values[e, 1] * light[k, 1]
             a2 += values[e, 2] * light[k, 2]
@@ -207,23 +216,45 @@ def source_light_kernel(indptr, columns, values, light, out):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
-def bounce_light_kernel(sums, source, out):
-    """``out[ch, c] = sum_d sums[c, d, ch] float32(source[d, ch])`` in float32 (``S_B s``, channel-major out)."""
-    n = sums.shape[0]
-    s0 = source[:, 0].astype(np.float32)
-    s1 = source[:, 1].astype(np.float32)
-    s2 = source[:, 2].astype(np.float32)
-    for c in numba.prange(n):
-        a0 = np.float32(0.0)
-        a1 = np.float32(0.0)
-        a2 = np.float32(0.0)
+def bounce_light_kernel(sums_t, source, out):
+    """``out[ch, c] = sum_d sums_t[ch, c, d] float32(source[d, ch])`` in float32 (``S_B s``): channel-major sums
+    ``(3, C, C)`` and out ``(3, C)``, one contiguous row ``(ch, c)`` per iteration (the sum over ``d`` vectorises)."""
+    n_channels, n, _ = sums_t.shape
+    source_t = np.empty((n_channels, n), dtype=np.float32)
+    for ch in range(n_channels):
         for d in range(n):
-            a0 += sums[c, d, 0] * s0[d]
-            a1 += sums[c, d, 1] * s1[d]
-            a2 += sums[c, d, 2] * s2[d]
-        out[0, c] = a0
-        out[1, c] = a1
-        out[2, c] = a2
+            source_t[ch, d] = np.float32(source[d, ch])
+    for r in numba.prange(n_channels * n):
+        ch = r // n
+        c = r - ch * n
+        row = sums_t[ch, c]
+        s = source_t[ch]
+        acc = np.float32(0.0)
+        for d in range(n):
+            acc += row[d] * s[d]
+        out[ch, c] = acc
+
+
+@numba.njit(cache=True)
+def light_layout_kernel(light, light_t, lit, light32_t):
+    """The shell light's coefficients ``light (2 T, 3)`` in the direct pass's layouts: ``light_t (3, 2 T)``
+    channel-major float64, ``lit (T + 1,)`` the running count of texels with a non-zero channel, ``light32_t (3, T)``
+    the texels in float32. One serial pass (``6 T`` values)."""
+    n2 = light.shape[0]
+    n = n2 // 2
+    lit[0] = 0
+    for k in range(n2):
+        x0 = light[k, 0]
+        x1 = light[k, 1]
+        x2 = light[k, 2]
+        light_t[0, k] = x0
+        light_t[1, k] = x1
+        light_t[2, k] = x2
+        if k < n:
+            light32_t[0, k] = np.float32(x0)
+            light32_t[1, k] = np.float32(x1)
+            light32_t[2, k] = np.float32(x2)
+            lit[k + 1] = lit[k] + (1 if (x0 != 0.0 or x1 != 0.0 or x2 != 0.0) else 0)
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
