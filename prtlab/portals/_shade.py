@@ -135,7 +135,8 @@ def direct_from_light(direct: SparseTransfer, albedo, light) -> np.ndarray:
         run_ptr, run_start, run_len = texel_runs(direct)
         light = np.ascontiguousarray(light, dtype=np.float64)
         n = len(light) // 2
-        light_t, lit, light32_t = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32), np.empty((3, n), np.float32)
+        light_t, lit = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32)
+        light32_t = np.empty((3, n + 7), np.float32)  # 7 zero columns for the runs' masked lanes
         _kernels.light_layout_kernel(light, light_t, lit, light32_t)
         with _threads_for(3 * len(direct.codes)):
             _kernels.direct_runs_kernel(direct.indptr, run_ptr, run_start, run_len, direct.indices, direct.codes,
