@@ -109,9 +109,10 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
     light's resolution) ends the loop early, which keeps LLVM from vectorising it with gathers (0.83x of the
     gathers' time, one thread; the same in :func:`source_light_kernel`).
 
-    A run's entries go 8 at a time through the vectorised loop and its last ``length mod 8`` as 7 masked lanes into
-    separate sums (runs average 11.7 entries at res 64: the vectorised loop's scalar remainder, one dependency chain
-    through the row's sums, took a third of the pass).
+    A run of 8 entries or more goes 8 at a time through the vectorised loop and its last ``length mod 8`` as 7
+    masked lanes into separate sums (runs average 11.7 entries at res 64: the vectorised loop's scalar remainder, one
+    dependency chain through the row's sums, took a third of the pass); a shorter run (res 32 averages 4.4) in a
+    plain loop into those sums.
 
     Pulse rows sum in float32 from ``light32_t`` (forward error at most ``(n + 2) eps_32`` times the row's sum of
     absolute terms, ``n`` its entries; measured 5e-7 of the 45k frame's largest value, against the 8-bit codes'
@@ -157,7 +158,14 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
                         b1 += w * f1[k]
                         b2 += w * f2[k]
                     rest = m - m8
-                    if rest != 0:
+                    if m8 == 0:  # a short run: its entries in a plain loop (7 lanes would cost more)
+                        for t in range(m):
+                            w = np.float32(codes[e + t])
+                            k = k0 + t
+                            c0 += w * f0[k]
+                            c1 += w * f1[k]
+                            c2 += w * f2[k]
+                    elif rest != 0:
                         e8 = e + m8
                         k8 = k0 + m8
                         if e8 + seven < n_codes:  # the last 1..7 entries as 7 masked lanes, no loop
