@@ -133,16 +133,15 @@ def direct_from_light(direct: SparseTransfer, albedo, light) -> np.ndarray:
     out = np.empty((direct.n_vertices, 3))
     if direct.n_vertices:
         run_ptr, run_start, run_len = texel_runs(direct)
-        light = np.asarray(light, dtype=np.float64)
+        light = np.ascontiguousarray(light, dtype=np.float64)
         n = len(light) // 2
-        lit = np.zeros(n + 1, dtype=np.int32)
-        np.cumsum(np.any(light[:n] != 0.0, axis=1), out=lit[1:])
+        light_t, lit = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32)
+        light32_t = np.empty((3, n + 7), np.float32)  # 7 zero columns for the runs' masked lanes
+        _kernels.light_layout_kernel(light, light_t, lit, light32_t)
         with _threads_for(3 * len(direct.codes)):
             _kernels.direct_runs_kernel(direct.indptr, run_ptr, run_start, run_len, direct.indices, direct.codes,
-                                        direct.scale, direct.basis, np.int64(direct.sign_bit),
-                                        np.ascontiguousarray(light.T), lit,
-                                        np.ascontiguousarray(light[:n].T, dtype=np.float32),
-                                        np.ascontiguousarray(albedo), out)
+                                        direct.scale, direct.basis, np.int64(direct.sign_bit), light_t, lit,
+                                        light32_t, np.ascontiguousarray(albedo), out)
     return out
 
 

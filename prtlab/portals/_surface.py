@@ -233,15 +233,19 @@ class SurfaceTransfer:
         self.identity = self.n_patches == len(self.patch) and np.array_equal(self.patch, np.arange(len(self.patch)))
         self.albedo = np.asarray(albedo, dtype=np.float64)
         self.operator = np.asarray(operator)
-        self.sums = {int(b): np.ascontiguousarray(s, dtype=np.float32) for b, s in sums.items()}
+        self.sums = {int(b): _channel_major(s) for b, s in sums.items()}  # (3, C, C) float32
         self.project = None if project is None else np.asarray(project, dtype=np.float64)
         self.mass = mass if (limit and mass is not None and self.project is not None) else None
         self.areas = np.asarray(areas, dtype=np.float64)
 
     def bounce_sum(self, b: int) -> np.ndarray:
-        """``S_b`` (computed from ``H`` and kept when not stored)."""
+        """``S_b``, ``(C, C, 3)`` float32 (a view of the channel-major ``(3, C, C)`` copy the frame reads; computed
+        from ``H`` and kept when not stored)."""
+        return self._bounce_sum_t(b).transpose(1, 2, 0)
+
+    def _bounce_sum_t(self, b: int) -> np.ndarray:
         if b not in self.sums:
-            self.sums[b] = power_sum(self.operator, b, self.project).astype(np.float32)
+            self.sums[b] = _channel_major(power_sum(self.operator, b, self.project))
         return self.sums[b]
 
     def patch_source(self, direct) -> np.ndarray:
@@ -270,21 +274,21 @@ class SurfaceTransfer:
         n = len(self.patch)
         if bounces <= 0:
             return np.zeros((n, 3))
-        sums = self.bounce_sum(int(bounces))
         if method not in ("numba", "reference"):
             raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
         correction = self.source_correction(source)
         if method == "reference":
-            light = np.einsum("cdk,dk->ck", sums.astype(np.float64), source)
+            light = np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), source)
             if correction is not None:
                 light += correction
             gather = self.codes.astype(np.float64) * self.scale.astype(np.float64)[:, None]
             return self.albedo * (gather @ light)
         from ._shade import _threads_for
 
+        sums_t = self._bounce_sum_t(int(bounces))
         light_t = np.empty((3, self.n_patches), dtype=np.float32)
-        with _threads_for(sums.size):
-            _kernels.bounce_light_kernel(sums, np.ascontiguousarray(source), light_t)
+        with _threads_for(sums_t.size):
+            _kernels.bounce_light_kernel(sums_t, np.ascontiguousarray(source), light_t)
         if correction is not None:
             light_t += correction.T.astype(np.float32)
         out = np.empty((n, 3))
@@ -348,7 +352,7 @@ class SourceOperator:
         for ch in range(3):
             self.values[:, ch] = np.bincount(where, weights=code * (weight * albedo[:, ch])[rows],
                                              minlength=len(keys))
-        self.columns = (keys % (2 * n_texels)).astype(np.int32)
+        self.columns = (keys % (2 * n_texels)).astype(np.uint32)
         self.indptr = np.searchsorted(keys // (2 * n_texels), np.arange(n_patches + 1)).astype(np.int64)
         self.res = int(source.res)
 
@@ -365,6 +369,11 @@ class SourceOperator:
         with _threads_for(3 * len(self.columns)):
             _kernels.source_light_kernel(self.indptr, self.columns, self.values, np.ascontiguousarray(light), out)
         return out
+
+
+def _channel_major(sums) -> np.ndarray:
+    """``(C, C, 3)`` bounce sums as contiguous float32 ``(3, C, C)``: each channel's rows contiguous for the frame."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(sums), 2, 0), dtype=np.float32)
 
 
 def quantize_rows(gather):

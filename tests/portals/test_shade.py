@@ -183,3 +183,26 @@ def test_passes_on_all_threads_match_reference(monkeypatch, rng):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     np.testing.assert_allclose(glossy_indirect_pass(m, c, d), glossy_indirect_pass(m, c, d, "reference"), rtol=1e-9,
                                atol=1e-9)
+
+
+@given(res=st.sampled_from([1, 2, 4]), black=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
+def test_light_layout_kernel_is_exact(res, black, seed):
+    """The direct pass's light layouts in one pass: channel-major float64, float32 texels (then 7 zero columns) and
+    the running count of lit texels, each exactly numpy's (a texel is lit when any channel is non-zero, negative
+    values included)."""
+    from prtlab.portals import _kernels
+    from prtlab.portals._shade import shell_coefficients
+
+    rng = np.random.default_rng(seed)
+    cube = rng.normal(size=(6, res, res, 3)) * 10
+    cube[rng.random((6, res, res)) < black] = 0.0
+    cube[rng.random((6, res, res, 3)) < 0.2] = 0.0  # single black channels: still lit
+    light = shell_coefficients(cube)
+    n = len(light) // 2
+    light_t, lit = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32)
+    light32_t = np.full((3, n + 7), np.nan, np.float32)
+    _kernels.light_layout_kernel(light, light_t, lit, light32_t)
+    np.testing.assert_array_equal(light_t, light.T)
+    np.testing.assert_array_equal(light32_t[:, :n], light[:n].T.astype(np.float32))
+    np.testing.assert_array_equal(light32_t[:, n:], 0.0)  # the masked lanes' texels: zero, finite
+    np.testing.assert_array_equal(lit, np.concatenate([[0], np.cumsum(np.any(light[:n] != 0.0, axis=1))]))

@@ -7,6 +7,8 @@ white-furnace-like room (closed, no window, every vertex sending radiance 1): ev
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from prtlab.geometry import RayCaster
 from prtlab.portals import Portals
@@ -215,3 +217,54 @@ def test_reported_gather_noise_matches_seed_spread():
     assert 0.7 < reported / spread < 1.3, (reported, spread)
     noise = pres[0].shade(bounces=2).info["indirect_noise"]
     assert np.isclose(noise, reported / np.sqrt(np.mean(ind[0] ** 2)), rtol=1e-3)
+
+
+@given(n_vertices=st.integers(0, 40), n_patches=st.integers(1, 24), bounces=st.integers(1, 5),
+       seed=st.integers(0, 2**32 - 1))
+def test_surface_frame_tiers(n_vertices, n_patches, bounces, seed):
+    """The numba frame (``S_B s`` over channel-major float32 sums, the 16-bit gather product in float32 sums) against
+    the float64 reference tier within the float32 sums' forward error bound ``2 (C + 2) eps_32`` times the same
+    products of absolute values; ``bounce_sum`` gives back the ``(C, C, 3)`` sums it was given (as float32)."""
+    rng = np.random.default_rng(seed)
+    gather = rng.random((n_vertices, n_patches)) * (rng.random((n_vertices, n_patches)) < 0.6)
+    patch = rng.integers(0, n_patches, n_vertices)
+    areas = rng.random(n_vertices) + 0.1
+    albedo = rng.random((n_vertices, 3))
+    sums = rng.normal(size=(n_patches, n_patches, 3))
+    surface = SurfaceTransfer(gather, patch, areas, albedo, np.zeros((n_patches, n_patches, 3)), {bounces: sums})
+    np.testing.assert_array_equal(surface.bounce_sum(bounces), sums.astype(np.float32))
+    source = rng.normal(size=(n_patches, 3)) * 5
+    ours, ref = surface.frame(source, bounces), surface.frame(source, bounces, method="reference")
+    assert ours.shape == ref.shape == (n_vertices, 3)
+    bound_light = np.einsum("cdk,dk->ck", np.abs(surface.bounce_sum(bounces).astype(np.float64)), np.abs(source))
+    decoded = surface.codes.astype(np.float64) * surface.scale.astype(np.float64)[:, None]
+    bound = 2 * (n_patches + 2) * np.finfo(np.float32).eps * albedo * (decoded @ bound_light)
+    assert np.all(np.abs(ours - ref) <= bound)
+
+
+@given(n_vertices=st.integers(0, 30), n_patches=st.integers(1, 8), density=st.floats(0.0, 1.0),
+       basis=st.sampled_from(["auto", "pulse", "haar"]), seed=st.integers(0, 2**32 - 1))
+def test_source_operator_against_the_float64_source_pass(n_vertices, n_patches, density, basis, seed):
+    """``G L`` (:class:`SourceOperator`: unsigned columns, reassociated float64 sums) against the patch mean of the
+    float64 reference direct pass over the same 8-bit source transfer, to 1e-12 of the sums of absolute terms."""
+    from prtlab.bench import transfer_csr
+    from prtlab.portals import direct_pass
+    from prtlab.portals._shade import shell_coefficients
+    from prtlab.wavelet import encode_transfer
+
+    rng = np.random.default_rng(seed)
+    transfer = np.where(rng.random((n_vertices, 6, 4, 4)) < density, rng.random((n_vertices, 6, 4, 4)), 0.0)
+    transfer[::4] = rng.normal(size=transfer[::4].shape)  # signed rows: Haar under "auto" at times
+    source = encode_transfer(transfer, basis)
+    patch = rng.integers(0, n_patches, n_vertices)
+    areas = rng.random(n_vertices) + 0.1
+    albedo = rng.random((n_vertices, 3))
+    surface = SurfaceTransfer(np.ones((n_vertices, n_patches)), patch, areas, albedo,
+                              np.zeros((n_patches, n_patches, 3)), {})
+    cube = rng.random((6, 4, 4, 3)) * 10
+    light = shell_coefficients(cube)
+    ours = surface.source_operator(source).apply(light)
+    ref = surface.patch_source(direct_pass(source, albedo, cube, method="reference"))
+    absolute = surface.patch_source((abs(transfer_csr(source)) @ np.abs(light)) * albedo)
+    assert ours.shape == (n_patches, 3)
+    assert np.all(np.abs(ours - ref) <= 1e-12 * absolute + 1e-300)
