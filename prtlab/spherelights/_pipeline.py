@@ -543,14 +543,11 @@ class SphereLights(Precomputation):
         receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light."""
         opts = self.options
         spts, snrm, svalid = world.sample_points, world.sample_normals, world.sample_valid
-        extra = None
-        near = self._near_samples(lights, spts, snrm, svalid)
-        if near is not None:
-            extra = near
+        extra = self._near_samples(lights, spts, snrm, svalid)  # None without near_blockers
         if svalid.any() and (lights.n_loc or ground_below):
             extra = np.zeros(svalid.shape + (3,)) if extra is None else extra
             if lights.n_loc:  # the second pass's computation at the surface samples, local lights only
-                extra[svalid] = self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
+                extra[svalid] += self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
             if ground_below:  # ground -> object: the ground's direct light reaches the samples
                 tex = self._ground_textures(ground_below, lambda p, n: self._irradiance(
                     lights, p, n, lights.local_only, False, near=False)[0], transforms)
