@@ -222,6 +222,20 @@ def frame_shadows_only(quick: bool) -> dict:
             "items": _n(quick), "peer": None, "floor": floor(*frame_floor(a, "object", False), FLOOR_FORMULA)}
 
 
+def _ground_texels(a):
+    """The 6 x 6 ground's 64 x 64 texel centres, their normals, which receivers lie above it, its rectangle."""
+    g = 3.0 * (-1.0 + (np.arange(64) + 0.5) / 32.0)
+    texels = np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
+    up = np.broadcast_to([0.0, 1.0, 0.0], texels.shape)
+    return texels, up, a["points"][:, 1] > 0, np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+
+
+def _ground_direct(a, texels, up):
+    """The ground texture's shadows-only pass at ``ORDER``, as the pipeline runs it."""
+    return second_pass(texels, up, a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
+                       np.zeros((N_LIGHTS, ORDER * ORDER, 3)), a["env"], indirect=False)[0]
+
+
 @case("spherelights.frame.per_object_ground.21k")
 def frame_per_object_ground(quick: bool) -> dict:
     """The per-object frame with the ground taking part (``ground="reflects"``): plus the ground's texture (a 64 x
@@ -229,16 +243,11 @@ def frame_per_object_ground(quick: bool) -> dict:
     from prtlab.spherelights import ground_light
 
     a = _scene_arrays(_n(quick))
-    g = 3.0 * (-1.0 + (np.arange(64) + 0.5) / 32.0)
-    texels = np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
-    up = np.broadcast_to([0.0, 1.0, 0.0], texels.shape)
-    above = a["points"][:, 1] > 0
-    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+    texels, up, above, rect = _ground_texels(a)
 
     def run():
         _frame(a, "object")
-        e, _ = second_pass(texels, up, a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
-                           np.zeros_like(a["albedo"]), a["env"], indirect=False)
+        e = _ground_direct(a, texels, up)
         tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
         return ground_light(a["points"][above], a["normals"][above], rect, tex, a["env"], a["centres"], a["radii"])
 
@@ -259,17 +268,12 @@ def frame_per_object_ground_near(quick: bool) -> dict:
     from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
 
     a = _scene_arrays(_n(quick))
-    g = 3.0 * (-1.0 + (np.arange(64) + 0.5) / 32.0)
-    texels = np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
-    up = np.broadcast_to([0.0, 1.0, 0.0], texels.shape)
-    above = a["points"][:, 1] > 0
-    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+    texels, up, above, rect = _ground_texels(a)
     balls = a["sl_object"] > 0  # the one-sphere objects
 
     def run(near):
         direct, _ = _frame(a, "object")
-        e, _ = second_pass(texels, up, a["centres"], a["radii"], a["sl_object"], a["inter"], a["rot"],
-                           np.zeros_like(a["albedo"]), a["env"], indirect=False)
+        e = _ground_direct(a, texels, up)
         if near:  # as the pipeline: the receivers with a large one-sphere blocker again
             for pts, nrm, out in ((a["points"], a["normals"], direct), (texels, up, e)):
                 sel = has_near_blocker(pts, nrm, a["centres"], a["radii"], balls)
