@@ -298,6 +298,7 @@ class SurfaceTransfer:
         self.project = None if project is None else np.asarray(project, dtype=np.float64)
         self.mass = mass if (limit and mass is not None and self.project is not None) else None
         self.areas = np.asarray(areas, dtype=np.float64)
+        self._all_rows = np.arange(len(self.codes), dtype=np.int64)
         self.near = None if near is None else tuple(near)
         if self.near is not None:  # the vertices whose point values near hits read
             self.partners = np.unique(self.near[1].indices).astype(np.int64)
@@ -344,17 +345,24 @@ class SurfaceTransfer:
         if method not in ("numba", "reference"):
             raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
         light = self._light(source, int(bounces), method)
-        if method == "reference":
-            out = self.albedo * (self._decoded() @ light)
-        else:
-            from ._shade import _threads_for
-
-            out = np.empty((n, 3))
-            with _threads_for(self.codes.size * 3):
-                _kernels.gather_product_kernel(self.codes, self.scale, np.ascontiguousarray(light.T), self.albedo,
-                                               out)
+        out = self._gather(light, self._all_rows, method)
         if self.near is not None and direct is not None:
             out += self.near_correction(source, int(bounces), light, direct, method)
+        return out
+
+    def _gather(self, light, rows, method: str) -> np.ndarray:
+        """``rho F light`` at the vertices ``rows``, ``(len(rows), 3)`` float64: the 16-bit gather product in float32
+        sums (``"numba"``) or decoded to float64 (``"reference"``)."""
+        if method == "reference":
+            codes = self.codes if len(rows) == len(self.codes) else self.codes[rows]
+            scale = self.scale[rows].astype(np.float64)
+            return self.albedo[rows] * ((codes.astype(np.float64) * scale[:, None]) @ light)
+        from ._shade import _threads_for
+
+        out = np.empty((len(rows), 3))
+        albedo = self.albedo if len(rows) == len(self.codes) else np.ascontiguousarray(self.albedo[rows])
+        with _threads_for(len(rows) * self.n_patches * 3):
+            _kernels.gather_product_kernel(self.codes, self.scale, np.ascontiguousarray(light.T), albedo, out, rows)
         return out
 
     def _light(self, source, bounces: int, method: str) -> np.ndarray:
@@ -373,11 +381,6 @@ class SurfaceTransfer:
             light_t += correction.T.astype(np.float32)
         return light_t.T
 
-    def _decoded(self, rows=None) -> np.ndarray:
-        """The gather (its ``rows``, default all) decoded to float64."""
-        codes, scale = (self.codes, self.scale) if rows is None else (self.codes[rows], self.scale[rows])
-        return codes.astype(np.float64) * scale.astype(np.float64)[:, None]
-
     def near_correction(self, source, bounces: int, light, direct, method: str = "numba") -> np.ndarray:
         """What the near hits' point reads change in ``L_ind``, ``(V, 3)`` float64.
 
@@ -393,9 +396,7 @@ class SurfaceTransfer:
         near_patch, near_point = self.near
         point = np.array(direct, dtype=np.float64)
         if bounces > 1:
-            rows = self.partners
-            previous = np.asarray(self._light(source, bounces - 1, method), dtype=np.float64)
-            point[rows] += self.albedo[rows] * (self._decoded(rows) @ previous)
+            point[self.partners] += self._gather(self._light(source, bounces - 1, method), self.partners, method)
         return self.albedo * (near_point @ point - near_patch @ np.asarray(light, dtype=np.float64))
 
     def source_correction(self, source):
