@@ -57,12 +57,13 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_op
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
-from ._direct import PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, view_interpolation
+from ._direct import (PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, strip_frame, strip_weights,
+                      view_interpolation)
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
                      glossy_indirect_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
-from ._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix, patch_gather,
+from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix, patch_gather,
                        patch_operator, power_sum, quantize_rows, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
@@ -120,6 +121,14 @@ class PortalsOptions:
         many (memory and per-frame cost grow as vertices x clusters).
     seed : int
         Random seed of the photons and of the direct and gather samples.
+    portal_strips : int
+        0: the paper's fixed portal. ``K > 0``: a window whose aperture opens and closes per frame (a shutter or
+        blind; the paper's future work): the direct transfer and the hat-averaged source transfer are stored per
+        strip of each portal, ``K`` strips stacked along its edge nearest the vertical (parallelogram portals
+        only; ``indirect="surface"`` only), and each frame sums the open strips (a part-open strip weighted by
+        its open fraction); the open part is the portal object's deformation in ``FrameState.deformations``
+        (:meth:`Portals.opening_vertices`). About ``K / 2`` times the direct storage and frame time at ``K = 8``;
+        measured in ``docs/notes/portals.md`` (section 10).
     """
 
     cube_resolution: int = 0
@@ -137,11 +146,12 @@ class PortalsOptions:
     indirect: str = "auto"
     clusters: int = 1024
     seed: int = 0
+    portal_strips: int = 0
 
     def __post_init__(self):
         check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "order", "photon_k",
                                  "view_res", "clusters"))
-        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution"), minimum=0)
+        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution", "portal_strips"), minimum=0)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
@@ -250,9 +260,9 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     encoded = []
     for b0 in range(rows.start, rows.stop, _DIRECT_BATCH):  # bounds the dense cubemaps and the encoder's arrays
         b = slice(b0, min(rows.stop, b0 + _DIRECT_BATCH))
-        encoded.append(encode_transfer(direct_transfer(caster, interior.points[b], interior.normals[b], portal,
-                                                       options.direct_samples, res, rng,
-                                                       sampler=options.portal_sampler), basis))
+        t = direct_transfer(caster, interior.points[b], interior.normals[b], portal, options.direct_samples, res,
+                            rng, sampler=options.portal_sampler, strips=options.portal_strips)
+        encoded.append(encode_transfer(t.reshape(-1, 6, res, res), basis))  # with strips: row v K + j
     entry = _concat_encoded(encoded)
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
@@ -280,7 +290,8 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     """``indirect="surface"``: the direct transfer averaged over each vertex's hat function (``source_*``, 8-bit
     like the direct transfer), the light a vertex sends on: a sun patch's power is kept whatever the mesh (point
     values at 0.5 m vertices put 4.5% less sun on the sunlit room's floor). ``direct_samples / split^2`` portal
-    samples per sub-point (as many rays per vertex as the direct transfer, about twice over)."""
+    samples per sub-point (as many rays per vertex as the direct transfer, about twice over). With
+    ``portal_strips`` one row per vertex and strip, as the direct transfer."""
     res = options.cube_resolution
     n_samples = max(1, options.direct_samples // _HAT_SPLIT**2)
     encoded = []
@@ -288,11 +299,11 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
         sub = slice(r0, min(rows.stop, r0 + _DIRECT_BATCH))
         points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
         weights = weights.tocsc()
-        dense = np.zeros((sub.stop - sub.start, 6 * res * res))
+        dense = np.zeros((sub.stop - sub.start, max(options.portal_strips, 1) * 6 * res * res))
         for b0 in range(0, len(points), 512):
             b = slice(b0, b0 + 512)
             t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng,
-                                sampler=options.portal_sampler)
+                                sampler=options.portal_sampler, strips=options.portal_strips)
             dense += weights[:, b] @ t.reshape(len(t), -1)
         encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
     return _concat_encoded(encoded, "source_")
@@ -387,11 +398,12 @@ def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> di
         return {"stderr": np.zeros(albedo.shape, np.float32), "noise": np.array(float("nan"))}
     cube = shell_light(scene.environment, options.cube_resolution)
     source = np.zeros_like(albedo)
+    n_strips = max(options.portal_strips, 1)
     for k in range(int(data["n_portals"])):
         p = data[f"portal{k}"]
         src = SparseTransfer(p["source_indptr"], p["source_indices"], p["source_codes"], p["source_scale"],
                              p["source_basis"], options.cube_resolution)
-        source += direct_pass(src, albedo, cube)
+        source += _strip_sum(direct_pass(src, _open_albedo(albedo, np.ones(n_strips)), cube), n_strips)
     st = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"], albedo, e["operator"],
                          {options.bounces: e["sum"]}, e.get("project"))
     u = st.patch_light(source, options.bounces).astype(np.float64)
@@ -400,6 +412,17 @@ def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> di
     scale = float(np.mean(indirect**2))
     noise = float(np.sqrt(np.mean(stderr**2) / scale)) if scale > 0 else 0.0
     return {"stderr": stderr.astype(np.float32), "noise": np.array(noise)}
+
+
+def _open_albedo(albedo, weights) -> np.ndarray:
+    """``(V K, 3)``: each vertex's albedo times each strip's open fraction ``weights (K,)``, row ``v K + j`` (the
+    rows of a per-strip transfer, ``portal_strips``)."""
+    return (np.asarray(albedo)[:, None, :] * np.asarray(weights, dtype=np.float64)[None, :, None]).reshape(-1, 3)
+
+
+def _strip_sum(rows, n_strips: int) -> np.ndarray:
+    """``(V K, 3)`` per-strip rows (row ``v K + j``) summed per vertex, ``(V, 3)``."""
+    return rows if n_strips == 1 else rows.reshape(-1, n_strips, 3).sum(axis=1)
 
 
 def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
@@ -444,6 +467,8 @@ class Portals(Precomputation):
     renamed_options = {"res": "cube_resolution"}
     resumable = True
     baked_reason = "the portals method precomputes the interior"
+    #: a portal object's deformation is its open part (option ``portal_strips``); no other object deforms
+    supports_deformations = True
 
     #: vertices per precomputation chunk (one resumable cache part each)
     chunk_vertices: int = 2048
@@ -529,6 +554,15 @@ class Portals(Precomputation):
         if options.indirect == "surface" and glossy:
             raise ValueError(f"option indirect='surface' needs a diffuse interior, but {glossy[0]!r} is glossy: "
                              "use indirect='paper' (or 'auto')")
+        if options.portal_strips:
+            if cls.indirect_mode(scene, options) != "surface":
+                why = f"{glossy[0]!r} is glossy, so indirect='auto' is 'paper'" if glossy else "indirect='paper'"
+                raise ValueError(f"option portal_strips needs indirect='surface' (the photon SH transfer of "
+                                 f"indirect='paper' is made with the whole window open), but {why}: use "
+                                 "portal_strips=0 (a fixed window)")
+            names = [o.name for o in scene.objects if o.portal]
+            for portal in find_portals(scene, [names] if options.merge_portals else None):
+                strip_frame(portal)  # refuses a portal that is not one parallelogram
         super().check_scene(scene, cls.resolved(scene, options))
 
     @classmethod
@@ -538,8 +572,9 @@ class Portals(Precomputation):
         final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
         rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
         operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
-        hat-averaged source transfer. The estimate is an upper bound (photons bounded by one per
-        bounce); measured against the peak resident memory in ``docs/notes/portals.md``."""
+        hat-averaged source transfer; with ``portal_strips`` the direct and source transfers per strip. The estimate
+        is an upper bound (photons bounded by one per bounce); measured against the peak resident memory in
+        ``docs/notes/portals.md``."""
         options = cls.resolved(scene, options)
         objs = _shaded(scene)
         n_v = sum(o.n_vertices for o in objs)
@@ -549,15 +584,21 @@ class Portals(Precomputation):
         n_out2 = (options.glossy_order or options.order) ** 2
         texels = 6.0 * options.cube_resolution**2
         views = 6.0 * options.view_res**2
+        strips = max(options.portal_strips, 1)
+        # stored entries of a vertex's direct rows: every texel (pulse worst case); per strip at most every texel
+        # and, in pulse, one per portal sample in all (the strips' samples add up to direct_samples)
+        direct_entries = texels if strips == 1 else (
+            strips * texels if options.direct_basis == "haar" else min(strips * texels,
+                                                                      max(texels, float(options.direct_samples))))
         per_vertex_gather = 4.0 * options.gather_rays * b * n2 * 3 * 8
         needs = [
             MemoryNeed("the per-bounce SH transfer", n_p * (n_v * b * n2 * 3 * 12.0 + n_g * b * n_out2 * n2 * 3 * 12.0)
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
-            MemoryNeed("the dense direct transfer cubemaps", min(n_v, _DIRECT_BATCH) * texels * 8.0 * 8,
-                       ("cube_resolution",)),
-            MemoryNeed("the encoded direct transfer", n_p * (n_v + n_g * views) * texels * 5.0,
-                       ("cube_resolution", "view_res")),
+            MemoryNeed("the dense direct transfer cubemaps", min(n_v, _DIRECT_BATCH) * strips * texels * 8.0 * 8,
+                       ("cube_resolution", "portal_strips")),
+            MemoryNeed("the encoded direct transfer", n_p * (n_v * direct_entries + n_g * views * texels) * 5.0,
+                       ("cube_resolution", "view_res", "portal_strips")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
                        ("view_res", "cube_resolution")),
             MemoryNeed("the final-gather rays", 0.0 if b == 0 else min(min(n_v, 512) * per_vertex_gather,
@@ -572,8 +613,9 @@ class Portals(Precomputation):
                 MemoryNeed("the interior gather (vertices x clusters)", n_v * c * (4 + 4 + 8 + 2.0), ("clusters",)),
                 MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
                            + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
-                MemoryNeed("the hat-averaged source transfer", n_p * n_v * texels * 5.0
-                           + (min(n_v, _DIRECT_BATCH) + 512) * texels * 8.0, ("cube_resolution",)),
+                MemoryNeed("the hat-averaged source transfer", n_p * n_v * strips * texels * 5.0
+                           + (min(n_v, _DIRECT_BATCH) + 512) * strips * texels * 8.0,
+                           ("cube_resolution", "portal_strips")),
                 MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
                            ("gather_rays",)),
             ]
@@ -659,11 +701,107 @@ class Portals(Precomputation):
 
     def source_operator(self, k: int = 0):
         """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k``
-        (:class:`prtlab.portals._surface.SourceOperator`), built on first use from the stored source transfer."""
+        (:class:`prtlab.portals._surface.SourceOperator`), built on first use from the stored source transfer.
+        With ``portal_strips = K`` its rows are (patch, strip) pairs, row ``c K + j``."""
         cached = self.__dict__.setdefault("_source_cache", {})
         if k not in cached:
-            cached[k] = self.surface_transfer().source_operator(self.direct_transfer(k, source=True))
+            surface, source = self.surface_transfer(), self.direct_transfer(k, source=True)
+            n = self.options.portal_strips
+            if not n:
+                cached[k] = surface.source_operator(source)
+            else:
+                pair = np.repeat(surface.patch, n) * n + np.tile(np.arange(n), len(surface.patch))
+                cached[k] = SourceOperator(source, pair, np.repeat(surface.mean_weight, n),
+                                           np.repeat(surface.albedo, n, axis=0), surface.n_patches * n)
         return cached[k]
+
+    # ------------------------------------------------------------------ the aperture (portal_strips)
+
+    def _portals(self) -> list:
+        if "_portal_list" not in self.__dict__:
+            names = [o.name for o in self.scene.objects if o.portal]
+            self._portal_list = find_portals(self.scene, [names] if self.options.merge_portals and names else None)
+        return self._portal_list
+
+    def _strip_coordinates(self, name: str, deformed=None):
+        """Portal index of portal object ``name`` and ``(u, v, w) (P, 3)`` of its world vertices (or of the
+        object-space ``deformed`` ones) in its portal's strip frame (:func:`strip_frame`; ``w`` off the plane,
+        in portal sizes); refuses an object that cannot open."""
+        obj = self.scene.object(name)
+        if not obj.portal:
+            raise ValueError(f"only a portal object opens and closes (FrameState.deformations): object {name!r} is "
+                             "not a portal; the portals method bakes the interior's shape, re-precompute it deformed")
+        if not self.options.portal_strips:
+            raise ValueError(f"portal {name!r} is fixed (option portal_strips=0): precompute with portal_strips=K "
+                             "(e.g. 8) to open and close it")
+        k = next(i for i, p in enumerate(self._portals()) if name in p.names)
+        portal = self._portals()[k]
+        corner, strip, other = strip_frame(portal)
+        normal = np.cross(strip, other)
+        basis = np.column_stack([strip, other, normal * portal.size / np.linalg.norm(normal)])
+        world = obj.world_vertices() if deformed is None else obj.transform.apply_points(deformed)
+        return k, np.linalg.solve(basis, (world - corner).T).T
+
+    def opening_vertices(self, name: str, low: float, high: float) -> np.ndarray:
+        """Object-space vertices ``(P, 3)`` of portal object ``name`` open over ``low <= u <= high`` (fractions of
+        the window along its strip edge, ``0`` its bottom edge: :func:`prtlab.portals.strip_frame`): the
+        deformation that :meth:`shade` takes in ``FrameState.deformations[name]`` (option ``portal_strips``)."""
+        low, high = float(low), float(high)
+        if not 0.0 <= low <= high <= 1.0:
+            raise ValueError(f"the opening must have 0 <= low <= high <= 1 (fractions of the window along its strip "
+                             f"edge, 0 at the bottom), got low={low}, high={high}")
+        k, uvw = self._strip_coordinates(name)
+        corner, strip, other = strip_frame(self._portals()[k])
+        u = np.where(uvw[:, 0] < 0.5, low, high)
+        world = corner + u[:, None] * strip + uvw[:, 1:2] * other
+        t = self.scene.object(name).transform
+        return (world - t.translate) @ t.rotation / t.scale
+
+    def openings(self, state: FrameState) -> list | None:
+        """The open part of each portal in ``state``, ``[(low, high)]`` per portal (``None``: no portal deformed),
+        from the portal objects' deformations (:meth:`opening_vertices`). A deformation must keep the window's
+        vertices in place along its other edge and in its plane and move its bottom and top edges to ``low <=
+        high`` within it: the window cut to a part of the precomputed one; anything else is refused."""
+        if not state.deformations:
+            return None
+        out: list = [(0.0, 1.0)] * self.n_portals
+        for name, deformed in state.deformations.items():
+            k, before = self._strip_coordinates(name)
+            _, after = self._strip_coordinates(name, deformed)
+            tol = 1e-6
+            bottom = before[:, 0] < 0.5
+            low, high = after[bottom, 0], after[~bottom, 0]
+            ok = (np.all(np.abs(before[:, 0] - np.round(before[:, 0])) < tol) and bottom.any() and (~bottom).any()
+                  and np.all(np.abs(after[:, 1:] - before[:, 1:]) < tol) and np.ptp(low) < tol and np.ptp(high) < tol
+                  and low.min() > -tol and high.max() < 1.0 + tol and low.max() <= high.min() + tol)
+            if not ok:
+                raise ValueError(
+                    f"the open part of portal {name!r} (FrameState.deformations) must be the precomputed window cut "
+                    "along its strip edge (the edge nearest the vertical): its bottom and top edges moved to 0 <= "
+                    f"low <= high <= 1 within the window, nothing else moved or rotated; got bottom at {low.round(4)}, "
+                    f"top at {high.round(4)}; build it with pre.opening_vertices({name!r}, low, high)")
+            out[k] = (float(np.clip(low.mean(), 0.0, 1.0)), float(np.clip(high.mean(), low.mean(), 1.0)))
+        return out
+
+    def _strip_weights(self, openings) -> list:
+        """``(K,)`` open fraction of each strip per portal (``[1.0]`` per portal with ``portal_strips=0``)."""
+        n = self.options.portal_strips
+        if openings is None:
+            return [np.ones(max(n, 1))] * self.n_portals
+        if not n:
+            raise ValueError("the portals are fixed (option portal_strips=0): give openings=None, or precompute "
+                             "with portal_strips=K to open and close them")
+        openings = list(openings)
+        if len(openings) != self.n_portals:
+            raise ValueError(f"give one opening (low, high) per portal ({self.n_portals}), got {len(openings)}")
+        weights = []
+        for o in openings:
+            low, high = (0.0, 1.0) if o is None else (float(o[0]), float(o[1]))
+            if not 0.0 <= low <= high <= 1.0:
+                raise ValueError(f"an opening must have 0 <= low <= high <= 1 (fractions of the window along its "
+                                 f"strip edge, 0 at the bottom), got {o!r}")
+            weights.append(strip_weights(n, low, high))
+        return weights
 
     def _check_bounces(self, bounces):
         return self.options.bounces if bounces is None else self.check_bounces(bounces, self.options)
@@ -683,7 +821,8 @@ class Portals(Precomputation):
             raise ValueError("the camera sits on a glossy vertex: its view direction is undefined; move the camera")
         return d / norm
 
-    def shade_shells(self, shells, bounces: int | None = None, method: str = "numba", camera=None) -> ShadeResult:
+    def shade_shells(self, shells, bounces: int | None = None, method: str = "numba", camera=None,
+                     openings=None) -> ShadeResult:
         """Per-vertex radiance from given shell lights, one ``(6, r, r, 3)`` cubemap per portal.
 
         Use it for a dynamic exterior (cubemaps rendered from each portal
@@ -691,7 +830,13 @@ class Portals(Precomputation):
         ``bounces``: any ``0 <= bounces <=`` the precomputed number (the transfer is
         stored per bounce). ``camera``: the viewer of glossy vertices (default the scene's).
         ``method``: ``"numba"`` (the fast passes) or ``"reference"`` (every pass's float64 reference tier).
-        Refused once an object of the scene moved after the precomputation.
+        ``openings`` (option ``portal_strips``): per portal ``(low, high)``, the open part ``low <= u <= high``
+        of the window along its strip edge (:func:`prtlab.portals.strip_frame`; ``None`` wholly open), the rest
+        a black (absorbing) shutter. The direct light and the interior's source light sum the strips, each
+        weighted by its open fraction (exact for strips wholly open or closed; a part-open strip's light taken
+        as that fraction of the strip's). The indirect light then follows exactly: the interior gather's rays
+        that leave through the portal carry no light, as they would off a black shutter (the exterior enters only
+        through the direct transfer). Refused once an object of the scene moved after the precomputation.
         """
         bounces = self._check_bounces(bounces)
         _check_method(method)
@@ -699,6 +844,8 @@ class Portals(Precomputation):
         shells = list(shells)
         if len(shells) != self.n_portals:
             raise ValueError(f"give one shell cubemap per portal ({self.n_portals}), got {len(shells)}")
+        strip_open = self._strip_weights(openings)
+        n_strips = max(self.options.portal_strips, 1)
         objs = _shaded(self.scene)
         albedo = np.asarray(self.data["albedo"], dtype=np.float64)
         n = len(albedo)
@@ -716,22 +863,26 @@ class Portals(Precomputation):
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
+            rows_albedo = albedo if n_strips == 1 else _open_albedo(albedo, strip_open[k])
             if method == "reference" or (surface is None and not len(g)):
-                direct += direct_pass(self.direct_transfer(k), albedo, cube, method=method)
+                direct += _strip_sum(direct_pass(self.direct_transfer(k), rows_albedo, cube, method=method), n_strips)
             else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
                 _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
                 light = shell_coefficients(cube)
-                direct += direct_from_light(self.direct_transfer(k), albedo, light)
+                direct += _strip_sum(direct_from_light(self.direct_transfer(k), rows_albedo, light), n_strips)
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()
             if surface is not None:
                 if method == "reference":
-                    source += surface.patch_source(direct_pass(self.direct_transfer(k, source=True), albedo, cube,
-                                                               method="reference"))
-                else:
+                    source += surface.patch_source(_strip_sum(direct_pass(
+                        self.direct_transfer(k, source=True), rows_albedo, cube, method="reference"), n_strips))
+                elif n_strips == 1:
                     source += self.source_operator(k).apply(light)
+                else:  # rows (patch, strip)
+                    source += np.einsum("cjx,j->cx", self.source_operator(k).apply(light).reshape(-1, n_strips, 3),
+                                        strip_open[k])
             elif bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)
@@ -751,13 +902,17 @@ class Portals(Precomputation):
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
         result.info = {"method": self.method, "bounces": bounces, "timings": timings}
+        if self.options.portal_strips:
+            result.info["openings"] = [(0.0, 1.0)] * self.n_portals if openings is None else \
+                [(0.0, 1.0) if o is None else (float(o[0]), float(o[1])) for o in openings]
         if surface is not None:
             result.info["indirect_noise"] = float(self.data["surface"]["noise"])  # under the scene's own light
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         cube = shell_light(state.lights[0], int(self.data["portal0"]["res"]))
-        return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera)
+        return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera,
+                                 openings=self.openings(state))
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:
