@@ -258,8 +258,9 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
     res, basis = options.cube_resolution, options.direct_basis
     encoded = []
-    for b0 in range(rows.start, rows.stop, _DIRECT_BATCH):  # bounds the dense cubemaps and the encoder's arrays
-        b = slice(b0, min(rows.stop, b0 + _DIRECT_BATCH))
+    step = _DIRECT_BATCH // max(options.portal_strips, 1)  # bounds the dense cubemaps and the encoder's arrays
+    for b0 in range(rows.start, rows.stop, step):
+        b = slice(b0, min(rows.stop, b0 + step))
         t = direct_transfer(caster, interior.points[b], interior.normals[b], portal, options.direct_samples, res,
                             rng, sampler=options.portal_sampler, strips=options.portal_strips)
         encoded.append(encode_transfer(t.reshape(-1, 6, res, res), basis))  # with strips: row v K + j
@@ -295,13 +296,15 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     res = options.cube_resolution
     n_samples = max(1, options.direct_samples // _HAT_SPLIT**2)
     encoded = []
-    for r0 in range(rows.start, rows.stop, _DIRECT_BATCH):
-        sub = slice(r0, min(rows.stop, r0 + _DIRECT_BATCH))
+    n_strips = max(options.portal_strips, 1)
+    step, point_step = _DIRECT_BATCH // n_strips, 512 // n_strips  # the dense arrays' bytes whatever the strips
+    for r0 in range(rows.start, rows.stop, step):
+        sub = slice(r0, min(rows.stop, r0 + step))
         points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
         weights = weights.tocsc()
-        dense = np.zeros((sub.stop - sub.start, max(options.portal_strips, 1) * 6 * res * res))
-        for b0 in range(0, len(points), 512):
-            b = slice(b0, b0 + 512)
+        dense = np.zeros((sub.stop - sub.start, n_strips * 6 * res * res))
+        for b0 in range(0, len(points), point_step):
+            b = slice(b0, b0 + point_step)
             t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng,
                                 sampler=options.portal_sampler, strips=options.portal_strips)
             dense += weights[:, b] @ t.reshape(len(t), -1)
@@ -585,18 +588,25 @@ class Portals(Precomputation):
         texels = 6.0 * options.cube_resolution**2
         views = 6.0 * options.view_res**2
         strips = max(options.portal_strips, 1)
-        # stored entries of a vertex's direct rows: every texel (pulse worst case); per strip at most every texel
-        # and, in pulse, one per portal sample in all (the strips' samples add up to direct_samples)
-        direct_entries = texels if strips == 1 else (
-            strips * texels if options.direct_basis == "haar" else min(strips * texels,
-                                                                      max(texels, float(options.direct_samples))))
+        # stored entries of a vertex's direct and source rows: every texel (pulse worst case); with strips, every
+        # texel per strip but, in pulse ("auto" keeps the smaller basis), one per portal sample in all (the
+        # strips' samples add up to direct_samples; a source row averages the sub-points of the vertex's triangles,
+        # direct_samples between the 16 of each)
+        direct_entries, source_entries = float(texels), n_v * float(texels)
+        if strips > 1:
+            direct_entries = strips * texels if options.direct_basis == "haar" else min(
+                strips * texels, max(texels, float(options.direct_samples)))
+            triangles = np.concatenate([np.bincount(np.asarray(o.mesh.faces).ravel(), minlength=o.n_vertices)
+                                        for o in objs]).astype(np.float64)
+            source_entries = float(np.sum(strips * texels if options.direct_basis == "haar" else np.minimum(
+                strips * texels, np.maximum(texels, triangles * options.direct_samples))))
         per_vertex_gather = 4.0 * options.gather_rays * b * n2 * 3 * 8
         needs = [
             MemoryNeed("the per-bounce SH transfer", n_p * (n_v * b * n2 * 3 * 12.0 + n_g * b * n_out2 * n2 * 3 * 12.0)
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
-            MemoryNeed("the dense direct transfer cubemaps", min(n_v, _DIRECT_BATCH) * strips * texels * 8.0 * 8,
-                       ("cube_resolution", "portal_strips")),
+            MemoryNeed("the dense direct transfer cubemaps",
+                       min(n_v, _DIRECT_BATCH // strips) * strips * texels * 8.0 * 8, ("cube_resolution",)),
             MemoryNeed("the encoded direct transfer", n_p * (n_v * direct_entries + n_g * views * texels) * 5.0,
                        ("cube_resolution", "view_res", "portal_strips")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
@@ -613,8 +623,8 @@ class Portals(Precomputation):
                 MemoryNeed("the interior gather (vertices x clusters)", n_v * c * (4 + 4 + 8 + 2.0), ("clusters",)),
                 MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
                            + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
-                MemoryNeed("the hat-averaged source transfer", n_p * n_v * strips * texels * 5.0
-                           + (min(n_v, _DIRECT_BATCH) + 512) * strips * texels * 8.0,
+                MemoryNeed("the hat-averaged source transfer", n_p * source_entries * 5.0
+                           + (min(n_v, _DIRECT_BATCH // strips) + 512 // strips) * strips * texels * 8.0,
                            ("cube_resolution", "portal_strips")),
                 MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
                            ("gather_rays",)),
