@@ -28,6 +28,10 @@ one environment seen through the portals (or user-given shell cubemaps,
 :func:`prtlab.portals.frosted`). Each portal faces the interior whatever its
 winding (:func:`find_portals`). The indirect transfer is stored per bounce, so
 ``shade(bounces=b)`` takes any ``b <=`` the precomputed ``bounces`` option.
+A window may open and close (option ``portal_strips``, ``indirect="surface"``): its direct and source transfers
+are stored per strip, and a frame gives the open part as the portal object's deformation
+(``FrameState.deformations``, :meth:`Portals.opening_vertices`), the closed part a black shutter; any other
+motion or deformation is refused, naming the object.
 Measured accuracy: ``docs/NOTES.md``.
 
 Examples
