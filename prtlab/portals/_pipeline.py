@@ -67,8 +67,8 @@ from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photo
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
                      glossy_indirect_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
-from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix, patch_gather,
-                       patch_operator, power_sum, quantize_rows, vertex_areas)
+from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
+                       patch_gather, patch_operator, power_sum, quantize_rows, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -131,8 +131,9 @@ class PortalsOptions:
         strip of each portal, ``K`` strips stacked along its edge nearest the vertical (parallelogram portals
         only; ``indirect="surface"`` only), and each frame sums the open strips (a part-open strip weighted by
         its open fraction); the open part is the portal object's deformation in ``FrameState.deformations``
-        (:meth:`Portals.opening_vertices`). About ``K / 2`` times the direct storage and frame time at ``K = 8``;
-        measured in ``docs/notes/portals.md`` (section 10).
+        (:meth:`Portals.opening_vertices`). At ``K = 8`` on the sunlit room the direct rows take 1.5x, the source
+        rows 4.1x, the frame 1.7x; an opening on the strips' boundaries is as accurate as the fixed window, a
+        part-open strip costs up to 3.5% (``docs/notes/portals.md``, "Moving portals").
     """
 
     cube_resolution: int = 0
@@ -262,7 +263,7 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
     res, basis = options.cube_resolution, options.direct_basis
     encoded = []
-    step = _DIRECT_BATCH // max(options.portal_strips, 1)  # bounds the dense cubemaps and the encoder's arrays
+    step = max(1, _DIRECT_BATCH // max(options.portal_strips, 1))  # bounds the dense cubemaps and the encoder's arrays
     for b0 in range(rows.start, rows.stop, step):
         b = slice(b0, min(rows.stop, b0 + step))
         t = direct_transfer(caster, interior.points[b], interior.normals[b], portal, options.direct_samples, res,
@@ -301,7 +302,8 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     n_samples = max(1, options.direct_samples // _HAT_SPLIT**2)
     encoded = []
     n_strips = max(options.portal_strips, 1)
-    step, point_step = _DIRECT_BATCH // n_strips, 512 // n_strips  # the dense arrays' bytes whatever the strips
+    # the dense arrays' bytes whatever the strips
+    step, point_step = max(1, _DIRECT_BATCH // n_strips), max(1, 512 // n_strips)
     for r0 in range(rows.start, rows.stop, step):
         sub = slice(r0, min(rows.stop, r0 + step))
         points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
@@ -610,7 +612,7 @@ class Portals(Precomputation):
                        + min(n_v, cls.chunk_vertices) * b * n2 * 3 * 8.0, ("order", "bounces")),
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
             MemoryNeed("the dense direct transfer cubemaps",
-                       min(n_v, _DIRECT_BATCH // strips) * strips * texels * 8.0 * 8, ("cube_resolution",)),
+                       min(n_v, max(1, _DIRECT_BATCH // strips)) * strips * texels * 8.0 * 8, ("cube_resolution",)),
             MemoryNeed("the encoded direct transfer", n_p * (n_v * direct_entries + n_g * views * texels) * 5.0,
                        ("cube_resolution", "view_res", "portal_strips")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
@@ -628,7 +630,8 @@ class Portals(Precomputation):
                 MemoryNeed("the bounce operator and its power sums", c * c * 3 * 8 * 6.0
                            + (3 * 8.0 * n_v * n_v if n_v <= options.clusters and b > 0 else 0.0), ("clusters",)),
                 MemoryNeed("the hat-averaged source transfer", n_p * source_entries * 5.0
-                           + (min(n_v, _DIRECT_BATCH // strips) + 512 // strips) * strips * texels * 8.0,
+                           + (min(n_v, max(1, _DIRECT_BATCH // strips)) + max(1, 512 // strips)) * strips * texels
+                           * 8.0,
                            ("cube_resolution", "portal_strips")),
                 MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
                            ("gather_rays",)),

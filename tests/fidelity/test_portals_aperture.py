@@ -121,9 +121,9 @@ def half_open(aperture_pre):
 
 
 # Rows whose Mitsuba reference (65,536 spp, 4 bounces, seed 7) is noisier than goal / 3, so that ``check`` refuses
-# them (ValueError): (surface, part) -> (rel_rms, noise), measured (docs/notes/portals.md, section 10). Without the
-# noise in quadrature 0.018-0.031 (mean ratios 1.00-1.01), as the fixed half window precomputed on its own gives
-# (0.018-0.029): the surface mode's indirect excess of section 6, not the strips.
+# them (ValueError): (surface, part) -> (rel_rms, noise), measured (docs/notes/portals.md, "Moving portals").
+# Without the noise in quadrature 0.018-0.031 (mean ratios 1.00-1.01), as the fixed half window precomputed on its
+# own gives (0.018-0.029): the surface mode's indirect excess (docs/notes/portals.md, section 6), not the strips.
 NOISY = {
     ("floor", "indirect"): (0.032, 0.018), ("ceiling", "indirect"): (0.026, 0.016),
     ("ceiling", "total"): (0.026, 0.016), ("wall+x", "indirect"): (0.032, 0.017),
