@@ -10,7 +10,7 @@ from prtlab.pipeline import FrameState
 from prtlab.portals import Portals, find_portals, shell_light, strip_frame, strip_weights
 from prtlab.portals._direct import _portal_points, _strip_of
 from prtlab.portals._shade import shell_coefficients
-from prtlab.scene import Transform
+from prtlab.scene import Material, Transform
 from prtlab.wavelet import SparseTransfer
 
 from .conftest import SKY, window_box
@@ -219,6 +219,14 @@ def test_paper_mode_refused():
     with pytest.raises(ValueError, match=r"portal_strips needs indirect='surface'.*but indirect='paper'"):
         Portals.precompute(small_room(), {**OPTIONS, "portal_strips": 4, "indirect": "paper"}, cache=False,
                            progress=False)
+
+
+def test_glossy_interior_refused():
+    """A glossy interior needs the paper's indirect transfer, which strips do not take."""
+    scene = small_room()
+    scene.object("room").material = Material(type="phong", kd=np.full(3, 0.5), ks=np.full(3, 0.2), exponent=10.0)
+    with pytest.raises(ValueError, match=r"portal_strips needs indirect='surface'.*'room' is glossy"):
+        Portals.precompute(scene, {**OPTIONS, "portal_strips": 4}, cache=False, progress=False)
 
 
 def test_bad_option_refused():
