@@ -499,6 +499,16 @@ class Portals(Precomputation):
                 moved.append(o.name)
         return moved
 
+    def check_state(self, state: FrameState) -> FrameState:
+        """The base checks, then: only portal objects deform (their opening, option ``portal_strips``)."""
+        state = super().check_state(state)
+        others = sorted(n for n in state.deformations if not self.scene.object(n).portal)
+        if others:
+            raise ValueError(f"method {self.method!r} does not take soft deformations (FrameState.deformations of "
+                             f"{others}), only a portal's opening (option portal_strips); re-precompute the deformed "
+                             "meshes")
+        return state
+
     def _check_not_moved(self) -> None:
         """Refuse to shade once an object of :attr:`scene` moved (or was added) after the precomputation."""
         moved = self.moved_objects(FrameState())

@@ -192,8 +192,10 @@ def test_rotated_portal_refused(strips):
 def test_other_deformations_refused(strips, fixed):
     state = FrameState.from_scene(strips.scene)
     state.deformations["room"] = strips.scene.object("room").mesh.vertices
-    with pytest.raises(ValueError, match="only a portal object opens and closes.*'room' is not a portal"):
+    with pytest.raises(ValueError, match=r"does not take soft deformations .*\['room'\]\), only a portal's opening"):
         strips.shade(state, bounces=BOUNCES)
+    with pytest.raises(ValueError, match="only a portal object opens and closes.*'room' is not a portal"):
+        strips.opening_vertices("room", 0.0, 0.5)
     state = FrameState.from_scene(fixed.scene)
     state.deformations["window"] = fixed.scene.object("window").mesh.vertices
     with pytest.raises(ValueError, match=r"portal 'window' is fixed \(option portal_strips=0\)"):
