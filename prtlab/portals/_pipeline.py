@@ -48,6 +48,7 @@ Examples
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import time
@@ -412,7 +413,7 @@ def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> di
         p = data[f"portal{k}"]
         src = SparseTransfer(p["source_indptr"], p["source_indices"], p["source_codes"], p["source_scale"],
                              p["source_basis"], options.cube_resolution)
-        source += _strip_sum(direct_pass(src, _open_albedo(albedo, np.ones(n_strips)), cube), n_strips)
+        source += direct_pass(src, np.tile(albedo, (n_strips, 1)), cube).reshape(n_strips, -1, 3).sum(axis=0)
     st = SurfaceTransfer((e["gather_codes"], e["gather_scale"]), e["patch"], e["areas"], albedo, e["operator"],
                          {options.bounces: e["sum"]}, e.get("project"))
     u = st.patch_light(source, options.bounces).astype(np.float64)
@@ -423,15 +424,22 @@ def _gather_noise(data: dict, diff, scene: Scene, options: PortalsOptions) -> di
     return {"stderr": stderr.astype(np.float32), "noise": np.array(noise)}
 
 
-def _open_albedo(albedo, weights) -> np.ndarray:
-    """``(V K, 3)``: each vertex's albedo times each strip's open fraction ``weights (K,)``, row ``v K + j`` (the
-    rows of a per-strip transfer, ``portal_strips``)."""
-    return (np.asarray(albedo)[:, None, :] * np.asarray(weights, dtype=np.float64)[None, :, None]).reshape(-1, 3)
+def _block_sum(rows, n_strips: int) -> np.ndarray:
+    """``(K V, 3)`` strip-major rows (``j V + v``) summed over the strips, ``(V, 3)``."""
+    return rows if n_strips == 1 else rows.reshape(n_strips, -1, 3).sum(axis=0)
 
 
-def _strip_sum(rows, n_strips: int) -> np.ndarray:
-    """``(V K, 3)`` per-strip rows (row ``v K + j``) summed per vertex, ``(V, 3)``."""
-    return rows if n_strips == 1 else rows.reshape(-1, n_strips, 3).sum(axis=1)
+def _strip_major(indptr, entries: dict, rows: dict, n_strips: int):
+    """A per-strip CSR transfer's rows from vertex-major (``v K + j``, as the chunks make them) to strip-major
+    (``j V + v``: each strip a contiguous block of ``V`` rows, so a frame skips a closed strip):
+    ``(indptr, entries, rows)`` reordered (``entries``: arrays per stored entry; ``rows``: arrays per row)."""
+    n_rows = len(indptr) - 1
+    n_v = n_rows // n_strips
+    old = (np.arange(n_v)[None, :] * n_strips + np.arange(n_strips)[:, None]).ravel()  # old row of new row j V + v
+    counts = np.diff(indptr)[old]
+    new_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    take = np.repeat(indptr[old] - new_ptr[:-1], counts) + np.arange(new_ptr[-1])
+    return new_ptr, {n: a[take] for n, a in entries.items()}, {n: a[old] for n, a in rows.items()}
 
 
 def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
@@ -457,6 +465,12 @@ def _assemble(chunks: dict, estimates: list, interior: _Interior, options: Porta
             entry["source_indptr"] = np.concatenate([[0], np.cumsum(c["source_counts"])]).astype(np.int64)
             for name in ("indices", "codes", "scale", "basis"):
                 entry[f"source_{name}"] = c[f"source_{name}"]
+        for p in ("", "source_") if options.portal_strips else ():
+            if p + "indptr" in entry:
+                entry[p + "indptr"], moved, per_row = _strip_major(
+                    entry[p + "indptr"], {n: entry[p + n] for n in ("indices", "codes")},
+                    {n: entry[p + n] for n in ("scale", "basis")}, options.portal_strips)
+                entry.update({p + n: a for n, a in {**moved, **per_row}.items()})
         if options.bounces > 0 and "indirect" in c:
             entry["indirect"] = c["indirect"]
             entry["glossy_matrix"] = c["glossy_matrix"]
@@ -687,17 +701,29 @@ class Portals(Precomputation):
 
     # ------------------------------------------------------------------ run time
 
-    def direct_transfer(self, k: int = 0, glossy: bool = False, source: bool = False) -> SparseTransfer:
+    def direct_transfer(self, k: int = 0, glossy: bool = False, source: bool = False,
+                        strips: tuple[int, int] | None = None) -> SparseTransfer:
         """The 8-bit sparse direct transfer of portal ``k`` (``glossy``: the specular rows of the glossy
         vertices, ``J = 6 view_res^2`` per vertex, vertex-major; ``source``: averaged over each vertex's hat
-        function, ``indirect="surface"``)."""
+        function, ``indirect="surface"``). With ``portal_strips = K``: ``K V`` rows, strip-major (row ``j V +
+        v``), or with ``strips = (j0, j1)`` the rows of strips ``j0 <= j < j1`` (views)."""
         cached = self.__dict__.setdefault("_direct_cache", {})
-        if (k, glossy, source) not in cached:
-            e = self.data[f"portal{k}"]
-            p = "glossy_" if glossy else "source_" if source else ""
-            cached[k, glossy, source] = SparseTransfer(np.asarray(e[p + "indptr"], np.int64), e[p + "indices"],
-                                                       e[p + "codes"], e[p + "scale"], e[p + "basis"], int(e["res"]))
-        return cached[k, glossy, source]
+        if (k, glossy, source, strips) not in cached:
+            if strips is None:
+                e = self.data[f"portal{k}"]
+                p = "glossy_" if glossy else "source_" if source else ""
+                cached[k, glossy, source, strips] = SparseTransfer(
+                    np.asarray(e[p + "indptr"], np.int64), e[p + "indices"], e[p + "codes"], e[p + "scale"],
+                    e[p + "basis"], int(e["res"]))
+            else:
+                whole = self.direct_transfer(k, glossy, source)
+                n_v = whole.n_vertices // max(self.options.portal_strips, 1)
+                a, b = strips[0] * n_v, strips[1] * n_v
+                ptr = whole.indptr[a : b + 1]
+                cached[k, glossy, source, strips] = SparseTransfer(
+                    ptr - ptr[0], whole.indices[ptr[0] : ptr[-1]], whole.codes[ptr[0] : ptr[-1]], whole.scale[a:b],
+                    whole.basis[a:b], whole.res)
+        return cached[k, glossy, source, strips]
 
     def indirect_transfer(self, k: int = 0, bounces: int | None = None, glossy: bool = False) -> np.ndarray:
         """Indirect transfer of portal ``k`` for light that bounced ``1..bounces`` times (default: all stored).
@@ -726,21 +752,26 @@ class Portals(Precomputation):
                                             {self.options.bounces: e["sum"]}, project, mass)
         return self._surface
 
-    def source_operator(self, k: int = 0):
-        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k``
-        (:class:`prtlab.portals._surface.SourceOperator`), built on first use from the stored source transfer.
-        With ``portal_strips = K`` its rows are (patch, strip) pairs, row ``c K + j``."""
+    def source_operator(self, k: int = 0, strips: tuple[int, int] | None = None):
+        """``indirect="surface"``: ``Pbar diag(rho) T_src`` of portal ``k`` (:class:`prtlab.portals._surface.
+        SourceOperator`), built on first use from the stored source transfer. With ``portal_strips = K`` its rows
+        are (strip, patch) pairs, row ``j C + c``; ``strips = (j0, j1)``: the operator of strips ``j0 <= j < j1``
+        (the same entries, its row pointers cut)."""
         cached = self.__dict__.setdefault("_source_cache", {})
-        if k not in cached:
-            surface, source = self.surface_transfer(), self.direct_transfer(k, source=True)
-            n = self.options.portal_strips
-            if not n:
-                cached[k] = surface.source_operator(source)
+        if (k, strips) not in cached:
+            surface, n = self.surface_transfer(), self.options.portal_strips
+            if strips is not None:
+                block = copy.copy(self.source_operator(k))
+                block.indptr = block.indptr[strips[0] * surface.n_patches : strips[1] * surface.n_patches + 1]
+                cached[k, strips] = block
+            elif not n:
+                cached[k, strips] = surface.source_operator(self.direct_transfer(k, source=True))
             else:
-                pair = np.repeat(surface.patch, n) * n + np.tile(np.arange(n), len(surface.patch))
-                cached[k] = SourceOperator(source, pair, np.repeat(surface.mean_weight, n),
-                                           np.repeat(surface.albedo, n, axis=0), surface.n_patches * n)
-        return cached[k]
+                pair = (np.arange(n)[:, None] * surface.n_patches + surface.patch[None, :]).ravel()
+                cached[k, strips] = SourceOperator(self.direct_transfer(k, source=True), pair,
+                                                   np.tile(surface.mean_weight, n), np.tile(surface.albedo, (n, 1)),
+                                                   surface.n_patches * n)
+        return cached[k, strips]
 
     # ------------------------------------------------------------------ the aperture (portal_strips)
 
@@ -890,26 +921,39 @@ class Portals(Precomputation):
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
-            rows_albedo = albedo if n_strips == 1 else _open_albedo(albedo, strip_open[k])
+            # portal_strips: the strips not closed, a contiguous block (j0, j1), and their open fractions
+            block, w = None, np.ones(1)
+            if n_strips > 1:
+                is_open = np.nonzero(strip_open[k] > 0)[0]
+                block = (int(is_open[0]), int(is_open[-1]) + 1) if len(is_open) else None
+                w = strip_open[k][block[0] : block[1]] if block else np.zeros(0)
+            rows_albedo = albedo if block is None else (w[:, None, None] * albedo[None]).reshape(-1, 3)
             if method == "reference" or (surface is None and not len(g)):
-                direct += _strip_sum(direct_pass(self.direct_transfer(k), rows_albedo, cube, method=method), n_strips)
+                if len(w):
+                    direct += _block_sum(direct_pass(self.direct_transfer(k, strips=block), rows_albedo, cube,
+                                                     method=method), len(w))
             else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
                 _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
                 light = shell_coefficients(cube)
-                direct += _strip_sum(direct_from_light(self.direct_transfer(k), rows_albedo, light), n_strips)
+                if len(w):
+                    direct += _block_sum(direct_from_light(self.direct_transfer(k, strips=block), rows_albedo, light),
+                                         len(w))
             if len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()
             if surface is not None:
-                if method == "reference":
-                    source += surface.patch_source(_strip_sum(direct_pass(
-                        self.direct_transfer(k, source=True), rows_albedo, cube, method="reference"), n_strips))
-                elif n_strips == 1:
+                if not len(w):
+                    pass  # every strip closed
+                elif method == "reference":
+                    source += surface.patch_source(_block_sum(direct_pass(
+                        self.direct_transfer(k, source=True, strips=block), rows_albedo, cube, method="reference"),
+                        len(w)))
+                elif block is None:
                     source += self.source_operator(k).apply(light)
-                else:  # rows (patch, strip)
-                    source += np.einsum("cjx,j->cx", self.source_operator(k).apply(light).reshape(-1, n_strips, 3),
-                                        strip_open[k])
+                else:  # rows (strip, patch) of the open block, weighted by their open fraction
+                    source += np.einsum("jcx,j->cx", self.source_operator(k, block).apply(light).reshape(
+                        len(w), -1, 3), w)
             elif bounces > 0:
                 c = shell_sh(cube, self.options.order)
                 indirect += indirect_pass(self.indirect_transfer(k, bounces), c, method=method)

@@ -87,7 +87,7 @@ def test_fully_open_equals_fixed_portal(fixed, strips):
     norm1 = np.stack([np.abs(light[:n]).sum(0), np.abs(light[n:]).sum(0)])  # (basis, 3)
     t0, tk = fixed.direct_transfer(0), strips.direct_transfer(0)
     bound = t0.scale[:, None].astype(np.float64) * norm1[t0.basis]
-    bound += (tk.scale[:, None].astype(np.float64) * norm1[tk.basis]).reshape(-1, STRIPS, 3).sum(1)
+    bound += (tk.scale[:, None].astype(np.float64) * norm1[tk.basis]).reshape(STRIPS, -1, 3).sum(0)  # row j V + v
     bound *= np.asarray(fixed.data["albedo"]) / 510.0
     diff = np.abs(a.direct["room"] - b.direct["room"])
     assert np.all(diff <= bound + 1e-12 * np.abs(b.direct["room"]).max()), (diff / np.maximum(bound, 1e-300)).max()
@@ -238,8 +238,14 @@ def test_bad_option_refused():
         Portals.make_options({"portal_strips": 2.0})
 
 
-def test_strip_rows_are_vertex_major(strips):
-    """The per-strip transfer has ``V K`` rows, ``v K + j``."""
+def test_strip_rows_are_strip_major(strips):
+    """The per-strip transfer has ``K V`` rows, ``j V + v``; ``strips=(j, j + 1)`` is that block."""
     t = strips.direct_transfer(0)
-    assert isinstance(t, SparseTransfer)
-    assert t.n_vertices == STRIPS * len(strips.data["albedo"])
+    n_v = len(strips.data["albedo"])
+    assert isinstance(t, SparseTransfer) and t.n_vertices == STRIPS * n_v
+    cube = _cube(strips)
+    whole = t.dot(cube, method="reference").reshape(STRIPS, n_v, 3)
+    for j in range(STRIPS):
+        block = strips.direct_transfer(0, strips=(j, j + 1))
+        assert block.n_vertices == n_v
+        np.testing.assert_array_equal(block.dot(cube, method="reference"), whole[j])
