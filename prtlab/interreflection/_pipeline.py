@@ -94,7 +94,7 @@ from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irrad
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import light_terms, mirror_wo, ray_traced_direct, widened_sphere
-from ._residual import (_bounding_radius, apply_gather, gather_operator, gather_residual, near_hit_correction,
+from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual, near_hit_correction,
                         near_hits, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
@@ -1181,9 +1181,13 @@ class Interreflection(Precomputation):
                       for o in self.objects)
         return poses, tuple(np.asarray(camera.position, float))
 
-    def _bounces(self, geo, phi, light_k, bounces: int, lights=()):
+    def _bounces(self, geo, phi, light_k, bounces: int, lights=(), method: str = "numba"):
         """Steps 3-4 (Sec. 5.3): the indirect radiance of ``bounces`` bounces, and the seconds of each step (the
         weights, the bounces, the near hits).
+
+        ``method="numba"``: a receiver with ``K' = 1`` and RGB light takes one pass per bounce
+        (:func:`bounce_rgb`); ``"reference"``: BLAS's ``stacked @ w`` and the float64 sum over the residual
+        gather's hits (:func:`gather_residual`), the specification.
 
         Bounce ``b`` reflects ``L^(b) = max(0, sum_s Phi^s w^s(b-1))`` (Eq. 12; the clamp for a Lambertian
         receiver), one ``(V K', M) x (M, 3)`` product per receiver, and its weights ``w(b)`` (Eq. 14) are
@@ -1204,21 +1208,38 @@ class Interreflection(Precomputation):
             t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
+            if residuals and method != "reference":  # every object's residual, stacked for bounce_rgb
+                offsets = np.cumsum([0] + [len(residuals[o.name]) for o in self.objects])
+                stacked_residual = np.concatenate([residuals[o.name].reshape(len(residuals[o.name]), -1)
+                                                   for o in self.objects])
             for r in self.objects:
                 g = geo[r.name]
                 stacked, sources = self._stacked_irradiance(r, phi[r.name])
-                if sources:
-                    # Eq. 12 before h: every source's (k, i) side by side
+                operators = self._residual_entry(geo, r, phi[r.name])["operators"] if residuals else {}
+                if (method != "reference" and stacked is not None and stacked.shape[1] == 1
+                        and (not residuals or (stacked_residual.shape[1] == 3 and _rgb_ready(operators.values())))):
+                    # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
-                    lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
-                else:
-                    lk = np.zeros(g["g_cos"].shape[:2] + (3,))
-                if residuals:
-                    lk = lk + self._residual_light(geo, r, residuals, phi[r.name])
-                    if corrections:
-                        lk = lk + corrections[r.name]
-                    if self.options.residual_whole and self._near_on(lights):
+                    extra = corrections.get(r.name)
+                    lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
+                                    stacked_residual if residuals else None, offsets if residuals else None,
+                                    None if extra is None else extra.reshape(len(stacked), 3))
+                    lk = lk.reshape(len(stacked), 1, 3)
+                    if residuals and self.options.residual_whole and self._near_on(lights):
                         lk = lk + self._whole_light(geo, r, phi[r.name], weights)
+                else:
+                    if sources:
+                        # Eq. 12 before h: every source's (k, i) side by side
+                        w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                        lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
+                    else:
+                        lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                    if residuals:
+                        lk = lk + self._residual_light(geo, r, residuals, phi[r.name], method=method)
+                        if corrections:
+                            lk = lk + corrections[r.name]
+                        if self.options.residual_whole and self._near_on(lights):
+                            lk = lk + self._whole_light(geo, r, phi[r.name], weights)
                 lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)

@@ -470,3 +470,56 @@ def test_near_hits_kernel_equals_the_reference(near):
                 np.testing.assert_array_equal(a, b)
             selected += len(ref[0])
     assert selected > 0
+
+
+@pytest.mark.parametrize("options", [{}, {"residual_near": 0}, {"residual_rays": 0}, {"residual_whole": True}])
+def test_fused_bounces_equal_the_reference_tier(low_ball, options):
+    """Three bounces by :func:`bounce_rgb` (one pass per receiver: Eq. 12, the residual gather, the near hits'
+    correction) equal the reference tier's (BLAS's product, the float64 sum over the hits) to 1e-12."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, **options), low_ball.data)
+    state = FrameState.from_scene(low_ball.scene)
+    ir.shade(state, bounces=1)
+    geo = ir.reuse.frame[1][0]
+    light_k = {o.name: ir.reuse.direct_rays[o.name]["light_k"] for o in ir.objects}
+    phi, _ = ir.basis_irradiance_step(geo, ir.reuse.frame[1][1])
+    fast = ir._bounces(geo, phi, light_k, 3, state.lights)[0]
+    ref = ir._bounces(geo, phi, light_k, 3, state.lights, method="reference")[0]
+    for name, expected in ref.items():
+        assert np.abs(expected).max() > 0
+        np.testing.assert_allclose(fast[name], expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_bounce_rgb_equals_apply_gather():
+    """:func:`bounce_rgb` on random operators equals ``stacked @ w`` plus :func:`apply_gather` per source plus the
+    extra term to 1e-12, and with no source the product alone; an empty receiver gives an empty result."""
+    from prtlab.interreflection._residual import GatherOperator, apply_gather, bounce_rgb
+
+    rng = np.random.default_rng(3)
+    n_r, n_m, sizes = 40, 24, [7, 11]
+
+    def operator(n_s):
+        counts = rng.integers(0, 6, n_r)
+        n_h = int(counts.sum())
+        faces = rng.integers(0, n_s, (9, 3)).astype(np.int32)
+        return GatherOperator(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), faces,
+                              rng.integers(0, 9, n_h).astype(np.int32),
+                              (rng.random((n_h, 2)) * 0.5).astype(np.float32), rng.normal(size=(n_h, 1, 1)))
+
+    ops = [operator(n) for n in sizes]
+    residual = rng.normal(size=(sum(sizes), 3))
+    offsets = np.array([0, sizes[0]])
+    stacked, w, extra = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3)), rng.normal(size=(n_r, 3))
+    expected = (stacked @ w)[:, None]
+    gathered = np.zeros((n_r, 1, 3))
+    for op, a, n in zip(ops, offsets, sizes):
+        apply_gather(op, residual[a:a + n].reshape(n, 1, 3), gathered)
+    expected = (expected + gathered + extra[:, None])[:, 0]
+    np.testing.assert_allclose(bounce_rgb(stacked, w, ops, [0, 1], residual, offsets, extra), expected,
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(bounce_rgb(stacked, w, [], [], None, None), stacked @ w, rtol=1e-12, atol=1e-12)
+    assert bounce_rgb(np.zeros((0, n_m)), w, ops, [0, 1], residual, offsets).shape == (0, 3)
