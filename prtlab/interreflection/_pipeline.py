@@ -93,7 +93,7 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import light_terms, mirror_wo, ray_traced_direct, widened_sphere
+from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
 from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual, near_hit_correction,
                         near_hits, residual_hits)
 
@@ -396,6 +396,11 @@ class FrameReuse:
     near_exact: dict = dataclasses.field(default_factory=dict)
     #: (receiver, source index) -> (its ResidualHits, residual_near, their near hits) of ``residual_near``
     near_hits: dict = dataclasses.field(default_factory=dict)
+    #: object number left out (or None) -> (poses, caster's offsets, shadow-ray blockers of :func:`blocker_bounds`)
+    blockers: dict = dataclasses.field(default_factory=dict)
+    #: source index -> {lights' geometry, samples, ray offsets, poses, bounding spheres, the near-hit parts
+    #: (receiver, near-hit points, their normals), per-light shadow masks} of :meth:`Interreflection._near_exact`
+    near_sources: dict = dataclasses.field(default_factory=dict)
 
 
 class Interreflection(Precomputation):
@@ -858,7 +863,7 @@ class Interreflection(Precomputation):
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
                         self.seps[r.name], caster, light, i, samples,
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
-                        stats=self.reuse.direct_counts)
+                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me))
                 terms[i] = new
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
                 lk += new["S"][:, :, None] * emission
@@ -871,6 +876,17 @@ class Interreflection(Precomputation):
                 rad = rad + outgoing_radiance(env_k, g["h"], self.seps[r.name].colour)
             light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
+
+    def _shadow_blockers(self, caster, poses, me: int):
+        """The bounds of every object a shadow ray from object number ``me`` may hit (:func:`blocker_bounds`; its
+        own plane left out if it is flat), made once per pose set and ray offsets."""
+        exclude = me if self.flat[self.objects[me].name] else None
+        key = (poses, caster.epsilon, caster.tnear)
+        cached = self.reuse.blockers.get(exclude)
+        if cached is None or cached[0] != key:
+            cached = self.reuse.blockers[exclude] = (key, blocker_bounds(
+                caster, [self.flat[o.name] for o in self.objects], exclude))
+        return cached[1]
 
     def direct_step_haar(self, state: FrameState, geo):
         """Step 1 with all-frequency shadows: ``L_k`` (V, K, C) per object from every light (Zhou et al. 2005
@@ -1364,7 +1380,7 @@ class Interreflection(Precomputation):
                repr([light.to_dict() for light in near]))
         if self.reuse.near_exact.get("key") == key:
             return self.reuse.near_exact["corrections"]
-        caster = self._scene_caster(geo, key[0])[0]
+        caster, spheres = self._scene_caster(geo, key[0])
         selected = {}  # source index -> [(receiver, hits, index, points, normals)]
         for r in self.objects:
             for i, hits in entries[r.name]["hits"].items():
@@ -1382,8 +1398,7 @@ class Interreflection(Precomputation):
             sep = self.seps[s.name]
             at, normals = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
             stats["near_hits"] = stats.get("near_hits", 0) + len(at)
-            exact, _ = ray_traced_direct(at, normals, normals, brdf.from_material(s.material), sep, caster, near,
-                                         self.options.residual_near_samples, seed=1 + i)
+            exact = self._near_exact(i, parts, at, normals, caster, spheres, near, key[0])
             colour = np.asarray(sep.colour, float)[None]
             vertex = self.reuse.direct_rays[s.name]["light_k"] * colour  # the same lights' L_k at its vertices
             bounds = np.cumsum([0] + [len(p[2]) for p in parts])
@@ -1391,6 +1406,52 @@ class Interreflection(Precomputation):
                 out[name] += near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
         self.reuse.near_exact = {"key": key, "corrections": out}
         return out
+
+    def _near_exact(self, i: int, parts, at, normals, caster, spheres, lights, poses) -> np.ndarray:
+        """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits ``at`` (``parts``' points one after another),
+        as :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
+
+        Per light the shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry, the
+        source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the same
+        arrays as before keep their random streams, so :func:`light_terms` re-casts only their samples whose segment meets a moved object's
+        bounding sphere (before or after); the points after them are cast anew (``first=``): the result equals
+        the full call bit for bit."""
+        s = self.objects[i]
+        f, sep, m = brdf.from_material(s.material), self.seps[s.name], self.options.residual_near_samples
+        wo = mirror_wo(normals, normals)
+        blockers = self._shadow_blockers(caster, poses, i)
+        light_keys = [(type(light).__name__, *(np.asarray(getattr(light, a), float).tobytes()
+                                               for a in ("center", "u", "v", "position") if hasattr(light, a)))
+                      for light in lights]
+        identity = [(p[0], p[3], p[4]) for p in parts]
+        old = self.reuse.near_sources.get(i)
+        kept = 0  # points of the leading parts that stand
+        if (old is not None and old["light_keys"] == light_keys and old["samples"] == m
+                and old["offsets"] == (caster.epsilon, caster.tnear) and old["poses"][i] == poses[i]):
+            for (name, points, normal), (o_name, o_points, o_normal) in zip(identity, old["parts"]):
+                if name != o_name or not (np.array_equal(points, o_points) and np.array_equal(normal, o_normal)):
+                    break
+                kept += len(points)
+            moved = np.array([widened_sphere(sphere, caster.epsilon) for j in range(len(poses))
+                              if old["poses"][j] != poses[j] for sphere in (old["spheres"][j], spheres[j])])
+        stats = self.reuse.residual_counts
+        stats.setdefault("near_rays_cast", 0)
+        counts = {"rays_cast": 0}
+        light_k, masks = np.zeros((len(at), sep.K, 3)), []
+        for li, light in enumerate(lights):
+            head, tail = (light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
+                                      stats=counts, blockers=blockers, first=a, **extra)
+                          for a, b, extra in ((0, kept, {"visibility": old["masks"][li][:kept], "moved": moved}
+                                               if kept else {}), (kept, len(at), {})))
+            S = np.concatenate([head[0], tail[0]])
+            masks.append(np.concatenate([head[2], tail[2]]))
+            light_k += S[:, :, None] * np.asarray(light.radiance if isinstance(light, AreaLight)
+                                                  else light.intensity, float)
+        stats["near_rays_cast"] += counts["rays_cast"]
+        self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
+                                          poses=poses, spheres=spheres, parts=identity,
+                                          masks=masks)
+        return light_k
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
@@ -1424,6 +1485,7 @@ class Interreflection(Precomputation):
         result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts,
                        "residual_rays_cast": self.reuse.residual_counts["rays_cast"],
                        "residual_near_hits": self.reuse.residual_counts.get("near_hits", 0),
+                       "residual_near_rays_cast": self.reuse.residual_counts.get("near_rays_cast", 0),
                        "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
 

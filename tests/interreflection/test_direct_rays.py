@@ -293,3 +293,39 @@ def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
     assert turned.info["direct_rays_cast"] == 0
     for name in ("floor", "ball"):
         np.testing.assert_array_equal(turned.direct[name], fresh(state).direct[name])
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_samples_no_blocker_is_near_are_not_cast_and_change_nothing(material):
+    """``blockers`` (:func:`blocker_bounds`: the box's and balls' spheres, a wall's slab, the floor receiver's own
+    plane left out) skip the rays whose segment meets none of them: masks and sums equal those of casting every
+    ray, bit for bit, for every light, with fewer rays; floor points behind the wall still cast theirs."""
+    from prtlab.interreflection._direct_rays import blocker_bounds
+
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    plane = builtin_mesh("plane", size=[4.2, 4.2], resolution=[6, 6])
+    wall = builtin_mesh("plane", size=[4.2, 2.0], resolution=[4, 2])
+    meshes = [plane, wall, *meshes]
+    poses = [Transform(), Transform(translate=np.array([0.0, 1.0, -1.2]), rotate_deg=np.array([90.0, 0.0, 0.0])),
+             *poses]
+    caster = RayCaster(meshes, transforms=poses)
+    flat = [True, True, False, False, False, False]
+    blockers = blocker_bounds(caster, flat, exclude=0)
+    assert blockers[0].shape == (4, 4) and blockers[1].shape == (1, 5)
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        every, culled = {}, {}
+        full = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=every)
+        fast = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=culled,
+                           blockers=blockers)
+        for a, b in zip(fast, full):
+            np.testing.assert_array_equal(a, b)
+        assert full[2].any() and 0 < culled["rays_cast"] < every["rays_cast"]
+        behind = points[:, 2] < -1.25  # their segments to every light cross the wall's plane: all cast
+        slab, plain = {}, {}
+        light_terms(points[behind], normals[behind], wo[behind], f, sep, caster, light, i, 64, stats=slab,
+                    blockers=(np.zeros((0, 4)), blockers[1]))
+        light_terms(points[behind], normals[behind], wo[behind], f, sep, caster, light, i, 64, stats=plain)
+        assert slab["rays_cast"] == plain["rays_cast"] > 0
