@@ -114,6 +114,15 @@ def _light_geometry(light, samples: int) -> tuple[np.ndarray, int, int, bool]:
     return params, 1, 1, False
 
 
+def _reach(params, area: bool) -> float:
+    """The distance from an area light's centre to its farthest corner (0 for a point light), widened by 1e-9
+    relative."""
+    if not area:
+        return 0.0
+    u, v = params[3:6], params[6:9]
+    return float(max(np.linalg.norm(u + v), np.linalg.norm(u - v))) * (1.0 + 1e-9)
+
+
 def _emission(light) -> np.ndarray:
     return np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
 
@@ -204,9 +213,10 @@ def _segments_meet(x, y, spheres) -> np.ndarray:
 
 
 def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
-                          visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0):
+                          visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
+                          previous=None):
     """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
-    ``blockers`` is not used)."""
+    ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
     first = _check_first(first)
     params, rows, side, area = _light_geometry(light, samples)
@@ -270,6 +280,22 @@ def _segment_meets(x0, x1, x2, y0, y1, y2, spheres):
 
 
 @numba.njit(cache=True, inline="always")
+def _capsule_meets(x0, x1, x2, y0, y1, y2, reach, spheres):
+    """Whether any sphere of ``spheres`` (S, 4) comes within ``reach`` of the segment ``x -> y``: the segments
+    from ``x`` to every point within ``reach`` of ``y`` lie in that capsule."""
+    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for s in range(spheres.shape[0]):
+        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
+        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
+        r = spheres[s, 3] + reach
+        if g0 * g0 + g1 * g1 + g2 * g2 <= r * r:
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
 def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
     """Whether the segment ``x -> y`` reaches any slab of ``planes`` (P, 5: unit normal, lowest and highest
     offset ``n . p`` of a flat object's vertices, widened): both ends beyond one side miss it."""
@@ -300,16 +326,19 @@ def _factor(nodes, values, k, theta, phi, freq, parity):
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
-                  eps, tnear, visibility, moved, cull, spheres, planes, nodes, values, freq, parity, kd, ks, exponent, S,
-                  F, blocked, cast):
+                  eps, tnear, visibility, moved, previous_S, previous_F, reach, cull, spheres, planes, nodes, values, freq,
+                  parity, kd, ks, exponent, S, F, blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
-    the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``cull``, a segment that
+    the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
+    ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
+    within it of the centre) meets no sphere of ``moved`` keeps their rows and its mask; with ``cull``, a segment that
     meets none of ``spheres`` (S, 4) and no slab of ``planes`` (P, 5) is not traced (unblocked), at vertices
     outside every sphere; ``cast`` (V,): the samples traced per vertex. Threads take blocks of
     ``_VERTICES_PER_TASK`` vertices from a shared counter; block ``b`` traces through slot ``b``."""
     n_points = x.shape[0]
     m = rows * side
     reuse = visibility.shape[0] > 0
+    keep = reuse and previous_S.shape[0] > 0
     n_terms = values.shape[0]
     n_channels = kd.shape[0]
     any_phi = False
@@ -336,12 +365,20 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
             f32, u32 = slot_f32[block], slot_u32[block]
             address = f32.ctypes.data
             for p in range(block * step, min(n_points, (block + 1) * step)):
+                cast[p] = 0
+                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
+                if keep and not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved):
+                    for k in range(n_terms):  # no segment of this vertex meets a moved sphere: as before
+                        S[p, k] = previous_S[p, k]
+                    for c in range(n_channels):
+                        F[p, c] = previous_F[p, c]
+                    for j in range(m):
+                        blocked[p, j] = visibility[p, j]
+                    continue
                 for k in range(n_terms):
                     S[p, k] = 0.0
                 for c in range(n_channels):
                     F[p, c] = 0.0
-                cast[p] = 0
-                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
                 n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
                 length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
                 a0, a1, a2 = n0 / length, n1 / length, n2 / length  # unit normal: the BRDF's frame
@@ -425,7 +462,8 @@ def _kernel_ready(f, sep, caster) -> bool:
 
 
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
-                visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0):
+                visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
+                previous=None):
     """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
@@ -444,7 +482,9 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     and highest ``n . p``), widened for float32 and the origin offset; the receiver's own plane may be left
     out (a ray leaves it on its normal's side). A sample whose segment meets none of them is not traced: its
     ray would be unblocked, so the results are those of casting it (``stats`` counts only traced rays).
-    The reference tier casts every ray. ``first``: the number of the first point in the random streams (point
+    ``previous``: the ``(S, F)`` of the call that gave ``visibility`` (same ``wo``, BRDF and ``first``): a vertex
+    none of whose segments can meet a ``moved`` sphere keeps its rows (the same sums, bit for bit).
+    The reference tier casts every ray (and recomputes every vertex). ``first``: the number of the first point in the random streams (point
     ``p`` draws the jitter of point ``first + p``), so a call on ``points[a:]`` with ``first=a`` gives the rows
     ``a:`` of a call on ``points``.
 
@@ -456,6 +496,13 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     if not _kernel_ready(f, sep, caster):
         return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
                                      visibility, moved, stats, first=first)
+    if previous is not None and visibility is not None:
+        previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
+        if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
+            raise ValueError(f"previous must be the (S, F) of an earlier call on the same {len(points)} points, "
+                             f"got shapes {previous_S.shape}, {previous_F.shape}")
+    else:
+        previous_S, previous_F = np.zeros((0, sep.K)), np.zeros((0, f.channels))
     spheres, planes = (np.zeros((0, 4)), np.zeros((0, 5))) if blockers is None else (
         np.ascontiguousarray(blockers[0], np.float64).reshape(-1, 4),
         np.ascontiguousarray(blockers[1], np.float64).reshape(-1, 5))
@@ -475,7 +522,8 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
                   scene.handle,
                   slot_f32, slot_u32, numba.get_num_threads(), float(caster.epsilon), float(caster.tnear),
                   np.zeros((0, m), np.bool_) if visibility is None else visibility,
-                  np.zeros((0, 4)) if moved is None else moved, blockers is not None, spheres, planes, nodes, values,
+                  np.zeros((0, 4)) if moved is None else moved, previous_S, previous_F, _reach(params, area),
+                  blockers is not None, spheres, planes, nodes, values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
                   np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
                   blocked, cast)

@@ -399,7 +399,8 @@ class FrameReuse:
     #: object number left out (or None) -> (poses, caster's offsets, shadow-ray blockers of :func:`blocker_bounds`)
     blockers: dict = dataclasses.field(default_factory=dict)
     #: source index -> {lights' geometry, samples, ray offsets, poses, bounding spheres, the near-hit parts
-    #: (receiver, near-hit points, their normals), per-light shadow masks} of :meth:`Interreflection._near_exact`
+    #: (receiver, near-hit points, their normals), per light (S, F, shadow mask)} of
+    #: :meth:`Interreflection._near_exact`
     near_sources: dict = dataclasses.field(default_factory=dict)
 
 
@@ -863,7 +864,8 @@ class Interreflection(Precomputation):
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
                         self.seps[r.name], caster, light, i, samples,
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
-                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me))
+                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me),
+                        previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)
                 terms[i] = new
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
                 lk += new["S"][:, :, None] * emission
@@ -1224,21 +1226,21 @@ class Interreflection(Precomputation):
             t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
-            if residuals and method != "reference":  # every object's residual, stacked for bounce_rgb
+            stacked_residual = offsets = None  # every object's residual (K = 1, RGB), stacked for bounce_rgb
+            if residuals and method != "reference" and all(v.shape[1:] == (1, 3) for v in residuals.values()):
                 offsets = np.cumsum([0] + [len(residuals[o.name]) for o in self.objects])
-                stacked_residual = np.concatenate([residuals[o.name].reshape(len(residuals[o.name]), -1)
-                                                   for o in self.objects])
+                stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
             for r in self.objects:
                 g = geo[r.name]
                 stacked, sources = self._stacked_irradiance(r, phi[r.name])
                 operators = self._residual_entry(geo, r, phi[r.name])["operators"] if residuals else {}
                 if (method != "reference" and stacked is not None and stacked.shape[1] == 1
-                        and (not residuals or (stacked_residual.shape[1] == 3 and _rgb_ready(operators.values())))):
+                        and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
                     # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
                     extra = corrections.get(r.name)
                     lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
-                                    stacked_residual if residuals else None, offsets if residuals else None,
+                                    stacked_residual, offsets,
                                     None if extra is None else extra.reshape(len(stacked), 3))
                     lk = lk.reshape(len(stacked), 1, 3)
                     if residuals and self.options.residual_whole and self._near_on(lights):
@@ -1411,11 +1413,12 @@ class Interreflection(Precomputation):
         """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits ``at`` (``parts``' points one after another),
         as :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
 
-        Per light the shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry, the
-        source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the same
-        arrays as before keep their random streams, so :func:`light_terms` re-casts only their samples whose segment meets a moved object's
-        bounding sphere (before or after); the points after them are cast anew (``first=``): the result equals
-        the full call bit for bit."""
+        Per light the terms and shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry,
+        the source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the
+        same arrays as before keep their random streams, so :func:`light_terms` recomputes only their points
+        whose segments may meet a moved object's bounding sphere (before or after) and re-casts only those
+        samples; the points after them are cast anew (``first=``): the result equals the full call bit for
+        bit."""
         s = self.objects[i]
         f, sep, m = brdf.from_material(s.material), self.seps[s.name], self.options.residual_near_samples
         wo = mirror_wo(normals, normals)
@@ -1437,20 +1440,22 @@ class Interreflection(Precomputation):
         stats = self.reuse.residual_counts
         stats.setdefault("near_rays_cast", 0)
         counts = {"rays_cast": 0}
-        light_k, masks = np.zeros((len(at), sep.K, 3)), []
+        light_k, terms = np.zeros((len(at), sep.K, 3)), []
         for li, light in enumerate(lights):
             head, tail = (light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
                                       stats=counts, blockers=blockers, first=a, **extra)
-                          for a, b, extra in ((0, kept, {"visibility": old["masks"][li][:kept], "moved": moved}
+                          for a, b, extra in ((0, kept, {"visibility": old["terms"][li][2][:kept], "moved": moved,
+                                                         "previous": (old["terms"][li][0][:kept],
+                                                                      old["terms"][li][1][:kept])}
                                                if kept else {}), (kept, len(at), {})))
-            S = np.concatenate([head[0], tail[0]])
-            masks.append(np.concatenate([head[2], tail[2]]))
+            terms.append(tuple(np.concatenate([a, b]) for a, b in zip(head, tail)))
+            S = terms[-1][0]
             light_k += S[:, :, None] * np.asarray(light.radiance if isinstance(light, AreaLight)
                                                   else light.intensity, float)
         stats["near_rays_cast"] += counts["rays_cast"]
         self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
                                           poses=poses, spheres=spheres, parts=identity,
-                                          masks=masks)
+                                          terms=terms)
         return light_k
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
