@@ -326,8 +326,8 @@ def _factor(nodes, values, k, theta, phi, freq, parity):
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
-                  eps, tnear, visibility, moved, previous_S, previous_F, reach, cull, spheres, planes, nodes, values, freq,
-                  parity, kd, ks, exponent, S, F, blocked, cast):
+                  eps, tnear, visibility, moved, previous_S, previous_F, reach, cull, spheres, planes, nodes, values,
+                  freq, parity, kd, ks, exponent, S, F, blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
     the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
     ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
@@ -483,14 +483,10 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     out (a ray leaves it on its normal's side). A sample whose segment meets none of them is not traced: its
     ray would be unblocked, so the results are those of casting it (``stats`` counts only traced rays).
     ``previous``: the ``(S, F)`` of the call that gave ``visibility`` (same ``wo``, BRDF and ``first``): a vertex
-    none of whose segments can meet a ``moved`` sphere keeps its rows (the same sums, bit for bit).
-    The reference tier casts every ray (and recomputes every vertex). ``first``: the number of the first point in the random streams (point
-    ``p`` draws the jitter of point ``first + p``), so a call on ``points[a:]`` with ``first=a`` gives the rows
-    ``a:`` of a call on ``points``.
-
-    The numba kernel needs a :class:`prtlab.brdf.Phong` (or Lambert) ``f``, a
-    :class:`prtlab.brdf.SeparableBRDF` ``sep`` and a caster with an Embree scene; otherwise this is
-    :func:`light_terms_reference`.
+    none of whose segments can meet a ``moved`` sphere keeps its rows (the same sums, bit for bit). The
+    reference tier casts every ray and recomputes every vertex. ``first``: the number of the first point in the
+    random streams (point ``p`` draws the jitter of point ``first + p``), so a call on ``points[a:]`` with
+    ``first=a`` gives the rows ``a:`` of a call on ``points``.
     """
     first = _check_first(first)
     if not _kernel_ready(f, sep, caster):

@@ -94,8 +94,8 @@ from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irrad
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
-from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual, near_hit_correction,
-                        near_hits, residual_hits)
+from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual,
+                        near_hit_correction, near_hits, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
