@@ -41,7 +41,7 @@ from prtlab.scene import AreaLight, PointLight
 from ._residual import _mix, _uniform  # SplitMix64, the residual gather's counter-based streams
 
 __all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "light_terms_reference",
-           "mirror_wo", "sample_count", "widened_sphere"]
+           "mirror_wo", "sample_count", "widened_sphere", "blocker_bounds"]
 
 #: vertices per chunk of the reference tier: bounds its (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
@@ -114,6 +114,15 @@ def _light_geometry(light, samples: int) -> tuple[np.ndarray, int, int, bool]:
     return params, 1, 1, False
 
 
+def _reach(params, area: bool) -> float:
+    """The distance from an area light's centre to its farthest corner (0 for a point light), widened by 1e-9
+    relative."""
+    if not area:
+        return 0.0
+    u, v = params[3:6], params[6:9]
+    return float(max(np.linalg.norm(u + v), np.linalg.norm(u - v))) * (1.0 + 1e-9)
+
+
 def _emission(light) -> np.ndarray:
     return np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
 
@@ -132,6 +141,32 @@ def widened_sphere(sphere, epsilon: float) -> np.ndarray:
     return np.array([*c, r + 2.0 * epsilon + 1e-5 * (float(np.max(np.abs(c))) + r) + 1e-12])
 
 
+def blocker_bounds(caster, flat, exclude=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(spheres (S, 4), planes (P, 5))`` of ``blockers=`` in :func:`light_terms` for the objects of ``caster``:
+    a flat object (``flat[i]``) as the slab of its plane (unit normal, lowest and highest ``n . p`` of its world
+    vertices), any other as its bounding sphere (centre: the vertices' bounding-box centre); both widened as
+    :func:`widened_sphere`. ``exclude``: an object number left out (a flat receiver's own plane)."""
+    spheres, planes = [], []
+    for i in range(len(flat)):
+        if i == exclude:
+            continue
+        v = caster.world_vertices(i)
+        if not len(v):
+            continue
+        centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        sphere = widened_sphere([*centre, float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))],
+                                caster.epsilon)
+        if flat[i]:
+            _, _, vt = np.linalg.svd(v - v.mean(axis=0), full_matrices=False)
+            normal = vt[-1] / np.linalg.norm(vt[-1])
+            offset = v @ normal
+            margin = sphere[3] - float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))
+            planes.append([*normal, offset.min() - margin, offset.max() + margin])
+        else:
+            spheres.append(sphere)
+    return np.asarray(spheres, float).reshape(-1, 4), np.asarray(planes, float).reshape(-1, 5)
+
+
 def _check(points, normals, wo):
     x, n, wo = (np.ascontiguousarray(a, dtype=np.float64) for a in (points, normals, wo))
     if x.ndim != 2 or x.shape[1] != 3 or n.shape != x.shape or wo.shape != x.shape:
@@ -140,6 +175,12 @@ def _check(points, normals, wo):
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(n)) and np.all(np.isfinite(wo))):
         raise ValueError("points, normals or wo contain NaN or inf; pass finite arrays")
     return x, n, wo
+
+
+def _check_first(first) -> int:
+    if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
+        raise ValueError(f"first must be a non-negative int (the first point's stream number), got {first!r}")
+    return int(first)
 
 
 def _check_reuse(visibility, moved, n_points: int, m: int):
@@ -172,9 +213,12 @@ def _segments_meet(x, y, spheres) -> np.ndarray:
 
 
 def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
-                          visibility=None, moved=None, stats: dict | None = None):
-    """Float64 numpy specification of :func:`light_terms` (same arguments and results)."""
+                          visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
+                          previous=None):
+    """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
+    ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
+    first = _check_first(first)
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
@@ -188,7 +232,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         part = slice(lo, lo + _CHUNK)
         xp, np_, wop = x[part], n[part], wo[part]
         if area:
-            st = (corner[None] + jitter(seed, index, np.arange(lo, lo + len(xp)), m) * cell) * 2.0 - 1.0
+            st = (corner[None] + jitter(seed, index, np.arange(lo, lo + len(xp)) + first, m) * cell) * 2.0 - 1.0
             y = c + st[..., :1] * u + st[..., 1:] * v  # (V, m, 3)
         else:
             y = np.broadcast_to(c, (len(xp), 1, 3))
@@ -236,6 +280,34 @@ def _segment_meets(x0, x1, x2, y0, y1, y2, spheres):
 
 
 @numba.njit(cache=True, inline="always")
+def _capsule_meets(x0, x1, x2, y0, y1, y2, reach, spheres):
+    """Whether any sphere of ``spheres`` (S, 4) comes within ``reach`` of the segment ``x -> y``: the segments
+    from ``x`` to every point within ``reach`` of ``y`` lie in that capsule."""
+    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for s in range(spheres.shape[0]):
+        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
+        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
+        r = spheres[s, 3] + reach
+        if g0 * g0 + g1 * g1 + g2 * g2 <= r * r:
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
+    """Whether the segment ``x -> y`` reaches any slab of ``planes`` (P, 5: unit normal, lowest and highest
+    offset ``n . p`` of a flat object's vertices, widened): both ends beyond one side miss it."""
+    for s in range(planes.shape[0]):
+        a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
+        sx, sy = a0 * x0 + a1 * x1 + a2 * x2, a0 * y0 + a1 * y1 + a2 * y2
+        if not ((sx > hi and sy > hi) or (sx < lo and sy < lo)):
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
 def _factor(nodes, values, k, theta, phi, freq, parity):
     """``g_k`` at ``(theta, phi)`` (:func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
     last = nodes.shape[0] - 1
@@ -253,15 +325,20 @@ def _factor(nodes, values, k, theta, phi, freq, parity):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _terms_kernel(x, n, wo, params, area, rows, side, key, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
-                  eps, tnear, visibility, moved, nodes, values, freq, parity, kd, ks, exponent, S, F, blocked, cast):
+def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
+                  eps, tnear, visibility, moved, previous_S, previous_F, reach, cull, spheres, planes, nodes, values,
+                  freq, parity, kd, ks, exponent, S, F, blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
-    the previous mask, re-cast only where a segment meets a sphere of ``moved``; ``cast`` (V,): the samples
-    traced per vertex. Threads take blocks of
+    the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
+    ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
+    within it of the centre) meets no sphere of ``moved`` keeps their rows and its mask; with ``cull``, a segment that
+    meets none of ``spheres`` (S, 4) and no slab of ``planes`` (P, 5) is not traced (unblocked), at vertices
+    outside every sphere; ``cast`` (V,): the samples traced per vertex. Threads take blocks of
     ``_VERTICES_PER_TASK`` vertices from a shared counter; block ``b`` traces through slot ``b``."""
     n_points = x.shape[0]
     m = rows * side
     reuse = visibility.shape[0] > 0
+    keep = reuse and previous_S.shape[0] > 0
     n_terms = values.shape[0]
     n_channels = kd.shape[0]
     any_phi = False
@@ -288,12 +365,20 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, tracer_fn, tracer_sce
             f32, u32 = slot_f32[block], slot_u32[block]
             address = f32.ctypes.data
             for p in range(block * step, min(n_points, (block + 1) * step)):
+                cast[p] = 0
+                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
+                if keep and not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved):
+                    for k in range(n_terms):  # no segment of this vertex meets a moved sphere: as before
+                        S[p, k] = previous_S[p, k]
+                    for c in range(n_channels):
+                        F[p, c] = previous_F[p, c]
+                    for j in range(m):
+                        blocked[p, j] = visibility[p, j]
+                    continue
                 for k in range(n_terms):
                     S[p, k] = 0.0
                 for c in range(n_channels):
                     F[p, c] = 0.0
-                cast[p] = 0
-                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
                 n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
                 length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
                 a0, a1, a2 = n0 / length, n1 / length, n2 / length  # unit normal: the BRDF's frame
@@ -306,7 +391,12 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, tracer_fn, tracer_sce
                 length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
                 o0, o1, o2 = o0 / length, o1 / length, o2 / length
                 co = a0 * o0 + a1 * o1 + a2 * o2
-                stream = _mix(np.uint64(key) ^ _mix(np.uint64(p)))
+                stream = _mix(np.uint64(key) ^ _mix(np.uint64(p + first)))
+                culling = cull
+                for q in range(spheres.shape[0]):  # a vertex inside a blocker's sphere: every segment meets it
+                    e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
+                    if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
+                        culling = False
                 for j in range(m):
                     blocked[p, j] = False
                     if area:
@@ -327,6 +417,9 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, tracer_fn, tracer_sce
                     weight = cos_x * cos_l / max(dist, 1e-300) ** 2 * scale
                     if reuse and not _segment_meets(x0, x1, x2, y0, y1, y2, moved):
                         hit = visibility[p, j]
+                    elif culling and not _segment_meets(x0, x1, x2, y0, y1, y2, spheres) \
+                            and not _slab_meets(x0, x1, x2, y0, y1, y2, planes):
+                        hit = False  # no blocker's triangle is near the segment: the ray would miss
                     else:  # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar
                         cast[p] += 1
                         length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
@@ -369,7 +462,8 @@ def _kernel_ready(f, sep, caster) -> bool:
 
 
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
-                visibility=None, moved=None, stats: dict | None = None):
+                visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
+                previous=None):
     """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
@@ -383,13 +477,31 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     (S, 4: centre, radius; the moved objects' bounding spheres before and after, widened for float32 and
     the origin offset) are cast again; without ``moved`` none are (a new ``wo`` or radiance).
 
-    The numba kernel needs a :class:`prtlab.brdf.Phong` (or Lambert) ``f``, a
-    :class:`prtlab.brdf.SeparableBRDF` ``sep`` and a caster with an Embree scene; otherwise this is
-    :func:`light_terms_reference`.
+    ``blockers``: ``(spheres (S, 4), planes (P, 5))`` holding every triangle a shadow ray can hit
+    (:func:`blocker_bounds`): bounding spheres (centre, radius) and slabs of flat objects (unit normal, lowest
+    and highest ``n . p``), widened for float32 and the origin offset; the receiver's own plane may be left
+    out (a ray leaves it on its normal's side). A sample whose segment meets none of them is not traced: its
+    ray would be unblocked, so the results are those of casting it (``stats`` counts only traced rays).
+    ``previous``: the ``(S, F)`` of the call that gave ``visibility`` (same ``wo``, BRDF and ``first``): a vertex
+    none of whose segments can meet a ``moved`` sphere keeps its rows (the same sums, bit for bit). The
+    reference tier casts every ray and recomputes every vertex. ``first``: the number of the first point in the
+    random streams (point ``p`` draws the jitter of point ``first + p``), so a call on ``points[a:]`` with
+    ``first=a`` gives the rows ``a:`` of a call on ``points``.
     """
+    first = _check_first(first)
     if not _kernel_ready(f, sep, caster):
         return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
-                                     visibility, moved, stats)
+                                     visibility, moved, stats, first=first)
+    if previous is not None and visibility is not None:
+        previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
+        if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
+            raise ValueError(f"previous must be the (S, F) of an earlier call on the same {len(points)} points, "
+                             f"got shapes {previous_S.shape}, {previous_F.shape}")
+    else:
+        previous_S, previous_F = np.zeros((0, sep.K)), np.zeros((0, f.channels))
+    spheres, planes = (np.zeros((0, 4)), np.zeros((0, 5))) if blockers is None else (
+        np.ascontiguousarray(blockers[0], np.float64).reshape(-1, 4),
+        np.ascontiguousarray(blockers[1], np.float64).reshape(-1, 5))
     x, n, wo = _check(points, normals, wo)
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
@@ -402,10 +514,12 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     n_blocks = -(-len(x) // _VERTICES_PER_TASK)
     slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
     scene = caster._scene
-    _terms_kernel(x, n, wo, params, area, rows, side, np.uint64(_key(seed, index)), scene.occluded_fn, scene.handle,
+    _terms_kernel(x, n, wo, params, area, rows, side, np.uint64(_key(seed, index)), first, scene.occluded_fn,
+                  scene.handle,
                   slot_f32, slot_u32, numba.get_num_threads(), float(caster.epsilon), float(caster.tnear),
                   np.zeros((0, m), np.bool_) if visibility is None else visibility,
-                  np.zeros((0, 4)) if moved is None else moved, nodes, values,
+                  np.zeros((0, 4)) if moved is None else moved, previous_S, previous_F, _reach(params, area),
+                  blockers is not None, spheres, planes, nodes, values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
                   np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
                   blocked, cast)
@@ -417,21 +531,21 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
 # ------------------------------------------------------------------------------------------- the direct light
 
 
-def _direct(terms, points, normals, wo, f, sep, caster, lights, samples, seed):
+def _direct(terms, points, normals, wo, f, sep, caster, lights, samples, seed, **extra):
     x = np.asarray(points, float)
     wo = mirror_wo(wo, normals)
     light_k, radiance = np.zeros((len(x), sep.K, 3)), np.zeros((len(x), 3))
     for i, light in enumerate(lights):
         if not isinstance(light, (AreaLight, PointLight)):
             continue
-        S, F, _ = terms(x, normals, wo, f, sep, caster, light, i, samples, seed)
+        S, F, _ = terms(x, normals, wo, f, sep, caster, light, i, samples, seed, **extra)
         e = _emission(light)
         light_k += S[:, :, None] * e
         radiance += F * e
     return light_k, radiance
 
 
-def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int, seed: int = 0):
+def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int, seed: int = 0, blockers=None):
     """``(L_k (V, K, C), radiance toward wo (V, C))`` at world ``points`` with unit ``normals`` from the area
     and point lights of ``lights`` (others are left out), with shadow rays against ``caster`` (every object at
     its pose).

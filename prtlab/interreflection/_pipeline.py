@@ -93,9 +93,9 @@ from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import light_terms, mirror_wo, ray_traced_direct, widened_sphere
-from ._residual import (_bounding_radius, apply_gather, gather_operator, gather_residual, near_hit_correction,
-                        near_hits, residual_hits)
+from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
+from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual,
+                        near_hit_correction, near_hits, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -396,6 +396,12 @@ class FrameReuse:
     near_exact: dict = dataclasses.field(default_factory=dict)
     #: (receiver, source index) -> (its ResidualHits, residual_near, their near hits) of ``residual_near``
     near_hits: dict = dataclasses.field(default_factory=dict)
+    #: object number left out (or None) -> (poses, caster's offsets, shadow-ray blockers of :func:`blocker_bounds`)
+    blockers: dict = dataclasses.field(default_factory=dict)
+    #: source index -> {lights' geometry, samples, ray offsets, poses, bounding spheres, the near-hit parts
+    #: (receiver, near-hit points, their normals), per light (S, F, shadow mask)} of
+    #: :meth:`Interreflection._near_exact`
+    near_sources: dict = dataclasses.field(default_factory=dict)
 
 
 class Interreflection(Precomputation):
@@ -858,7 +864,8 @@ class Interreflection(Precomputation):
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
                         self.seps[r.name], caster, light, i, samples,
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
-                        stats=self.reuse.direct_counts)
+                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me),
+                        previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)
                 terms[i] = new
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
                 lk += new["S"][:, :, None] * emission
@@ -871,6 +878,17 @@ class Interreflection(Precomputation):
                 rad = rad + outgoing_radiance(env_k, g["h"], self.seps[r.name].colour)
             light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
+
+    def _shadow_blockers(self, caster, poses, me: int):
+        """The bounds of every object a shadow ray from object number ``me`` may hit (:func:`blocker_bounds`; its
+        own plane left out if it is flat), made once per pose set and ray offsets."""
+        exclude = me if self.flat[self.objects[me].name] else None
+        key = (poses, caster.epsilon, caster.tnear)
+        cached = self.reuse.blockers.get(exclude)
+        if cached is None or cached[0] != key:
+            cached = self.reuse.blockers[exclude] = (key, blocker_bounds(
+                caster, [self.flat[o.name] for o in self.objects], exclude))
+        return cached[1]
 
     def direct_step_haar(self, state: FrameState, geo):
         """Step 1 with all-frequency shadows: ``L_k`` (V, K, C) per object from every light (Zhou et al. 2005
@@ -1181,9 +1199,13 @@ class Interreflection(Precomputation):
                       for o in self.objects)
         return poses, tuple(np.asarray(camera.position, float))
 
-    def _bounces(self, geo, phi, light_k, bounces: int, lights=()):
+    def _bounces(self, geo, phi, light_k, bounces: int, lights=(), method: str = "numba"):
         """Steps 3-4 (Sec. 5.3): the indirect radiance of ``bounces`` bounces, and the seconds of each step (the
         weights, the bounces, the near hits).
+
+        ``method="numba"``: a receiver with ``K' = 1`` and RGB light takes one pass per bounce
+        (:func:`bounce_rgb`); ``"reference"``: BLAS's ``stacked @ w`` and the float64 sum over the residual
+        gather's hits (:func:`gather_residual`), the specification.
 
         Bounce ``b`` reflects ``L^(b) = max(0, sum_s Phi^s w^s(b-1))`` (Eq. 12; the clamp for a Lambertian
         receiver), one ``(V K', M) x (M, 3)`` product per receiver, and its weights ``w(b)`` (Eq. 14) are
@@ -1204,21 +1226,38 @@ class Interreflection(Precomputation):
             t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
             new_light = {}
+            stacked_residual = offsets = None  # every object's residual (K = 1, RGB), stacked for bounce_rgb
+            if residuals and method != "reference" and all(v.shape[1:] == (1, 3) for v in residuals.values()):
+                offsets = np.cumsum([0] + [len(residuals[o.name]) for o in self.objects])
+                stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
             for r in self.objects:
                 g = geo[r.name]
                 stacked, sources = self._stacked_irradiance(r, phi[r.name])
-                if sources:
-                    # Eq. 12 before h: every source's (k, i) side by side
+                operators = self._residual_entry(geo, r, phi[r.name])["operators"] if residuals else {}
+                if (method != "reference" and stacked is not None and stacked.shape[1] == 1
+                        and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
+                    # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
-                    lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
-                else:
-                    lk = np.zeros(g["g_cos"].shape[:2] + (3,))
-                if residuals:
-                    lk = lk + self._residual_light(geo, r, residuals, phi[r.name])
-                    if corrections:
-                        lk = lk + corrections[r.name]
-                    if self.options.residual_whole and self._near_on(lights):
+                    extra = corrections.get(r.name)
+                    lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
+                                    stacked_residual, offsets,
+                                    None if extra is None else extra.reshape(len(stacked), 3))
+                    lk = lk.reshape(len(stacked), 1, 3)
+                    if residuals and self.options.residual_whole and self._near_on(lights):
                         lk = lk + self._whole_light(geo, r, phi[r.name], weights)
+                else:
+                    if sources:
+                        # Eq. 12 before h: every source's (k, i) side by side
+                        w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                        lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
+                    else:
+                        lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                    if residuals:
+                        lk = lk + self._residual_light(geo, r, residuals, phi[r.name], method=method)
+                        if corrections:
+                            lk = lk + corrections[r.name]
+                        if self.options.residual_whole and self._near_on(lights):
+                            lk = lk + self._whole_light(geo, r, phi[r.name], weights)
                 lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
                 indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
@@ -1343,7 +1382,7 @@ class Interreflection(Precomputation):
                repr([light.to_dict() for light in near]))
         if self.reuse.near_exact.get("key") == key:
             return self.reuse.near_exact["corrections"]
-        caster = self._scene_caster(geo, key[0])[0]
+        caster, spheres = self._scene_caster(geo, key[0])
         selected = {}  # source index -> [(receiver, hits, index, points, normals)]
         for r in self.objects:
             for i, hits in entries[r.name]["hits"].items():
@@ -1361,8 +1400,7 @@ class Interreflection(Precomputation):
             sep = self.seps[s.name]
             at, normals = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
             stats["near_hits"] = stats.get("near_hits", 0) + len(at)
-            exact, _ = ray_traced_direct(at, normals, normals, brdf.from_material(s.material), sep, caster, near,
-                                         self.options.residual_near_samples, seed=1 + i)
+            exact = self._near_exact(i, parts, at, normals, caster, spheres, near, key[0])
             colour = np.asarray(sep.colour, float)[None]
             vertex = self.reuse.direct_rays[s.name]["light_k"] * colour  # the same lights' L_k at its vertices
             bounds = np.cumsum([0] + [len(p[2]) for p in parts])
@@ -1370,6 +1408,55 @@ class Interreflection(Precomputation):
                 out[name] += near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
         self.reuse.near_exact = {"key": key, "corrections": out}
         return out
+
+    def _near_exact(self, i: int, parts, at, normals, caster, spheres, lights, poses) -> np.ndarray:
+        """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits ``at`` (``parts``' points one after another),
+        as :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
+
+        Per light the terms and shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry,
+        the source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the
+        same arrays as before keep their random streams, so :func:`light_terms` recomputes only their points
+        whose segments may meet a moved object's bounding sphere (before or after) and re-casts only those
+        samples; the points after them are cast anew (``first=``): the result equals the full call bit for
+        bit."""
+        s = self.objects[i]
+        f, sep, m = brdf.from_material(s.material), self.seps[s.name], self.options.residual_near_samples
+        wo = mirror_wo(normals, normals)
+        blockers = self._shadow_blockers(caster, poses, i)
+        light_keys = [(type(light).__name__, *(np.asarray(getattr(light, a), float).tobytes()
+                                               for a in ("center", "u", "v", "position") if hasattr(light, a)))
+                      for light in lights]
+        identity = [(p[0], p[3], p[4]) for p in parts]
+        old = self.reuse.near_sources.get(i)
+        kept = 0  # points of the leading parts that stand
+        if (old is not None and old["light_keys"] == light_keys and old["samples"] == m
+                and old["offsets"] == (caster.epsilon, caster.tnear) and old["poses"][i] == poses[i]):
+            for (name, points, normal), (o_name, o_points, o_normal) in zip(identity, old["parts"]):
+                if name != o_name or not (np.array_equal(points, o_points) and np.array_equal(normal, o_normal)):
+                    break
+                kept += len(points)
+            moved = np.array([widened_sphere(sphere, caster.epsilon) for j in range(len(poses))
+                              if old["poses"][j] != poses[j] for sphere in (old["spheres"][j], spheres[j])])
+        stats = self.reuse.residual_counts
+        stats.setdefault("near_rays_cast", 0)
+        counts = {"rays_cast": 0}
+        light_k, terms = np.zeros((len(at), sep.K, 3)), []
+        for li, light in enumerate(lights):
+            head, tail = (light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
+                                      stats=counts, blockers=blockers, first=a, **extra)
+                          for a, b, extra in ((0, kept, {"visibility": old["terms"][li][2][:kept], "moved": moved,
+                                                         "previous": (old["terms"][li][0][:kept],
+                                                                      old["terms"][li][1][:kept])}
+                                               if kept else {}), (kept, len(at), {})))
+            terms.append(tuple(np.concatenate([a, b]) for a, b in zip(head, tail)))
+            S = terms[-1][0]
+            light_k += S[:, :, None] * np.asarray(light.radiance if isinstance(light, AreaLight)
+                                                  else light.intensity, float)
+        stats["near_rays_cast"] += counts["rays_cast"]
+        self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
+                                          poses=poses, spheres=spheres, parts=identity,
+                                          terms=terms)
+        return light_k
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
@@ -1403,6 +1490,7 @@ class Interreflection(Precomputation):
         result.info = {"method": self.method, "bounces": bounces, "timings": times, **counts,
                        "residual_rays_cast": self.reuse.residual_counts["rays_cast"],
                        "residual_near_hits": self.reuse.residual_counts.get("near_hits", 0),
+                       "residual_near_rays_cast": self.reuse.residual_counts.get("near_rays_cast", 0),
                        "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
 

@@ -697,6 +697,103 @@ def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
     return out
 
 
+def _rgb_ready(operators) -> bool:
+    """Whether :func:`bounce_rgb` takes ``operators``: ``K = K' = 1`` factors and float32 barycentrics in all."""
+    return all(op.factor.shape[1:] == (1, 1) and op.uv.dtype == np.float32 for op in operators)
+
+
+def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None) -> np.ndarray:
+    """One bounce's ``L`` (V, 3) of a receiver with ``K' = 1`` in one pass: ``stacked @ w`` (its basis
+    irradiance, Eq. 12 before ``h``) plus the residual gather of every source (:func:`apply_gather`) plus
+    ``extra`` (V, 3) if given.
+
+    ``stacked`` (V, M), ``w`` (M, 3); ``operators``: the sources' :class:`GatherOperator` (``K = K' = 1``,
+    float32 barycentrics, :func:`_rgb_ready`), ``sources`` their object numbers, ``residual`` (V_all, 3) every
+    object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start. Per point
+    the sum is ``dot + sum_j gather_j + extra``, in that order: the terms of the numpy path (``stacked @ w``,
+    :func:`apply_gather` per source into zeros, the corrections added), which holds it to ``1e-12``
+    (``tests/interreflection/test_residual.py``); the dot product's summation order differs from BLAS's.
+    """
+    from numba.typed import List
+
+    stacked = np.ascontiguousarray(stacked, np.float64)
+    out = np.empty((stacked.shape[0], 3))
+    if not len(out):
+        return out
+    lists = [List([getattr(op, f) for op in operators]) if operators else None
+             for f in ("starts", "faces", "triangles", "uv")]
+    factors = List([op.factor.reshape(-1) for op in operators]) if operators else None
+    if operators:
+        _bounce_rgb_kernel(stacked, np.ascontiguousarray(w, np.float64), *lists, factors,
+                           np.asarray([offsets[i] for i in sources], np.int64),
+                           np.ascontiguousarray(residual, np.float64),
+                           np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64), out)
+    else:
+        _bounce_dot_kernel(stacked, np.ascontiguousarray(w, np.float64),
+                           np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64),
+                           np.zeros((0, 3)), out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _gather_rows(st, fc, tr, bc, fa, o, x, g):
+    """``g`` (V, 3) += one source's gather (``_apply_rgb_kernel`` with its vertices from row ``o`` of ``x``)."""
+    for v in numba.prange(g.shape[0]):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for h in range(st[v], st[v + 1]):
+            f = tr[h]
+            i0, i1, i2 = o + fc[f, 0], o + fc[f, 1], o + fc[f, 2]
+            u, t = float(bc[h, 0]), float(bc[h, 1])
+            b0 = 1.0 - u - t
+            c = fa[h]
+            a0 += c * (b0 * x[i0, 0] + u * x[i1, 0] + t * x[i2, 0])
+            a1 += c * (b0 * x[i0, 1] + u * x[i1, 1] + t * x[i2, 1])
+            a2 += c * (b0 * x[i0, 2] + u * x[i1, 2] + t * x[i2, 2])
+        g[v, 0] += a0
+        g[v, 1] += a1
+        g[v, 2] += a2
+
+
+@numba.njit(cache=True, nogil=True)
+def _bounce_rgb_kernel(stacked, w, starts, faces, triangles, uv, factor, offsets, x, extra, out):
+    """:func:`bounce_rgb` with sources: the sources' gathers one after another into a zeroed sum (each a parallel
+    pass over the points), then per point the dot product plus that sum plus ``extra`` ((V, 3) or (0, 3))."""
+    g = np.zeros((stacked.shape[0], 3))
+    for j in range(offsets.shape[0]):
+        _gather_rows(starts[j], faces[j], triangles[j], uv[j], factor[j], offsets[j], x, g)
+    _bounce_dot_kernel(stacked, w, extra, g, out)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _bounce_dot_kernel(stacked, w, extra, g, out):
+    """``out = stacked @ w + g`` (+ ``extra``; ``g``, ``extra``: (V, 3) or (0, 3)) per point."""
+    n_m = stacked.shape[1]
+    add = extra.shape[0] > 0
+    gathered = g.shape[0] > 0
+    for v in numba.prange(stacked.shape[0]):
+        d0 = 0.0
+        d1 = 0.0
+        d2 = 0.0
+        for m in range(n_m):
+            a = stacked[v, m]
+            d0 += a * w[m, 0]
+            d1 += a * w[m, 1]
+            d2 += a * w[m, 2]
+        if gathered:
+            d0 += g[v, 0]
+            d1 += g[v, 1]
+            d2 += g[v, 2]
+        out[v, 0] = d0
+        out[v, 1] = d1
+        out[v, 2] = d2
+        if add:
+            out[v, 0] += extra[v, 0]
+            out[v, 1] += extra[v, 1]
+            out[v, 2] += extra[v, 2]
+
+
 # ------------------------------------------------------------------ near hits
 
 

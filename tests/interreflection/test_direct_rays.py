@@ -214,7 +214,8 @@ def test_the_jitter_hash_is_uniform_and_independent_of_the_rows_asked():
 @pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
 def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
     """The box moves: the previous mask re-cast only where a sample's segment meets the box's bounding sphere
-    before or after (widened) equals casting every sample at the new poses, and most samples were not cast.
+    before or after (widened) equals casting every sample at the new poses, and most samples were not cast;
+    with ``previous`` too (the vertices whose capsule to the light misses the spheres keep their sums).
     Without ``moved`` no ray is cast: the mask of a caster of other geometry gives the same terms."""
     f = brdf.from_material(MATERIALS[1])
     sep = brdf.separable(f, K=4)
@@ -231,6 +232,11 @@ def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
         assert not np.array_equal(old[2], fresh[2])  # the move changed some shadows
         partial = terms(points, normals, wo, f, sep, after, light, i, 64, visibility=old[2], moved=spheres)
         for a, b in zip(partial, fresh):
+            np.testing.assert_array_equal(a, b)
+        # with the earlier sums, the vertices none of whose segments can meet the spheres keep their rows
+        kept = terms(points, normals, wo, f, sep, after, light, i, 64, visibility=old[2], moved=spheres,
+                     previous=old[:2])
+        for a, b in zip(kept, fresh):
             np.testing.assert_array_equal(a, b)
         # a new camera from the mask alone: the caster is never asked (this one holds nothing near)
         elsewhere = RayCaster([meshes[2]], transforms=[Transform(translate=np.array([50.0, 0.0, 0.0]))])
@@ -253,6 +259,9 @@ def test_light_terms_refuse_bad_input():
         light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, visibility=np.zeros((625, 64), bool))
     with pytest.raises(ValueError, match="moved= needs the previous visibility="):
         light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, moved=np.zeros((1, 4)))
+    with pytest.raises(ValueError, match="previous must be the"):
+        light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, visibility=np.zeros((625, 16), bool),
+                    moved=np.zeros((0, 4)), previous=(np.zeros((3, 1)), np.zeros((3, 3))))
 
 
 def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
@@ -283,13 +292,50 @@ def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
     assert np.any(relit.direct["floor"] != first.direct["floor"])
     state.transforms["ball"] = Transform(translate=np.array([1.1, 0.7, 1.3]))  # in the box: same ray offsets
     moved = pre.shade(state, bounces=0)
-    # the ball's own samples and the floor's near the ball, not all of the floor's
-    floor_samples = sum(e["mask"].size for e in pre.reuse.direct_rays["floor"]["lights"].values())
-    assert 0 < moved.info["direct_rays_cast"] < first.info["direct_rays_cast"] - floor_samples // 4
+    # the ball's own samples and the floor's near the ball, not all of the floor's (a full cast skips the floor's
+    # samples no blocker is near too: light_terms' blockers=, so it casts about as few here)
+    again = fresh(state)
+    assert 0 < moved.info["direct_rays_cast"] <= again.info["direct_rays_cast"]
     for name in ("floor", "ball"):
-        np.testing.assert_array_equal(moved.direct[name], fresh(state).direct[name])
+        np.testing.assert_array_equal(moved.direct[name], again.direct[name])
     state.camera = type(scene.camera)(position=np.array([2.0, 3.0, -4.0]), look_at=np.zeros(3))
     turned = pre.shade(state, bounces=0)
     assert turned.info["direct_rays_cast"] == 0
     for name in ("floor", "ball"):
         np.testing.assert_array_equal(turned.direct[name], fresh(state).direct[name])
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_samples_no_blocker_is_near_are_not_cast_and_change_nothing(material):
+    """``blockers`` (:func:`blocker_bounds`: the box's and balls' spheres, a wall's slab, the floor receiver's own
+    plane left out) skip the rays whose segment meets none of them: masks and sums equal those of casting every
+    ray, bit for bit, for every light, with fewer rays; floor points behind the wall still cast theirs."""
+    from prtlab.interreflection._direct_rays import blocker_bounds
+
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    plane = builtin_mesh("plane", size=[4.2, 4.2], resolution=[6, 6])
+    wall = builtin_mesh("plane", size=[4.2, 2.0], resolution=[4, 2])
+    meshes = [plane, wall, *meshes]
+    poses = [Transform(), Transform(translate=np.array([0.0, 1.0, -1.2]), rotate_deg=np.array([90.0, 0.0, 0.0])),
+             *poses]
+    caster = RayCaster(meshes, transforms=poses)
+    flat = [True, True, False, False, False, False]
+    blockers = blocker_bounds(caster, flat, exclude=0)
+    assert blockers[0].shape == (4, 4) and blockers[1].shape == (1, 5)
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        every, culled = {}, {}
+        full = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=every)
+        fast = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=culled,
+                           blockers=blockers)
+        for a, b in zip(fast, full):
+            np.testing.assert_array_equal(a, b)
+        assert full[2].any() and 0 < culled["rays_cast"] < every["rays_cast"]
+        behind = points[:, 2] < -1.25  # their segments to every light cross the wall's plane: all cast
+        slab, plain = {}, {}
+        light_terms(points[behind], normals[behind], wo[behind], f, sep, caster, light, i, 64, stats=slab,
+                    blockers=(np.zeros((0, 4)), blockers[1]))
+        light_terms(points[behind], normals[behind], wo[behind], f, sep, caster, light, i, 64, stats=plain)
+        assert slab["rays_cast"] == plain["rays_cast"] > 0

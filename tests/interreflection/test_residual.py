@@ -470,3 +470,105 @@ def test_near_hits_kernel_equals_the_reference(near):
                 np.testing.assert_array_equal(a, b)
             selected += len(ref[0])
     assert selected > 0
+
+
+@pytest.mark.parametrize("options", [{}, {"residual_near": 0}, {"residual_rays": 0}, {"residual_whole": True}])
+def test_fused_bounces_equal_the_reference_tier(low_ball, options):
+    """Three bounces by :func:`bounce_rgb` (one pass per receiver: Eq. 12, the residual gather, the near hits'
+    correction) equal the reference tier's (BLAS's product, the float64 sum over the hits) to 1e-12."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, **options), low_ball.data)
+    state = FrameState.from_scene(low_ball.scene)
+    ir.shade(state, bounces=1)
+    geo = ir.reuse.frame[1][0]
+    light_k = {o.name: ir.reuse.direct_rays[o.name]["light_k"] for o in ir.objects}
+    phi, _ = ir.basis_irradiance_step(geo, ir.reuse.frame[1][1])
+    fast = ir._bounces(geo, phi, light_k, 3, state.lights)[0]
+    ref = ir._bounces(geo, phi, light_k, 3, state.lights, method="reference")[0]
+    for name, expected in ref.items():
+        assert np.abs(expected).max() > 0
+        np.testing.assert_allclose(fast[name], expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+def test_bounce_rgb_equals_apply_gather():
+    """:func:`bounce_rgb` on random operators equals ``stacked @ w`` plus :func:`apply_gather` per source plus the
+    extra term to 1e-12, and with no source the product alone; an empty receiver gives an empty result."""
+    from prtlab.interreflection._residual import GatherOperator, apply_gather, bounce_rgb
+
+    rng = np.random.default_rng(3)
+    n_r, n_m, sizes = 40, 24, [7, 11]
+
+    def operator(n_s):
+        counts = rng.integers(0, 6, n_r)
+        n_h = int(counts.sum())
+        faces = rng.integers(0, n_s, (9, 3)).astype(np.int32)
+        return GatherOperator(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), faces,
+                              rng.integers(0, 9, n_h).astype(np.int32),
+                              (rng.random((n_h, 2)) * 0.5).astype(np.float32), rng.normal(size=(n_h, 1, 1)))
+
+    ops = [operator(n) for n in sizes]
+    residual = rng.normal(size=(sum(sizes), 3))
+    offsets = np.array([0, sizes[0]])
+    stacked, w, extra = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3)), rng.normal(size=(n_r, 3))
+    expected = (stacked @ w)[:, None]
+    gathered = np.zeros((n_r, 1, 3))
+    for op, a, n in zip(ops, offsets, sizes):
+        apply_gather(op, residual[a:a + n].reshape(n, 1, 3), gathered)
+    expected = (expected + gathered + extra[:, None])[:, 0]
+    np.testing.assert_allclose(bounce_rgb(stacked, w, ops, [0, 1], residual, offsets, extra), expected,
+                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(bounce_rgb(stacked, w, [], [], None, None), stacked @ w, rtol=1e-12, atol=1e-12)
+    assert bounce_rgb(np.zeros((0, n_m)), w, ops, [0, 1], residual, offsets).shape == (0, 3)
+
+
+def test_moving_an_object_recasts_only_the_near_hits_it_may_shadow(low_ball):
+    """A third object (last in the list) moves beside the low ball: the near hits' light is cast again only where
+    a shadow ray may meet it (and on its own hits), and the corrections equal a fresh shade's bit for bit."""
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+    from prtlab.scene import SceneObject, Transform
+
+    base = low_ball.scene
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([1.3, 0.55, -1.3])),
+                        base.object("ball").material)
+    scene = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    data = {**low_ball.data, "other": low_ball.data["ball"]}
+    ir = Interreflection(scene, low_ball.options, data)
+    state = FrameState.from_scene(scene)
+    ir.shade(state, bounces=1)
+    state.transforms["other"] = Transform(translate=np.array([1.25, 0.55, -1.3]))
+    moved = ir.shade(state, bounces=1)
+    fresh_ir = Interreflection(scene, low_ball.options, data)
+    fresh = fresh_ir.shade(state, bounces=1)
+    assert 0 < moved.info["residual_near_rays_cast"] < fresh.info["residual_near_rays_cast"]
+    for name, expected in fresh_ir.reuse.near_exact["corrections"].items():
+        np.testing.assert_array_equal(ir.reuse.near_exact["corrections"][name], expected)
+        np.testing.assert_array_equal(moved.indirect[name], fresh.indirect[name])
+
+
+def test_light_terms_first_continues_the_streams():
+    """``first=a`` on ``points[a:]`` gives rows ``a:`` of the whole call, in both tiers; a bad ``first`` fails."""
+    from prtlab.geometry import RayCaster
+    from prtlab.interreflection._direct_rays import light_terms, light_terms_reference
+    from prtlab.scene import AreaLight
+
+    rng = np.random.default_rng(5)
+    points = np.c_[rng.uniform(-1, 1, 40), np.zeros(40), rng.uniform(-1, 1, 40)]
+    normals = np.tile([0.0, 1.0, 0.0], (40, 1))
+    blocker = (np.array([[-0.3, 0.5, -0.3], [0.3, 0.5, -0.3], [0.0, 0.5, 0.4]]), np.array([[0, 1, 2]]))
+    caster = RayCaster([blocker])
+    light = AreaLight(center=np.array([0.0, 2.0, 0.0]), u=np.array([0.3, 0, 0]), v=np.array([0, 0, 0.3]),
+                      radiance=np.ones(3))
+    lam = brdf.lambert([0.5, 0.5, 0.5])
+    for terms in (light_terms, light_terms_reference):
+        whole = terms(points, normals, normals, lam, LAMBERT, caster, light, 0, 16)
+        parts = [terms(points[a:b], normals[a:b], normals[a:b], lam, LAMBERT, caster, light, 0, 16, first=a)
+                 for a, b in ((0, 13), (13, 40))]
+        for k in range(3):
+            np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
+        with pytest.raises(ValueError, match="first must be a non-negative int"):
+            terms(points, normals, normals, lam, LAMBERT, caster, light, 0, 16, first=-1)
