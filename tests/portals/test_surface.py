@@ -206,6 +206,20 @@ def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
         Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
 
 
+@pytest.mark.parametrize("n, k, seed", [(500, 40, 0), (3000, 100, 7)])
+def test_kmeans_seeding_is_scipys(n, k, seed):
+    """The incremental k-means++ seeding gives scipy's ``kmeans2(minit="++", seed=seed)`` clusters exactly."""
+    from scipy.cluster.vq import kmeans2
+
+    from prtlab.portals._surface import _kmeans_pp
+
+    data = np.random.default_rng(seed).normal(size=(n, 7))
+    want = kmeans2(data, k, iter=10, minit="++", seed=seed)
+    got = kmeans2(data, _kmeans_pp(data, k, seed), iter=10, minit="matrix")
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
 @pytest.mark.parametrize("mode", ["surface", "paper"])
 def test_reported_gather_noise_predicts_seed_spread(mode):
     """The gather noise the precomputation reports (two independent halves of the rays, ``|d| / 2`` per vertex and
