@@ -180,6 +180,7 @@ def direct_transfer(
     rng: np.random.Generator,
     chunk: int = 256,
     sampler: str = "sobol",
+    combine=None,
 ) -> np.ndarray:
     """Per-vertex direct transfer cubemaps ``T`` (Section 4.1.2, steps 1-3).
 
@@ -200,6 +201,10 @@ def direct_transfer(
     sampler : {"sobol", "jittered", "random"}
         How the portal points are drawn (:func:`_portal_points`); all are uniform by area, so ``T`` is
         unbiased with each.
+    combine : scipy.sparse matrix (R, V), optional
+        Return ``combine @ T`` (``(R, 6, res, res)``) instead, summed from the samples without the points' dense
+        cubemaps (the hat averages of ``indirect="surface"``: many points, each in few rows); the same random
+        stream, the same sums in another order.
 
     Returns
     -------
@@ -215,7 +220,9 @@ def direct_transfer(
         raise ValueError(f"sampler must be one of {PORTAL_SAMPLERS}, got {sampler!r}")
     n_texels = 6 * res * res
     n_vertices = len(points)
-    out = np.zeros((n_vertices, n_texels))
+    out = np.zeros((n_vertices, n_texels)) if combine is None else None
+    columns = None if combine is None else combine.T.tocsr()  # (V, R): the rows each point adds to
+    flats, weights = [], []
     for start in range(0, n_vertices, chunk):
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
@@ -223,8 +230,21 @@ def direct_transfer(
         vi, dl, cos_v, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cos_v * cos_p * portal.area / (np.pi * n_samples * dist**2)
         face, _, _, i, j = direction_to_cubemap(dl, res)
-        flat = vi * n_texels + face * res * res + i * res + j
-        out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_texels).reshape(nc, n_texels)
+        if columns is None:
+            flat = vi * n_texels + face * res * res + i * res + j
+            out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_texels).reshape(nc, n_texels)
+            continue
+        first, count = columns.indptr[start + vi], np.diff(columns.indptr)[start + vi]
+        sample = np.repeat(np.arange(len(vi)), count)
+        entry = first[sample] + np.arange(len(sample)) - np.repeat(np.cumsum(count) - count, count)
+        flats.append(columns.indices[entry].astype(np.int64) * n_texels + (face * res * res + i * res + j)[sample])
+        weights.append(weight[sample] * columns.data[entry])
+    if columns is not None:
+        rows = combine.shape[0]
+        flat = np.concatenate(flats) if flats else np.zeros(0, np.int64)
+        out = np.bincount(flat, weights=np.concatenate(weights) if weights else np.zeros(0),
+                          minlength=rows * n_texels).reshape(rows, n_texels)
+        return out.reshape(rows, 6, res, res)
     return out.reshape(n_vertices, 6, res, res)
 
 

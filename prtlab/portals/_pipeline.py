@@ -305,14 +305,9 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     for r0 in range(rows.start, rows.stop, _DIRECT_BATCH):
         sub = slice(r0, min(rows.stop, r0 + _DIRECT_BATCH))
         points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
-        weights = weights.tocsc()
-        dense = np.zeros((sub.stop - sub.start, 6 * res * res))
-        for b0 in range(0, len(points), 512):
-            b = slice(b0, b0 + 512)
-            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng,
-                                sampler=options.portal_sampler)
-            dense += weights[:, b] @ t.reshape(len(t), -1)
-        encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
+        dense = direct_transfer(caster, points, normals, portal, n_samples, res, rng, sampler=options.portal_sampler,
+                                combine=weights)
+        encoded.append(encode_transfer(dense, options.direct_basis))
     return _concat_encoded(encoded, "source_")
 
 

@@ -206,6 +206,27 @@ def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
         Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
 
 
+@pytest.mark.parametrize("sampler", ["sobol", "random"])
+def test_direct_transfer_combined_rows(sampler):
+    """``direct_transfer(..., combine=W)`` (summed from the samples) is ``W @ direct_transfer(...)`` from the same
+    random stream, to float64 rounding, for the hat averages of a vertex range (some points off every row)."""
+    from prtlab.portals import direct_transfer, find_portals
+
+    scene = window_box(cell=0.5)
+    caster = RayCaster(scene)
+    (portal,) = find_portals(scene)
+    room = scene.objects[0]
+    offsets = np.array([0, room.n_vertices])
+    points, normals, weights = hat_points(caster, offsets, room.world_normals(), slice(10, 40), 4)
+    dense = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
+                            sampler=sampler)
+    want = (weights @ dense.reshape(len(points), -1)).reshape(-1, 6, 8, 8)
+    got = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
+                          sampler=sampler, combine=weights)
+    assert got.shape == (30, 6, 8, 8) and want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15 * want.max())
+
+
 @pytest.mark.parametrize("n, k, seed", [(500, 40, 0), (3000, 100, 7)])
 def test_kmeans_seeding_is_scipys(n, k, seed):
     """The incremental k-means++ seeding gives scipy's ``kmeans2(minit="++", seed=seed)`` clusters exactly."""
