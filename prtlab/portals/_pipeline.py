@@ -619,8 +619,9 @@ class Portals(Precomputation):
         final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
         rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
         operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
-        hat-averaged source transfer. The estimate is an upper bound (photons bounded by one per
-        bounce); measured against the peak resident memory in ``docs/notes/portals.md``."""
+        hat-averaged source transfer (with ``target_noise``, a refinement round's gathers). The estimate is an upper
+        bound (photons bounded by one per bounce); measured against the peak resident memory in
+        ``docs/notes/portals.md``."""
         options = cls.resolved(scene, options)
         objs = _shaded(scene)
         n_v = sum(o.n_vertices for o in objs)
@@ -658,6 +659,8 @@ class Portals(Precomputation):
                 MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
                            ("gather_rays",)),
             ]
+            if options.target_noise > 0 and b > 0:  # a round's gather and halves' difference, and the new sums
+                needs.append(MemoryNeed("the gather's refinement (target_noise)", n_v * c * 16.0, ("clusters",)))
         return needs, f"{n_v:,} vertices"
 
     @classmethod
