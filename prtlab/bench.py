@@ -350,6 +350,8 @@ def default_docs_path() -> Path:
 
 def _ms(seconds: float) -> str:
     ms = seconds * 1e3
+    if seconds >= 100:  # a whole precomputation
+        return f"{seconds / 60:.1f} min"
     return f"{ms:.3g} ms" if ms < 100 else f"{ms:.0f} ms"
 
 

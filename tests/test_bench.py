@@ -397,3 +397,7 @@ def test_spherelights_frame_floors_are_below_the_counted_work():
         spec = bench._CASES[name](True)
         assert 0.1 * spec["gflop"] <= spec["floor"]["gflop"] <= spec["gflop"], name
         assert spec["floor"]["bytes"] == 96 * module._n(True) and spec["floor"]["formula"] == module.FLOOR_FORMULA
+
+
+def test_long_times_read_in_minutes():
+    assert bench._ms(1486.87) == "24.8 min" and bench._ms(0.0624) == "62.4 ms" and bench._ms(0.167) == "167 ms"

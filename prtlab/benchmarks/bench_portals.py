@@ -14,6 +14,7 @@ coefficients, and a numpy ``einsum`` of the stored float32 indirect transfer wit
 
 from __future__ import annotations
 
+import os
 import time
 from functools import lru_cache
 
@@ -342,6 +343,107 @@ def precompute_photons(quick: bool) -> dict:
     rng = np.random.default_rng(4)
     return {"run": lambda: trace_photons(caster, albedo[:1], portal, n, 3, rng), "gflop": None, "items": n,
             "peer": None}
+
+
+# ------------------------------------------------------------------ the whole precomputation at the paper's counts
+
+#: Table 1's counts: 4096 direct samples and final-gather rays per vertex, 9 bounces; photons: 2M per SH basis in the
+#: paper, here 2M shared by all 16 bases (each photon carries every basis's value: per basis as many photons as the
+#: paper's, 16 times fewer traced)
+PAPER_COUNTS = {"direct_samples": 4096, "gather_rays": 4096, "bounces": 9}
+#: the room's cell size that gives the shipped box 44,476 vertices (the paper's box: 44,763)
+PAPER_CELL = 0.0405
+
+
+def paper_box(quick: bool = False):
+    """The shipped window box (``box_window_sky``, 2,058 vertices) remeshed at the paper's size: the room's grid
+    cell 0.2 m -> 0.0405 m, 44,476 vertices (quick: as shipped)."""
+    import yaml
+
+    from prtlab.scene import Scene
+
+    spec = yaml.safe_load(SCENE.read_text())
+    if not quick:
+        spec["objects"][0]["mesh"]["cell_size"] = PAPER_CELL
+    return Scene.from_dict(spec)
+
+
+def _peak_rss(fn):
+    """``fn()`` and the peak resident memory of this process while it ran (``/proc/self/status`` VmRSS, sampled
+    every 0.2 s; bytes; None where unavailable)."""
+    import threading
+
+    def rss():
+        try:
+            for line in open("/proc/self/status"):
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) * 1024
+        except OSError:
+            return None
+
+    peak, done = [rss()], threading.Event()
+
+    def watch():
+        while not done.wait(0.2):
+            peak.append(rss())
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        out = fn()
+    finally:
+        done.set()
+        watcher.join()
+    peak = [p for p in peak if p is not None]
+    return out, (max(peak) if peak else None)
+
+
+def _data_bytes(data) -> int:
+    """Bytes of a precomputation's stored arrays (nested dicts)."""
+    if isinstance(data, dict):
+        return sum(_data_bytes(v) for v in data.values())
+    return int(np.asarray(data).nbytes)
+
+
+def _paper_counts_case(quick: bool, indirect: str) -> dict:
+    """The whole precomputation (``cache=False``, one process, chunks in order) of the paper-size box at Table 1's
+    counts, once (no warm-up: numba's compilation is in the figure, a few seconds)."""
+    scene = paper_box(quick)
+    options = dict(PAPER_COUNTS, indirect=indirect)
+    if indirect == "paper":
+        options.update(n_photons=2_000_000, cube_resolution=32)  # the paper's shell resolution
+    if quick:
+        options.update(direct_samples=256, gather_rays=64, n_photons=50_000, bounces=3)
+    # filled by the run, read after it; cpu_s: the process's CPU time (all threads), the load-proof figure
+    info = {"cpu_s": None, "gather_rays": None, "indirect_noise": None, "peak_rss_gb": None, "load_1min": None}
+    stored = []
+
+    def run():
+        cpu = time.process_time()
+        pre, peak = _peak_rss(lambda: Portals.precompute(scene, options, cache=False, progress=False))
+        noise = pre.data["gather_noise"]
+        info.update(cpu_s=time.process_time() - cpu, gather_rays=int(noise["gather_rays"]),
+                    indirect_noise=float(noise["noise"]), peak_rss_gb=None if peak is None else peak / 1e9,
+                    load_1min=os.getloadavg()[0] if hasattr(os, "getloadavg") else None)
+        stored.append(_data_bytes(pre.data))
+
+    n_vertices = sum(o.n_vertices for o in scene.objects if not o.portal)
+    return {"run": run, "repeats": 1, "warmup": False, "gflop": None, "items": n_vertices, "peer": None,
+            "info": info, "stored_bytes": lambda: stored[-1]}
+
+
+@case("portals.precompute.paper_counts.45k")
+def precompute_paper_counts(quick: bool) -> dict:
+    """The default precomputation (``indirect="surface"``, res 64, 1,024 clusters) of the 44,476-vertex box at the
+    paper's counts (Table 1; issue 17: within 23 minutes on 2 cores, goal 10)."""
+    return _paper_counts_case(quick, "surface")
+
+
+@case("portals.precompute.paper_counts.paper_mode.45k")
+def precompute_paper_counts_paper(quick: bool) -> dict:
+    """The paper's mode (``indirect="paper"``, res 32, order 4, 2M photons shared by the 16 SH bases) of the
+    44,476-vertex box at the paper's counts."""
+    return _paper_counts_case(quick, "paper")
 
 
 @case("portals.glossy_passes.bunny")

@@ -223,6 +223,7 @@ def direct_transfer(
     chunk: int = 256,
     sampler: str = "sobol",
     strips: int = 0,
+    combine=None,
 ) -> np.ndarray:
     """Per-vertex direct transfer cubemaps ``T`` (Section 4.1.2, steps 1-3).
 
@@ -249,10 +250,14 @@ def direct_transfer(
         whole portal's from the same samples; each is unbiased for its strip. With ``"sobol"`` and ``K`` and
         ``n_samples`` powers of two each strip holds exactly ``n_samples / K`` points (a net's elementary
         intervals).
+    combine : scipy.sparse matrix (R, V), optional
+        Return ``combine @ T`` (``(R, 6, res, res)``, or ``(R, K, 6, res, res)`` with ``strips``) instead, summed
+        from the samples without the points' dense cubemaps (the hat averages of ``indirect="surface"``: many
+        points, each in few rows); the same random stream, the same sums in another order.
 
     Returns
     -------
-    T : (V, 6, res, res) float64, or (V, K, 6, res, res) with ``strips``
+    T : (V, 6, res, res) float64, or (V, K, 6, res, res) with ``strips`` (``R`` rows with ``combine``)
         ``T_k = (1/pi) int_{Omega_k} V max(0, n . omega) d omega`` (module docstring);
         the direct radiance of a Lambertian vertex is ``albedo * sum_k T_k L_k``.
     """
@@ -267,7 +272,10 @@ def direct_transfer(
     n_strips = max(strips, 1)
     n_texels = 6 * res * res
     n_vertices = len(points)
-    out = np.zeros((n_vertices, n_strips * n_texels))
+    n_columns = n_strips * n_texels  # per row: strip-major cubemaps
+    out = np.zeros((n_vertices, n_columns)) if combine is None else None
+    columns = None if combine is None else combine.T.tocsr()  # (V, R): the rows each point adds to
+    flats, weights = [], []
     for start in range(0, n_vertices, chunk):
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
@@ -275,10 +283,21 @@ def direct_transfer(
         vi, dl, cos_v, cos_p, dist, p = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cos_v * cos_p * portal.area / (np.pi * n_samples * dist**2)
         face, _, _, i, j = direction_to_cubemap(dl, res)
-        row = vi * n_strips + (_strip_of(p, strips, frame) if strips else 0)
-        flat = row * n_texels + face * res * res + i * res + j
-        out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_strips * n_texels).reshape(
-            nc, -1)
+        column = (_strip_of(p, strips, frame) * n_texels if strips else 0) + face * res * res + i * res + j
+        if columns is None:
+            flat = vi * n_columns + column
+            out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_columns).reshape(nc, -1)
+            continue
+        first, count = columns.indptr[start + vi], np.diff(columns.indptr)[start + vi]
+        sample = np.repeat(np.arange(len(vi)), count)
+        entry = first[sample] + np.arange(len(sample)) - np.repeat(np.cumsum(count) - count, count)
+        flats.append(columns.indices[entry].astype(np.int64) * n_columns + column[sample])
+        weights.append(weight[sample] * columns.data[entry])
+    if columns is not None:
+        n_vertices = combine.shape[0]
+        flat = np.concatenate(flats) if flats else np.zeros(0, np.int64)
+        out = np.bincount(flat, weights=np.concatenate(weights) if weights else np.zeros(0),
+                          minlength=n_vertices * n_columns)
     shape = (n_vertices, n_strips, 6, res, res) if strips else (n_vertices, 6, res, res)
     return out.reshape(shape)
 

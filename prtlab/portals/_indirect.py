@@ -276,7 +276,8 @@ def phong_lobe_sample(axis, exponent, rng: np.random.Generator) -> np.ndarray:
 
 
 def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k: int = 32,
-                      chunk: int = 4096, depths: int | None = None, glossy=None, surface=None):
+                      chunk: int = 4096, depths: int | None = None, glossy=None, surface=None,
+                      halves: bool = False):
     """Exitance response ``B_lm(v) = rho_v / pi * E_lm(v)`` at points (Christensen 1999).
 
     (Long for its documentation; the code, 76 lines, is the chunk loop: neighbours, disc coverage, sums.)
@@ -308,11 +309,17 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         ``L(w) = sum_p f_s(w_p, w) Phi_p / (pi r^2)`` projected over ``w``). A gather ray reaching a glossy
         object reads it (:func:`final_gather`), so light a glossy object reflects specularly onto another
         point (the bunny onto itself) is kept.
+    halves : bool
+        Also return ``E_a - E_b`` (the main result's shape, last): the estimate's sum split between two halves
+        of the photon paths (same neighbours and radius; a path's half is a low mantissa bit of its emission
+        direction, shared by its photons at every depth), a one-sample standard error of the estimate for
+        independent paths (their variances add, so the difference's equals the sum's).
 
     Returns
     -------
     (V, n*n, 3) float64, or (V, depths, n*n, 3) with ``depths``;
-    with ``glossy`` also ``(V_g, n_out^2, n*n, 3)`` (or ``(V_g, depths, n_out^2, n*n, 3)``)
+    with ``glossy`` also ``(V_g, n_out^2, n*n, 3)`` (or ``(V_g, depths, n_out^2, n*n, 3)``); with ``halves``
+    then the difference
     """
     import prtlab.sh as sh
 
@@ -331,11 +338,14 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         if len(g_index) and photons.direction is None:
             raise ValueError("the photon map has no photon directions; trace it with trace_photons")
 
+    diff = np.zeros_like(out) if halves else None
+
     def result():
         main = out if depths is not None else out[:, 0]
-        if glossy is None:
-            return main
-        return main, (spec if depths is not None else spec[:, 0])
+        parts = (main,) + (() if glossy is None else ((spec if depths is not None else spec[:, 0]),))
+        if halves:
+            parts += (diff if depths is not None else diff[:, 0],)
+        return parts[0] if len(parts) == 1 else parts
 
     if len(photons) == 0 or len(points) == 0:
         return result()
@@ -346,6 +356,9 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         keep = photons.depth < n_depths
         onehot[np.nonzero(keep)[0], photons.depth[keep]] = 1.0
     tree = cKDTree(photons.position)
+    if halves:
+        bits = np.ascontiguousarray(photons.emit_dir[:, 0], dtype=np.float64).view(np.uint64)
+        path_sign = np.where((bits >> np.uint64(4)) & np.uint64(1), -1.0, 1.0)
     y = sh.basis(photons.emit_dir, order)
     q = min(len(photons), 4 * k)
     chunk = _fit_chunk(chunk, 2 * q * n_depths * n_coeffs * 3 * 8)
@@ -372,6 +385,11 @@ def radiance_estimate(photons: PhotonMap, points, normals, albedo, order: int, k
         w = use / area[:, None]  # (v, q)
         e = np.einsum("vq,vqd,vqc,vqi->vdic", w, onehot[idx], photons.throughput[idx], y[idx], optimize=True)
         out[start : start + chunk] = e * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, None, :]
+        if halves:
+            sign = path_sign[idx]
+            d = np.einsum("vq,vqd,vqc,vqi->vdic", w * sign, onehot[idx], photons.throughput[idx], y[idx],
+                          optimize=True)
+            diff[start : start + chunk] = d * (np.asarray(albedo[start : start + chunk]) / np.pi)[:, None, None, :]
         if glossy is not None:
             rows_all = np.nonzero((g_index >= start) & (g_index < start + len(x)))[0]
             for b0 in range(0, len(rows_all), 128):  # bounds the (vertices, q, n_out^2) lobe array

@@ -52,12 +52,14 @@ import copy
 import dataclasses
 import functools
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from prtlab._validate import check_bool, check_choice, check_float
 from prtlab.geometry import RayCaster, cubemap_directions
+from prtlab.cache import cache_key
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
 from prtlab.scene import EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
@@ -97,7 +99,19 @@ class PortalsOptions:
     n_photons : int
         Photons emitted per portal, shared by all SH bases [2M per basis].
     gather_rays : int
-        Final-gather rays per vertex [4096] (stratified for ``indirect="surface"``).
+        Final-gather rays per vertex [4096] (stratified for ``indirect="surface"``); with ``target_noise`` the
+        starting count.
+    target_noise : float
+        The gather noise to reach, relative RMS under the scene's own light (0: off, ``gather_rays`` as given).
+        The gather runs in two independent halves of the rays; their difference gives each vertex's standard
+        error, and ``noise = RMS(stderr) / RMS(indirect)`` over the vertices (``shade(...).info
+        ["indirect_noise"]``). While ``noise > target_noise``, more rays are gathered for every vertex (the
+        count doubled, or multiplied by the power of two that ``(noise / target)^2`` predicts) up to
+        ``max_gather_rays``, with a warning if that is not enough. Covers the final gather only (not the photons
+        of ``indirect="paper"``, the hat-averaged operator or the direct transfer). The result then depends on the
+        scene's environment, which joins the cache key. A third of the 3% accuracy goal: 0.01.
+    max_gather_rays : int
+        ``target_noise``: the most gather rays per vertex.
     order : int
         SH order of the indirect transfer [4].
     photon_k : int
@@ -149,6 +163,8 @@ class PortalsOptions:
     portal_sampler: str = "sobol"
     n_photons: int = 200_000
     gather_rays: int = 4096
+    target_noise: float = 0.0
+    max_gather_rays: int = 16384
     order: int = 4
     photon_k: int = 32
     bounces: int = 2
@@ -163,8 +179,9 @@ class PortalsOptions:
     portal_strips: int = 0
 
     def __post_init__(self):
-        check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "order", "photon_k",
-                                 "view_res", "clusters"))
+        check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "max_gather_rays", "order",
+                                 "photon_k", "view_res", "clusters"))
+        check_float(self.target_noise, "option target_noise", 0.0, meaning="relative RMS, 0: off")
         check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution", "portal_strips"), minimum=0)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
@@ -260,11 +277,12 @@ def _photon_estimates(caster, interior: _Interior, portal, k: int, options: Port
     photons = trace_photons(caster, interior.object_albedo, portal, options.n_photons, options.bounces, rng,
                             ks=interior.object_ks, exponent=interior.object_exponent)
     g = np.nonzero(interior.glossy)[0]
-    exitance, glossy_exitance = radiance_estimate(
+    exitance, glossy_exitance, halves = radiance_estimate(
         photons, interior.points, interior.normals, interior.albedo, options.order, options.photon_k,
         depths=options.bounces, glossy=(g, interior.ks[g], interior.exponent[g], options.order),
-        surface=(caster, np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))))
+        surface=(caster, np.repeat(np.arange(len(interior.offsets) - 1), np.diff(interior.offsets))), halves=True)
     return {"exitance": exitance, "glossy_exitance": glossy_exitance,
+            "exitance_diff": halves.sum(axis=1).astype(np.float32),
             "seconds": np.array(time.perf_counter() - t0), "n_photons_stored": np.array(len(photons))}
 
 
@@ -313,41 +331,48 @@ def _source_part(caster, interior: _Interior, rows: slice, portal, options: Port
     encoded = []
     n_strips = max(options.portal_strips, 1)
     # the dense arrays' bytes whatever the strips
-    step, point_step = max(1, _DIRECT_BATCH // n_strips), max(1, 512 // n_strips)
+    step = max(1, _DIRECT_BATCH // n_strips)
     for r0 in range(rows.start, rows.stop, step):
         sub = slice(r0, min(rows.stop, r0 + step))
         points, normals, weights = hat_points(caster, interior.offsets, interior.normals, sub, _HAT_SPLIT)
-        weights = weights.tocsc()
-        dense = np.zeros((sub.stop - sub.start, n_strips * 6 * res * res))
-        for b0 in range(0, len(points), point_step):
-            b = slice(b0, b0 + point_step)
-            t = direct_transfer(caster, points[b], normals[b], portal, n_samples, res, rng,
-                                sampler=options.portal_sampler, strips=options.portal_strips)
-            dense += weights[:, b] @ t.reshape(len(t), -1)
+        dense = direct_transfer(caster, points, normals, portal, n_samples, res, rng, sampler=options.portal_sampler,
+                                strips=options.portal_strips, combine=weights)
         encoded.append(encode_transfer(dense.reshape(-1, 6, res, res), options.direct_basis))
     return _concat_encoded(encoded, "source_")
 
 
-def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng) -> dict:
+def _indirect_part(caster, interior: _Interior, rows: slice, estimate: dict, options: PortalsOptions, rng,
+                   n_rays: int | None = None) -> dict:
     """Section 4.1.1 step 2 for the vertices ``rows``: the per-bounce SH transfer vectors by final gathering
-    (``indirect``, (v, bounces, n*n, 3)) and the glossy vertices' SH->SH matrices (``glossy_matrix``)."""
+    (``indirect``, (v, bounces, n*n, 3)) and the glossy vertices' SH->SH matrices (``glossy_matrix``), from
+    ``n_rays`` (default ``gather_rays``) rays per vertex in two independent halves, and the difference of the
+    halves' transfer vectors summed over the bounces (``indirect_diff``, (v, n*n, 3)), which gives their noise."""
+    n_rays = options.gather_rays if n_rays is None else int(n_rays)
     n_c = options.order * options.order
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     diffuse = np.nonzero(~interior.glossy[rows])[0] + rows.start
-    indirect = np.zeros((rows.stop - rows.start, options.bounces, n_c, 3))
-    gather = dict(glossy_exitance=(interior.glossy_row, estimate["glossy_exitance"]))
-    if len(diffuse):
-        indirect[diffuse - rows.start] = final_gather(
-            caster, interior.points[diffuse], interior.normals[diffuse], interior.albedo[diffuse],
-            estimate["exitance"], interior.offsets, interior.normals, options.gather_rays, rng, **gather)
     order_out = options.glossy_order or options.order
-    matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
-    if len(g):
-        indirect[g - rows.start], matrix = final_gather(
-            caster, interior.points[g], interior.normals[g], interior.albedo[g], estimate["exitance"],
-            interior.offsets, interior.normals, options.gather_rays, rng,
-            glossy=(interior.ks[g], interior.exponent[g], order_out), **gather)
-    return {"indirect": indirect.astype(np.float32), "glossy_matrix": matrix.astype(np.float32)}
+    gather = dict(glossy_exitance=(interior.glossy_row, estimate["glossy_exitance"]))
+    halves = [m for m in (n_rays // 2, n_rays - n_rays // 2) if m > 0]
+    parts = []
+    for m in halves:
+        indirect = np.zeros((rows.stop - rows.start, options.bounces, n_c, 3))
+        if len(diffuse):
+            indirect[diffuse - rows.start] = final_gather(
+                caster, interior.points[diffuse], interior.normals[diffuse], interior.albedo[diffuse],
+                estimate["exitance"], interior.offsets, interior.normals, m, rng, **gather)
+        matrix = np.zeros((len(g), options.bounces, order_out**2, n_c, 3))
+        if len(g):
+            indirect[g - rows.start], matrix = final_gather(
+                caster, interior.points[g], interior.normals[g], interior.albedo[g], estimate["exitance"],
+                interior.offsets, interior.normals, m, rng,
+                glossy=(interior.ks[g], interior.exponent[g], order_out), **gather)
+        parts.append((indirect, matrix))
+    indirect = sum(m * p[0] for m, p in zip(halves, parts)) / n_rays
+    matrix = sum(m * p[1] for m, p in zip(halves, parts)) / n_rays
+    diff = (parts[0][0] - parts[-1][0]).sum(axis=1)
+    return {"indirect": indirect.astype(np.float32), "glossy_matrix": matrix.astype(np.float32),
+            "indirect_diff": diff.astype(np.float32)}
 
 
 def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: PortalsOptions, size: int, patch,
@@ -379,10 +404,7 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
         out["surface"] = {"gather": gather, "gather_diff": diff, "hat_gather": (hat_weights @ sub).astype(np.float32),
                           "seconds": np.array([time.perf_counter() - t0])}
         if near is not None:
-            for name, m in zip(("near_patch", "near_point"), near):  # COO triplets, rows global
-                m = m.tocoo()
-                out["surface"].update({f"{name}_row": m.row.astype(np.int64) + rows.start,
-                                       f"{name}_col": m.col.astype(np.int64), f"{name}_value": m.data})
+            out["surface"].update(_near_triplets(near, rows.start))
     for k, portal in enumerate(portals):
         rng = np.random.default_rng([options.seed, k, 2, i])
         t0 = time.perf_counter()
@@ -398,11 +420,30 @@ def _vertex_chunk(caster, interior: _Interior, portals, estimates, options: Port
     return out
 
 
+def _extra_gather_chunk(caster, interior: _Interior, estimates, options: PortalsOptions, size: int, patch,
+                        n_rays: int, total: int, i: int) -> dict:
+    """``target_noise``: ``n_rays`` more final-gather rays (even; two independent halves) for the vertices of chunk
+    ``i``, on the way to ``total`` rays per vertex: ``{"surface": {"gather", "gather_diff"}}`` with ``patch``
+    (``indirect="surface"``), else ``{"portal<k>": {"indirect", "glossy_matrix", "indirect_diff"}}``."""
+    rows = slice(i * size, min(len(interior.points), (i + 1) * size))
+    if patch is not None:
+        rng = np.random.default_rng([options.seed, 5, total, i])
+        n_patches = int(patch.max()) + 1
+        a, b = (patch_gather(caster, interior.points[rows], interior.normals[rows], interior.offsets,
+                             interior.normals, patch, n_patches, n_rays // 2, rng, near=options.near_reads)
+                for _ in range(2))
+        if options.near_reads <= 0:
+            return {"surface": {"gather": (a + b) / 2, "gather_diff": a - b}}
+        near = _near_triplets([(a[j] + b[j]) / 2 for j in (1, 2)], rows.start)
+        return {"surface": {"gather": (a[0] + b[0]) / 2, "gather_diff": a[0] - b[0], **near}}
+    return {f"portal{k}": _indirect_part(caster, interior, rows, e, options,
+                                         np.random.default_rng([options.seed, k, 6, total, i]), n_rays)
+            for k, e in enumerate(estimates)}
+
+
 def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, options: PortalsOptions) -> dict:
     """``indirect="surface"``: the gather ``F``, the bounce operator ``K``, the projection of hat averages and
     ``S_B`` (:mod:`._surface`)."""
-    from scipy.sparse import coo_matrix
-
     t0 = time.perf_counter()
     gather = chunks["surface"]["gather"]
     operator = patch_operator(chunks["surface"]["hat_gather"], interior.albedo, patch, areas, gather.shape[1],
@@ -415,13 +456,37 @@ def _surface_data(chunks: dict, interior: _Interior, patch, areas, project, opti
            "sum": total.astype(np.float32), "seconds": np.array(seconds)}
     if project is not None:
         out["project"] = project.astype(np.float32)
-    if "near_patch_row" in chunks["surface"]:  # CSR, float32 values
-        for name, columns in (("near_patch", gather.shape[1]), ("near_point", len(interior.albedo))):
-            c = chunks["surface"]
-            m = coo_matrix((c[f"{name}_value"], (c[f"{name}_row"], c[f"{name}_col"])),
-                           shape=(len(gather), columns)).tocsr()
-            out.update({f"{name}_indptr": m.indptr.astype(np.int64), f"{name}_indices": m.indices.astype(np.int64),
-                        f"{name}_values": m.data.astype(np.float32)})
+    if "near_patch_row" in chunks["surface"]:
+        out.update(_near_stored(_near_matrices(chunks["surface"], gather.shape)))
+    return out
+
+
+def _near_triplets(near, row0: int) -> dict:
+    """The near reads of a chunk of gathers (``(near_patch, near_point)`` sparse, rows from ``row0``) as COO
+    triplets with global rows, ``{"<name>_row", "<name>_col", "<name>_value"}``, for :meth:`run_chunks` to join."""
+    out = {}
+    for name, m in zip(("near_patch", "near_point"), near):
+        m = m.tocoo()
+        out.update({f"{name}_row": m.row.astype(np.int64) + row0, f"{name}_col": m.col.astype(np.int64),
+                    f"{name}_value": m.data})
+    return out
+
+
+def _near_matrices(triplets: dict, gather_shape) -> list:
+    """``[near_patch (V, C), near_point (V, V)]`` CSR float64 from joined :func:`_near_triplets`."""
+    from scipy.sparse import coo_matrix
+
+    n_v, n_patches = gather_shape
+    return [coo_matrix((triplets[f"{name}_value"], (triplets[f"{name}_row"], triplets[f"{name}_col"])),
+                       shape=(n_v, columns)).tocsr() for name, columns in (("near_patch", n_patches), ("near_point", n_v))]
+
+
+def _near_stored(near) -> dict:
+    """The near reads as stored: per matrix CSR ``indptr``, ``indices`` (int64) and float32 ``values``."""
+    out = {}
+    for name, m in zip(("near_patch", "near_point"), near):
+        out.update({f"{name}_indptr": m.indptr.astype(np.int64), f"{name}_indices": m.indices.astype(np.int64),
+                    f"{name}_values": m.data.astype(np.float32)})
     return out
 
 
@@ -482,6 +547,41 @@ def _strip_major(indptr, entries: dict, rows: dict, n_strips: int):
     new_ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     take = np.repeat(indptr[old] - new_ptr[:-1], counts) + np.arange(new_ptr[-1])
     return new_ptr, {n: a[take] for n, a in entries.items()}, {n: a[old] for n, a in rows.items()}
+
+
+def _paper_noise(data: dict, diffs: list, scene: Scene, options: PortalsOptions) -> dict:
+    """``indirect="paper"``: the final gather's noise under the scene's own light, as :func:`_gather_noise`:
+    ``stderr = |sum_k (T_1 - T_2)_k . c| / 2`` per vertex from the halves' transfer vectors summed over the bounces
+    (``diffs``, one ``(V, n*n, 3)`` per portal), ``c`` the shell light's SH; ``noise`` relative to the RMS indirect
+    radiance (the diffuse part; the glossy vertices' specular matrices are not covered)."""
+    albedo = np.asarray(data["albedo"], dtype=np.float64)
+    if scene.environment is None or not diffs:
+        return {"stderr": np.zeros(albedo.shape, np.float32), "noise": np.array(float("nan"))}
+    c = shell_sh(shell_light(scene.environment, options.cube_resolution), options.order)
+    indirect = np.zeros_like(albedo)
+    diff = np.zeros_like(albedo)
+    for k, d in enumerate(diffs):
+        t = np.asarray(data[f"portal{k}"]["indirect"], dtype=np.float64).sum(axis=1)
+        indirect += np.einsum("vic,ic->vc", t, c)
+        diff += np.einsum("vic,ic->vc", np.asarray(d, dtype=np.float64), c)
+    stderr = np.abs(diff) / 2.0
+    scale = float(np.mean(indirect**2))
+    noise = float(np.sqrt(np.mean(stderr**2) / scale)) if scale > 0 else 0.0
+    return {"stderr": stderr.astype(np.float32), "noise": np.array(noise)}
+
+
+def _photon_noise(estimates: list, scene: Scene, options: PortalsOptions) -> np.ndarray:
+    """``indirect="paper"``: the photon noise of the radiance estimates at the vertices (before the final gather,
+    which averages it over its rays' hits), under the scene's own light: ``RMS |sum_k D_k . c| / RMS |sum_k E_k .
+    c|`` with ``E`` the exitance summed over the bounces and ``D`` its two path halves' difference
+    (:func:`radiance_estimate` ``halves``), ``c`` the shell light's SH."""
+    if scene.environment is None or not estimates or estimates[0].get("exitance_diff") is None:
+        return np.array(float("nan"))
+    c = shell_sh(shell_light(scene.environment, options.cube_resolution), options.order)
+    exitance = sum(np.einsum("vdic,ic->vc", np.asarray(e["exitance"], dtype=np.float64), c) for e in estimates)
+    diff = sum(np.einsum("vic,ic->vc", np.asarray(e["exitance_diff"], dtype=np.float64), c) for e in estimates)
+    scale = float(np.mean(exitance**2))
+    return np.array(float(np.sqrt(np.mean(diff**2) / scale)) if scale > 0 else 0.0)
 
 
 def _assemble(chunks: dict, estimates: list, interior: _Interior, options: PortalsOptions, surface=None) -> dict:
@@ -575,9 +675,13 @@ class Portals(Precomputation):
     @classmethod
     def cache_key_parts(cls, scene: Scene, options) -> list:
         """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
-        every object where it stands, dynamic or not."""
+        every object where it stands, dynamic or not; with ``target_noise`` the scene's environment too."""
         opts = dataclasses.asdict(options)
-        return [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
+        parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
+        env = scene.environment
+        if options.target_noise > 0 and env is not None:  # the gather's ray count follows the scene's light
+            parts.append(np.asarray(env.image if env.image is not None else env.constant, dtype=np.float64))
+        return parts
 
     def baked_objects(self) -> tuple[str, ...]:
         """Every object: the transfer is traced against the whole scene as it stands."""
@@ -647,8 +751,9 @@ class Portals(Precomputation):
         final-gather rays of a chunk; for ``indirect="surface"`` instead of the SH transfer, photons and gather
         rays: the interior gather (float32 and its hat average, a float64 copy, the 16-bit codes), the bounce
         operator's power sums (and the dense mass matrix and projection when the patches are the vertices) and the
-        hat-averaged source transfer; with ``portal_strips`` the direct and source transfers per strip. The estimate
-        is an upper bound (photons bounded by one per bounce); measured against the peak resident memory in
+        hat-averaged source transfer; with ``portal_strips`` the direct and source transfers per strip (with
+        ``target_noise``, a refinement round's gathers). The estimate is an upper bound (photons bounded by one per
+        bounce); measured against the peak resident memory in
         ``docs/notes/portals.md``."""
         options = cls.resolved(scene, options)
         objs = _shaded(scene)
@@ -702,6 +807,8 @@ class Portals(Precomputation):
                 MemoryNeed("the gather rays of a chunk", 0.0 if b == 0 else 160.0 * max(options.gather_rays, 1 << 22),
                            ("gather_rays",)),
             ]
+            if options.target_noise > 0 and b > 0:  # a round's gather and halves' difference, and the new sums
+                needs.append(MemoryNeed("the gather's refinement (target_noise)", n_v * c * 16.0, ("clusters",)))
         return needs, f"{n_v:,} vertices"
 
     @classmethod
@@ -737,9 +844,73 @@ class Portals(Precomputation):
         chunks = cls.run_chunks(n_chunks, chunk_fn, store=store, key=key, map_fn=map_fn, progress=progress,
                                 chunking={"vertices": size})
         data = _assemble(chunks, estimates, interior, options, None if patch is None else (patch, areas, project))
-        if "surface" in data:
-            data["surface"].update(_gather_noise(data, chunks["surface"]["gather_diff"], scene, options))
+        if "surface" in data or (options.bounces > 0 and "indirect_diff" in chunks.get("portal0", {})):
+            refine = functools.partial(_extra_gather_chunk, caster, interior, estimates, options, size, patch)
+            data["gather_noise"] = cls._converge_gather(data, chunks, scene, options, refine, n_chunks, store, key,
+                                                        map_fn, progress)
+            if not surface:
+                data["gather_noise"]["photon_noise"] = _photon_noise(estimates, scene, options)
         return data
+
+    @classmethod
+    def _converge_gather(cls, data: dict, chunks: dict, scene: Scene, options: PortalsOptions, refine, n_chunks: int,
+                         store, key, map_fn, progress) -> dict:
+        """The final gather's noise (:func:`_gather_noise`, :func:`_paper_noise`) and, with ``target_noise``, more
+        rays for every vertex until it is reached or ``max_gather_rays`` is: the count is multiplied by the power of
+        two ``>= (noise / target)^2`` (noise ~ 1 / sqrt(rays)), at least 2, each round's rays in two independent
+        halves joined to the old halves in proportion (so the halves stay alike and their difference still gives
+        the standard error). Updates ``data`` in place; returns ``{"stderr", "noise", "gather_rays"}``."""
+        surface = "surface" in data
+        n_portals = int(data["n_portals"])
+        if surface:
+            sums = {"gather": chunks["surface"]["gather"], "gather_diff": chunks["surface"]["gather_diff"]}
+        else:
+            sums = {k: {name: chunks[f"portal{k}"][name] for name in ("indirect", "glossy_matrix", "indirect_diff")}
+                    for k in range(n_portals)}
+
+        def measure():
+            if surface:
+                return _gather_noise(data, sums["gather_diff"], scene, options)
+            return _paper_noise(data, [sums[k]["indirect_diff"] for k in range(n_portals)], scene, options)
+
+        rays, target = options.gather_rays, options.target_noise
+        result = measure()
+        while target > 0 and float(result["noise"]) > target and 2 * rays <= options.max_gather_rays:
+            t0 = time.perf_counter()
+            factor = 2 ** max(1, int(np.ceil(np.log2((float(result["noise"]) / target) ** 2))))
+            factor = min(factor, 2 ** int(np.floor(np.log2(options.max_gather_rays / rays))))
+            extra_rays = 2 * (-(-rays * (factor - 1) // 2))
+            total = rays + extra_rays
+            extra = cls.run_chunks(n_chunks, functools.partial(refine, extra_rays, total), store=store,
+                                   key=None if key is None else cache_key(key, "gather", total), map_fn=map_fn,
+                                   progress=progress, chunking={"vertices": cls.chunk_vertices})
+            w_old, w_new = rays / total, extra_rays / total
+            if surface:
+                for name in sums:
+                    sums[name] = (w_old * sums[name] + w_new * extra["surface"][name]).astype(np.float32)
+                data["surface"]["gather_codes"], data["surface"]["gather_scale"] = quantize_rows(sums["gather"])
+                if "near_patch_row" in extra["surface"]:  # the near reads of all the rays, as the gather
+                    st = _surface_transfer(data["surface"], data["albedo"], options.bounces, mass=None)
+                    new = _near_matrices(extra["surface"], sums["gather"].shape)
+                    data["surface"].update(_near_stored([w_old * a + w_new * b for a, b in zip(st.near, new)]))
+                data["surface"]["seconds"] = np.array(float(data["surface"]["seconds"]) + time.perf_counter() - t0)
+            else:
+                for k in range(n_portals):
+                    for name in sums[k]:
+                        sums[k][name] = (w_old * sums[k][name] + w_new * extra[f"portal{k}"][name]).astype(np.float32)
+                    entry = data[f"portal{k}"]
+                    entry["indirect"], entry["glossy_matrix"] = sums[k]["indirect"], sums[k]["glossy_matrix"]
+                    entry["seconds_indirect"] = np.array(float(entry["seconds_indirect"]) + (time.perf_counter() - t0)
+                                                         / n_portals)
+            rays = total
+            result = measure()
+        if target > 0 and float(result["noise"]) > target:
+            warnings.warn(f"portals: the final gather's noise {float(result['noise']):.4g} is above target_noise="
+                          f"{target:g} at {rays} gather rays per vertex (max_gather_rays={options.max_gather_rays}); "
+                          "raise max_gather_rays", RuntimeWarning, stacklevel=4)
+        if surface:
+            data["surface"].update(result)
+        return {**result, "gather_rays": np.array(rays)}
 
     # ------------------------------------------------------------------ run time
 
@@ -1011,12 +1182,18 @@ class Portals(Precomputation):
             result.direct[o.name] = direct[a:b]
             result.indirect[o.name] = indirect[a:b]
             result.total[o.name] = direct[a:b] + indirect[a:b]
-        result.info = {"method": self.method, "bounces": bounces, "timings": timings}
+        result.info = {"method": self.method, "bounces": bounces, "timings": timings,
+                       "direct_samples": self.options.direct_samples}
         if self.options.portal_strips:
             result.info["openings"] = [(0.0, 1.0)] * self.n_portals if openings is None else \
                 [(0.0, 1.0) if o is None else (float(o[0]), float(o[1])) for o in openings]
-        if surface is not None:
-            result.info["indirect_noise"] = float(self.data["surface"]["noise"])  # under the scene's own light
+        if "gather_noise" in self.data:  # the final gather's, under the scene's own light, all precomputed bounces
+            result.info["indirect_noise"] = float(self.data["gather_noise"]["noise"])
+            result.info["gather_rays"] = int(self.data["gather_noise"]["gather_rays"])
+        if "surface" not in self.data and self.options.bounces > 0:
+            result.info["n_photons"] = self.options.n_photons
+            if "photon_noise" in self.data.get("gather_noise", {}):  # of the radiance estimates, before the gather
+                result.info["photon_noise"] = float(self.data["gather_noise"]["photon_noise"])
         return result
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:

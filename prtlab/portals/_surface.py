@@ -64,7 +64,7 @@ def cluster_vertices(points, normals, objects, n_clusters: int, seed: int = 0) -
     diag = float(np.linalg.norm(points.max(0) - points.min(0))) or 1.0
     feats = np.column_stack([points, 0.5 * diag * np.asarray(normals, dtype=np.float64),
                              2.0 * diag * np.asarray(objects, dtype=np.float64)[:, None]])
-    _, labels = kmeans2(feats, int(n_clusters), iter=10, minit="++", seed=int(seed))
+    _, labels = kmeans2(feats, _kmeans_pp(feats, int(n_clusters), int(seed)), iter=10, minit="matrix")
     _, labels = np.unique(labels, return_inverse=True)
     return labels.astype(np.int64)
 
@@ -72,6 +72,26 @@ def cluster_vertices(points, normals, objects, n_clusters: int, seed: int = 0) -
 #: a corner of a near hit's triangle within this fraction of the triangle's longest edge from the gatherer's
 #: tangent plane lies on the edge the two surfaces share (shading points sit a few mm inside their faces)
 _EDGE_TOLERANCE = 0.05
+
+
+def _kmeans_pp(data, k: int, seed: int) -> np.ndarray:
+    """k-means++ seeding, ``(k, D)``: the centres of scipy's ``kmeans2(minit="++", seed=seed)`` (its stream and
+    steps), with each point's distance to its nearest centre kept from one pick to the next (``O(N k)`` distances;
+    scipy recomputes them to every centre at each pick, ``O(N k^2)``: 70 s of the 44k-vertex box's 1,024 clusters)."""
+    from scipy.spatial.distance import cdist
+
+    rs = np.random.RandomState(seed)
+    init = np.empty((k, data.shape[1]))
+    nearest = None
+    for i in range(k):
+        if i == 0:
+            pick = rs.randint(0, len(data))
+        else:
+            new = cdist(init[i - 1 : i], data, metric="sqeuclidean")[0]
+            nearest = new if nearest is None else np.minimum(nearest, new)
+            pick = int(np.searchsorted((nearest / nearest.sum()).cumsum(), rs.uniform()))
+        init[i] = data[pick]
+    return init
 
 
 def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_normals, patch, n_patches: int,
