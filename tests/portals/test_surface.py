@@ -206,8 +206,8 @@ def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
         Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
 
 
-@pytest.mark.parametrize("sampler", ["sobol", "random"])
-def test_direct_transfer_combined_rows(sampler):
+@pytest.mark.parametrize("sampler, strips", [("sobol", 0), ("random", 0), ("sobol", 2)])
+def test_direct_transfer_combined_rows(sampler, strips):
     """``direct_transfer(..., combine=W)`` (summed from the samples) is ``W @ direct_transfer(...)`` from the same
     random stream, to float64 rounding, for the hat averages of a vertex range (some points off every row)."""
     from prtlab.portals import direct_transfer, find_portals
@@ -219,11 +219,11 @@ def test_direct_transfer_combined_rows(sampler):
     offsets = np.array([0, room.n_vertices])
     points, normals, weights = hat_points(caster, offsets, room.world_normals(), slice(10, 40), 4)
     dense = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
-                            sampler=sampler)
-    want = (weights @ dense.reshape(len(points), -1)).reshape(-1, 6, 8, 8)
+                            sampler=sampler, strips=strips)
+    want = (weights @ dense.reshape(len(points), -1)).reshape((30,) + dense.shape[1:])
     got = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
-                          sampler=sampler, combine=weights)
-    assert got.shape == (30, 6, 8, 8) and want.max() > 0
+                          sampler=sampler, strips=strips, combine=weights)
+    assert got.shape == want.shape == ((30, 2, 6, 8, 8) if strips else (30, 6, 8, 8)) and want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15 * want.max())
 
 
