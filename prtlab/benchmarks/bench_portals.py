@@ -164,18 +164,36 @@ def _surface_frame_data():
 
     e, st = pre.data["surface"], pre.surface_transfer()
     albedo = tile(pre.data["albedo"])
+    near = None if st.near is None else (_tile_rows(st.near[0], reps, 0), _tile_rows(st.near[1], reps, n0))
     surface = SurfaceTransfer((tile(st.codes), tile(st.scale)), tile(st.patch), tile(e["areas"]), albedo,
-                              e["operator"], {pre.options.bounces: e["sum"]})
+                              e["operator"], {pre.options.bounces: e["sum"]}, near=near)
     direct = _tile(pre.direct_transfer(0), PAPER_VERTICES)
     source = _tile(pre.direct_transfer(0, source=True), PAPER_VERTICES)
     return scene, direct, source, surface, surface.source_operator(source), albedo, pre.options
 
 
+def _tile_rows(m, reps: int, column_step: int):
+    """A sparse ``(n0, k)`` matrix's rows repeated ``reps`` times, copy ``r``'s columns moved by ``r column_step``
+    (near point reads name vertices, near patch reads clusters: step 0), cut to :data:`PAPER_VERTICES` rows and
+    columns."""
+    import scipy.sparse
+
+    m = m.tocoo()
+    n0 = m.shape[0]
+    rows = np.concatenate([m.row + r * n0 for r in range(reps)])
+    cols = np.concatenate([m.col + r * column_step for r in range(reps)])
+    keep = (rows < PAPER_VERTICES) & (cols < (PAPER_VERTICES if column_step else m.shape[1]))
+    shape = (PAPER_VERTICES, PAPER_VERTICES if column_step else m.shape[1])
+    return scipy.sparse.csr_matrix((np.tile(m.data, reps)[keep], (rows[keep], cols[keep])), shape=shape)
+
+
 def surface_frame(env, direct, source_operator, surface, albedo, res: int, bounces: int) -> np.ndarray:
     """One default frame as :meth:`Portals.shade_shells` runs it (numba tiers): the shell light, its pulse and Haar
-    coefficients once, the direct pass, the patches' source light ``G L``, then ``rho F S_B s``; total radiance."""
+    coefficients once, the direct pass, the patches' source light ``G L``, then ``rho F S_B s`` with the near
+    rays' point reads; total radiance."""
     light = shell_coefficients(shell_light(env, res))
-    return direct_from_light(direct, albedo, light) + surface.frame(source_operator.apply(light), bounces)
+    radiance = direct_from_light(direct, albedo, light)
+    return radiance + surface.frame(source_operator.apply(light), bounces, direct=radiance)
 
 
 @lru_cache(maxsize=1)
@@ -188,34 +206,43 @@ def _surface_peer_data():
     mean = scipy.sparse.csr_matrix((surface.mean_weight, (surface.patch, np.arange(len(surface.patch)))),
                                    shape=(surface.n_patches, len(surface.patch)))
     gather = surface.codes.astype(np.float32) * surface.scale[:, None]
-    sums = np.ascontiguousarray(surface.bounce_sum(options.bounces).transpose(2, 0, 1))
-    return transfer_csr(direct), transfer_csr(source), mean, gather, sums
+    sums = [np.ascontiguousarray(surface.bounce_sum(b).transpose(2, 0, 1)) for b in (options.bounces,
+                                                                                     options.bounces - 1)]
+    return transfer_csr(direct), transfer_csr(source), mean, gather, sums, surface.near, surface.partners
 
 
 def _peer_surface_frame(env, res, albedo):
-    """The default frame as a user would write it with scipy and numpy from the transfers decoded once."""
-    direct_csr, source_csr, mean, gather, sums = _surface_peer_data()
+    """The default frame as a user would write it with scipy and numpy from the transfers decoded once, the near
+    rays' point reads included (:meth:`SurfaceTransfer.near_correction`)."""
+    direct_csr, source_csr, mean, gather, sums, (near_patch, near_point), partners = _surface_peer_data()
     cube = shell_light(env, res)
     light = np.concatenate([cube.reshape(-1, 3), haar2d(cube, channels=True).reshape(-1, 3)])
     s = (mean @ ((source_csr @ light) * albedo)).astype(np.float32)
-    u = np.stack([sums[ch] @ s[:, ch] for ch in range(3)], axis=1)
-    return (direct_csr @ light) * albedo + (gather @ u) * albedo
+    u, previous = (np.stack([m[ch] @ s[:, ch] for ch in range(3)], axis=1) for m in sums)
+    direct = (direct_csr @ light) * albedo
+    point = direct.copy()
+    point[partners] += albedo[partners] * (gather[partners] @ previous)
+    return direct + (gather @ u + near_point @ point - near_patch @ u) * albedo
 
 
 # The default frame's floor: V vertices, E direct entries, T texels, C clusters, E_G entries of the source operator
-# (3 float64 values and a 4-byte column each), 3 colours. Flops: the direct pass (6 E + 6 V), the source light
-# (6 E_G), the bounce sum S_B s (6 C^2) and the gather (6 V C; scale and albedo 6 V). Bytes: the direct transfer
-# (``SparseTransfer.nbytes``) and the light (2 x 2 T x 24: written, read), the source operator (28 E_G), S_B (12
-# C^2), the 16-bit gather and its scales (2 V C + 4 V), albedo read (24 V) and the radiance written (24 V).
-SURFACE_FORMULA = ("6 E + 12 V + 6 E_G + 6 C^2 + 6 V C flops; SparseTransfer.nbytes + 96 T + 28 E_G + 12 C^2 + "
-                   "2 V C + 52 V bytes")
+# (3 float64 values and a 4-byte column each), N near-read entries (float64 and a 4-byte column), P vertices read
+# by near rays, 3 colours. Flops: the direct pass (6 E + 6 V), the source light (6 E_G), the bounce sums S_B s and
+# S_(B-1) s (12 C^2), the gather (6 V C; scale and albedo 6 V), the partners' rows (6 P C) and the near reads
+# (6 N). Bytes: the direct transfer (``SparseTransfer.nbytes``) and the light (2 x 2 T x 24: written, read), the
+# source operator (28 E_G), both sums (24 C^2), the 16-bit gather and its scales (2 V C + 4 V), the partners' rows
+# (2 P C), the near reads (12 N), albedo read (24 V) and the radiance written (24 V).
+SURFACE_FORMULA = ("6 E + 12 V + 6 E_G + 12 C^2 + 6 V C + 6 P C + 6 N flops; SparseTransfer.nbytes + 96 T + 28 E_G "
+                   "+ 24 C^2 + 2 V C + 2 P C + 12 N + 52 V bytes")
 
 
 def _surface_floor(direct, source_operator, surface) -> tuple[float, float]:
     v, e, t = direct.n_vertices, len(direct.codes), 6 * direct.res**2
     e_g, c = len(source_operator.columns), surface.n_patches
-    flop = 6.0 * e + 12.0 * v + 6.0 * e_g + 6.0 * c * c + 6.0 * v * c
-    nbytes = direct.nbytes + 96.0 * t + 28.0 * e_g + 12.0 * c * c + 2.0 * v * c + 52.0 * v
+    n = sum(m.nnz for m in surface.near) if surface.near is not None else 0
+    p = len(surface.partners) if surface.near is not None else 0
+    flop = 6.0 * e + 12.0 * v + 6.0 * e_g + 12.0 * c * c + 6.0 * v * c + 6.0 * p * c + 6.0 * n
+    nbytes = direct.nbytes + 96.0 * t + 28.0 * e_g + 24.0 * c * c + 2.0 * v * c + 2.0 * p * c + 12.0 * n + 52.0 * v
     return flop, nbytes
 
 
@@ -245,10 +272,11 @@ def frame_default_surface(quick: bool) -> dict:
             "peer": ("scipy.sparse CSR direct and source + float32 BLAS gather (all decoded once)", peer),
             "floor": floor(*_surface_floor(direct, source_operator, surface), SURFACE_FORMULA),
             "stored_bytes": direct.nbytes + source.nbytes + surface.codes.nbytes + surface.scale.nbytes
-            + surface.bounce_sum(bounces).nbytes,
+            + surface.bounce_sum(bounces).nbytes + sum(m.data.nbytes + m.indices.nbytes for m in surface.near),
             "info": {"direct_entries_per_vertex": len(direct.codes) / PAPER_VERTICES,
                      "source_operator_entries": len(source_operator.columns), "clusters": surface.n_patches,
-                     "source_operator_mb": source_operator.nbytes / 1e6}}
+                     "source_operator_mb": source_operator.nbytes / 1e6,
+                     "near_entries": sum(m.nnz for m in surface.near), "near_partners": len(surface.partners)}}
 
 
 def direct_transfer_memory() -> dict:

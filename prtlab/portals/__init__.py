@@ -14,10 +14,12 @@ sun bounces from where it lands; the paper's SH transfer is
 
 Per frame only the light (the environment, or shell cubemaps per portal) and the camera change. Objects inside
 are precomputed: moving one (a pose in the ``FrameState``, or the scene's object edited in place) is refused with
-a one-line error; re-precompute at the new pose.
+a one-line error; re-precompute at the new pose. A window may open and close (option ``portal_strips``: the
+portal object's deformation in the ``FrameState`` is its open part, the rest a black shutter).
 """
 
-from ._direct import direct_transfer, glossy_direct_transfer, phong_lipschitz, view_interpolation
+from ._direct import (direct_transfer, glossy_direct_transfer, phong_lipschitz, strip_frame, strip_weights,
+                      view_interpolation)
 from ._exterior import exterior_shell
 from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
                         trace_photons)
@@ -40,6 +42,8 @@ __all__ = [
     "glossy_direct_transfer",
     "view_interpolation",
     "phong_lipschitz",
+    "strip_frame",
+    "strip_weights",
     "phong_lobe_zh",
     "phong_lobe_sample",
     "PhotonMap",

@@ -45,7 +45,8 @@ from prtlab.geometry import RayCaster, direction_to_cubemap
 
 from ._shell import Portal
 
-__all__ = ["direct_transfer", "glossy_direct_transfer", "view_interpolation", "phong_lipschitz"]
+__all__ = ["direct_transfer", "glossy_direct_transfer", "view_interpolation", "phong_lipschitz", "strip_frame",
+           "strip_weights"]
 
 
 def _check_points(points, normals):
@@ -80,6 +81,46 @@ def _parallelogram(portal):
     if np.linalg.norm(a + b - s0 - s1) > 1e-9 * portal.size or normals[0] @ normals[1] < 1.0 - 1e-9:
         return None
     return a, s0 - a, s1 - a
+
+
+def strip_frame(portal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(corner, strip_edge, other_edge)`` of a parallelogram portal split into strips (``portal_strips``).
+
+    A portal point is ``corner + u strip_edge + v other_edge`` with ``u, v`` in ``[0, 1]``; strip ``j`` of ``K``
+    holds ``j / K <= u < (j + 1) / K``. ``strip_edge`` is the portal edge nearest the vertical (``+y``), pointing
+    up (``u = 0`` at the bottom edge: a roller shutter or blind); on a horizontal portal the longer edge.
+    Raises ``ValueError`` for a portal that is not one planar parallelogram (two triangles).
+    """
+    quad = _parallelogram(portal)
+    if quad is None:
+        raise ValueError(f"option portal_strips needs parallelogram portals (one planar quad of two triangles); "
+                         f"portal {list(portal.names)} has {len(portal.faces)} face(s) that are not one: use "
+                         "portal_strips=0 (a fixed window)")
+    corner, e1, e2 = quad
+    up = [abs(e[1]) / np.linalg.norm(e) for e in (e1, e2)]
+    if abs(up[0] - up[1]) > 1e-9:
+        pick = int(up[1] > up[0])
+    else:
+        pick = int(np.linalg.norm(e2) > np.linalg.norm(e1) * (1.0 + 1e-9))
+    strip, other = (e1, e2) if pick == 0 else (e2, e1)
+    if strip[1] < 0:
+        corner, strip = corner + strip, -strip
+    return corner, strip, other
+
+
+def strip_weights(n_strips: int, low: float, high: float) -> np.ndarray:
+    """``(K,)`` open fraction of each strip when the portal is open over ``low <= u <= high`` (:func:`strip_frame`):
+    ``K |[j/K, (j+1)/K] cap [low, high]|``, 1 for a strip wholly open, 0 for a closed one."""
+    edges = np.arange(n_strips + 1) / n_strips
+    return np.clip(n_strips * (np.minimum(edges[1:], high) - np.maximum(edges[:-1], low)), 0.0, 1.0)
+
+
+def _strip_of(points, n_strips: int, frame) -> np.ndarray:
+    """Strip index (``0 .. K-1``) of portal points ``(..., 3)`` in the frame :func:`strip_frame`."""
+    corner, strip, other = frame
+    basis = np.column_stack([strip, other])
+    u = (np.asarray(points) - corner) @ np.linalg.pinv(basis).T
+    return np.clip(np.floor(u[..., 0] * n_strips), 0, n_strips - 1).astype(np.int64)
 
 
 def _sobol_unit_square(n_samples, nc, rng):
@@ -152,6 +193,7 @@ def _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler):
     vi : (E,) int      vertex index within the batch
     dl : (E, 3) float  unit direction from the vertex to the portal point
     cos_v, cos_p, dist : (E,) float   cosines at vertex and portal, and distance
+    points : (E, 3) float   the portal point
     """
     nc = len(x)
     p, n_p = _portal_points(portal, nc, n_samples, rng, sampler)
@@ -167,7 +209,7 @@ def _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler):
     blocked |= caster.occluded(p[vi, si], dl, normals=n_p[vi, si])  # backward occlusion, on toward the shell
     keep = ~blocked
     vi, si = vi[keep], si[keep]
-    return vi, dl[keep], cos_v[vi, si], cos_p[vi, si], dist[vi, si]
+    return vi, dl[keep], cos_v[vi, si], cos_p[vi, si], dist[vi, si], p[vi, si]
 
 
 def direct_transfer(
@@ -180,6 +222,7 @@ def direct_transfer(
     rng: np.random.Generator,
     chunk: int = 256,
     sampler: str = "sobol",
+    strips: int = 0,
     combine=None,
 ) -> np.ndarray:
     """Per-vertex direct transfer cubemaps ``T`` (Section 4.1.2, steps 1-3).
@@ -205,10 +248,16 @@ def direct_transfer(
         Return ``combine @ T`` (``(R, 6, res, res)``) instead, summed from the samples without the points' dense
         cubemaps (the hat averages of ``indirect="surface"``: many points, each in few rows); the same random
         stream, the same sums in another order.
+    strips : int
+        0: one transfer per vertex. ``K > 0`` (a parallelogram portal): one per strip of the portal
+        (:func:`strip_frame`), each sample counted in the strip it falls in, so the strips' transfers sum to the
+        whole portal's from the same samples; each is unbiased for its strip. With ``"sobol"`` and ``K`` and
+        ``n_samples`` powers of two each strip holds exactly ``n_samples / K`` points (a net's elementary
+        intervals).
 
     Returns
     -------
-    T : (V, 6, res, res) float64
+    T : (V, 6, res, res) float64, or (V, K, 6, res, res) with ``strips``
         ``T_k = (1/pi) int_{Omega_k} V max(0, n . omega) d omega`` (module docstring);
         the direct radiance of a Lambertian vertex is ``albedo * sum_k T_k L_k``.
     """
@@ -218,34 +267,39 @@ def direct_transfer(
     check_int(n_samples, "n_samples", 1)
     if sampler not in PORTAL_SAMPLERS:
         raise ValueError(f"sampler must be one of {PORTAL_SAMPLERS}, got {sampler!r}")
+    check_int(strips, "strips", 0)
+    frame = strip_frame(portal) if strips else None
+    n_strips = max(strips, 1)
     n_texels = 6 * res * res
     n_vertices = len(points)
-    out = np.zeros((n_vertices, n_texels)) if combine is None else None
+    out = np.zeros((n_vertices, n_strips * n_texels)) if combine is None else None
     columns = None if combine is None else combine.T.tocsr()  # (V, R): the rows each point adds to
     flats, weights = [], []
     for start in range(0, n_vertices, chunk):
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        vi, dl, cos_v, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
+        vi, dl, cos_v, cos_p, dist, p = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cos_v * cos_p * portal.area / (np.pi * n_samples * dist**2)
         face, _, _, i, j = direction_to_cubemap(dl, res)
+        texel = (_strip_of(p, strips, frame) * n_texels if strips else 0) + face * res * res + i * res + j
         if columns is None:
-            flat = vi * n_texels + face * res * res + i * res + j
-            out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_texels).reshape(nc, n_texels)
+            flat = vi * (n_strips * n_texels) + texel
+            out[start : start + nc] = np.bincount(flat, weights=weight, minlength=nc * n_strips * n_texels).reshape(
+                nc, -1)
             continue
         first, count = columns.indptr[start + vi], np.diff(columns.indptr)[start + vi]
         sample = np.repeat(np.arange(len(vi)), count)
         entry = first[sample] + np.arange(len(sample)) - np.repeat(np.cumsum(count) - count, count)
-        flats.append(columns.indices[entry].astype(np.int64) * n_texels + (face * res * res + i * res + j)[sample])
+        flats.append(columns.indices[entry].astype(np.int64) * (n_strips * n_texels) + texel[sample])
         weights.append(weight[sample] * columns.data[entry])
     if columns is not None:
-        rows = combine.shape[0]
+        n_vertices = combine.shape[0]
         flat = np.concatenate(flats) if flats else np.zeros(0, np.int64)
         out = np.bincount(flat, weights=np.concatenate(weights) if weights else np.zeros(0),
-                          minlength=rows * n_texels).reshape(rows, n_texels)
-        return out.reshape(rows, 6, res, res)
-    return out.reshape(n_vertices, 6, res, res)
+                          minlength=n_vertices * n_strips * n_texels).reshape(n_vertices, -1)
+    shape = (n_vertices, n_strips, 6, res, res) if strips else (n_vertices, 6, res, res)
+    return out.reshape(shape)
 
 
 def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, view_dirs, exponent: float,
@@ -289,7 +343,7 @@ def glossy_direct_transfer(caster: RayCaster, points, normals, portal: Portal, v
         x = points[start : start + chunk]
         n = normals[start : start + chunk]
         nc = len(x)
-        vi, dl, cv, cos_p, dist = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
+        vi, dl, cv, cos_p, dist, _ = _visible_portal_samples(caster, portal, x, n, n_samples, rng, sampler)
         weight = cv * cos_p * portal.area / (n_samples * dist**2)  # cos dw / pdf, no 1/pi
         mirror = 2.0 * cv[:, None] * n[vi] - dl
         lobe = norm * np.maximum(mirror @ view_dirs.T, 0.0) ** exponent  # (E, J)

@@ -357,14 +357,17 @@ def light_layout_kernel(light, light_t, lit, light32_t):
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
-def gather_product_kernel(codes, scale, light_t, albedo, out):
-    """``out[v, ch] = albedo[v, ch] scale[v] sum_c codes[v, c] light_t[ch, c]`` (float32 sums over the 16-bit
-    codes, channel-major ``light_t (3, C)`` so that the sum over ``c`` reads contiguous memory and vectorises)."""
-    n, m = codes.shape
+def gather_product_kernel(codes, scale, light_t, albedo, out, rows):
+    """``out[i, ch] = albedo[v, ch] scale[v] sum_c codes[v, c] light_t[ch, c]`` for ``v = rows[i]`` (float32 sums
+    over the 16-bit codes, channel-major ``light_t (3, C)`` so that the sum over ``c`` reads contiguous memory and
+    vectorises; ``albedo`` and ``out`` have one row per entry of ``rows``)."""
+    n = len(rows)
+    m = codes.shape[1]
     u0 = light_t[0]
     u1 = light_t[1]
     u2 = light_t[2]
-    for v in numba.prange(n):
+    for i in numba.prange(n):
+        v = rows[i]
         a0 = np.float32(0.0)
         a1 = np.float32(0.0)
         a2 = np.float32(0.0)
@@ -375,6 +378,6 @@ def gather_product_kernel(codes, scale, light_t, albedo, out):
             a1 += g * u1[c]
             a2 += g * u2[c]
         s = np.float64(scale[v])
-        out[v, 0] = albedo[v, 0] * s * a0
-        out[v, 1] = albedo[v, 1] * s * a1
-        out[v, 2] = albedo[v, 2] * s * a2
+        out[i, 0] = albedo[i, 0] * s * a0
+        out[i, 1] = albedo[i, 1] * s * a1
+        out[i, 2] = albedo[i, 2] * s * a2

@@ -69,6 +69,11 @@ def cluster_vertices(points, normals, objects, n_clusters: int, seed: int = 0) -
     return labels.astype(np.int64)
 
 
+#: a corner of a near hit's triangle within this fraction of the triangle's longest edge from the gatherer's
+#: tangent plane lies on the edge the two surfaces share (shading points sit a few mm inside their faces)
+_EDGE_TOLERANCE = 0.05
+
+
 def _kmeans_pp(data, k: int, seed: int) -> np.ndarray:
     """k-means++ seeding, ``(k, D)``: the centres of scipy's ``kmeans2(minit="++", seed=seed)`` (its stream and
     steps), with each point's distance to its nearest centre kept from one pick to the next (``O(N k)`` distances;
@@ -90,18 +95,29 @@ def _kmeans_pp(data, k: int, seed: int) -> np.ndarray:
 
 
 def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_normals, patch, n_patches: int,
-                 n_rays: int, rng: np.random.Generator, chunk: int = 256) -> np.ndarray:
+                 n_rays: int, rng: np.random.Generator, chunk: int = 256, near: float = 0.0):
     """``F (V, C)`` float32: the final gather of each point over the source patches (module docstring).
 
     ``vertex_offset`` (``n_objects + 1``) and ``vertex_normals (N, 3)`` as in :func:`final_gather`; ``patch (N,)``
     the patch of every caster vertex. Rays are jittered-stratified cosine-weighted (pdf ``cos / pi``), so a row
     sums to the part of the hemisphere (cosine-weighted) that sees the front of the interior.
+
+    With ``near > 0`` returns ``(F, near_patch, near_point)``: of the rays that land closer than ``near`` times
+    their triangle's longest edge on a triangle with a corner on the gatherer's tangent plane (a concave edge),
+    ``near_patch (V, C)`` is their part of ``F`` and ``near_point (V, N)`` the weights of their point reads
+    (:func:`_near_point_weights`), both ``scipy.sparse.csr_matrix`` float64 per ray count as ``F``.
     """
+    from scipy.sparse import coo_matrix
+
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     patch = np.asarray(patch, dtype=np.int64)
     out = np.zeros((len(points), int(n_patches)), dtype=np.float32)
     faces_all = [caster.faces(i) for i in range(caster.n_objects)]
+    if near > 0:
+        verts = np.concatenate([caster.world_vertices(i) for i in range(caster.n_objects)])
+        longest = [_longest_edges(caster.world_vertices(i), f) for i, f in enumerate(faces_all)]
+        near_rows, near_patch, near_weight, point_rows, point_vid, point_weight = [], [], [], [], [], []
     chunk = max(1, min(chunk, (1 << 22) // max(n_rays, 1)))
     for start in range(0, len(points), chunk):
         x, nv = points[start : start + chunk], normals[start : start + chunk]
@@ -114,6 +130,51 @@ def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_norma
         flat = (sel // n_rays)[:, None] * n_patches + patch[vid]
         out[start : start + nc] = (np.bincount(flat.ravel(), weights=bw.ravel(), minlength=nc * n_patches)
                                    .reshape(nc, n_patches) / n_rays)
+        if near > 0:
+            edge = np.empty(len(sel))
+            for i in np.unique(hits.object[sel]):
+                m = hits.object[sel] == i
+                edge[m] = longest[i][hits.triangle[sel][m]]
+            m = np.nonzero(hits.distance[sel] < near * edge)[0]
+            rows = start + sel[m] // n_rays
+            weights = _near_point_weights(bw[m], verts[vid[m]], points[rows], normals[rows], _EDGE_TOLERANCE * edge[m])
+            m, rows, weights = m[weights.any(1)], rows[weights.any(1)], weights[weights.any(1)]
+            near_rows.append(np.repeat(rows, 3))
+            near_patch.append(patch[vid[m]].ravel())
+            near_weight.append(bw[m].ravel())
+            point_rows.append(np.repeat(rows, 3))
+            point_vid.append(vid[m].ravel())
+            point_weight.append(weights.ravel())
+    if near <= 0:
+        return out
+    shape = (len(points), int(n_patches)), (len(points), len(patch))
+    near_patch = coo_matrix((np.concatenate(near_weight) / n_rays, (np.concatenate(near_rows),
+                                                                  np.concatenate(near_patch))), shape=shape[0])
+    near_point = coo_matrix((np.concatenate(point_weight) / n_rays, (np.concatenate(point_rows),
+                                                                   np.concatenate(point_vid))), shape=shape[1])
+    near_patch, near_point = near_patch.tocsr(), near_point.tocsr()
+    near_patch.eliminate_zeros()
+    near_point.eliminate_zeros()
+    return out, near_patch, near_point
+
+
+def _longest_edges(vertices, faces) -> np.ndarray:
+    """The longest edge of each triangle, ``(F,)``."""
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    return np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2).max(axis=1)
+
+
+def _near_point_weights(bw, corners, gatherer, normal, tolerance) -> np.ndarray:
+    """Weights ``(R, 3)`` of a near hit's point read: over the hit triangle's corners (``corners (R, 3, 3)``) that
+    lie in the gatherer's tangent plane (point ``gatherer (R, 3)``, unit ``normal (R, 3)``; within ``tolerance
+    (R,)``), i.e. on the edge where the hit surface meets the gatherer's, its barycentrics ``bw (R, 3)``
+    renormalised (equal weights if the hit's own are all zero there). A row with no such corner, or a back-face
+    hit (``bw`` zero), is zero: that ray keeps its coefficient read."""
+    offset = np.abs(np.einsum("rkc,rc->rk", corners - gatherer[:, None, :], normal))
+    on_edge = (offset <= np.asarray(tolerance)[:, None]) & (np.sum(bw, axis=1) > 0)[:, None]
+    out = np.where(on_edge, np.asarray(bw, dtype=np.float64), 0.0)
+    total = out.sum(axis=1, keepdims=True)
+    out = np.where(total > 0, out / np.where(total > 0, total, 1.0), on_edge / np.maximum(on_edge.sum(1), 1)[:, None])
     return out
 
 
@@ -245,7 +306,7 @@ class SurfaceTransfer:
     """
 
     def __init__(self, gather, patch, areas, albedo, operator, sums: dict, project=None, mass=None,
-                 limit: bool = True):
+                 limit: bool = True, near=None):
         self.codes, self.scale = gather if isinstance(gather, tuple) else quantize_rows(gather)
         self.patch = np.asarray(patch, dtype=np.int64)
         self.n_patches = self.codes.shape[1]
@@ -257,6 +318,10 @@ class SurfaceTransfer:
         self.project = None if project is None else np.asarray(project, dtype=np.float64)
         self.mass = mass if (limit and mass is not None and self.project is not None) else None
         self.areas = np.asarray(areas, dtype=np.float64)
+        self._all_rows = np.arange(len(self.codes), dtype=np.int64)
+        self.near = None if near is None else tuple(near)
+        if self.near is not None:  # the vertices whose point values near hits read
+            self.partners = np.unique(self.near[1].indices).astype(np.int64)
 
     def bounce_sum(self, b: int) -> np.ndarray:
         """``S_b``, ``(C, C, 3)`` float32 (a view of the channel-major ``(3, C, C)`` copy the frame reads; computed
@@ -282,9 +347,12 @@ class SurfaceTransfer:
         """``L_ind = rho * F (S_B Pbar L_d)``, ``(V, 3)`` float64, from the direct radiance ``direct (V, 3)``."""
         return self.frame(self.patch_source(direct), bounces, method)
 
-    def frame(self, source, bounces: int, method: str = "numba") -> np.ndarray:
+    def frame(self, source, bounces: int, method: str = "numba", direct=None) -> np.ndarray:
         """``L_ind = rho * F (S_B s)``, ``(V, 3)`` float64, from the patches' source light ``source (C, 3)``
         (:meth:`patch_source`, or :meth:`SourceOperator.apply` straight from the shell light).
+
+        With ``near`` data and the vertices' direct radiance ``direct (V, 3)`` (point values), the gather's near
+        hits read point values instead (:meth:`near_correction`).
 
         ``method="numba"``: ``S_B s`` and the product with the 16-bit gather in float32 sums (forward error at most
         ``(C + 2) eps_32`` times the same sums of absolute values, each); ``"reference"``: the stored (float32, 16-bit)
@@ -296,25 +364,60 @@ class SurfaceTransfer:
             return np.zeros((n, 3))
         if method not in ("numba", "reference"):
             raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-        correction = self.source_correction(source)
+        light = self._light(source, int(bounces), method)
+        out = self._gather(light, self._all_rows, method)
+        if self.near is not None and direct is not None:
+            out += self.near_correction(source, int(bounces), light, direct, method)
+        return out
+
+    def _gather(self, light, rows, method: str) -> np.ndarray:
+        """``rho F light`` at the vertices ``rows``, ``(len(rows), 3)`` float64: the 16-bit gather product in float32
+        sums (``"numba"``) or decoded to float64 (``"reference"``)."""
         if method == "reference":
-            light = np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), source)
-            if correction is not None:
-                light += correction
-            gather = self.codes.astype(np.float64) * self.scale.astype(np.float64)[:, None]
-            return self.albedo * (gather @ light)
+            codes = self.codes if len(rows) == len(self.codes) else self.codes[rows]
+            scale = self.scale[rows].astype(np.float64)
+            return self.albedo[rows] * ((codes.astype(np.float64) * scale[:, None]) @ light)
         from ._shade import _threads_for
 
-        sums_t = self._bounce_sum_t(int(bounces))
+        out = np.empty((len(rows), 3))
+        albedo = self.albedo if len(rows) == len(self.codes) else np.ascontiguousarray(self.albedo[rows])
+        with _threads_for(len(rows) * self.n_patches * 3):
+            _kernels.gather_product_kernel(self.codes, self.scale, np.ascontiguousarray(light.T), albedo, out, rows)
+        return out
+
+    def _light(self, source, bounces: int, method: str) -> np.ndarray:
+        """``S_B s`` with the ``b = 0`` term limited, ``(C, 3)``: float64 (``"reference"``) or float32 sums."""
+        correction = self.source_correction(source)
+        if method == "reference":
+            light = np.einsum("cdk,dk->ck", self.bounce_sum(bounces).astype(np.float64), source)
+            return light if correction is None else light + correction
+        from ._shade import _threads_for
+
+        sums_t = self._bounce_sum_t(bounces)
         light_t = np.empty((3, self.n_patches), dtype=np.float32)
         with _threads_for(sums_t.size):
             _kernels.bounce_light_kernel(sums_t, np.ascontiguousarray(source), light_t)
         if correction is not None:
             light_t += correction.T.astype(np.float32)
-        out = np.empty((n, 3))
-        with _threads_for(self.codes.size * 3):
-            _kernels.gather_product_kernel(self.codes, self.scale, light_t, self.albedo, out)
-        return out
+        return light_t.T
+
+    def near_correction(self, source, bounces: int, light, direct, method: str = "numba") -> np.ndarray:
+        """What the near hits' point reads change in ``L_ind``, ``(V, 3)`` float64.
+
+        A gather ray that lands within a fraction of its triangle's size (a vertex on a concave edge sees the
+        adjacent surface from millimetres) reads the linear interpolant of the light's coefficients there, whose
+        ramp across the cell a sharp sun patch's edge does not follow (the sunlit room's window wall, bottom row,
+        at a 60-degree sun: 35% too bright). Such rays instead read the hit surface's point values along the hit
+        triangle's edge nearest the gatherer: ``L_d + L_ind^(B-1)`` at its vertices (the light that left them after
+        ``0 .. B-1`` bounces; ``L_ind^(B-1)`` from the gather itself, without this correction). So ``L_ind += rho
+        (N_point (L_d + L_ind^(B-1)) - N_patch S_B s)``, ``N_*`` the near rays' parts of the gather
+        (:func:`patch_gather` with ``near``). ``light``: ``S_B s`` as :meth:`frame` computed it.
+        """
+        near_patch, near_point = self.near
+        point = np.array(direct, dtype=np.float64)
+        if bounces > 1:
+            point[self.partners] += self._gather(self._light(source, bounces - 1, method), self.partners, method)
+        return self.albedo * (near_point @ point - near_patch @ np.asarray(light, dtype=np.float64))
 
     def source_correction(self, source):
         """With ``mass``: ``limited_projection(s) - project s`` (``(C, 3)`` float64), what turns the bounce sum's
@@ -328,10 +431,9 @@ class SurfaceTransfer:
     def patch_light(self, direct, bounces: int) -> np.ndarray:
         """``S_B Pbar L_d``, ``(C, 3)`` float64 from the stored float32 ``S_B``: the light the patches send after
         ``0 .. B-1`` bounces (the ``b = 0`` term limited as in :meth:`frame`)."""
-        s = self.patch_source(direct)
-        out = np.einsum("cdk,dk->ck", self.bounce_sum(int(bounces)).astype(np.float64), s)
-        correction = self.source_correction(s) if bounces > 0 else None
-        return out if correction is None else out + correction
+        if bounces <= 0:
+            return np.zeros((self.n_patches, 3))
+        return self._light(self.patch_source(direct), int(bounces), "reference")
 
     def source_operator(self, source) -> "SourceOperator":
         """The per-frame-invariant product ``Pbar diag(rho) T_src`` of a hat-averaged source transfer ``source``

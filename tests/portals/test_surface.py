@@ -206,8 +206,8 @@ def test_surface_memory_is_estimated_and_refused_before_allocating(monkeypatch):
         Portals.precompute(scene, {**QUICK, "cube_resolution": 64}, cache=False, progress=False)
 
 
-@pytest.mark.parametrize("sampler", ["sobol", "random"])
-def test_direct_transfer_combined_rows(sampler):
+@pytest.mark.parametrize("sampler, strips", [("sobol", 0), ("random", 0), ("sobol", 2)])
+def test_direct_transfer_combined_rows(sampler, strips):
     """``direct_transfer(..., combine=W)`` (summed from the samples) is ``W @ direct_transfer(...)`` from the same
     random stream, to float64 rounding, for the hat averages of a vertex range (some points off every row)."""
     from prtlab.portals import direct_transfer, find_portals
@@ -219,11 +219,11 @@ def test_direct_transfer_combined_rows(sampler):
     offsets = np.array([0, room.n_vertices])
     points, normals, weights = hat_points(caster, offsets, room.world_normals(), slice(10, 40), 4)
     dense = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
-                            sampler=sampler)
-    want = (weights @ dense.reshape(len(points), -1)).reshape(-1, 6, 8, 8)
+                            sampler=sampler, strips=strips)
+    want = (weights @ dense.reshape(len(points), -1)).reshape((30,) + dense.shape[1:])
     got = direct_transfer(caster, points, normals, portal, 16, 8, np.random.default_rng(3), chunk=64,
-                          sampler=sampler, combine=weights)
-    assert got.shape == (30, 6, 8, 8) and want.max() > 0
+                          sampler=sampler, strips=strips, combine=weights)
+    assert got.shape == want.shape == ((30, 2, 6, 8, 8) if strips else (30, 6, 8, 8)) and want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15 * want.max())
 
 
@@ -354,3 +354,69 @@ def test_source_operator_against_the_float64_source_pass(n_vertices, n_patches, 
     absolute = surface.patch_source((abs(transfer_csr(source)) @ np.abs(light)) * albedo)
     assert ours.shape == (n_patches, 3)
     assert np.all(np.abs(ours - ref) <= 1e-12 * absolute + 1e-300)
+
+
+def test_near_reads_only_at_concave_edges():
+    """``patch_gather(near=...)``: a near ray's coefficient weights and its point-read weights each sum to its hit's
+    weight (one ray, two readings of it), so the two near parts have equal row sums, at most the row's gather; a
+    vertex inside a wall, more than a cell from any other surface, has no near rays; a vertex on the floor's edge
+    along a wall reads only the wall's vertices on that edge (the point read drops the hit triangle's far corner)."""
+    scene = window_box(cell=0.5)
+    caster = RayCaster(scene)
+    room = scene.objects[0]
+    x, n = room.world_shading_points(), room.world_normals()
+    offsets = np.array([0, len(x)])
+    patch = np.arange(len(x))
+    gather, near_patch, near_point = patch_gather(caster, x, n, offsets, n, patch, len(x), 256,
+                                                  np.random.default_rng(0), near=0.25)
+    patch_sums, point_sums = np.asarray(near_patch.sum(1)).ravel(), np.asarray(near_point.sum(1)).ravel()
+    np.testing.assert_allclose(patch_sums, point_sums, rtol=1e-12, atol=1e-15)
+    assert np.all(patch_sums <= gather.sum(1) + 1e-6)
+    lo, hi = x.min(0), x.max(0)
+    inside = np.all((np.abs(x - lo) > 0.3) | (np.abs(n) > 0.9), axis=1) & np.all(
+        (np.abs(x - hi) > 0.3) | (np.abs(n) > 0.9), axis=1)  # no other wall within 0.3 m
+    assert inside.any() and np.all(patch_sums[inside] == 0)
+    floor_edge = np.nonzero((n[:, 1] > 0.9) & (np.abs(x[:, 0] - lo[0]) < 0.01) & (np.abs(x[:, 2]) < 0.6))[0]
+    assert len(floor_edge) and np.all(patch_sums[floor_edge] > 0.2)  # half the hemisphere sees the wall nearby
+    verts = room.world_vertices()
+    for v in floor_edge:
+        read = near_point[v].indices
+        assert np.all(np.abs(verts[read, 1] - lo[1]) < 0.01) and np.all(np.abs(verts[read, 0] - lo[0]) < 0.01)
+
+
+@given(n_vertices=st.integers(1, 30), n_patches=st.integers(1, 12), bounces=st.integers(1, 4),
+       seed=st.integers(0, 2**32 - 1))
+def test_near_correction_tiers(n_vertices, n_patches, bounces, seed):
+    """With near data the reference tier is ``rho (F S_B s + N_point (L_d + rho F S_{B-1} s) - N_patch S_B s)``
+    (``S_b = sum_{j<b} K^j``, float64 from the stored float32 data), and the numba tier is within ``2 (C + 2)
+    eps_32`` of the same sums of absolute values."""
+    from scipy.sparse import csr_matrix
+
+    rng = np.random.default_rng(seed)
+    n_vertices = max(n_vertices, n_patches)
+    gather = rng.random((n_vertices, n_patches)) * (rng.random((n_vertices, n_patches)) < 0.6)
+    patch = rng.permutation(np.arange(n_vertices) % n_patches)
+    albedo = rng.random((n_vertices, 3))
+    operator = rng.random((n_patches, n_patches, 3)) / n_patches
+    near_patch = csr_matrix(gather * (rng.random(gather.shape) < 0.3) * 0.5)
+    near_point = csr_matrix(rng.random((n_vertices, n_vertices)) * (rng.random((n_vertices, n_vertices)) < 0.2))
+    surface = SurfaceTransfer(gather, patch, np.ones(n_vertices), albedo, operator,
+                              {bounces: power_sum(operator, bounces)}, near=(near_patch, near_point))
+    source, direct = rng.random((n_patches, 3)) * 5, rng.random((n_vertices, 3))
+    ours = surface.frame(source, bounces, direct=direct)
+    ref = surface.frame(source, bounces, method="reference", direct=direct)
+    f = surface.codes.astype(np.float64) * surface.scale.astype(np.float64)[:, None]
+    k64 = operator.astype(np.float32).astype(np.float64)
+
+    def light(b):
+        total, power = np.zeros((n_patches, 3)), np.repeat(np.eye(n_patches)[:, :, None], 3, axis=2)
+        for _ in range(b):
+            total += np.einsum("cdk,dk->ck", power, source)
+            power = np.einsum("cek,edk->cdk", power, k64)
+        return total
+
+    s_b = np.einsum("cdk,dk->ck", surface.bounce_sum(bounces).astype(np.float64), source)
+    expected = albedo * (f @ s_b + near_point @ (direct + albedo * (f @ light(bounces - 1))) - near_patch @ s_b)
+    np.testing.assert_allclose(ref, expected, rtol=1e-5, atol=1e-9)  # S_{B-1}: float64 products of float32 K
+    absolute = albedo * ((f + near_patch.toarray()) @ np.abs(s_b) + near_point @ (albedo * (f @ light(bounces))))
+    assert np.all(np.abs(ours - ref) <= 2 * (n_patches + 2) * np.finfo(np.float32).eps * absolute + 1e-12)
