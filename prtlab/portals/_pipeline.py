@@ -141,9 +141,10 @@ class PortalsOptions:
     near_reads : float
         ``indirect="surface"``: gather rays that land closer than this fraction of their triangle's longest edge
         (a vertex on a concave edge sees the adjacent surface from millimetres) read the surface's point values
-        along the triangle's nearest edge, not the interpolated coefficients (``SurfaceTransfer.near_correction``);
-        0: every ray reads the coefficients (the form before). On the sunlit room at a 60-degree sun the window
-        wall's indirect light was 0.046 off with 0 and 0.028 with 0.25 (``docs/notes/portals.md``).
+        at the triangle's corners on the edge the two surfaces share, not the interpolated coefficients
+        (``SurfaceTransfer.near_correction``); 0: every ray reads the coefficients (the form before). On the
+        sunlit room at a 60-degree sun the window wall's indirect light was 0.046 off with 0 and 0.027 with 0.25
+        (``docs/notes/portals.md``, section 10).
     seed : int
         Random seed of the photons and of the direct and gather samples.
     portal_strips : int
@@ -478,7 +479,8 @@ def _near_matrices(triplets: dict, gather_shape) -> list:
 
     n_v, n_patches = gather_shape
     return [coo_matrix((triplets[f"{name}_value"], (triplets[f"{name}_row"], triplets[f"{name}_col"])),
-                       shape=(n_v, columns)).tocsr() for name, columns in (("near_patch", n_patches), ("near_point", n_v))]
+                       shape=(n_v, columns)).tocsr()
+            for name, columns in (("near_patch", n_patches), ("near_point", n_v))]
 
 
 def _near_stored(near) -> dict:
@@ -626,7 +628,8 @@ class Portals(Precomputation):
     method = "portals"
     format_version = 8  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
     # 4: photons reflect off glossy objects by their Phong lobe too; 5: edge-corrected radiance estimates
-    # 6: indirect="surface"; 7: Sobol' portal samples of the direct transfer (portal_sampler); 8: near_reads (and portal_strips)
+    # 6: indirect="surface"; 7: Sobol' portal samples of the direct transfer (portal_sampler); 8: near_reads
+    # (and portal_strips)
     max_bounces = None
     options_type = PortalsOptions
     renamed_options = {"res": "cube_resolution"}

@@ -69,11 +69,6 @@ def cluster_vertices(points, normals, objects, n_clusters: int, seed: int = 0) -
     return labels.astype(np.int64)
 
 
-#: a corner of a near hit's triangle within this fraction of the triangle's longest edge from the gatherer's
-#: tangent plane lies on the edge the two surfaces share (shading points sit a few mm inside their faces)
-_EDGE_TOLERANCE = 0.05
-
-
 def _kmeans_pp(data, k: int, seed: int) -> np.ndarray:
     """k-means++ seeding, ``(k, D)``: the centres of scipy's ``kmeans2(minit="++", seed=seed)`` (its stream and
     steps), with each point's distance to its nearest centre kept from one pick to the next (``O(N k)`` distances;
@@ -92,6 +87,11 @@ def _kmeans_pp(data, k: int, seed: int) -> np.ndarray:
             pick = int(np.searchsorted((nearest / nearest.sum()).cumsum(), rs.uniform()))
         init[i] = data[pick]
     return init
+
+
+#: a corner of a near hit's triangle within this fraction of the triangle's longest edge from the gatherer's
+#: tangent plane lies on the edge the two surfaces share (shading points sit a few mm inside their faces)
+_EDGE_TOLERANCE = 0.05
 
 
 def patch_gather(caster: RayCaster, points, normals, vertex_offset, vertex_normals, patch, n_patches: int,
@@ -407,9 +407,9 @@ class SurfaceTransfer:
         A gather ray that lands within a fraction of its triangle's size (a vertex on a concave edge sees the
         adjacent surface from millimetres) reads the linear interpolant of the light's coefficients there, whose
         ramp across the cell a sharp sun patch's edge does not follow (the sunlit room's window wall, bottom row,
-        at a 60-degree sun: 35% too bright). Such rays instead read the hit surface's point values along the hit
-        triangle's edge nearest the gatherer: ``L_d + L_ind^(B-1)`` at its vertices (the light that left them after
-        ``0 .. B-1`` bounces; ``L_ind^(B-1)`` from the gather itself, without this correction). So ``L_ind += rho
+        at a 60-degree sun: 35% too bright). Such rays instead read the hit surface's point values at the hit
+        triangle's corners on the edge the two surfaces share: ``L_d + L_ind^(B-1)`` there (the light that left them
+        after ``0 .. B-1`` bounces; ``L_ind^(B-1)`` from the gather itself, without this correction). So ``L_ind += rho
         (N_point (L_d + L_ind^(B-1)) - N_patch S_B s)``, ``N_*`` the near rays' parts of the gather
         (:func:`patch_gather` with ``near``). ``light``: ``S_B s`` as :meth:`frame` computed it.
         """
