@@ -268,15 +268,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
 @numba.njit(cache=True, inline="always")
 def _segment_meets(x0, x1, x2, y0, y1, y2, spheres):
     """Whether the segment ``x -> y`` meets any sphere of ``spheres`` (S, 4) (as :func:`_segments_meet`)."""
-    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
-    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
-    for s in range(spheres.shape[0]):
-        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
-        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
-        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
-        if g0 * g0 + g1 * g1 + g2 * g2 <= spheres[s, 3] * spheres[s, 3]:
-            return True
-    return False
+    return _capsule_meets(x0, x1, x2, y0, y1, y2, 0.0, spheres)
 
 
 @numba.njit(cache=True, inline="always")

@@ -374,27 +374,6 @@ def _apply_kernel(starts, faces, triangles, uv, factor, x, out):
                         out[v, kp, c] += factor[h, kp, k] * at
 
 
-@numba.njit(cache=True, parallel=True)
-def _apply_rgb_kernel(starts, faces, triangles, uv, factor, x, out):
-    """``_apply_kernel`` for ``K = K' = 1`` and 3 colours, on ``factor`` (H,), ``x`` (V_s, 3), ``out`` (V_r, 3)."""
-    for v in numba.prange(starts.shape[0] - 1):
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for h in range(starts[v], starts[v + 1]):
-            f = triangles[h]
-            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            u, w = float(uv[h, 0]), float(uv[h, 1])
-            b0 = 1.0 - u - w
-            g = factor[h]
-            a0 += g * (b0 * x[i0, 0] + u * x[i1, 0] + w * x[i2, 0])
-            a1 += g * (b0 * x[i0, 1] + u * x[i1, 1] + w * x[i2, 1])
-            a2 += g * (b0 * x[i0, 2] + u * x[i1, 2] + w * x[i2, 2])
-        out[v, 0] += a0
-        out[v, 1] += a1
-        out[v, 2] += a2
-
-
 # ------------------------------------------------------------------ rays
 
 
@@ -690,8 +669,8 @@ def apply_gather(op: GatherOperator, residual, out) -> np.ndarray:
     """``out`` (V_r, K', C) += the gather of ``residual`` (V_s, K, C) through ``op``; returns ``out``."""
     residual = np.ascontiguousarray(residual, dtype=np.float64)
     if op.factor.shape[1:] == (1, 1) and residual.shape[1:] == (1, 3) and out.flags.c_contiguous:
-        _apply_rgb_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), residual.reshape(-1, 3),
-                          out.reshape(-1, 3))
+        _gather_rows(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), 0, residual.reshape(-1, 3),
+                     out.reshape(-1, 3))
     else:
         _apply_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor, residual, out)
     return out
@@ -737,7 +716,8 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None) ->
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _gather_rows(st, fc, tr, bc, fa, o, x, g):
-    """``g`` (V, 3) += one source's gather (``_apply_rgb_kernel`` with its vertices from row ``o`` of ``x``)."""
+    """``_apply_kernel`` for ``K = K' = 1`` and 3 colours: ``g`` (V, 3) += ``sum_h fa[h] (b0 x[a] + u x[b] + w x[c])``
+    over the hits of each receiver point, the source's vertices from row ``o`` of ``x`` (V_s, 3)."""
     for v in numba.prange(g.shape[0]):
         a0 = 0.0
         a1 = 0.0
