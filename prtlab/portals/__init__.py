@@ -24,7 +24,7 @@ from ._exterior import exterior_shell
 from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
                         trace_photons)
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
-from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, indirect_pass
+from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, glossy_lobe_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
 from ._validity import PortalValidityWarning, check_interior_solid_angle, check_shell_distance
 
@@ -55,6 +55,7 @@ __all__ = [
     "direct_pass",
     "indirect_pass",
     "glossy_direct_pass",
+    "glossy_lobe_pass",
     "glossy_indirect_pass",
     # pipeline
     "Portals",

@@ -251,6 +251,30 @@ def glossy_direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, li
 
 
 @numba.njit(cache=True, parallel=True)
+def glossy_lobe_kernel(indptr, indices, values, dirs, reflected, exponent, ks, light, out):
+    """Specular direct radiance of glossy vertices by their Phong lobe at the shell texels they see:
+    ``out[v] = ks[v] (e_v + 2) / 2 sum_p values[p] max(0, dirs[k_p] . reflected[v])^e_v light[k_p]`` over the
+    row ``indptr[v]:indptr[v + 1]`` (texel ``k_p = indices[p]``), 3 channels."""
+    for v in numba.prange(len(indptr) - 1):
+        r0, r1, r2 = reflected[v, 0], reflected[v, 1], reflected[v, 2]
+        e = exponent[v]
+        a0 = a1 = a2 = 0.0
+        for p in range(indptr[v], indptr[v + 1]):
+            k = indices[p]
+            c = dirs[k, 0] * r0 + dirs[k, 1] * r1 + dirs[k, 2] * r2
+            if c <= 0.0:
+                continue
+            w = np.float64(values[p]) * c**e
+            a0 += w * light[k, 0]
+            a1 += w * light[k, 1]
+            a2 += w * light[k, 2]
+        norm = 0.5 * (e + 2.0)
+        out[v, 0] = a0 * norm * ks[v, 0]
+        out[v, 1] = a1 * norm * ks[v, 1]
+        out[v, 2] = a2 * norm * ks[v, 2]
+
+
+@numba.njit(cache=True, parallel=True)
 def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
     """out[v, c] = sum_j basis_out[v, j] sum_i matrix[v, j, i, c] light_sh[i, c] (Appendix Eq. 6), 3 channels."""
     n_vertices, n_out, n_in, _ = matrix.shape

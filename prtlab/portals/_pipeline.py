@@ -68,7 +68,7 @@ from ._direct import (PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, 
                       view_interpolation)
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
-                     glossy_indirect_pass, indirect_pass, shell_coefficients)
+                     glossy_indirect_pass, glossy_lobe_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
                        patch_gather, patch_operator, power_sum, quantize_rows, vertex_areas)
@@ -83,9 +83,9 @@ class PortalsOptions:
     Attributes
     ----------
     cube_resolution : int
-        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]; 0: 64 for
-        a diffuse interior, 32 with a glossy object (its cubemap per view direction grows as ``res^2``: the glossy
-        bunny box would need ~25 GB at 64). At 32 a texel cut by the window's edge takes the shell light averaged
+        Face resolution (a power of two) of the direct transfer cubemaps and of the shell light [32]; 0: 64, or
+        32 with a glossy object under ``glossy_direct="views"`` (its cubemap per view direction grows as ``res^2``:
+        the glossy bunny box would need ~25 GB at 64). At 32 a texel cut by the window's edge takes the shell light averaged
         over the whole texel, and a bright sky near the sun put 16% too much light on the sunlit room's wall
         opposite the window.
     direct_samples : int
@@ -123,9 +123,18 @@ class PortalsOptions:
     merge_portals : bool
         One portal (and shell) for all portal objects (Section 3.1: windows of one material under a distant
         environment), instead of one per portal object.
+    glossy_direct : {"lobe", "views"}
+        The specular direct light of glossy vertices. ``"views"``: the paper's one 8-bit transfer cubemap per
+        discretised outgoing direction (Section 4.1.2, ``view_res``), blended toward the viewer. ``"lobe"``: each
+        frame evaluates the Phong lobe toward the exact view direction at the centre of every shell texel the
+        vertex sees, weighted by the vertex's visible cosine-weighted solid angle of that texel (its diffuse
+        direct transfer, stored in float32; :func:`prtlab.portals.glossy_lobe_pass`): no view discretisation,
+        and close while the lobe spans several texels. On the Fig. 11 bunny (Phong 10, the room at 0.5 m cells)
+        the bunny's direct light was 0.088 off Mitsuba with ``"views"`` and 0.018 (noise 0.016) with ``"lobe"``
+        (``docs/notes/portals.md``, "Glossy direct light").
     view_res : int
-        Glossy vertices: face resolution of the cubemap of discretised outgoing directions (one direct transfer
-        cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
+        ``glossy_direct="views"``: face resolution of the cubemap of discretised outgoing directions (one direct
+        transfer cubemap per direction, ``6 view_res^2`` of them; Section 4.1.2).
     glossy_order : int
         SH order over the outgoing direction of the glossy indirect matrices (``n_out^2 x order^2``); 0:
         ``order`` (the paper's square matrix). A Phong lobe needs more bands than the light it reflects.
@@ -171,6 +180,7 @@ class PortalsOptions:
     bounces: int = 2
     direct_basis: str = "auto"
     merge_portals: bool = False
+    glossy_direct: str = "lobe"
     view_res: int = 4
     glossy_order: int = 0
     indirect: str = "auto"
@@ -190,6 +200,7 @@ class PortalsOptions:
         check_bool(self.merge_portals, "option merge_portals")
         check_choice(self.direct_basis, "option direct_basis", ("auto", "pulse", "haar"))
         check_choice(self.indirect, "option indirect", ("auto", "surface", "paper"))
+        check_choice(self.glossy_direct, "option glossy_direct", ("lobe", "views"))
         check_choice(self.portal_sampler, "option portal_sampler", PORTAL_SAMPLERS)
         self.near_reads = check_float(self.near_reads, "option near_reads", minimum=0.0, maximum=1.0)
 
@@ -291,14 +302,24 @@ def _direct_part(caster, interior: _Interior, rows: slice, portal, options: Port
     """Section 4.1.2 for the vertices ``rows``: the 8-bit direct transfer cubemaps, and for the glossy ones one
     cubemap per discretised outgoing direction (``glossy_*``), in batches of :data:`_GLOSSY_BATCH` vertices."""
     res, basis = options.cube_resolution, options.direct_basis
-    encoded = []
+    encoded, lobe = [], []
     step = max(1, _DIRECT_BATCH // max(options.portal_strips, 1))  # bounds the dense cubemaps and the encoder's arrays
     for b0 in range(rows.start, rows.stop, step):
         b = slice(b0, min(rows.stop, b0 + step))
         t = direct_transfer(caster, interior.points[b], interior.normals[b], portal, options.direct_samples, res,
                             rng, sampler=options.portal_sampler, strips=options.portal_strips)
         encoded.append(encode_transfer(t.reshape(-1, 6, res, res), basis))  # with strips: row v K + j
+        if options.glossy_direct == "lobe":  # the glossy rows unquantised (no strips: glossy needs "paper")
+            lobe.append(t.reshape(len(t), -1)[interior.glossy[b]])
     entry = _concat_encoded(encoded)
+    if options.glossy_direct == "lobe":
+        rows_g = np.concatenate(lobe) if lobe else np.zeros((0, 6 * res * res))
+        k = np.nonzero(rows_g)
+        entry["lobe_counts"] = np.bincount(k[0], minlength=len(rows_g)).astype(np.int64)
+        entry["lobe_indices"] = k[1].astype(np.int32)
+        entry["lobe_values"] = rows_g[k].astype(np.float32)
+        entry.update(_concat_encoded([encode_transfer(np.zeros((0, 6, res, res)), basis)], "glossy_"))  # no views
+        return entry
     g = np.nonzero(interior.glossy[rows])[0] + rows.start
     view_dirs = cubemap_directions(options.view_res).reshape(-1, 3)
     parts = [encode_transfer(np.zeros((0, 6, res, res)), basis)]
@@ -605,6 +626,9 @@ def _assemble(chunks: dict, estimates: list, interior: _Interior, options: Porta
                  "glossy_indptr": np.concatenate([[0], np.cumsum(c["glossy_counts"])]).astype(np.int64)}
         for name in ("indices", "codes", "scale", "basis"):
             entry[f"glossy_{name}"] = c[f"glossy_{name}"]
+        if "lobe_counts" in c:  # glossy_direct="lobe"
+            entry["lobe_indptr"] = np.concatenate([[0], np.cumsum(c["lobe_counts"])]).astype(np.int64)
+            entry["lobe_indices"], entry["lobe_values"] = c["lobe_indices"], c["lobe_values"]
         if "source_counts" in c:
             entry["source_indptr"] = np.concatenate([[0], np.cumsum(c["source_counts"])]).astype(np.int64)
             for name in ("indices", "codes", "scale", "basis"):
@@ -626,10 +650,10 @@ class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
     method = "portals"
-    format_version = 8  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
+    format_version = 9  # 2: vertices shaded at world_shading_points; 3: per-bounce indirect, glossy vertices
     # 4: photons reflect off glossy objects by their Phong lobe too; 5: edge-corrected radiance estimates
     # 6: indirect="surface"; 7: Sobol' portal samples of the direct transfer (portal_sampler); 8: near_reads
-    # (and portal_strips)
+    # (and portal_strips); 9: glossy_direct="lobe"
     max_bounces = None
     options_type = PortalsOptions
     renamed_options = {"res": "cube_resolution"}
@@ -713,11 +737,12 @@ class Portals(Precomputation):
 
     @classmethod
     def resolved(cls, scene: Scene, options):
-        """``options`` with ``cube_resolution=0`` resolved: 64 for a diffuse interior, 32 with a glossy object."""
+        """``options`` with ``cube_resolution=0`` resolved: 32 with a glossy object under ``glossy_direct="views"``
+        (a cubemap per view direction), else 64."""
         if options.cube_resolution:
             return options
-        glossy = any(_is_glossy(o) for o in _shaded(scene))
-        return dataclasses.replace(options, cube_resolution=32 if glossy else 64)
+        views = options.glossy_direct == "views" and any(_is_glossy(o) for o in _shaded(scene))
+        return dataclasses.replace(options, cube_resolution=32 if views else 64)
 
     @classmethod
     def indirect_mode(cls, scene: Scene, options) -> str:
@@ -766,7 +791,7 @@ class Portals(Precomputation):
         b, n2 = options.bounces, options.order**2
         n_out2 = (options.glossy_order or options.order) ** 2
         texels = 6.0 * options.cube_resolution**2
-        views = 6.0 * options.view_res**2
+        views = 6.0 * options.view_res**2 if options.glossy_direct == "views" else 0.0
         strips = max(options.portal_strips, 1)
         # stored entries of a vertex's direct and source rows: every texel (pulse worst case); with strips, every
         # texel per strip but, in pulse ("auto" keeps the smaller basis), one per portal sample in all (the
@@ -787,7 +812,8 @@ class Portals(Precomputation):
             MemoryNeed("the photon map", n_photons_bytes(options.n_photons, b, n2), ("n_photons", "bounces")),
             MemoryNeed("the dense direct transfer cubemaps",
                        min(n_v, max(1, _DIRECT_BATCH // strips)) * strips * texels * 8.0 * 8, ("cube_resolution",)),
-            MemoryNeed("the encoded direct transfer", n_p * (n_v * direct_entries + n_g * views * texels) * 5.0,
+            MemoryNeed("the encoded direct transfer", n_p * (n_v * direct_entries + n_g * views * texels) * 5.0
+                       + n_p * (n_g * texels * 8.0 if options.glossy_direct == "lobe" else 0.0),
                        ("cube_resolution", "view_res", "portal_strips")),
             MemoryNeed("the glossy direct cubemaps", min(n_g, _GLOSSY_BATCH) * views * texels * 8.0 * 2,
                        ("view_res", "cube_resolution")),
@@ -1125,9 +1151,14 @@ class Portals(Precomputation):
         g = np.nonzero(np.asarray(self.data["glossy"]).astype(bool))[0]
         if len(g):
             view = self.view_directions(camera)
-            rows, weights = view_interpolation(view, self.options.view_res)
-            rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
             ks = np.asarray(self.data["ks"], dtype=np.float64)[g]
+            if self.options.glossy_direct == "lobe":
+                n_g = np.concatenate([o.world_normals() for o in objs])[g]
+                reflected = 2.0 * np.einsum("vk,vk->v", view, n_g)[:, None] * n_g - view  # the view's mirror
+                exponent = np.asarray(self.data["exponent"], dtype=np.float64)[g]
+            else:
+                rows, weights = view_interpolation(view, self.options.view_res)
+                rows += (np.arange(len(g)) * 6 * self.options.view_res**2)[:, None]
         timings = {"direct": 0.0, "indirect": 0.0}
         surface = self.surface_transfer() if bounces > 0 else None
         source = np.zeros((surface.n_patches if surface is not None else 0, 3))
@@ -1151,7 +1182,11 @@ class Portals(Precomputation):
                 if len(w):
                     direct += _block_sum(direct_from_light(self.direct_transfer(k, strips=block), rows_albedo, light),
                                          len(w))
-            if len(g):
+            if len(g) and self.options.glossy_direct == "lobe":
+                e = self.data[f"portal{k}"]
+                direct[g] += glossy_lobe_pass(e["lobe_indptr"], e["lobe_indices"], e["lobe_values"], int(e["res"]),
+                                              reflected, exponent, ks, cube, method=method)
+            elif len(g):
                 direct[g] += glossy_direct_pass(self.direct_transfer(k, glossy=True), rows, weights, ks, cube,
                                                 method=method)
             t1 = time.perf_counter()

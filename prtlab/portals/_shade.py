@@ -12,7 +12,7 @@ from prtlab.wavelet import SparseTransfer, haar2d
 
 from . import _kernels
 
-__all__ = ["direct_pass", "indirect_pass", "glossy_direct_pass", "glossy_indirect_pass"]
+__all__ = ["direct_pass", "indirect_pass", "glossy_direct_pass", "glossy_lobe_pass", "glossy_indirect_pass"]
 
 _METHODS = ("numba", "reference")
 
@@ -250,6 +250,68 @@ def glossy_direct_pass(glossy: SparseTransfer, rows, weights, ks, shell_cube, me
                                                glossy.basis, np.int64(glossy.sign_bit), light,
                                                np.ascontiguousarray(rows), np.ascontiguousarray(weights),
                                                np.ascontiguousarray(ks), out)
+    return out
+
+
+def glossy_lobe_pass(indptr, indices, values, res: int, reflected, exponent, ks, shell_cube,
+                     method: str = "numba") -> np.ndarray:
+    """Specular direct radiance of glossy vertices from their Phong lobe at the shell texels they see
+    (``glossy_direct="lobe"``; the paper's per-view cubemaps are :func:`glossy_direct_pass`).
+
+    ``L_s(v) = ks_v (e_v + 2) / 2 sum_k W_vk max(0, w_k . r_v)^e_v L_k``: ``W_vk`` is the vertex's visible
+    cosine-weighted solid angle of texel ``k`` over pi (its diffuse direct transfer,
+    :func:`prtlab.portals.direct_transfer`, in float32), ``w_k`` the texel's centre direction and ``r_v`` the
+    mirror of the view direction about the normal (``max(0, r(w) . w_o) = max(0, w . r(w_o))``). The lobe is taken
+    constant over a texel: exact as the texels shrink, and close while the lobe spans several texels (its half
+    width ``acos(0.5^(1 / e))``, 21 degrees at ``e = 10`` against a texel of 2.8 degrees at ``res = 32``).
+
+    Parameters
+    ----------
+    indptr, indices, values : CSR rows, one per glossy vertex (texel index ``face r^2 + i r + j``, weight ``W``)
+    res : int
+        Face resolution ``r`` of the texels the rows index (and of ``shell_cube``).
+    reflected : (V_g, 3) float
+        Unit mirror directions of the view directions.
+    exponent : (V_g,) float
+    ks : (V_g, 3) float
+    shell_cube : (6, r, r, 3) float
+    method : {"numba", "reference"}
+        ``"numba"``: a ``prange`` kernel over vertices; ``"reference"``: numpy float64.
+
+    Returns
+    -------
+    (V_g, 3) float64
+    """
+    from prtlab.geometry import cubemap_directions
+
+    _check_method(method)
+    indptr = np.asarray(indptr, dtype=np.int64)
+    reflected = np.asarray(reflected, dtype=np.float64)
+    exponent = np.asarray(exponent, dtype=np.float64)
+    ks = np.asarray(ks, dtype=np.float64)
+    n_g = len(indptr) - 1
+    if reflected.shape != (n_g, 3) or exponent.shape != (n_g,) or ks.shape != (n_g, 3):
+        raise ValueError(f"reflected, exponent and ks must have shapes ({n_g}, 3), ({n_g},), ({n_g}, 3): one per "
+                         f"row; got {reflected.shape}, {exponent.shape}, {ks.shape}")
+    cube = _check_cube(shell_cube, int(res))
+    light = np.ascontiguousarray(cube.reshape(-1, 3))
+    dirs = cubemap_directions(res).reshape(-1, 3)
+    indices = np.asarray(indices)
+    if len(indices) and (indices.min() < 0 or indices.max() >= len(dirs)):
+        raise ValueError(f"indices must be texels of the {res} x {res} shell cubemap")
+    if method == "reference":
+        owner = np.repeat(np.arange(n_g), np.diff(indptr))
+        c = np.maximum(0.0, np.einsum("pk,pk->p", dirs[indices], reflected[owner]))
+        w = np.asarray(values, dtype=np.float64) * c ** exponent[owner]
+        out = np.zeros((n_g, 3))
+        np.add.at(out, owner, w[:, None] * light[indices])
+        return out * (0.5 * (exponent + 2.0))[:, None] * ks
+    out = np.empty((n_g, 3))
+    if n_g:
+        with _threads_for(8 * len(indices)):
+            _kernels.glossy_lobe_kernel(indptr, np.ascontiguousarray(indices, dtype=np.int32),
+                                        np.ascontiguousarray(values, dtype=np.float32), dirs, reflected,
+                                        exponent, ks, light, out)
     return out
 
 

@@ -227,6 +227,61 @@ def test_glossy_direct_view_interpolated_against_reference(sky_box, rng):
     assert np.all(np.abs(ours - ref.direct) <= bound), (ours, ref.direct, bound)
 
 
+def test_glossy_direct_lobe_against_reference(sky_box, rng):
+    """``glossy_direct="lobe"``: the Phong lobe at the texel centres, weighted by the float32 diffuse transfer.
+
+    Bound: MC_SIGMAS combined standard errors + the shell light's spread over a texel (as above), weighted by the
+    lobe's largest value on the texel, + the lobe's change over a texel ``ks Lip(g) theta pi sum_k T_k L_k`` with
+    ``theta`` the largest angle from a texel's centre to its corners.
+    """
+    from prtlab.portals import glossy_lobe_pass, phong_lipschitz
+    from prtlab.scene import Material
+
+    res, e, kd, ks = 16, 10.0, 0.3, 0.5
+    views = np.array([[0.1, 0.6, 0.8], [0.35, 0.9, -0.3]])
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    mirror = 2 * np.einsum("vk,vk->v", views, UP)[:, None] * UP - views
+    caster = RayCaster(sky_box)
+    (portal,) = find_portals(sky_box)
+    gen = np.random.default_rng(4)
+    cube = shell_light(sky_box.environment, res)
+    fine = equirect_lookup(sky_box.environment.image, cubemap_directions(res * 8)).reshape(6, res, 8, res, 8, 3)
+    spread = (fine.max(axis=(2, 4)) - fine.min(axis=(2, 4))).reshape(-1, 3)
+    centres = cubemap_directions(res).reshape(-1, 3)
+    on_cube = cubemap_directions(res, normalize=False).reshape(-1, 3)  # |major coordinate| = 1
+    in_face = np.abs(on_cube) < 1 - 1e-9  # the two face coordinates, texels 2 / res wide
+    theta = 0.0
+    for sa in (-1, 1):
+        for sb in (-1, 1):
+            step = np.where(in_face, 1.0 / res, 0.0)
+            first = np.cumsum(in_face, axis=1) == 1  # the first face coordinate of each texel
+            corner = on_cube + step * np.where(first, sa, sb)
+            corner /= np.linalg.norm(corner, axis=1, keepdims=True)
+            theta = max(theta, float(np.arccos(np.clip(np.einsum("tk,tk->t", corner, centres), -1, 1)).max()))
+    assert theta == pytest.approx(np.arctan(np.sqrt(2) / res), rel=0.01)  # the texels beside the face centre
+    lip = phong_lipschitz(e)
+    values, bounds = [], []
+    for _ in range(4):
+        diff = direct_transfer(caster, FLOOR, UP, portal, 1024, res, gen).reshape(2, -1)
+        v, k = np.nonzero(diff)
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(v, minlength=2))])
+        spec = glossy_lobe_pass(indptr, k, diff[v, k].astype(np.float32), res, mirror, np.full(2, e),
+                                np.full((2, 3), ks), cube)
+        values.append(spec + direct_pass(encode_transfer(diff.reshape(2, 6, res, res)), np.full((2, 3), kd), cube))
+        g_max = (e + 2) / (2 * np.pi) * np.maximum(0, mirror @ centres.T) ** e + lip * theta
+        resolution = (ks * np.pi * g_max + kd) * diff @ spread  # the 8-bit diffuse rows' error is below it
+        bounds.append(resolution + ks * lip * theta * np.pi * diff @ (cube.reshape(-1, 3) + spread)
+                      + kd * encode_transfer(diff.reshape(2, 6, res, res)).scale[:, None] / 510
+                      * np.abs(cube).sum((0, 1, 2)).max())
+    values = np.array(values)
+    ours, se_ours = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
+    material = Material(type="phong", kd=np.full(3, kd), ks=np.full(3, ks), exponent=e)
+    ref = radiance_at(sky_box, FLOOR, UP, views, 16384, rng, material=material)
+    bound = MC_SIGMAS * np.sqrt(ref.direct_stderr**2 + se_ours**2) + np.mean(bounds, axis=0)
+    assert np.all(np.abs(ours - ref.direct) <= bound), (ours, ref.direct, bound)
+    assert np.all(np.abs(ours - ref.direct) <= 0.1 * ref.direct), (ours, ref.direct)  # the bound is not vacuous
+
+
 def _rect_form_factor(x1, x2, y1, y2, c):
     """Form factor from a differential area to the rectangle ``[x1, x2] x [y1, y2]`` of the parallel plane at
     distance ``c`` (coordinates from the normal's foot): the corner formula, signed (odd in both coordinates)."""

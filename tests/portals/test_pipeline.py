@@ -200,12 +200,19 @@ def _glossy_box_scene():
     return Scene.from_dict(d)
 
 
-def test_glossy_and_per_bounce_shading():
+@pytest.mark.parametrize("glossy_direct", ["views", "lobe"])
+def test_glossy_and_per_bounce_shading(glossy_direct):
     scene = _glossy_box_scene()
-    pre = Portals.precompute(scene, dict(QUICK, bounces=2, view_res=2), cache=False, progress=False)
+    pre = Portals.precompute(scene, dict(QUICK, bounces=2, view_res=2, glossy_direct=glossy_direct), cache=False,
+                             progress=False)
     n_block = scene.object("block").n_vertices
     assert pre.data["glossy"].sum() == n_block
-    assert pre.direct_transfer(0, glossy=True).n_vertices == n_block * 24
+    if glossy_direct == "views":
+        assert pre.direct_transfer(0, glossy=True).n_vertices == n_block * 24
+    else:  # no view cubemaps: one float32 row of visible texels per glossy vertex
+        assert pre.direct_transfer(0, glossy=True).n_vertices == 0
+        assert len(pre.data["portal0"]["lobe_indptr"]) == n_block + 1
+        assert pre.data["portal0"]["lobe_values"].dtype == np.float32
     assert pre.indirect_transfer(0, 2, glossy=True).shape == (n_block, 9, 9, 3)
     res = [pre.shade(bounces=b) for b in range(3)]
     for name in ("room", "block"):
@@ -230,6 +237,8 @@ def test_glossy_and_per_bounce_shading():
         Portals.make_options({"view_res": 0})
     with pytest.raises(ValueError, match="option glossy_order"):
         Portals.make_options({"glossy_order": -1})
+    with pytest.raises(ValueError, match="option glossy_direct"):
+        Portals.make_options({"glossy_direct": "exact"})
     wider = Portals.precompute(scene, dict(QUICK, bounces=1, view_res=1, glossy_order=5), cache=False, progress=False)
     assert wider.indirect_transfer(0, glossy=True).shape == (n_block, 25, 9, 3)
     assert np.all(np.isfinite(wider.shade(bounces=1).total["block"]))
@@ -347,3 +356,13 @@ def test_surface_frame_numba_tier_within_its_float32_bound_of_the_float64_refere
         pre.shade_shells([cube], 2, method="fast")
     with pytest.raises(ValueError, match="method must be 'numba' or 'reference', got 'fast'"):
         surface.frame(s, 2, method="fast")
+
+
+def test_cube_resolution_resolved_per_glossy_direct():
+    """``cube_resolution=0``: 32 only where a cubemap per view direction is stored (``glossy_direct="views"`` with a
+    glossy object), else 64."""
+    glossy, diffuse = _glossy_box_scene(), window_box(cell=0.5)
+    res = {(name, gd): Portals.resolved(scene, Portals.make_options({"glossy_direct": gd})).cube_resolution
+           for name, scene in (("glossy", glossy), ("diffuse", diffuse)) for gd in ("lobe", "views")}
+    assert res == {("glossy", "lobe"): 64, ("glossy", "views"): 32, ("diffuse", "lobe"): 64,
+                   ("diffuse", "views"): 64}

@@ -114,6 +114,42 @@ def test_glossy_direct_pass_tiers(n, views, density, seed, basis):
             assert np.all(np.abs(fast - exact) <= bound + 1e-12)
 
 
+@given(n=st.integers(0, 8), density=st.floats(0.0, 1.0), seed=st.integers(0, 2**32 - 1))
+def test_glossy_lobe_pass_tiers(n, density, seed):
+    """The numba kernel against the float64 tier, and the tier against the lobe summed texel by texel."""
+    from prtlab.geometry import cubemap_directions
+    from prtlab.portals import glossy_lobe_pass
+
+    rng = np.random.default_rng(seed)
+    dense = np.where(rng.random((n, 96)) < density, rng.random((n, 96)), 0.0).astype(np.float32)
+    v, k = np.nonzero(dense)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(v, minlength=n))])
+    r = rng.normal(size=(n, 3))
+    r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
+    e, ks, cube = rng.uniform(0, 60, n), rng.random((n, 3)), rng.random((6, 4, 4, 3))
+    fast = glossy_lobe_pass(indptr, k, dense[v, k], 4, r, e, ks, cube)
+    ref = glossy_lobe_pass(indptr, k, dense[v, k], 4, r, e, ks, cube, "reference")
+    assert fast.shape == (n, 3)
+    np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-12)
+    lobe = (e[:, None] + 2) / 2 * np.maximum(0.0, r @ cubemap_directions(4).reshape(-1, 3).T) ** e[:, None]
+    np.testing.assert_allclose(ref, ks * ((dense * lobe) @ cube.reshape(-1, 3)), rtol=1e-9, atol=1e-12)
+
+
+def test_glossy_lobe_pass_errors():
+    import pytest
+
+    from prtlab.portals import glossy_lobe_pass
+
+    indptr, idx, val = np.array([0, 1, 2]), np.array([0, 95]), np.ones(2, np.float32)
+    r, e, ks, cube = np.array([[0, 0, 1.0]] * 2), np.full(2, 10.0), np.ones((2, 3)), np.ones((6, 4, 4, 3))
+    with pytest.raises(ValueError, match="one per row"):
+        glossy_lobe_pass(indptr, idx, val, 4, r[:1], e, ks, cube)
+    with pytest.raises(ValueError, match=r"indices must be texels of the 4 x 4 shell cubemap"):
+        glossy_lobe_pass(indptr, idx + 1, val, 4, r, e, ks, cube)
+    with pytest.raises(ValueError, match=r"shell_cube must have shape \(6, 8, 8, 3\)"):
+        glossy_lobe_pass(indptr, idx, val, 8, r, e, ks, cube)
+
+
 @given(n=st.integers(0, 10), order=st.integers(1, 4), seed=st.integers(0, 2**32 - 1))
 def test_glossy_indirect_pass_tiers(n, order, seed):
     from prtlab.portals import glossy_indirect_pass
