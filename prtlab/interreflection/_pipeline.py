@@ -168,7 +168,8 @@ class InterreflectionOptions:
         Solid angle in steradians (times the largest cosine to the normal inside the cone) of a source's bounding
         sphere from which a receiver point casts all ``residual_rays``; a point that sees it smaller casts
         proportionally fewer, at least 4, each weighted by their number, so the gather stays unbiased with fewer
-        rays toward far, small sources (0: every point casts ``residual_rays``; a run-time choice).
+        rays toward far, small sources (0: every point casts ``residual_rays``, the former gather; a run-time
+        choice).
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
     residual_near : float
@@ -212,7 +213,7 @@ class InterreflectionOptions:
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
     residual_rays: int = 64
-    residual_cone: float = 0.0
+    residual_cone: float = 0.5
     light_samples: int = 64
     residual_near: float = 2.0
     residual_near_samples: int = 4
@@ -572,6 +573,8 @@ class Interreflection(Precomputation):
                                              lambda d: HaarBasisRadianceField.from_arrays(d["haar_radiance"]))
                               for o in self.objects} if options.irradiance == "haar" else {}
         self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
+        #: a convex mesh's rays leave it (or meet its back): no residual gather from itself
+        self.convex = {o.name: bool(getattr(o.mesh, "is_convex", False)) for o in self.objects}
         self.reuse = FrameReuse()
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -1301,7 +1304,7 @@ class Interreflection(Precomputation):
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         sources = tuple(i for i, s in enumerate(self.objects)
                         if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
-                                               and not self.flat[r.name]))
+                                               and not self.flat[r.name] and not self.convex[r.name]))
         entry = self.reuse.residual_hits.get(r.name)
         if entry is not None and entry["poses"] == poses and entry["sources"] == sources:
             return entry

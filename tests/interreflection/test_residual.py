@@ -624,3 +624,42 @@ def test_light_terms_first_continues_the_streams():
             np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
         with pytest.raises(ValueError, match="first must be a non-negative int"):
             terms(points, normals, normals, lam, LAMBERT, caster, light, 0, 16, first=-1)
+
+
+def test_a_convex_receiver_casts_no_rays_at_itself(low_ball):
+    """The ball is convex: its rays leave it, so the residual gather leaves it out as its own source; the frame
+    equals one that casts those rays (none hits the ball's front), with fewer rays cast."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    state = FrameState.from_scene(low_ball.scene)
+    shades = {}
+    for convex in (True, False):
+        ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options), low_ball.data)
+        assert ir.convex == {"floor": False, "ball": True}
+        ir.convex["ball"] = convex
+        shades[convex] = ir.shade(state, bounces=2)
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(shades[True].indirect[name], shades[False].indirect[name])
+    assert shades[True].info["residual_rays_cast"] < shades[False].info["residual_rays_cast"]
+
+
+def test_residual_cone_casts_fewer_rays_in_the_pipeline(low_ball):
+    """``residual_cone`` takes the pipeline's residual rays down and leaves the result close (the same estimator
+    with fewer rays where a source subtends little)."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    state = FrameState.from_scene(low_ball.scene)
+    shades = {}
+    for cone in (0.0, 0.5):
+        ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, residual_cone=cone), low_ball.data)
+        shades[cone] = ir.shade(state, bounces=1)
+    assert shades[0.5].info["residual_rays_cast"] < shades[0.0].info["residual_rays_cast"]
+    for name in ("floor", "ball"):
+        a, b = shades[0.0].total[name], shades[0.5].total[name]
+        assert np.sqrt(np.mean((a - b) ** 2)) <= 0.01 * np.sqrt(np.mean(a**2))
