@@ -12,6 +12,7 @@ final gather of that residual alone:
   frame's poses: uniform in the cone of the source's bounding sphere, or cosine-weighted over the
   hemisphere from a point inside that sphere; a ray whose first hit is the front of the source carries
   the residual interpolated at the hit (barycentrically, as the basis radiance fields interpolate ``Psi``);
+  with ``full`` a point that sees the sphere's cone small casts fewer of the ``n`` rays (a grid of its own);
 * ``L_k'(x) += sum_rays g_k'(w) (n . w)+ / (n pdf(w)) sum_k h_k(-w) r_k(hit)``: unbiased for the
   residual with exact visibility, near or far (a source 3 cm away as well as a small one far off).
 
@@ -599,9 +600,9 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     and the rays of the other sources whose path up to the source meets a moved object's old or new
     bounding sphere. The result equals a full cast (the same rays, the same hits) but for float32 ties
     between triangles at one distance. An unchanged source keeps its ``ResidualHits`` object. ``stats``
-    (a dict) gets ``rays_cast`` added; ``previous`` must come from the same ``full``. ``method="numba"`` makes and traces the rays in one kernel (with Embree;
-    else as ``"reference"``), ``"reference"`` makes them apart and traces them through ``RayCaster.closest_hit``:
-    the same hits.
+    (a dict) gets ``rays_cast`` added; ``previous`` must come from the same ``full``. ``method="numba"`` makes
+    and traces the rays in one kernel (with Embree; else as ``"reference"``), ``"reference"`` makes them apart
+    and traces them through ``RayCaster.closest_hit``: the same hits.
     """
     check_choice(method, "method", ("numba", "reference"))
     points = np.ascontiguousarray(points, dtype=np.float64)
