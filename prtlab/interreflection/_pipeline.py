@@ -164,6 +164,12 @@ class InterreflectionOptions:
         the part of each source's radiance that its PCA basis misses (a shadow the basis cannot hold) gathered
         per frame by ray casting at the frame's poses (0: off, the paper; a run-time choice). When objects move,
         the rays whose first hit they may change are cast again.
+    residual_cone : float
+        Solid angle in steradians (times the largest cosine to the normal inside the cone) of a source's bounding
+        sphere from which a receiver point casts all ``residual_rays``; a point that sees it smaller casts
+        proportionally fewer, at least 4, each weighted by their number, so the gather stays unbiased with fewer
+        rays toward far, small sources (0: every point casts ``residual_rays``, the former gather; a run-time
+        choice).
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
     residual_near : float
@@ -207,6 +213,7 @@ class InterreflectionOptions:
     irradiance: str = "sh"
     haar_radiance_keep: int = 64
     residual_rays: int = 64
+    residual_cone: float = 0.5
     light_samples: int = 64
     residual_near: float = 2.0
     residual_near_samples: int = 4
@@ -217,6 +224,8 @@ class InterreflectionOptions:
         check_int_options(self, ("order", "n_basis", "n_lights", "K_glossy", "n_radii", "resolution",
                                  "cube_resolution", "haar_keep", "haar_radiance_keep"))
         check_int(self.residual_rays, "option residual_rays", 0, meaning="rays per receiver point, 0: off")
+        check_float(self.residual_cone, "option residual_cone", 0.0,
+                    meaning="steradians from which a point casts every residual ray, 0: off")
         check_int(self.light_samples, "option light_samples", 1, meaning="points per vertex on an area light")
         check_float(self.residual_near, "option residual_near", 0.0, meaning="in edge lengths, 0: off")
         check_int(self.residual_near_samples, "option residual_near_samples", 1,
@@ -417,8 +426,8 @@ class Interreflection(Precomputation):
     def cache_key_parts(cls, scene, options) -> list:
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
-        run_time = ("threshold", "near_field", "area_lights", "residual_rays", "light_samples", "residual_near",
-                    "residual_near_samples", "residual_whole")
+        run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
+                    "residual_near", "residual_near_samples", "residual_whole")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -564,6 +573,8 @@ class Interreflection(Precomputation):
                                              lambda d: HaarBasisRadianceField.from_arrays(d["haar_radiance"]))
                               for o in self.objects} if options.irradiance == "haar" else {}
         self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
+        #: a convex mesh's rays leave it (or meet its back): no residual gather from itself
+        self.convex = {o.name: bool(getattr(o.mesh, "is_convex", False)) for o in self.objects}
         self.reuse = FrameReuse()
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
@@ -1293,7 +1304,7 @@ class Interreflection(Precomputation):
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         sources = tuple(i for i, s in enumerate(self.objects)
                         if s.name in phi_r or (s.name == r.name and self.options.self_interreflection
-                                               and not self.flat[r.name]))
+                                               and not self.flat[r.name] and not self.convex[r.name]))
         entry = self.reuse.residual_hits.get(r.name)
         if entry is not None and entry["poses"] == poses and entry["sources"] == sources:
             return entry
@@ -1314,7 +1325,8 @@ class Interreflection(Precomputation):
                    self.seps[self.objects[i].name], geo[self.objects[i].name]["center"],
                    geo[self.objects[i].name]["radius"]) for i in sources}
         hits = residual_hits(g["x"], g["n"], self.seps[r.name], caster, src, self.options.residual_rays,
-                             previous=previous, moved=moved, stats=self.reuse.residual_counts)
+                             previous=previous, moved=moved, stats=self.reuse.residual_counts,
+                             full=self.options.residual_cone)
         operators = {}
         for i, h in hits.items():
             if previous is not None and previous.get(i) is h:

@@ -12,6 +12,7 @@ final gather of that residual alone:
   frame's poses: uniform in the cone of the source's bounding sphere, or cosine-weighted over the
   hemisphere from a point inside that sphere; a ray whose first hit is the front of the source carries
   the residual interpolated at the hit (barycentrically, as the basis radiance fields interpolate ``Psi``);
+  with ``full`` a point that sees the sphere's cone small casts fewer of the ``n`` rays (a grid of its own);
 * ``L_k'(x) += sum_rays g_k'(w) (n . w)+ / (n pdf(w)) sum_k h_k(-w) r_k(hit)``: unbiased for the
   residual with exact visibility, near or far (a source 3 cm away as well as a small one far off).
 
@@ -39,7 +40,7 @@ import numba
 import numpy as np
 
 from prtlab import brdf
-from prtlab._validate import check_choice
+from prtlab._validate import check_choice, check_float
 from prtlab.brdf._kernels import factor_at
 from prtlab.geometry import _embree
 
@@ -115,31 +116,66 @@ def _frame(nx, ny, nz):
     return 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
 
 
+#: Fewest rays a receiver point casts toward a source with ``full > 0`` (a 2 x 2 grid).
+MIN_RAYS = 4
+
+
 @numba.njit(cache=True, inline="always")
-def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, out):
+def _point_grid(rows, side, cos_c, cos_max, q, full):
+    """``(rows, side)`` of one point's grid toward a source whose bounding cone (half-angle ``asin q``, cosine
+    ``cos_max``) is seen at ``cos_c`` from the normal: ``rows side`` rays times ``omega / full`` (``omega`` the
+    cone's solid angle times the largest cosine to the normal inside it), at least ``MIN_RAYS``, at most
+    ``rows side``; ``(rows, side)`` itself if ``full`` is 0."""
+    m = rows * side
+    if not full > 0.0:
+        return rows, side
+    sin_c = math.sqrt(max(1.0 - cos_c * cos_c, 0.0))
+    top = 1.0 if cos_c >= cos_max else max(cos_c * cos_max + sin_c * q, 0.0)
+    want = m * 2.0 * math.pi * (1.0 - cos_max) * top / full
+    if want >= m:
+        return rows, side
+    n = max(MIN_RAYS, min(m, int(math.ceil(want))))
+    s = max(1, int(math.sqrt(n)))
+    while s * s > n:
+        s -= 1
+    while (s + 1) * (s + 1) <= n:
+        s += 1
+    return max(1, n // s), s
+
+
+@numba.njit(cache=True, inline="always")
+def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, out):
     """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
 
     Uniform in the cone of the sphere ``(centre, radius)``, cosine-weighted on the hemisphere from inside it;
     the origin is moved ``eps`` off the surface on the ray's side (:func:`prtlab.geometry.offset_origins`);
-    ``tmax`` is where the ray leaves the sphere ``(centre, bound)`` (0: it misses it, or weight 0).
+    ``tmax`` is where the ray leaves the sphere ``(centre, bound)`` (0: it misses it, or weight 0). With
+    ``full > 0`` a point outside the sphere casts only the rays ``j`` of its own grid (``_point_grid``), each
+    weighted by that grid's size; the others get weight and ``tmax`` 0.
     """
-    m = rows * side
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
     d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
     dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    inside = dist <= 1.0001 * radius
+    q = radius / max(dist, radius)
+    cos_max = math.sqrt(max(1.0 - q * q, 0.0))
+    if full > 0.0 and not inside:
+        rows, side = _point_grid(rows, side, (d0 * n0 + d1 * n1 + d2 * n2) / dist, cos_max, q, full)
+        if j >= rows * side:
+            out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = x0, x1, x2, n0, n1, n2, 0.0, 0.0
+            return
+    m = rows * side
     stream = _mix(key ^ _mix(np.uint64(p)))
     u1 = ((j // side) + _uniform(stream, np.uint64(2 * j))) / rows
     u2 = ((j % side) + _uniform(stream, np.uint64(2 * j + 1))) / side
     phi = 2.0 * math.pi * u2
-    if dist <= 1.0001 * radius:  # inside the sphere: cosine-weighted about the normal
+    if inside:  # inside the sphere: cosine-weighted about the normal
         r = math.sqrt(u1)
         l0, l1, l2 = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(1.0 - u1, 0.0))
         a0, a1, a2 = n0, n1, n2
         weight = math.pi / m
     else:
-        q = radius / max(dist, radius)
-        cos_max = math.sqrt(max(1.0 - q * q, 0.0))
         cos_t = 1.0 - u1 * (1.0 - cos_max)
         sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
         l0, l1, l2 = sin_t * math.cos(phi), sin_t * math.sin(phi), cos_t
@@ -150,7 +186,7 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, out
     w1 = t1 * l0 + b1 * l1 + a1 * l2
     w2 = t2 * l0 + b2 * l1 + a2 * l2
     cos_n = w0 * n0 + w1 * n1 + w2 * n2
-    weight = weight * max(cos_n, 0.0) if dist > 1.0001 * radius else weight
+    weight = weight * max(cos_n, 0.0) if not inside else weight
     s = -1.0 if cos_n < 0.0 else 1.0
     o0, o1, o2 = x0 + eps * s * n0, x1 + eps * s * n1, x2 + eps * s * n2
     # leaving the bounding sphere: t = -b + sqrt(b^2 - c)
@@ -162,10 +198,10 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, out
 
 
 @numba.njit(cache=True, parallel=True)
-def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, out):
+def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, out):
     """``_ray`` for each ``(point[i], ray[i])``: ``out`` (Q, 8)."""
     for i in numba.prange(point.shape[0]):
-        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, out[i])
+        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, full, out[i])
 
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -195,15 +231,15 @@ def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, tnear, source,
-                 function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, tnear,
+                 source, function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
     """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
     ``point`` empty ``(i // m, i % m)`` (every ray of every point). ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not
     cast), ``_CAST`` or ``_HIT`` (the first hit is object ``source``: its ``triangle[i]`` and float32 ``uv[i]``).
     Each ray is staged as ``_stage_ray`` stages it (no normals: the origin is already offset) and traced through
     ``rtcIntersect1`` (``function``, ``scene``); threads take blocks of ``RAYS_PER_TASK`` rays as ``_trace_kernel``."""
     m = rows * side
-    full = point.shape[0] == 0
+    every = point.shape[0] == 0
     step = _embree.RAYS_PER_TASK
     n_blocks = (n_rays + step - 1) // step
     counter = np.zeros(1, dtype=np.int64)
@@ -216,9 +252,9 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
             f32, u32 = slot_f32[block], slot_u32[block]
             address = f32.ctypes.data
             for i in range(block * step, min(n_rays, (block + 1) * step)):
-                p = i // m if full else point[i]
-                j = i % m if full else ray[i]
-                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, buf)
+                p = i // m if every else point[i]
+                j = i % m if every else ray[i]
+                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, buf)
                 state[i] = _NOT_LIVE
                 if not buf[7] > 0.0:
                     continue
@@ -251,7 +287,7 @@ def _local_unit(x, y, z, n0, n1, n2):
 
 
 @numba.njit(cache=True, parallel=True)
-def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, faces,
+def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, faces,
                        vertex_normals, triangle, uv, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq,
                        h_parity, front, factor):
     """For each hit ``i`` (ray ``ray[i]`` of point ``point[i]``, made again by ``_ray``, on ``triangle[i]`` of the
@@ -266,7 +302,7 @@ def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, 
         h = np.empty(h_values.shape[0])
         for i in range(c * chunk, min(n_hits, (c + 1) * chunk)):
             p = point[i]
-            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, buf)
+            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, full, buf)
             f = triangle[i]
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
             u, v = uv[i, 0], uv[i, 1]
@@ -310,7 +346,8 @@ def _meets(buf, spheres):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, tnear, source, spheres,
+def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, tnear, source,
+                   spheres,
                    function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
     ``_flag_kernel`` flags is traced at once; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax``
@@ -329,7 +366,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
             address = f32.ctypes.data
             for i in range(block * _POINTS_PER_TASK, min(n, (block + 1) * _POINTS_PER_TASK)):
                 for j in range(m):
-                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, buf)
+                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, buf)
                     state[i, j] = _UNFLAGGED
                     if not _meets(buf, spheres):
                         continue
@@ -345,14 +382,14 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
 
 
 @numba.njit(cache=True, parallel=True)
-def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, spheres, flags):
+def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, spheres, flags):
     """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
     (S, 4: centre, radius)."""
     m = rows * side
     for i in numba.prange(candidates.shape[0]):
         buf = np.empty(8)
         for j in range(m):
-            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, buf)
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, buf)
             flags[i, j] = _meets(buf, spheres)
 
 
@@ -407,7 +444,8 @@ def cosine_directions(normals, n: int, seed: int = 0) -> np.ndarray:
     point, ray = np.repeat(np.arange(len(normals)), m), np.tile(np.arange(m), len(normals))
     out = np.empty((len(point), 8))
     inside = np.zeros(3)  # a point at the sphere's centre
-    _rays_kernel(np.zeros_like(normals), normals, point, ray, inside, 1.0, 1.0, _key(seed, 0), rows, side, 0.0, out)
+    _rays_kernel(np.zeros_like(normals), normals, point, ray, inside, 1.0, 1.0, _key(seed, 0), rows, side, 0.0, 0.0,
+                 out)
     return out[:, 3:6].reshape(len(normals), m, 3)
 
 
@@ -444,7 +482,7 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     buf = np.empty((len(point), 8))
     if len(point):
         _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
-                     float(caster.epsilon), buf)
+                     float(caster.epsilon), grid[2], buf)
     live = np.flatnonzero(buf[:, 7] > 0.0)
     if not len(live):
         return None
@@ -483,7 +521,7 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
     slot_f32, slot_u32 = _embree.ray_slots(n_rays)
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
-                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), float(caster.tnear), s,
+                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], float(caster.tnear), s,
                  caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
                  state, triangle, uv32)
     stats["rays_cast"] += int(np.count_nonzero(state))
@@ -505,7 +543,7 @@ def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound,
     h_nodes, h_values = sep._ext(sep.theta_out, sep.h_radial, h_max)
     front = np.empty(len(rows), np.bool_)
     factor = np.empty((len(rows), receiver_sep.K, sep.K))
-    _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps,
+    _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps, grid[2],
                        np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(vertex_normals, np.float64),
                        triangles, uv, g_nodes, g_values, np.ascontiguousarray(receiver_sep.freq, np.int64),
                        np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
@@ -543,14 +581,17 @@ def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
 
 def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: int, seed: int = 0, *,
                   previous: dict | None = None, moved: dict | None = None, stats: dict | None = None,
-                  method: str = "numba") -> dict:
+                  method: str = "numba", full: float = 0.0) -> dict:
     """``{source index: ResidualHits}`` of ``n_rays`` rays per receiver point and source.
 
     ``caster`` holds every object at its pose (its object index is the key); ``sources`` maps the indices
     that are sources of this receiver to ``(faces, world vertex normals, separable BRDF, bounding-sphere
     centre, radius)``. Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
     over the hemisphere from a point inside it), so a small far source gets all of them; a ray counts
-    when its first hit is the front of that source.
+    when its first hit is the front of that source. With ``full > 0`` (steradians) a point outside the
+    sphere casts ``n_rays`` times ``omega / full`` rays (a grid of its own, each ray weighted by its size; at
+    least ``MIN_RAYS``, at most ``n_rays``), ``omega`` the cone's solid angle times the largest cosine to the
+    point's normal inside it: still unbiased, with fewer rays toward sources that subtend little.
 
     With ``previous`` (this function's result for the same receiver points, sources' geometry, seed and
     caster epsilon, at earlier poses) and ``moved`` (``{object index: (S, 4) array}``: the old and new
@@ -559,14 +600,15 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     and the rays of the other sources whose path up to the source meets a moved object's old or new
     bounding sphere. The result equals a full cast (the same rays, the same hits) but for float32 ties
     between triangles at one distance. An unchanged source keeps its ``ResidualHits`` object. ``stats``
-    (a dict) gets ``rays_cast`` added. ``method="numba"`` makes and traces the rays in one kernel (with Embree;
-    else as ``"reference"``), ``"reference"`` makes them apart and traces them through ``RayCaster.closest_hit``:
-    the same hits.
+    (a dict) gets ``rays_cast`` added; ``previous`` must come from the same ``full``. ``method="numba"`` makes
+    and traces the rays in one kernel (with Embree; else as ``"reference"``), ``"reference"`` makes them apart
+    and traces them through ``RayCaster.closest_hit``: the same hits.
     """
     check_choice(method, "method", ("numba", "reference"))
     points = np.ascontiguousarray(points, dtype=np.float64)
     normals = np.ascontiguousarray(normals, dtype=np.float64)
-    grid = _grid(n_rays)
+    check_float(full, "full", 0.0, meaning="in steradians, 0: every point casts n_rays")
+    grid = (*_grid(n_rays), float(full))
     out = {}
     if len(points) == 0:
         return out
@@ -615,7 +657,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
-                       float(caster.epsilon), float(caster.tnear), s, widened, caster._scene.intersect_fn,
+                       float(caster.epsilon), grid[2], float(caster.tnear), s, widened, caster._scene.intersect_fn,
                        caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(), state, triangle, uv32)
         i, j = np.nonzero(state)
         if not len(i):
@@ -630,7 +672,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         return old if _same(merged, old) else merged
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
-                 widened, flags)
+                 grid[2], widened, flags)
     i, j = np.nonzero(flags)
     if not len(i):
         return old

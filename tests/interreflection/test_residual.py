@@ -32,21 +32,42 @@ def test_cosine_directions_are_cosine_weighted():
     np.testing.assert_allclose(cos.mean(axis=1), 2.0 / 3.0, atol=0.005)  # stratified: well under 1/sqrt(n)
 
 
+@pytest.mark.parametrize("full", [0.0, 0.5])
 @pytest.mark.parametrize("h", [0.05, 0.5, 2.0, 5.0])
-def test_gather_of_a_constant_residual_is_the_form_factor(h):
+def test_gather_of_a_constant_residual_is_the_form_factor(h, full):
     """A square source of constant residual ``r`` (Lambertian, ``h_k = 1``) under a point facing it:
     ``L = r F`` with F the point-to-square form factor: near (h = 0.05, 0.5: the point inside the source's
-    bounding sphere, hemisphere rays) and far (h = 2, 5: rays in the sphere's cone)."""
+    bounding sphere, hemisphere rays) and far (h = 2, 5: rays in the sphere's cone); with ``full = 0.5`` the far
+    points cast fewer rays (h = 5: 2,070 of 4,096), each weighted by their number."""
     a = 1.0
     plane = builtin_mesh("plane", size=[2 * a, 2 * a], resolution=[8, 8])
     caster = RayCaster([plane])
     point, normal = np.array([[0.0, h, 0.0]]), np.array([[0.0, -1.0, 0.0]])
     sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT, np.zeros(3), np.sqrt(2.0))}
-    hits = residual_hits(point, normal, LAMBERT, caster, sources, 4096)
+    hits = residual_hits(point, normal, LAMBERT, caster, sources, 4096, full=full)
     residual = np.full((len(plane.vertices), 1, 3), 0.3)
     light = gather_residual(hits[0], residual, 1)
     # Lambert: g = 1 / pi, so L = (1 / pi) r int cos = r F
     np.testing.assert_allclose(light[0, 0], 0.3 * _square_form_factor(a, h), rtol=0.02)
+
+
+def test_few_rays_of_a_per_point_grid_are_unbiased():
+    """A point 5 above the square (its bounding cone 0.257 sr) with ``full = 4`` casts 256 of 4,096 rays; over 32
+    seeds the gathered constant residual's mean is the form factor within MC_SIGMAS standard errors."""
+    from tests.conftest import MC_SIGMAS
+
+    plane = builtin_mesh("plane", size=[2.0, 2.0], resolution=[8, 8])
+    caster = RayCaster([plane])
+    point, normal = np.array([[0.0, 5.0, 0.0]]), np.array([[0.0, -1.0, 0.0]])
+    sources = {0: (np.asarray(plane.faces), np.asarray(plane.vertex_normals), LAMBERT, np.zeros(3), np.sqrt(2.0))}
+    values = []
+    for seed in range(32):
+        stats = {}
+        hits = residual_hits(point, normal, LAMBERT, caster, sources, 4096, seed=seed, full=4.0, stats=stats)
+        assert stats["rays_cast"] == 256  # ceil(4096 0.257 / 4) = 264 rays: a 16 x 16 grid
+        values.append(gather_residual(hits[0], np.ones((len(plane.vertices), 1, 1)), 1)[0, 0, 0])
+    values = np.array(values)
+    assert abs(values.mean() - _square_form_factor(1.0, 5.0)) <= MC_SIGMAS * values.std(ddof=1) / np.sqrt(32)
 
 
 def test_the_back_of_a_source_sends_nothing():
@@ -61,6 +82,31 @@ def test_the_back_of_a_source_sends_nothing():
 def test_residual_rays_is_validated():
     with pytest.raises(ValueError, match="residual_rays"):
         InterreflectionOptions(residual_rays=-1)
+    with pytest.raises(ValueError, match="residual_cone"):
+        InterreflectionOptions(residual_cone=-0.5)
+    with pytest.raises(ValueError, match="full"):
+        residual_hits(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), LAMBERT, RayCaster([builtin_mesh("plane")]), {},
+                      16, full=-1.0)
+
+
+def test_per_point_grids_cast_fewer_rays_toward_small_sources():
+    """With ``full``, points that see a source small cast fewer rays (at least ``MIN_RAYS``), points that see it
+    large all of them: the floor's rays toward the ball drop, and every kept hit is one of the ray ids its
+    point's grid has."""
+    from prtlab.interreflection._residual import MIN_RAYS
+
+    meshes, poses, _ = _objects()
+    caster = RayCaster(meshes, transforms=poses)
+    x, n = _receiver(meshes, poses, 0)
+    srcs = _sources(meshes, poses, [1], (LAMBERT, LAMBERT, LAMBERT))
+    counts = {}
+    for full in (0.0, 0.5):
+        stats = {}
+        hits = residual_hits(x, n, LAMBERT, caster, srcs, 64, full=full, stats=stats)
+        counts[full] = stats["rays_cast"]
+        per_point = np.bincount(hits[1].rows, minlength=len(x))
+        assert per_point.max() <= 64
+    assert MIN_RAYS * len(x) <= counts[0.5] < 0.5 * counts[0.0]
 
 
 # ------------------------------------------------------------------ the fast gather and the incremental cast
@@ -145,11 +191,13 @@ def test_gather_of_nothing_is_zero():
     np.testing.assert_array_equal(out, 0.0)
 
 
+@pytest.mark.parametrize("full", [0.0, 0.3])
 @pytest.mark.parametrize("move", ["translated and rotated", "next to the ball"])
 @pytest.mark.parametrize("r", [0, 1])
-def test_incremental_cast_equals_a_full_cast(move, r):
+def test_incremental_cast_equals_a_full_cast(move, r, full):
     """After the box moves, casting only the rays it may block or unblock gives the hits of a full cast with
-    the same seed (the same arrays), so the gathered light agrees to 1e-12, and fewer rays are cast."""
+    the same seed (the same arrays), so the gathered light agrees to 1e-12, and fewer rays are cast (with and
+    without per-point grids, ``full``)."""
     meshes, poses, moves = _objects()
     seps = (LAMBERT, PHONG, LAMBERT)
     before = RayCaster(meshes, transforms=poses)
@@ -159,25 +207,27 @@ def test_incremental_cast_equals_a_full_cast(move, r):
     x, n = _receiver(meshes, poses, r)
     src_before = _sources(meshes, poses, [i for i in range(3) if i != r], seps)
     src_after = _sources(meshes, after_poses, [i for i in range(3) if i != r], seps)
-    old = residual_hits(x, n, seps[r], before, src_before, 64, seed=5)
+    old = residual_hits(x, n, seps[r], before, src_before, 64, seed=5, full=full)
     moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])}
     full_stats, inc_stats = {}, {}
-    full = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, stats=full_stats)
-    inc = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, previous=old, moved=moved, stats=inc_stats)
-    assert set(inc) == set(full)
+    whole = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, stats=full_stats, full=full)
+    inc = residual_hits(x, n, seps[r], after, src_after, 64, seed=5, previous=old, moved=moved, stats=inc_stats,
+                        full=full)
+    assert set(inc) == set(whole)
     rng = np.random.default_rng(1)
-    for i in full:
-        for a, b in zip(full[i].arrays(), inc[i].arrays()):
+    for i in whole:
+        for a, b in zip(whole[i].arrays(), inc[i].arrays()):
             np.testing.assert_array_equal(a, b)
         residual = rng.normal(size=(len(meshes[i].vertices), seps[i].K, 3))
-        ref = gather_residual(full[i], residual, len(x))
+        ref = gather_residual(whole[i], residual, len(x))
         np.testing.assert_allclose(gather_residual(inc[i], residual, len(x)), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     assert inc_stats["rays_cast"] < full_stats["rays_cast"]
 
 
-def test_rays_depend_on_the_point_and_source_alone():
+@pytest.mark.parametrize("full", [0.0, 0.3])
+def test_rays_depend_on_the_point_and_source_alone(full):
     """A ray is a function of (seed, source, point, ray index): the rays of a subset of the points are those
-    of the whole set (what the incremental cast relies on)."""
+    of the whole set (what the incremental cast relies on), with and without per-point grids (``full``)."""
     from prtlab.interreflection._residual import _grid, _key, _rays_kernel
 
     rng = np.random.default_rng(0)
@@ -187,10 +237,11 @@ def test_rays_depend_on_the_point_and_source_alone():
     rows, side = _grid(16)
     point, ray = np.repeat(np.arange(50), 16), np.tile(np.arange(16), 50)
     whole = np.empty((800, 8))
-    _rays_kernel(x, n, point, ray, np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, whole)
+    _rays_kernel(x, n, point, ray, np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, full, whole)
     pick = np.array([3, 517, 799, 100])
     part = np.empty((4, 8))
-    _rays_kernel(x, n, point[pick], ray[pick], np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, part)
+    _rays_kernel(x, n, point[pick], ray[pick], np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, full,
+                 part)
     np.testing.assert_array_equal(part, whole[pick])
     np.testing.assert_allclose(np.linalg.norm(whole[:, 3:6], axis=1), 1.0, atol=1e-12)
 
@@ -412,9 +463,10 @@ def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball):
         InterreflectionOptions(residual_whole=1)
 
 
+@pytest.mark.parametrize("full", [0.0, 0.3])
 @pytest.mark.parametrize("seps", [(LAMBERT, PHONG, LAMBERT), (PHONG, PHONG, PHONG)])
 @pytest.mark.parametrize("r", [0, 1, 2])
-def test_fused_cast_equals_the_reference_cast(seps, r):
+def test_fused_cast_equals_the_reference_cast(seps, r, full):
     """``residual_hits``'s kernels (rays made, traced and weighed in numba) give the arrays of the reference (rays
     traced through ``RayCaster.closest_hit``, weighed with numpy), bit for bit, and count the same rays: a full cast
     (the ball a source of itself) and, after the box moves, the incremental cast."""
@@ -428,10 +480,10 @@ def test_fused_cast_equals_the_reference_cast(seps, r):
     runs = {}
     for method in ("reference", "numba"):
         stats = {}
-        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, method=method)
+        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, method=method, full=full)
         moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
         new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
-                            moved=moved, stats=stats, method=method)
+                            moved=moved, stats=stats, method=method, full=full)
         runs[method] = (old, new, stats["rays_cast"])
     assert runs["numba"][2] == runs["reference"][2]
     for ref, fast in zip(runs["reference"][:2], runs["numba"][:2]):
@@ -572,3 +624,42 @@ def test_light_terms_first_continues_the_streams():
             np.testing.assert_array_equal(np.concatenate([p[k] for p in parts]), whole[k])
         with pytest.raises(ValueError, match="first must be a non-negative int"):
             terms(points, normals, normals, lam, LAMBERT, caster, light, 0, 16, first=-1)
+
+
+def test_a_convex_receiver_casts_no_rays_at_itself(low_ball):
+    """The ball is convex: its rays leave it, so the residual gather leaves it out as its own source; the frame
+    equals one that casts those rays (none hits the ball's front), with fewer rays cast."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    state = FrameState.from_scene(low_ball.scene)
+    shades = {}
+    for convex in (True, False):
+        ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options), low_ball.data)
+        assert ir.convex == {"floor": False, "ball": True}
+        ir.convex["ball"] = convex
+        shades[convex] = ir.shade(state, bounces=2)
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(shades[True].indirect[name], shades[False].indirect[name])
+    assert shades[True].info["residual_rays_cast"] < shades[False].info["residual_rays_cast"]
+
+
+def test_residual_cone_casts_fewer_rays_in_the_pipeline(low_ball):
+    """``residual_cone`` takes the pipeline's residual rays down and leaves the result close (the same estimator
+    with fewer rays where a source subtends little)."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+
+    state = FrameState.from_scene(low_ball.scene)
+    shades = {}
+    for cone in (0.0, 0.5):
+        ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, residual_cone=cone), low_ball.data)
+        shades[cone] = ir.shade(state, bounces=1)
+    assert shades[0.5].info["residual_rays_cast"] < shades[0.0].info["residual_rays_cast"]
+    for name in ("floor", "ball"):
+        a, b = shades[0.0].total[name], shades[0.5].total[name]
+        assert np.sqrt(np.mean((a - b) ** 2)) <= 0.01 * np.sqrt(np.mean(a**2))
