@@ -33,7 +33,7 @@ import numpy as np
 from prtlab import sh
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
-           "ground_gather_rays", "sphere_hits"]
+           "ground_gather_rays", "contact_radiance", "sphere_hits"]
 
 _UP = np.array([0.0, 1.0, 0.0])
 _CHUNK = 256  # receivers per batch of rays (bounds the (P, K) arrays)
@@ -260,4 +260,24 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
             u, v = hits.barycentric[m, :1], hits.barycentric[m, 1:]
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
+    return out
+
+
+def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:
+    """``radiance (V, 3)`` of an object's vertices as the ground sees them from above: at a vertex lying on a
+    ground (``|y - h| <= tol`` for a height ``h`` of ``heights``) scaled by ``(1 + n_y) / 2``, the part of its
+    cosine-weighted hemisphere above the ground (0 facing straight down, 1 facing up); elsewhere unchanged.
+
+    A vertex at a ground's height is shaded as lying below it (the light from under the ground reaches it), while
+    the faces around it, seen from the ground, lie above it: their radiance falls to what the horizon leaves. For
+    the gather (:func:`ground_gather_rays`) only."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    out = np.array(radiance, dtype=np.float64).reshape(-1, 3)
+    h = np.asarray(heights, dtype=np.float64).reshape(-1)
+    if not len(h) or not len(p):
+        return out
+    on = np.any(np.abs(p[:, 1:2] - h[None]) <= tol, axis=1)
+    ny = n[on, 1] / np.maximum(np.linalg.norm(n[on], axis=1), 1e-300)
+    out[on] *= (0.5 * (1.0 + ny))[:, None]
     return out

@@ -70,7 +70,7 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_light, ground_objects, ground_raster, ground_texture
-from ._groundrays import ground_direct_rays, ground_gather_rays, ground_ray_rule, mesh_blockers
+from ._groundrays import contact_radiance, ground_direct_rays, ground_gather_rays, ground_ray_rule, mesh_blockers
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._nearcaps import has_near_blocker, near_blocker_direct
@@ -154,8 +154,10 @@ class SphereLightOptions:
         How a ground itself is shaded (an extension, a run-time choice; no effect with ``ground="paper"``).
         ``"rays"`` (default): its direct light (at its vertices and in the texture it reflects) against the
         objects' meshes by ray casting, and its indirect light gathered along rays from the objects' shaded
-        radiance at the mesh hits (see ``_groundrays``). ``"lights"``: as any receiver, through the spherical
-        lights (the paper's second pass), with the sphere proxy's shadow and emission where the object is not.
+        radiance at the mesh hits (see ``_groundrays``); the ground light of the first pass's samples
+        (``bounces=2``) stays the second pass's. ``"lights"``: as any receiver, through the spherical lights (the
+        paper's second pass), with the sphere proxy's shadow and emission where the object is not. Measured cost:
+        1.09 times the frame (the fidelity bunny scene, one thread; ``docs/notes/spherelights.md``).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
         ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
@@ -555,11 +557,10 @@ class SphereLights(Precomputation):
             direct = direct + self._pass(lights, p, n, lights.local_only, True)[1]
         return direct, ind
 
-    def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, transforms,
-                  ground_direct=None) -> np.ndarray:
+    def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, transforms) -> np.ndarray:
         """The first pass (Eqs. 3-11): emission ``(S, n*n, 3)`` of the spherical lights. The surface samples also
-        receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light
-        (``ground_direct(points, normals)`` if given, else the second pass's)."""
+        receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light (the
+        paper's, whatever ``ground_shading``: the rays' there measured worse, docs/notes/spherelights.md)."""
         opts = self.options
         spts, snrm, svalid = world.sample_points, world.sample_normals, world.sample_valid
         extra = self._near_samples(lights, spts, snrm, svalid)  # None without near_blockers
@@ -568,8 +569,8 @@ class SphereLights(Precomputation):
             if lights.n_loc:  # the second pass's computation at the surface samples, local lights only
                 extra[svalid] += self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
             if ground_below:  # ground -> object: the ground's direct light reaches the samples
-                tex = self._ground_textures(ground_below, ground_direct or (lambda p, n: self._irradiance(
-                    lights, p, n, lights.local_only, False, near=False)[0]), transforms)
+                tex = self._ground_textures(ground_below, lambda p, n: self._irradiance(
+                    lights, p, n, lights.local_only, False, near=False)[0], transforms)
                 extra[svalid] += ground_light(spts[svalid], snrm[svalid], rects, tex, lights.env, lights.centres,
                                               lights.radii, lights.local_radiance)[1]
         m = opts.light_order
@@ -630,7 +631,7 @@ class SphereLights(Precomputation):
         emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
         if bounces > 0 and n_sl:
             emission[:n_sl] = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [],
-                                             state.transforms, ground_direct)
+                                             state.transforms)
         t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
@@ -647,12 +648,14 @@ class SphereLights(Precomputation):
             textures = self._ground_textures(grounds, lambda p, n: sum(
                 self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
         nodes = None
+        receivers = {}  # world points and normals per object, for the grounds' gathered light
         for obj in order:
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in state.deformations:
                 pts, nrm = _deformed_receivers(obj, state.deformations[obj.name], tr)
             else:
                 pts, nrm = obj.world_shading_points(tr), obj.world_normals(tr)
+            receivers[obj.name] = (pts, nrm)
             own = sorted(self.data["objects"]).index(obj.name) if obj.name in self.data["objects"] else -1
             near_used = opts.near_blockers > 0  # the flat pass's direct light takes the nearest lights exactly
             if blockers is not None and obj.name in ground_names:  # its indirect light: gathered below
@@ -681,7 +684,9 @@ class SphereLights(Precomputation):
             result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         if blockers is not None and bounces > 0 and n_sl:  # the grounds' indirect light from the objects' radiance
-            radiance = [(result.total if bounces > 1 else result.direct)[name] for name in sources]
+            tol = blockers.caster.epsilon * blockers.scale  # the rays' offset, in world units
+            radiance = [contact_radiance(*receivers[name], (result.total if bounces > 1 else result.direct)[name],
+                                         rects[:, 0], tol) for name in sources]
             for obj, _ in grounds:
                 tr = state.transforms.get(obj.name) or obj.transform
                 albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi

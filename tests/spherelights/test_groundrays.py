@@ -12,8 +12,8 @@ from prtlab.geometry import builtin_mesh
 from prtlab.pipeline import FrameState
 from prtlab.scene import Scene
 from prtlab.spherelights import SphereLights
-from prtlab.spherelights._groundrays import (ground_direct_rays, ground_gather_rays, ground_ray_rule, mesh_blockers,
-                                             sphere_hits)
+from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_rays, ground_gather_rays, ground_ray_rule,
+                                             mesh_blockers, sphere_hits)
 
 WHITE = np.zeros((16, 3))
 WHITE[0] = np.sqrt(4 * np.pi)  # constant radiance 1
@@ -88,6 +88,17 @@ def test_point_inside_a_closed_mesh_gets_nothing():
     np.testing.assert_allclose(e[0], 0.0, atol=1e-12)
     np.testing.assert_array_equal(g[0], 0.0)
     assert np.all(e[1] > 2.5) and np.all(g[1] > 0.0)
+
+
+def test_contact_radiance_keeps_the_part_above_the_ground():
+    """At a ground's height: scaled by ``(1 + n_y) / 2`` (0 facing down, 1/2 sideways, 1 up); elsewhere as given."""
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 1e-9, 0.0], [2.0, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, -2.0, 0.0]])
+    nrm = np.array([[0.0, -2.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]])
+    rad = np.arange(15.0).reshape(5, 3) + 1.0
+    out = contact_radiance(pts, nrm, rad, [0.0, 5.0], 1e-6)
+    np.testing.assert_array_equal(out, rad * np.array([0.0, 0.5, 1.0, 1.0, 1.0])[:, None])
+    np.testing.assert_array_equal(contact_radiance(pts, nrm, rad, [], 1e-6), rad)
+    assert contact_radiance(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), [0.0], 1e-6).shape == (0, 3)
 
 
 # ------------------------------------------------------------------ tiers
