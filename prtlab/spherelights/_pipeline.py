@@ -157,7 +157,7 @@ class SphereLightOptions:
         radiance at the mesh hits (see ``_groundrays``); the ground light of the first pass's samples
         (``bounces=2``) stays the second pass's. ``"lights"``: as any receiver, through the spherical lights (the
         paper's second pass), with the sphere proxy's shadow and emission where the object is not. Measured cost:
-        1.09 times the frame (the fidelity bunny scene, one thread; ``docs/notes/spherelights.md``).
+        1.09-1.14 times the frame (the fidelity bunny scene, one thread; ``docs/notes/spherelights.md``).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
         ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
