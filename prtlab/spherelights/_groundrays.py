@@ -33,7 +33,8 @@ import numpy as np
 from prtlab import sh
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
-           "ground_gather_rays", "contact_radiance", "sphere_hits"]
+           "ground_gather_rays", "ground_light_rays", "contact_radiance",
+           "candidate_rays", "sphere_hits"]
 
 _UP = np.array([0.0, 1.0, 0.0])
 _CHUNK = 256  # receivers per batch of rays (bounds the (P, K) arrays)
@@ -167,9 +168,49 @@ def _sphere_hits_kernel(points, dirs, spheres, out):
                         out[q, k] = t
 
 
-def _candidates(points, dirs, bounds) -> np.ndarray:
-    """``(P, K)`` rays that meet a bounding sphere (the only ones that may hit a mesh)."""
-    return np.isfinite(sphere_hits(points, dirs, bounds))
+def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray:
+    """``(P, K)`` bool: the rays from ``points (P, 3)`` along unit ``dirs (K, 3)`` that meet one of ``bounds (S,
+    4)`` (``isfinite`` of :func:`sphere_hits`; the kernel tests the ray's angle to each sphere's cone and stops at
+    the first). ``method``: ``"numba"`` or ``"reference"``."""
+    from prtlab._validate import check_choice
+
+    check_choice(method, "method", ("numba", "reference"))
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    b = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
+    if method == "reference":
+        return np.isfinite(_sphere_hits_reference(p, d, b))
+    out = np.empty((len(p), len(d)), dtype=np.bool_)
+    _candidates_kernel(p, d, b, out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _candidates_kernel(points, dirs, spheres, out):
+    """``candidate_rays``: per point, each sphere's cone (unit axis, cosine of its half angle); a ray meets the
+    sphere when its cosine to the axis exceeds that (a point inside a sphere: every ray)."""
+    n_s = spheres.shape[0]
+    for q in numba.prange(points.shape[0]):
+        axis = np.empty((n_s, 3))
+        cos_half = np.empty(n_s)
+        inside = False
+        for j in range(n_s):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            d2 = ox * ox + oy * oy + oz * oz
+            r2 = spheres[j, 3] * spheres[j, 3]
+            if d2 <= r2:
+                inside = True
+                break
+            inv = 1.0 / math.sqrt(d2)
+            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        for k in range(dirs.shape[0]):
+            hit = inside
+            j = 0
+            while not hit and j < n_s:
+                hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
+                j += 1
+            out[q, k] = hit
 
 
 def _rays(points, rule, blockers):
@@ -177,10 +218,9 @@ def _rays(points, rule, blockers):
     (flat) and the distance to the first opaque sphere ``(P, K)``."""
     for s in range(0, len(points), _CHUNK):
         p = points[s:s + _CHUNK]
-        cand = _candidates(p, rule.dirs, blockers.bounds) if blockers.caster is not None else np.zeros(
+        cand = candidate_rays(p, rule.dirs, blockers.bounds) if blockers.caster is not None else np.zeros(
             (len(p), len(rule.dirs)), dtype=bool)
-        t_sphere = (sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres)
-                    else np.full(cand.shape, np.inf))
+        t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
         ip, ik = np.nonzero(cand)
         yield slice(s, s + len(p)), cand, ip, ik, t_sphere
 
@@ -211,13 +251,22 @@ def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRu
     radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
     out = np.empty((len(p), 3))
     for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
-        blocked = np.isfinite(t_sphere)
+        hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
             hit = blockers.caster.occluded(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
-            blocked[ip[hit], ik[hit]] = True
-        out[sl] = e_open - blocked.astype(np.float64) @ radiance
+        out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
     return out
+
+
+def _blocked_sum(n_points, ip, ik, t_sphere, radiance) -> np.ndarray:
+    """``(P, 3)`` sum of ``radiance[k]`` over the blocked rays: ``(ip, ik)`` (by a mesh) and those meeting an opaque
+    sphere (finite ``t_sphere``, None: none)."""
+    if t_sphere is not None:
+        blocked = np.isfinite(t_sphere)
+        blocked[ip, ik] = True
+        return blocked.astype(np.float64) @ radiance
+    return np.stack([np.bincount(ip, weights=radiance[ik, c], minlength=n_points) for c in range(3)], axis=1)
 
 
 def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
@@ -242,15 +291,43 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
+    return _gather(p, blockers, radiance, rule, method, None)[1]
+
+
+def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
+                      method: str = "embree") -> tuple[np.ndarray, np.ndarray]:
+    """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
+    same points from one closest-hit cast per ray (the same values as the two apart)."""
+    rule = rule or ground_ray_rule()
+    p = _local_points(points, blockers)
+    if len(radiance) != len(blockers.faces):
+        raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
+    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
+
+
+def _gather(p, blockers, radiance, rule, method, env):
+    """The gathered light at local points ``p`` and, given ``env``, the direct light (else None)."""
     rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
     out = np.zeros((len(p), 3))
+    direct = None
+    if env is not None:
+        order = math.isqrt(env.shape[0])
+        e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
+        blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
+        direct = np.empty((len(p), 3))
     for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
         if not len(ip):
+            if env is not None:
+                direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
             continue
         hits = blockers.caster.closest_hit(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
+        if env is not None:
+            direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
         d = rule.dirs[ik]
-        live = hits.hit & (hits.distance < t_sphere[ip, ik]) & (np.einsum("ij,ij->i", hits.normal, d) < 0.0)
+        live = hits.hit & (np.einsum("ij,ij->i", hits.normal, d) < 0.0)
+        if t_sphere is not None:
+            live &= hits.distance < t_sphere[ip, ik]
         value = np.zeros((len(ip), 3))
         for g, faces in enumerate(blockers.faces):
             m = live & (hits.object == g)
@@ -260,7 +337,7 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
             u, v = hits.barycentric[m, :1], hits.barycentric[m, 1:]
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
-    return out
+    return direct, out
 
 
 def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:

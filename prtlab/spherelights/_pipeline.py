@@ -70,7 +70,7 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_light, ground_objects, ground_raster, ground_texture
-from ._groundrays import contact_radiance, ground_direct_rays, ground_gather_rays, ground_ray_rule, mesh_blockers
+from ._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, ground_ray_rule, mesh_blockers
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._nearcaps import has_near_blocker, near_blocker_direct
@@ -156,8 +156,9 @@ class SphereLightOptions:
         objects' meshes by ray casting, and its indirect light gathered along rays from the objects' shaded
         radiance at the mesh hits (see ``_groundrays``); the ground light of the first pass's samples
         (``bounces=2``) stays the second pass's. ``"lights"``: as any receiver, through the spherical lights (the
-        paper's second pass), with the sphere proxy's shadow and emission where the object is not. Measured cost:
-        1.09-1.14 times the frame (the fidelity bunny scene, one thread; ``docs/notes/spherelights.md``).
+        paper's second pass), with the sphere proxy's shadow and emission where the object is not. Measured cost (one
+        thread): 1.03 times the frame of the fidelity bunny scene (169 ground vertices), 1.32 at full size (1,681;
+        the rays grow with the ground's vertices; ``docs/notes/spherelights.md``).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
         ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
@@ -649,6 +650,7 @@ class SphereLights(Precomputation):
                 self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
         nodes = None
         receivers = {}  # world points and normals per object, for the grounds' gathered light
+        local_direct = {}  # the local lights' direct light at the grounds (with rays, the rest is added below)
         for obj in order:
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in state.deformations:
@@ -658,8 +660,10 @@ class SphereLights(Precomputation):
             receivers[obj.name] = (pts, nrm)
             own = sorted(self.data["objects"]).index(obj.name) if obj.name in self.data["objects"] else -1
             near_used = opts.near_blockers > 0  # the flat pass's direct light takes the nearest lights exactly
-            if blockers is not None and obj.name in ground_names:  # its indirect light: gathered below
-                direct, indirect = ground_direct(pts, nrm, _GROUND_RAYS), np.zeros((len(pts), 3))
+            if blockers is not None and obj.name in ground_names:  # the environment's light and the gathered: below
+                direct = self._pass(lights, pts, nrm, lights.local_only, True)[1] if lights.n_loc else 0.0
+                direct, indirect = direct + np.zeros((len(pts), 3)), np.zeros((len(pts), 3))
+                local_direct[obj.name] = direct
             elif opts.hierarchy_children and bounces > 0 and n_sl:
                 near_used = False
                 if nodes is None:
@@ -683,15 +687,17 @@ class SphereLights(Precomputation):
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
             result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
-        if blockers is not None and bounces > 0 and n_sl:  # the grounds' indirect light from the objects' radiance
-            tol = blockers.caster.epsilon * blockers.scale  # the rays' offset, in world units
+        if blockers is not None:  # the grounds' direct light and their indirect light from the objects' radiance
+            tol = blockers.caster.epsilon * blockers.scale if blockers.caster is not None else 0.0  # the rays' offset
             radiance = [contact_radiance(*receivers[name], (result.total if bounces > 1 else result.direct)[name],
                                          rects[:, 0], tol) for name in sources]
             for obj, _ in grounds:
-                tr = state.transforms.get(obj.name) or obj.transform
                 albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
-                e = ground_gather_rays(obj.world_shading_points(tr), blockers, radiance, _GROUND_RAYS)
-                result.indirect[obj.name] = np.maximum(e, 0.0) * albedo
+                e_dir, e_ind = ground_light_rays(receivers[obj.name][0], lights.env, blockers, radiance, _GROUND_RAYS)
+                if not (bounces > 0 and n_sl):
+                    e_ind = np.zeros_like(e_ind)
+                result.direct[obj.name] = np.maximum(local_direct[obj.name] + e_dir, 0.0) * albedo
+                result.indirect[obj.name] = np.maximum(e_ind, 0.0) * albedo
                 result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result

@@ -12,8 +12,8 @@ from prtlab.geometry import builtin_mesh
 from prtlab.pipeline import FrameState
 from prtlab.scene import Scene
 from prtlab.spherelights import SphereLights
-from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_rays, ground_gather_rays, ground_ray_rule,
-                                             mesh_blockers, sphere_hits)
+from prtlab.spherelights._groundrays import (candidate_rays, contact_radiance, ground_direct_rays, ground_gather_rays,
+                                             ground_light_rays, ground_ray_rule, mesh_blockers, sphere_hits)
 
 WHITE = np.zeros((16, 3))
 WHITE[0] = np.sqrt(4 * np.pi)  # constant radiance 1
@@ -115,6 +115,9 @@ def test_sphere_hits_kernel_matches_reference(rng):
     np.testing.assert_array_equal(np.isinf(fast), np.isinf(ref))
     np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-12, atol=1e-14)
     assert sphere_hits(np.zeros((0, 3)), dirs, spheres).shape == (0, 50)
+    np.testing.assert_array_equal(candidate_rays(pts, dirs, spheres), np.isfinite(ref))
+    np.testing.assert_array_equal(candidate_rays(pts, dirs, spheres, method="reference"), np.isfinite(ref))
+    assert candidate_rays(pts, dirs, np.zeros((0, 4))).sum() == 0
 
 
 def test_embree_matches_the_numpy_caster(rng):
@@ -130,6 +133,26 @@ def test_embree_matches_the_numpy_caster(rng):
                                ground_direct_rays(pts, env, blk, rule, method="numpy"), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(ground_gather_rays(pts, blk, rad, rule),
                                ground_gather_rays(pts, blk, rad, rule, method="numpy"), rtol=1e-5, atol=1e-6)
+
+
+def test_one_cast_gives_the_direct_and_gathered_light(rng):
+    """``ground_light_rays`` is ``ground_direct_rays`` and ``ground_gather_rays`` from one closest-hit cast, in a
+    turned, shifted and scaled frame (which changes nothing but rounding)."""
+    v, f = _ball([0.3, 0.6, -0.2], 0.5, 2)
+    pts = np.stack([rng.uniform(-1.5, 1.5, 30), np.zeros(30), rng.uniform(-1.5, 1.5, 30)], axis=1)
+    env = WHITE.copy()
+    env[3] = 0.4
+    rad = [rng.uniform(0, 1, size=(len(v), 3))]
+    rule = ground_ray_rule(16, 6)
+    blk = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]))
+    turned = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]), origin=[0.2, 0.0, -0.1],
+                           azimuth=0.0, scale=2.5)
+    direct, gathered = ground_light_rays(pts, env, blk, rad, rule)
+    np.testing.assert_allclose(direct, ground_direct_rays(pts, env, blk, rule), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gathered, ground_gather_rays(pts, blk, rad, rule), rtol=1e-12, atol=1e-12)
+    d2, g2 = ground_light_rays(pts, env, turned, rad, rule)
+    np.testing.assert_allclose(d2, direct, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(g2, gathered, rtol=1e-4, atol=1e-5)
 
 
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
@@ -195,3 +218,5 @@ def test_gather_errors():
         ground_gather_rays(np.zeros((1, 3)), blk, [])
     with pytest.raises(ValueError, match="method"):
         sphere_hits(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
+    with pytest.raises(ValueError, match="method"):
+        candidate_rays(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
