@@ -22,8 +22,10 @@ space and the receiver direction is rotated into it instead (``w_theta``
 rotated by the inverse rotation). Then :func:`first_pass` and
 :func:`second_pass`, the grounds shaded first, and at the other receivers the
 ground's terms (:func:`ground_light`: the light it hides leaves the direct
-irradiance, the light it reflects joins the indirect). The environment is the only scene light handled (area
-and point lights raise); local lights are spherical lights with a user
+irradiance, the light it reflects joins the indirect). With ``ground_shading="rays"`` (default) a
+ground's own direct light is found against the objects' meshes by ray casting and its indirect light is
+gathered from the objects' shaded radiance after they are shaded (``_groundrays``). The environment is
+the only scene light handled (area and point lights raise); local lights are spherical lights with a user
 radiance (option ``local_lights``, Sec. 7.3).
 
 Every object may move (the precomputed data are in object space; the
@@ -68,6 +70,7 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_light, ground_objects, ground_raster, ground_texture
+from ._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, ground_ray_rule, mesh_blockers
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._nearcaps import has_near_blocker, near_blocker_direct
@@ -147,6 +150,15 @@ class SphereLightOptions:
         light, a shadows-only pass) and interpolates it bilinearly; 0 interpolates the
         ground's shaded vertices over its mesh (cheaper; a coarse ground mesh blurs
         the dark contact shadows under the objects).
+    ground_shading : {"rays", "lights"}
+        How a ground itself is shaded (an extension, a run-time choice; no effect with ``ground="paper"``).
+        ``"rays"`` (default): its direct light (at its vertices and in the texture it reflects) against the
+        objects' meshes by ray casting, and its indirect light gathered along rays from the objects' shaded
+        radiance at the mesh hits (see ``_groundrays``); the ground light of the first pass's samples
+        (``bounces=2``) stays the second pass's. ``"lights"``: as any receiver, through the spherical lights (the
+        paper's second pass), with the sphere proxy's shadow and emission where the object is not. Measured cost (one
+        thread): 1.03 times the frame of the fidelity bunny scene (169 ground vertices), 1.32 at full size (1,681;
+        the rays grow with the ground's vertices; ``docs/notes/spherelights.md``).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
         ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
@@ -154,7 +166,8 @@ class SphereLightOptions:
         of the exponentiated log sum and removes their caps from the lighting-times-cosine exactly
         (``E = V_rest . (T_n - Q)``), and the ground's terms then test those lights unadjusted. Only lights of
         other objects fitted with one sphere are taken (a multi-sphere set's outside volume would shadow exactly
-        where the object is not). Applies to the flat second pass and the ground's texture, not to the first
+        where the object is not). Applies to the flat second pass and the ground's texture (with
+        ``ground_shading="lights"``; the rays' shadows are exact), not to the first
         pass's samples (nor the ground light they receive with ``bounces=2``) nor to a hierarchy's shadows.
         Costs a second direct pass at the receivers with such a blocker (measured: 1.7-1.8 times the per-object
         frame with the ground, 21k receivers; ``docs/notes/spherelights.md``).
@@ -171,6 +184,7 @@ class SphereLightOptions:
     cube_resolution: int = 16
     ground: str = "reflects"
     ground_texels: int = 64
+    ground_shading: str = "rays"
     near_blockers: int = 2
     local_lights: tuple = ()
     hierarchy_children: int = 0
@@ -194,6 +208,7 @@ class SphereLightOptions:
         check_int(self.fit_resolution, "option fit_resolution", 4, meaning="cells per edge of the sphere fit's grid")
         check_int(self.cube_resolution, "option cube_resolution", 1)
         check_choice(self.ground, "option ground", ("reflects", "blocks", "paper"))
+        check_choice(self.ground_shading, "option ground_shading", ("rays", "lights"))
         check_int(self.near_blockers, "option near_blockers", 0, meaning="0: the paper's direct light")
         if check_int(self.ground_texels, "option ground_texels", 0, meaning="0: the ground's vertices") == 1:
             raise ValueError("option ground_texels must be 0 (the ground's vertices) or an int >= 2, got 1")
@@ -303,10 +318,15 @@ class _FrameLights(NamedTuple):
     n_loc: int
 
 
+#: The rays of ``ground_shading="rays"`` (``_groundrays``): at a ground's vertices (its direct and gathered light)
+#: 64 azimuths x 16 nodes, at the texels of the light it reflects 32 x 8 (docs/notes/spherelights.md).
+_GROUND_RAYS = ground_ray_rule(64, 16)
+_TEXEL_RAYS = ground_ray_rule(32, 8)
+
 #: Options that do not change the precomputed data (left out of the cache key).
 _RUN_TIME = ("exp_method", "blocking", "average", "local_lights", "hierarchy_children", "cut_threshold",
              "cluster_size", "reflection_ratio", "ratio_samples", "ground",
-             "ground_texels", "near_blockers")
+             "ground_texels", "ground_shading", "near_blockers")
 
 
 class SphereLights(Precomputation):
@@ -540,7 +560,8 @@ class SphereLights(Precomputation):
 
     def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, transforms) -> np.ndarray:
         """The first pass (Eqs. 3-11): emission ``(S, n*n, 3)`` of the spherical lights. The surface samples also
-        receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light."""
+        receive the local lights (Sec. 7.3) and, given ``ground_below`` (bounces=2), the ground's direct light (the
+        paper's, whatever ``ground_shading``: the rays' there measured worse, docs/notes/spherelights.md)."""
         opts = self.options
         spts, snrm, svalid = world.sample_points, world.sample_normals, world.sample_valid
         extra = self._near_samples(lights, spts, snrm, svalid)  # None without near_blockers
@@ -600,6 +621,14 @@ class SphereLights(Precomputation):
             [o for o in self.scene.objects if o.name not in self.data["objects"] and not o.portal], state.transforms)
         rects = np.array([row for _, row in grounds]).reshape(-1, 7)
         reflects = opts.ground == "reflects" and bounces > 0 and len(grounds) > 0
+        sources = sorted(self.data["objects"])
+        blockers = ground_direct = None
+        if opts.ground_shading == "rays" and len(grounds):  # the grounds against the objects' meshes
+            blockers = self._mesh_blockers(state, lights, sources, rects)
+
+            def ground_direct(p, n, rule=_TEXEL_RAYS):  # the texels' rule unless given
+                e = ground_direct_rays(p, lights.env, blockers, rule)
+                return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
         emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
         if bounces > 0 and n_sl:
             emission[:n_sl] = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [],
@@ -607,24 +636,35 @@ class SphereLights(Precomputation):
         t_first = time.perf_counter()
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
-                                   "blocking": opts.blocking, "average": opts.average, "ground": opts.ground})
+                                   "blocking": opts.blocking, "average": opts.average, "ground": opts.ground,
+                                   "ground_shading": opts.ground_shading})
         ground_names = [obj.name for obj, _ in grounds]
         order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
                        key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
         textures = np.zeros((len(grounds), 1, 1, 3))
-        if reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
+        if reflects and ground_direct is not None:  # its indirect light (two bounces) stays the second pass's
+            textures = self._ground_textures(grounds, lambda p, n: ground_direct(p, n) + (
+                self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state.transforms)
+        elif reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
             textures = self._ground_textures(grounds, lambda p, n: sum(
                 self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
         nodes = None
+        receivers = {}  # world points and normals per object, for the grounds' gathered light
+        local_direct = {}  # the local lights' direct light at the grounds (with rays, the rest is added below)
         for obj in order:
             tr = state.transforms.get(obj.name) or obj.transform
             if obj.name in state.deformations:
                 pts, nrm = _deformed_receivers(obj, state.deformations[obj.name], tr)
             else:
                 pts, nrm = obj.world_shading_points(tr), obj.world_normals(tr)
+            receivers[obj.name] = (pts, nrm)
             own = sorted(self.data["objects"]).index(obj.name) if obj.name in self.data["objects"] else -1
             near_used = opts.near_blockers > 0  # the flat pass's direct light takes the nearest lights exactly
-            if opts.hierarchy_children and bounces > 0 and n_sl:
+            if blockers is not None and obj.name in ground_names:  # the environment's light and the gathered: below
+                direct = self._pass(lights, pts, nrm, lights.local_only, True)[1] if lights.n_loc else 0.0
+                direct, indirect = direct + np.zeros((len(pts), 3)), np.zeros((len(pts), 3))
+                local_direct[obj.name] = direct
+            elif opts.hierarchy_children and bounces > 0 and n_sl:
                 near_used = False
                 if nodes is None:
                     nodes = self._hierarchy_nodes(state, state.deformations, lights.centres, lights.radii,
@@ -647,8 +687,43 @@ class SphereLights(Precomputation):
             result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
             result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
             result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
+        if blockers is not None:  # the grounds' direct light and their indirect light from the objects' radiance
+            tol = blockers.caster.epsilon * blockers.scale if blockers.caster is not None else 0.0  # the rays' offset
+            radiance = [contact_radiance(*receivers[name], (result.total if bounces > 1 else result.direct)[name],
+                                         rects[:, 0], tol) for name in sources]
+            for obj, _ in grounds:
+                albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
+                e_dir, e_ind = ground_light_rays(receivers[obj.name][0], lights.env, blockers, radiance, _GROUND_RAYS)
+                if not (bounces > 0 and n_sl):
+                    e_ind = np.zeros_like(e_ind)
+                result.direct[obj.name] = np.maximum(local_direct[obj.name] + e_dir, 0.0) * albedo
+                result.indirect[obj.name] = np.maximum(e_ind, 0.0) * albedo
+                result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         return result
+
+    def _mesh_blockers(self, state: FrameState, lights: _FrameLights, sources, rects):
+        """The objects' meshes at the frame's pose (``sources``: their names, in this order; in the frame of the first
+        ground of ``rects``), their lights as
+        bounding spheres (a deformed object, which may leave its lights: one ball around its vertices) and the
+        local lights as opaque spheres (``_groundrays.MeshBlockers``)."""
+        meshes, bounds = [], []
+        spheres = np.concatenate([lights.centres, lights.radii[:, None]], axis=1)
+        for g, name in enumerate(sources):
+            obj = self.scene.object(name)
+            tr = state.transforms.get(name) or obj.transform
+            if name in state.deformations:
+                verts = tr.apply_points(np.asarray(state.deformations[name], dtype=np.float64))
+                centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+                bounds.append(np.append(centre, 1.000001 * np.linalg.norm(verts - centre, axis=1).max())[None])
+            else:
+                verts = obj.world_vertices(tr)
+                bounds.append(spheres[: lights.n_sl][lights.object_index[: lights.n_sl] == g])
+            meshes.append((verts, obj.mesh.faces))
+        ground = rects[0]  # the rays in the first ground's frame (its centre, edge u and half length)
+        return mesh_blockers(meshes, np.concatenate(bounds or [np.zeros((0, 4))]), spheres[lights.n_sl:],
+                             origin=[ground[1], ground[0], ground[2]], azimuth=math.atan2(ground[4], ground[3]),
+                             scale=math.hypot(ground[3], ground[4]))
 
     def _ground_textures(self, grounds, irradiance, transforms) -> np.ndarray:
         """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals) (P, 3)``:

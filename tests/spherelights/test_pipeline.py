@@ -142,7 +142,10 @@ def test_objects_with_different_sphere_counts():
 def test_ground_option_hides_and_reflects(pre):
     """``ground="paper"``: the ground neither hides nor reflects (the paper); ``"blocks"``: it hides the environment
     from the first pass's samples (less light on the ground) and from the objects (less direct light on them);
-    ``"reflects"`` (default): as ``"blocks"``, plus its light reaching the objects (more indirect light)."""
+    ``"reflects"`` (default): as ``"blocks"``, plus its light reaching the objects (more indirect light). The
+    ground's own rows are compared with the ground shaded through the lights (``ground_shading="lights"``); with
+    rays (the default) its light does not depend on what it reflects, and ``ground="paper"`` shades it through
+    the lights."""
     from prtlab.spherelights import ground_rectangles
 
     rect = ground_rectangles([pre.scene.object("plane")])
@@ -150,11 +153,21 @@ def test_ground_option_hides_and_reflects(pre):
     assert ground_rectangles([pre.scene.object("ball")]).shape == (0, 7)  # not flat: no ground
     assert pre.options.ground == "reflects"
 
-    def variant(ground):
-        opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground": ground})
+    def variant(ground, shading="lights"):
+        opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground": ground,
+                                          "ground_shading": shading})
         return SphereLights(pre.scene, opts, pre.data).shade(bounces=1)
 
-    a, blocks, paper = pre.shade(bounces=1), variant("blocks"), variant("paper")
+    a, blocks, paper = variant("reflects"), variant("blocks"), variant("paper")
+    rays = {g: variant(g, "rays") for g in ("reflects", "blocks", "paper")}
+    default = pre.shade(bounces=1)
+    assert pre.options.ground_shading == "rays"
+    for part in ("direct", "indirect"):
+        np.testing.assert_array_equal(getattr(rays["reflects"], part)["plane"], getattr(rays["blocks"], part)["plane"])
+    for part in ("direct", "indirect", "total"):
+        for name in ("plane", "ball", "box"):
+            np.testing.assert_array_equal(getattr(rays["paper"], part)[name], getattr(paper, part)[name])
+            np.testing.assert_array_equal(getattr(rays["reflects"], part)[name], getattr(default, part)[name])
     assert a.info["ground"] == "reflects" and paper.info["ground"] == "paper"
     np.testing.assert_allclose(a.direct["plane"], paper.direct["plane"])
     np.testing.assert_allclose(a.indirect["plane"], blocks.indirect["plane"])
@@ -172,11 +185,13 @@ def test_ground_option_hides_and_reflects(pre):
     with pytest.raises(TypeError, match="option ground_texels must be an int"):
         SphereLights.make_options({"ground_texels": 2.5})
     # the ground's light read from its shaded vertices instead of a grid of its points: the same light, blurred
-    opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground_texels": 0})
-    from_vertices = SphereLights(pre.scene, opts, pre.data).shade(bounces=1)
-    for name in ("ball", "box"):
-        np.testing.assert_allclose(from_vertices.direct[name], a.direct[name])
-        np.testing.assert_allclose(from_vertices.indirect[name].sum(), a.indirect[name].sum(), rtol=0.1)
+    for shading, grid in (("lights", a), ("rays", default)):
+        opts = SphereLights.make_options({"n_spheres": 2, "fit_resolution": 16, "ground_texels": 0,
+                                          "ground_shading": shading})
+        from_vertices = SphereLights(pre.scene, opts, pre.data).shade(bounces=1)
+        for name in ("ball", "box"):
+            np.testing.assert_allclose(from_vertices.direct[name], grid.direct[name])
+            np.testing.assert_allclose(from_vertices.indirect[name].sum(), grid.indirect[name].sum(), rtol=0.1)
 
 
 def test_two_bounces_go_through_the_ground(pre):
@@ -456,7 +471,10 @@ def test_deformed_errors(pre):
 
 @pytest.fixture(scope="module")
 def pre8():
-    return SphereLights.precompute(_scene(), {"n_spheres": 8, "fit_resolution": 16}, cache=False, progress=False)
+    """Every receiver shaded through the lights (the plane too: ``ground_shading="lights"``), as the hierarchy's cuts
+    approximate them."""
+    return SphereLights.precompute(_scene(), {"n_spheres": 8, "fit_resolution": 16, "ground_shading": "lights"},
+                                   cache=False, progress=False)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,360 @@
+"""The ground shaded against the objects' meshes by ray casting (an extension of Guerrero et al. 2008; option
+``ground_shading="rays"``).
+
+A ground (horizontal, normal ``+Y``, see ``_ground``) is a receiver the paper shades like any other: its direct
+light through the exponentiated SH visibility of the objects' bounding spheres, its indirect light from their
+emission. Both carry the sphere proxy's error where it matters most for a ground: under and beside the objects,
+whose spheres' outside volume shadows and emits where the object is not, and whose spheres hold the ground under
+an object's base (culled there, so that ground is lit). Here, over a fixed product rule of the upper hemisphere
+(Gauss-Legendre in ``cos theta`` times uniform azimuths, ``w_j`` folding in the cosine),
+
+.. math:: E^{dir}(p) = \\int L(\\omega) \\cos\\theta\\, d\\omega
+          - \\sum_j w_j\\, L(\\omega_j)\\, B_p(\\omega_j), \\qquad
+          E^{ind}(p) = \\sum_j w_j\\, L_o\\big(x_p(\\omega_j)\\big),
+
+the first integral in closed form from the environment's SH (exact for the band-limited environment), ``B_p``
+the rays blocked by a mesh (or a local light's sphere), ``x_p(w)`` the first mesh hit and ``L_o`` the objects'
+shaded exit radiance there (the pipeline's own per-vertex result, interpolated over the hit face; a back face
+hit, from a point inside a closed object, gives 0). Only rays that meet a bounding sphere of the objects (or a
+local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing.
+
+Measured figures: ``docs/notes/spherelights.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from prtlab import sh
+
+__all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
+           "ground_gather_rays", "ground_light_rays", "contact_radiance",
+           "candidate_rays", "sphere_hits"]
+
+_UP = np.array([0.0, 1.0, 0.0])
+_CHUNK = 256  # receivers per batch of rays (bounds the (P, K) arrays)
+
+
+class GroundRayRule(NamedTuple):
+    """Directions ``(K, 3)`` over the upper hemisphere (``+Y``) and weights ``(K,)``: solid angle times
+    ``cos theta``, summing to ``pi``."""
+
+    dirs: np.ndarray
+    weights: np.ndarray
+
+
+@functools.lru_cache(maxsize=None)
+def ground_ray_rule(n_azimuth: int = 64, n_elevation: int = 16) -> GroundRayRule:
+    """:class:`GroundRayRule` of ``n_elevation`` Gauss-Legendre nodes in ``cos theta`` times ``n_azimuth``
+    uniform azimuths (``K = n_azimuth * n_elevation`` rays)."""
+    from prtlab._validate import check_int
+
+    check_int(n_azimuth, "n_azimuth", 1)
+    check_int(n_elevation, "n_elevation", 1)
+    x, w = np.polynomial.legendre.leggauss(n_elevation)
+    mu, w_mu = 0.5 * (x + 1.0), 0.5 * w
+    phi = (np.arange(n_azimuth) + 0.5) * (2.0 * np.pi / n_azimuth)
+    mm, pp = np.meshgrid(mu, phi, indexing="ij")
+    s = np.sqrt(1.0 - mm * mm)
+    dirs = np.stack([s * np.cos(pp), mm, s * np.sin(pp)], -1).reshape(-1, 3)
+    weights = (w_mu[:, None] * mm * (2.0 * np.pi / n_azimuth)).reshape(-1)
+    dirs.setflags(write=False)
+    weights.setflags(write=False)
+    return GroundRayRule(dirs, weights)
+
+
+class MeshBlockers(NamedTuple):
+    """What the rays of a frame meet, in the rays' frame (see :func:`mesh_blockers`): the objects' meshes (a
+    :class:`prtlab.geometry.RayCaster`, object ``g``'s faces ``faces[g]``), their bounding spheres (``bounds``:
+    ``(S, 4)`` centre and radius; a ray missing them all misses the meshes), opaque spheres (``spheres``: ``(L,
+    4)``, the local lights) and the frame (``origin (3,)``, ``turn``: the world directions of its axes as columns,
+    a turn about ``+Y``; ``scale``)."""
+
+    caster: object
+    faces: tuple
+    bounds: np.ndarray
+    spheres: np.ndarray
+    origin: np.ndarray
+    turn: np.ndarray
+    scale: float
+
+
+def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: float = 0.0,
+                  scale: float = 1.0) -> MeshBlockers:
+    """:class:`MeshBlockers` from world meshes ``[(vertices (V, 3), faces (F, 3))]``, bounding spheres ``(S, 4)``
+    (rows ``[x, y, z, r]``; every mesh must lie inside their union) and opaque spheres ``(L, 4)``.
+
+    The rays are cast in the frame at ``origin`` turned by ``azimuth`` about ``+Y`` (its ``x`` axis the world's
+    ``(cos a, 0, sin a)``) and shrunk by ``scale``: given a ground's own frame, a similarity of the whole scene
+    casts the same rays (the caster computes in float32), and the rule's azimuths turn with the ground."""
+    from prtlab.geometry import RayCaster
+
+    o = np.asarray(origin, dtype=np.float64).reshape(3)
+    c, s = math.cos(azimuth), math.sin(azimuth)
+    turn = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+    scale = float(scale)
+
+    def local(x):
+        return (np.asarray(x, dtype=np.float64).reshape(-1, 3) - o) @ turn / scale
+
+    def balls(b):
+        b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+        return np.concatenate([local(b[:, :3]), b[:, 3:] / scale], axis=1)
+
+    meshes = [(local(v), np.asarray(f, dtype=np.int64)) for v, f in meshes]
+    caster = RayCaster(meshes) if meshes else None
+    return MeshBlockers(caster, tuple(f for _, f in meshes), balls(bounds), balls(spheres), o, turn, scale)
+
+
+def _local_points(points, blockers: MeshBlockers) -> np.ndarray:
+    return np.ascontiguousarray((np.asarray(points, dtype=np.float64).reshape(-1, 3) - blockers.origin)
+                                @ blockers.turn / blockers.scale)
+
+
+def sphere_hits(points, dirs, spheres, *, method: str = "numba") -> np.ndarray:
+    """``(P, K)`` distance to the first of ``spheres (L, 4)`` (rows ``[x, y, z, r]``) along each ray ``p + t d``
+    from ``points (P, 3)`` along unit ``dirs (K, 3)``: ``t > 0``, inf where none is met, 0 from inside one.
+    ``method``: ``"numba"`` (the kernel) or ``"reference"`` (the float64 numpy specification)."""
+    from prtlab._validate import check_choice
+
+    check_choice(method, "method", ("numba", "reference"))
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    sph = np.ascontiguousarray(spheres, dtype=np.float64).reshape(-1, 4)
+    if method == "reference":
+        return _sphere_hits_reference(p, d, sph)
+    out = np.empty((len(p), len(d)))
+    _sphere_hits_kernel(p, d, sph, out)
+    return out
+
+
+def _sphere_hits_reference(points, dirs, spheres) -> np.ndarray:
+    out = np.full((len(points), len(dirs)), np.inf)
+    for c in spheres:
+        o = c[:3] - points  # (P, 3)
+        b = o @ dirs.T  # (P, K)
+        c2 = np.einsum("pi,pi->p", o, o)[:, None] - c[3] * c[3]
+        disc = b * b - c2
+        t = np.where(disc > 0.0, b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+        t = np.where(c2 <= 0.0, 0.0, np.where(t > 0.0, t, np.inf))
+        np.minimum(out, t, out=out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _sphere_hits_kernel(points, dirs, spheres, out):
+    """``sphere_hits``: per point, the spheres it does not lie in are tested along every ray."""
+    for q in numba.prange(points.shape[0]):
+        for k in range(dirs.shape[0]):
+            out[q, k] = np.inf
+        for j in range(spheres.shape[0]):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            c2 = ox * ox + oy * oy + oz * oz - spheres[j, 3] * spheres[j, 3]
+            if c2 <= 0.0:
+                for k in range(dirs.shape[0]):
+                    out[q, k] = 0.0
+                continue
+            for k in range(dirs.shape[0]):
+                b = ox * dirs[k, 0] + oy * dirs[k, 1] + oz * dirs[k, 2]
+                disc = b * b - c2
+                if b > 0.0 and disc > 0.0:
+                    t = b - math.sqrt(disc)
+                    if t < out[q, k]:
+                        out[q, k] = t
+
+
+def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray:
+    """``(P, K)`` bool: the rays from ``points (P, 3)`` along unit ``dirs (K, 3)`` that meet one of ``bounds (S,
+    4)`` (``isfinite`` of :func:`sphere_hits`; the kernel tests the ray's angle to each sphere's cone and stops at
+    the first). ``method``: ``"numba"`` or ``"reference"``."""
+    from prtlab._validate import check_choice
+
+    check_choice(method, "method", ("numba", "reference"))
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1, 3)
+    b = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
+    if method == "reference":
+        return np.isfinite(_sphere_hits_reference(p, d, b))
+    out = np.empty((len(p), len(d)), dtype=np.bool_)
+    _candidates_kernel(p, d, b, out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _candidates_kernel(points, dirs, spheres, out):
+    """``candidate_rays``: per point, each sphere's cone (unit axis, cosine of its half angle); a ray meets the
+    sphere when its cosine to the axis exceeds that (a point inside a sphere: every ray)."""
+    n_s = spheres.shape[0]
+    for q in numba.prange(points.shape[0]):
+        axis = np.empty((n_s, 3))
+        cos_half = np.empty(n_s)
+        inside = False
+        for j in range(n_s):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            d2 = ox * ox + oy * oy + oz * oz
+            r2 = spheres[j, 3] * spheres[j, 3]
+            if d2 <= r2:
+                inside = True
+                break
+            inv = 1.0 / math.sqrt(d2)
+            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        for k in range(dirs.shape[0]):
+            hit = inside
+            j = 0
+            while not hit and j < n_s:
+                hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
+                j += 1
+            out[q, k] = hit
+
+
+def _rays(points, rule, blockers):
+    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their origins and directions
+    (flat) and the distance to the first opaque sphere ``(P, K)``."""
+    for s in range(0, len(points), _CHUNK):
+        p = points[s:s + _CHUNK]
+        cand = candidate_rays(p, rule.dirs, blockers.bounds) if blockers.caster is not None else np.zeros(
+            (len(p), len(rule.dirs)), dtype=bool)
+        t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
+        ip, ik = np.nonzero(cand)
+        yield slice(s, s + len(p)), cand, ip, ik, t_sphere
+
+
+def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
+                       method: str = "embree") -> np.ndarray:
+    """Direct irradiance ``(P, 3)`` from the environment at ground points (normal ``+Y``), the objects' meshes
+    and the opaque spheres blocking (see the module docstring).
+
+    Parameters
+    ----------
+    points : (P, 3) float
+        Points on a ground (world space; rays leave them along ``+Y``'s hemisphere, offset by the caster's
+        epsilon along ``+Y``).
+    env_sh : (N*N, 3) float
+        Environment radiance.
+    blockers : MeshBlockers
+    rule : GroundRayRule, optional
+        Default :func:`ground_ray_rule` ``(64, 16)``.
+    method : {"embree", "numpy"}
+        The ray caster's engine (``"numpy"``: its float64 brute-force specification).
+    """
+    rule = rule or ground_ray_rule()
+    p = _local_points(points, blockers)
+    env = np.asarray(env_sh, dtype=np.float64)
+    order = math.isqrt(env.shape[0])
+    e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
+    radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
+    out = np.empty((len(p), 3))
+    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+        hit = np.zeros(len(ip), dtype=bool)
+        if len(ip):
+            hit = blockers.caster.occluded(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+                                           method=method)
+        out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
+    return out
+
+
+def _blocked_sum(n_points, ip, ik, t_sphere, radiance) -> np.ndarray:
+    """``(P, 3)`` sum of ``radiance[k]`` over the blocked rays: ``(ip, ik)`` (by a mesh) and those meeting an opaque
+    sphere (finite ``t_sphere``, None: none)."""
+    if t_sphere is not None:
+        blocked = np.isfinite(t_sphere)
+        blocked[ip, ik] = True
+        return blocked.astype(np.float64) @ radiance
+    return np.stack([np.bincount(ip, weights=radiance[ik, c], minlength=n_points) for c in range(3)], axis=1)
+
+
+def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
+                       method: str = "embree") -> np.ndarray:
+    """Irradiance ``(P, 3)`` at ground points (normal ``+Y``) from the objects' surfaces: over the rays, the exit
+    radiance at the first mesh hit (interpolated from ``radiance[g] (V_g, 3)``, the vertices of object ``g``; a
+    back face gives 0), a hit beyond an opaque sphere giving nothing (see the module docstring).
+
+    Parameters
+    ----------
+    points : (P, 3) float
+        Points on a ground (world space).
+    blockers : MeshBlockers
+    radiance : sequence of (V_g, 3) float
+        Exit radiance at each object's vertices, in the caster's object order.
+    rule : GroundRayRule, optional
+        Default :func:`ground_ray_rule` ``(64, 16)``.
+    method : {"embree", "numpy"}
+        As in :func:`ground_direct_rays`.
+    """
+    rule = rule or ground_ray_rule()
+    p = _local_points(points, blockers)
+    if len(radiance) != len(blockers.faces):
+        raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
+    return _gather(p, blockers, radiance, rule, method, None)[1]
+
+
+def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
+                      method: str = "embree") -> tuple[np.ndarray, np.ndarray]:
+    """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
+    same points from one closest-hit cast per ray (the same values as the two apart)."""
+    rule = rule or ground_ray_rule()
+    p = _local_points(points, blockers)
+    if len(radiance) != len(blockers.faces):
+        raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
+    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
+
+
+def _gather(p, blockers, radiance, rule, method, env):
+    """The gathered light at local points ``p`` and, given ``env``, the direct light (else None)."""
+    rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
+    out = np.zeros((len(p), 3))
+    direct = None
+    if env is not None:
+        order = math.isqrt(env.shape[0])
+        e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
+        blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
+        direct = np.empty((len(p), 3))
+    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+        if not len(ip):
+            if env is not None:
+                direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
+            continue
+        hits = blockers.caster.closest_hit(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+                                           method=method)
+        if env is not None:
+            direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
+        d = rule.dirs[ik]
+        live = hits.hit & (np.einsum("ij,ij->i", hits.normal, d) < 0.0)
+        if t_sphere is not None:
+            live &= hits.distance < t_sphere[ip, ik]
+        value = np.zeros((len(ip), 3))
+        for g, faces in enumerate(blockers.faces):
+            m = live & (hits.object == g)
+            if not m.any():
+                continue
+            f = faces[hits.triangle[m]]
+            u, v = hits.barycentric[m, :1], hits.barycentric[m, 1:]
+            value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
+        np.add.at(out[sl], ip, value * rule.weights[ik, None])
+    return direct, out
+
+
+def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:
+    """``radiance (V, 3)`` of an object's vertices as the ground sees them from above: at a vertex lying on a
+    ground (``|y - h| <= tol`` for a height ``h`` of ``heights``) scaled by ``(1 + n_y) / 2``, the part of its
+    cosine-weighted hemisphere above the ground (0 facing straight down, 1 facing up); elsewhere unchanged.
+
+    A vertex at a ground's height is shaded as lying below it (the light from under the ground reaches it), while
+    the faces around it, seen from the ground, lie above it: their radiance falls to what the horizon leaves. For
+    the gather (:func:`ground_gather_rays`) only."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    out = np.array(radiance, dtype=np.float64).reshape(-1, 3)
+    h = np.asarray(heights, dtype=np.float64).reshape(-1)
+    if not len(h) or not len(p):
+        return out
+    on = np.any(np.abs(p[:, 1:2] - h[None]) <= tol, axis=1)
+    ny = n[on, 1] / np.maximum(np.linalg.norm(n[on], axis=1), 1e-300)
+    out[on] *= (0.5 * (1.0 + ny))[:, None]
+    return out

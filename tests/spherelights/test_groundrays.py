@@ -1,0 +1,222 @@
+"""Tests of prtlab.spherelights._groundrays (the ground shaded against the objects' meshes by ray casting, option
+``ground_shading="rays"``)."""
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+
+from prtlab import sh
+from prtlab.geometry import builtin_mesh
+from prtlab.pipeline import FrameState
+from prtlab.scene import Scene
+from prtlab.spherelights import SphereLights
+from prtlab.spherelights._groundrays import (candidate_rays, contact_radiance, ground_direct_rays, ground_gather_rays,
+                                             ground_light_rays, ground_ray_rule, mesh_blockers, sphere_hits)
+
+WHITE = np.zeros((16, 3))
+WHITE[0] = np.sqrt(4 * np.pi)  # constant radiance 1
+
+
+def _ball(centre, radius=0.5, subdivisions=4):
+    m = builtin_mesh(name="icosphere", radius=radius, subdivisions=subdivisions)
+    return np.asarray(m.vertices) + np.asarray(centre, dtype=np.float64), np.asarray(m.faces)
+
+
+def _bound(verts):
+    c = verts.mean(axis=0)
+    return np.append(c, 1.001 * np.linalg.norm(verts - c, axis=1).max())
+
+
+# ------------------------------------------------------------------ known answers
+
+
+def test_rule_integrates_the_cosine_and_a_zonal_polynomial():
+    """``sum w_j = pi`` and ``sum w_j cos^k = 2 pi / (k + 2)`` (Gauss-Legendre in ``cos theta``: exact up to
+    degree ``2 n - 1``)."""
+    rule = ground_ray_rule(8, 4)
+    assert rule.dirs.shape == (32, 3) and rule.weights.shape == (32,)
+    np.testing.assert_allclose(np.linalg.norm(rule.dirs, axis=1), 1.0, atol=1e-14)
+    assert np.all(rule.dirs[:, 1] > 0)
+    for k in range(6):
+        np.testing.assert_allclose(np.sum(rule.weights * rule.dirs[:, 1] ** k), 2 * np.pi / (k + 2), rtol=1e-13)
+
+
+def test_nothing_blocked_is_the_sh_irradiance(rng):
+    env = rng.normal(size=(16, 3))
+    env[0] += 5.0
+    pts = rng.uniform(-1, 1, size=(7, 3))
+    pts[:, 1] = 0.0
+    empty = mesh_blockers([], np.zeros((0, 4)))
+    expect = sh.basis(np.array([[0.0, 1.0, 0.0]]), 4) @ sh.irradiance(env)
+    np.testing.assert_allclose(ground_direct_rays(pts, env, empty), np.broadcast_to(expect, (7, 3)), rtol=1e-12)
+    np.testing.assert_array_equal(ground_gather_rays(pts, empty, []), np.zeros((7, 3)))
+
+
+@pytest.mark.parametrize("as_mesh", [True, False])
+def test_ball_above_a_point_is_the_closed_form(as_mesh):
+    """A ball of angular radius ``a`` straight above the point, white sky: ``E = pi (1 - sin^2 a)``; a ball of
+    exit radiance 1 (mesh), gathered: ``pi sin^2 a``. As a mesh (an icosphere, slightly inside the true ball) or
+    as an opaque sphere (a local light)."""
+    centre = np.array([0.0, 2.0, 0.0])
+    p = np.zeros((1, 3))
+    rule = ground_ray_rule(128, 64)
+    if as_mesh:
+        v, f = _ball(centre, 0.5, 5)
+        blk = mesh_blockers([(v, f)], _bound(v))
+        sin2 = (np.linalg.norm(v - centre, axis=1).min() / 2.0) ** 2  # the inscribed ball's, to within the facets
+    else:
+        blk = mesh_blockers([], np.zeros((0, 4)), np.append(centre, 0.5))
+        sin2 = 0.25**2
+    e = ground_direct_rays(p, WHITE, blk, rule)
+    np.testing.assert_allclose(e, np.pi * (1 - sin2), rtol=2e-3)
+    if as_mesh:
+        g = ground_gather_rays(p, blk, [np.ones((len(v), 3))], rule)
+        np.testing.assert_allclose(g, np.pi * sin2, rtol=0.03)
+
+
+def test_point_inside_a_closed_mesh_gets_nothing():
+    """A ground point under a box resting on the ground (inside it once offset): no direct light, and the box's
+    inner faces (back faces) give no gathered light."""
+    box = builtin_mesh(name="box", size=[1.0, 1.0, 1.0])
+    v = np.asarray(box.vertices) + [0.0, 0.5, 0.0]
+    blk = mesh_blockers([(v, np.asarray(box.faces))], _bound(v))
+    p = np.array([[0.1, 0.0, -0.2], [3.0, 0.0, 0.0]])
+    e = ground_direct_rays(p, WHITE, blk)
+    g = ground_gather_rays(p, blk, [np.ones((len(v), 3))])
+    np.testing.assert_allclose(e[0], 0.0, atol=1e-12)
+    np.testing.assert_array_equal(g[0], 0.0)
+    assert np.all(e[1] > 2.5) and np.all(g[1] > 0.0)
+
+
+def test_contact_radiance_keeps_the_part_above_the_ground():
+    """At a ground's height: scaled by ``(1 + n_y) / 2`` (0 facing down, 1/2 sideways, 1 up); elsewhere as given."""
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 1e-9, 0.0], [2.0, 0.0, 0.0], [0.0, 0.3, 0.0], [0.0, -2.0, 0.0]])
+    nrm = np.array([[0.0, -2.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]])
+    rad = np.arange(15.0).reshape(5, 3) + 1.0
+    out = contact_radiance(pts, nrm, rad, [0.0, 5.0], 1e-6)
+    np.testing.assert_array_equal(out, rad * np.array([0.0, 0.5, 1.0, 1.0, 1.0])[:, None])
+    np.testing.assert_array_equal(contact_radiance(pts, nrm, rad, [], 1e-6), rad)
+    assert contact_radiance(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), [0.0], 1e-6).shape == (0, 3)
+
+
+# ------------------------------------------------------------------ tiers
+
+
+def test_sphere_hits_kernel_matches_reference(rng):
+    pts = rng.uniform(-2, 2, size=(40, 3))
+    dirs = rng.normal(size=(50, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    spheres = np.concatenate([rng.uniform(-2, 2, size=(6, 3)), rng.uniform(0.2, 1.0, size=(6, 1))], axis=1)
+    fast = sphere_hits(pts, dirs, spheres)
+    ref = sphere_hits(pts, dirs, spheres, method="reference")
+    assert np.isinf(ref).any() and (ref == 0).any() and np.isfinite(ref[ref > 0]).any()
+    np.testing.assert_array_equal(np.isinf(fast), np.isinf(ref))
+    np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-12, atol=1e-14)
+    assert sphere_hits(np.zeros((0, 3)), dirs, spheres).shape == (0, 50)
+    np.testing.assert_array_equal(candidate_rays(pts, dirs, spheres), np.isfinite(ref))
+    np.testing.assert_array_equal(candidate_rays(pts, dirs, spheres, method="reference"), np.isfinite(ref))
+    assert candidate_rays(pts, dirs, np.zeros((0, 4))).sum() == 0
+
+
+def test_embree_matches_the_numpy_caster(rng):
+    """The engines agree ray by ray; the sums differ only where a ray grazes an edge (float32)."""
+    v, f = _ball([0.3, 0.6, -0.2], 0.5, 2)
+    blk = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]))
+    pts = np.stack([rng.uniform(-1.5, 1.5, 20), np.zeros(20), rng.uniform(-1.5, 1.5, 20)], axis=1)
+    env = WHITE.copy()
+    env[2] = 0.5
+    rule = ground_ray_rule(16, 6)
+    rad = [rng.uniform(0, 1, size=(len(v), 3))]
+    np.testing.assert_allclose(ground_direct_rays(pts, env, blk, rule),
+                               ground_direct_rays(pts, env, blk, rule, method="numpy"), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(ground_gather_rays(pts, blk, rad, rule),
+                               ground_gather_rays(pts, blk, rad, rule, method="numpy"), rtol=1e-5, atol=1e-6)
+
+
+def test_one_cast_gives_the_direct_and_gathered_light(rng):
+    """``ground_light_rays`` is ``ground_direct_rays`` and ``ground_gather_rays`` from one closest-hit cast, in a
+    turned, shifted and scaled frame (which changes nothing but rounding)."""
+    v, f = _ball([0.3, 0.6, -0.2], 0.5, 2)
+    pts = np.stack([rng.uniform(-1.5, 1.5, 30), np.zeros(30), rng.uniform(-1.5, 1.5, 30)], axis=1)
+    env = WHITE.copy()
+    env[3] = 0.4
+    rad = [rng.uniform(0, 1, size=(len(v), 3))]
+    rule = ground_ray_rule(16, 6)
+    blk = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]))
+    turned = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]), origin=[0.2, 0.0, -0.1],
+                           azimuth=0.0, scale=2.5)
+    direct, gathered = ground_light_rays(pts, env, blk, rad, rule)
+    np.testing.assert_allclose(direct, ground_direct_rays(pts, env, blk, rule), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gathered, ground_gather_rays(pts, blk, rad, rule), rtol=1e-12, atol=1e-12)
+    d2, g2 = ground_light_rays(pts, env, turned, rad, rule)
+    np.testing.assert_allclose(d2, direct, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(g2, gathered, rtol=1e-4, atol=1e-5)
+
+
+def test_candidate_rays_leave_out_nothing_that_hits(rng):
+    """Only rays meeting a bounding sphere are cast: the result equals casting every ray (a bound as large as
+    the scene)."""
+    v, f = _ball([0.0, 0.5, 0.0], 0.5, 2)
+    pts = np.stack([rng.uniform(-1, 1, 15), np.zeros(15), rng.uniform(-1, 1, 15)], axis=1)
+    tight = mesh_blockers([(v, f)], _bound(v))
+    loose = mesh_blockers([(v, f)], np.array([0.0, 0.0, 0.0, 100.0]))
+    rule = ground_ray_rule(16, 6)
+    np.testing.assert_array_equal(ground_direct_rays(pts, WHITE, tight, rule),
+                                  ground_direct_rays(pts, WHITE, loose, rule))
+
+
+# ------------------------------------------------------------------ the pipeline
+
+
+def _scene():
+    return Scene.from_dict({"objects": [
+        {"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [8, 8]},
+         "material": {"type": "diffuse", "albedo": [0.7] * 3}},
+        {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.5, "subdivisions": 2},
+         "transform": {"translate": [0.0, 0.5, 0.0]}, "material": {"type": "diffuse", "albedo": [0.8] * 3},
+         "dynamic": True}],
+        "lights": [{"type": "environment", "constant": [1, 1, 1]}]})
+
+
+@pytest.fixture(scope="module")
+def ball_on_plane():
+    sc = _scene()
+    return sc, SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 12}, cache=False, progress=False)
+
+
+def test_pipeline_ground_shading(ball_on_plane):
+    """``"rays"`` changes the ground's rows only (and the objects' indirect light, through the ground's texture);
+    the ground under the ball's contact point is dark, far from it lit by the open sky."""
+    sc, pre = ball_on_plane
+    st = FrameState.from_scene(sc)
+    rays = pre.shade(st)
+    other = copy.copy(pre)
+    other.options = dataclasses.replace(pre.options, ground_shading="lights")
+    lights = other.shade(st)
+    assert rays.info["ground_shading"] == "rays" and lights.info["ground_shading"] == "lights"
+    np.testing.assert_array_equal(rays.direct["ball"], lights.direct["ball"])
+    plane = sc.object("plane")
+    pts = plane.world_shading_points(plane.transform)
+    centre = np.argmin(np.linalg.norm(pts[:, [0, 2]], axis=1))
+    far = np.argmax(np.linalg.norm(pts[:, [0, 2]], axis=1))
+    assert rays.direct["plane"][centre].max() < 0.05 * rays.direct["plane"][far].min()
+    assert np.all(rays.indirect["plane"] >= 0) and rays.indirect["plane"][far].max() < rays.indirect["plane"].max()
+    np.testing.assert_allclose(rays.total["plane"], rays.direct["plane"] + rays.indirect["plane"])
+
+
+def test_ground_shading_option_errors():
+    with pytest.raises(ValueError, match="option ground_shading"):
+        SphereLights.precompute(_scene(), {"ground_shading": "mesh", "n_spheres": 1}, cache=False, progress=False)
+
+
+def test_gather_errors():
+    v, f = _ball([0.0, 1.0, 0.0])
+    blk = mesh_blockers([(v, f)], _bound(v))
+    with pytest.raises(ValueError, match="radiance must give one"):
+        ground_gather_rays(np.zeros((1, 3)), blk, [])
+    with pytest.raises(ValueError, match="method"):
+        sphere_hits(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
+    with pytest.raises(ValueError, match="method"):
+        candidate_rays(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
