@@ -123,7 +123,8 @@ def _near_split(points, normals, centres, radii, eligible, min_sin, tables, orde
     ``cos theta``; ``cos = 2`` where none), and the log sum (Eqs. 6-7, adjusted blockers) of the other spheres.
 
     Blocks of ``_LANES`` receivers as SIMD lanes: every sphere's log by :func:`_blocker_lanes` (the fused second
-    pass's), then per lane the choice and the sum of the others' logs in sphere order (a chosen sphere adds 0: its log times 0)."""
+    pass's), then per lane the choice and the sum of the others' logs in sphere order (a chosen sphere's log
+    enters times 0)."""
     n_recv = points.shape[0]
     n_sph = centres.shape[0]
     n2 = order * order
