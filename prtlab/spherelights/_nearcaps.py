@@ -31,7 +31,7 @@ from prtlab import sh
 from prtlab.sh._kernels import _A, _B, _PMM, LOW_BANDS, _high_bands, _low_bands
 
 from ._shadows import BlockerLanes, LaneScratch, _as_spheres, _blocker_log_knots, _blocker_lanes, _check_order, \
-    _receivers, blocker_log_table, environment_transfer
+    _receivers, blocker_log_table, environment_transfer, one_thread_below
 
 __all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct"]
 
@@ -44,6 +44,10 @@ MIN_ANGLE_DEG = 10.0
 #: Gauss-Legendre nodes in cos(alpha) and azimuths per cap.
 N_RADIAL = 4
 N_AZIMUTH = 12
+#: Receivers below which :func:`near_blocker_direct` runs on one thread (about 4 us of work each: the pipeline's
+#: calls at the surface samples and at small objects), and :func:`has_near_blocker` (about 50 ns each).
+_SERIAL_BELOW = 1024
+_SERIAL_BELOW_TEST = 16384
 
 
 def _cube_dirs(res: int) -> np.ndarray:
@@ -355,7 +359,8 @@ def has_near_blocker(points, normals, centres, radii, eligible=None) -> np.ndarr
     elig = np.ones(len(r), dtype=bool) if eligible is None else np.ascontiguousarray(eligible, dtype=bool).reshape(-1)
     out = np.zeros(len(p), dtype=bool)
     if len(r) and len(p):
-        _has_near(p, n, c, r, elig, _min_sin(), out)
+        with one_thread_below(len(p), _SERIAL_BELOW_TEST):
+            _has_near(p, n, c, r, elig, _min_sin(), out)
     return out
 
 
@@ -402,25 +407,26 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
     elig = np.ones(len(r), dtype=bool) if eligible is None else np.asarray(eligible, dtype=bool).reshape(-1)
     if elig.shape != (len(r),):
         raise ValueError(f"eligible must be a bool array of shape ({len(r)},), got {np.shape(eligible)}")
-    g_rest = np.zeros((B, order * order))
-    axis = np.zeros((B, k, 3))
-    cosq = np.full((B, k), 2.0)
-    if B and len(r):
-        if method == "numba":
-            _near_split(p, n, c, r, np.ascontiguousarray(elig), _min_sin(),
-                        _SplitTables(blocker_log_table(order), _blocker_log_knots()), order, k,
-                        g_rest, axis, cosq)
-        else:
-            g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
-    t = environment_transfer(n, env, order)
-    q = np.zeros_like(t)
-    if B and k:
-        if method == "numba":
-            x, w = np.polynomial.legendre.leggauss(N_RADIAL)
-            _cap_integrals(n, axis, cosq, environment_cube(env), order, x, w, N_AZIMUTH, q)
-        else:
-            q = _cap_integrals_reference(n, axis, cosq, env, order)
-    v = sh.exp(g_rest, method=exp_method, channels=False)
+    with one_thread_below(B, _SERIAL_BELOW):
+        g_rest = np.zeros((B, order * order))
+        axis = np.zeros((B, k, 3))
+        cosq = np.full((B, k), 2.0)
+        if B and len(r):
+            if method == "numba":
+                _near_split(p, n, c, r, np.ascontiguousarray(elig), _min_sin(),
+                            _SplitTables(blocker_log_table(order), _blocker_log_knots()), order, k,
+                            g_rest, axis, cosq)
+            else:
+                g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
+        t = environment_transfer(n, env, order)
+        q = np.zeros_like(t)
+        if B and k:
+            if method == "numba":
+                x, w = np.polynomial.legendre.leggauss(N_RADIAL)
+                _cap_integrals(n, axis, cosq, environment_cube(env), order, x, w, N_AZIMUTH, q)
+            else:
+                q = _cap_integrals_reference(n, axis, cosq, env, order)
+        v = sh.exp(g_rest, method=exp_method, channels=False)
     return np.einsum("bk,bkc->bc", v, t - q)
 
 

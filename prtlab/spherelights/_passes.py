@@ -60,6 +60,7 @@ from ._shadows import (
     _rotated_zh_lanes,
     blocker_log_table,
     environment_transfer,
+    one_thread_below,
     transfer_matrix,
 )
 from ._square_kernels import SQUARE_COLUMNS, SQUARE_ORDERS, square_columns
@@ -235,6 +236,9 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
 #: descheduled worker (a scheduler time slice), measured at the squirrel scale (1288 samples, load ~4 on
 #: 2 cores): 10 ms on one thread against 37 ms on two.
 _SERIAL_BELOW = 8192
+#: Receivers below which :func:`second_pass`'s fused kernel runs on one thread (``one_thread_below``): under four
+#: tasks of ``_BLOCKS_PER_TASK`` blocks, a few ms of work.
+_FUSED_SERIAL_BELOW = 1024
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
@@ -647,7 +651,9 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
                                                  2 * int(alone.sum()) > n_obj + 1), int(m))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
-    _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
+    with one_thread_below(p.shape[0], _FUSED_SERIAL_BELOW):  # a receiving object of a few blocks
+        _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct,
+                           ind)
     return direct, ind
 
 
