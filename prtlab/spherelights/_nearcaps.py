@@ -418,7 +418,7 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
                             g_rest, axis, cosq)
             else:
                 g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
-        t = environment_transfer(n, env, order)
+        t = environment_transfer(n, env, order) if method == "reference" else _environment_transfer(n, env, order)
         q = np.zeros_like(t)
         if B and k:
             if method == "numba":
@@ -428,6 +428,34 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
                 q = _cap_integrals_reference(n, axis, cosq, env, order)
         v = sh.exp(g_rest, method=exp_method, channels=False)
     return np.einsum("bk,bkc->bc", v, t - q)
+
+
+def _environment_transfer(normals, env, order):
+    """:func:`environment_transfer` with the product ``cos_{2n-1}(n) @ M`` in a numba kernel instead of BLAS (a
+    small product that BLAS threads spin on; equal to rounding)."""
+    from ._shadows import transfer_matrix
+
+    hi = 2 * order - 1
+    cos = np.ascontiguousarray(sh.zh_rotate(sh.clamped_cosine_zh(hi), normals))
+    m = np.ascontiguousarray(transfer_matrix(env, order))
+    out = np.empty((cos.shape[0], m.shape[1]))
+    if cos.shape[0]:
+        _rows_times_matrix(cos, m, out)
+    return out.reshape(cos.shape[0], order * order, env.shape[1])
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _rows_times_matrix(rows, matrix, out):
+    """``out = rows @ matrix``, rows in parallel, each a sum over the matrix's rows in order (vectorised over its
+    columns)."""
+    n_cols = matrix.shape[1]
+    for b in numba.prange(rows.shape[0]):
+        for j in range(n_cols):
+            out[b, j] = 0.0
+        for i in range(matrix.shape[0]):
+            f = rows[b, i]
+            for j in range(n_cols):
+                out[b, j] += f * matrix[i, j]
 
 
 def _near_split_reference(p, n, c, r, elig, order, k):

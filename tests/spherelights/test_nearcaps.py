@@ -226,3 +226,16 @@ def test_split_kernel_against_reference(order):
         np.testing.assert_allclose(axis, axis_ref, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(cosq, cos_ref, rtol=1e-12, atol=1e-12)
         assert np.any(cosq <= 1.0) == (k > 0)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_transfer_kernel_against_environment_transfer(order):
+    """The near pass's transfer (``cos_{2n-1}(n) @ M`` in a numba kernel) against the public
+    :func:`environment_transfer` (BLAS), to rounding; no receivers gives an empty result."""
+    from prtlab.spherelights import environment_transfer
+    from prtlab.spherelights._nearcaps import _environment_transfer
+
+    _, n = _receivers(4, 37)
+    np.testing.assert_allclose(_environment_transfer(n, _sky(), order), environment_transfer(n, _sky(), order),
+                               rtol=1e-12, atol=1e-12)
+    assert _environment_transfer(np.zeros((0, 3)), _sky(), order).shape == (0, order * order, 3)
