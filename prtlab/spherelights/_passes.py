@@ -507,7 +507,7 @@ def emission_times_direction(emission) -> np.ndarray:
 def _emission_dirs(em) -> np.ndarray:
     """``(S, (m+1)**2, 9)`` :func:`emission_times_direction` of ``em (S, m*m, 3)``, columns ``(j, c)``, as the fused
     pass reads it. The last result is kept, keyed by the emission's bytes: a frame passes the same emission to
-    every receiving object's call (the einsum took about 0.8 ms a call at order 6)."""
+    every receiving object's call."""
     key = (em.shape, em.tobytes())
     if _EMISSION_DIRS[0] is None or _EMISSION_DIRS[0][0] != key:
         n_sph = em.shape[0]

@@ -95,8 +95,7 @@ def one_thread_below(size: int, threshold: int):
     """Run the numba kernels of the block on one thread when ``size < threshold`` (then restore the count).
 
     A parallel region waits for its slowest worker; on a loaded machine a worker is descheduled for a scheduler
-    time slice, so a call with little work (a few ms) runs faster on one thread (measured for
-    :func:`first_pass`: 10 ms on one thread against 37 ms on two at load ~4 on 2 cores)."""
+    time slice, so a call with little work (a few ms) runs faster on one thread (docs/notes/spherelights.md)."""
     threads = numba.get_num_threads()
     if size < threshold and threads > 1:
         numba.set_num_threads(1)
