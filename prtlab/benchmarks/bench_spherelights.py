@@ -6,7 +6,8 @@ light each (7 objects), 92 surface samples per light, receivers on a
 ground grid and around the objects (synthetic arrays, no precomputation).
 Cases: a whole frame (first pass + second pass) with per-object and
 per-sphere blocking, shadows only, the per-object frame with the ground's
-terms (issue 16), and the precomputation of a real scene
+terms (issue 16), the frame of the pipeline's default options with the ground
+(``per_object_ground_near``: near blockers, emission order 6), and the precomputation of a real scene
 (``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
 precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 """
@@ -68,8 +69,10 @@ def _scene_arrays(n_receivers: int):
     env[0] = [3.0, 2.8, 2.5]
     env[2] = [0.8, 0.8, 0.9]
     env[1:, :] += 0.05 * rng.normal(size=(ORDER * ORDER - 1, 3))
+    # the receivers' objects: -1 the ground, else the object of the light they lie on
+    recv_object = np.concatenate([np.full(n_ground, -1), sl_object[k]])
     return dict(points=points, normals=normals, centres=centres, radii=radii, sl_object=sl_object, inter=inter,
-                rot=rot, spts=spts, snrm=snrm, valid=valid, albedo=albedo, env=env)
+                rot=rot, spts=spts, snrm=snrm, valid=valid, albedo=albedo, env=env, recv_object=recv_object)
 
 
 def _frame(a, blocking, indirect=True, exp_method="hyb", emission_order=EMISSION_ORDER):
@@ -257,34 +260,71 @@ def frame_per_object_ground(quick: bool) -> dict:
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
-@case("spherelights.frame.per_object_ground_near.21k")
-def frame_per_object_ground_near(quick: bool) -> dict:
-    """The per-object frame with the ground as the pipeline shades it by default (``near_blockers=2``): the direct
-    light at the receivers and the ground's texels with the two nearest one-sphere lights (the 6 balls) as exact
-    caps (``near_blocker_direct``), the ground's terms testing those lights unadjusted; peer: the paper's direct
-    light (``near_blockers=0``, the case ``per_object_ground``). Like the pipeline, the exact pass reruns only the
-    receivers with a one-sphere blocker of angular radius at least ``MIN_ANGLE_DEG``."""
+def _default_frame(a, texels, up, rect, near_blockers: int = 2):
+    """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
+    ``ground="reflects"``, ``ground_texels=64``, ``near_blockers``, ``emission_order``, HYB, per-object blocking):
+    the near blockers' correction at the surface samples (``_near_samples``), the first pass with the ground hiding
+    the environment from the samples, the ground's texture (shadows-only pass and near blockers at its texels),
+    then per receiving object (the ground first) the second pass, the near blockers (the object's own lights not
+    eligible) and, above the ground, ``ground_light`` testing the eligible lights unadjusted."""
     from prtlab.spherelights import ground_light
     from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
 
+    c, r, obj, env = a["centres"], a["radii"], a["sl_object"], a["env"]
+    counts = np.bincount(obj)
+
+    def eligible(own):  # SphereLights._near_eligible: one-sphere lights of the other objects
+        return (obj != own) & (counts[obj] == 1)
+
+    def near(p, n, direct, own):  # SphereLights._irradiance's near blockers
+        e = eligible(own)
+        sel = has_near_blocker(p, n, c, r, e)
+        if near_blockers and sel.any():
+            direct[sel] = near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
+
+    extra = None
+    if near_blockers:  # SphereLights._near_samples (every sample valid here)
+        extra = np.zeros(a["valid"].shape + (3,))
+        for own in np.unique(obj):
+            rows = obj == own
+            e = eligible(own)
+            p = a["spts"][rows].reshape(-1, 3)
+            n = a["snrm"][rows].reshape(-1, 3)
+            n = n / np.linalg.norm(n, axis=1, keepdims=True)
+            sel = has_near_blocker(p, n, c, r, e)
+            if sel.any():
+                corr = np.zeros((len(p), 3))
+                corr[sel] = (near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
+                             - near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, 0, eligible=e))
+                extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
+    emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
+                          a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER)
+    e = _ground_direct(a, texels, up)
+    near(texels, up, e, -1)
+    tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
+    out = []
+    for own in range(-1, int(obj.max()) + 1):
+        rows = a["recv_object"] == own
+        p, n = a["points"][rows], a["normals"][rows]
+        direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission, env, order=ORDER)
+        near(p, n, direct, own)
+        if own >= 0:
+            hidden, reflected = ground_light(p, n, rect, tex, env, c, r, unadjusted=eligible(own) & (near_blockers > 0))
+            direct, indirect = direct - hidden, indirect + reflected
+        out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
+    return out
+
+
+@case("spherelights.frame.per_object_ground_near.21k")
+def frame_per_object_ground_near(quick: bool) -> dict:
+    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``near_blockers=2``,
+    ``emission_order=6``, HYB, per-object blocking, ``ground="reflects"``), the receivers shaded per object as the
+    pipeline does; peer: the same frame with the paper's direct light (``near_blockers=0``)."""
     a = _scene_arrays(_n(quick))
-    texels, up, above, rect = _ground_texels(a)
-    balls = a["sl_object"] > 0  # the one-sphere objects
-
-    def run(near):
-        direct, _ = _frame(a, "object")
-        e = _ground_direct(a, texels, up)
-        if near:  # as the pipeline: the receivers with a large one-sphere blocker again
-            for pts, nrm, out in ((a["points"], a["normals"], direct), (texels, up, e)):
-                sel = has_near_blocker(pts, nrm, a["centres"], a["radii"], balls)
-                out[sel] = near_blocker_direct(pts[sel], nrm[sel], a["centres"], a["radii"], a["env"], ORDER, 2,
-                                               eligible=balls)
-        tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
-        return ground_light(a["points"][above], a["normals"][above], rect, tex, a["env"], a["centres"], a["radii"],
-                            unadjusted=balls if near else None)
-
-    return {"run": lambda: run(True), "gflop": _frame_flops(a, "object", True), "items": _n(quick),
-            "peer": ("the paper's direct light (near_blockers=0)", lambda: run(False)),
+    texels, up, _, rect = _ground_texels(a)
+    return {"run": lambda: _default_frame(a, texels, up, rect), "gflop": _frame_flops(a, "object", True),
+            "items": _n(quick),
+            "peer": ("the paper's direct light (near_blockers=0)", lambda: _default_frame(a, texels, up, rect, 0)),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 

@@ -21,6 +21,7 @@ environment radiance at the nodes is read bilinearly from a cube map of its SH (
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numba
@@ -29,8 +30,8 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._kernels import _A, _B, _PMM, LOW_BANDS, _high_bands, _low_bands
 
-from ._shadows import _add_blocker_log, _as_spheres, _check_order, _receivers, blocker_log_table, \
-    environment_transfer
+from ._shadows import BlockerLanes, LaneScratch, _as_spheres, _blocker_log_knots, _blocker_lanes, _check_order, \
+    _receivers, blocker_log_table, environment_transfer, one_thread_below
 
 __all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct"]
 
@@ -43,6 +44,10 @@ MIN_ANGLE_DEG = 10.0
 #: Gauss-Legendre nodes in cos(alpha) and azimuths per cap.
 N_RADIAL = 4
 N_AZIMUTH = 12
+#: Receivers below which :func:`near_blocker_direct` runs on one thread (about 4 us of work each: the pipeline's
+#: calls at the surface samples and at small objects), and :func:`has_near_blocker` (about 50 ns each).
+_SERIAL_BELOW = 1024
+_SERIAL_BELOW_TEST = 16384
 
 
 def _cube_dirs(res: int) -> np.ndarray:
@@ -63,10 +68,24 @@ def _cube_dirs(res: int) -> np.ndarray:
 
 def environment_cube(env_sh, res: int = CUBE_RES) -> np.ndarray:
     """``(6, res, res, C)`` environment radiance from its SH ``(N*N, C)`` at the texel centres of a cube map
-    (faces as :func:`_cube_dirs`), read back by :func:`_cube_lookup`."""
-    env = np.asarray(env_sh, dtype=np.float64)
-    d = _cube_dirs(res).reshape(-1, 3)
-    return np.ascontiguousarray((sh.basis(d, math.isqrt(env.shape[0])) @ env).reshape(6, res, res, -1))
+    (faces as :func:`_cube_dirs`), read back by :func:`_cube_lookup`. The last few maps are kept (keyed by the
+    SH's bytes; a frame calls it once per receiver set); the returned array is read-only."""
+    env = np.ascontiguousarray(env_sh, dtype=np.float64)
+    key = (env.shape, env.tobytes(), int(res))
+    cube = _CUBE_CACHE.get(key)
+    if cube is None:
+        d = _cube_dirs(res).reshape(-1, 3)
+        cube = np.ascontiguousarray((sh.basis(d, math.isqrt(env.shape[0])) @ env).reshape(6, res, res, -1))
+        cube.setflags(write=False)
+        if len(_CUBE_CACHE) >= _CUBE_CACHE_SIZE:
+            _CUBE_CACHE.pop(next(iter(_CUBE_CACHE)))
+        _CUBE_CACHE[key] = cube
+    return cube
+
+
+#: Cube maps of the last environments (:func:`environment_cube`).
+_CUBE_CACHE: dict = {}
+_CUBE_CACHE_SIZE = 4
 
 
 @numba.njit(cache=True, inline="always")
@@ -94,51 +113,87 @@ def _cube_lookup(cube, wx, wy, wz, out):
                   + (1.0 - a) * b * cube[f, i, j + 1, c] + a * b * cube[f, i + 1, j + 1, c])
 
 
-@numba.njit(cache=True, parallel=True)
-def _near_split(points, normals, centres, radii, eligible, min_sin, table, order, n_near, g_rest, near_axis,
+#: Receivers per block of the lane kernels (the SIMD lanes, as the fused second pass).
+_LANES = 32
+#: The tables :func:`_blocker_lanes` reads.
+_SplitTables = collections.namedtuple("_SplitTables", ["blocker_log", "blocker_knots"])
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _near_split(points, normals, centres, radii, eligible, min_sin, tables, order, n_near, g_rest, near_axis,
                 near_cos):
     """Per receiver: the ``n_near`` kept spheres of largest angular radius (kept: the receiver outside it and the
     sphere not wholly below the tangent plane; ``eligible[s]``; ``sin theta >= min_sin``) as caps (unit axis,
-    ``cos theta``; ``cos = 2`` where none), and the log sum (Eqs. 6-7, adjusted blockers) of the other spheres."""
+    ``cos theta``; ``cos = 2`` where none), and the log sum (Eqs. 6-7, adjusted blockers) of the other spheres.
+
+    Blocks of ``_LANES`` receivers as SIMD lanes: every sphere's log by :func:`_blocker_lanes` (the fused second
+    pass's), then per lane the choice and the sum of the others' logs in sphere order (a chosen sphere's log
+    enters times 0)."""
     n_recv = points.shape[0]
     n_sph = centres.shape[0]
-    for b in numba.prange(n_recv):
-        ybuf = np.empty((1, order * order))
-        g = np.empty(order)
+    n2 = order * order
+    n_blocks = (n_recv + _LANES - 1) // _LANES
+    for block in numba.prange(n_blocks):
+        first = block * _LANES
+        n_valid = min(_LANES, n_recv - first)
+        recv = np.empty((6, _LANES))
+        logs = BlockerLanes(np.empty((n_sph, n2, _LANES)), np.empty((n2, _LANES)), np.empty((n_sph, _LANES)),
+                            np.empty((n_sph, _LANES)), np.empty((n_sph, _LANES)), np.empty((n_sph, _LANES)),
+                            np.empty((n_sph, 3, _LANES)))
+        work = LaneScratch(np.empty((order, _LANES)), np.empty((n2, _LANES)), np.empty((7, _LANES)))
+        keep = np.empty((n_sph, _LANES))
         sin_t = np.empty(n_sph)
-        chosen = np.zeros(n_sph, dtype=np.bool_)
-        px, py, pz = points[b, 0], points[b, 1], points[b, 2]
-        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
-        for s in range(n_sph):
-            ex, ey, ez = centres[s, 0] - px, centres[s, 1] - py, centres[s, 2] - pz
-            d2 = ex * ex + ey * ey + ez * ez
-            r = radii[s]
-            h = nx * ex + ny * ey + nz * ez
-            culled = d2 < r * r or h <= -r or d2 <= 0.0 or r <= 0.0 or not eligible[s]
-            sin_t[s] = -1.0 if culled else min(r / math.sqrt(d2), 1.0)
-            if sin_t[s] < min_sin:
-                sin_t[s] = -1.0
-        for j in range(n_near):
-            best, bs = -1, 0.0
+        for q in range(_LANES):  # a partial block repeats its last receiver
+            b = first + min(q, n_valid - 1)
+            for t in range(3):
+                recv[t, q] = points[b, t]
+                recv[3 + t, q] = normals[b, t]
+        _blocker_lanes(recv, centres, radii, tables, order, logs, work)
+        log = logs.log
+        for q in range(n_valid):
+            b = first + q
+            px, py, pz = recv[0, q], recv[1, q], recv[2, q]
+            nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
             for s in range(n_sph):
-                if not chosen[s] and sin_t[s] > bs:
-                    best, bs = s, sin_t[s]
-            if best < 0:
-                near_cos[b, j] = 2.0
-                near_axis[b, j, 0] = 0.0
-                near_axis[b, j, 1] = 0.0
-                near_axis[b, j, 2] = 1.0
-                continue
-            chosen[best] = True
-            ex, ey, ez = centres[best, 0] - px, centres[best, 1] - py, centres[best, 2] - pz
-            inv = 1.0 / math.sqrt(ex * ex + ey * ey + ez * ez)
-            near_axis[b, j, 0], near_axis[b, j, 1], near_axis[b, j, 2] = ex * inv, ey * inv, ez * inv
-            near_cos[b, j] = math.sqrt(max(1.0 - bs * bs, 0.0))
-        for k in range(order * order):
-            g_rest[b, k] = 0.0
+                keep[s, q] = 1.0
+                ex, ey, ez = centres[s, 0] - px, centres[s, 1] - py, centres[s, 2] - pz
+                d2 = ex * ex + ey * ey + ez * ez
+                r = radii[s]
+                h = nx * ex + ny * ey + nz * ez
+                culled = d2 < r * r or h <= -r or d2 <= 0.0 or r <= 0.0 or not eligible[s]
+                sin_t[s] = -1.0 if culled else min(r / math.sqrt(d2), 1.0)
+                if sin_t[s] < min_sin:
+                    sin_t[s] = -1.0
+            for j in range(n_near):
+                best, bs = -1, 0.0
+                for s in range(n_sph):
+                    if keep[s, q] > 0.0 and sin_t[s] > bs:
+                        best, bs = s, sin_t[s]
+                if best < 0:
+                    near_cos[b, j] = 2.0
+                    near_axis[b, j, 0] = 0.0
+                    near_axis[b, j, 1] = 0.0
+                    near_axis[b, j, 2] = 1.0
+                    continue
+                keep[best, q] = 0.0
+                ex, ey, ez = centres[best, 0] - px, centres[best, 1] - py, centres[best, 2] - pz
+                inv = 1.0 / math.sqrt(ex * ex + ey * ey + ez * ez)
+                near_axis[b, j, 0], near_axis[b, j, 1], near_axis[b, j, 2] = ex * inv, ey * inv, ez * inv
+                near_cos[b, j] = math.sqrt(max(1.0 - bs * bs, 0.0))
+        for q in range(n_valid, _LANES):
+            for s in range(n_sph):
+                keep[s, q] = 0.0
+        total = logs.total_log  # reused: the others' sum, in sphere order as the reference tier
+        for k in range(n2):
+            for q in range(_LANES):
+                total[k, q] = 0.0
         for s in range(n_sph):
-            if not chosen[s]:
-                _add_blocker_log(points[b], normals[b], centres[s], radii[s], table, order, g, ybuf, g_rest[b])
+            for k in range(n2):
+                for q in range(_LANES):
+                    total[k, q] += keep[s, q] * log[s, k, q]
+        for q in range(n_valid):
+            for k in range(n2):
+                g_rest[first + q, k] = total[k, q]
 
 
 @numba.njit(cache=True, inline="always")
@@ -167,59 +222,77 @@ def _cap_integrals(normals, near_axis, near_cos, cube, order, gl_nodes, gl_weigh
     for q in range(n_az):
         cos_az[q] = math.cos((q + 0.5) * dphi)
         sin_az[q] = math.sin((q + 0.5) * dphi)
-    for b in numba.prange(n_recv):
-        if near_cos[b, 0] > 1.0:  # no cap (the caps are filled first)
-            for k in range(n2):
-                for c in range(n_ch):
-                    out[b, k, c] = 0.0
-            continue
+    n_blocks = (n_recv + _LANES - 1) // _LANES
+    for block in numba.prange(n_blocks):  # scratch per block of receivers, not per receiver
         ybuf = np.empty((1, n2))
         lval = np.empty(n_ch)
-        acc = np.zeros((n_ch, n2))
-        nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
-        for j in range(n_near):
-            ct = near_cos[b, j]
-            if ct > 1.0:
-                continue
-            ax, ay, az = near_axis[b, j, 0], near_axis[b, j, 1], near_axis[b, j, 2]
-            # the cap wholly below the tangent plane adds nothing
-            if nx * ax + ny * ay + nz * az <= -math.sqrt(max(1.0 - ct * ct, 0.0)):
-                continue
-            t1x, t1y, t1z, t2x, t2y, t2z = _frame(ax, ay, az)
-            half = 0.5 * (1.0 - ct)
-            for i in range(n_rad):
-                u = ct + half * (gl_nodes[i] + 1.0)
-                sa = math.sqrt(max(1.0 - u * u, 0.0))
-                wr = half * gl_weights[i] * dphi
-                bx, by, bz = u * ax, u * ay, u * az
-                for q in range(n_az):
-                    cp, sp = cos_az[q] * sa, sin_az[q] * sa
-                    wx = bx + cp * t1x + sp * t2x
-                    wy = by + cp * t1y + sp * t2y
-                    wz = bz + cp * t1z + sp * t2z
-                    cosn = nx * wx + ny * wy + nz * wz
-                    if cosn <= 0.0:
-                        continue
-                    dup = False
-                    for jj in range(j):
-                        if near_cos[b, jj] <= 1.0 and (wx * near_axis[b, jj, 0] + wy * near_axis[b, jj, 1]
-                                                        + wz * near_axis[b, jj, 2]) > near_cos[b, jj]:
-                            dup = True
-                            break
-                    if dup:
-                        continue
-                    _low_bands(wx, wy, wz, order, ybuf, 0)
-                    if order > LOW_BANDS:
-                        _high_bands(wx, wy, wz, order, _PMM, _A, _B, ybuf, 0)
-                    _cube_lookup(cube, wx, wy, wz, lval)
-                    f = wr * cosn
-                    for c in range(n_ch):
-                        fc = f * lval[c]
-                        for k in range(n2):
-                            acc[c, k] += fc * ybuf[0, k]
+        acc = np.empty((n_ch, n2))
+        for b in range(block * _LANES, min(n_recv, (block + 1) * _LANES)):
+            _cap_integral(normals, near_axis, near_cos, cube, order, gl_nodes, gl_weights, cos_az, sin_az, dphi, b,
+                          ybuf, lval, acc, out)
+
+
+@numba.njit(cache=True, inline="always")
+def _cap_integral(normals, near_axis, near_cos, cube, order, gl_nodes, gl_weights, cos_az, sin_az, dphi, b, ybuf,
+                  lval, acc, out):
+    """``out[b]`` of :func:`_cap_integrals`; ``ybuf (1, n*n)``, ``lval (C,)``, ``acc (C, n*n)`` scratch."""
+    n_near = near_cos.shape[1]
+    n_ch = cube.shape[3]
+    n_rad = gl_nodes.shape[0]
+    n_az = cos_az.shape[0]
+    n2 = order * order
+    if near_cos[b, 0] > 1.0:  # no cap (the caps are filled first)
         for k in range(n2):
             for c in range(n_ch):
-                out[b, k, c] = acc[c, k]
+                out[b, k, c] = 0.0
+        return
+    for c in range(n_ch):
+        for k in range(n2):
+            acc[c, k] = 0.0
+    nx, ny, nz = normals[b, 0], normals[b, 1], normals[b, 2]
+    for j in range(n_near):
+        ct = near_cos[b, j]
+        if ct > 1.0:
+            continue
+        ax, ay, az = near_axis[b, j, 0], near_axis[b, j, 1], near_axis[b, j, 2]
+        # the cap wholly below the tangent plane adds nothing
+        if nx * ax + ny * ay + nz * az <= -math.sqrt(max(1.0 - ct * ct, 0.0)):
+            continue
+        t1x, t1y, t1z, t2x, t2y, t2z = _frame(ax, ay, az)
+        half = 0.5 * (1.0 - ct)
+        for i in range(n_rad):
+            u = ct + half * (gl_nodes[i] + 1.0)
+            sa = math.sqrt(max(1.0 - u * u, 0.0))
+            wr = half * gl_weights[i] * dphi
+            bx, by, bz = u * ax, u * ay, u * az
+            for q in range(n_az):
+                cp, sp = cos_az[q] * sa, sin_az[q] * sa
+                wx = bx + cp * t1x + sp * t2x
+                wy = by + cp * t1y + sp * t2y
+                wz = bz + cp * t1z + sp * t2z
+                cosn = nx * wx + ny * wy + nz * wz
+                if cosn <= 0.0:
+                    continue
+                dup = False
+                for jj in range(j):
+                    if near_cos[b, jj] <= 1.0 and (wx * near_axis[b, jj, 0] + wy * near_axis[b, jj, 1]
+                                                    + wz * near_axis[b, jj, 2]) > near_cos[b, jj]:
+                        dup = True
+                        break
+                if dup:
+                    continue
+                _low_bands(wx, wy, wz, order, ybuf, 0)
+                if order > LOW_BANDS:
+                    _high_bands(wx, wy, wz, order, _PMM, _A, _B, ybuf, 0)
+                _cube_lookup(cube, wx, wy, wz, lval)
+                f = wr * cosn
+                for c in range(n_ch):
+                    fc = f * lval[c]
+                    for k in range(n2):
+                        acc[c, k] += fc * ybuf[0, k]
+    for k in range(n2):
+        for c in range(n_ch):
+            out[b, k, c] = acc[c, k]
 
 
 def _cap_integrals_reference(normals, near_axis, near_cos, env_sh, order):
@@ -286,7 +359,8 @@ def has_near_blocker(points, normals, centres, radii, eligible=None) -> np.ndarr
     elig = np.ones(len(r), dtype=bool) if eligible is None else np.ascontiguousarray(eligible, dtype=bool).reshape(-1)
     out = np.zeros(len(p), dtype=bool)
     if len(r) and len(p):
-        _has_near(p, n, c, r, elig, _min_sin(), out)
+        with one_thread_below(len(p), _SERIAL_BELOW_TEST):
+            _has_near(p, n, c, r, elig, _min_sin(), out)
     return out
 
 
@@ -333,25 +407,55 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
     elig = np.ones(len(r), dtype=bool) if eligible is None else np.asarray(eligible, dtype=bool).reshape(-1)
     if elig.shape != (len(r),):
         raise ValueError(f"eligible must be a bool array of shape ({len(r)},), got {np.shape(eligible)}")
-    g_rest = np.zeros((B, order * order))
-    axis = np.zeros((B, k, 3))
-    cosq = np.full((B, k), 2.0)
-    if B and len(r):
-        if method == "numba":
-            _near_split(p, n, c, r, np.ascontiguousarray(elig), _min_sin(), blocker_log_table(order), order, k,
-                        g_rest, axis, cosq)
-        else:
-            g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
-    t = environment_transfer(n, env, order)
-    q = np.zeros_like(t)
-    if B and k:
-        if method == "numba":
-            x, w = np.polynomial.legendre.leggauss(N_RADIAL)
-            _cap_integrals(n, axis, cosq, environment_cube(env), order, x, w, N_AZIMUTH, q)
-        else:
-            q = _cap_integrals_reference(n, axis, cosq, env, order)
-    v = sh.exp(g_rest, method=exp_method, channels=False)
+    with one_thread_below(B, _SERIAL_BELOW):
+        g_rest = np.zeros((B, order * order))
+        axis = np.zeros((B, k, 3))
+        cosq = np.full((B, k), 2.0)
+        if B and len(r):
+            if method == "numba":
+                _near_split(p, n, c, r, np.ascontiguousarray(elig), _min_sin(),
+                            _SplitTables(blocker_log_table(order), _blocker_log_knots()), order, k,
+                            g_rest, axis, cosq)
+            else:
+                g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
+        t = environment_transfer(n, env, order) if method == "reference" else _environment_transfer(n, env, order)
+        q = np.zeros_like(t)
+        if B and k:
+            if method == "numba":
+                x, w = np.polynomial.legendre.leggauss(N_RADIAL)
+                _cap_integrals(n, axis, cosq, environment_cube(env), order, x, w, N_AZIMUTH, q)
+            else:
+                q = _cap_integrals_reference(n, axis, cosq, env, order)
+        v = sh.exp(g_rest, method=exp_method, channels=False)
     return np.einsum("bk,bkc->bc", v, t - q)
+
+
+def _environment_transfer(normals, env, order):
+    """:func:`environment_transfer` with the product ``cos_{2n-1}(n) @ M`` in a numba kernel instead of BLAS (a
+    small product that BLAS threads spin on; equal to rounding)."""
+    from ._shadows import transfer_matrix
+
+    hi = 2 * order - 1
+    cos = np.ascontiguousarray(sh.zh_rotate(sh.clamped_cosine_zh(hi), normals))
+    m = np.ascontiguousarray(transfer_matrix(env, order))
+    out = np.empty((cos.shape[0], m.shape[1]))
+    if cos.shape[0]:
+        _rows_times_matrix(cos, m, out)
+    return out.reshape(cos.shape[0], order * order, env.shape[1])
+
+
+@numba.njit(cache=True, parallel=True, error_model="numpy")
+def _rows_times_matrix(rows, matrix, out):
+    """``out = rows @ matrix``, rows in parallel, each a sum over the matrix's rows in order (vectorised over its
+    columns)."""
+    n_cols = matrix.shape[1]
+    for b in numba.prange(rows.shape[0]):
+        for j in range(n_cols):
+            out[b, j] = 0.0
+        for i in range(matrix.shape[0]):
+            f = rows[b, i]
+            for j in range(n_cols):
+                out[b, j] += f * matrix[i, j]
 
 
 def _near_split_reference(p, n, c, r, elig, order, k):

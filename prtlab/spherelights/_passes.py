@@ -60,6 +60,7 @@ from ._shadows import (
     _rotated_zh_lanes,
     blocker_log_table,
     environment_transfer,
+    one_thread_below,
     transfer_matrix,
 )
 from ._square_kernels import SQUARE_COLUMNS, SQUARE_ORDERS, square_columns
@@ -235,6 +236,9 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
 #: descheduled worker (a scheduler time slice), measured at the squirrel scale (1288 samples, load ~4 on
 #: 2 cores): 10 ms on one thread against 37 ms on two.
 _SERIAL_BELOW = 8192
+#: Receivers below which :func:`second_pass`'s fused kernel runs on one thread (``one_thread_below``): under four
+#: tasks of ``_BLOCKS_PER_TASK`` blocks, a few ms of work.
+_FUSED_SERIAL_BELOW = 1024
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
@@ -500,6 +504,21 @@ def emission_times_direction(emission) -> np.ndarray:
 # --------------------------------------------------------------------------- fused second pass (the fast tier)
 
 
+def _emission_dirs(em) -> np.ndarray:
+    """``(S, (m+1)**2, 9)`` :func:`emission_times_direction` of ``em (S, m*m, 3)``, columns ``(j, c)``, as the fused
+    pass reads it. The last result is kept, keyed by the emission's bytes: a frame passes the same emission to
+    every receiving object's call."""
+    key = (em.shape, em.tobytes())
+    if _EMISSION_DIRS[0] is None or _EMISSION_DIRS[0][0] != key:
+        n_sph = em.shape[0]
+        dirs = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(n_sph, -1, 9))
+        _EMISSION_DIRS[0] = (key, dirs)
+    return _EMISSION_DIRS[0][1].copy()
+
+
+_EMISSION_DIRS: list = [None]
+
+
 def _light_arrays(centres, radii, sl_object, intersect):
     """The spherical lights as contiguous arrays, checked to agree in S, and each object's mean centre."""
     c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
@@ -613,7 +632,7 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     rot = np.array(np.broadcast_to(np.asarray(sl_rotation, dtype=np.float64), (n_sph, 3, 3)), order="C")
     em = np.array(np.asarray(emission, dtype=np.float64).reshape(n_sph, m * m, 3), order="C")
     if cosine and indirect and n_sph:
-        em_dir = np.ascontiguousarray(emission_times_direction(em).transpose(0, 2, 1, 3).reshape(n_sph, -1, 9))
+        em_dir = _emission_dirs(em)
     else:
         em_dir = np.zeros((n_sph, (m + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
@@ -632,7 +651,9 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
                                                  2 * int(alone.sum()) > n_obj + 1), int(m))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
-    _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct, ind)
+    with one_thread_below(p.shape[0], _FUSED_SERIAL_BELOW):  # a receiving object of a few blocks
+        _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct,
+                           ind)
     return direct, ind
 
 

@@ -42,6 +42,8 @@ spheres and see them culled.
 from __future__ import annotations
 
 import collections
+import contextlib
+import functools
 import math
 
 import numba
@@ -75,9 +77,32 @@ N_RADII = 256
 
 
 def blocker_log_table(order: int) -> np.ndarray:
-    """The blocker-log ZH table at the knots ``j (pi/2) / 256``, j = 0..256: ``(257, order)``."""
+    """The blocker-log ZH table at the knots ``j (pi/2) / 256``, j = 0..256: ``(257, order)`` (a fresh copy of
+    the table built once per order)."""
+    return _blocker_log_table(int(order)).copy()
+
+
+@functools.lru_cache(maxsize=None)
+def _blocker_log_table(order: int) -> np.ndarray:
     radii = np.arange(N_RADII + 1) * (0.5 * np.pi / N_RADII)
-    return np.ascontiguousarray(sh.blocker_log_zh(radii, order))
+    table = np.ascontiguousarray(sh.blocker_log_zh(radii, order))
+    table.setflags(write=False)
+    return table
+
+
+@contextlib.contextmanager
+def one_thread_below(size: int, threshold: int):
+    """Run the numba kernels of the block on one thread when ``size < threshold`` (then restore the count).
+
+    A parallel region waits for its slowest worker; on a loaded machine a worker is descheduled for a scheduler
+    time slice, so a call with little work (a few ms) runs faster on one thread (docs/notes/spherelights.md)."""
+    threads = numba.get_num_threads()
+    if size < threshold and threads > 1:
+        numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(threads)
 
 
 # --------------------------------------------------------------------------- kernels
@@ -310,7 +335,10 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work):
 
 def _blocker_log_knots() -> np.ndarray:
     """``1 - cos(theta_j)`` at the knots of :func:`blocker_log_table` (the interpolation variable), ``(257,)``."""
-    return 1.0 - np.cos(np.arange(N_RADII + 1) * (0.5 * np.pi / N_RADII))
+    return _BLOCKER_LOG_KNOTS.copy()
+
+
+_BLOCKER_LOG_KNOTS = 1.0 - np.cos(np.arange(N_RADII + 1) * (0.5 * np.pi / N_RADII))
 
 
 @numba.njit(cache=True, parallel=True)

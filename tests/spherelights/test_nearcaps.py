@@ -199,3 +199,43 @@ def test_pipeline_option_gives_the_closed_form():
     assert sel.sum() >= 5
     want = (math.pi - cos_na[sel] * math.pi * sin_t[sel] ** 2) * 0.5 / math.pi
     np.testing.assert_allclose(out.direct["a"][sel, 0], want, rtol=1e-9)
+
+
+@pytest.mark.parametrize("order", [4, 6])
+def test_split_kernel_against_reference(order):
+    """The lanes kernel of the split (the chosen caps and the others' log sum) against its numpy tier, to
+    rounding, over more receivers than one block of lanes and a partial last block (71 = 2 x 32 + 7), with some
+    spheres not eligible."""
+    from prtlab.spherelights._nearcaps import (
+        _min_sin, _near_split, _near_split_reference, _SplitTables)
+    from prtlab.spherelights._shadows import _blocker_log_knots, blocker_log_table
+
+    p, n = _receivers(3, 71)
+    c, r = _spheres()
+    c = np.concatenate([c, [[0.0, 1.6, 0.2], [0.3, -0.8, 0.1]]])
+    r = np.concatenate([r, [0.3, 0.2]])
+    elig = np.array([True, True, False, True, True])
+    for k in (0, 1, 2, 3):
+        g = np.zeros((len(p), order * order))
+        axis = np.zeros((len(p), k, 3))
+        cosq = np.full((len(p), k), 2.0)
+        _near_split(p, n, c, r, elig, _min_sin(), _SplitTables(blocker_log_table(order), _blocker_log_knots()),
+                    order, k, g, axis, cosq)
+        g_ref, axis_ref, cos_ref = _near_split_reference(p, n, c, r, elig, order, k)
+        np.testing.assert_allclose(g, g_ref, rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(axis, axis_ref, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(cosq, cos_ref, rtol=1e-12, atol=1e-12)
+        assert np.any(cosq <= 1.0) == (k > 0)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_transfer_kernel_against_environment_transfer(order):
+    """The near pass's transfer (``cos_{2n-1}(n) @ M`` in a numba kernel) against the public
+    :func:`environment_transfer` (BLAS), to rounding; no receivers gives an empty result."""
+    from prtlab.spherelights import environment_transfer
+    from prtlab.spherelights._nearcaps import _environment_transfer
+
+    _, n = _receivers(4, 37)
+    np.testing.assert_allclose(_environment_transfer(n, _sky(), order), environment_transfer(n, _sky(), order),
+                               rtol=1e-12, atol=1e-12)
+    assert _environment_transfer(np.zeros((0, 3)), _sky(), order).shape == (0, order * order, 3)
