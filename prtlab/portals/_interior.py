@@ -113,7 +113,8 @@ def leaving_transfer(caster: RayCaster, portal, vertex_offset, vertex_normals, o
     ``n_rays`` rays, each a stratified portal point (:func:`prtlab.portals._direct._portal_points`, Sobol') and a
     stratified uniform direction over the outward hemisphere (pdf ``1 / (2 pi)``): ``W = 2 pi / M sum_j Y(w_j)
     e_hit_j`` with ``e_hit`` the hit triangle's barycentrics on its vertices (zero on a back face, or a miss).
-    ``area_lights``: AreaLight objects seen straight from the window where nearer than the first surface.
+    ``area_lights``: AreaLight objects seen straight from the window where nearer than the first surface (their
+    front emits, their back is black; either hides what is behind).
     """
     import prtlab.sh as sh
 
@@ -137,12 +138,13 @@ def leaving_transfer(caster: RayCaster, portal, vertex_offset, vertex_normals, o
         hits = caster.closest_hit(y, -w)
         sel, vid, bw = front_hit_corners(hits, -w, faces_all, vertex_offset, vertex_normals)
         distance = np.where(hits.hit, hits.distance, np.inf)
-        for k, light in enumerate(area_lights):
-            t, seen = _rectangle_hit(light, y, -w)
-            seen &= t < distance
-            out_light[:, k] += basis[seen].sum(axis=0)
-            keep = ~seen[sel]
+        for k, light in enumerate(area_lights):  # a light nearer than the surface hides it; its front emits
+            t, met, front = _rectangle_hit(light, y, -w)
+            met &= t < distance
+            out_light[:, k] += basis[met & front].sum(axis=0)
+            keep = ~met[sel]
             sel, vid, bw = sel[keep], vid[keep], bw[keep]
+            distance = np.where(met, t, distance)
         b = basis[sel]
         for i in range(n2):
             out[i] += np.bincount(vid.ravel(), weights=(b[:, i:i + 1] * bw).ravel(), minlength=n_vertices)
@@ -151,14 +153,17 @@ def leaving_transfer(caster: RayCaster, portal, vertex_offset, vertex_normals, o
 
 
 def _rectangle_hit(light, origins, dirs):
-    """Distance along each ray to a one-sided AreaLight and whether the ray meets its emitting face."""
+    """Distance along each ray to an AreaLight's rectangle, whether the ray meets it, and whether on its emitting
+    (front) face."""
     n = light.normal
     denom = dirs @ n
-    t = np.einsum("rk,k->r", np.asarray(light.center) - origins, n) / np.where(denom < 0, denom, -1.0)
+    safe = np.where(np.abs(denom) > 1e-12, denom, 1.0)
+    t = np.einsum("rk,k->r", np.asarray(light.center) - origins, n) / safe
     p = origins + t[:, None] * dirs - np.asarray(light.center)
     u, v = np.asarray(light.u, float), np.asarray(light.v, float)
     s, q = p @ u / (u @ u), p @ v / (v @ v)
-    return t, (denom < 0) & (t > 0) & (np.abs(s) <= 1) & (np.abs(q) <= 1)
+    met = (np.abs(denom) > 1e-12) & (t > 0) & (np.abs(s) <= 1) & (np.abs(q) <= 1)
+    return t, met, denom < 0
 
 
 def leaving_radiance(coeffs, dirs) -> np.ndarray:

@@ -1275,7 +1275,10 @@ class Portals(Precomputation):
         if "leaving" in self.data["portal0"]:
             t0 = time.perf_counter()
             area = np.zeros((0, 3)) if emission is None else emission[self._area_light_rows()]
-            total = direct + indirect
+            # the direct light read through the window with its hat averages' power (a sun patch's point values
+            # at the vertices lose part of it), when the patches are the vertices; else the point values
+            sent = None if surface is None else surface.sent_direct(source)
+            total = (direct if sent is None else sent) + indirect
             leaving = [self.data[f"portal{k}"]["leaving"] @ total + self.data[f"portal{k}"]["leaving_light"] @ area
                        for k in range(self.n_portals)]
             timings["leaving"] = time.perf_counter() - t0
