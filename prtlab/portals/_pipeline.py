@@ -32,6 +32,9 @@ A window may open and close (option ``portal_strips``, ``indirect="surface"``): 
 are stored per strip, and a frame gives the open part as the portal object's deformation
 (``FrameState.deformations``, :meth:`Portals.opening_vertices`), the closed part a black shutter; any other
 motion or deformation is refused, naming the object.
+Interior point and area lights (``indirect="surface"``; :mod:`prtlab.portals._interior`) are placed at precompute
+time, their emission per frame (``FrameState.lights``, or ``shade_shells(lights=...)``); option ``leaving_order``
+gives the radiance leaving each portal, ``shade(...).info["leaving_sh"]``.
 Measured accuracy: ``docs/NOTES.md``.
 
 Examples
@@ -194,7 +197,7 @@ class PortalsOptions:
     portal_strips: int = 0
     light_samples: int = 64
     leaving_order: int = 0
-    leaving_rays: int = 262_144
+    leaving_rays: int = 1_048_576
 
     def __post_init__(self):
         check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "max_gather_rays", "order",
@@ -738,11 +741,13 @@ class Portals(Precomputation):
         """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
         every object where it stands, dynamic or not; with ``target_noise`` the scene's environment too."""
         opts = dataclasses.asdict(options)
-        for name in ("light_samples", "leaving_order", "leaving_rays"):  # keys made before these options stay valid
-            if opts[name] == getattr(PortalsOptions, name):
-                del opts[name]
-        parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
         lights = _interior_lights(scene.lights)
+        # options that cannot change the data leave the key (so keys made before they existed stay valid)
+        unused = (() if lights else ("light_samples",)) + (() if options.leaving_order else ("leaving_order",
+                                                                                             "leaving_rays"))
+        for name in unused:
+            del opts[name]
+        parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
         if lights:  # interior lights' positions are baked (their emission is per frame)
             parts.append([_light_geometry(light) for light in lights])
         env = scene.environment

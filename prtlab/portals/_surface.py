@@ -436,8 +436,7 @@ class SurfaceTransfer:
             return None
         source = np.asarray(source, dtype=np.float64)
         consistent = self.project @ source
-        correction = self.source_correction(source)
-        return consistent if correction is None else consistent + correction
+        return consistent if self.mass is None else limited_projection(source, self.mass, self.areas, consistent)
 
     def patch_light(self, direct, bounces: int) -> np.ndarray:
         """``S_B Pbar L_d``, ``(C, 3)`` float64 from the stored float32 ``S_B``: the light the patches send after

@@ -104,6 +104,18 @@ def test_leaving_transfer_of_uniform_radiance():
     np.testing.assert_allclose(leaving_radiance(np.tile(c[:, None], 3), outward[None])[0], 1.25, rtol=3e-3)
 
 
+def test_sent_direct_keeps_constants_and_power(lamp_pre):
+    """The direct light the vertices send (the limited projection of hat averages) keeps a constant, and keeps the
+    power ``sum a_v s_v`` of any non-negative source, non-negative."""
+    st = lamp_pre.surface_transfer()
+    n = st.n_patches
+    np.testing.assert_allclose(st.sent_direct(np.ones((n, 3))), 1.0, rtol=1e-6)  # the projection stored in float32
+    s = np.random.default_rng(4).random((n, 3)) ** 4
+    sent = st.sent_direct(s)
+    assert np.all(sent >= -1e-12)
+    np.testing.assert_allclose(st.areas @ sent, st.areas @ s, rtol=1e-6)
+
+
 def test_empty_inputs():
     caster = RayCaster(_plane_scene())
     assert interior_light_factor(caster, np.zeros((0, 3)), np.zeros((0, 3)),
@@ -188,3 +200,21 @@ def test_area_lamp_seen_through_the_window():
     with_lamp = pre.shade(bounces=2).info["leaving_sh"][0]
     room_only = (pre.data["portal0"]["leaving"] @ pre.shade(bounces=2).total["room"])
     assert np.all(with_lamp[0] > room_only[0])
+
+
+def test_cache_key_holds_what_changes_the_data():
+    """Without interior lights and ``leaving_order=0`` the new options leave the key (keys made before them stay
+    valid); with a lamp its position and ``light_samples`` are in it, with ``leaving_order`` the leaving rays."""
+    from prtlab.cache import cache_key
+
+    def key(scene, **options):
+        return cache_key(*Portals.cache_key_parts(scene, Portals.make_options({**TINY, **options})))
+
+    plain = window_box(cell=1.0)
+    assert key(plain) == key(plain, light_samples=7) == key(plain, leaving_rays=99)
+    assert key(plain) != key(plain, leaving_order=2) != key(plain, leaving_order=2, leaving_rays=99)
+    lamp = _lamp_box()
+    moved = _lamp_box({**LAMP, "position": [0.0, 2.0, 0.0]})
+    brighter = _lamp_box({**LAMP, "intensity": [9.0, 9.0, 9.0]})
+    assert key(lamp) != key(plain) and key(lamp) != key(moved) and key(lamp) == key(brighter)
+    assert key(lamp) != key(lamp, light_samples=7)
