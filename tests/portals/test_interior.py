@@ -185,6 +185,8 @@ def test_refusals(lamp_pre):
         interior_light_factor(RayCaster(_plane_scene()), np.zeros((1, 3)), np.zeros((1, 3)), "lamp")
     with pytest.raises(ValueError, match=r"coeffs must be \(n\*n, 3\)"):
         leaving_radiance(np.zeros((5, 3)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match=r"dirs must be \(\.\.\., 3\) directions"):
+        leaving_radiance(np.zeros((4, 3)), np.zeros((1, 2)))
     with pytest.raises(ValueError, match=r"points and normals must both be \(N, 3\)"):
         interior_light_factor(RayCaster(_plane_scene()), np.zeros((2, 3)), np.zeros((1, 3)),
                               PointLight(np.ones(3), np.ones(3)))
