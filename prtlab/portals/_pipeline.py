@@ -171,7 +171,7 @@ class PortalsOptions:
         0: off. ``n > 0``: precompute the radiance leaving each portal toward the exterior (the interior's lit
         surfaces and area lights seen through the window, averaged over it) as order-``n`` SH per portal; each
         frame gives it in ``shade(...).info["leaving_sh"]`` (``(P, n^2, 3)``; evaluate with
-        :func:`prtlab.portals.leaving_radiance`).
+        :func:`prtlab.portals.leaving_radiance`). Fixed windows only (not with ``portal_strips``).
     leaving_rays : int
         ``leaving_order > 0``: (portal point, outward direction) rays per portal of the leaving transfer.
     """
@@ -806,6 +806,9 @@ class Portals(Precomputation):
             why = f"{glossy[0]!r} is glossy, so indirect='auto' is 'paper'" if glossy else "indirect='paper'"
             raise ValueError(f"interior lights (point and area lights in the scene) need indirect='surface' (the "
                              f"photon SH transfer carries the exterior's light only), but {why}")
+        if options.leaving_order and options.portal_strips:
+            raise ValueError("option leaving_order needs fixed windows (the leaving transfer is traced through the "
+                             "whole window): use portal_strips=0, or leaving_order=0 with portal_strips")
         if options.indirect == "surface" and glossy:
             raise ValueError(f"option indirect='surface' needs a diffuse interior, but {glossy[0]!r} is glossy: "
                              "use indirect='paper' (or 'auto')")

@@ -179,6 +179,9 @@ def test_refusals(lamp_pre):
         plain.shade_shells(_shells(plain), bounces=0, lights=[[1.0, 1.0, 1.0]])
     with pytest.raises(ValueError, match="interior lights .* need indirect='surface'"):
         Portals.precompute(_lamp_box(), {**TINY, "indirect": "paper"}, cache=False, progress=False)
+    with pytest.raises(ValueError, match="option leaving_order needs fixed windows"):
+        Portals.precompute(_lamp_box(), {**TINY, "leaving_order": 2, "portal_strips": 2}, cache=False,
+                           progress=False)
     with pytest.raises(ValueError, match="option leaving_order"):
         Portals.precompute(_lamp_box(), {**TINY, "leaving_order": -1}, cache=False, progress=False)
     with pytest.raises(TypeError, match="light must be a PointLight or AreaLight"):
