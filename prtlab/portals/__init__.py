@@ -16,11 +16,15 @@ Per frame only the light (the environment, or shell cubemaps per portal) and the
 are precomputed: moving one (a pose in the ``FrameState``, or the scene's object edited in place) is refused with
 a one-line error; re-precompute at the new pose. A window may open and close (option ``portal_strips``: the
 portal object's deformation in the ``FrameState`` is its open part, the rest a black shutter).
+Interior point and area lights (placed at precompute time, their emission per frame) light the room with the sky,
+and option ``leaving_order`` gives the radiance leaving each portal toward the exterior (``docs/notes/portals.md``,
+section 14).
 """
 
 from ._direct import (direct_transfer, glossy_direct_transfer, phong_lipschitz, strip_frame, strip_weights,
                       view_interpolation)
 from ._exterior import exterior_shell
+from ._interior import interior_light_factor, leaving_radiance, leaving_transfer
 from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
                         trace_photons)
 from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
@@ -51,6 +55,10 @@ __all__ = [
     "radiance_estimate",
     "disc_coverage",
     "final_gather",
+    # interior lights and the light leaving through the portals (the paper's future work)
+    "interior_light_factor",
+    "leaving_transfer",
+    "leaving_radiance",
     # run time
     "direct_pass",
     "indirect_pass",

@@ -32,6 +32,9 @@ A window may open and close (option ``portal_strips``, ``indirect="surface"``): 
 are stored per strip, and a frame gives the open part as the portal object's deformation
 (``FrameState.deformations``, :meth:`Portals.opening_vertices`), the closed part a black shutter; any other
 motion or deformation is refused, naming the object.
+Interior point and area lights (``indirect="surface"``; :mod:`prtlab.portals._interior`) are placed at precompute
+time, their emission per frame (``FrameState.lights``, or ``shade_shells(lights=...)``); option ``leaving_order``
+gives the radiance leaving each portal, ``shade(...).info["leaving_sh"]``.
 Measured accuracy: ``docs/NOTES.md``.
 
 Examples
@@ -61,12 +64,13 @@ from prtlab._validate import check_bool, check_choice, check_float
 from prtlab.geometry import RayCaster, cubemap_directions
 from prtlab.cache import cache_key
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
-from prtlab.scene import EnvironmentLight, Scene, ShadeResult
+from prtlab.scene import AreaLight, EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
 from ._direct import (PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, strip_frame, strip_weights,
                       view_interpolation)
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
+from ._interior import INTERIOR_LIGHTS, interior_light_factor, leaving_transfer
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
                      glossy_indirect_pass, glossy_lobe_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
@@ -166,6 +170,19 @@ class PortalsOptions:
         rows 4.1x, the frame 1.35x half open and 2.3x wholly open (closed strips are skipped); an opening on the
         strips' boundaries is as accurate as the fixed window, a part-open strip costs up to 3.5% of the direct
         light (``docs/notes/portals.md``, "Moving portals").
+    light_samples : int
+        Interior area lights (:class:`prtlab.scene.AreaLight` in the scene's lights; ``indirect="surface"``): points
+        on the light per shading point of its direct light factor (a point light needs one). Interior lights
+        (point or area, the paper's future work) are placed at precompute time, their intensity or radiance
+        changes per frame; their direct light and every bounce are shaded with the sky's, light reaching a portal
+        leaves the room (:mod:`prtlab.portals._interior`; ``docs/notes/portals.md``, section 14).
+    leaving_order : int
+        0: off. ``n > 0``: precompute the radiance leaving each portal toward the exterior (the interior's lit
+        surfaces and area lights seen through the window, averaged over it) as order-``n`` SH per portal; each
+        frame gives it in ``shade(...).info["leaving_sh"]`` (``(P, n^2, 3)``; evaluate with
+        :func:`prtlab.portals.leaving_radiance`). Fixed windows only (not with ``portal_strips``).
+    leaving_rays : int
+        ``leaving_order > 0``: (portal point, outward direction) rays per portal of the leaving transfer.
     """
 
     cube_resolution: int = 0
@@ -188,12 +205,16 @@ class PortalsOptions:
     near_reads: float = 0.25
     seed: int = 0
     portal_strips: int = 0
+    light_samples: int = 64
+    leaving_order: int = 0
+    leaving_rays: int = 1_048_576
 
     def __post_init__(self):
         check_int_options(self, ("direct_samples", "n_photons", "gather_rays", "max_gather_rays", "order",
-                                 "photon_k", "view_res", "clusters"))
+                                 "photon_k", "view_res", "clusters", "light_samples", "leaving_rays"))
         check_float(self.target_noise, "option target_noise", 0.0, meaning="relative RMS, 0: off")
-        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution", "portal_strips"), minimum=0)
+        check_int_options(self, ("seed", "bounces", "glossy_order", "cube_resolution", "portal_strips",
+                                 "leaving_order"), minimum=0)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
                              f"{self.cube_resolution}")
@@ -646,6 +667,46 @@ def _assemble(chunks: dict, estimates: list, interior: _Interior, options: Porta
     return data
 
 
+def _interior_lights(lights) -> list:
+    """The interior lights (point and area lights) among ``lights``, in order."""
+    return [light for light in lights if isinstance(light, INTERIOR_LIGHTS)]
+
+
+def _light_geometry(light) -> np.ndarray:
+    """What of an interior light the precomputation bakes: its position (point) or rectangle (area), flat."""
+    if isinstance(light, AreaLight):
+        return np.concatenate([[1.0], light.center, light.u, light.v]).astype(np.float64)
+    return np.concatenate([[0.0], light.position]).astype(np.float64)
+
+
+def _light_emission(light) -> np.ndarray:
+    """``E (3,)``: a point light's intensity or an area light's radiance."""
+    return np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, dtype=np.float64)
+
+
+def _interior_light_data(caster, interior: _Interior, lights, options: PortalsOptions, rng) -> dict:
+    """Per interior light the direct light factor at the vertices (``factor (L, V)``) and, with bounces, averaged
+    over each vertex's hat function (``source (L, V)``: the light a vertex sends on, as the hat-averaged source
+    transfer of the sky), and the baked geometry (``geometry (L, 10)``, zero-padded)."""
+    t0 = time.perf_counter()
+    n_v = len(interior.points)
+    factor, source = np.zeros((len(lights), n_v)), np.zeros((len(lights), n_v))
+    hat_samples = max(1, options.light_samples // _HAT_SPLIT**2)
+    for i, light in enumerate(lights):
+        factor[i] = interior_light_factor(caster, interior.points, interior.normals, light, options.light_samples, rng)
+        if options.bounces > 0:
+            for r0 in range(0, n_v, Portals.chunk_vertices):
+                rows = slice(r0, min(n_v, r0 + Portals.chunk_vertices))
+                points, normals, weights = hat_points(caster, interior.offsets, interior.normals, rows, _HAT_SPLIT)
+                source[i, rows] = weights @ interior_light_factor(caster, points, normals, light, hat_samples, rng)
+    geometry = np.zeros((len(lights), 10))
+    for i, light in enumerate(lights):
+        g = _light_geometry(light)
+        geometry[i, : len(g)] = g
+    return {"factor": factor, "source": source, "geometry": geometry,
+            "seconds": np.array(time.perf_counter() - t0)}
+
+
 class Portals(Precomputation):
     """Precomputed portal transfer of a static interior (Yue et al. 2009)."""
 
@@ -704,7 +765,15 @@ class Portals(Precomputation):
         """Every object's transform is in the key: the photons, gather rays and shadow rays are traced against
         every object where it stands, dynamic or not; with ``target_noise`` the scene's environment too."""
         opts = dataclasses.asdict(options)
+        lights = _interior_lights(scene.lights)
+        # options that cannot change the data leave the key (so keys made before they existed stay valid)
+        unused = (() if lights else ("light_samples",)) + (() if options.leaving_order else ("leaving_order",
+                                                                                             "leaving_rays"))
+        for name in unused:
+            del opts[name]
         parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene, dynamic_transforms=True), opts]
+        if lights:  # interior lights' positions are baked (their emission is per frame)
+            parts.append([_light_geometry(light) for light in lights])
         env = scene.environment
         if options.target_noise > 0 and env is not None:  # the gather's ray count follows the scene's light
             parts.append(np.asarray(env.image if env.image is not None else env.constant, dtype=np.float64))
@@ -727,12 +796,12 @@ class Portals(Precomputation):
 
     @classmethod
     def check_lights(cls, lights, options) -> None:
-        """Exactly one environment light, seen through the portals."""
+        """Exactly one environment light, seen through the portals, and any interior point and area lights."""
         envs = [light for light in lights if isinstance(light, EnvironmentLight)]
-        if len(envs) != 1 or len(envs) != len(lights):
+        if len(envs) != 1 or len(envs) + len(_interior_lights(lights)) != len(lights):
             raise ValueError(
-                "the portals pipeline is lit by exactly one environment light seen through the portals; "
-                f"got lights {[type(x).__name__ for x in lights]}"
+                "the portals pipeline is lit by exactly one environment light seen through the portals (and any "
+                f"interior point and area lights); got lights {[type(x).__name__ for x in lights]}"
             )
 
     @classmethod
@@ -758,6 +827,13 @@ class Portals(Precomputation):
         if not any(o.portal for o in scene.objects):
             raise ValueError("the scene has no portal: mark the window objects with 'portal: true'")
         glossy = [o.name for o in _shaded(scene) if _is_glossy(o)]
+        if _interior_lights(scene.lights) and cls.indirect_mode(scene, options) != "surface":
+            why = f"{glossy[0]!r} is glossy, so indirect='auto' is 'paper'" if glossy else "indirect='paper'"
+            raise ValueError(f"interior lights (point and area lights in the scene) need indirect='surface' (the "
+                             f"photon SH transfer carries the exterior's light only), but {why}")
+        if options.leaving_order and options.portal_strips:
+            raise ValueError("option leaving_order needs fixed windows (the leaving transfer is traced through the "
+                             "whole window): use portal_strips=0, or leaving_order=0 with portal_strips")
         if options.indirect == "surface" and glossy:
             raise ValueError(f"option indirect='surface' needs a diffuse interior, but {glossy[0]!r} is glossy: "
                              "use indirect='paper' (or 'auto')")
@@ -879,6 +955,18 @@ class Portals(Precomputation):
                                                         map_fn, progress)
             if not surface:
                 data["gather_noise"]["photon_noise"] = _photon_noise(estimates, scene, options)
+        lights = _interior_lights(scene.lights)
+        if lights:
+            data["lights"] = _interior_light_data(caster, interior, lights, options,
+                                                  np.random.default_rng([options.seed, 17]))
+        if options.leaving_order > 0:
+            area = [light for light in lights if isinstance(light, AreaLight)]
+            for k, portal in enumerate(portals):
+                t0 = time.perf_counter()
+                w, w_light = leaving_transfer(caster, portal, interior.offsets, interior.normals, options.leaving_order,
+                                              options.leaving_rays, np.random.default_rng([options.seed, 18, k]), area)
+                data[f"portal{k}"].update(leaving=w, leaving_light=w_light,
+                                          seconds_leaving=np.array(time.perf_counter() - t0))
         return data
 
     @classmethod
@@ -1119,7 +1207,7 @@ class Portals(Precomputation):
         return d / norm
 
     def shade_shells(self, shells, bounces: int | None = None, method: str = "numba", camera=None,
-                     openings=None) -> ShadeResult:
+                     openings=None, lights=None) -> ShadeResult:
         """Per-vertex radiance from given shell lights, one ``(6, r, r, 3)`` cubemap per portal.
 
         Use it for a dynamic exterior (cubemaps rendered from each portal
@@ -1134,6 +1222,10 @@ class Portals(Precomputation):
         as that fraction of the strip's). The indirect light then follows exactly: the interior gather's rays
         that leave through the portal carry no light, as they would off a black shutter (the exterior enters only
         through the direct transfer). Refused once an object of the scene moved after the precomputation.
+        ``lights``: the interior lights' emission this frame, ``(L, 3)`` (each point light's intensity or area
+        light's radiance, in the scene's order; default the scene's): their direct light and bounces add to the
+        sky's. With option ``leaving_order`` the radiance leaving each portal is ``info["leaving_sh"]`` (``(P,
+        n^2, 3)`` SH over world directions; :func:`prtlab.portals.leaving_radiance`).
         """
         bounces = self._check_bounces(bounces)
         _check_method(method)
@@ -1210,10 +1302,29 @@ class Portals(Precomputation):
                                                         method=method)
             timings["direct"] += t1 - t0
             timings["indirect"] += time.perf_counter() - t1
+        emission = self._interior_emission(lights)
+        if emission is not None:  # interior lights: direct light, and the hat-averaged light the vertices send on
+            t0 = time.perf_counter()
+            e = self.data["lights"]
+            direct += albedo / np.pi * (np.asarray(e["factor"], dtype=np.float64).T @ emission)
+            if surface is not None:
+                source += surface.patch_source(albedo / np.pi * (np.asarray(e["source"], dtype=np.float64).T
+                                                                 @ emission))
+            timings["lights"] = time.perf_counter() - t0
         if surface is not None:
             t0 = time.perf_counter()
             indirect = surface.frame(source, bounces, method=method, direct=direct)
             timings["indirect"] += time.perf_counter() - t0
+        if "leaving" in self.data["portal0"]:
+            t0 = time.perf_counter()
+            area = np.zeros((0, 3)) if emission is None else emission[self._area_light_rows()]
+            # the direct light read through the window with its hat averages' power (a sun patch's point values
+            # at the vertices lose part of it), when the patches are the vertices; else the point values
+            sent = None if surface is None else surface.sent_direct(source)
+            total = (direct if sent is None else sent) + indirect
+            leaving = [self.data[f"portal{k}"]["leaving"] @ total + self.data[f"portal{k}"]["leaving_light"] @ area
+                       for k in range(self.n_portals)]
+            timings["leaving"] = time.perf_counter() - t0
         result = ShadeResult()
         offsets = np.concatenate([[0], np.cumsum([o.n_vertices for o in objs])])
         for o, a, b in zip(objs, offsets[:-1], offsets[1:]):
@@ -1222,6 +1333,8 @@ class Portals(Precomputation):
             result.total[o.name] = direct[a:b] + indirect[a:b]
         result.info = {"method": self.method, "bounces": bounces, "timings": timings,
                        "direct_samples": self.options.direct_samples}
+        if "leaving" in self.data["portal0"]:
+            result.info["leaving_sh"] = np.stack(leaving)
         if self.options.portal_strips:
             result.info["openings"] = [(0.0, 1.0)] * self.n_portals if openings is None else \
                 [(0.0, 1.0) if o is None else (float(o[0]), float(o[1])) for o in openings]
@@ -1234,10 +1347,41 @@ class Portals(Precomputation):
                 result.info["photon_noise"] = float(self.data["gather_noise"]["photon_noise"])
         return result
 
+    def _area_light_rows(self) -> np.ndarray:
+        """Which interior lights are area lights (their radiance is seen through the window), ``(L,) bool``."""
+        return np.asarray(self.data["lights"]["geometry"])[:, 0] == 1.0
+
+    def _interior_emission(self, lights) -> np.ndarray | None:
+        """The interior lights' emission ``(L, 3)`` float64 (default: the scene's), None without interior lights."""
+        if "lights" not in self.data:
+            if lights is not None and len(lights):
+                raise ValueError("the scene was precomputed without interior lights: add the point or area lights to "
+                                 "the scene and precompute again")
+            return None
+        n = len(self.data["lights"]["geometry"])
+        if lights is None:
+            lights = [_light_emission(light) for light in _interior_lights(self.scene.lights)]
+        emission = np.asarray(lights, dtype=np.float64)
+        if emission.shape != (n, 3) or not np.all(np.isfinite(emission)) or np.any(emission < 0):
+            raise ValueError(f"lights must be the {n} interior lights' finite non-negative RGB emission (intensity "
+                             f"of a point light, radiance of an area light), shape ({n}, 3); got shape "
+                             f"{emission.shape}")
+        return emission
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
-        cube = shell_light(state.lights[0], int(self.data["portal0"]["res"]))
+        env = next(light for light in state.lights if isinstance(light, EnvironmentLight))
+        cube = shell_light(env, int(self.data["portal0"]["res"]))
+        interior = _interior_lights(state.lights)
+        baked = np.asarray(self.data["lights"]["geometry"]) if "lights" in self.data else np.zeros((0, 10))
+        geometry = [_light_geometry(light) for light in interior]
+        if len(geometry) != len(baked) or any(
+                not np.allclose(g, b[: len(g)], rtol=0.0, atol=1e-9) for g, b in zip(geometry, baked)):
+            raise ValueError(f"the interior lights were precomputed where they stand ({len(baked)} of them): a "
+                             "frame may change their intensity or radiance, not move, add or remove one; "
+                             "re-precompute with the lights at their new places")
         return self.shade_shells([cube] * self.n_portals, bounces, camera=state.camera,
-                                 openings=self.openings(state))
+                                 openings=self.openings(state),
+                                 lights=[_light_emission(light) for light in interior] if interior else None)
 
     @classmethod
     def shade_scene(cls, scene: Scene, bounces: int = 1, cache=True, progress: bool = True, **options) -> ShadeResult:

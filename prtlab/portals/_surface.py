@@ -428,6 +428,16 @@ class SurfaceTransfer:
         consistent = self.project @ source
         return limited_projection(source, self.mass, self.areas, consistent) - consistent
 
+    def sent_direct(self, source):
+        """The direct light the vertices send, as interpolant coefficients ``(V, 3)`` float64 with the hat averages'
+        power: the limited projection of the patches' source ``s (C, 3)`` (the ``b = 0`` term of :meth:`frame`'s
+        bounce sum); None when the patches are clusters (no per-vertex hat averages)."""
+        if self.project is None:
+            return None
+        source = np.asarray(source, dtype=np.float64)
+        consistent = self.project @ source
+        return consistent if self.mass is None else limited_projection(source, self.mass, self.areas, consistent)
+
     def patch_light(self, direct, bounces: int) -> np.ndarray:
         """``S_B Pbar L_d``, ``(C, 3)`` float64 from the stored float32 ``S_B``: the light the patches send after
         ``0 .. B-1`` bounces (the ``b = 0`` term limited as in :meth:`frame`)."""
