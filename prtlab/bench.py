@@ -35,7 +35,8 @@ the roofline (``max(flop / peak, bytes / bandwidth) / seconds``: 100% is a pass 
 ``write_docs`` writes the tables of a report into a Markdown file between
 ``<!-- bench:begin NAME -->`` and ``<!-- bench:end NAME -->`` markers (the
 section ``machine`` gets the run's header; any other ``NAME`` the cases whose
-names start with ``NAME.``), leaving the text around them as it is.
+names start with ``NAME.``, with the rows of an earlier run that this one did not
+repeat kept below under their own run line), leaving the text around them as it is.
 ``python -m prtlab.bench`` runs the benchmarks from the command line.
 """
 
@@ -254,7 +255,8 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
 
     Ours and every peer run with ``threads`` threads (default: every core), BLAS and numba alike.
     Returns the report ``{"machine": {cpu, cores, threads, peak_gflops, bandwidth_gbs, numpy, python}, "quick":
-    bool, "started": ISO date (UTC), "load_at_start": [1, 5, 15 min load averages], "cases": [...]}``, one entry
+    bool, "started": ISO date (UTC), "load_at_start": [1, 5, 15 min load averages], "registered": [every case's
+    name], "cases": [...]}``, one entry
     per case (``name``, ``seconds_median``, ``repeats`` and, where known, ``gflop``, ``gflops``,
     ``share_of_peak``, ``items``, ``items_per_second``, ``peer``, ``speedup_vs_peer``, ``floor`` (``gflop``,
     ``bytes``, ``formula``, ``share_of_peak``, ``share_of_bandwidth``, ``share_of_roofline``),
@@ -303,6 +305,7 @@ def run_benchmarks(quick: bool = False, select: str | None = None, json_path=Non
         "quick": quick,
         "started": started,
         "load_at_start": load,
+        "registered": sorted(_CASES),
         "cases": cases,
     }
     if json_path:
@@ -389,6 +392,29 @@ def _run_line(report: dict) -> str:
             f"Python {m['python']}.")
 
 
+_TABLE_HEAD = ("| case | median | peer | peer median | peer / ours | GFLOP/s (share of peak) | floor: GFLOP, MB | "
+               "floor's share: peak, bandwidth, roofline | stored | items/s | info |",
+               "|---|---|---|---|---|---|---|---|---|---|---|")
+_ROW_NAME = re.compile(r"^\| `(?P<name>[^`]+)` \|")
+
+
+def _earlier_rows(body: str, report: dict) -> str:
+    """The tables of a section's earlier text (``body``) cut to the rows of the cases ``report`` did not run and
+    that are still registered, each block with its own run line; ``""`` when no row is left."""
+    ran = {c["name"] for c in report["cases"]}
+    registered = set(report.get("registered", ()))
+    out, rows = [], []
+    for line in body.splitlines():
+        row = _ROW_NAME.match(line)
+        if row and row["name"] not in ran and (not registered or row["name"] in registered):
+            rows.append(line)
+        elif line.startswith("Run of "):
+            if rows:
+                out.append("\n".join([*_TABLE_HEAD, *rows]) + "\n\n" + line + "\n")
+            rows = []
+    return "".join("\n" + block for block in out)
+
+
 def render_section(report: dict, name: str) -> str | None:
     """The Markdown of section ``name`` from a report (``run_benchmarks``' value or its JSON), or None when
     the report has no case for it: ``machine`` is the run's header line, any other name a table of the
@@ -400,9 +426,7 @@ def render_section(report: dict, name: str) -> str | None:
     rows = [c for c in report["cases"] if c["name"] == name or c["name"].startswith(name + ".")]
     if not rows:
         return None
-    lines = ["| case | median | peer | peer median | peer / ours | GFLOP/s (share of peak) | floor: GFLOP, MB | "
-             "floor's share: peak, bandwidth, roofline | stored | items/s | info |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = list(_TABLE_HEAD)
     for c in rows:
         peer = c.get("peer")
         rate = f"{c['gflops']:.3g} ({100 * c['share_of_peak']:.1f}%)" if "share_of_peak" in c else ""
@@ -417,8 +441,10 @@ def render_section(report: dict, name: str) -> str | None:
 
 
 def write_docs(report: dict, path=None) -> list[str]:
-    """Replace every marked section of ``path`` (default :func:`default_docs_path`) that the report has
-    cases for with its generated text; the text outside the markers is kept. Returns the names written.
+    """Write the tables of ``report`` into the marked sections of ``path`` (default :func:`default_docs_path`)
+    that it has cases for; the text outside the markers is kept. A section's rows of cases the report did not run
+    (a ``--select`` run) stay below its new table, with the run line they came with, unless the case is no longer
+    registered. Returns the names written.
 
     Raises ``FileNotFoundError`` when ``path`` does not exist and ``ValueError`` when it has no markers.
     """
@@ -431,6 +457,8 @@ def write_docs(report: dict, path=None) -> list[str]:
         body = render_section(report, match["name"])
         if body is None:
             return match[0]
+        if match["name"] != "machine":
+            body += _earlier_rows(match["body"], report)
         written.append(match["name"])
         return f"<!-- bench:begin {match['name']} -->\n{body}<!-- bench:end {match['name']} -->"
 

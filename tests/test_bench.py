@@ -216,6 +216,28 @@ def test_write_docs_fills_the_marked_sections_only(bench_folder, tmp_path):
     assert report["started"] in sections["toy"] and "quick sizes" in sections["toy"]
 
 
+def test_write_docs_keeps_the_rows_a_selection_did_not_run(tmp_path):
+    """A selection's table heads its section; the earlier rows it did not repeat stay below with their own run
+    line, and a row of a case no longer registered goes."""
+    old_run = "Run of 2000-01-01 00:00 UTC, an earlier run."
+    head = "\n".join(bench._TABLE_HEAD)
+    doc = tmp_path / "BENCH.md"
+    doc.write_text(f"<!-- bench:begin toy -->\n{head}\n| `toy.a` | 1 ms |\n| `toy.b` | 2 ms |\n| `toy.gone` | 3 ms |\n\n"
+                   f"{old_run}\n<!-- bench:end toy -->\n")
+    report = {"machine": {"cpu": "cpu", "cores": 2, "threads": 2, "peak_gflops": 1.0, "numpy": "x", "python": "y"},
+              "quick": True, "started": "2001-01-01 00:00 UTC", "load_at_start": None,
+              "registered": ["toy.a", "toy.b"], "cases": [{"name": "toy.a", "seconds_median": 0.5}]}
+    assert bench.write_docs(report, doc) == ["toy"]
+    body = bench.doc_sections(doc.read_text())["toy"]
+    new, earlier = body.split("\n\n| case", 1)[0], body.split(bench._run_line(report), 1)[1]
+    assert "`toy.a` | 500 ms" in new and "`toy.b`" not in new
+    assert earlier == f"\n\n{head}\n| `toy.b` | 2 ms |\n\n{old_run}\n"
+    assert "toy.gone" not in body
+    # run again: the kept block stays once, the new table is replaced
+    bench.write_docs(report, doc)
+    assert bench.doc_sections(doc.read_text())["toy"] == body
+
+
 def test_write_docs_errors(tmp_path):
     report = {"cases": []}
     with pytest.raises(FileNotFoundError, match=r"--write-docs .*absent.md: no such file"):
