@@ -20,10 +20,10 @@ samples per vertex):
 - indirect light: Mitsuba 3 at :data:`SPP` samples per vertex, the same bounces;
 - total: the quadrature's direct light plus Mitsuba's indirect light, so its noise is the indirect part's alone.
 
-The module costs about 2.5 CPU-minutes (the precomputation, the reference at :data:`SPP`, the quadratures); a noise of a third of the
-goal on the indirect rows would need about 93,000 samples per vertex (the room) and 65,000 (the bunny): those rows
-miss by far more than the noise (:data:`MEASURED`), so they stay at :data:`SPP` and ``check`` refuses them as too
-noisy (strict xfails, ``ValueError``, their measured figures in the reason).
+The module costs about 2.5 CPU-minutes (the precomputation, the reference at :data:`SPP`, the quadratures). A
+noise of a third of the goal on the indirect rows would need about 93,000 samples per vertex (the room) and 65,000
+(the bunny): those rows miss by far more than the noise (:data:`MEASURED`), so they stay at :data:`SPP` and ``check``
+refuses them as too noisy (strict xfails, ``ValueError``, their measured figures in the reason).
 """
 
 from __future__ import annotations
