@@ -190,3 +190,16 @@ def test_direct_quadrature_against_mitsuba(glossy_scored):
         allowed = MC_SIGMAS * np.sqrt((se**2).sum(0)) / len(q) + np.abs(q - c).mean(0)
         assert np.all(np.abs(q.mean(0) - m.mean(0)) <= allowed), (o, q.mean(0), m.mean(0), allowed)
         assert np.sqrt(np.sum((q - c) ** 2) / np.sum(q**2)) < 0.01, o
+
+
+def test_window_direct_refuses_other_windows():
+    """The quadrature integrates one axis-aligned rectangle in a plane z = const: a window on an x wall is refused."""
+    d = glossy_box().to_dict()
+    for obj in d["objects"][:2]:
+        windows = obj["mesh"].get("windows")
+        if windows:
+            windows[0]["wall"] = "+x"
+        else:
+            obj["mesh"]["wall"] = "+x"
+    with pytest.raises(ValueError, match="axis-aligned rectangular window in a plane z = const"):
+        window_direct(Scene.from_dict(d), 4)
