@@ -16,7 +16,8 @@ whether the ray from ``p`` along ``w`` meets the receiver's own mesh, another ob
 or an opaque sphere (a local light). The receiver's own mesh is tested once per vertex in object space
 (:func:`self_blocked`: a rigid motion turns the rays with the object, so the bits hold for every pose); another
 object's mesh in that object's space (its caster built once), only along rays meeting one of its bounding
-spheres (its lights: the spheres bound the mesh, ``_fit``).
+spheres (its lights: the spheres bound the mesh, ``_fit``), and not along the rays meeting one of its inner spheres
+(balls inside the closed mesh: such a ray meets the mesh first).
 
 Measured figures: ``docs/notes/spherelights.md``.
 """
@@ -32,9 +33,10 @@ import numpy as np
 
 from prtlab import sh
 
-__all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "mesh_direct"]
+__all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "inner_spheres",
+           "mesh_direct"]
 
-_CHUNK = 256  # receivers per batch (bounds the (P, M) masks)
+_CHUNK = 1024  # receivers per batch (bounds the (P, M) masks)
 
 
 @functools.lru_cache(maxsize=None)
@@ -80,20 +82,23 @@ def self_blocked(points, normals, vertices, faces, dirs, *, method: str = "embre
 
 class MeshOccluder(NamedTuple):
     """One blocking object: its mesh's caster in object space (``caster``), the object's pose (``rotation (3, 3)``,
-    ``scale``, ``translate (3,)``: ``x_world = translate + scale R x``) and its bounding spheres in world space
-    (``bounds (B, 4)``, rows ``[x, y, z, r]``; every ray meeting the mesh meets one of them)."""
+    ``scale``, ``translate (3,)``: ``x_world = translate + scale R x``), its bounding spheres in world space
+    (``bounds (B, 4)``, rows ``[x, y, z, r]``; every ray meeting the mesh meets one of them) and spheres inside
+    the closed mesh (``inner (K, 4)``, world space; a ray from outside meeting one meets the mesh)."""
 
     caster: object
     rotation: np.ndarray
     scale: float
     translate: np.ndarray
     bounds: np.ndarray
+    inner: np.ndarray = np.zeros((0, 4))
 
 
 def mesh_occluder(vertices, faces, rotation=None, scale: float = 1.0, translate=(0.0, 0.0, 0.0),
-                  bounds=None) -> MeshOccluder:
+                  bounds=None, inner=None) -> MeshOccluder:
     """:class:`MeshOccluder` of an object-space mesh at a pose; ``bounds`` default: one ball around the placed
-    vertices."""
+    vertices; ``inner (K, 4)``: object-space spheres inside the closed mesh (:func:`inner_spheres`), default
+    none."""
     from prtlab.geometry import RayCaster
 
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -108,7 +113,34 @@ def mesh_occluder(vertices, faces, rotation=None, scale: float = 1.0, translate=
         bounds = np.append(centre, radius)[None]
     b = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
     caster = RayCaster([(v, np.asarray(faces, dtype=np.int64))])
-    return MeshOccluder(caster, rot, float(scale), t, b)
+    inner = np.zeros((0, 4)) if inner is None else np.asarray(inner, dtype=np.float64).reshape(-1, 4)
+    inner = np.concatenate([inner[:, :3] @ (scale * rot).T + t, scale * inner[:, 3:]], axis=1)
+    return MeshOccluder(caster, rot, float(scale), t, b, inner)
+
+
+def inner_spheres(vertices, faces, centres) -> np.ndarray:
+    """``(K, 4)`` balls inside the closed mesh ``(vertices, faces)`` (outward faces) about those of ``centres (C, 3)``
+    that lie inside it: radius 0.999 times the distance to the nearest face's plane (a lower bound of the distance
+    to the surface). A centre is inside when the first face met along each of three axes faces away from it."""
+    from prtlab.geometry import RayCaster
+
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if not len(c) or not len(f):
+        return np.zeros((0, 4))
+    caster = RayCaster([(v, f)])
+    inside = np.ones(len(c), dtype=bool)
+    for axis in np.eye(3):
+        hits = caster.closest_hit(c, np.broadcast_to(axis, c.shape))
+        inside &= hits.hit & (hits.normal @ axis > 0.0)
+    a, e1, e2 = v[f[:, 0]], v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]
+    unit = np.cross(e1, e2)
+    norm = np.linalg.norm(unit, axis=1)
+    unit, a = unit[norm > 0] / norm[norm > 0, None], a[norm > 0]
+    depth = np.abs(np.einsum("fi,fi->f", unit, a)[None] - c @ unit.T).min(axis=1)
+    keep = inside & (depth > 0)
+    return np.concatenate([c[keep], 0.999 * depth[keep, None]], axis=1)
 
 
 def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), rectangles=None, spheres=None,
@@ -133,7 +165,7 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     spheres : (L, 4) float, optional
         Opaque spheres (rows ``[x, y, z, r]``): the local lights.
     dirs : (M, 3) float, optional
-        Unit directions in the object's frame, default :func:`fibonacci_directions` ``(2048)``.
+        Unit directions in the object's frame, default :func:`fibonacci_directions` ``(1024)``.
     method : {"numba", "reference"}
         The kernels or their float64 numpy specification.
     cast : {"embree", "numpy"}
@@ -143,7 +175,7 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
 
     check_choice(method, "method", ("numba", "reference"))
     check_choice(cast, "cast", ("embree", "numpy"))
-    d = fibonacci_directions(2048) if dirs is None else np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    d = fibonacci_directions(1024) if dirs is None else np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     if p.shape != n.shape:
@@ -170,9 +202,13 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
             visible = np.empty((len(ps), len(w)), dtype=np.bool_)
             _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
         for occ in occluders:
-            cand = (_meets_reference(ps, w, occ.bounds, visible) if method == "reference" else
-                    _meets(ps, w, occ.bounds, visible))
-            ip, ij = np.nonzero(cand)
+            if method == "reference":
+                cand = _meets_reference(ps, w, occ.bounds, visible)
+                sure = _meets_reference(ps, w, occ.inner, visible)
+                visible &= ~sure
+                ip, ij = np.nonzero(cand & ~sure)
+            else:  # the kernel clears the rays meeting an inner sphere
+                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible)
             if len(ip):
                 o = (ps[ip] - occ.translate) @ occ.rotation / occ.scale
                 hit = occ.caster.occluded(o, w[ij] @ occ.rotation, normals=ns[ip] @ occ.rotation, method=cast)
@@ -186,10 +222,14 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     return out
 
 
-def _meets(points, dirs, bounds, visible):
-    out = np.empty(visible.shape, dtype=np.bool_)
-    _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4), visible, out)
-    return out
+def _meets(points, dirs, bounds, inner, visible):
+    """The visible rays meeting an inner sphere are cleared in ``visible``; returns the receiver and direction
+    indices ``(ip, ij)`` of the other visible rays meeting a bounding sphere (to cast)."""
+    n = int(visible.sum())
+    ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
+                      np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4), visible, ip, ij)
+    return ip[:k], ij[:k]
 
 
 # ---------------------------------------------------------------------------------------------- float64 reference
@@ -227,6 +267,8 @@ def _visible_reference(points, normals, dirs, bits, rects, balls):
 def _meets_reference(points, dirs, bounds, visible):
     from ._groundrays import sphere_hits
 
+    if not len(bounds):
+        return np.zeros(visible.shape, dtype=bool)
     return visible & np.isfinite(sphere_hits(points, dirs, bounds, method="reference"))
 
 
@@ -278,33 +320,52 @@ def _visible_kernel(points, normals, dirs, bits, rects, balls, out):
             out[q, j] = vis
 
 
-@numba.njit(cache=True, parallel=True)
-def _meets_kernel(points, dirs, spheres, visible, out):
-    """``_meets_reference``: the visible rays inside one of the spheres' cones (a point inside a sphere: all)."""
-    n_s = spheres.shape[0]
-    for q in numba.prange(points.shape[0]):
-        axis = np.empty((n_s, 3))
-        cos_half = np.empty(n_s)
-        inside = False
-        for s in range(n_s):
-            ox, oy, oz = spheres[s, 0] - points[q, 0], spheres[s, 1] - points[q, 1], spheres[s, 2] - points[q, 2]
-            d2 = ox * ox + oy * oy + oz * oz
-            r2 = spheres[s, 3] * spheres[s, 3]
-            if d2 <= r2:
-                inside = True
-                break
-            inv = 1.0 / math.sqrt(d2)
-            axis[s, 0], axis[s, 1], axis[s, 2] = ox * inv, oy * inv, oz * inv
-            cos_half[s] = math.sqrt(1.0 - r2 / d2)
+@numba.njit(cache=True)
+def _cones(point, spheres, axis, cos_half):
+    """Each sphere's cone from ``point`` (unit axis, cosine of its half angle); True if the point lies in one."""
+    for s in range(spheres.shape[0]):
+        ox, oy, oz = spheres[s, 0] - point[0], spheres[s, 1] - point[1], spheres[s, 2] - point[2]
+        d2 = ox * ox + oy * oy + oz * oz
+        r2 = spheres[s, 3] * spheres[s, 3]
+        if d2 <= r2:
+            return True
+        inv = 1.0 / math.sqrt(d2)
+        axis[s, 0], axis[s, 1], axis[s, 2] = ox * inv, oy * inv, oz * inv
+        cos_half[s] = math.sqrt(1.0 - r2 / d2)
+    return False
+
+
+@numba.njit(cache=True)
+def _meets_kernel(points, dirs, bounds, inner, visible, ip, ij):
+    """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
+    inside a sphere: every ray. Returns the number listed."""
+    b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
+    i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
+    k = 0
+    for q in range(points.shape[0]):
+        b_in = _cones(points[q], bounds, b_axis, b_cos)
+        i_in = _cones(points[q], inner, i_axis, i_cos)
         for j in range(dirs.shape[0]):
-            hit = False
-            if visible[q, j]:
-                hit = inside
-                s = 0
-                while not hit and s < n_s:
-                    hit = axis[s, 0] * dirs[j, 0] + axis[s, 1] * dirs[j, 1] + axis[s, 2] * dirs[j, 2] > cos_half[s]
-                    s += 1
-            out[q, j] = hit
+            if not visible[q, j]:
+                continue
+            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            sure = i_in
+            s = 0
+            while not sure and s < i_axis.shape[0]:
+                sure = i_axis[s, 0] * dx + i_axis[s, 1] * dy + i_axis[s, 2] * dz > i_cos[s]
+                s += 1
+            if sure:
+                visible[q, j] = False
+                continue
+            cand = b_in
+            s = 0
+            while not cand and s < b_axis.shape[0]:
+                cand = b_axis[s, 0] * dx + b_axis[s, 1] * dy + b_axis[s, 2] * dz > b_cos[s]
+                s += 1
+            if cand:
+                ip[k], ij[k] = q, j
+                k += 1
+    return k
 
 
 @numba.njit(cache=True, parallel=True)
