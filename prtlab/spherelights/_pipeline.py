@@ -171,7 +171,9 @@ class SphereLightOptions:
         ``ground_shading="lights"``; the rays' shadows are exact), not to the first
         pass's samples (nor the ground light they receive with ``bounces=2``) nor to a hierarchy's shadows.
         Costs a second direct pass at the receivers with such a blocker (measured: 1.7-1.8 times the per-object
-        frame with the ground, 21k receivers; ``docs/notes/spherelights.md``).
+        frame with the ground, 21k receivers; ``docs/notes/spherelights.md``). With ``mesh_blockers`` (default) the
+        source objects' receivers take their direct light from the meshes instead, so this option then acts at the
+        first pass's samples and the ground's texture only.
     mesh_blockers : bool
         The source objects' direct light against the real meshes (an extension, a run-time choice; see
         ``_meshdirect``): the closed-form unshadowed irradiance less the environment along the rays (1,024
