@@ -761,10 +761,14 @@ class SphereLights(Precomputation):
         rot = np.asarray(tr.rotation, dtype=np.float64)
         faces = np.asarray(obj.mesh.faces)
         cache = self.__dict__.setdefault("_mesh_direct_cache", {})
-        if obj.name in state.deformations:  # its own rays at the deformed mesh, every frame
-            local = (pts - tr.translate) @ rot / float(tr.scale)
-            bits = self_blocked(local, nrm @ rot, np.asarray(state.deformations[obj.name], dtype=np.float64), faces,
-                                dirs)
+        if obj.name in state.deformations:  # its own rays at the deformed mesh, every frame, in the frame turned
+            # by the best-fit rotation of its vertices (Sec. 7.1): a rigid motion given as a deformation casts the rays
+            # of the moved object
+            verts = np.asarray(state.deformations[obj.name], dtype=np.float64)
+            turn, m0, m1 = light_motions(verts, obj.mesh.vertices, np.zeros(len(verts), dtype=np.int64), 1)
+            local = ((pts - tr.translate) @ rot / float(tr.scale) - m1[0]) @ turn[0] + m0[0]
+            bits = self_blocked(local, nrm @ rot @ turn[0], (verts - m1[0]) @ turn[0] + m0[0], faces, dirs)
+            rot = rot @ turn[0]
         else:  # rigid: its own rays in object space, once
             key = ("self", obj.name, len(dirs))
             if key not in cache or cache[key][0] is not obj.mesh:

@@ -214,14 +214,25 @@ def test_pipeline_equals_brute_force_ray_casting(pair_scene, name):
 
 
 def test_rigid_motion_given_as_a_deformation_is_the_moved_object(pair_scene):
+    """A rigid motion given as a deformation casts the own rays in the frame of the best-fit rotation: the moved
+    object's rays, so the same direct light at every object."""
+    from prtlab.scene import Transform, matrix_to_euler
+    from tests.conftest import random_rotation
+
     sc, pre = pair_scene
-    state = FrameState.from_scene(sc)
-    rest = pre.shade(state)
+    rot = random_rotation(np.random.default_rng(5))
+    shift = np.array([0.1, 0.05, -0.2])
     obj = sc.object("pair")
-    deformed = dict(state.deformations, pair=np.asarray(obj.mesh.vertices, dtype=np.float64) + [0.0, 0.0, 0.0])
-    moved = pre.shade(dataclasses.replace(state, deformations=deformed))
+    verts = np.asarray(obj.mesh.vertices, dtype=np.float64) @ rot.T + shift
+    deformed = pre.shade(dataclasses.replace(FrameState.from_scene(sc), deformations={"pair": verts}))
+    state = FrameState.from_scene(sc)
+    tr = obj.transform
+    state.transforms["pair"] = Transform(translate=tr.translate + tr.scale * tr.rotation @ shift,
+                                         rotate_deg=matrix_to_euler(tr.rotation @ rot), scale=tr.scale)
+    moved = pre.shade(state)
+    assert not np.allclose(moved.direct["pair"], pre.shade(FrameState.from_scene(sc)).direct["pair"], atol=1e-3)
     for name in ("pair", "ball"):
-        np.testing.assert_allclose(moved.direct[name], rest.direct[name], atol=3 * 4 * np.pi / 2048)
+        np.testing.assert_allclose(deformed.direct[name], moved.direct[name], atol=1e-10)
 
 
 def test_the_objects_indirect_light_does_not_change(pair_scene):

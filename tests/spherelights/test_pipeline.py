@@ -367,16 +367,14 @@ def test_rigid_translation_as_a_deformation_is_the_translated_object(pre):
 def test_rigid_rotation_as_a_deformation_is_the_rotated_object(pre, hierarchy):
     """Sec. 7.1: each light turns with the best-fit rotation of its vertices, so a rigid rotation (about a point
     off the object, plus a translation) given as a deformation equals the object turned by its transform
-    (the box has its own rotation, composed on the left); with a hierarchy, the parents turn too. With
-    ``mesh_blockers=False``: the mesh rays' directions are fixed in the object's frame, which a deformation does not
-    turn (``test_meshdirect``)."""
+    (the box has its own rotation, composed on the left); with a hierarchy, the parents turn too."""
     from prtlab.scene import matrix_to_euler
     from tests.conftest import random_rotation
 
     R = random_rotation(np.random.default_rng(11))
     b = np.array([0.2, 0.15, -0.1])
     box = pre.scene.object("box")
-    other = _with(pre, hierarchy_children=hierarchy, cut_threshold=0.9, cluster_size=48, mesh_blockers=False)
+    other = _with(pre, hierarchy_children=hierarchy, cut_threshold=0.9, cluster_size=48) if hierarchy else pre
     verts = np.asarray(box.mesh.vertices) @ R.T + b
     deformed = other.shade(bounces=1, deformed={"box": verts})
     state = FrameState.from_scene(pre.scene)
