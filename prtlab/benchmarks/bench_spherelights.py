@@ -329,7 +329,7 @@ def frame_per_object_ground_near(quick: bool) -> dict:
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
-@case("spherelights.frame.mesh_blockers.bunny16")
+@case("spherelights.scene_frame.mesh_blockers.bunny16")
 def frame_mesh_blockers(quick: bool) -> dict:
     """A frame of ``data/scenes/bunny_spheres_env.yaml`` (16 lights on the bunny, one per ball; 4,804 receivers of
     which the ground's 1,681) with the pipeline's defaults: the objects' direct light against the meshes

@@ -654,7 +654,7 @@ class SphereLights(Precomputation):
         result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
                                    "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
                                    "blocking": opts.blocking, "average": opts.average, "ground": opts.ground,
-                                   "ground_shading": opts.ground_shading})
+                                   "ground_shading": opts.ground_shading, "mesh_blockers": opts.mesh_blockers})
         ground_names = [obj.name for obj, _ in grounds]
         order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
                        key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
