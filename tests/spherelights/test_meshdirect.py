@@ -12,8 +12,8 @@ from prtlab.geometry import RayCaster, builtin_mesh
 from prtlab.pipeline import FrameState
 from prtlab.scene import Scene
 from prtlab.spherelights import SphereLights
-from prtlab.spherelights._meshdirect import (MeshOccluder, fibonacci_directions, mesh_direct, mesh_occluder,
-                                             self_blocked)
+from prtlab.spherelights._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct,
+                                             mesh_occluder, self_blocked)
 
 WHITE = np.zeros((16, 3))
 WHITE[0] = np.sqrt(4 * np.pi)  # constant radiance 1
@@ -87,6 +87,19 @@ def test_self_blocked_inside_a_closed_mesh_is_everything():
     bits = np.unpackbits(self_blocked(p, n, v, f, d), axis=1, count=len(d)).astype(bool)
     front = d[:, 1] > 0
     assert bits[0, front].all() and not bits[0, ~front].any() and not bits[1].any()
+
+
+def test_inner_spheres_lie_inside_the_mesh(rng):
+    """About a centre inside a ball's icosphere: a ball of about its inradius, whose points all lie inside (the first
+    face met from each faces away); a centre outside is left out."""
+    v, f = _ball([0.0, 0.0, 0.0], 0.5)
+    inner = inner_spheres(v, f, [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    assert inner.shape == (2, 4)
+    assert 0.48 < inner[0, 3] < 0.5 and 0.38 < inner[1, 3] < 0.4
+    x = rng.normal(size=(200, 3))
+    x = inner[1, :3] + inner[1, 3] * rng.random((200, 1)) ** (1 / 3) * x / np.linalg.norm(x, axis=1, keepdims=True)
+    hits = RayCaster([(v, f)]).closest_hit(x, np.broadcast_to([0.0, 0.0, 1.0], x.shape))
+    assert hits.hit.all() and (hits.normal[:, 2] > 0).all()
 
 
 # ------------------------------------------------------------------ tiers
