@@ -7,7 +7,8 @@ ground grid and around the objects (synthetic arrays, no precomputation).
 Cases: a whole frame (first pass + second pass) with per-object and
 per-sphere blocking, shadows only, the per-object frame with the ground's
 terms (issue 16), the frame of the pipeline's default options with the ground
-(``per_object_ground_near``: near blockers, emission order 6), and the precomputation of a real scene
+(``per_object_ground_near``: near blockers, emission order 6), a frame of a real scene with the objects' direct light
+against the meshes (``mesh_blockers``), and the precomputation of a real scene
 (``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
 precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 """
@@ -326,6 +327,30 @@ def frame_per_object_ground_near(quick: bool) -> dict:
             "items": _n(quick),
             "peer": ("the paper's direct light (near_blockers=0)", lambda: _default_frame(a, texels, up, rect, 0)),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
+
+
+@case("spherelights.scene_frame.mesh_blockers.bunny16")
+def frame_mesh_blockers(quick: bool) -> dict:
+    """A frame of ``data/scenes/bunny_spheres_env.yaml`` (16 lights on the bunny, one per ball; 4,804 receivers of
+    which the ground's 1,681) with the pipeline's defaults: the objects' direct light against the meshes
+    (``mesh_blockers=True``, ``_meshdirect``; the own meshes' rays cast at the first frame, not timed); peer: the
+    spheres' direct light (``mesh_blockers=False``: ``near_blockers`` and the paper's SH visibility). Items:
+    receivers."""
+    import copy
+    import dataclasses
+
+    import prtlab
+    from prtlab.pipeline import FrameState
+
+    scene = prtlab.load_scene(SCENE)
+    pre = precompute_bunny(16, 24, scene)
+    spheres = copy.copy(pre)
+    spheres.__dict__ = dict(pre.__dict__)
+    spheres.options = dataclasses.replace(pre.options, mesh_blockers=False)
+    state = FrameState.from_scene(scene)
+    pre.shade(state)  # the own meshes' rays, once per object
+    return {"run": lambda: pre.shade(state), "gflop": None, "items": sum(o.n_vertices for o in scene.objects),
+            "peer": ("the spheres' direct light (mesh_blockers=False)", lambda: spheres.shade(state))}
 
 
 def memory_per_object(objects: dict, arrays=None) -> dict:

@@ -3,7 +3,8 @@ reduced size, plus three touching spheres (``three_spheres_env``) and the tiny b
 ground, ``bounces=2``), every object scored (the ground and each
 object; direct, indirect and total), with the default options (the ground hides and reflects, ``ground="reflects"``;
 each receiver's two largest one-sphere neighbours block exactly, ``near_blockers=2``; the ground shaded against the
-objects' meshes, ``ground_shading="rays"``), and the paper's direct light
+objects' meshes, ``ground_shading="rays"``; the objects' direct light against the meshes, ``mesh_blockers=True``), and
+the paper's direct light
 (``near_blockers=0``) on the scenes of one-sphere objects.
 
 Goals (issue 16, binding for objects on a ground under a low-frequency sky, one bounce): direct within 5 %
@@ -115,8 +116,6 @@ OBJECTS = {
 _ORDER = "the order-4 SH shadows of the neighbouring spheres (Ren et al. 2006, the paper's visibility); with order=6: "
 _NOT_ORDER = "not the SH order (with order=6: {}); cause not isolated"
 _BOTH = "the direct and indirect errors above"
-_MESH = ("not the SH order (with order=6: {}): the bunny's 16 lights as blockers in the SH visibility (with the "
-         "meshes' exact, ray-cast visibility: {})")
 
 
 def _fig(rel_rms, noise, error, ratio):
@@ -124,15 +123,10 @@ def _fig(rel_rms, noise, error, ratio):
 
 
 _XFAIL: dict[tuple[str, str, str], str] = {
-    ("bunny (16 spheres)", "bunny", "direct"): _fig(0.098, 0.009, 0.097, 0.98) + _MESH.format("0.098", "0.015"),
-    ("bunny (16 spheres)", "sphere_green", "direct"): _fig(0.061, 0.008, 0.060, 0.97) + _MESH.format("0.082", "0.011"),
     ("bunny (16 spheres)", "sphere_green", "indirect"): _fig(0.212, 0.014, 0.212, 1.09)
     + "not the SH order (with order=6: 0.216), the ground's quadrature or texels, the average or the "
     "exponentiation (0.202-0.216 with each); too bright by 9 %: likely the bunny's 16 intersecting lights' "
     "emission (the paper's Fig. 7); cause not isolated",
-    ("bunny (16 spheres)", "sphere_orange", "direct"): _fig(0.072, 0.011, 0.071, 1.01) + _ORDER + "0.045 (the "
-    "bunny's 16 lights stay in the SH visibility: near_blockers takes one-sphere lights only; with the meshes' "
-    "exact, ray-cast visibility: 0.015)",
 }
 
 
@@ -183,7 +177,7 @@ def _params():
 #: the paper's direct light (``near_blockers=0``: every blocker in the exponentiated SH visibility) scored against
 #: the same references on the scenes of one-sphere objects (the default, ``near_blockers=2``, takes each receiver's
 #: two largest one-sphere neighbours exactly, ``_nearcaps``)
-PAPER_DIRECT = {"near_blockers": 0}
+PAPER_DIRECT = {"near_blockers": 0, "mesh_blockers": False}
 PAPER_DIRECT_CASES = ("tiny ball", "spheres", "three touching spheres", "moved sphere")
 _PAPER_DIRECT_XFAIL: dict[tuple[str, str, str], str] = {
     ("spheres", "sphere_red", "direct"): _fig(0.060, 0.013, 0.059, 0.97) + _ORDER + "0.052",

@@ -172,7 +172,7 @@ def test_pipeline_option_gives_the_closed_form():
     """Two balls under a white sky, no ground, ``near_blockers=1``: at each vertex of ball A that sees all of B
     above its horizon (``n . a >= sin theta``) the direct irradiance is ``pi - (n . a) pi sin^2 theta`` (the
     cosine-weighted solid angle of a cap wholly above the horizon), the other ball's light taken exactly and the
-    own one culled; radiance ``albedo / pi`` times it."""
+    own one culled; radiance ``albedo / pi`` times it (``mesh_blockers=False``: the spheres' path)."""
     from prtlab.pipeline import FrameState
     from prtlab.scene import Scene
     from prtlab.spherelights import SphereLights
@@ -183,8 +183,8 @@ def test_pipeline_option_gives_the_closed_form():
                     {"name": "b", "mesh": ball, "transform": {"translate": [1.3, 0.0, 0.0]},
                      "material": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}}],
         "lights": [{"type": "environment", "constant": [1, 1, 1]}]})
-    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16, "near_blockers": 1}, cache=False,
-                                  progress=False)
+    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16, "near_blockers": 1,
+                                       "mesh_blockers": False}, cache=False, progress=False)
     world = pre.world_lights(FrameState.from_scene(sc))
     k = int(np.argmax(world.centres[:, 0]))  # b's light
     c, r = world.centres[k], world.radii[k]
