@@ -270,7 +270,7 @@ def _blocked_sum(n_points, ip, ik, t_sphere, radiance) -> np.ndarray:
 
 
 def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
-                       method: str = "embree") -> np.ndarray:
+                       method: str = "embree", tier: str = "numba") -> np.ndarray:
     """Irradiance ``(P, 3)`` at ground points (normal ``+Y``) from the objects' surfaces: over the rays, the exit
     radiance at the first mesh hit (interpolated from ``radiance[g] (V_g, 3)``, the vertices of object ``g``; a
     back face gives 0), a hit beyond an opaque sphere giving nothing (see the module docstring).
@@ -286,26 +286,36 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
         Default :func:`ground_ray_rule` ``(64, 16)``.
     method : {"embree", "numpy"}
         As in :func:`ground_direct_rays`.
+    tier : {"numba", "reference"}
+        The sums over the hits: a numba kernel, or numpy (the specification; the same sums in the same order).
     """
+    from prtlab._validate import check_choice
+
+    check_choice(tier, "tier", ("numba", "reference"))
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, None)[1]
+    return _gather(p, blockers, radiance, rule, method, None, tier)[1]
 
 
 def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
-                      method: str = "embree") -> tuple[np.ndarray, np.ndarray]:
+                      method: str = "embree", tier: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
-    same points from one closest-hit cast per ray (the same values as the two apart)."""
+    same points from one closest-hit cast per ray (the same values as the two apart). ``tier``: the sums over the
+    hits in a numba kernel (``"numba"``) or numpy (``"reference"``, the specification; the same sums in the same
+    order)."""
+    from prtlab._validate import check_choice
+
+    check_choice(tier, "tier", ("numba", "reference"))
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
+    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64), tier)
 
 
-def _gather(p, blockers, radiance, rule, method, env):
+def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
     """The gathered light at local points ``p`` and, given ``env``, the direct light (else None)."""
     rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
     out = np.zeros((len(p), 3))
@@ -315,6 +325,9 @@ def _gather(p, blockers, radiance, rule, method, env):
         e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
         blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
         direct = np.empty((len(p), 3))
+    if tier == "numba" and len(rad):
+        faces, face_start, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
+        rad_all = np.ascontiguousarray(np.concatenate(rad))
     for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
         if not len(ip):
             if env is not None:
@@ -322,6 +335,19 @@ def _gather(p, blockers, radiance, rule, method, env):
             continue
         hits = blockers.caster.closest_hit(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
+        if tier == "numba":
+            # per point its rays in order (``ip`` is sorted): the sums of the reference below, term by term
+            ptr = np.searchsorted(ip, np.arange(len(cand) + 1))
+            blocked = np.zeros((len(cand), 3))
+            with_env = env is not None and t_sphere is None
+            _hit_sums(ptr, ik, hits.hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance,
+                      rule.dirs, rule.weights, blocked_radiance if with_env else np.zeros((0, 3)),
+                      t_sphere if t_sphere is not None else np.zeros((0, 0)), faces, face_start, rad_all,
+                      blocked, out[sl])
+            if env is not None:
+                direct[sl] = e_open - blocked if with_env else e_open - _blocked_sum(
+                    len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
+            continue
         if env is not None:
             direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
         d = rule.dirs[ik]
@@ -338,6 +364,48 @@ def _gather(p, blockers, radiance, rule, method, env):
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
     return direct, out
+
+
+def _stacked_faces(faces, n_verts):
+    """The objects' faces in one ``(F, 3)`` array (vertex indices into the stacked radiance) and each object's first
+    face and first vertex."""
+    face_start = np.zeros(len(faces) + 1, dtype=np.int64)
+    face_start[1:] = np.cumsum([len(f) for f in faces])
+    vert_start = np.zeros(len(faces) + 1, dtype=np.int64)
+    vert_start[1:] = np.cumsum(n_verts)
+    stacked = np.concatenate([np.asarray(f, dtype=np.int64).reshape(-1, 3) + vert_start[g]
+                              for g, f in enumerate(faces)] or [np.zeros((0, 3), dtype=np.int64)])
+    return np.ascontiguousarray(stacked), face_start, vert_start
+
+
+@numba.njit(cache=True, parallel=True)
+def _hit_sums(ptr, ik, hit, obj, tri, bary, normal, dist, dirs, weights, blocked_radiance, t_sphere, faces,
+              face_start, radiance, blocked, gathered):
+    """Per point ``q`` (its rays ``ptr[q]:ptr[q + 1]``, rule directions ``ik``), in ray order: ``blocked[q] +=
+    blocked_radiance[k]`` over the rays that hit (skipped if ``blocked_radiance`` is empty) and ``gathered[q] +=
+    w_k L_o`` over the front-face hits closer than the opaque spheres (``t_sphere (P, K)``, empty: none), ``L_o``
+    interpolated from ``radiance`` at the hit face's vertices."""
+    with_env = blocked_radiance.shape[0] > 0
+    with_spheres = t_sphere.shape[0] > 0
+    for q in numba.prange(ptr.shape[0] - 1):
+        for i in range(ptr[q], ptr[q + 1]):
+            if not hit[i]:
+                continue
+            k = ik[i]
+            if with_env:
+                for c in range(3):
+                    blocked[q, c] += blocked_radiance[k, c]
+            if normal[i, 0] * dirs[k, 0] + normal[i, 1] * dirs[k, 1] + normal[i, 2] * dirs[k, 2] >= 0.0:
+                continue  # a back face: from inside a closed object
+            if with_spheres and not dist[i] < t_sphere[q, k]:
+                continue
+            g = obj[i]
+            f = face_start[g] + tri[i]
+            a, b, d = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, v = bary[i, 0], bary[i, 1]
+            for c in range(3):
+                value = (1.0 - u - v) * radiance[a, c] + u * radiance[b, c] + v * radiance[d, c]
+                gathered[q, c] += value * weights[k]
 
 
 def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:
