@@ -181,8 +181,26 @@ def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray
     if method == "reference":
         return np.isfinite(_sphere_hits_reference(p, d, b))
     out = np.empty((len(p), len(d)), dtype=np.bool_)
-    _candidates_kernel(p, d, b, out)
+    n_azimuth = _rings(d)
+    if n_azimuth:
+        _candidates_rings_kernel(p, d, n_azimuth, b, out)
+    else:
+        _candidates_kernel(p, d, b, out)
     return out
+
+
+def _rings(dirs) -> int:
+    """The azimuths per ring if ``dirs`` are a product rule as :func:`ground_ray_rule` makes (rings of one ``y``,
+    each ``A`` azimuths ``(j + 1/2) 2 pi / A`` in order), else 0."""
+    k = len(dirs)
+    if k == 0:
+        return 0
+    a = int(np.argmax(dirs[:, 1] != dirs[0, 1])) or k
+    if k % a or not np.all(dirs[:, 1].reshape(-1, a) == dirs[::a, 1:2]):
+        return 0
+    phi = np.arctan2(dirs[:, 2], dirs[:, 0]) % (2.0 * np.pi)
+    expect = np.tile((np.arange(a) + 0.5) * (2.0 * np.pi / a), k // a)
+    return a if np.allclose(phi, expect, rtol=0.0, atol=1e-9) else 0
 
 
 @numba.njit(cache=True, parallel=True)
@@ -211,6 +229,63 @@ def _candidates_kernel(points, dirs, spheres, out):
                 hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
                 j += 1
             out[q, k] = hit
+
+
+@numba.njit(cache=True, parallel=True)
+def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
+    """``_candidates_kernel`` for a product rule (``_rings``): per ring, a sphere whose cone no direction of the
+    ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
+    and the others are tested only at the azimuths of their window (widened by one azimuth each side); the test of
+    a direction against a sphere is ``_candidates_kernel``'s, so the result is the same."""
+    n_s = spheres.shape[0]
+    n_ring = dirs.shape[0] // n_azimuth
+    step = 2.0 * math.pi / n_azimuth
+    ring_sin = np.empty(n_ring)
+    for e in range(n_ring):
+        ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
+    for q in numba.prange(points.shape[0]):
+        axis = np.empty((n_s, 3))
+        cos_half = np.empty(n_s)
+        rho = np.empty(n_s)  # |axis| in the horizontal plane
+        centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
+        inside = False
+        for j in range(n_s):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            d2 = ox * ox + oy * oy + oz * oz
+            r2 = spheres[j, 3] * spheres[j, 3]
+            if d2 <= r2:
+                inside = True
+                break
+            inv = 1.0 / math.sqrt(d2)
+            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+            rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
+            centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
+        for k in range(dirs.shape[0]):
+            out[q, k] = inside
+        if inside:
+            continue
+        for e in range(n_ring):
+            base = e * n_azimuth
+            mu = dirs[base, 1]
+            for j in range(n_s):
+                ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
+                rho_s = rho[j] * ring_sin[e]
+                if ay * mu + rho_s < cos_half[j] - 1e-9:
+                    continue  # no direction of the ring enters the cone
+                lo, hi = 0, n_azimuth - 1
+                if rho_s > 1e-9:
+                    x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
+                    if x > -1.0:
+                        half = math.acos(min(x, 1.0)) / step
+                        lo = int(math.floor(centre[j] - half)) - 1
+                        hi = int(math.ceil(centre[j] + half)) + 1
+                        if hi - lo + 1 >= n_azimuth:
+                            lo, hi = 0, n_azimuth - 1
+                for t in range(lo, hi + 1):
+                    k = base + t % n_azimuth
+                    if not out[q, k]:
+                        out[q, k] = ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]
 
 
 def _rays(points, rule, blockers):

@@ -182,6 +182,27 @@ def test_hit_sums_kernel_matches_reference(seed, opaque):
                                ground_gather_rays(pts, blk, rad, rule, tier="reference"), rtol=1e-13, atol=1e-14)
 
 
+@pytest.mark.parametrize("rule", [(64, 16), (32, 8), (7, 3)])
+def test_candidate_rays_on_rings_match_the_direction_by_direction_test(rng, rule):
+    """On a product rule the kernel tests only the azimuth windows of the cones that meet a ring: the same
+    result as testing every direction against every sphere (spheres below, above and around the points, some
+    points inside one), and as the float64 reference but for rays grazing a cone."""
+    from prtlab.spherelights._groundrays import _candidates_kernel, _rings
+
+    dirs = ground_ray_rule(*rule).dirs
+    assert _rings(dirs) == rule[0] and _rings(dirs[::-1].copy()) == 0
+    for _ in range(5):
+        pts = np.stack([rng.uniform(-2, 2, 200), rng.uniform(-0.1, 0.3, 200), rng.uniform(-2, 2, 200)], axis=1)
+        spheres = np.concatenate([rng.uniform([-2, -0.5, -2], [2, 2, 2], (9, 3)), rng.uniform(0.05, 0.8, (9, 1))],
+                                 axis=1)
+        fast = candidate_rays(pts, dirs, spheres)
+        each = np.empty_like(fast)
+        _candidates_kernel(pts, np.ascontiguousarray(dirs), spheres, each)
+        np.testing.assert_array_equal(fast, each)
+        assert (fast != candidate_rays(pts, dirs, spheres, method="reference")).mean() < 1e-4
+        assert 0.05 < fast.mean() < 0.95
+
+
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
     """Only rays meeting a bounding sphere are cast: the result equals casting every ray (a bound as large as
     the scene)."""
