@@ -180,12 +180,16 @@ def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray
     b = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
     if method == "reference":
         return np.isfinite(_sphere_hits_reference(p, d, b))
-    out = np.empty((len(p), len(d)), dtype=np.bool_)
-    n_azimuth = _rings(d)
+    return _candidates(p, d, b, _rings(d))
+
+
+def _candidates(points, dirs, bounds, n_azimuth: int) -> np.ndarray:
+    """``candidate_rays``' kernels on checked arrays; ``n_azimuth``: ``_rings(dirs)``."""
+    out = np.empty((len(points), len(dirs)), dtype=np.bool_)
     if n_azimuth:
-        _candidates_rings_kernel(p, d, n_azimuth, b, out)
+        _candidates_rings_kernel(points, dirs, n_azimuth, bounds, out)
     else:
-        _candidates_kernel(p, d, b, out)
+        _candidates_kernel(points, dirs, bounds, out)
     return out
 
 
@@ -291,9 +295,12 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
 def _rays(points, rule, blockers):
     """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their origins and directions
     (flat) and the distance to the first opaque sphere ``(P, K)``."""
+    dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
+    n_azimuth = _rings(dirs) if blockers.caster is not None else 0
+    bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
     for s in range(0, len(points), _CHUNK):
         p = points[s:s + _CHUNK]
-        cand = candidate_rays(p, rule.dirs, blockers.bounds) if blockers.caster is not None else np.zeros(
+        cand = _candidates(p, dirs, bounds, n_azimuth) if blockers.caster is not None else np.zeros(
             (len(p), len(rule.dirs)), dtype=bool)
         t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
         ip, ik = np.nonzero(cand)
