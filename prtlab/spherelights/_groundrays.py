@@ -293,8 +293,9 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
 
 
 def _rays(points, rule, blockers):
-    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their origins and directions
-    (flat) and the distance to the first opaque sphere ``(P, K)``."""
+    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their point and rule direction
+    indices (flat, as ``np.nonzero``), the distance to the first opaque sphere ``(P, K)`` (None: none), their
+    origins and directions (flat) and each point's first ray (``(P + 1,)``)."""
     dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
     n_azimuth = _rings(dirs) if blockers.caster is not None else 0
     bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
@@ -303,8 +304,26 @@ def _rays(points, rule, blockers):
         cand = _candidates(p, dirs, bounds, n_azimuth) if blockers.caster is not None else np.zeros(
             (len(p), len(rule.dirs)), dtype=bool)
         t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
-        ip, ik = np.nonzero(cand)
-        yield slice(s, s + len(p)), cand, ip, ik, t_sphere
+        ptr = np.zeros(len(p) + 1, dtype=np.int64)
+        np.cumsum(cand.sum(axis=1), out=ptr[1:])
+        ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+        origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
+        _list_rays(p, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        yield slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
+
+
+@numba.njit(cache=True, parallel=True)
+def _list_rays(points, cand, dirs, ptr, ip, ik, origins, ray_dirs):
+    """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
+    their point ``ip`` and direction ``ik``, origin ``points[ip]`` and direction ``dirs[ik]``."""
+    for q in numba.prange(points.shape[0]):
+        i = ptr[q]
+        for k in range(cand.shape[1]):
+            if cand[q, k]:
+                ip[i], ik[i] = q, k
+                origins[i, 0], origins[i, 1], origins[i, 2] = points[q, 0], points[q, 1], points[q, 2]
+                ray_dirs[i, 0], ray_dirs[i, 1], ray_dirs[i, 2] = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+                i += 1
 
 
 def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
@@ -332,10 +351,10 @@ def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRu
     e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
     radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
     out = np.empty((len(p), 3))
-    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ in _rays(p, rule, blockers):
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
-            hit = blockers.caster.occluded(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+            hit = blockers.caster.occluded(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
         out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
     return out
@@ -410,16 +429,15 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
     if tier == "numba" and len(rad):
         faces, face_start, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
         rad_all = np.ascontiguousarray(np.concatenate(rad))
-    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr in _rays(p, rule, blockers):
         if not len(ip):
             if env is not None:
                 direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
             continue
-        hits = blockers.caster.closest_hit(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+        hits = blockers.caster.closest_hit(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
         if tier == "numba":
-            # per point its rays in order (``ip`` is sorted): the sums of the reference below, term by term
-            ptr = np.searchsorted(ip, np.arange(len(cand) + 1))
+            # per point its rays in order (``ptr``): the sums of the reference below, term by term
             blocked = np.zeros((len(cand), 3))
             with_env = env is not None and t_sphere is None
             _hit_sums(ptr, ik, hits.hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance,

@@ -203,6 +203,26 @@ def test_candidate_rays_on_rings_match_the_direction_by_direction_test(rng, rule
         assert 0.05 < fast.mean() < 0.95
 
 
+def test_ray_lists_are_the_nonzero_candidates(rng):
+    """``_list_rays``: the candidate rays point by point in the order of ``np.nonzero``, with their origins and
+    directions (rows without a candidate, all candidates, none at all)."""
+    from prtlab.spherelights._groundrays import _list_rays
+
+    for density in (0.0, 0.2, 1.0):
+        cand = rng.uniform(size=(13, 40)) < density
+        cand[3] = False
+        pts, dirs = rng.normal(size=(13, 3)), rng.normal(size=(40, 3))
+        ptr = np.concatenate([[0], np.cumsum(cand.sum(axis=1))])
+        ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+        origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
+        _list_rays(pts, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        ref_p, ref_k = np.nonzero(cand)
+        np.testing.assert_array_equal(ip, ref_p)
+        np.testing.assert_array_equal(ik, ref_k)
+        np.testing.assert_array_equal(origins, pts[ref_p])
+        np.testing.assert_array_equal(ray_dirs, dirs[ref_k])
+
+
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
     """Only rays meeting a bounding sphere are cast: the result equals casting every ray (a bound as large as
     the scene)."""
