@@ -7,8 +7,9 @@ ground grid and around the objects (synthetic arrays, no precomputation).
 Cases: a whole frame (first pass + second pass) with per-object and
 per-sphere blocking, shadows only, the per-object frame with the ground's
 terms (issue 16), the frame of the pipeline's default options with the ground
-(``per_object_ground_near``: near blockers, emission order 6), a frame of a real scene with the objects' direct light
-against the meshes (``mesh_blockers``), and the precomputation of a real scene
+(``per_object_ground_near``: the ground's rays against meshes through the objects' receivers, near blockers,
+emission order 6), a frame of a real scene with the objects' direct light against the meshes (``mesh_blockers``),
+and the precomputation of a real scene
 (``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
 precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
 """
@@ -72,8 +73,10 @@ def _scene_arrays(n_receivers: int):
     env[1:, :] += 0.05 * rng.normal(size=(ORDER * ORDER - 1, 3))
     # the receivers' objects: -1 the ground, else the object of the light they lie on
     recv_object = np.concatenate([np.full(n_ground, -1), sl_object[k]])
+    recv_light = np.concatenate([np.full(n_ground, -1), k])  # the light a receiver lies on (-1: the ground)
     return dict(points=points, normals=normals, centres=centres, radii=radii, sl_object=sl_object, inter=inter,
-                rot=rot, spts=spts, snrm=snrm, valid=valid, albedo=albedo, env=env, recv_object=recv_object)
+                rot=rot, spts=spts, snrm=snrm, valid=valid, albedo=albedo, env=env, recv_object=recv_object,
+                recv_light=recv_light)
 
 
 def _frame(a, blocking, indirect=True, exp_method="hyb", emission_order=EMISSION_ORDER):
@@ -261,18 +264,48 @@ def frame_per_object_ground(quick: bool) -> dict:
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
-def _default_frame(a, texels, up, rect, near_blockers: int = 2):
+def _object_meshes(a):
+    """Per object (the lights' objects, in order) a closed surface through its receivers: each light's receivers
+    triangulated by the convex hull of their directions (faces turned outwards), at 0.99 of its radius (inside
+    the light, whose sphere bounds it, as a fitted set bounds its mesh); the vertices in the order of the object's
+    receivers. What the ground's rays of ``ground_shading="rays"`` meet."""
+    from scipy.spatial import ConvexHull
+
+    out = []
+    for own in range(int(a["sl_object"].max()) + 1):
+        rows = np.nonzero(a["recv_object"] == own)[0]
+        verts, faces = np.empty((len(rows), 3)), []
+        for light in np.nonzero(a["sl_object"] == own)[0]:
+            local = np.nonzero(a["recv_light"][rows] == light)[0]
+            dirs = a["normals"][rows[local]]
+            verts[local] = a["centres"][light] + 0.99 * a["radii"][light] * dirs
+            tri = ConvexHull(dirs).simplices
+            d = dirs[tri]
+            flip = np.einsum("fi,fi->f", np.cross(d[:, 1] - d[:, 0], d[:, 2] - d[:, 0]), d.sum(axis=1)) < 0
+            tri[flip] = tri[flip][:, ::-1]
+            faces.append(local[tri])
+        out.append((verts, np.concatenate(faces)))
+    return out
+
+
+def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays"):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
-    ``ground="reflects"``, ``ground_texels=64``, ``near_blockers``, ``emission_order``, HYB, per-object blocking):
-    the near blockers' correction at the surface samples (``_near_samples``), the first pass with the ground hiding
-    the environment from the samples, the ground's texture (shadows-only pass and near blockers at its texels),
-    then per receiving object (the ground first) the second pass, the near blockers (the object's own lights not
-    eligible) and, above the ground, ``ground_light`` testing the eligible lights unadjusted."""
+    ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
+    per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
+    with the ground hiding the environment from the samples, the ground's texture (``"rays"``: its direct light
+    against the objects' meshes, ``_object_meshes``; ``"lights"``: a shadows-only pass and the near blockers at its
+    texels), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
+    and, above the ground, ``ground_light`` testing the eligible lights unadjusted; the ground's receivers last from
+    the rays (their direct light and the light gathered from the objects' radiance; ``"lights"``: first, as any
+    receiver, less ``ground_light``)."""
     from prtlab.spherelights import ground_light
+    from prtlab.spherelights._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, mesh_blockers
     from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
+    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS
 
     c, r, obj, env = a["centres"], a["radii"], a["sl_object"], a["env"]
     counts = np.bincount(obj)
+    albedo = 0.7 / np.pi
 
     def eligible(own):  # SphereLights._near_eligible: one-sphere lights of the other objects
         return (obj != own) & (counts[obj] == 1)
@@ -283,6 +316,10 @@ def _default_frame(a, texels, up, rect, near_blockers: int = 2):
         if near_blockers and sel.any():
             direct[sel] = near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
 
+    rays = ground_shading == "rays"
+    if rays:  # SphereLights._mesh_blockers: in the ground's frame
+        blockers = mesh_blockers(meshes, np.concatenate([c, r[:, None]], axis=1), origin=[rect[0, 1], rect[0, 0],
+                                 rect[0, 2]], azimuth=np.arctan2(rect[0, 4], rect[0, 3]), scale=np.hypot(*rect[0, 3:5]))
     extra = None
     if near_blockers:  # SphereLights._near_samples (every sample valid here)
         extra = np.zeros(a["valid"].shape + (3,))
@@ -300,11 +337,14 @@ def _default_frame(a, texels, up, rect, near_blockers: int = 2):
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
     emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
                           a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER)
-    e = _ground_direct(a, texels, up)
-    near(texels, up, e, -1)
-    tex = (np.maximum(e, 0.0) * 0.7 / np.pi).reshape(1, 64, 64, 3)
-    out = []
-    for own in range(-1, int(obj.max()) + 1):
+    if rays:
+        e = ground_direct_rays(texels, env, blockers, _TEXEL_RAYS)
+    else:
+        e = _ground_direct(a, texels, up)
+        near(texels, up, e, -1)
+    tex = (np.maximum(e, 0.0) * albedo).reshape(1, 64, 64, 3)
+    out, radiance = [], []
+    for own in range(0 if rays else -1, int(obj.max()) + 1):
         rows = a["recv_object"] == own
         p, n = a["points"][rows], a["normals"][rows]
         direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission, env, order=ORDER)
@@ -313,19 +353,29 @@ def _default_frame(a, texels, up, rect, near_blockers: int = 2):
             hidden, reflected = ground_light(p, n, rect, tex, env, c, r, unadjusted=eligible(own) & (near_blockers > 0))
             direct, indirect = direct - hidden, indirect + reflected
         out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
+        if rays:  # the objects' exit radiance as the ground sees it (one bounce: their direct light)
+            radiance.append(contact_radiance(p, n, out[-1][0] * albedo, rect[:, 0],
+                                            blockers.caster.epsilon * blockers.scale))
+    if rays:
+        rows = a["recv_object"] == -1
+        direct, indirect = ground_light_rays(a["points"][rows], env, blockers, radiance, _GROUND_RAYS)
+        out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
     return out
 
 
 @case("spherelights.frame.per_object_ground_near.21k")
 def frame_per_object_ground_near(quick: bool) -> dict:
-    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``near_blockers=2``,
-    ``emission_order=6``, HYB, per-object blocking, ``ground="reflects"``), the receivers shaded per object as the
-    pipeline does; peer: the same frame with the paper's direct light (``near_blockers=0``)."""
+    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"``,
+    ``near_blockers=2``, ``emission_order=6``, HYB, per-object blocking, ``ground="reflects"``), the receivers shaded
+    per object as the pipeline does; peer: the ground shaded through the spherical lights
+    (``ground_shading="lights"``)."""
     a = _scene_arrays(_n(quick))
     texels, up, _, rect = _ground_texels(a)
-    return {"run": lambda: _default_frame(a, texels, up, rect), "gflop": _frame_flops(a, "object", True),
+    meshes = _object_meshes(a)
+    return {"run": lambda: _default_frame(a, texels, up, rect, meshes), "gflop": _frame_flops(a, "object", True),
             "items": _n(quick),
-            "peer": ("the paper's direct light (near_blockers=0)", lambda: _default_frame(a, texels, up, rect, 0)),
+            "peer": ("the ground through the lights (ground_shading='lights')",
+                     lambda: _default_frame(a, texels, up, rect, meshes, ground_shading="lights")),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 

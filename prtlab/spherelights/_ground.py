@@ -102,6 +102,11 @@ def _lower_hemisphere_grid(n_azimuth: int, n_elevation: int):
     return dirs, weights
 
 
+#: Bytes of a block of rows of the weights in :func:`ground_blocked_transfer` (3 MiB: under numpy's 4 MiB, from
+#: which it asks for huge pages).
+_WEIGHT_BLOCK_BYTES = 3 << 20
+
+
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _ground_weights(points, normals, dirs, weights, rects, out):
     """out[q, j] = weights[j] * hit(q, j) * max(0, n_q . d_j); hit: the ray from q along d_j meets a rectangle.
@@ -201,10 +206,18 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     a = (y[:, : order * order, None] * (y[:, : n_env * n_env] @ env)[:, None, :]).reshape(dirs.shape[0], -1)
     if method == "reference":
         w = _ground_weights_reference(p, n, dirs, weights, rects)
-    else:
-        w = np.empty((p.shape[0], dirs.shape[0]))
-        _ground_weights(p, n, np.ascontiguousarray(dirs), np.ascontiguousarray(weights), rects, w)
-    return (w @ a).reshape(out.shape)
+        return (w @ a).reshape(out.shape)
+    # the weights in blocks of rows under 4 MiB: a fresh larger array is backed by huge pages, whose faults
+    # (zeroing, compaction) cost more system time than the block's product on a busy machine
+    rows = max(1, _WEIGHT_BLOCK_BYTES // (8 * dirs.shape[0]))
+    w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
+    dirs, weights = np.ascontiguousarray(dirs), np.ascontiguousarray(weights)
+    flat = out.reshape(p.shape[0], -1)
+    for s in range(0, p.shape[0], rows):
+        e = min(p.shape[0], s + rows)
+        _ground_weights(p[s:e], n[s:e], dirs, weights, rects, w[: e - s])
+        np.matmul(w[: e - s], a, out=flat[s:e])
+    return out
 
 
 # --------------------------------------------------------------------------- the ground in the second pass

@@ -180,9 +180,31 @@ def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray
     b = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
     if method == "reference":
         return np.isfinite(_sphere_hits_reference(p, d, b))
-    out = np.empty((len(p), len(d)), dtype=np.bool_)
-    _candidates_kernel(p, d, b, out)
+    return _candidates(p, d, b, _rings(d))
+
+
+def _candidates(points, dirs, bounds, n_azimuth: int) -> np.ndarray:
+    """``candidate_rays``' kernels on checked arrays; ``n_azimuth``: ``_rings(dirs)``."""
+    out = np.empty((len(points), len(dirs)), dtype=np.bool_)
+    if n_azimuth:
+        _candidates_rings_kernel(points, dirs, n_azimuth, bounds, out)
+    else:
+        _candidates_kernel(points, dirs, bounds, out)
     return out
+
+
+def _rings(dirs) -> int:
+    """The azimuths per ring if ``dirs`` are a product rule as :func:`ground_ray_rule` makes (rings of one ``y``,
+    each ``A`` azimuths ``(j + 1/2) 2 pi / A`` in order), else 0."""
+    k = len(dirs)
+    if k == 0:
+        return 0
+    a = int(np.argmax(dirs[:, 1] != dirs[0, 1])) or k
+    if k % a or not np.all(dirs[:, 1].reshape(-1, a) == dirs[::a, 1:2]):
+        return 0
+    phi = np.arctan2(dirs[:, 2], dirs[:, 0]) % (2.0 * np.pi)
+    expect = np.tile((np.arange(a) + 0.5) * (2.0 * np.pi / a), k // a)
+    return a if np.allclose(phi, expect, rtol=0.0, atol=1e-9) else 0
 
 
 @numba.njit(cache=True, parallel=True)
@@ -213,16 +235,95 @@ def _candidates_kernel(points, dirs, spheres, out):
             out[q, k] = hit
 
 
+@numba.njit(cache=True, parallel=True)
+def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
+    """``_candidates_kernel`` for a product rule (``_rings``): per ring, a sphere whose cone no direction of the
+    ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
+    and the others are tested only at the azimuths of their window (widened by one azimuth each side); the test of
+    a direction against a sphere is ``_candidates_kernel``'s, so the result is the same."""
+    n_s = spheres.shape[0]
+    n_ring = dirs.shape[0] // n_azimuth
+    step = 2.0 * math.pi / n_azimuth
+    ring_sin = np.empty(n_ring)
+    for e in range(n_ring):
+        ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
+    for q in numba.prange(points.shape[0]):
+        axis = np.empty((n_s, 3))
+        cos_half = np.empty(n_s)
+        rho = np.empty(n_s)  # |axis| in the horizontal plane
+        centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
+        inside = False
+        for j in range(n_s):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            d2 = ox * ox + oy * oy + oz * oz
+            r2 = spheres[j, 3] * spheres[j, 3]
+            if d2 <= r2:
+                inside = True
+                break
+            inv = 1.0 / math.sqrt(d2)
+            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+            rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
+            centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
+        for k in range(dirs.shape[0]):
+            out[q, k] = inside
+        if inside:
+            continue
+        for e in range(n_ring):
+            base = e * n_azimuth
+            mu = dirs[base, 1]
+            for j in range(n_s):
+                ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
+                rho_s = rho[j] * ring_sin[e]
+                if ay * mu + rho_s < cos_half[j] - 1e-9:
+                    continue  # no direction of the ring enters the cone
+                lo, hi = 0, n_azimuth - 1
+                if rho_s > 1e-9:
+                    x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
+                    if x > -1.0:
+                        half = math.acos(min(x, 1.0)) / step
+                        lo = int(math.floor(centre[j] - half)) - 1
+                        hi = int(math.ceil(centre[j] + half)) + 1
+                        if hi - lo + 1 >= n_azimuth:
+                            lo, hi = 0, n_azimuth - 1
+                for t in range(lo, hi + 1):
+                    k = base + t % n_azimuth
+                    if not out[q, k]:
+                        out[q, k] = ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]
+
+
 def _rays(points, rule, blockers):
-    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their origins and directions
-    (flat) and the distance to the first opaque sphere ``(P, K)``."""
+    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their point and rule direction
+    indices (flat, as ``np.nonzero``), the distance to the first opaque sphere ``(P, K)`` (None: none), their
+    origins and directions (flat) and each point's first ray (``(P + 1,)``)."""
+    dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
+    n_azimuth = _rings(dirs) if blockers.caster is not None else 0
+    bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
     for s in range(0, len(points), _CHUNK):
         p = points[s:s + _CHUNK]
-        cand = candidate_rays(p, rule.dirs, blockers.bounds) if blockers.caster is not None else np.zeros(
+        cand = _candidates(p, dirs, bounds, n_azimuth) if blockers.caster is not None else np.zeros(
             (len(p), len(rule.dirs)), dtype=bool)
         t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
-        ip, ik = np.nonzero(cand)
-        yield slice(s, s + len(p)), cand, ip, ik, t_sphere
+        ptr = np.zeros(len(p) + 1, dtype=np.int64)
+        np.cumsum(cand.sum(axis=1), out=ptr[1:])
+        ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+        origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
+        _list_rays(p, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        yield slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
+
+
+@numba.njit(cache=True, parallel=True)
+def _list_rays(points, cand, dirs, ptr, ip, ik, origins, ray_dirs):
+    """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
+    their point ``ip`` and direction ``ik``, origin ``points[ip]`` and direction ``dirs[ik]``."""
+    for q in numba.prange(points.shape[0]):
+        i = ptr[q]
+        for k in range(cand.shape[1]):
+            if cand[q, k]:
+                ip[i], ik[i] = q, k
+                origins[i, 0], origins[i, 1], origins[i, 2] = points[q, 0], points[q, 1], points[q, 2]
+                ray_dirs[i, 0], ray_dirs[i, 1], ray_dirs[i, 2] = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+                i += 1
 
 
 def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
@@ -250,10 +351,10 @@ def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRu
     e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
     radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
     out = np.empty((len(p), 3))
-    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ in _rays(p, rule, blockers):
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
-            hit = blockers.caster.occluded(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+            hit = blockers.caster.occluded(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
         out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
     return out
@@ -270,7 +371,7 @@ def _blocked_sum(n_points, ip, ik, t_sphere, radiance) -> np.ndarray:
 
 
 def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
-                       method: str = "embree") -> np.ndarray:
+                       method: str = "embree", tier: str = "numba") -> np.ndarray:
     """Irradiance ``(P, 3)`` at ground points (normal ``+Y``) from the objects' surfaces: over the rays, the exit
     radiance at the first mesh hit (interpolated from ``radiance[g] (V_g, 3)``, the vertices of object ``g``; a
     back face gives 0), a hit beyond an opaque sphere giving nothing (see the module docstring).
@@ -286,26 +387,36 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
         Default :func:`ground_ray_rule` ``(64, 16)``.
     method : {"embree", "numpy"}
         As in :func:`ground_direct_rays`.
+    tier : {"numba", "reference"}
+        The sums over the hits: a numba kernel, or numpy (the specification; the same sums in the same order).
     """
+    from prtlab._validate import check_choice
+
+    check_choice(tier, "tier", ("numba", "reference"))
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, None)[1]
+    return _gather(p, blockers, radiance, rule, method, None, tier)[1]
 
 
 def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
-                      method: str = "embree") -> tuple[np.ndarray, np.ndarray]:
+                      method: str = "embree", tier: str = "numba") -> tuple[np.ndarray, np.ndarray]:
     """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
-    same points from one closest-hit cast per ray (the same values as the two apart)."""
+    same points from one closest-hit cast per ray (the same values as the two apart). ``tier``: the sums over the
+    hits in a numba kernel (``"numba"``) or numpy (``"reference"``, the specification; the same sums in the same
+    order)."""
+    from prtlab._validate import check_choice
+
+    check_choice(tier, "tier", ("numba", "reference"))
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
+    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64), tier)
 
 
-def _gather(p, blockers, radiance, rule, method, env):
+def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
     """The gathered light at local points ``p`` and, given ``env``, the direct light (else None)."""
     rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
     out = np.zeros((len(p), 3))
@@ -315,13 +426,28 @@ def _gather(p, blockers, radiance, rule, method, env):
         e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
         blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
         direct = np.empty((len(p), 3))
-    for sl, cand, ip, ik, t_sphere in _rays(p, rule, blockers):
+    if tier == "numba" and len(rad):
+        faces, face_start, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
+        rad_all = np.ascontiguousarray(np.concatenate(rad))
+    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr in _rays(p, rule, blockers):
         if not len(ip):
             if env is not None:
                 direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
             continue
-        hits = blockers.caster.closest_hit(p[sl][ip], rule.dirs[ik], normals=np.broadcast_to(_UP, (len(ip), 3)),
+        hits = blockers.caster.closest_hit(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
                                            method=method)
+        if tier == "numba":
+            # per point its rays in order (``ptr``): the sums of the reference below, term by term
+            blocked = np.zeros((len(cand), 3))
+            with_env = env is not None and t_sphere is None
+            _hit_sums(ptr, ik, hits.hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance,
+                      rule.dirs, rule.weights, blocked_radiance if with_env else np.zeros((0, 3)),
+                      t_sphere if t_sphere is not None else np.zeros((0, 0)), faces, face_start, rad_all,
+                      blocked, out[sl])
+            if env is not None:
+                direct[sl] = e_open - blocked if with_env else e_open - _blocked_sum(
+                    len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
+            continue
         if env is not None:
             direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
         d = rule.dirs[ik]
@@ -338,6 +464,48 @@ def _gather(p, blockers, radiance, rule, method, env):
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
     return direct, out
+
+
+def _stacked_faces(faces, n_verts):
+    """The objects' faces in one ``(F, 3)`` array (vertex indices into the stacked radiance) and each object's first
+    face and first vertex."""
+    face_start = np.zeros(len(faces) + 1, dtype=np.int64)
+    face_start[1:] = np.cumsum([len(f) for f in faces])
+    vert_start = np.zeros(len(faces) + 1, dtype=np.int64)
+    vert_start[1:] = np.cumsum(n_verts)
+    stacked = np.concatenate([np.asarray(f, dtype=np.int64).reshape(-1, 3) + vert_start[g]
+                              for g, f in enumerate(faces)] or [np.zeros((0, 3), dtype=np.int64)])
+    return np.ascontiguousarray(stacked), face_start, vert_start
+
+
+@numba.njit(cache=True, parallel=True)
+def _hit_sums(ptr, ik, hit, obj, tri, bary, normal, dist, dirs, weights, blocked_radiance, t_sphere, faces,
+              face_start, radiance, blocked, gathered):
+    """Per point ``q`` (its rays ``ptr[q]:ptr[q + 1]``, rule directions ``ik``), in ray order: ``blocked[q] +=
+    blocked_radiance[k]`` over the rays that hit (skipped if ``blocked_radiance`` is empty) and ``gathered[q] +=
+    w_k L_o`` over the front-face hits closer than the opaque spheres (``t_sphere (P, K)``, empty: none), ``L_o``
+    interpolated from ``radiance`` at the hit face's vertices."""
+    with_env = blocked_radiance.shape[0] > 0
+    with_spheres = t_sphere.shape[0] > 0
+    for q in numba.prange(ptr.shape[0] - 1):
+        for i in range(ptr[q], ptr[q + 1]):
+            if not hit[i]:
+                continue
+            k = ik[i]
+            if with_env:
+                for c in range(3):
+                    blocked[q, c] += blocked_radiance[k, c]
+            if normal[i, 0] * dirs[k, 0] + normal[i, 1] * dirs[k, 1] + normal[i, 2] * dirs[k, 2] >= 0.0:
+                continue  # a back face: from inside a closed object
+            if with_spheres and not dist[i] < t_sphere[q, k]:
+                continue
+            g = obj[i]
+            f = face_start[g] + tri[i]
+            a, b, d = faces[f, 0], faces[f, 1], faces[f, 2]
+            u, v = bary[i, 0], bary[i, 1]
+            for c in range(3):
+                value = (1.0 - u - v) * radiance[a, c] + u * radiance[b, c] + v * radiance[d, c]
+                gathered[q, c] += value * weights[k]
 
 
 def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:

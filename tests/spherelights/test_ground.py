@@ -51,6 +51,21 @@ def test_weight_kernel_matches_reference(rng):
     np.testing.assert_allclose(a, b, atol=1e-13)
 
 
+def test_blocked_transfer_in_blocks_of_rows(rng, monkeypatch):
+    """The weights in blocks of rows (7 points a block here, the last one short) give the product of the whole
+    weight matrix."""
+    import prtlab.spherelights._ground as ground
+
+    pts = rng.uniform(-2, 2, size=(40, 3))
+    nrm = random_directions(rng, 40)
+    rects = np.array([[-0.5, 0.2, -0.1, 1.5, 0.3, -0.2, 0.8]])
+    env = rng.normal(size=(16, 3))
+    whole = ground_blocked_transfer(pts, nrm, env, rects, n_azimuth=32, n_elevation=8)
+    monkeypatch.setattr(ground, "_WEIGHT_BLOCK_BYTES", 7 * 8 * 32 * 8)
+    np.testing.assert_allclose(ground_blocked_transfer(pts, nrm, env, rects, n_azimuth=32, n_elevation=8), whole,
+                               rtol=1e-13, atol=1e-15)
+
+
 def test_infinite_ground_leaves_the_sky_view_factor():
     """Under a constant sky with an infinite ground, a point sees E = pi (1 + n_y) / 2 (closed form). The product
     rule's error comes from the kink of the clamped cosine (the ground's edge is the horizon, a node-free end)."""

@@ -155,6 +155,74 @@ def test_one_cast_gives_the_direct_and_gathered_light(rng):
     np.testing.assert_allclose(g2, gathered, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("opaque", [False, True])
+def test_hit_sums_kernel_matches_reference(seed, opaque):
+    """The numba tier of the sums over the hits is the numpy specification's (the same sums in the same order):
+    two meshes (one a back face seen from inside), points under and beside them, with and without an opaque
+    sphere in front of some hits."""
+    rng = np.random.default_rng(seed)
+    v1, f1 = _ball(rng.uniform([-0.5, 0.4, -0.5], [0.5, 0.8, 0.5]), rng.uniform(0.3, 0.5), 2)
+    v2, f2 = _ball([1.2, 0.3, 0.2], 0.3, 1)
+    bounds = np.stack([_bound(v1), _bound(v2), [0.0, 0.0, 0.0, 0.2]])  # the last bound holds no mesh
+    spheres = np.array([[-0.8, 1.2, 0.1, 0.35]]) if opaque else ()
+    blk = mesh_blockers([(v1, f1), (v2, f2)], bounds, spheres, origin=[0.1, 0.0, -0.2], azimuth=0.4, scale=1.7)
+    pts = np.stack([rng.uniform(-1.5, 1.5, 40), np.zeros(40), rng.uniform(-1.5, 1.5, 40)], axis=1)
+    pts[0] = [1.2, 0.3, 0.2]  # inside the second ball: back faces only
+    env = rng.normal(size=(16, 3))
+    env[0] += 4.0
+    rad = [rng.uniform(0, 1, size=(len(v1), 3)), rng.uniform(0, 2, size=(len(v2), 3))]
+    rule = ground_ray_rule(24, 6)
+    fast = ground_light_rays(pts, env, blk, rad, rule)
+    ref = ground_light_rays(pts, env, blk, rad, rule, tier="reference")
+    for a, b in zip(fast, ref):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
+    assert np.abs(ref[1]).max() > 0.01  # some light was gathered
+    np.testing.assert_allclose(ground_gather_rays(pts, blk, rad, rule),
+                               ground_gather_rays(pts, blk, rad, rule, tier="reference"), rtol=1e-13, atol=1e-14)
+
+
+@pytest.mark.parametrize("rule", [(64, 16), (32, 8), (7, 3)])
+def test_candidate_rays_on_rings_match_the_direction_by_direction_test(rng, rule):
+    """On a product rule the kernel tests only the azimuth windows of the cones that meet a ring: the same
+    result as testing every direction against every sphere (spheres below, above and around the points, some
+    points inside one), and as the float64 reference but for rays grazing a cone."""
+    from prtlab.spherelights._groundrays import _candidates_kernel, _rings
+
+    dirs = ground_ray_rule(*rule).dirs
+    assert _rings(dirs) == rule[0] and _rings(dirs[::-1].copy()) == 0
+    for _ in range(5):
+        pts = np.stack([rng.uniform(-2, 2, 200), rng.uniform(-0.1, 0.3, 200), rng.uniform(-2, 2, 200)], axis=1)
+        spheres = np.concatenate([rng.uniform([-2, -0.5, -2], [2, 2, 2], (9, 3)), rng.uniform(0.05, 0.8, (9, 1))],
+                                 axis=1)
+        fast = candidate_rays(pts, dirs, spheres)
+        each = np.empty_like(fast)
+        _candidates_kernel(pts, np.ascontiguousarray(dirs), spheres, each)
+        np.testing.assert_array_equal(fast, each)
+        assert (fast != candidate_rays(pts, dirs, spheres, method="reference")).mean() < 1e-4
+        assert 0.05 < fast.mean() < 0.95
+
+
+def test_ray_lists_are_the_nonzero_candidates(rng):
+    """``_list_rays``: the candidate rays point by point in the order of ``np.nonzero``, with their origins and
+    directions (rows without a candidate, all candidates, none at all)."""
+    from prtlab.spherelights._groundrays import _list_rays
+
+    for density in (0.0, 0.2, 1.0):
+        cand = rng.uniform(size=(13, 40)) < density
+        cand[3] = False
+        pts, dirs = rng.normal(size=(13, 3)), rng.normal(size=(40, 3))
+        ptr = np.concatenate([[0], np.cumsum(cand.sum(axis=1))])
+        ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+        origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
+        _list_rays(pts, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        ref_p, ref_k = np.nonzero(cand)
+        np.testing.assert_array_equal(ip, ref_p)
+        np.testing.assert_array_equal(ik, ref_k)
+        np.testing.assert_array_equal(origins, pts[ref_p])
+        np.testing.assert_array_equal(ray_dirs, dirs[ref_k])
+
+
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
     """Only rays meeting a bounding sphere are cast: the result equals casting every ray (a bound as large as
     the scene)."""
@@ -218,5 +286,9 @@ def test_gather_errors():
         ground_gather_rays(np.zeros((1, 3)), blk, [])
     with pytest.raises(ValueError, match="method"):
         sphere_hits(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
+    with pytest.raises(ValueError, match="tier"):
+        ground_light_rays(np.zeros((1, 3)), WHITE, blk, [np.zeros((len(v), 3))], tier="fast")
+    with pytest.raises(ValueError, match="tier"):
+        ground_gather_rays(np.zeros((1, 3)), blk, [np.zeros((len(v), 3))], tier="fast")
     with pytest.raises(ValueError, match="method"):
         candidate_rays(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
