@@ -288,7 +288,27 @@ def _object_meshes(a):
     return out
 
 
-def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays"):
+def _mesh_direct_parts(a, meshes) -> list:
+    """Per object what ``SphereLights._mesh_direct`` keeps from frame to frame (``mesh_blockers=True``): its
+    receivers' own-mesh bits along the 1,024 directions (``self_blocked``, cast once) and the other objects as
+    occluders (their meshes' casters, their lights as bounds, the balls inside them); every pose the identity."""
+    from prtlab.spherelights._meshdirect import fibonacci_directions, inner_spheres, mesh_occluder, self_blocked
+
+    dirs = fibonacci_directions(1024)
+    c, r, obj = a["centres"], a["radii"], a["sl_object"]
+    bounds = [np.concatenate([c[obj == g], r[obj == g, None]], axis=1) for g in range(len(meshes))]
+    occ = [mesh_occluder(v, f, bounds=bounds[g], inner=inner_spheres(v, f, c[obj == g]))
+           for g, (v, f) in enumerate(meshes)]
+    parts = []
+    for g, (v, f) in enumerate(meshes):
+        rows = a["recv_object"] == g
+        bits = self_blocked(a["points"][rows], a["normals"][rows], v, f, dirs)
+        parts.append((bits, [o for k, o in enumerate(occ) if k != g]))
+    return parts
+
+
+def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays",
+                   mesh_parts=None):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
@@ -297,8 +317,11 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     texels), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
     and, above the ground, ``ground_light`` testing the eligible lights unadjusted; the ground's receivers last from
     the rays (their direct light and the light gathered from the objects' radiance; ``"lights"``: first, as any
-    receiver, less ``ground_light``)."""
+    receiver, less ``ground_light``). With ``mesh_parts`` (:func:`_mesh_direct_parts`; ``mesh_blockers=True``) the
+    objects' direct light is ``mesh_direct`` against the meshes and the ground instead of the second pass's, near
+    blockers' and hidden ground light."""
     from prtlab.spherelights import ground_light
+    from prtlab.spherelights._meshdirect import mesh_direct
     from prtlab.spherelights._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, mesh_blockers
     from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
     from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS
@@ -348,10 +371,15 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
         rows = a["recv_object"] == own
         p, n = a["points"][rows], a["normals"][rows]
         direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission, env, order=ORDER)
-        near(p, n, direct, own)
+        exact = mesh_parts is not None and own >= 0
+        if exact:
+            bits, occluders = mesh_parts[own]
+            direct = mesh_direct(p, n, env, np.eye(3), bits, occluders, rect)
+        else:
+            near(p, n, direct, own)
         if own >= 0:
             hidden, reflected = ground_light(p, n, rect, tex, env, c, r, unadjusted=eligible(own) & (near_blockers > 0))
-            direct, indirect = direct - hidden, indirect + reflected
+            direct, indirect = (direct if exact else direct - hidden), indirect + reflected
         out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
         if rays:  # the objects' exit radiance as the ground sees it (one bounce: their direct light)
             radiance.append(contact_radiance(p, n, out[-1][0] * albedo, rect[:, 0],
@@ -366,15 +394,18 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
 @case("spherelights.frame.per_object_ground_near.21k")
 def frame_per_object_ground_near(quick: bool) -> dict:
     """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"``,
-    ``near_blockers=2``, ``emission_order=6``, HYB, per-object blocking, ``ground="reflects"``), the receivers shaded
-    per object as the pipeline does; peer: the ground shaded through the spherical lights
-    (``ground_shading="lights"``)."""
+    ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object blocking,
+    ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits cast once,
+    not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the spherical
+    lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
     a = _scene_arrays(_n(quick))
     texels, up, _, rect = _ground_texels(a)
     meshes = _object_meshes(a)
-    return {"run": lambda: _default_frame(a, texels, up, rect, meshes), "gflop": _frame_flops(a, "object", True),
-            "items": _n(quick),
-            "peer": ("the ground through the lights (ground_shading='lights')",
+    parts = _mesh_direct_parts(a, meshes)
+    return {"run": lambda: _default_frame(a, texels, up, rect, meshes, mesh_parts=parts),
+            "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("the ground and the objects' direct light through the lights (ground_shading='lights', "
+                     "mesh_blockers=False)",
                      lambda: _default_frame(a, texels, up, rect, meshes, ground_shading="lights")),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
