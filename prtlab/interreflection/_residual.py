@@ -680,6 +680,31 @@ def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | Non
     return ResidualHits(*(a[order] for a in joined), (old or new).faces)
 
 
+def _update(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
+    """``old`` itself if the rays ``recast`` (sorted ids) hit now as they did (``new``: their hits now, ids
+    ascending), else ``_merge(old, recast, new)``: what ``_merge`` then ``_same`` give, comparing only the recast
+    rays' entries (found by ``searchsorted`` in ``old``'s sorted ids) instead of every hit, and merging by
+    insertion at sorted positions instead of a sort."""
+    if old is None:
+        return new
+    at = np.searchsorted(old.rays, recast)
+    found = at < len(old.rays)
+    found[found] = old.rays[at[found]] == recast[found]
+    at = at[found]  # old's entries of the recast rays
+    if new is None and not len(at):
+        return old
+    if new is not None and len(at) == len(new.rays) and all(np.array_equal(a[at], b)
+                                                            for a, b in zip(old.arrays(), new.arrays())):
+        return old
+    keep = np.ones(len(old.rays), bool)
+    keep[at] = False
+    kept = [a[keep] for a in old.arrays()]
+    if new is not None:
+        where = np.searchsorted(kept[2], new.rays)
+        kept = [np.insert(a, where, b.astype(a.dtype, copy=False), axis=0) for a, b in zip(kept, new.arrays())]
+    return ResidualHits(*kept, old.faces) if len(kept[0]) else None
+
+
 def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
     if a is None or b is None:
         return a is b
@@ -776,8 +801,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         new = _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound,
                      candidates[i[hit]], j[hit].astype(np.int64), ids[hit], triangle[i[hit], j[hit]],
                      uv32[i[hit], j[hit]])
-        merged = _merge(old, ids, new)
-        return old if _same(merged, old) else merged
+        return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
                  grid[2], _facing(source[1]), widened, flags)

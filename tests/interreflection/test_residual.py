@@ -765,3 +765,41 @@ def test_near_hit_correction_kernel_equals_the_reference(seps):
             fast = near_hit_correction(h, index, exact, values, len(x))
             assert fast.shape == ref.shape
             np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12 * max(np.abs(ref).max(initial=0.0), 1.0))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_update_equals_merge_then_same(seed):
+    """``_update`` (the kernels' merge of recast hits) gives what ``_merge`` then ``_same`` give: ``old`` itself
+    when the recast rays hit as before, else the merged arrays, bit for bit; on random hit sets where the recast
+    rays keep, change, gain or lose their hits."""
+    from prtlab.interreflection._residual import ResidualHits, _merge, _same, _update
+
+    rng = np.random.default_rng(seed)
+    faces = np.zeros((5, 3), np.int64)
+
+    def hits(rays):
+        rays = np.sort(np.asarray(rays, np.int64))
+        return ResidualHits(rays // 64, rng.normal(size=(len(rays), 1, 1)), rays, rng.integers(0, 5, len(rays)),
+                            rng.random((len(rays), 2)), faces)
+
+    old = hits(rng.choice(5000, size=600, replace=False))
+    recast = np.sort(rng.choice(5000, size=200, replace=False)).astype(np.int64)
+    again = np.isin(old.rays, recast)
+    assert again.any()
+    changed = ResidualHits(*(a[again].copy() for a in old.arrays()), faces)
+    changed.factor[0] += 1.0
+    cases = [ResidualHits(*(a[again] for a in old.arrays()), faces), None,
+             hits(rng.choice(recast, size=50, replace=False)), changed]
+    for new in cases:
+        if new is not None and not len(new.rays):
+            new = None
+        merged = _merge(old, recast, new)
+        expected = old if _same(merged, old) else merged
+        got = _update(old, recast, new)
+        assert (got is old) == (expected is old)
+        assert (got is None) == (expected is None)
+        if got is not None:
+            for a, b in zip(got.arrays(), expected.arrays()):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+    assert _update(None, recast, cases[2]) is cases[2]
