@@ -803,3 +803,31 @@ def test_update_equals_merge_then_same(seed):
                 assert a.dtype == b.dtype
                 np.testing.assert_array_equal(a, b)
     assert _update(None, recast, cases[2]) is cases[2]
+
+
+def test_kept_blockers_equal_a_fresh_instances(low_ball):
+    """``_blockers`` kept per pair (``FrameReuse.pair_blockers``; moved objects tested again) equals a fresh
+    instance's at every pose of an object that moves from far off to between the ball and the floor and back."""
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+    from prtlab.scene import SceneObject, Transform
+
+    base = low_ball.scene
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([3.0, 0.55, -3.0])),
+                        base.object("ball").material)
+    scene = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    data = {**low_ball.data, "other": low_ball.data["ball"]}
+    ir = Interreflection(scene, low_ball.options, data)
+    lists = set()
+    for where in ([3.0, 0.55, -3.0], [0.9, 0.3, 0.0], [0.9, 0.3, 0.0], [3.0, 0.55, -3.0]):
+        state = FrameState.from_scene(scene)
+        state.transforms["other"] = Transform(translate=np.array(where))
+        geo, fresh = ir._frame_geometry(state), Interreflection(scene, low_ball.options, data)
+        fresh_geo = fresh._frame_geometry(state)
+        for r in ir.objects:
+            for s in ir.objects:
+                if r is not s:
+                    kept = ir._blockers(geo, r, s)
+                    assert kept == fresh._blockers(fresh_geo, r, s)
+                    lists.add(tuple(kept))
+    assert len(lists) > 1  # the moving object blocks some pair at one pose and not at another
