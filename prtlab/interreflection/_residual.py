@@ -45,7 +45,7 @@ from prtlab.brdf._kernels import factor_at
 from prtlab.geometry import _embree
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
-           "gather_operator", "apply_gather", "near_hits", "near_hit_correction"]
+           "gather_operator", "apply_gather", "pack_operators", "bounce_rgb", "near_hits", "near_hit_correction"]
 
 @dataclass(frozen=True)
 class ResidualHits:
