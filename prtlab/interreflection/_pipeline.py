@@ -95,7 +95,7 @@ from ._kernels import masked_product_kernel, may_block_kernel
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
 from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual,
-                        near_hit_correction, near_hits, residual_hits)
+                        near_hit_correction, near_hits, pack_operators, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -381,13 +381,17 @@ class FrameReuse:
     stacked: dict = dataclasses.field(default_factory=dict)
     #: (source, receiver points in its frame) -> (near points, their ray-cast S)
     near_field: dict = dataclasses.field(default_factory=dict)
+    #: (receiver, source) -> (poses of every object, {object: whether it may block the pair}, the blockers nearest
+    #: first) of :meth:`Interreflection._blockers`
+    pair_blockers: dict = dataclasses.field(default_factory=dict)
     #: (plane, receiver, source) -> (poses, whether the plane separates them)
     plane_separates: dict = dataclasses.field(default_factory=dict)
     #: source -> k-d tree of its vertices / ray caster of its mesh (object frame, built on first use)
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
     #: receiver -> {poses of every object, its sources, the caster's offsets, the objects' bounding spheres,
-    #: {source index: ResidualHits}, {source index: GatherOperator}} of the residual gather
+    #: {source index: ResidualHits}, {source index: GatherOperator}, and once used their typed lists for
+    #: :func:`bounce_rgb` (``packed``)} of the residual gather
     residual_hits: dict = dataclasses.field(default_factory=dict)
     #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
     #: residual gather
@@ -1091,19 +1095,32 @@ class Interreflection(Precomputation):
         (:meth:`_plane_separates`) is no occluder of the pair.
         """
         gr, gs = geo[r.name], geo[s.name]
+        poses = tuple(geo[o.name]["pose"] for o in self.objects)
+        cached = self.reuse.pair_blockers.get((r.name, s.name))
+        if cached is not None and cached[0] == poses:
+            return cached[2]
+        # whether o blocks depends on the poses of o, r and s alone: with r and s in place, only moved objects
+        # are tested again
+        ends = cached is not None and all(cached[0][i] == poses[i] for i, o in enumerate(self.objects)
+                                          if o.name in (r.name, s.name))
         d = gs["center"] - gr["center"]
-        names = []
-        for o in self.objects:
+        member = {}
+        for i, o in enumerate(self.objects):
             if o.name in (r.name, s.name):
+                continue
+            if ends and cached[0][i] == poses[i]:
+                member[o.name] = cached[1][o.name]
                 continue
             go = geo[o.name]
             t = min(max(float((go["center"] - gr["center"]) @ d) / max(float(d @ d), 1e-300), 0.0), 1.0)
-            if np.linalg.norm(gr["center"] + t * d - go["center"]) > go["radius"] + gr["radius"] + gs["radius"]:
-                continue
-            if self._reaches(geo, o, r) and not self._plane_separates(geo, o, r, s):
-                names.append(o.name)
+            member[o.name] = bool(
+                np.linalg.norm(gr["center"] + t * d - go["center"]) <= go["radius"] + gr["radius"] + gs["radius"]
+                and self._reaches(geo, o, r) and not self._plane_separates(geo, o, r, s))
+        names = [name for name, blocks in member.items() if blocks]
         idx = occluder_order(gr["center"], [geo[o]["center"] for o in names]) if names else []
-        return [names[i] for i in idx]
+        out = [names[i] for i in idx]
+        self.reuse.pair_blockers[(r.name, s.name)] = (poses, member, out)
+        return out
 
     @staticmethod
     def _changed_rows(x, before: dict, now: dict, affects) -> np.ndarray:
@@ -1244,15 +1261,21 @@ class Interreflection(Precomputation):
             for r in self.objects:
                 g = geo[r.name]
                 stacked, sources = self._stacked_irradiance(r, phi[r.name])
-                operators = self._residual_entry(geo, r, phi[r.name])["operators"] if residuals else {}
+                entry = self._residual_entry(geo, r, phi[r.name]) if residuals else {}
+                operators = entry.get("operators", {})
                 if (method != "reference" and stacked is not None and stacked.shape[1] == 1
                         and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
                     # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
                     extra = corrections.get(r.name)
+                    packed = None
+                    if operators:  # the operators' typed lists, kept with them (made again with new operators)
+                        if "packed" not in entry:
+                            entry["packed"] = pack_operators(list(operators.values()))
+                        packed = entry["packed"]
                     lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
                                     stacked_residual, offsets,
-                                    None if extra is None else extra.reshape(len(stacked), 3))
+                                    None if extra is None else extra.reshape(len(stacked), 3), packed=packed)
                     lk = lk.reshape(len(stacked), 1, 3)
                     if residuals and self.options.residual_whole and self._near_on(lights):
                         lk = lk + self._whole_light(geo, r, phi[r.name], weights)

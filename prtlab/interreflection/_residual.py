@@ -45,7 +45,7 @@ from prtlab.brdf._kernels import factor_at
 from prtlab.geometry import _embree
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
-           "gather_operator", "apply_gather", "near_hits", "near_hit_correction"]
+           "gather_operator", "apply_gather", "pack_operators", "bounce_rgb", "near_hits", "near_hit_correction"]
 
 @dataclass(frozen=True)
 class ResidualHits:
@@ -119,6 +119,11 @@ def _frame(nx, ny, nz):
 #: Fewest rays a receiver point casts toward a source with ``full > 0`` (a 2 x 2 grid).
 MIN_RAYS = 4
 
+#: A ray with ``facing . w`` above this never meets the front of a flat source of normal ``facing``
+#: (:func:`_facing`: the vertex normals agree within ``1e-12``, so the interpolated shading normal's product
+#: with ``w`` stays positive).
+FACING_MARGIN = 1e-9
+
 
 @numba.njit(cache=True, inline="always")
 def _point_grid(rows, side, cos_c, cos_max, q, full):
@@ -144,14 +149,16 @@ def _point_grid(rows, side, cos_c, cos_max, q, full):
 
 
 @numba.njit(cache=True, inline="always")
-def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, out):
+def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, out):
     """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
 
     Uniform in the cone of the sphere ``(centre, radius)``, cosine-weighted on the hemisphere from inside it;
     the origin is moved ``eps`` off the surface on the ray's side (:func:`prtlab.geometry.offset_origins`);
     ``tmax`` is where the ray leaves the sphere ``(centre, bound)`` (0: it misses it, or weight 0). With
     ``full > 0`` a point outside the sphere casts only the rays ``j`` of its own grid (``_point_grid``), each
-    weighted by that grid's size; the others get weight and ``tmax`` 0.
+    weighted by that grid's size; the others get weight and ``tmax`` 0. ``facing`` (3,): the unit normal shared
+    by every vertex of a flat source (:func:`_facing`), or zeros: a ray with ``facing . w > FACING_MARGIN``
+    cannot meet the source's front, so its ``tmax`` is 0 (its weight stands).
     """
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
@@ -194,14 +201,16 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, ful
     bb = e0 * w0 + e1 * w1 + e2 * w2
     disc = bb * bb - (e0 * e0 + e1 * e1 + e2 * e2 - bound * bound)
     tmax = -bb + math.sqrt(disc) if disc >= 0.0 and weight > 0.0 else 0.0
+    if facing[0] * w0 + facing[1] * w1 + facing[2] * w2 > FACING_MARGIN:
+        tmax = 0.0  # away from a flat source's front: no hit of it can count
     out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = o0, o1, o2, w0, w1, w2, weight, max(tmax, 0.0)
 
 
 @numba.njit(cache=True, parallel=True)
-def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, out):
+def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing, out):
     """``_ray`` for each ``(point[i], ray[i])``: ``out`` (Q, 8)."""
     for i in numba.prange(point.shape[0]):
-        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, full, out[i])
+        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, full, facing, out[i])
 
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -231,8 +240,8 @@ def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, tnear,
-                 source, function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, facing,
+                 tnear, source, function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
     """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
     ``point`` empty ``(i // m, i % m)`` (every ray of every point). ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not
     cast), ``_CAST`` or ``_HIT`` (the first hit is object ``source``: its ``triangle[i]`` and float32 ``uv[i]``).
@@ -254,7 +263,7 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
             for i in range(block * step, min(n_rays, (block + 1) * step)):
                 p = i // m if every else point[i]
                 j = i % m if every else ray[i]
-                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, buf)
+                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
                 state[i] = _NOT_LIVE
                 if not buf[7] > 0.0:
                     continue
@@ -287,9 +296,9 @@ def _local_unit(x, y, z, n0, n1, n2):
 
 
 @numba.njit(cache=True, parallel=True)
-def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, faces,
-                       vertex_normals, triangle, uv, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq,
-                       h_parity, front, factor):
+def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing,
+                       faces, vertex_normals, triangle, uv, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values,
+                       h_freq, h_parity, front, factor):
     """For each hit ``i`` (ray ``ray[i]`` of point ``point[i]``, made again by ``_ray``, on ``triangle[i]`` of the
     source at barycentrics ``uv[i]``): ``front[i]``, whether the ray meets the front of the interpolated shading
     normal, and ``factor[i, k', k] = weight g_k'(w) h_k(-w)`` in the receiver's and the source's local frames
@@ -302,7 +311,7 @@ def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, 
         h = np.empty(h_values.shape[0])
         for i in range(c * chunk, min(n_hits, (c + 1) * chunk)):
             p = point[i]
-            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, full, buf)
+            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, full, facing, buf)
             f = triangle[i]
             i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
             u, v = uv[i, 0], uv[i, 1]
@@ -345,12 +354,89 @@ def _meets(buf, spheres):
     return False
 
 
+#: Widening (radians) of the angular test of ``_rows_meeting``: far above the rounding of a ray's direction.
+_ROW_MARGIN = 1e-6
+
+
+@numba.njit(cache=True, inline="always")
+def _rows_meeting(points, normals, p, centre, radius, rows, side, eps, full, spheres, need):
+    """The rows of point ``p``'s grid (``_ray``'s ``u1`` strata) that hold a ray which may meet one of ``spheres``:
+    ``need[i]`` for the point's ``rows'`` rows (``_point_grid``); returns ``(rows', side')``. Conservative: a ray
+    meets a sphere ``(c, R)`` only if its angle to the direction of ``c`` from the point is at most
+    ``asin((R + eps |n|) / |c - x|)`` (its origin lies ``eps |n|`` off the point), and a ray's angle to its axis
+    (the normal, or the source's centre) lies in its row's band, so by the triangle inequality a row whose band is
+    farther than that from the sphere's direction holds none (widened by ``_ROW_MARGIN``). Every row is needed
+    from inside a sphere or with a normal not of unit length."""
+    x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
+    n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
+    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    inside = dist <= 1.0001 * radius
+    q = radius / max(dist, radius)
+    cos_max = math.sqrt(max(1.0 - q * q, 0.0))
+    rp, sp = rows, side
+    if full > 0.0 and not inside:
+        rp, sp = _point_grid(rows, side, (d0 * n0 + d1 * n1 + d2 * n2) / dist, cos_max, q, full)
+    length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    every = not abs(length - 1.0) <= 1e-6
+    if inside:
+        a0, a1, a2 = n0 / length, n1 / length, n2 / length
+    else:
+        a0, a1, a2 = d0 / dist, d1 / dist, d2 / dist
+    offset = eps * length * (1.0 + 1e-9) + 1e-300
+    for i in range(rp):
+        need[i] = every
+    if every:
+        return rp, sp
+    for k in range(spheres.shape[0]):
+        e0, e1, e2 = spheres[k, 0] - x0, spheres[k, 1] - x1, spheres[k, 2] - x2
+        de = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        reach = spheres[k, 3] + offset
+        if not de > reach * (1.0 + 1e-9):  # from inside (or NaN): any ray
+            for i in range(rp):
+                need[i] = True
+            return rp, sp
+        alpha = math.asin(reach / de) + _ROW_MARGIN
+        theta = math.acos(min(max((a0 * e0 + a1 * e1 + a2 * e2) / de, -1.0), 1.0))
+        for i in range(rp):
+            if need[i]:
+                continue
+            lo, hi = i / rp, (i + 1) / rp
+            if inside:  # cos t = sqrt(1 - u1)
+                t_lo = math.acos(min(math.sqrt(max(1.0 - lo, 0.0)), 1.0))
+                t_hi = math.acos(min(math.sqrt(max(1.0 - hi, 0.0)), 1.0))
+            else:  # cos t = 1 - u1 (1 - cos_max)
+                t_lo = math.acos(min(max(1.0 - lo * (1.0 - cos_max), -1.0), 1.0))
+                t_hi = math.acos(min(max(1.0 - hi * (1.0 - cos_max), -1.0), 1.0))
+            need[i] = t_lo - _ROW_MARGIN <= theta + alpha and t_hi + _ROW_MARGIN >= theta - alpha
+    return rp, sp
+
+
+@numba.njit(cache=True, parallel=True)
+def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, spheres,
+                      flags):
+    """``_flag_kernel`` by ``_recast_kernel``'s way: rays of the rows ``_rows_meeting`` leaves out are not made
+    (unflagged); the same flags."""
+    m = rows * side
+    for i in numba.prange(candidates.shape[0]):
+        buf = np.empty(8)
+        need = np.empty(m, np.bool_)
+        rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full, spheres, need)
+        for j in range(m):
+            flags[i, j] = False
+            if j >= rp * sp or not need[j // sp]:  # not cast (tmax 0), or in a row no ray of which meets them
+                continue
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+            flags[i, j] = _meets(buf, spheres)
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, tnear, source,
-                   spheres,
+def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, tnear,
+                   source, spheres,
                    function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
-    ``_flag_kernel`` flags is traced at once; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax``
+    ``_flag_kernel`` flags is traced at once (rays are made only in the rows ``_rows_meeting`` keeps, as
+    ``_flag_rows_kernel``); ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax``
     0), ``_FLAGGED_CAST`` or ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
     m = rows * side
     n = candidates.shape[0]
@@ -358,6 +444,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
     counter = np.zeros(1, dtype=np.int64)
     for _ in numba.prange(threads):
         buf = np.empty(8)
+        need = np.empty(m, np.bool_)
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
@@ -365,9 +452,14 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
             f32, u32 = slot_f32[block], slot_u32[block]
             address = f32.ctypes.data
             for i in range(block * _POINTS_PER_TASK, min(n, (block + 1) * _POINTS_PER_TASK)):
+                rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full, spheres,
+                                       need)
                 for j in range(m):
-                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, buf)
                     state[i, j] = _UNFLAGGED
+                    if j >= rp * sp or not need[j // sp]:  # as _flag_rows_kernel: no ray of the row can be flagged
+                        continue
+                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing,
+                         buf)
                     if not _meets(buf, spheres):
                         continue
                     state[i, j] = _FLAGGED
@@ -382,14 +474,15 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
 
 
 @numba.njit(cache=True, parallel=True)
-def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, spheres, flags):
+def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, spheres,
+                 flags):
     """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
     (S, 4: centre, radius)."""
     m = rows * side
     for i in numba.prange(candidates.shape[0]):
         buf = np.empty(8)
         for j in range(m):
-            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, buf)
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
             flags[i, j] = _meets(buf, spheres)
 
 
@@ -445,7 +538,7 @@ def cosine_directions(normals, n: int, seed: int = 0) -> np.ndarray:
     out = np.empty((len(point), 8))
     inside = np.zeros(3)  # a point at the sphere's centre
     _rays_kernel(np.zeros_like(normals), normals, point, ray, inside, 1.0, 1.0, _key(seed, 0), rows, side, 0.0, 0.0,
-                 out)
+                 np.zeros(3), out)
     return out[:, 3:6].reshape(len(normals), m, 3)
 
 
@@ -453,6 +546,18 @@ def _bounding_radius(vertices, centre) -> float:
     """Radius about ``centre`` of the sphere through the farthest vertex."""
     v = np.asarray(vertices, float)
     return float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1)))) if len(v) else 0.0
+
+
+def _facing(vertex_normals) -> np.ndarray:
+    """(3,) the unit normal of a flat source whose vertex normals all agree within ``1e-12`` (a ray along which
+    it rises cannot meet its front, ``_ray``), else zeros."""
+    n = np.asarray(vertex_normals, float).reshape(-1, 3)
+    if not len(n):
+        return np.zeros(3)
+    length = float(np.linalg.norm(n[0]))
+    if not (0.5 < length < 2.0) or float(np.max(np.abs(n - n[0]))) > 1e-12:
+        return np.zeros(3)
+    return n[0] / length
 
 
 def _margin(caster, centre, radius) -> float:
@@ -482,7 +587,7 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     buf = np.empty((len(point), 8))
     if len(point):
         _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
-                     float(caster.epsilon), grid[2], buf)
+                     float(caster.epsilon), grid[2], _facing(vertex_normals), buf)
     live = np.flatnonzero(buf[:, 7] > 0.0)
     if not len(live):
         return None
@@ -521,7 +626,8 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
     slot_f32, slot_u32 = _embree.ray_slots(n_rays)
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
-                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], float(caster.tnear), s,
+                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _facing(source[1]),
+                 float(caster.tnear), s,
                  caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
                  state, triangle, uv32)
     stats["rays_cast"] += int(np.count_nonzero(state))
@@ -544,8 +650,9 @@ def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound,
     front = np.empty(len(rows), np.bool_)
     factor = np.empty((len(rows), receiver_sep.K, sep.K))
     _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps, grid[2],
-                       np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(vertex_normals, np.float64),
-                       triangles, uv, g_nodes, g_values, np.ascontiguousarray(receiver_sep.freq, np.int64),
+                       _facing(vertex_normals), np.ascontiguousarray(faces, np.int64),
+                       np.ascontiguousarray(vertex_normals, np.float64), triangles, uv, g_nodes, g_values,
+                       np.ascontiguousarray(receiver_sep.freq, np.int64),
                        np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
                        np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64), front,
                        factor)
@@ -571,6 +678,31 @@ def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | Non
     joined = [np.concatenate([p[i] for p in parts]) for i in range(len(parts[0]))]
     order = np.argsort(joined[2], kind="stable")
     return ResidualHits(*(a[order] for a in joined), (old or new).faces)
+
+
+def _update(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
+    """``old`` itself if the rays ``recast`` (sorted ids) hit now as they did (``new``: their hits now, ids
+    ascending), else ``_merge(old, recast, new)``: what ``_merge`` then ``_same`` give, comparing only the recast
+    rays' entries (found by ``searchsorted`` in ``old``'s sorted ids) instead of every hit, and merging by
+    insertion at sorted positions instead of a sort."""
+    if old is None:
+        return new
+    at = np.searchsorted(old.rays, recast)
+    found = at < len(old.rays)
+    found[found] = old.rays[at[found]] == recast[found]
+    at = at[found]  # old's entries of the recast rays
+    if new is None and not len(at):
+        return old
+    if new is not None and len(at) == len(new.rays) and all(np.array_equal(a[at], b)
+                                                            for a, b in zip(old.arrays(), new.arrays())):
+        return old
+    keep = np.ones(len(old.rays), bool)
+    keep[at] = False
+    kept = [a[keep] for a in old.arrays()]
+    if new is not None:
+        where = np.searchsorted(kept[2], new.rays)
+        kept = [np.insert(a, where, b.astype(a.dtype, copy=False), axis=0) for a, b in zip(kept, new.arrays())]
+    return ResidualHits(*kept, old.faces) if len(kept[0]) else None
 
 
 def _same(a: ResidualHits | None, b: ResidualHits | None) -> bool:
@@ -657,8 +789,9 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
-                       float(caster.epsilon), grid[2], float(caster.tnear), s, widened, caster._scene.intersect_fn,
-                       caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(), state, triangle, uv32)
+                       float(caster.epsilon), grid[2], _facing(source[1]), float(caster.tnear), s, widened,
+                       caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
+                       state, triangle, uv32)
         i, j = np.nonzero(state)
         if not len(i):
             return old
@@ -668,11 +801,10 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         new = _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound,
                      candidates[i[hit]], j[hit].astype(np.int64), ids[hit], triangle[i[hit], j[hit]],
                      uv32[i[hit], j[hit]])
-        merged = _merge(old, ids, new)
-        return old if _same(merged, old) else merged
+        return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
-                 grid[2], widened, flags)
+                 grid[2], _facing(source[1]), widened, flags)
     i, j = np.nonzero(flags)
     if not len(i):
         return old
@@ -723,29 +855,36 @@ def _rgb_ready(operators) -> bool:
     return all(op.factor.shape[1:] == (1, 1) and op.uv.dtype == np.float32 for op in operators)
 
 
-def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None) -> np.ndarray:
+def pack_operators(operators) -> tuple:
+    """The arrays of ``operators`` (:class:`GatherOperator`, :func:`_rgb_ready`) as numba typed lists
+    ``(starts, faces, triangles, uv, factor)``, the form :func:`bounce_rgb` passes to its kernel; made once per set
+    of operators by callers that apply them every bounce (building the lists costs about 0.3 ms a source)."""
+    from numba.typed import List
+
+    return tuple(List([getattr(op, f) for op in operators]) for f in ("starts", "faces", "triangles", "uv")) + (
+        List([op.factor.reshape(-1) for op in operators]),)
+
+
+def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, packed=None) -> np.ndarray:
     """One bounce's ``L`` (V, 3) of a receiver with ``K' = 1`` in one pass: ``stacked @ w`` (its basis
     irradiance, Eq. 12 before ``h``) plus the residual gather of every source (:func:`apply_gather`) plus
     ``extra`` (V, 3) if given.
 
     ``stacked`` (V, M), ``w`` (M, 3); ``operators``: the sources' :class:`GatherOperator` (``K = K' = 1``,
     float32 barycentrics, :func:`_rgb_ready`), ``sources`` their object numbers, ``residual`` (V_all, 3) every
-    object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start. Per point
+    object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start;
+    ``packed``: :func:`pack_operators` of ``operators`` if the caller keeps it (else it is made here). Per point
     the sum is ``dot + sum_j gather_j + extra``, in that order: the terms of the numpy path (``stacked @ w``,
     :func:`apply_gather` per source into zeros, the corrections added), which holds it to ``1e-12``
     (``tests/interreflection/test_residual.py``); the dot product's summation order differs from BLAS's.
     """
-    from numba.typed import List
-
     stacked = np.ascontiguousarray(stacked, np.float64)
     out = np.empty((stacked.shape[0], 3))
     if not len(out):
         return out
-    lists = [List([getattr(op, f) for op in operators]) if operators else None
-             for f in ("starts", "faces", "triangles", "uv")]
-    factors = List([op.factor.reshape(-1) for op in operators]) if operators else None
     if operators:
-        _bounce_rgb_kernel(stacked, np.ascontiguousarray(w, np.float64), *lists, factors,
+        packed = pack_operators(operators) if packed is None else packed
+        _bounce_rgb_kernel(stacked, np.ascontiguousarray(w, np.float64), *packed,
                            np.asarray([offsets[i] for i in sources], np.int64),
                            np.ascontiguousarray(residual, np.float64),
                            np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64), out)
@@ -897,12 +1036,46 @@ def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, a
             normals[q, x] /= length
 
 
-def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int) -> np.ndarray:
+@numba.njit(cache=True, nogil=True)
+def _near_correction_kernel(rows, factor, triangles, uv, faces, index, exact, values, out):
+    """``near_hit_correction``'s sum, hit after hit in the order of ``index`` (as ``np.add.at``)."""
+    n_kp, n_k, n_c = factor.shape[1], factor.shape[2], exact.shape[2]
+    diff = np.empty((n_k, n_c))
+    for q in range(index.shape[0]):
+        h = index[q]
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        for k in range(n_k):
+            for c in range(n_c):
+                diff[k, c] = exact[q, k, c] - (b0 * values[i0, k, c] + u * values[i1, k, c] + v * values[i2, k, c])
+        p = rows[h]
+        for kp in range(n_kp):
+            for c in range(n_c):
+                total = 0.0
+                for k in range(n_k):
+                    total += factor[h, kp, k] * diff[k, c]
+                out[p, kp, c] += total
+
+
+def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int,
+                        method: str = "numba") -> np.ndarray:
     """``L_k',c`` (n_points, K', C): over the hits ``index`` of ``hits``, ``factor (exact - interp)``, with
     ``exact`` (Q, K, C) a source's radiance term ``colour_k L_k`` evaluated at those hits and ``interp`` the
-    barycentric interpolation of ``vertex_values`` (V_s, K, C), the same term at its vertices."""
+    barycentric interpolation of ``vertex_values`` (V_s, K, C), the same term at its vertices.
+    ``method="numba"``: one serial pass over the hits; ``"reference"``: numpy, the specification (within float64
+    rounding: the sums' order differs)."""
+    check_choice(method, "method", ("numba", "reference"))
     index = np.asarray(index, np.int64)
     values = np.asarray(vertex_values, float)
+    if method == "numba":
+        exact = np.ascontiguousarray(exact, np.float64)
+        out = np.zeros((n_points, hits.factor.shape[1], exact.shape[2]))
+        _near_correction_kernel(*(np.ascontiguousarray(a, t) for a, t in (
+            (hits.rows, np.int64), (hits.factor, np.float64), (hits.triangles, np.int64), (hits.uv, np.float64),
+            (hits.faces, np.int64))), index, exact, np.ascontiguousarray(values), out)
+        return out
     at = np.einsum("hv,hvkc->hkc", hits.bary[index], values[hits.vertices[index]])
     per_ray = np.einsum("hqk,hkc->hqc", hits.factor[index], np.asarray(exact, float) - at)
     out = np.zeros((n_points,) + per_ray.shape[1:])

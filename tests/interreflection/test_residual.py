@@ -237,11 +237,12 @@ def test_rays_depend_on_the_point_and_source_alone(full):
     rows, side = _grid(16)
     point, ray = np.repeat(np.arange(50), 16), np.tile(np.arange(16), 50)
     whole = np.empty((800, 8))
-    _rays_kernel(x, n, point, ray, np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, full, whole)
+    _rays_kernel(x, n, point, ray, np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, full,
+                 np.zeros(3), whole)
     pick = np.array([3, 517, 799, 100])
     part = np.empty((4, 8))
     _rays_kernel(x, n, point[pick], ray[pick], np.array([0.5, 0.0, 0.0]), 0.7, 0.8, _key(7, 2), rows, side, 1e-4, full,
-                 part)
+                 np.zeros(3), part)
     np.testing.assert_array_equal(part, whole[pick])
     np.testing.assert_allclose(np.linalg.norm(whole[:, 3:6], axis=1), 1.0, atol=1e-12)
 
@@ -663,3 +664,170 @@ def test_residual_cone_casts_fewer_rays_in_the_pipeline(low_ball):
     for name in ("floor", "ball"):
         a, b = shades[0.0].total[name], shades[0.5].total[name]
         assert np.sqrt(np.mean((a - b) ** 2)) <= 0.01 * np.sqrt(np.mean(a**2))
+
+
+# ------------------------------------------------------------------ rays that cannot count are not made or cast
+
+
+def test_facing_is_the_normal_of_a_flat_source_alone():
+    """:func:`_facing`: a plane's shared unit normal; zeros for a curved source and for normals that differ by more
+    than ``1e-12``."""
+    from prtlab.interreflection._residual import _facing
+
+    floor = builtin_mesh("plane", size=[2.0, 2.0], resolution=[4, 4])
+    np.testing.assert_array_equal(_facing(floor.vertex_normals), np.asarray(floor.vertex_normals)[0])
+    np.testing.assert_array_equal(_facing(builtin_mesh("icosphere", subdivisions=1).vertex_normals), np.zeros(3))
+    bent = np.array(floor.vertex_normals, float)
+    bent[3] += [1e-9, 0.0, 0.0]
+    np.testing.assert_array_equal(_facing(bent), np.zeros(3))
+    np.testing.assert_array_equal(_facing(np.zeros((0, 3))), np.zeros(3))
+
+
+@pytest.mark.parametrize("method", ["numba", "reference"])
+@pytest.mark.parametrize("r", [1, 2])
+def test_rays_away_from_a_flat_sources_front_are_not_cast(monkeypatch, method, r):
+    """Rays along which the floor rises cannot meet its front: with them left uncast the hits (full and
+    incremental casts) are those of casting every ray, bit for bit, and fewer rays are cast."""
+    from prtlab.interreflection import _residual
+
+    meshes, poses, moves = _objects()
+    seps = (LAMBERT, PHONG, LAMBERT)
+    after_poses = [poses[0], poses[1], moves["next to the ball"]]
+    before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
+    x, n = _receiver(meshes, poses, r)
+    indices = [i for i in range(3) if i != r]
+    src_before, src_after = _sources(meshes, poses, indices, seps), _sources(meshes, after_poses, indices, seps)
+    runs = {}
+    for skip in (True, False):
+        if not skip:
+            monkeypatch.setattr(_residual, "_facing", lambda normals: np.zeros(3))
+        stats = {}
+        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=2, stats=stats, method=method, full=0.3)
+        moved = None if r == 2 else {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])}
+        new = residual_hits(x, n, seps[r], after, src_after, 64, seed=2, stats=stats, method=method, full=0.3,
+                            previous=None if r == 2 else old, moved=moved)
+        runs[skip] = (old, new, stats["rays_cast"])
+    assert runs[True][2] < runs[False][2]
+    for fast, every in zip(runs[True][:2], runs[False][:2]):
+        assert set(fast) == set(every) and 0 in fast
+        for i in fast:
+            for a, b in zip(fast[i].arrays(), every[i].arrays()):
+                np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("full", [0.0, 0.5])
+@pytest.mark.parametrize("seed", range(6))
+def test_flagging_by_rows_equals_flagging_every_ray(seed, full):
+    """``_flag_rows_kernel`` (``_recast_kernel``'s flagging: rays made only in the rows whose band of angles may
+    reach a moved sphere) gives ``_flag_kernel``'s flags, every ray made: random points, normals (some inside the
+    source's sphere, some inside a moved sphere), moved spheres small and large, near and far."""
+    from prtlab.interreflection._residual import _flag_kernel, _flag_rows_kernel, _grid, _key
+
+    rng = np.random.default_rng(seed)
+    n_points = 400
+    points = rng.uniform(-3.0, 3.0, size=(n_points, 3))
+    normals = rng.normal(size=(n_points, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centre, radius = rng.uniform(-1.0, 1.0, 3), float(rng.uniform(0.2, 2.0))
+    bound = radius * 1.01
+    spheres = np.concatenate([rng.uniform(-2.5, 2.5, size=(3, 3)), rng.uniform(0.01, 0.8, size=(3, 1))], axis=1)
+    spheres[1, :3] = spheres[0, :3] + rng.normal(scale=1e-3, size=3)  # old and new pose of a small move
+    points[:20] = spheres[0, :3] + rng.normal(scale=0.3 * spheres[0, 3], size=(20, 3))  # inside a moved sphere
+    facing = np.zeros(3) if seed % 2 else np.array([0.0, 1.0, 0.0])
+    rows, side = _grid(64)
+    candidates = np.arange(n_points)
+    every, by_rows = (np.empty((n_points, rows * side), np.bool_) for _ in range(2))
+    args = (points, normals, candidates, centre, radius, bound, _key(seed, 1), rows, side, 1e-4, full, facing,
+            spheres)
+    _flag_kernel(*args, every)
+    _flag_rows_kernel(*args, by_rows)
+    assert every.any() and not every.all()
+    np.testing.assert_array_equal(by_rows, every)
+
+
+@pytest.mark.parametrize("seps", [(LAMBERT, LAMBERT, LAMBERT), (LAMBERT, PHONG, PHONG)])
+def test_near_hit_correction_kernel_equals_the_reference(seps):
+    """``near_hit_correction``'s kernel equals its numpy tier at 1e-12 (K' = K = 1 and glossy K' = K = 3), on every
+    hit and on a subset with repeated receiver points, and gives zeros with no hits."""
+    from prtlab.interreflection._residual import near_hit_correction
+
+    meshes, poses, _ = _objects()
+    caster = RayCaster(meshes, transforms=poses)
+    x, n = _receiver(meshes, poses, 0)
+    hits = residual_hits(x, n, seps[0], caster, _sources(meshes, poses, [1, 2], seps), 64)
+    rng = np.random.default_rng(4)
+    for i, h in hits.items():
+        values = rng.normal(size=(len(meshes[i].vertices), seps[i].K, 3))
+        for index in (np.arange(len(h.rows)), np.sort(rng.choice(len(h.rows), size=len(h.rows) // 3, replace=False)),
+                      np.zeros(0, np.int64)):
+            exact = rng.normal(size=(len(index), seps[i].K, 3))
+            ref = near_hit_correction(h, index, exact, values, len(x), method="reference")
+            fast = near_hit_correction(h, index, exact, values, len(x))
+            assert fast.shape == ref.shape
+            np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12 * max(np.abs(ref).max(initial=0.0), 1.0))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_update_equals_merge_then_same(seed):
+    """``_update`` (the kernels' merge of recast hits) gives what ``_merge`` then ``_same`` give: ``old`` itself
+    when the recast rays hit as before, else the merged arrays, bit for bit; on random hit sets where the recast
+    rays keep, change, gain or lose their hits."""
+    from prtlab.interreflection._residual import ResidualHits, _merge, _same, _update
+
+    rng = np.random.default_rng(seed)
+    faces = np.zeros((5, 3), np.int64)
+
+    def hits(rays):
+        rays = np.sort(np.asarray(rays, np.int64))
+        return ResidualHits(rays // 64, rng.normal(size=(len(rays), 1, 1)), rays, rng.integers(0, 5, len(rays)),
+                            rng.random((len(rays), 2)), faces)
+
+    old = hits(rng.choice(5000, size=600, replace=False))
+    recast = np.sort(rng.choice(5000, size=200, replace=False)).astype(np.int64)
+    again = np.isin(old.rays, recast)
+    assert again.any()
+    changed = ResidualHits(*(a[again].copy() for a in old.arrays()), faces)
+    changed.factor[0] += 1.0
+    cases = [ResidualHits(*(a[again] for a in old.arrays()), faces), None,
+             hits(rng.choice(recast, size=50, replace=False)), changed]
+    for new in cases:
+        if new is not None and not len(new.rays):
+            new = None
+        merged = _merge(old, recast, new)
+        expected = old if _same(merged, old) else merged
+        got = _update(old, recast, new)
+        assert (got is old) == (expected is old)
+        assert (got is None) == (expected is None)
+        if got is not None:
+            for a, b in zip(got.arrays(), expected.arrays()):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
+    assert _update(None, recast, cases[2]) is cases[2]
+
+
+def test_kept_blockers_equal_a_fresh_instances(low_ball):
+    """``_blockers`` kept per pair (``FrameReuse.pair_blockers``; moved objects tested again) equals a fresh
+    instance's at every pose of an object that moves from far off to between the ball and the floor and back."""
+    from prtlab.interreflection import Interreflection
+    from prtlab.pipeline import FrameState
+    from prtlab.scene import SceneObject, Transform
+
+    base = low_ball.scene
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([3.0, 0.55, -3.0])),
+                        base.object("ball").material)
+    scene = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    data = {**low_ball.data, "other": low_ball.data["ball"]}
+    ir = Interreflection(scene, low_ball.options, data)
+    lists = set()
+    for where in ([3.0, 0.55, -3.0], [0.9, 0.3, 0.0], [0.9, 0.3, 0.0], [3.0, 0.55, -3.0]):
+        state = FrameState.from_scene(scene)
+        state.transforms["other"] = Transform(translate=np.array(where))
+        geo, fresh = ir._frame_geometry(state), Interreflection(scene, low_ball.options, data)
+        fresh_geo = fresh._frame_geometry(state)
+        for r in ir.objects:
+            for s in ir.objects:
+                if r is not s:
+                    kept = ir._blockers(geo, r, s)
+                    assert kept == fresh._blockers(fresh_geo, r, s)
+                    lists.add(tuple(kept))
+    assert len(lists) > 1  # the moving object blocks some pair at one pose and not at another
