@@ -42,7 +42,8 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "ray_slots", "rtc_call", "set_ray", "fetch_add"]
+__all__ = ["EmbreeScene", "EmbreeUnavailable", "load_library", "ray_slots", "rtc_call", "set_ray", "fetch_add",
+           "PACKET", "packet_slots", "rtc_call_packet", "set_packet_ray"]
 
 RTC_SCENE_FLAG_ROBUST = 1 << 2
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
@@ -54,6 +55,12 @@ RTC_FORMAT_FLOAT3 = 0x9003
 #: Bytes of one ray slot and its alignment.
 SLOT_BYTES = 128
 SLOT_ALIGN = 64
+
+#: Rays of one packet (``rtcIntersect16`` / ``rtcOccluded16``), and the bytes of a packet's slot: an
+#: ``RTCRayHit16`` is the single ray's struct with every field an array of 16 (field ``f`` of lane ``k``
+#: at word ``f * PACKET + k``), 1,280 or 1,344 bytes by the build.
+PACKET = 16
+PACKET_SLOT_BYTES = 1536
 
 #: Rays a thread takes at a time from the queue of a query (:func:`fetch_add`).
 RAYS_PER_TASK = 256
@@ -76,6 +83,8 @@ _SIGNATURES = {
     "rtcReleaseGeometry": (None, [ctypes.c_void_p]),
     "rtcIntersect1": (None, [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]),
     "rtcOccluded1": (None, [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]),
+    "rtcIntersect16": (None, [ctypes.c_void_p] * 4),
+    "rtcOccluded16": (None, [ctypes.c_void_p] * 4),
 }
 
 
@@ -181,6 +190,8 @@ class EmbreeScene:
         self._lib = lib = load_library() if library is None else library
         self.intersect_fn = ctypes.cast(lib.rtcIntersect1, ctypes.c_void_p).value
         self.occluded_fn = ctypes.cast(lib.rtcOccluded1, ctypes.c_void_p).value
+        self.intersect16_fn = ctypes.cast(lib.rtcIntersect16, ctypes.c_void_p).value
+        self.occluded16_fn = ctypes.cast(lib.rtcOccluded16, ctypes.c_void_p).value
         self._device = lib.rtcNewDevice(None)
         if not self._device:
             raise EmbreeUnavailable("rtcNewDevice failed: this CPU or build of Embree 4 cannot trace rays")
@@ -241,6 +252,36 @@ def ray_slots(n_rays: int) -> tuple[np.ndarray, np.ndarray]:
     return block.view(np.float32), block.view(np.uint32)
 
 
+def packet_slots(n_tasks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scratch ``RTCRayHit16`` slots, one per task: float32 and uint32 views of 64-byte aligned rows of
+    :data:`PACKET_SLOT_BYTES`, and each task's 64-byte aligned ``valid`` mask (int32, 16 lanes)."""
+    n_tasks = max(1, int(n_tasks))
+    row = PACKET_SLOT_BYTES + 4 * PACKET  # the packet, then its mask (both 64-byte multiples)
+    raw = np.zeros(n_tasks * row + SLOT_ALIGN, dtype=np.uint8)
+    start = (-raw.ctypes.data) % SLOT_ALIGN
+    block = raw[start : start + n_tasks * row].reshape(n_tasks, row)
+    rays = block[:, :PACKET_SLOT_BYTES]
+    return rays.view(np.float32), rays.view(np.uint32), block[:, PACKET_SLOT_BYTES:].view(np.int32)
+
+
+@intrinsic
+def rtc_call_packet(typingctx, function, valid, scene, ray):
+    """``function(valid, scene, ray, NULL)`` for ``void (*)(const int*, RTCScene, RTCRay[Hit]16*, args*)``
+    given as integer addresses (``rtcIntersect16``, ``rtcOccluded16``); nopython code only. Lanes whose
+    ``valid`` word is 0 are neither traced nor written."""
+    if not all(isinstance(t, types.Integer) for t in (function, valid, scene, ray)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        pointer = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [pointer] * 4)
+        target = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(target, [builder.inttoptr(a, pointer) for a in args[1:]] + [ir.Constant(pointer, None)])
+        return context.get_dummy_value()
+
+    return types.void(function, valid, scene, ray), codegen
+
+
 @intrinsic
 def rtc_call(typingctx, function, scene, ray):
     """``function(scene, ray, NULL)`` for C functions ``void (*)(RTCScene, RTCRay[Hit]*, args*)`` given
@@ -294,3 +335,15 @@ def set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar):
     u32[9], u32[10], u32[11] = INVALID_ID, 0, 0  # mask, id, flags
     u32[HIT_GEOM] = INVALID_ID
     u32[HIT_GEOM + 1] = INVALID_ID  # instID[0]
+
+
+@numba.njit(cache=True, inline="always")
+def set_packet_ray(f32, u32, k, ox, oy, oz, dx, dy, dz, tfar):
+    """:func:`set_ray` for lane ``k`` of a packet slot (:func:`packet_slots`)."""
+    w = PACKET
+    f32[k], f32[w + k], f32[2 * w + k], f32[3 * w + k] = ox, oy, oz, 0.0
+    f32[4 * w + k], f32[5 * w + k], f32[6 * w + k], f32[7 * w + k] = dx, dy, dz, 0.0
+    f32[TFAR * w + k] = tfar
+    u32[9 * w + k], u32[10 * w + k], u32[11 * w + k] = INVALID_ID, 0, 0
+    u32[HIT_GEOM * w + k] = INVALID_ID
+    u32[(HIT_GEOM + 1) * w + k] = INVALID_ID

@@ -166,6 +166,34 @@ def test_each_ray_is_traced_alone(seed):
 
 
 @given(seed=st.integers(0, 2**31 - 1))
+def test_packets_give_the_hits_of_one_ray_calls(seed):
+    """``rtcIntersect16`` / ``rtcOccluded16`` over 16 consecutive rays (the default) give the hits of
+    ``rtcIntersect1`` / ``rtcOccluded1`` ray by ray, bit for bit: incoherent rays, a point's fan of
+    rays (coherent), rays not cast (``tmax <= 0``) in a packet and a count not a multiple of 16."""
+    from prtlab.geometry import _raycast
+
+    rng = np.random.default_rng(seed)
+    caster = _random_scene(rng)
+    origins, dirs, tmax = _random_rays(rng, 333, caster)
+    fan = random_directions(rng, 101)
+    origins = np.concatenate([origins, np.repeat(rng.normal(size=(1, 3)), 101, axis=0)])
+    dirs = np.concatenate([dirs, fan])
+    tmax = np.concatenate([tmax, np.where(rng.random(101) < 0.2, 0.0, np.inf)])
+    runs, default = {}, _raycast.PACKETS
+    try:
+        for packets in (True, False):
+            _raycast.PACKETS = packets
+            runs[packets] = caster.closest_hit(origins, dirs, tmax), caster.occluded(origins, dirs, tmax)
+    finally:
+        _raycast.PACKETS = default
+    (packet, packet_occ), (single, single_occ) = runs[True], runs[False]
+    for field in ("hit", "object", "triangle", "barycentric", "distance", "point", "normal"):
+        np.testing.assert_array_equal(getattr(packet, field), getattr(single, field), err_msg=field)
+    np.testing.assert_array_equal(packet_occ, single_occ)
+    assert 0.1 < single.hit.mean() < 0.9
+
+
+@given(seed=st.integers(0, 2**31 - 1))
 def test_tmax_just_past_the_closest_hit_keeps_it_and_just_short_loses_it(seed):
     rng = np.random.default_rng(seed)
     caster = _random_scene(rng)
