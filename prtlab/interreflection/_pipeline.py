@@ -390,8 +390,8 @@ class FrameReuse:
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
     #: receiver -> {poses of every object, its sources, the caster's offsets, the objects' bounding spheres,
-    #: {source index: ResidualHits}, {source index: GatherOperator}, and once used their typed lists for
-    #: :func:`bounce_rgb` (``packed``)} of the residual gather
+    #: {source index: ResidualHits}, {source index: GatherOperator}, and once used their merged terms for
+    #: :func:`bounce_rgb` (``packed``, :func:`pack_operators`)} of the residual gather
     residual_hits: dict = dataclasses.field(default_factory=dict)
     #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
     #: residual gather
@@ -1269,9 +1269,9 @@ class Interreflection(Precomputation):
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
                     extra = corrections.get(r.name)
                     packed = None
-                    if operators:  # the operators' typed lists, kept with them (made again with new operators)
+                    if operators:  # the operators' merged terms, kept with them (made again with new operators)
                         if "packed" not in entry:
-                            entry["packed"] = pack_operators(list(operators.values()))
+                            entry["packed"] = pack_operators(list(operators.values()), list(operators), offsets)
                         packed = entry["packed"]
                     lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
                                     stacked_residual, offsets,

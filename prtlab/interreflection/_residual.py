@@ -855,14 +855,48 @@ def _rgb_ready(operators) -> bool:
     return all(op.factor.shape[1:] == (1, 1) and op.uv.dtype == np.float32 for op in operators)
 
 
-def pack_operators(operators) -> tuple:
-    """The arrays of ``operators`` (:class:`GatherOperator`, :func:`_rgb_ready`) as numba typed lists
-    ``(starts, faces, triangles, uv, factor)``, the form :func:`bounce_rgb` passes to its kernel; made once per set
-    of operators by callers that apply them every bounce (building the lists costs about 0.3 ms a source)."""
-    from numba.typed import List
+#: Type of the packed gather weights (:func:`pack_operators`): float32 halves the bytes a bounce reads and the
+#: rounding of each weight (relative ``2**-24``) bounds the change of a gather by ``2**-24`` times the sum of
+#: its terms' magnitudes (``test_packed_float32_gather_within_its_rounding_bound``).
+PACKED_WEIGHTS = np.float32
 
-    return tuple(List([getattr(op, f) for op in operators]) for f in ("starts", "faces", "triangles", "uv")) + (
-        List([op.factor.reshape(-1) for op in operators]),)
+
+def pack_operators(operators, sources, offsets, dtype=None) -> tuple:
+    """The gathers of ``operators`` (:class:`GatherOperator`, :func:`_rgb_ready`) on one receiver merged into
+    one list of terms per receiver point, the form :func:`bounce_rgb` reads: ``(starts (V + 1,) int64, rows
+    (T, 3) int32, weights (T, 3))``. Point ``v``'s terms ``starts[v]:starts[v + 1]`` are its hits of every
+    source in the order of ``operators``, each the rows of the hit triangle's vertices in the stacked residual
+    (``offsets[sources[j]]`` plus the vertex) and ``factor * (1 - u - v, u, v)`` rounded to ``dtype``
+    (default :data:`PACKED_WEIGHTS`). Made once per set of operators by callers that apply them every bounce:
+    24 bytes a hit in float32."""
+    dtype = PACKED_WEIGHTS if dtype is None else dtype
+    n_points = len(operators[0].starts) - 1 if operators else 0
+    counts = np.zeros(n_points, np.int64)
+    for op in operators:
+        counts += np.diff(op.starts)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    rows = np.empty((starts[-1], 3), np.int32)
+    weights = np.empty((starts[-1], 3), dtype)
+    fill = starts[:-1].copy()
+    for op, j in zip(operators, sources):
+        _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), int(offsets[j]), fill,
+                     rows, weights)
+    return starts, rows, weights
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _pack_kernel(st, fc, tr, bc, fa, o, fill, rows, weights):
+    """One source's hits appended to each point's terms at ``fill[v]`` (advanced past them)."""
+    for v in numba.prange(st.shape[0] - 1):
+        t = fill[v]
+        for h in range(st[v], st[v + 1]):
+            f = tr[h]
+            u, w = np.float64(bc[h, 0]), np.float64(bc[h, 1])
+            c = fa[h]
+            rows[t, 0], rows[t, 1], rows[t, 2] = o + fc[f, 0], o + fc[f, 1], o + fc[f, 2]
+            weights[t, 0], weights[t, 1], weights[t, 2] = c * (1.0 - u - w), c * u, c * w
+            t += 1
+        fill[v] = t
 
 
 def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, packed=None) -> np.ndarray:
@@ -874,24 +908,23 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     float32 barycentrics, :func:`_rgb_ready`), ``sources`` their object numbers, ``residual`` (V_all, 3) every
     object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start;
     ``packed``: :func:`pack_operators` of ``operators`` if the caller keeps it (else it is made here). Per point
-    the sum is ``dot + sum_j gather_j + extra``, in that order: the terms of the numpy path (``stacked @ w``,
-    :func:`apply_gather` per source into zeros, the corrections added), which holds it to ``1e-12``
-    (``tests/interreflection/test_residual.py``); the dot product's summation order differs from BLAS's.
+    the sum is ``dot + gather + extra``, in that order, the gather's terms in the order of the numpy path
+    (:func:`apply_gather` per source), which holds it to ``1e-12`` with float64 weights and to their rounding
+    bound with float32 ones (``tests/interreflection/test_residual.py``); the dot product's summation order
+    differs from BLAS's.
     """
     stacked = np.ascontiguousarray(stacked, np.float64)
     out = np.empty((stacked.shape[0], 3))
     if not len(out):
         return out
+    extra = np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64)
     if operators:
-        packed = pack_operators(operators) if packed is None else packed
-        _bounce_rgb_kernel(stacked, np.ascontiguousarray(w, np.float64), *packed,
-                           np.asarray([offsets[i] for i in sources], np.int64),
-                           np.ascontiguousarray(residual, np.float64),
-                           np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64), out)
+        starts, rows, weights = pack_operators(operators, sources, offsets) if packed is None else packed
+        residual = np.ascontiguousarray(residual, np.float64)
     else:
-        _bounce_dot_kernel(stacked, np.ascontiguousarray(w, np.float64),
-                           np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64),
-                           np.zeros((0, 3)), out)
+        starts, rows, weights = np.zeros(len(out) + 1, np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+        residual = np.zeros((0, 3))
+    _bounce_kernel(stacked, np.ascontiguousarray(w, np.float64), starts, rows, weights, residual, extra, out)
     return out
 
 
@@ -917,22 +950,12 @@ def _gather_rows(st, fc, tr, bc, fa, o, x, g):
         g[v, 2] += a2
 
 
-@numba.njit(cache=True, nogil=True)
-def _bounce_rgb_kernel(stacked, w, starts, faces, triangles, uv, factor, offsets, x, extra, out):
-    """:func:`bounce_rgb` with sources: the sources' gathers one after another into a zeroed sum (each a parallel
-    pass over the points), then per point the dot product plus that sum plus ``extra`` ((V, 3) or (0, 3))."""
-    g = np.zeros((stacked.shape[0], 3))
-    for j in range(offsets.shape[0]):
-        _gather_rows(starts[j], faces[j], triangles[j], uv[j], factor[j], offsets[j], x, g)
-    _bounce_dot_kernel(stacked, w, extra, g, out)
-
-
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _bounce_dot_kernel(stacked, w, extra, g, out):
-    """``out = stacked @ w + g`` (+ ``extra``; ``g``, ``extra``: (V, 3) or (0, 3)) per point."""
+def _bounce_kernel(stacked, w, starts, rows, weights, x, extra, out):
+    """:func:`bounce_rgb` in one parallel pass over the points: the dot product, the packed gather's terms
+    (:func:`pack_operators`; none when ``starts`` is all 0) and ``extra`` ((V, 3) or (0, 3))."""
     n_m = stacked.shape[1]
     add = extra.shape[0] > 0
-    gathered = g.shape[0] > 0
     for v in numba.prange(stacked.shape[0]):
         d0 = 0.0
         d1 = 0.0
@@ -942,13 +965,19 @@ def _bounce_dot_kernel(stacked, w, extra, g, out):
             d0 += a * w[m, 0]
             d1 += a * w[m, 1]
             d2 += a * w[m, 2]
-        if gathered:
-            d0 += g[v, 0]
-            d1 += g[v, 1]
-            d2 += g[v, 2]
-        out[v, 0] = d0
-        out[v, 1] = d1
-        out[v, 2] = d2
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        for t in range(starts[v], starts[v + 1]):
+            for j in range(3):
+                i = rows[t, j]
+                c = np.float64(weights[t, j])
+                g0 += c * x[i, 0]
+                g1 += c * x[i, 1]
+                g2 += c * x[i, 2]
+        out[v, 0] = d0 + g0
+        out[v, 1] = d1 + g1
+        out[v, 2] = d2 + g2
         if add:
             out[v, 0] += extra[v, 0]
             out[v, 1] += extra[v, 1]

@@ -437,13 +437,16 @@ def test_the_pipeline_adds_the_near_hits_on_the_first_bounce_only(low_ball):
         assert with_near.info["residual_near_hits"] == 0
 
 
-def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball):
+def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball, monkeypatch):
     """With ``residual_whole`` a floor point with a near hit on the ball (the floor's only source) gathers the
     ball's whole radiance by rays, ``gather(P(colour L) + r) = gather(colour L)``, whatever the ball's PCA basis:
-    its first bounce is the same with N = 8 and N = 2 basis functions (to rounding); without the option it is not."""
+    its first bounce is the same with N = 8 and N = 2 basis functions (to float64 rounding: the gather's
+    weights in float64, the identity's precision); without the option it is not."""
     import dataclasses
 
-    from prtlab.interreflection import Interreflection
+    from prtlab.interreflection import Interreflection, _residual
+
+    monkeypatch.setattr(_residual, "PACKED_WEIGHTS", np.float64)
 
     def floor_light(n_basis, whole):
         ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, residual_whole=whole),
@@ -526,10 +529,15 @@ def test_near_hits_kernel_equals_the_reference(near):
 
 
 @pytest.mark.parametrize("options", [{}, {"residual_near": 0}, {"residual_rays": 0}, {"residual_whole": True}])
-def test_fused_bounces_equal_the_reference_tier(low_ball, options):
+def test_fused_bounces_equal_the_reference_tier(low_ball, options, monkeypatch):
     """Three bounces by :func:`bounce_rgb` (one pass per receiver: Eq. 12, the residual gather, the near hits'
-    correction) equal the reference tier's (BLAS's product, the float64 sum over the hits) to 1e-12."""
+    correction), its gather weights in float64, equal the reference tier's (BLAS's product, the float64 sum
+    over the hits) to 1e-12 (the float32 weights: ``test_packed_float32_gather_within_its_rounding_bound``)."""
     import dataclasses
+
+    from prtlab.interreflection import _residual
+
+    monkeypatch.setattr(_residual, "PACKED_WEIGHTS", np.float64)
 
     from prtlab.interreflection import Interreflection
     from prtlab.pipeline import FrameState
@@ -547,13 +555,10 @@ def test_fused_bounces_equal_the_reference_tier(low_ball, options):
         np.testing.assert_allclose(fast[name], expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
 
 
-def test_bounce_rgb_equals_apply_gather():
-    """:func:`bounce_rgb` on random operators equals ``stacked @ w`` plus :func:`apply_gather` per source plus the
-    extra term to 1e-12, and with no source the product alone; an empty receiver gives an empty result."""
-    from prtlab.interreflection._residual import GatherOperator, apply_gather, bounce_rgb
-
-    rng = np.random.default_rng(3)
-    n_r, n_m, sizes = 40, 24, [7, 11]
+def _random_gathers(rng, n_r, sizes):
+    """Random operators (K = K' = 1, float32 barycentrics) of sources with ``sizes`` vertices on ``n_r`` points,
+    their stacked residual and offsets."""
+    from prtlab.interreflection._residual import GatherOperator
 
     def operator(n_s):
         counts = rng.integers(0, 6, n_r)
@@ -563,19 +568,51 @@ def test_bounce_rgb_equals_apply_gather():
                               rng.integers(0, 9, n_h).astype(np.int32),
                               (rng.random((n_h, 2)) * 0.5).astype(np.float32), rng.normal(size=(n_h, 1, 1)))
 
-    ops = [operator(n) for n in sizes]
-    residual = rng.normal(size=(sum(sizes), 3))
-    offsets = np.array([0, sizes[0]])
+    return [operator(n) for n in sizes], rng.normal(size=(sum(sizes), 3)), np.cumsum([0] + sizes[:-1])
+
+
+def test_bounce_rgb_equals_apply_gather():
+    """:func:`bounce_rgb` on random operators, packed with float64 weights, equals ``stacked @ w`` plus
+    :func:`apply_gather` per source plus the extra term to 1e-12, and with no source the product alone; an
+    empty receiver gives an empty result."""
+    from prtlab.interreflection._residual import apply_gather, bounce_rgb, pack_operators
+
+    rng = np.random.default_rng(3)
+    n_r, n_m, sizes = 40, 24, [7, 11]
+    ops, residual, offsets = _random_gathers(rng, n_r, sizes)
     stacked, w, extra = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3)), rng.normal(size=(n_r, 3))
     expected = (stacked @ w)[:, None]
     gathered = np.zeros((n_r, 1, 3))
     for op, a, n in zip(ops, offsets, sizes):
         apply_gather(op, residual[a:a + n].reshape(n, 1, 3), gathered)
     expected = (expected + gathered + extra[:, None])[:, 0]
-    np.testing.assert_allclose(bounce_rgb(stacked, w, ops, [0, 1], residual, offsets, extra), expected,
-                               rtol=1e-12, atol=1e-12)
+    packed = pack_operators(ops, [0, 1], offsets, dtype=np.float64)
+    np.testing.assert_allclose(bounce_rgb(stacked, w, ops, [0, 1], residual, offsets, extra, packed=packed),
+                               expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(bounce_rgb(stacked, w, [], [], None, None), stacked @ w, rtol=1e-12, atol=1e-12)
     assert bounce_rgb(np.zeros((0, n_m)), w, ops, [0, 1], residual, offsets).shape == (0, 3)
+
+
+def test_packed_float32_gather_within_its_rounding_bound():
+    """The default float32 weights (``PACKED_WEIGHTS``) move a point's gather by at most ``2**-24`` times the
+    sum of its terms' magnitudes ``sum_h |factor b_j r_j|`` (each weight rounded once, relative ``2**-24``),
+    plus the float64 sums' own rounding (at most 45 terms a point here: ``64 * 2**-53`` of it), against the
+    float64 weights of the same terms."""
+    from prtlab.interreflection._residual import _gather_rows, bounce_rgb, pack_operators
+
+    rng = np.random.default_rng(8)
+    n_r, n_m, sizes = 300, 5, [40, 70, 25]
+    ops, residual, offsets = _random_gathers(rng, n_r, sizes)
+    stacked, w = np.zeros((n_r, n_m)), np.zeros((n_m, 3))
+    args = ([0, 1, 2], residual, offsets)
+    exact = bounce_rgb(stacked, w, ops, *args, packed=pack_operators(ops, [0, 1, 2], offsets, dtype=np.float64))
+    rounded = bounce_rgb(stacked, w, ops, *args)
+    magnitude = np.zeros((n_r, 3))
+    for op, a in zip(ops, offsets):  # sum_h |c| (b0 |x0| + u |x1| + v |x2|): the gather of |c| over |r|
+        _gather_rows(op.starts, op.faces, op.triangles, op.uv, np.abs(op.factor.reshape(-1)), a, np.abs(residual),
+                     magnitude)
+    assert np.abs(rounded - exact).max() > 0  # the rounding is there to bound
+    assert np.all(np.abs(rounded - exact) <= (2.0**-24 + 64 * 2.0**-53) * magnitude)
 
 
 def test_moving_an_object_recasts_only_the_near_hits_it_may_shadow(low_ball):
