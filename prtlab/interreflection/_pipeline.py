@@ -99,6 +99,12 @@ from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, 
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
+#: Type of the stacked basis irradiance that :func:`bounce_rgb` reads (``K' = 1`` receivers): float32 halves the
+#: bytes of each bounce's product; each value rounded once (relative ``2**-24``) moves a point's ``stacked @ w`` by
+#: at most ``2**-24 sum_m |Phi_m w_m|`` (``tests/interreflection/test_residual.py``). The reference tier stays
+#: float64.
+STACKED_IRRADIANCE = np.float32
+
 
 @dataclass
 class InterreflectionOptions:
@@ -1199,8 +1205,9 @@ class Interreflection(Precomputation):
                 self.reuse.pair_irradiance[key] = (depends, value, now)
         return phi, counts
 
-    def _stacked_irradiance(self, r, phi_r):
-        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r``, rebuilt only when a pair changed.
+    def _stacked_irradiance(self, r, phi_r, dtype=np.float64):
+        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r`` in ``dtype``, rebuilt only when a
+        pair changed (or the type asked for did).
 
         The bounce loop then is one matrix product per receiver and bounce
         (:func:`reflected_light` with ``method="reference"`` is the specification).
@@ -1210,14 +1217,14 @@ class Interreflection(Precomputation):
         if self.options.self_interreflection:
             sources.append(r.name)
             arrays.append(self.self_irradiance[r.name])
-        key = tuple((s, self.reuse.revision.get((r.name, s), 0)) for s in sources)
+        key = (np.dtype(dtype).str,) + tuple((s, self.reuse.revision.get((r.name, s), 0)) for s in sources)
         cached = self.reuse.stacked.get(r.name)
         if cached is not None and cached[0] == key:
             return cached[1], sources
         if not arrays:
             return None, sources
         n_v, n_kp = arrays[0].shape[:2]
-        stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2))
+        stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2), dtype)
         self.reuse.stacked[r.name] = (key, stacked)
         return stacked, sources
 
@@ -1260,7 +1267,8 @@ class Interreflection(Precomputation):
                 stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
             for r in self.objects:
                 g = geo[r.name]
-                stacked, sources = self._stacked_irradiance(r, phi[r.name])
+                fused = method != "reference" and self.seps[r.name].K == 1  # bounce_rgb may take it
+                stacked, sources = self._stacked_irradiance(r, phi[r.name], STACKED_IRRADIANCE if fused else np.float64)
                 entry = self._residual_entry(geo, r, phi[r.name]) if residuals else {}
                 operators = entry.get("operators", {})
                 if (method != "reference" and stacked is not None and stacked.shape[1] == 1
@@ -1304,7 +1312,7 @@ class Interreflection(Precomputation):
     def _residuals(self, light_k, weights) -> dict:
         """Per source: ``colour_k L_k - P(colour_k L_k)`` (V, K, C) at its vertices, what its basis misses."""
         return {s.name: light_k[s.name] * self.seps[s.name].colour[None]
-                - np.einsum("nv,knc->vkc", self.bases[s.name].basis, weights[s.name]) for s in self.objects}
+                - np.matmul(self.bases[s.name].basis.T, weights[s.name]).transpose(1, 0, 2) for s in self.objects}
 
     def _scene_caster(self, geo, key):
         """``(caster, spheres)``: a ray caster of every object at the poses ``key`` and their bounding spheres

@@ -904,7 +904,7 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     irradiance, Eq. 12 before ``h``) plus the residual gather of every source (:func:`apply_gather`) plus
     ``extra`` (V, 3) if given.
 
-    ``stacked`` (V, M), ``w`` (M, 3); ``operators``: the sources' :class:`GatherOperator` (``K = K' = 1``,
+    ``stacked`` (V, M) float64 or float32 (each value read as float64), ``w`` (M, 3); ``operators``: the sources' :class:`GatherOperator` (``K = K' = 1``,
     float32 barycentrics, :func:`_rgb_ready`), ``sources`` their object numbers, ``residual`` (V_all, 3) every
     object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start;
     ``packed``: :func:`pack_operators` of ``operators`` if the caller keeps it (else it is made here). Per point
@@ -913,7 +913,7 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     bound with float32 ones (``tests/interreflection/test_residual.py``); the dot product's summation order
     differs from BLAS's.
     """
-    stacked = np.ascontiguousarray(stacked, np.float64)
+    stacked = np.ascontiguousarray(stacked, np.float32 if stacked.dtype == np.float32 else np.float64)
     out = np.empty((stacked.shape[0], 3))
     if not len(out):
         return out
@@ -961,7 +961,7 @@ def _bounce_kernel(stacked, w, starts, rows, weights, x, extra, out):
         d1 = 0.0
         d2 = 0.0
         for m in range(n_m):
-            a = stacked[v, m]
+            a = np.float64(stacked[v, m])
             d0 += a * w[m, 0]
             d1 += a * w[m, 1]
             d2 += a * w[m, 2]

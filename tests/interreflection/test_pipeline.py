@@ -420,12 +420,15 @@ def _case(obj, part):
     return pytest.param(obj, part, marks=marks, id=f"{obj}-{part}")
 
 
-def test_bounce_pass_equals_the_reference_tier(pre):
-    """Three bounces of the pipeline (weights chained on the PCA sample rows, all bounces in one product)
-    equal :func:`reflected_light` (reference tier) bounce by bounce at every vertex."""
-    from prtlab.interreflection import fit_weights, outgoing_radiance, reflected_light
+def test_bounce_pass_equals_the_reference_tier(pre, monkeypatch):
+    """Three bounces of the pipeline (weights chained on the PCA sample rows, all bounces in one product), its
+    stacked irradiance in float64, equal :func:`reflected_light` (reference tier) bounce by bounce at every vertex
+    (float32: ``test_float32_stacked_irradiance_within_its_rounding_bound``)."""
+    from prtlab.interreflection import _pipeline, fit_weights, outgoing_radiance, reflected_light
 
     import dataclasses
+
+    monkeypatch.setattr(_pipeline, "STACKED_IRRADIANCE", np.float64)
 
     ir = Interreflection(pre.scene, dataclasses.replace(pre.options, residual_rays=0), pre.data)  # the paper's passes
     res = ir.shade(bounces=3)

@@ -441,12 +441,13 @@ def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball, mon
     """With ``residual_whole`` a floor point with a near hit on the ball (the floor's only source) gathers the
     ball's whole radiance by rays, ``gather(P(colour L) + r) = gather(colour L)``, whatever the ball's PCA basis:
     its first bounce is the same with N = 8 and N = 2 basis functions (to float64 rounding: the gather's
-    weights in float64, the identity's precision); without the option it is not."""
+    weights and the stacked irradiance in float64, the identity's precision); without the option it is not."""
     import dataclasses
 
-    from prtlab.interreflection import Interreflection, _residual
+    from prtlab.interreflection import Interreflection, _pipeline, _residual
 
     monkeypatch.setattr(_residual, "PACKED_WEIGHTS", np.float64)
+    monkeypatch.setattr(_pipeline, "STACKED_IRRADIANCE", np.float64)
 
     def floor_light(n_basis, whole):
         ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, residual_whole=whole),
@@ -531,13 +532,15 @@ def test_near_hits_kernel_equals_the_reference(near):
 @pytest.mark.parametrize("options", [{}, {"residual_near": 0}, {"residual_rays": 0}, {"residual_whole": True}])
 def test_fused_bounces_equal_the_reference_tier(low_ball, options, monkeypatch):
     """Three bounces by :func:`bounce_rgb` (one pass per receiver: Eq. 12, the residual gather, the near hits'
-    correction), its gather weights in float64, equal the reference tier's (BLAS's product, the float64 sum
-    over the hits) to 1e-12 (the float32 weights: ``test_packed_float32_gather_within_its_rounding_bound``)."""
+    correction), its gather weights and stacked irradiance in float64, equal the reference tier's (BLAS's
+    product, the float64 sum over the hits) to 1e-12 (float32: ``test_packed_float32_gather_within_its_rounding_bound``,
+    ``test_float32_stacked_irradiance_within_its_rounding_bound``)."""
     import dataclasses
 
-    from prtlab.interreflection import _residual
+    from prtlab.interreflection import _pipeline, _residual
 
     monkeypatch.setattr(_residual, "PACKED_WEIGHTS", np.float64)
+    monkeypatch.setattr(_pipeline, "STACKED_IRRADIANCE", np.float64)
 
     from prtlab.interreflection import Interreflection
     from prtlab.pipeline import FrameState
@@ -613,6 +616,22 @@ def test_packed_float32_gather_within_its_rounding_bound():
                      magnitude)
     assert np.abs(rounded - exact).max() > 0  # the rounding is there to bound
     assert np.all(np.abs(rounded - exact) <= (2.0**-24 + 64 * 2.0**-53) * magnitude)
+
+
+def test_float32_stacked_irradiance_within_its_rounding_bound():
+    """float32 stacked basis irradiance (``STACKED_IRRADIANCE``) moves a point's ``stacked @ w`` by at most
+    ``2**-24 sum_m |Phi_m| |w_m|`` (each value rounded once) plus the float64 sums' rounding (``n_m`` terms:
+    ``(n_m + 1) 2**-53`` of it), against the float64 values."""
+    from prtlab.interreflection._residual import bounce_rgb
+
+    rng = np.random.default_rng(11)
+    n_r, n_m = 500, 192
+    stacked, w = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3))
+    exact = bounce_rgb(stacked, w, [], [], None, None)
+    rounded = bounce_rgb(stacked.astype(np.float32), w, [], [], None, None)
+    magnitude = np.abs(stacked) @ np.abs(w)
+    assert np.abs(rounded - exact).max() > 0
+    assert np.all(np.abs(rounded - exact) <= (2.0**-24 + (n_m + 1) * 2.0**-53) * magnitude)
 
 
 def test_moving_an_object_recasts_only_the_near_hits_it_may_shadow(low_ball):
