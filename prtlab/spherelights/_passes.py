@@ -314,12 +314,12 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             weight = np.asarray(sample_weight, dtype=np.float64)
             if weight.shape[-2:] != (S, m):
                 raise ValueError(f"sample_weight must have shape (..., {S}, {m}) (lights, samples), got {weight.shape}")
-            radiance = weight[..., None] * radiance
-        light = np.einsum("...smc,mk->...skc", radiance, cell_sums)  # Eq. 10
+            light = np.einsum("...smc,mk->...skc", weight[..., None] * radiance, cell_sums)
+            return np.einsum("ijk,...sic,sjc->...skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))
+        light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     finally:
         numba.set_num_threads(threads)
-    return np.einsum("ijk,...sic,sjc->...skc", _dense_gaunt(k), light,
-                     np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
+    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
 
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
