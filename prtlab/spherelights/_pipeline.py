@@ -10,6 +10,8 @@ takes part through the option ``ground``, see ``_ground``):
 * ``sample_points, sample_normals, sample_valid`` along the 92 geodesic
   directions (:func:`surface_samples`);
 * ``albedo_sh`` per light (:func:`surface_albedo_sh`);
+* ``segment_coverage``: per light and sample direction, the part of its disc its segment fills seen from afar
+  (:func:`segment_coverage`; an extension, option ``emission_coverage``);
 * ``intersect``: pairs of lights of the object that overlap (their mutual
   occlusion is precomputed in the samples, Sec. 6.2);
 * ``vertex_light``: the light each vertex of the object's mesh was fitted to
