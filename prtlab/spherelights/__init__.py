@@ -16,7 +16,7 @@ from ._ground import ground_blocked_transfer, ground_light, ground_raster, groun
 from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
                          receiver_clusters, reflection_ratio, select_cut)
 from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
-from ._samples import segment_of, surface_albedo_sh, surface_samples
+from ._samples import coverage_weights, segment_coverage, segment_of, surface_albedo_sh, surface_samples
 from ._shadows import adjust_blockers, blocker_log_sum, direct_irradiance, environment_transfer
 from ._tables import average_radiance_weight, irradiance_kernel_zh, voronoi_cell_sums, w_theta_zh
 
@@ -39,6 +39,9 @@ __all__ = [
     "segment_of",
     "surface_albedo_sh",
     "surface_samples",
+    # the segments' projected coverage, weights of the emission (an extension)
+    "coverage_weights",
+    "segment_coverage",
     # the ground in light transport: it hides and reflects (an extension)
     "ground_blocked_transfer",
     "ground_light",

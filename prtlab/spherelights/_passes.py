@@ -242,7 +242,8 @@ _FUSED_SERIAL_BELOW = 1024
 
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
-               exp_method: str = "hyb", ground=None, extra_irradiance=None, order: int | None = None) -> np.ndarray:
+               exp_method: str = "hyb", ground=None, extra_irradiance=None, order: int | None = None,
+               sample_weight=None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -270,12 +271,15 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
         (the local lights of Sec. 7.3, computed by :func:`second_pass` at the samples).
     order : int, optional
         SH order ``n <= k`` of the samples' visibility (Eq. 6); default the emission's order ``k``.
+    sample_weight : (..., S, m) float, optional
+        Weights of the samples' radiance (an extension: :func:`prtlab.spherelights.coverage_weights`); leading axes give one emission
+        per set of weights from the same samples' light.
 
     Returns
     -------
-    emission : (S, k*k, 3) float64
-        ``L^c_S = (sum_j L_{p_j} (4 pi / N) Y_j) * c_S`` (Eqs. 10-11) with
-        ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
+    emission : (..., S, k*k, 3) float64
+        ``L^c_S = (sum_j w_j L_{p_j} (4 pi / N) Y_j) * c_S`` (Eqs. 10-11; ``w_j = 1`` without ``sample_weight``)
+        with ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
         (Eq. 8; the albedo enters through ``c_S``); own frame of each light.
     """
     from ._ground import ground_blocked_transfer
@@ -306,6 +310,12 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
                 raise ValueError(f"extra_irradiance must have shape {(S, m, 3)} (lights, samples, RGB), "
                                  f"got {extra.shape}")
             radiance += np.where(sample_valid[..., None], extra, 0.0) / np.pi
+        if sample_weight is not None:
+            weight = np.asarray(sample_weight, dtype=np.float64)
+            if weight.shape[-2:] != (S, m):
+                raise ValueError(f"sample_weight must have shape (..., {S}, {m}) (lights, samples), got {weight.shape}")
+            light = np.einsum("...smc,mk->...skc", weight[..., None] * radiance, cell_sums)
+            return np.einsum("ijk,...sic,sjc->...skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))
         light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     finally:
         numba.set_num_threads(threads)

@@ -30,7 +30,7 @@ import trimesh
 from prtlab import sh
 from prtlab.geometry import cubemap_directions, cubemap_solid_angles
 
-__all__ = ["segment_of", "surface_samples", "surface_albedo_sh"]
+__all__ = ["segment_of", "surface_samples", "surface_albedo_sh", "segment_coverage", "coverage_weights"]
 
 
 def segment_of(points, centres, radii) -> np.ndarray:
@@ -165,3 +165,96 @@ def surface_albedo_sh(mesh, centres, radii, albedo, order: int, resolution: int 
         _, _, v = _pick(mesh, c, r, i, dirs)
         out[i] = np.outer((w * v) @ y, a)
     return out
+
+
+def _disc_points(n: int) -> np.ndarray:
+    """``(n, 2)`` points of equal area over the unit disc (a sunflower spiral)."""
+    k = np.arange(n) + 0.5
+    r = np.sqrt(k / n)
+    a = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+
+def segment_coverage(mesh, centres, radii, directions, n_rays: int = 256) -> np.ndarray:
+    """Projected coverage of every light's segment: the part of its disc, seen from afar, that its segment fills.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        The closed object, in the same frame as the spheres.
+    centres : (S, 3) float
+    radii : (S,) float
+    directions : (m, 3) float
+        Unit directions (the lights' sample directions).
+    n_rays : int
+        Parallel rays per light and direction, over the light's disc (equal areas).
+
+    Returns
+    -------
+    coverage : (S, m) float64
+        The fraction of the rays along ``-w_j`` through the disc of light ``S`` (radius ``r_S`` about ``x_S``,
+        normal to ``w_j``) whose first hit on the mesh lies in the segment ``P_S`` (Eq. 2): the segment's
+        projected area toward ``w_j`` over ``pi r_S^2``. In ``[0, 1]``; 0 where the segment is hidden or absent.
+
+    Notes
+    -----
+    A light of the paper emits its segment's radiance over its whole sphere (Sec. 4.2), so seen from afar it
+    sends ``pi r^2`` times that radiance where the segment sends ``pi r^2`` times its coverage: a set of
+    spheres that bounds a thin object (a bunny's ears, with the outside volume of the fit) is far too bright as a
+    light. :func:`coverage_weights` turns this into weights of the samples' radiance.
+    """
+    from prtlab.geometry import RayCaster
+
+    mesh = _as_mesh(mesh)
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    out = np.zeros((c.shape[0], d.shape[0]))
+    if c.shape[0] == 0 or d.shape[0] == 0:
+        return out
+    caster = RayCaster([mesh])
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    far = 2.0 * float(np.linalg.norm(verts.max(axis=0) - verts.min(axis=0))) + 2.0 * float(r.max())
+    disc = _disc_points(int(n_rays))
+    for j, w in enumerate(d):
+        a = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        t = np.cross(w, a)
+        t /= np.linalg.norm(t)
+        b = np.cross(w, t)
+        # every light's rays at once: (S, n_rays) origins far out along w, toward -w
+        origins = c[:, None] + far * w + r[:, None, None] * (disc[None, :, :1] * t + disc[None, :, 1:] * b)
+        hits = caster.closest_hit(origins.reshape(-1, 3), np.broadcast_to(-w, (origins.shape[0] * len(disc), 3)))
+        mine = np.zeros(len(hits.hit), dtype=bool)
+        owner = np.repeat(np.arange(c.shape[0]), len(disc))
+        mine[hits.hit] = segment_of(hits.point[hits.hit], c, r) == owner[hits.hit]
+        out[:, j] = mine.reshape(c.shape[0], len(disc)).mean(axis=1)
+    return out
+
+
+def coverage_weights(coverage, sample_valid, directions) -> np.ndarray:
+    """Weights of the lights' sample radiance that give each light its segment's projected coverage.
+
+    Parameters
+    ----------
+    coverage : (S, m) float
+        :func:`segment_coverage` along the sample directions.
+    sample_valid : (S, m) bool
+        The samples (:func:`surface_samples`).
+    directions : (m, 3) float
+        The unit sample directions.
+
+    Returns
+    -------
+    weight : (S, m) float64
+        ``c_j / v_j`` where ``v_j = sum_i valid_i max(0, w_i . w_j) / sum_i max(0, w_i . w_j)`` is the part of
+        the hemisphere about ``w_j`` (cosine-weighted) where the light emits; 0 where ``v_j = 0``. A light's
+        emission (zero where it has no sample) weighted so is seen from afar along ``w`` with about ``c(w)`` of
+        its disc lit: for a smooth radiance ``int_{u.w>0} L(u) valid(u) c(u) / v(u) (u.w) du ~ pi L c(w)``.
+    """
+    cov = np.asarray(coverage, dtype=np.float64)
+    valid = np.asarray(sample_valid, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    cosw = np.maximum(d @ d.T, 0.0)
+    v = valid @ cosw / cosw.sum(axis=0)
+    return np.where(v > 0, cov / np.where(v > 0, v, 1.0), 0.0)

@@ -3,7 +3,8 @@ reduced size, plus three touching spheres (``three_spheres_env``) and the tiny b
 ground, ``bounces=2``), every object scored (the ground and each
 object; direct, indirect and total), with the default options (the ground hides and reflects, ``ground="reflects"``;
 each receiver's two largest one-sphere neighbours block exactly, ``near_blockers=2``; the ground shaded against the
-objects' meshes, ``ground_shading="rays"``; the objects' direct light against the meshes, ``mesh_blockers=True``), and
+objects' meshes, ``ground_shading="rays"``; the objects' direct light against the meshes, ``mesh_blockers=True``; the lights'
+emission toward other objects weighted by their segments' projected coverage, ``emission_coverage=True``), and
 the paper's direct light
 (``near_blockers=0``) on the scenes of one-sphere objects.
 
@@ -122,12 +123,7 @@ def _fig(rel_rms, noise, error, ratio):
     return f"measured rel_rms {rel_rms} (noise {noise}, error {error}), mean ratio {ratio}: "
 
 
-_XFAIL: dict[tuple[str, str, str], str] = {
-    ("bunny (16 spheres)", "sphere_green", "indirect"): _fig(0.212, 0.014, 0.212, 1.09)
-    + "not the SH order (with order=6: 0.216), the ground's quadrature or texels, the average or the "
-    "exponentiation (0.202-0.216 with each); too bright by 9 %: likely the bunny's 16 intersecting lights' "
-    "emission (the paper's Fig. 7); cause not isolated",
-}
+_XFAIL: dict[tuple[str, str, str], str] = {}
 
 
 @pytest.fixture(scope="module")

@@ -471,3 +471,24 @@ def test_fused_second_pass_object_chain_matches_composed_tier(obj, average, rng)
     np.testing.assert_allclose(d1, d2, atol=1e-11)
     np.testing.assert_allclose(i1, i2, atol=1e-11)
     assert np.abs(i1).max() > 0.1
+
+
+def test_first_pass_sample_weight():
+    """Weights of the samples' radiance: ones are the paper's emission; a leading axis gives one emission per set of
+    weights, each that of its own call; constant weights scale the emission; a wrong shape raises."""
+    mesh = builtin_mesh("icosphere", subdivisions=3)
+    mesh.apply_scale(0.5)
+    mesh.apply_translation([0.0, 1.0, 0.0])
+    c, r = np.array([[0.0, 1.0, 0.0]]), np.array([0.5])
+    pts, nrm, valid = surface_samples(mesh, c, r, geodesic_directions(92))
+    alb = surface_albedo_sh(mesh, c, r, np.array([0.8, 0.5, 0.3]), ORDER)
+    args = (pts, nrm, valid, c, r, _const_env(), voronoi_cell_sums(ORDER), alb)
+    paper = first_pass(*args)
+    np.testing.assert_allclose(first_pass(*args, sample_weight=np.ones((1, 92))), paper, atol=1e-14)
+    w = np.linspace(0.0, 1.0, 92)[None]
+    both = first_pass(*args, sample_weight=np.stack([np.full((1, 92), 0.5), w]))
+    assert both.shape == (2,) + paper.shape
+    np.testing.assert_allclose(both[0], 0.5 * paper, atol=1e-14)
+    np.testing.assert_allclose(both[1], first_pass(*args, sample_weight=w), atol=1e-14)
+    with pytest.raises(ValueError, match="sample_weight must have shape"):
+        first_pass(*args, sample_weight=np.ones(92))

@@ -130,6 +130,27 @@ def test_errors(pre):
         p.shade(bounces=1)
 
 
+def test_emission_coverage(pre):
+    """``emission_coverage``: the direct light and the ground's light do not change; an object's lights send less
+    light to the other objects in all (the fitted spheres bound the box and the ball: their segments fill only part of
+    their discs); False is the paper's emission."""
+    from dataclasses import replace
+
+    paper = SphereLights(pre.scene, replace(pre.options, emission_coverage=False), pre.data).shade(bounces=1)
+    cov = pre.shade(bounces=1)
+    assert pre.options.emission_coverage
+    for name in ("plane", "ball", "box"):
+        np.testing.assert_array_equal(cov.direct[name], paper.direct[name])
+    np.testing.assert_array_equal(cov.indirect["plane"], paper.indirect["plane"])  # gathered by rays
+    for name in ("ball", "box"):
+        assert cov.indirect[name].sum() < paper.indirect[name].sum()
+    data = pre.data["objects"]["box"]
+    assert data["segment_coverage"].shape == data["sample_valid"].shape
+    assert np.all((data["segment_coverage"] >= 0) & (data["segment_coverage"] <= 1))
+    with pytest.raises(TypeError, match="option emission_coverage must be True or False"):
+        SphereLights.make_options({"emission_coverage": 1})
+
+
 def test_objects_with_different_sphere_counts():
     pre = SphereLights.precompute(_scene(), {"n_spheres": {"ball": 1, "box": 3}, "fit_resolution": 12},
                                   cache=False, progress=False)

@@ -357,3 +357,47 @@ def test_albedo_texels_follow_the_sample_rules(scene):
     got = surface_albedo_sh(mesh, c, r, ALBEDO, ORDER, resolution=res)
     rule = (cubemap_solid_angles(res).reshape(-1) * valid) @ sh.basis(dirs, ORDER)
     np.testing.assert_allclose(got, rule[:, :, None] * ALBEDO, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- projected coverage of the segments
+
+
+def test_segment_coverage_of_a_ball_and_a_box():
+    """Known answers: a ball's one light (its own sphere) is covered by the ball's projection (the icosphere's
+    silhouette, about ``1 - 1e-2`` of the disc at 4 subdivisions); a unit cube's one light (radius ``sqrt(3) / 2``)
+    seen along an axis is covered by a face, ``1 / (pi 3 / 4) = 0.4244``; two lights splitting a long box cover
+    it seen across (each its half), and seen along the box the nearer light covers its disc's part of the end face
+    while the farther one is hidden (its segment lies behind)."""
+    from prtlab.spherelights import segment_coverage
+
+    ball = builtin_mesh("icosphere", subdivisions=4)
+    cov = segment_coverage(ball, np.zeros((1, 3)), np.ones(1), geodesic_directions(42), n_rays=1024)
+    assert cov.shape == (1, 42) and np.all(cov > 0.98) and np.all(cov <= 1.0)
+    cube = builtin_mesh("box", size=[1.0, 1.0, 1.0])
+    axes = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    cov = segment_coverage(cube, np.zeros((1, 3)), [np.sqrt(3) / 2], axes, n_rays=4096)
+    np.testing.assert_allclose(cov, 1.0 / (np.pi * 0.75), atol=0.01)
+    bar = builtin_mesh("box", size=[2.0, 0.5, 0.5])
+    centres, radii = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]), np.full(2, 0.62)
+    cov = segment_coverage(bar, centres, radii, np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), n_rays=4096)
+    across = 1.0 * 0.5 / (np.pi * 0.62**2)  # each light's half of the bar's side, inside its disc
+    np.testing.assert_allclose(cov[:, 0], across, atol=0.01)
+    np.testing.assert_allclose(cov[:, 1], [0.0, 0.25 / (np.pi * 0.62**2)], atol=0.01)
+    assert segment_coverage(cube, np.zeros((0, 3)), np.zeros(0), axes).shape == (0, 3)
+
+
+def test_coverage_weights():
+    """Every sample valid: the weights are the coverage; none: 0; a light valid on half its directions gets its
+    coverage over the valid part of each direction's hemisphere."""
+    from prtlab.spherelights import coverage_weights
+
+    dirs = geodesic_directions(92)
+    cov = np.full((3, 92), 0.4)
+    valid = np.stack([np.ones(92, bool), np.zeros(92, bool), dirs[:, 2] > 0])
+    w = coverage_weights(cov, valid, dirs)
+    np.testing.assert_allclose(w[0], 0.4)
+    np.testing.assert_array_equal(w[1], 0.0)
+    cosw = np.maximum(dirs @ dirs.T, 0.0)
+    part = valid[2] @ cosw / cosw.sum(0)
+    assert np.any(part == 0)  # the directions far below see no valid sample
+    np.testing.assert_allclose(w[2], np.where(part > 0, 0.4 / np.where(part > 0, part, 1.0), 0.0))
