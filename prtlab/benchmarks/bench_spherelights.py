@@ -394,11 +394,11 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
 
 @case("spherelights.frame.per_object_ground_near.21k")
 def frame_per_object_ground_near(quick: bool) -> dict:
-    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"``,
-    ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object blocking,
-    ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits cast once,
-    not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the spherical
-    lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
+    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"`` with
+    ``ground_ray_spacing=0.5``, ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object
+    blocking, ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits
+    cast once, not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the
+    spherical lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
     a = _scene_arrays(_n(quick))
     texels, up, _, rect = _ground_texels(a)
     meshes = _object_meshes(a)

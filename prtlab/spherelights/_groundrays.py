@@ -16,7 +16,9 @@ the first integral in closed form from the environment's SH (exact for the band-
 the rays blocked by a mesh (or a local light's sphere), ``x_p(w)`` the first mesh hit and ``L_o`` the objects'
 shaded exit radiance there (the pipeline's own per-vertex result, interpolated over the hit face; a back face
 hit, from a point inside a closed object, gives 0). Only rays that meet a bounding sphere of the objects (or a
-local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing.
+local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing. With ``spacing > 0``
+the rays are cast only at the points near the spheres and at the nodes of coarser grids farther out, the light
+between interpolated bilinearly (:func:`ground_ray_nodes`; the ground's light is smooth away from the contacts).
 
 Measured figures: ``docs/notes/spherelights.md``.
 """
@@ -162,7 +164,8 @@ def ground_ray_nodes(points, spheres, spacing: float):
     if not spacing or n < 8 or not len(sph) or extent <= 0.0 or hi[1] - lo[1] > 1e-12 * extent:
         return p, rows, weights
     h0 = _FINEST * math.sqrt(max(hi[0] - lo[0], 1e-3 * extent) * max(hi[2] - lo[2], 1e-3 * extent) / n)
-    gap = np.min(np.linalg.norm(p[:, None, :] - sph[None, :, :3], axis=2) - sph[None, :, 3], axis=1)
+    dist2 = sum((p[:, i, None] - sph[None, :, i]) ** 2 for i in range(3))  # (P, S)
+    gap = np.min(np.sqrt(dist2) - sph[None, :, 3], axis=1)
     top = int(math.floor(math.log2(extent / h0))) if extent >= h0 else -1
     with np.errstate(divide="ignore", invalid="ignore"):
         level = np.floor(np.log2(spacing * gap / h0))

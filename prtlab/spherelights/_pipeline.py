@@ -162,10 +162,13 @@ class SphereLightOptions:
         thread): 1.03 times the frame of the fidelity bunny scene (169 ground vertices), 1.32 at full size (1,681;
         the rays grow with the ground's vertices; ``docs/notes/spherelights.md``).
     ground_ray_spacing : float
-        With ``ground_shading="rays"``: 0 casts the rays of every ground vertex and texel; ``s`` in ``(0, 0.7]``
-        casts them only at the vertices (texels) near the objects and interpolates the others bilinearly from the
-        nodes of square cells of side at most ``s`` times the distance to the nearest light's sphere (a run-time
-        choice; see ``_groundrays.ground_ray_nodes``).
+        With ``ground_shading="rays"``: ``s`` in ``(0, 0.7]`` (default 0.5) casts the rays of a ground only at its
+        vertices (and texels) near the objects and interpolates the others bilinearly from the nodes of square
+        cells of side at most ``s`` times the distance to the nearest light's sphere, the finest cells twice the
+        points' mean spacing (a run-time choice; see ``_groundrays.ground_ray_nodes``); 0 casts at every vertex and
+        texel. Measured: the fidelity rows within 0.0012 of 0 (none lost), the interpolated light as close to a fine
+        rule as the per-vertex rule's; the benchmark frame (16,800 ground points) 2.0 times faster, the full-size
+        ``bunny_spheres_env`` (1,681) 1.28 (one thread; ``docs/notes/spherelights.md``).
     near_blockers : int
         The direct light's blockers taken exactly per receiver (an extension, a run-time choice; see
         ``_nearcaps``): 0 is the paper's ``V_n . T_n`` over every blocker (Sec. 5.1); ``k >= 1`` (default 2)
@@ -206,7 +209,7 @@ class SphereLightOptions:
     ground: str = "reflects"
     ground_texels: int = 64
     ground_shading: str = "rays"
-    ground_ray_spacing: float = 0.0
+    ground_ray_spacing: float = 0.5
     near_blockers: int = 2
     mesh_blockers: bool = True
     local_lights: tuple = ()

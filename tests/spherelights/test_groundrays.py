@@ -421,10 +421,11 @@ def test_pipeline_ground_ray_spacing():
     plane.mesh = builtin_mesh(name="plane", size=[4, 4], resolution=[40, 40])
     pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 12}, cache=False, progress=False)
     st = FrameState.from_scene(sc)
-    every = pre.shade(st)
+    assert pre.options.ground_ray_spacing == 0.5
+    fewer = pre.shade(st)
     other = copy.copy(pre)
-    other.options = dataclasses.replace(pre.options, ground_ray_spacing=0.5)
-    fewer = other.shade(st)
+    other.options = dataclasses.replace(pre.options, ground_ray_spacing=0.0)
+    every = other.shade(st)
     np.testing.assert_array_equal(fewer.direct["ball"], every.direct["ball"])
     for part, tol in (("direct", 0.01), ("indirect", 0.05)):
         a, b = getattr(every, part)["plane"], getattr(fewer, part)["plane"]
