@@ -130,7 +130,8 @@ def ground_ray_nodes(points, spheres, spacing: float):
     the coarsest grid of side ``h_l = h_0 2^l <= spacing * gap`` that contains it (every grid aligned with the
     points' bounding box, its lower corner a node, ``h_0 = 2 sqrt(area / P)``: a quarter of the points' density,
     ``h_l`` at most the box's longer side); a point with ``spacing * gap < h_0`` (or inside a sphere) is cast at
-    itself. If that would cast at as many places as there are points, every point is cast at itself.
+    itself. If that would cast at as many places as there are points, every point is cast at itself. The result
+    is continuous within a grid's cells, not where neighbouring points take grids of different sides.
 
     Parameters
     ----------
