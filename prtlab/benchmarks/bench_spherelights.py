@@ -308,7 +308,7 @@ def _mesh_direct_parts(a, meshes) -> list:
 
 
 def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays",
-                   mesh_parts=None):
+                   mesh_parts=None, ground_ray_spacing: float = SphereLightOptions().ground_ray_spacing):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
@@ -317,9 +317,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     texels), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
     and, above the ground, ``ground_light`` testing the eligible lights unadjusted; the ground's receivers last from
     the rays (their direct light and the light gathered from the objects' radiance; ``"lights"``: first, as any
-    receiver, less ``ground_light``). With ``mesh_parts`` (:func:`_mesh_direct_parts`; ``mesh_blockers=True``) the
-    objects' direct light is ``mesh_direct`` against the meshes and the ground instead of the second pass's, near
-    blockers' and hidden ground light."""
+    receiver, less ``ground_light``), cast where ``ground_ray_spacing`` (the option) says. With ``mesh_parts``
+    (:func:`_mesh_direct_parts`; ``mesh_blockers=True``) the objects' direct light is ``mesh_direct`` against the
+    meshes and the ground instead of the second pass's, near blockers' and hidden ground light."""
     from prtlab.spherelights import ground_light
     from prtlab.spherelights._meshdirect import mesh_direct
     from prtlab.spherelights._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, mesh_blockers
@@ -361,7 +361,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
                           a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER)
     if rays:
-        e = ground_direct_rays(texels, env, blockers, _TEXEL_RAYS)
+        e = ground_direct_rays(texels, env, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing)
     else:
         e = _ground_direct(a, texels, up)
         near(texels, up, e, -1)
@@ -386,18 +386,19 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                                             blockers.caster.epsilon * blockers.scale))
     if rays:
         rows = a["recv_object"] == -1
-        direct, indirect = ground_light_rays(a["points"][rows], env, blockers, radiance, _GROUND_RAYS)
+        direct, indirect = ground_light_rays(a["points"][rows], env, blockers, radiance, _GROUND_RAYS,
+                                             spacing=ground_ray_spacing)
         out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
     return out
 
 
 @case("spherelights.frame.per_object_ground_near.21k")
 def frame_per_object_ground_near(quick: bool) -> dict:
-    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"``,
-    ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object blocking,
-    ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits cast once,
-    not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the spherical
-    lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
+    """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"`` with
+    ``ground_ray_spacing=0.5``, ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object
+    blocking, ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits
+    cast once, not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the
+    spherical lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
     a = _scene_arrays(_n(quick))
     texels, up, _, rect = _ground_texels(a)
     meshes = _object_meshes(a)

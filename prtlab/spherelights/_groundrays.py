@@ -16,7 +16,9 @@ the first integral in closed form from the environment's SH (exact for the band-
 the rays blocked by a mesh (or a local light's sphere), ``x_p(w)`` the first mesh hit and ``L_o`` the objects'
 shaded exit radiance there (the pipeline's own per-vertex result, interpolated over the hit face; a back face
 hit, from a point inside a closed object, gives 0). Only rays that meet a bounding sphere of the objects (or a
-local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing.
+local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing. With ``spacing > 0``
+the rays are cast only at the points near the spheres and at the nodes of coarser grids farther out, the light
+between interpolated bilinearly (:func:`ground_ray_nodes`; the ground's light is smooth away from the contacts).
 
 Measured figures: ``docs/notes/spherelights.md``.
 """
@@ -34,10 +36,14 @@ from prtlab import sh
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
            "ground_gather_rays", "ground_light_rays", "contact_radiance",
-           "candidate_rays", "sphere_hits"]
+           "candidate_rays", "sphere_hits", "ground_ray_nodes", "MAX_SPACING"]
 
 _UP = np.array([0.0, 1.0, 0.0])
 _CHUNK = 256  # receivers per batch of rays (bounds the (P, K) arrays)
+#: The largest ``spacing`` of :func:`ground_ray_nodes`: a cell's nodes then stay outside the spheres
+#: (``gap - sqrt(2) h > 0`` for ``h <= spacing * gap``).
+MAX_SPACING = 0.7
+_FINEST = 2.0  # the finest grid's side over the points' mean spacing
 
 
 class GroundRayRule(NamedTuple):
@@ -114,6 +120,91 @@ def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: f
 def _local_points(points, blockers: MeshBlockers) -> np.ndarray:
     return np.ascontiguousarray((np.asarray(points, dtype=np.float64).reshape(-1, 3) - blockers.origin)
                                 @ blockers.turn / blockers.scale)
+
+
+def ground_ray_nodes(points, spheres, spacing: float):
+    """Where the rays of ground points are cast when the light between them is interpolated: the points near the
+    spheres themselves, the others from the corners of a square cell of a grid in the ground plane.
+
+    A point at distance ``gap`` from the nearest sphere's surface takes the bilinear interpolation over the cell of
+    the coarsest grid of side ``h_l = h_0 2^l <= spacing * gap`` that contains it (every grid aligned with the
+    points' bounding box, its lower corner a node, ``h_0 = 2 sqrt(area / P)``: a quarter of the points' density,
+    ``h_l`` at most the box's longer side); a point with ``spacing * gap < h_0`` (or inside a sphere) is cast at
+    itself. If that would cast at as many places as there are points, every point is cast at itself. The result
+    is continuous within a grid's cells, not where neighbouring points take grids of different sides.
+
+    Parameters
+    ----------
+    points : (P, 3) float
+        Points of one ground (``x, z`` in its plane, one ``y``; e.g. in :class:`MeshBlockers`' frame). Points of
+        several heights are all cast at themselves.
+    spheres : (S, 4) float
+        ``[x, y, z, r]``: what the rays meet (the meshes' bounding spheres and the opaque ones).
+    spacing : float
+        In ``[0, MAX_SPACING]``; 0 casts at every point.
+
+    Returns
+    -------
+    cast : (C, 3) float
+        Where to cast: the points cast at themselves (in their order), then the grid nodes (``y`` the points').
+    rows : (P, 4) int
+        Rows of ``cast`` whose values a point takes, with ``weights (P, 4)`` (summing to 1; a point cast at itself:
+        its own row with weights ``1, 0, 0, 0``): ``value[p] = sum_c weights[p, c] value[rows[p, c]]``.
+    """
+    from prtlab._validate import check_float
+
+    spacing = check_float(spacing, "spacing", 0.0, MAX_SPACING, meaning="0: every point cast")
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    sph = np.asarray(spheres, dtype=np.float64).reshape(-1, 4)
+    n = len(p)
+    rows = np.repeat(np.arange(n, dtype=np.int64)[:, None], 4, axis=1)
+    weights = np.zeros((n, 4))
+    weights[:, 0] = 1.0
+    lo, hi = p.min(axis=0, initial=np.inf), p.max(axis=0, initial=-np.inf)
+    extent = max(hi[0] - lo[0], hi[2] - lo[2]) if n else 0.0
+    if not spacing or n < 8 or not len(sph) or extent <= 0.0 or hi[1] - lo[1] > 1e-12 * extent:
+        return p, rows, weights
+    h0 = _FINEST * math.sqrt(max(hi[0] - lo[0], 1e-3 * extent) * max(hi[2] - lo[2], 1e-3 * extent) / n)
+    dist2 = sum((p[:, i, None] - sph[None, :, i]) ** 2 for i in range(3))  # (P, S)
+    gap = np.min(np.sqrt(dist2) - sph[None, :, 3], axis=1)
+    top = int(math.floor(math.log2(extent / h0))) if extent >= h0 else -1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        level = np.floor(np.log2(spacing * gap / h0))
+    level = np.where(gap > 0.0, np.minimum(level, top), -1.0).astype(np.int64)
+    near = level < 0
+    far = np.nonzero(~near)[0]
+    if not len(far):
+        return p, rows, weights
+    step = np.left_shift(1, level[far])  # the cell's side in units of h0
+    h = h0 * step
+    fx, fz = (p[far, 0] - lo[0]) / h, (p[far, 2] - lo[2]) / h
+    ix, iz = np.floor(fx), np.floor(fz)
+    u, v = fx - ix, fz - iz
+    ix, iz = ix.astype(np.int64) * step, iz.astype(np.int64) * step  # the cell's lower corner, units of h0
+    width = int(math.ceil(extent / h0)) + 2 * (1 << max(top, 0)) + 2
+    keys = np.stack([ix * width + iz, (ix + step) * width + iz, ix * width + iz + step,
+                     (ix + step) * width + iz + step], axis=1)  # the corners in the order of the weights below
+    nodes, inverse = np.unique(keys, return_inverse=True)
+    exact = np.nonzero(near)[0]
+    if len(exact) + len(nodes) >= n:
+        return p, rows, weights
+    cast = np.empty((len(exact) + len(nodes), 3))
+    cast[: len(exact)] = p[exact]
+    cast[len(exact):, 0] = lo[0] + (nodes // width) * h0
+    cast[len(exact):, 1] = p[0, 1]
+    cast[len(exact):, 2] = lo[2] + (nodes % width) * h0
+    rows[exact] = np.arange(len(exact))[:, None]
+    rows[far] = len(exact) + inverse.reshape(-1, 4)
+    weights[far] = np.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=1)
+    return cast, rows, weights
+
+
+def _interpolated(values, rows, weights) -> np.ndarray:
+    """``(P, 3)``: ``sum_c weights[:, c] values[rows[:, c]]`` (see :func:`ground_ray_nodes`)."""
+    out = values[rows[:, 0]] * weights[:, :1]
+    for c in range(1, 4):
+        out += values[rows[:, c]] * weights[:, c:c + 1]
+    return out
 
 
 def sphere_hits(points, dirs, spheres, *, method: str = "numba") -> np.ndarray:
@@ -327,7 +418,7 @@ def _list_rays(points, cand, dirs, ptr, ip, ik, origins, ray_dirs):
 
 
 def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
-                       method: str = "embree") -> np.ndarray:
+                       method: str = "embree", spacing: float = 0.0) -> np.ndarray:
     """Direct irradiance ``(P, 3)`` from the environment at ground points (normal ``+Y``), the objects' meshes
     and the opaque spheres blocking (see the module docstring).
 
@@ -343,10 +434,19 @@ def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRu
         Default :func:`ground_ray_rule` ``(64, 16)``.
     method : {"embree", "numpy"}
         The ray caster's engine (``"numpy"``: its float64 brute-force specification).
+    spacing : float
+        0 (default): cast at every point; else cast only where :func:`ground_ray_nodes` says and interpolate
+        (``points`` of one ground).
     """
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
-    env = np.asarray(env_sh, dtype=np.float64)
+    cast, rows, weights = _cast_points(p, blockers, spacing)
+    out = _direct(cast, np.asarray(env_sh, dtype=np.float64), blockers, rule, method)
+    return _interpolated(out, rows, weights) if len(cast) < len(p) else out
+
+
+def _direct(p, env, blockers, rule, method) -> np.ndarray:
+    """:func:`ground_direct_rays` at local points ``p``."""
     order = math.isqrt(env.shape[0])
     e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
     radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
@@ -401,11 +501,13 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
 
 
 def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
-                      method: str = "embree", tier: str = "numba") -> tuple[np.ndarray, np.ndarray]:
+                      method: str = "embree", tier: str = "numba",
+                      spacing: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
     same points from one closest-hit cast per ray (the same values as the two apart). ``tier``: the sums over the
     hits in a numba kernel (``"numba"``) or numpy (``"reference"``, the specification; the same sums in the same
-    order)."""
+    order). ``spacing``: 0 (default) casts at every point; else only where :func:`ground_ray_nodes` says, the
+    rest interpolated (``points`` of one ground)."""
     from prtlab._validate import check_choice
 
     check_choice(tier, "tier", ("numba", "reference"))
@@ -413,7 +515,17 @@ def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: Gr
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64), tier)
+    cast, rows, weights = _cast_points(p, blockers, spacing)
+    direct, gathered = _gather(cast, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64), tier)
+    if len(cast) < len(p):
+        return _interpolated(direct, rows, weights), _interpolated(gathered, rows, weights)
+    return direct, gathered
+
+
+def _cast_points(p, blockers: MeshBlockers, spacing: float):
+    """:func:`ground_ray_nodes` of local points ``p`` against the blockers' bounding and opaque spheres."""
+    return ground_ray_nodes(p, np.concatenate([blockers.bounds.reshape(-1, 4), blockers.spheres.reshape(-1, 4)]),
+                            spacing)
 
 
 def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
