@@ -910,6 +910,25 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _capsule_kernel(points, centre, spheres, bound, eps, near):
+    """``near[v]``: the segment from ``points[v]`` to ``centre`` passes within ``bound + R + eps`` of a sphere ``(c, R)`` of
+    ``spheres`` (S, 4). Every ray of a point lies, up to its ``tmax``, in the capsule of radius ``bound`` about that
+    segment, so only such points can hold a ray that meets a sphere."""
+    for v in numba.prange(points.shape[0]):
+        x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
+        d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+        dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+        near[v] = False
+        for k in range(spheres.shape[0]):
+            t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
+                        0.0), 1.0)
+            g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
+            if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
+                near[v] = True
+                break
+
+
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
     centre, radius = np.asarray(source[3], float), float(source[4])
@@ -918,14 +937,8 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
     bound += _margin(caster, centre, bound)
     widened = spheres.copy()
     widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
-    # every ray of a point lies, up to its tmax, in the capsule of radius `bound` about the segment to the centre
-    d = centre[None] - points
-    dd = np.maximum(np.einsum("vi,vi->v", d, d), 1e-300)
-    near = np.zeros(len(points), bool)
-    for c in widened:
-        t = np.clip(np.einsum("vi,vi->v", c[None, :3] - points, d) / dd, 0.0, 1.0)
-        gap = points + t[:, None] * d - c[None, :3]
-        near |= np.einsum("vi,vi->v", gap, gap) <= (bound + c[3] + caster.epsilon) ** 2
+    near = np.empty(len(points), np.bool_)
+    _capsule_kernel(points, centre, widened, bound, float(caster.epsilon), near)
     candidates = np.flatnonzero(near)
     if not len(candidates):
         return old
