@@ -162,8 +162,9 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     caster : prtlab.geometry.RayCaster, optional
         A caster of ``mesh`` alone, kept by callers that cast often (building one takes milliseconds).
     method : {"numba", "reference"}
-        Projection of the hit rays' radiance: a parallel kernel summing over the hits only, or the
-        float64 specification (a dense ``(points, K N, directions) x (directions, n*n)`` product).
+        Rays traced and projected by kernels (:func:`source_hits`'s fused trace, then a parallel sum over the
+        hits only), or the float64 specification (``RayCaster.may_hit`` and ``closest_hit``, then a dense
+        ``(points, K N, directions) x (directions, n*n)`` product); the same hits.
 
     Returns
     -------
