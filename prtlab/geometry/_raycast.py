@@ -174,6 +174,29 @@ def _writeable(a: np.ndarray) -> np.ndarray:
     return np.array(a, dtype=np.float64, order="C")
 
 
+@numba.njit(cache=True, inline="always")
+def may_hit_ray(ox, oy, oz, cx, cy, cz, dist2, r2, dx, dy, dz, lo, hi):
+    """Whether the ray from ``o`` along ``d`` meets the sphere of squared radius ``r2`` whose centre lies at
+    ``c = centre - o`` (``dist2 = |c|^2``) and the box ``[lo, hi]`` (``may_hit``'s test of one ray)."""
+    along = cx * dx + cy * dy + cz * dz
+    ok = dist2 <= r2 or (along > 0.0 and dist2 - along * along <= r2)
+    if ok:  # slab test: the ray's parameter interval inside the box is not empty
+        enter, leave = 0.0, np.inf
+        for axis in range(3):
+            start = (ox, oy, oz)[axis]
+            step = (dx, dy, dz)[axis]
+            if step == 0.0:
+                if start < lo[axis] or start > hi[axis]:
+                    ok = False
+            else:
+                t1 = (lo[axis] - start) / step
+                t2 = (hi[axis] - start) / step
+                enter = max(enter, min(t1, t2))
+                leave = min(leave, max(t1, t2))
+        ok = ok and enter <= leave
+    return ok
+
+
 @numba.njit(cache=True, parallel=True)
 def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
     """``out[p, d]``: the ray meets the sphere ``(centre, radius)`` and the box ``[lo, hi]`` (see ``may_hit``)."""
@@ -183,24 +206,7 @@ def _may_hit_kernel(origins, dirs, centre, radius, lo, hi, out):
         cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
         dist2 = cx * cx + cy * cy + cz * cz
         for j in range(dirs.shape[0]):
-            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-            along = cx * dx + cy * dy + cz * dz
-            ok = dist2 <= r2 or (along > 0.0 and dist2 - along * along <= r2)
-            if ok:  # slab test: the ray's parameter interval inside the box is not empty
-                enter, leave = 0.0, np.inf
-                for axis in range(3):
-                    start = (ox, oy, oz)[axis]
-                    step = (dx, dy, dz)[axis]
-                    if step == 0.0:
-                        if start < lo[axis] or start > hi[axis]:
-                            ok = False
-                    else:
-                        t1 = (lo[axis] - start) / step
-                        t2 = (hi[axis] - start) / step
-                        enter = max(enter, min(t1, t2))
-                        leave = min(leave, max(t1, t2))
-                ok = ok and enter <= leave
-            out[p, j] = ok
+            out[p, j] = may_hit_ray(ox, oy, oz, cx, cy, cz, dist2, r2, dirs[j, 0], dirs[j, 1], dirs[j, 2], lo, hi)
 
 
 #: The query engines, fastest first (module docstring).
@@ -649,11 +655,15 @@ class RayCaster:
         miss."""
         o = np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3))
         d = np.ascontiguousarray(np.asarray(dirs, dtype=np.float64).reshape(-1, 3))
+        out = np.empty((len(o), len(d)), dtype=np.bool_)
+        _may_hit_kernel(o, d, *self.may_hit_bounds(), out)
+        return out
+
+    def may_hit_bounds(self) -> tuple:
+        """``(centre, radius, lo, hi)``: the widened sphere and box of :meth:`may_hit`."""
         centre, radius = self._sphere
         margin = 1e-6 * radius + self.epsilon + 1e-12
-        out = np.empty((len(o), len(d)), dtype=np.bool_)
-        _may_hit_kernel(o, d, centre, radius + margin, self._bounds[0] - margin, self._bounds[1] + margin, out)
-        return out
+        return centre, radius + margin, self._bounds[0] - margin, self._bounds[1] + margin
 
     @property
     def epsilon(self) -> float:

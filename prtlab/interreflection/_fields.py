@@ -43,6 +43,7 @@ Self-interreflection (an extension)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -51,7 +52,7 @@ from prtlab._validate import as_points
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
-from ._kernels import hit_basis_kernel, project_hits_kernel
+from ._kernels import hit_basis_kernel, project_hits_kernel, source_hits_kernel
 
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance", "StoredBasisRadiance",
            "store_basis_radiance", "STORAGES"]
@@ -100,13 +101,41 @@ def _constant_h(sep) -> bool:
     return sep.K == 1 and int(sep.freq[0]) == 0 and bool(flat)
 
 
-def source_hits(caster, points, dirs, step):
+class _SourceHits(NamedTuple):
+    """The hits of :func:`source_hits`'s fused path: face (int64) and barycentrics (float64) of each hit ray."""
+
+    triangle: np.ndarray
+    barycentric: np.ndarray
+
+
+def source_hits(caster, points, dirs, step, method: str = "numba"):
     """The rays from every point along every direction that hit the source, in batches of ``step`` points:
     yields ``(a, b, point, direction, hits, at)``: points ``a:b``, the candidate rays (``point`` relative to
-    ``a``, ``direction``), their :meth:`RayCaster.closest_hit` and the indices ``at`` of the hits; batches with
-    no hit are skipped."""
+    ``a``, ``direction``), their hits (``.triangle``, ``.barycentric``) and the indices ``at`` of the hits; batches
+    with no hit are skipped. ``method="numba"`` (a one-object caster with Embree) tests and traces the rays in one
+    kernel (:func:`source_hits_kernel`: the candidates are the hits); ``"reference"``: :meth:`RayCaster.may_hit`
+    then :meth:`RayCaster.closest_hit` of the rays it keeps. The same hits, bit for bit."""
+    fused = method == "numba" and getattr(caster, "_scene", None) is not None and caster.n_objects == 1
+    if fused:
+        from ._residual import _tracer
+
+        centre, radius, lo, hi = caster.may_hit_bounds()
+        dirs64 = np.ascontiguousarray(dirs, dtype=np.float64)
     for a in range(0, len(points), step):
         b = min(len(points), a + step)
+        if fused:
+            origins = np.ascontiguousarray(points[a:b], dtype=np.float64)
+            triangle = np.empty((b - a, len(dirs64)), np.int32)
+            uv = np.empty((b - a, len(dirs64), 2), np.float32)
+            source_hits_kernel(_tracer(caster, b - a), origins, dirs64,
+                               np.asarray(centre, np.float64), float(radius) ** 2, lo, hi, float(caster.tnear),
+                               triangle, uv)
+            point, direction = np.nonzero(triangle >= 0)
+            if len(point):
+                hits = _SourceHits(triangle[point, direction].astype(np.int64),
+                                   uv[point, direction].astype(np.float64))
+                yield a, b, point, direction, hits, np.arange(len(point))
+            continue
         point, direction = np.nonzero(caster.may_hit(points[a:b], dirs))  # the other rays miss the source
         hits = caster.closest_hit(points[a:b][point], dirs[direction])
         at = np.flatnonzero(hits.hit)
@@ -133,8 +162,9 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     caster : prtlab.geometry.RayCaster, optional
         A caster of ``mesh`` alone, kept by callers that cast often (building one takes milliseconds).
     method : {"numba", "reference"}
-        Projection of the hit rays' radiance: a parallel kernel summing over the hits only, or the
-        float64 specification (a dense ``(points, K N, directions) x (directions, n*n)`` product).
+        Rays traced and projected by kernels (:func:`source_hits`'s fused trace, then a parallel sum over the
+        hits only), or the float64 specification (``RayCaster.may_hit`` and ``closest_hit``, then a dense
+        ``(points, K N, directions) x (directions, n*n)`` product); the same hits.
 
     Returns
     -------
@@ -161,7 +191,7 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     wy = weights[:, None] * y  # (D, n2)
     out = np.zeros((len(flat), n_k * n_b, n2))
     step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
-    for a, b, point, direction, hits, at in source_hits(caster, flat, dirs, step):
+    for a, b, point, direction, hits, at in source_hits(caster, flat, dirs, step, method):
         sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
         value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep,
                                    method).reshape(-1, n_k * n_b)

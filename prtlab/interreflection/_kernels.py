@@ -7,7 +7,8 @@ import math
 import numba
 import numpy as np
 
-from prtlab.geometry._raycast import barycentric_normal
+from prtlab.geometry import _embree
+from prtlab.geometry._raycast import barycentric_normal, may_hit_ray
 from prtlab.sh._product_kernels import _tile_product
 from prtlab.shadowfields._kernels import sample_corners
 
@@ -195,3 +196,64 @@ def may_block_kernel(x, occluder_centre, radius_sum, reach, source_centre, out):
         gx, gy, gz = px + t * dx - cx, py + t * dy - cy, pz + t * dz - cz
         out[v] = (gx * gx + gy * gy + gz * gz <= radius_sum * radius_sum) and (ox * ox + oy * oy + oz * oz
                                                                                <= reach * reach)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangle, uv):
+    """Closest hits on a one-object caster of the rays from each of ``origins`` (P, 3) along each of ``dirs``
+    (D, 3): ``triangle[p, j]`` the face hit (int32, -1 where the ray misses it or fails ``may_hit``'s test of the
+    sphere ``(centre, r2)`` and box ``[lo, hi]``, then not cast) and ``uv[p, j]`` its float32 barycentrics.
+    Rays are staged as ``RayCaster.closest_hit`` stages them (no normals, ``tmax`` inf) and traced through
+    ``tracer`` (``_raycast._Tracer``: one ray at a time, or 16 of a point's rays at a time); a thread takes one
+    origin at a time (its slot)."""
+    n_points, n_dirs = origins.shape[0], dirs.shape[0]
+    w = _embree.PACKET
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(tracer.threads):
+        lanes = np.empty(w, np.int64)
+        while True:
+            p = _embree.fetch_add(counter, 1)
+            if p >= n_points:
+                break
+            f32, u32 = tracer.slot_f32[p], tracer.slot_u32[p]
+            valid = tracer.valid[p]
+            ox, oy, oz = origins[p, 0], origins[p, 1], origins[p, 2]
+            cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+            dist2 = cx * cx + cy * cy + cz * cz
+            n_lanes = 0
+            for j in range(n_dirs + 1):
+                if j < n_dirs:
+                    triangle[p, j] = -1
+                    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                    if not may_hit_ray(ox, oy, oz, cx, cy, cz, dist2, r2, dx, dy, dz, lo, hi):
+                        continue
+                    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    dx /= length
+                    dy /= length
+                    dz /= length
+                    if not tracer.packet:
+                        _embree.set_ray(f32, u32, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz, dx, dy, dz, np.inf)
+                        _embree.rtc_call(tracer.function, tracer.scene, f32.ctypes.data)
+                        if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                            triangle[p, j] = np.int32(u32[_embree.HIT_PRIM])
+                            uv[p, j, 0] = f32[_embree.HIT_U]
+                            uv[p, j, 1] = f32[_embree.HIT_V]
+                        continue
+                    _embree.set_packet_ray(f32, u32, n_lanes, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz,
+                                           dx, dy, dz, np.inf)
+                    valid[n_lanes] = -1
+                    lanes[n_lanes] = j
+                    n_lanes += 1
+                    if n_lanes < w:
+                        continue
+                if n_lanes == 0:
+                    continue
+                for k in range(n_lanes, w):
+                    valid[k] = 0
+                _embree.rtc_call_packet(tracer.function, valid.ctypes.data, tracer.scene, f32.ctypes.data)
+                for k in range(n_lanes):
+                    if u32[_embree.HIT_GEOM * w + k] != _embree.INVALID_ID:
+                        triangle[p, lanes[k]] = np.int32(u32[_embree.HIT_PRIM * w + k])
+                        uv[p, lanes[k], 0] = f32[_embree.HIT_U * w + k]
+                        uv[p, lanes[k], 1] = f32[_embree.HIT_V * w + k]
+                n_lanes = 0

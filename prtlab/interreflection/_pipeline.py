@@ -1053,12 +1053,18 @@ class Interreflection(Precomputation):
 
     def _one_side(self, geo, o, r, s) -> bool:
         go = geo[o.name]
-        v = go["T"].apply_points(np.asarray(o.mesh.vertices, float))
-        normal = np.mean(go["n"], axis=0)
-        normal /= max(float(np.linalg.norm(normal)), 1e-300)
-        points = np.concatenate([geo[r.name]["x"], geo[s.name]["T"].apply_points(np.asarray(s.mesh.vertices, float))])
-        side = (points - v.mean(axis=0)) @ normal
-        eps = 1e-9 * max(float(np.ptp(points, axis=0).max()), float(np.ptp(v, axis=0).max()), 1e-300)
+        if "plane" not in go:  # o's plane and extent, kept with its pose's entry (``_frame_geometry``)
+            v = go["T"].apply_points(np.asarray(o.mesh.vertices, float))
+            normal = np.mean(go["n"], axis=0)
+            normal /= max(float(np.linalg.norm(normal)), 1e-300)
+            go["plane"] = (v.mean(axis=0), normal, float(np.ptp(v, axis=0).max()))
+        centre, normal, extent = go["plane"]
+        gs = geo[s.name]
+        if "vertices" not in gs:
+            gs["vertices"] = gs["T"].apply_points(np.asarray(s.mesh.vertices, float))
+        points = np.concatenate([geo[r.name]["x"], gs["vertices"]])
+        side = (points - centre) @ normal
+        eps = 1e-9 * max(float(np.ptp(points, axis=0).max()), extent, 1e-300)
         return bool(np.all(side >= -eps) or np.all(side <= eps))
 
     def _haar_pair(self, geo, r, s, others):

@@ -149,6 +149,24 @@ def _point_grid(rows, side, cos_c, cos_max, q, full):
 
 
 @numba.njit(cache=True, inline="always")
+def _cone(points, normals, p, centre, radius, rows, side, full):
+    """Point ``p``'s view of a source's bounding sphere ``(centre, radius)`` as ``_ray`` takes it: ``(rows', side',
+    inside, q, cos_max, d0, d1, d2, dist)``, its grid (``_point_grid`` with ``full > 0`` outside the sphere, else
+    ``(rows, side)``: only its rays ``j < rows' side'`` may be cast), whether it lies inside the sphere, the cone's
+    sine and cosine, the vector to the centre and its length."""
+    x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
+    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    inside = dist <= 1.0001 * radius
+    q = radius / max(dist, radius)
+    cos_max = math.sqrt(max(1.0 - q * q, 0.0))
+    if full > 0.0 and not inside:
+        n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
+        rows, side = _point_grid(rows, side, (d0 * n0 + d1 * n1 + d2 * n2) / dist, cos_max, q, full)
+    return rows, side, inside, q, cos_max, d0, d1, d2, dist
+
+
+@numba.njit(cache=True, inline="always")
 def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, out):
     """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
 
@@ -162,16 +180,10 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, ful
     """
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
-    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
-    dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    inside = dist <= 1.0001 * radius
-    q = radius / max(dist, radius)
-    cos_max = math.sqrt(max(1.0 - q * q, 0.0))
-    if full > 0.0 and not inside:
-        rows, side = _point_grid(rows, side, (d0 * n0 + d1 * n1 + d2 * n2) / dist, cos_max, q, full)
-        if j >= rows * side:
-            out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = x0, x1, x2, n0, n1, n2, 0.0, 0.0
-            return
+    rows, side, inside, q, cos_max, d0, d1, d2, dist = _cone(points, normals, p, centre, radius, rows, side, full)
+    if j >= rows * side:
+        out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = x0, x1, x2, n0, n1, n2, 0.0, 0.0
+        return
     m = rows * side
     stream = _mix(key ^ _mix(np.uint64(p)))
     u1 = ((j // side) + _uniform(stream, np.uint64(2 * j))) / rows
@@ -220,10 +232,9 @@ _NOT_LIVE, _CAST, _HIT = 0, 1, 2
 
 
 @numba.njit(cache=True, inline="always")
-def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
-    """Traces the ray ``buf`` (``_ray``'s output, ``tmax > 0``) from ``tnear`` on through ``rtcIntersect1``
-    (staged as ``_stage_ray`` stages it, in the ray slot ``f32``/``u32`` at ``address``): whether its first hit is
-    object ``source`` (then ``u32``/``f32`` hold its triangle and barycentrics)."""
+def _stage(buf, tnear):
+    """The ray ``buf`` (``_ray``'s output, ``tmax > 0``) staged from ``tnear`` on as ``_stage_ray`` stages it:
+    ``(cast, ox, oy, oz, dx, dy, dz, tfar)``, ``cast`` False if its float32 ``tfar`` is not positive."""
     dx, dy, dz = buf[3], buf[4], buf[5]
     length = np.sqrt(dx * dx + dy * dy + dz * dz)
     dx /= length
@@ -232,47 +243,144 @@ def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
     tfar = buf[7] - tnear
     if tfar > _FLOAT32_MAX:
         tfar = np.inf
-    if not np.float32(tfar) > 0.0:
+    cast = np.float32(tfar) > 0.0
+    return cast, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy, dz, tfar
+
+
+@numba.njit(cache=True, inline="always")
+def _hits_source(buf, tnear, source, function, scene, f32, u32, address):
+    """Traces the ray ``buf`` (``_ray``'s output, ``tmax > 0``) from ``tnear`` on through ``rtcIntersect1``
+    (``_stage``, in the ray slot ``f32``/``u32`` at ``address``): whether its first hit is object ``source`` (then
+    ``u32``/``f32`` hold its triangle and barycentrics)."""
+    cast, ox, oy, oz, dx, dy, dz, tfar = _stage(buf, tnear)
+    if not cast:
         return False
-    _embree.set_ray(f32, u32, buf[0] + tnear * dx, buf[1] + tnear * dy, buf[2] + tnear * dz, dx, dy, dz, tfar)
+    _embree.set_ray(f32, u32, ox, oy, oz, dx, dy, dz, tfar)
     _embree.rtc_call(function, scene, address)
     return u32[_embree.HIT_GEOM] != _embree.INVALID_ID and np.int64(u32[_embree.HIT_GEOM]) == source
 
 
+@numba.njit(cache=True, inline="always")
+def _add_lane(buf, tnear, f32, u32, valid, lane):
+    """Stages the ray ``buf`` (``_stage``) into lane ``lane`` of a packet slot; whether it is cast (then the lane is
+    valid)."""
+    cast, ox, oy, oz, dx, dy, dz, tfar = _stage(buf, tnear)
+    if cast:
+        _embree.set_packet_ray(f32, u32, lane, ox, oy, oz, dx, dy, dz, tfar)
+        valid[lane] = -1
+    return cast
+
+
+@numba.njit(cache=True, inline="always")
+def _trace_lanes(tracer, f32, valid, n_lanes):
+    """``rtcIntersect16`` of the first ``n_lanes`` lanes of a packet slot (the others invalid)."""
+    for k in range(n_lanes, _embree.PACKET):
+        valid[k] = 0
+    _embree.rtc_call_packet(tracer.function, valid.ctypes.data, tracer.scene, f32.ctypes.data)
+
+
+@numba.njit(cache=True, inline="always")
+def _lane_hits(u32, lane, source):
+    """Whether the first hit of packet lane ``lane`` is object ``source``."""
+    g = u32[_embree.HIT_GEOM * _embree.PACKET + lane]
+    return g != _embree.INVALID_ID and np.int64(g) == source
+
+
+#: Receiver points a task of ``_cast_kernel`` takes when it casts every ray of every point: ray ``j`` of 16
+#: neighbouring points (nearly parallel rays from nearby origins) fills a packet.
+_POINTS_PER_PACKET = 16
+
+
+def _cast_tasks(n_rays: int, m: int, every: bool) -> int:
+    """Tasks (ray slots) of one ``_cast_kernel`` call."""
+    if every:
+        return -(-(n_rays // max(m, 1)) // _POINTS_PER_PACKET)
+    return -(-n_rays // _embree.RAYS_PER_TASK)
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, facing,
-                 tnear, source, function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+                 tnear, source, tracer, state, triangle, uv):
     """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
     ``point`` empty ``(i // m, i % m)`` (every ray of every point). ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not
     cast), ``_CAST`` or ``_HIT`` (the first hit is object ``source``: its ``triangle[i]`` and float32 ``uv[i]``).
     Each ray is staged as ``_stage_ray`` stages it (no normals: the origin is already offset) and traced through
-    ``rtcIntersect1`` (``function``, ``scene``); threads take blocks of ``RAYS_PER_TASK`` rays as ``_trace_kernel``."""
+    ``tracer`` (a ``_raycast._Tracer`` of closest hits): one ray at a time through ``rtcIntersect1``, or with
+    ``tracer.packet`` the next 16 rays cast of a task at a time through ``rtcIntersect16``: the same hits.
+    Threads take tasks from a shared counter (``_cast_tasks``): ``RAYS_PER_TASK`` rays of the list, or
+    ``_POINTS_PER_PACKET`` points, ray ``j`` of each point after ray ``j - 1`` of all (rays past a point's own grid,
+    ``_cone``, are not made)."""
     m = rows * side
     every = point.shape[0] == 0
     step = _embree.RAYS_PER_TASK
-    n_blocks = (n_rays + step - 1) // step
+    w = _embree.PACKET
+    group = _POINTS_PER_PACKET
+    n_points = n_rays // m if every else 0
+    per_task = group * m if every else step
+    n_tasks = tracer.slot_f32.shape[0]
     counter = np.zeros(1, dtype=np.int64)
-    for _ in numba.prange(threads):
+    for _ in numba.prange(tracer.threads):
         buf = np.empty(8)
+        lanes = np.empty(w, np.int64)
+        live = np.zeros(group, np.int64)
         while True:
             block = _embree.fetch_add(counter, 1)
-            if block >= n_blocks:
+            if block >= n_tasks:
                 break
-            f32, u32 = slot_f32[block], slot_u32[block]
+            f32, u32 = tracer.slot_f32[block], tracer.slot_u32[block]
             address = f32.ctypes.data
-            for i in range(block * step, min(n_rays, (block + 1) * step)):
-                p = i // m if every else point[i]
-                j = i % m if every else ray[i]
-                _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
-                state[i] = _NOT_LIVE
-                if not buf[7] > 0.0:
+            valid = tracer.valid[block]
+            n_lanes = 0
+            if every:
+                for k in range(group):
+                    p = block * group + k
+                    live[k] = 0
+                    if p < n_points:
+                        grid = _cone(points, normals, p, centre, radius, rows, side, full)
+                        live[k] = grid[0] * grid[1]
+                        for j in range(live[k], m):
+                            state[p * m + j] = _NOT_LIVE
+            for t in range(per_task + 1):
+                if t < per_task:
+                    if every:
+                        k, j = t % group, t // group
+                        p = block * group + k
+                        if j >= live[k]:  # past the point's own grid (or no point): not cast
+                            continue
+                        i = p * m + j
+                    else:
+                        i = block * step + t
+                        if i >= n_rays:
+                            continue
+                        p, j = point[i], ray[i]
+                    _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+                    state[i] = _NOT_LIVE
+                    if not buf[7] > 0.0:
+                        continue
+                    state[i] = _CAST
+                    if not tracer.packet:
+                        if _hits_source(buf, tnear, source, tracer.function, tracer.scene, f32, u32, address):
+                            state[i] = _HIT
+                            triangle[i] = np.int32(u32[_embree.HIT_PRIM])
+                            uv[i, 0] = f32[_embree.HIT_U]
+                            uv[i, 1] = f32[_embree.HIT_V]
+                        continue
+                    if _add_lane(buf, tnear, f32, u32, valid, n_lanes):
+                        lanes[n_lanes] = i
+                        n_lanes += 1
+                    if n_lanes < w:
+                        continue
+                if n_lanes == 0:
                     continue
-                state[i] = _CAST
-                if _hits_source(buf, tnear, source, function, scene, f32, u32, address):
-                    state[i] = _HIT
-                    triangle[i] = np.int32(u32[_embree.HIT_PRIM])
-                    uv[i, 0] = f32[_embree.HIT_U]
-                    uv[i, 1] = f32[_embree.HIT_V]
+                _trace_lanes(tracer, f32, valid, n_lanes)
+                for k in range(n_lanes):
+                    if _lane_hits(u32, k, source):
+                        at = lanes[k]
+                        state[at] = _HIT
+                        triangle[at] = np.int32(u32[_embree.HIT_PRIM * w + k])
+                        uv[at, 0] = f32[_embree.HIT_U * w + k]
+                        uv[at, 1] = f32[_embree.HIT_V * w + k]
+                n_lanes = 0
 
 
 @numba.njit(cache=True, inline="always")
@@ -432,45 +540,72 @@ def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, r
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, tnear,
-                   source, spheres,
-                   function, scene, slot_f32, slot_u32, threads, state, triangle, uv):
+                   source, spheres, tracer, state, triangle, uv):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
-    ``_flag_kernel`` flags is traced at once (rays are made only in the rows ``_rows_meeting`` keeps, as
-    ``_flag_rows_kernel``); ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax``
-    0), ``_FLAGGED_CAST`` or ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
+    ``_flag_kernel`` flags is traced (rays are made only in the rows ``_rows_meeting`` keeps, as
+    ``_flag_rows_kernel``), one at a time or, with ``tracer.packet``, 16 flagged rays of a block of points at a
+    time; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax`` 0), ``_FLAGGED_CAST`` or
+    ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
     m = rows * side
+    w = _embree.PACKET
     n = candidates.shape[0]
     n_blocks = (n + _POINTS_PER_TASK - 1) // _POINTS_PER_TASK
     counter = np.zeros(1, dtype=np.int64)
-    for _ in numba.prange(threads):
+    for _ in numba.prange(tracer.threads):
         buf = np.empty(8)
         need = np.empty(m, np.bool_)
+        lane_i = np.empty(w, np.int64)
+        lane_j = np.empty(w, np.int64)
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
                 break
-            f32, u32 = slot_f32[block], slot_u32[block]
+            f32, u32 = tracer.slot_f32[block], tracer.slot_u32[block]
             address = f32.ctypes.data
-            for i in range(block * _POINTS_PER_TASK, min(n, (block + 1) * _POINTS_PER_TASK)):
-                rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full, spheres,
-                                       need)
-                for j in range(m):
-                    state[i, j] = _UNFLAGGED
-                    if j >= rp * sp or not need[j // sp]:  # as _flag_rows_kernel: no ray of the row can be flagged
+            valid = tracer.valid[block]
+            n_lanes = 0
+            rp, sp = 0, 1
+            end = min(n, (block + 1) * _POINTS_PER_TASK)
+            for i in range(block * _POINTS_PER_TASK, end + 1):
+                if i < end:
+                    rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full,
+                                           spheres, need)
+                for j in range(m if i < end else 1):
+                    if i < end:
+                        state[i, j] = _UNFLAGGED
+                        if j >= rp * sp or not need[j // sp]:  # as _flag_rows_kernel: no ray of the row is flagged
+                            continue
+                        _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full,
+                             facing, buf)
+                        if not _meets(buf, spheres):
+                            continue
+                        state[i, j] = _FLAGGED
+                        if not buf[7] > 0.0:
+                            continue
+                        state[i, j] = _FLAGGED_CAST
+                        if not tracer.packet:
+                            if _hits_source(buf, tnear, source, tracer.function, tracer.scene, f32, u32, address):
+                                state[i, j] = _FLAGGED_HIT
+                                triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
+                                uv[i, j, 0] = f32[_embree.HIT_U]
+                                uv[i, j, 1] = f32[_embree.HIT_V]
+                            continue
+                        if _add_lane(buf, tnear, f32, u32, valid, n_lanes):
+                            lane_i[n_lanes], lane_j[n_lanes] = i, j
+                            n_lanes += 1
+                        if n_lanes < w:
+                            continue
+                    if n_lanes == 0:
                         continue
-                    _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing,
-                         buf)
-                    if not _meets(buf, spheres):
-                        continue
-                    state[i, j] = _FLAGGED
-                    if not buf[7] > 0.0:
-                        continue
-                    state[i, j] = _FLAGGED_CAST
-                    if _hits_source(buf, tnear, source, function, scene, f32, u32, address):
-                        state[i, j] = _FLAGGED_HIT
-                        triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
-                        uv[i, j, 0] = f32[_embree.HIT_U]
-                        uv[i, j, 1] = f32[_embree.HIT_V]
+                    _trace_lanes(tracer, f32, valid, n_lanes)
+                    for k in range(n_lanes):
+                        if _lane_hits(u32, k, source):
+                            a, c = lane_i[k], lane_j[k]
+                            state[a, c] = _FLAGGED_HIT
+                            triangle[a, c] = np.int32(u32[_embree.HIT_PRIM * w + k])
+                            uv[a, c, 0] = f32[_embree.HIT_U * w + k]
+                            uv[a, c, 1] = f32[_embree.HIT_V * w + k]
+                    n_lanes = 0
 
 
 @numba.njit(cache=True, parallel=True)
@@ -560,6 +695,20 @@ def _facing(vertex_normals) -> np.ndarray:
     return n[0] / length
 
 
+def _tracer(caster, n_blocks: int):
+    """A closest-hit query of ``caster``'s Embree scene for ``n_blocks`` blocks of rays (``_raycast._Tracer``): packets
+    of 16 (``rtcIntersect16``) when ``prtlab.geometry._raycast.PACKETS`` is set, else one ray at a time; one slot and
+    one ``valid`` mask per block either way."""
+    from prtlab.geometry import _raycast
+
+    scene, n_blocks = caster._scene, max(1, int(n_blocks))
+    slot_f32, slot_u32, valid = _embree.packet_slots(n_blocks)
+    if not _raycast.PACKETS:
+        slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
+    return _raycast._Tracer(scene.intersect16_fn if _raycast.PACKETS else scene.intersect_fn, scene.handle, slot_f32,
+                            slot_u32, numba.get_num_threads(), False, bool(_raycast.PACKETS), valid)
+
+
 def _margin(caster, centre, radius) -> float:
     """Widening of a bounding sphere for float32 hits and origin offsets."""
     return 2.0 * caster.epsilon + 1e-5 * (float(np.max(np.abs(centre))) + radius) + 1e-12
@@ -623,13 +772,11 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
     state = np.empty(n_rays, np.int8)
     triangle = np.empty(n_rays, np.int32)
     uv32 = np.empty((n_rays, 2), np.float32)
-    slot_f32, slot_u32 = _embree.ray_slots(n_rays)
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
                  float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _facing(source[1]),
-                 float(caster.tnear), s,
-                 caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
-                 state, triangle, uv32)
+                 float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)), state, triangle,
+                 uv32)
     stats["rays_cast"] += int(np.count_nonzero(state))
     at = np.flatnonzero(state == _HIT)
     rows, j = (at // m, at % m) if point is None else (point[at], ray[at])
@@ -763,6 +910,25 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _capsule_kernel(points, centre, spheres, bound, eps, near):
+    """``near[v]``: the segment from ``points[v]`` to ``centre`` passes within ``bound + R + eps`` of a sphere ``(c, R)`` of
+    ``spheres`` (S, 4). Every ray of a point lies, up to its ``tmax``, in the capsule of radius ``bound`` about that
+    segment, so only such points can hold a ray that meets a sphere."""
+    for v in numba.prange(points.shape[0]):
+        x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
+        d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+        dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+        near[v] = False
+        for k in range(spheres.shape[0]):
+            t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
+                        0.0), 1.0)
+            g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
+            if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
+                near[v] = True
+                break
+
+
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
     centre, radius = np.asarray(source[3], float), float(source[4])
@@ -771,14 +937,8 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
     bound += _margin(caster, centre, bound)
     widened = spheres.copy()
     widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
-    # every ray of a point lies, up to its tmax, in the capsule of radius `bound` about the segment to the centre
-    d = centre[None] - points
-    dd = np.maximum(np.einsum("vi,vi->v", d, d), 1e-300)
-    near = np.zeros(len(points), bool)
-    for c in widened:
-        t = np.clip(np.einsum("vi,vi->v", c[None, :3] - points, d) / dd, 0.0, 1.0)
-        gap = points + t[:, None] * d - c[None, :3]
-        near |= np.einsum("vi,vi->v", gap, gap) <= (bound + c[3] + caster.epsilon) ** 2
+    near = np.empty(len(points), np.bool_)
+    _capsule_kernel(points, centre, widened, bound, float(caster.epsilon), near)
     candidates = np.flatnonzero(near)
     if not len(candidates):
         return old
@@ -787,11 +947,9 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         triangle = np.empty((len(candidates), m), np.int32)
         uv32 = np.empty((len(candidates), m, 2), np.float32)
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
-        slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
                        float(caster.epsilon), grid[2], _facing(source[1]), float(caster.tnear), s, widened,
-                       caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32, numba.get_num_threads(),
-                       state, triangle, uv32)
+                       _tracer(caster, n_blocks), state, triangle, uv32)
         i, j = np.nonzero(state)
         if not len(i):
             return old

@@ -155,3 +155,33 @@ def test_projection_over_the_hits_equals_the_dense_reference_tier(seed, n_points
     np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="method must be 'numba' or 'reference'"):
         basis_radiance_at(mesh, psi, GLOSSY, points, ORDER, method="gpu")
+
+
+@pytest.mark.parametrize("packets", [True, False])
+@pytest.mark.parametrize("mesh", ["plane", "sphere"])
+def test_fused_source_hits_equal_the_casters(rng, mesh, packets):
+    """``source_hits``'s fused kernel (the bounding test and the trace in one pass, packets of 16 rays or one ray
+    at a time) gives the candidate rays, faces and barycentrics of ``RayCaster.may_hit`` then ``closest_hit``,
+    bit for bit, batch by batch (points around the source, inside its bounds too)."""
+    from prtlab import sh
+    from prtlab.geometry import RayCaster, _raycast
+    from prtlab.interreflection._fields import source_hits
+
+    source = PLANE if mesh == "plane" else builtin_mesh("icosphere")
+    caster = RayCaster([(np.asarray(source.vertices, float), np.asarray(source.faces))])
+    points = rng.normal(size=(150, 3)) * 1.2
+    dirs, _ = sh.quadrature(ORDER, 31)
+    default = _raycast.PACKETS
+    try:
+        _raycast.PACKETS = packets
+        fused = list(source_hits(caster, points, dirs, 37))
+    finally:
+        _raycast.PACKETS = default
+    reference = list(source_hits(caster, points, dirs, 37, method="reference"))
+    assert len(fused) == len(reference) > 1
+    for (a, b, point, direction, hits, at), ref in zip(fused, reference):
+        assert (a, b) == ref[:2]
+        np.testing.assert_array_equal(point[at], ref[2][ref[5]])
+        np.testing.assert_array_equal(direction[at], ref[3][ref[5]])
+        np.testing.assert_array_equal(hits.triangle[at], ref[4].triangle[ref[5]])
+        np.testing.assert_array_equal(hits.barycentric[at], ref[4].barycentric[ref[5]])

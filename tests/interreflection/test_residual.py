@@ -887,3 +887,40 @@ def test_kept_blockers_equal_a_fresh_instances(low_ball):
                     assert kept == fresh._blockers(fresh_geo, r, s)
                     lists.add(tuple(kept))
     assert len(lists) > 1  # the moving object blocks some pair at one pose and not at another
+
+
+@pytest.mark.parametrize("full", [0.0, 0.3])
+@pytest.mark.parametrize("r", [0, 1, 2])
+def test_packet_casts_equal_one_ray_casts(r, full):
+    """The cast kernels' packets of 16 rays (``rtcIntersect16``, ``_raycast.PACKETS``) give the arrays of one ray
+    at a time (``rtcIntersect1``) bit for bit and count the same rays: a full cast (the ball a source of itself)
+    and, after the box moves, the incremental cast."""
+    from prtlab.geometry import _raycast
+
+    meshes, poses, moves = _objects()
+    seps = (LAMBERT, PHONG, LAMBERT)
+    after_poses = [poses[0], poses[1], moves["next to the ball"]]
+    before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
+    x, n = _receiver(meshes, poses, r)
+    indices = [i for i in range(3) if i != r or r == 1]
+    src_before = _sources(meshes, poses, indices, seps)
+    src_after = _sources(meshes, after_poses, indices, seps)
+    runs, default = {}, _raycast.PACKETS
+    try:
+        for packets in (True, False):
+            _raycast.PACKETS = packets
+            stats = {}
+            old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, full=full)
+            moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
+            new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
+                                moved=moved, stats=stats, full=full)
+            runs[packets] = (old, new, stats["rays_cast"])
+    finally:
+        _raycast.PACKETS = default
+    assert runs[True][2] == runs[False][2]
+    for one, packet in zip(runs[False][:2], runs[True][:2]):
+        assert set(one) == set(packet) and one
+        for i in one:
+            for a, b in zip(one[i].arrays(), packet[i].arrays()):
+                assert a.dtype == b.dtype
+                np.testing.assert_array_equal(a, b)
