@@ -345,6 +345,58 @@ def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
 
 
 @numba.njit(cache=True, inline="always")
+def _listed_meet(x0, x1, x2, y0, y1, y2, spheres, planes, near, n_spheres, n_planes):
+    """:func:`_segment_meets` or :func:`_slab_meets` over the spheres ``near[:n_spheres]`` and the slabs
+    ``near[S:S + n_planes]`` (``S``: the number of spheres) alone."""
+    total = spheres.shape[0]
+    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for q in range(n_spheres):
+        s = near[q]
+        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
+        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
+        r = spheres[s, 3]
+        if g0 * g0 + g1 * g1 + g2 * g2 <= r * r:
+            return True
+    for q in range(n_planes):
+        s = near[total + q]
+        a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
+        sx, sy = a0 * x0 + a1 * x1 + a2 * x2, a0 * y0 + a1 * y1 + a2 * y2
+        if not ((sx > hi and sy > hi) or (sx < lo and sy < lo)):
+            return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
+    """The blockers a segment from ``x`` to a point of the light (``params``: within ``reach`` of its centre, on the
+    parallelogram ``c +- u +- v``) may meet, into ``near`` (spheres first, then slabs at ``near[S:]``): the spheres
+    within ``reach`` of the segment to the centre (:func:`_capsule_meets`), the slabs that ``x`` and the whole
+    parallelogram (its lowest and highest ``n . p``, widened by ``1e-9`` relative) do not both lie beyond on one
+    side. Returns ``(n_spheres, n_planes)``; the others cannot meet such a segment."""
+    c0, c1, c2 = params[0], params[1], params[2]
+    n_spheres = 0
+    for s in range(spheres.shape[0]):
+        if _capsule_meets(x0, x1, x2, c0, c1, c2, reach, spheres[s:s + 1]):
+            near[n_spheres] = s
+            n_spheres += 1
+    total = spheres.shape[0]
+    n_planes = 0
+    for s in range(planes.shape[0]):
+        a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
+        sx = a0 * x0 + a1 * x1 + a2 * x2
+        mid = a0 * c0 + a1 * c1 + a2 * c2
+        half = abs(a0 * params[3] + a1 * params[4] + a2 * params[5]) + abs(a0 * params[6] + a1 * params[7]
+                                                                              + a2 * params[8])
+        margin = 1e-9 * (1.0 + abs(mid) + half + abs(lo) + abs(hi))
+        if not ((sx > hi and mid - half > hi + margin) or (sx < lo and mid + half < lo - margin)):
+            near[total + n_planes] = s
+            n_planes += 1
+    return n_spheres, n_planes
+
+
+@numba.njit(cache=True, inline="always")
 def _factor(nodes, values, k, theta, phi, freq, parity):
     """``g_k`` at ``(theta, phi)`` (:func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
     last = nodes.shape[0] - 1
@@ -440,6 +492,10 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         if ks[c] != 0.0:
             glossy = True
     inv_pi = 1.0 / np.pi
+    row_start, col_start = np.empty(m), np.empty(m)  # the grid cell's corner of sample j
+    for j in range(m):
+        row, col = divmod(j, side)
+        row_start[j], col_start[j] = row / rows, col / side
     w = _embree.PACKET
     counter = np.zeros(1, dtype=np.int64)
     for thread in numba.prange(threads):
@@ -453,6 +509,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         dirs = np.zeros((step * m, 3))
         kept = np.zeros(step, dtype=np.bool_)
         culling = np.zeros(step, dtype=np.bool_)
+        near = np.zeros((step, spheres.shape[0] + planes.shape[0]), dtype=np.int64)  # blockers near a vertex's rays
+        n_near = np.zeros((step, 2), dtype=np.int64)
         redo = np.zeros(step, dtype=np.bool_)  # probe and reuse: the previous call's other bits were agreed, not cast
         while True:
             block = _embree.fetch_add(counter, 1)
@@ -476,6 +534,9 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
                             if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
                                 culling[i] = False
+                        if culling[i]:
+                            n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
+                                                                        near[i])
                         redo[i] = False
                     elif kept[i]:
                         continue
@@ -508,9 +569,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                         blocked[p, j] = False
                         state[q] = _DEAD
                         if area:
-                            row, col = divmod(j, side)
-                            s = (row / rows + _uniform(stream, np.uint64(2 * j)) * (1.0 / rows)) * 2.0 - 1.0
-                            t = (col / side + _uniform(stream, np.uint64(2 * j + 1)) * (1.0 / side)) * 2.0 - 1.0
+                            s = (row_start[j] + _uniform(stream, np.uint64(2 * j)) * (1.0 / rows)) * 2.0 - 1.0
+                            t = (col_start[j] + _uniform(stream, np.uint64(2 * j + 1)) * (1.0 / side)) * 2.0 - 1.0
                             y0, y1, y2 = c0 + s * u0 + t * v0, c1 + s * u1 + t * v1, c2 + s * u2 + t * v2
                         else:
                             y0, y1, y2 = c0, c1, c2
@@ -534,8 +594,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             state[q] = _BLOCKED if visibility[p, j] else _LIT
                             blocked[p, j] = visibility[p, j]
                             continue
-                        if culling[i] and not _segment_meets(x0, x1, x2, y0, y1, y2, spheres) \
-                                and not _slab_meets(x0, x1, x2, y0, y1, y2, planes):
+                        if culling[i] and not _listed_meet(x0, x1, x2, y0, y1, y2, spheres, planes, near[i],
+                                                           n_near[i, 0], n_near[i, 1]):
                             state[q] = _LIT  # no blocker's triangle is near the segment: the ray would miss
                             continue
                         # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar

@@ -466,3 +466,37 @@ def test_light_terms_refuse_a_bad_probe():
     for terms in (light_terms, light_terms_reference):
         with pytest.raises(ValueError, match="probe must be a non-negative int"):
             terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, probe=-1)
+
+
+def test_the_rays_cast_with_blockers_are_those_whose_segment_meets_one():
+    """The kernel tests a sample's segment against the blockers near the vertex's rays alone (its capsule to the
+    light): it casts exactly the live samples whose segment meets a blocker's sphere or slab (counted here in numpy
+    against every blocker), and every live sample at a vertex inside a sphere."""
+    from prtlab.interreflection._direct_rays import _segments_meet, blocker_bounds
+
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    wall = builtin_mesh("plane", size=[4.2, 2.0], resolution=[4, 2])
+    caster = RayCaster([wall, *meshes], transforms=[
+        Transform(translate=np.array([0.0, 1.0, -1.2]), rotate_deg=np.array([90.0, 0.0, 0.0])), *poses])
+    spheres, planes = blocker_bounds(caster, [True, False, False, False, False])
+    points = np.concatenate([points, [[0.5, 0.75, 0.3]]])  # one inside the box's sphere
+    normals = np.concatenate([normals, [[0.0, 1.0, 0.0]]])
+    wo = mirror_wo(np.concatenate([wo, [[0.0, 1.0, 0.0]]]), normals)
+    for i, light in enumerate(lights[:2]):
+        stats = {}
+        light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=stats,
+                    blockers=(spheres, planes))
+        st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")],
+                       axis=1)[None] + jitter(3, i, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
+        y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
+        d = y - points[:, None]
+        live = (np.einsum("vmi,vi->vm", d, normals) > 0.0) & (-(d @ light.normal) > 0.0)
+        sx, sy = points @ planes[:, :3].T, y @ planes[:, :3].T  # (V, P), (V, m, P)
+        slab = ~(((sx[:, None] > planes[:, 4]) & (sy > planes[:, 4])) | ((sx[:, None] < planes[:, 3])
+                                                                          & (sy < planes[:, 3])))
+        inside = np.any(np.sum((points[:, None] - spheres[None, :, :3]) ** 2, axis=-1) <= spheres[:, 3] ** 2, axis=1)
+        meets = _segments_meet(points, y, spheres) | slab.any(axis=-1) | inside[:, None]
+        assert inside[-1] and 0 < stats["rays_cast"] < live.sum()
+        assert stats["rays_cast"] == np.sum(meets & live)
