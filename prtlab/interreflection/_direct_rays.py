@@ -396,17 +396,38 @@ def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
     return n_spheres, n_planes
 
 
+#: bins of the table that starts the search of a node interval (:func:`_interval`)
+_GUIDE_BINS = 1024
+
+
+def _guide(nodes) -> tuple[np.ndarray, float]:
+    """``(guide (_GUIDE_BINS,), bins per radian)`` of :func:`_interval`: bin ``b`` starts at the node interval of
+    the bin before it, ``searchsorted(nodes, (b - 1) h) - 1`` (at least 0), at or below that of any angle in it."""
+    h = float(nodes[-1]) / _GUIDE_BINS
+    lower = np.maximum(np.arange(_GUIDE_BINS) - 1, 0) * h
+    return np.maximum(np.searchsorted(nodes, lower) - 1, 0).astype(np.int64), 1.0 / h
+
+
 @numba.njit(cache=True, inline="always")
-def _factor(nodes, values, k, theta, phi, freq, parity):
-    """``g_k`` at ``(theta, phi)`` (:func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
+def _interval(nodes, guide, per_radian, theta):
+    """``(j, t)`` of ``theta`` among ``nodes`` as :func:`prtlab.brdf._kernels.factor_eval_kernel` finds them
+    (``j = searchsorted(nodes, theta) - 1``), the search started at ``guide``'s bin (:func:`_guide`)."""
     last = nodes.shape[0] - 1
     if theta <= nodes[0]:
-        j, t = 0, 0.0
-    elif theta >= nodes[last]:
-        j, t = last - 1, 1.0
-    else:
-        j = np.searchsorted(nodes, theta) - 1
-        t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+        return 0, 0.0
+    if theta >= nodes[last]:
+        return last - 1, 1.0
+    b = min(int(theta * per_radian), guide.shape[0] - 1)
+    j = guide[b]
+    while nodes[j + 1] < theta:
+        j += 1
+    return j, (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+@numba.njit(cache=True, inline="always")
+def _factor(values, k, j, t, phi, freq, parity):
+    """``g_k`` at ``(theta, phi)``, ``theta`` in node interval ``j`` at ``t`` (:func:`_interval`;
+    :func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
     radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
     if parity[k] == 0:
         return radial * (1.0 if freq[k] == 0 else np.cos(freq[k] * phi))
@@ -457,7 +478,8 @@ def _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, st
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, packet, step, slot_f32,
                   slot_u32, slot_valid, threads, eps, tnear, visibility, moved, previous_S, previous_F, reach, cull,
-                  spheres, planes, probe, nodes, values, freq, parity, kd, ks, exponent, S, F, blocked, cast):
+                  spheres, planes, probe, nodes, guide, per_radian, values, freq, parity, kd, ks, exponent, S, F,
+                  blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
     the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
     ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
@@ -650,8 +672,9 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     lx, ly, lz = t0 * e0 + t1 * e1 + t2 * e2, b0 * e0 + b1 * e1 + b2 * e2, a0 * e0 + a1 * e1 + a2 * e2
                     theta = np.arctan2(np.sqrt(lx * lx + ly * ly), lz)
                     phi = np.arctan2(ly, lx) if any_phi else 0.0
+                    interval, at = _interval(nodes, guide, per_radian, theta)
                     for k in range(n_terms):
-                        S[p, k] += weight * _factor(nodes, values, k, theta, phi, freq, parity)
+                        S[p, k] += weight * _factor(values, k, interval, at, phi, freq, parity)
                     # the Phong BRDF (phong_eval_kernel)
                     ci = a0 * e0 + a1 * e1 + a2 * e2
                     if ci * co < 0.0:
@@ -732,7 +755,8 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
                   max(1, _SAMPLES_PER_TASK // m), slot_f32, slot_u32, slot_valid, threads, float(caster.epsilon),
                   float(caster.tnear), np.zeros((0, m), np.bool_) if visibility is None else visibility,
                   np.zeros((0, 4)) if moved is None else moved, previous_S, previous_F, _reach(params, area),
-                  blockers is not None, spheres, planes, probe_mask(light, samples, probe), nodes, values,
+                  blockers is not None, spheres, planes, probe_mask(light, samples, probe), nodes, *_guide(nodes),
+                  values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
                   np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
                   blocked, cast)

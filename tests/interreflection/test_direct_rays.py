@@ -500,3 +500,26 @@ def test_the_rays_cast_with_blockers_are_those_whose_segment_meets_one():
         meets = _segments_meet(points, y, spheres) | slab.any(axis=-1) | inside[:, None]
         assert inside[-1] and 0 < stats["rays_cast"] < live.sum()
         assert stats["rays_cast"] == np.sum(meets & live)
+
+
+def test_the_guided_node_search_equals_searchsorted():
+    """``_interval`` (a table starts the search) finds ``searchsorted(nodes, theta) - 1`` and its ``t`` for every
+    angle: random ones, the nodes themselves and their float neighbours, the table's bin edges, the ends."""
+    from prtlab.interreflection._direct_rays import _GUIDE_BINS, _guide, _interval
+
+    sep = brdf.separable(brdf.from_material(MATERIALS[1]), K=4)
+    nodes, _ = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    guide, per_radian = _guide(nodes)
+    edges = np.arange(_GUIDE_BINS + 1) / per_radian
+    theta = np.concatenate([np.random.default_rng(4).uniform(-0.1, 1.7, 20_000), nodes, np.nextafter(nodes, -1.0),
+                            np.nextafter(nodes, 9.0), edges, np.nextafter(edges, -1.0), np.nextafter(edges, 9.0)])
+    last = len(nodes) - 1
+    for th in theta:
+        j, t = _interval(nodes, guide, per_radian, th)
+        if th <= nodes[0]:
+            assert (j, t) == (0, 0.0)
+        elif th >= nodes[last]:
+            assert (j, t) == (last - 1, 1.0)
+        else:
+            expected = np.searchsorted(nodes, th) - 1
+            assert j == expected and t == (th - nodes[j]) / (nodes[j + 1] - nodes[j])
