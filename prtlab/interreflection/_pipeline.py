@@ -175,8 +175,9 @@ class InterreflectionOptions:
     light_probe : int
         With ``shadows="rays"``, about this many of a vertex's ``light_samples`` (a sub-grid spread over the light,
         its corners included) are cast first; where their shadow rays all agree (all blocked or all clear) the
-        other samples take that answer without rays (the penumbra early-out; biased where a shadow's edge crosses
-        the light between them). 0: every sample cast (unbiased; a run-time choice).
+        other samples take that answer without rays (the penumbra early-out: biased where a shadow's edge crosses
+        the light between them and misses every probe). 0 (or ``light_samples`` and more): every sample cast,
+        unbiased. A run-time choice.
     residual_near : float
         With ``shadows="rays"`` and the residual gather, its first-bounce rays whose hit lies nearer the receiver
         point than ``residual_near`` times the hit triangle's longest edge carry the source's radiance from the
@@ -220,9 +221,9 @@ class InterreflectionOptions:
     residual_rays: int = 64
     residual_cone: float = 0.5
     light_samples: int = 64
-    light_probe: int = 0
+    light_probe: int = 16
     residual_near: float = 2.0
-    residual_near_samples: int = 4
+    residual_near_samples: int = 2
     residual_whole: bool = False
     storage: str = "int16"
 
