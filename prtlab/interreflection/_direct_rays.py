@@ -21,9 +21,12 @@ Random numbers: the jitter of sample ``j`` of vertex ``p`` for light ``i`` is a 
 recomputes.
 
 Tiers: :func:`light_terms` is one numba kernel per light (parallel over vertices: samples, weights, the
-shadow ray traced in the kernel through Embree, ``g_k`` and the BRDF), for :class:`prtlab.brdf.Phong` /
-Lambert receivers and a caster with an Embree scene; :func:`light_terms_reference` is its float64 numpy
-specification (shadow rays through :meth:`RayCaster.occluded`) and the fallback for anything else. Both
+shadow rays traced in the kernel through Embree 16 at a time, ``g_k`` and the BRDF), for
+:class:`prtlab.brdf.Phong` / Lambert receivers and a caster with an Embree scene; :func:`light_terms_reference`
+is its float64 numpy
+specification (shadow rays through :meth:`RayCaster.occluded`) and the fallback for anything else. With
+``probe`` both cast a sub-grid of an area light's samples first and let their agreement decide the others (the
+penumbra early-out, option ``light_probe``). Both
 return the per-light terms at unit radiance, ``S`` (V, K) and ``F`` (V, C), and the per-sample shadow mask,
 so a caller can rescale by a new radiance without casting (relighting), shade a new camera from the mask,
 and re-cast only the samples whose segment meets a moved object's bounding sphere (``visibility``/``moved``).
@@ -333,21 +336,10 @@ def _capsule_meets(x0, x1, x2, y0, y1, y2, reach, spheres):
 
 
 @numba.njit(cache=True, inline="always")
-def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
-    """Whether the segment ``x -> y`` reaches any slab of ``planes`` (P, 5: unit normal, lowest and highest
-    offset ``n . p`` of a flat object's vertices, widened): both ends beyond one side miss it."""
-    for s in range(planes.shape[0]):
-        a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
-        sx, sy = a0 * x0 + a1 * x1 + a2 * x2, a0 * y0 + a1 * y1 + a2 * y2
-        if not ((sx > hi and sy > hi) or (sx < lo and sy < lo)):
-            return True
-    return False
-
-
-@numba.njit(cache=True, inline="always")
 def _listed_meet(x0, x1, x2, y0, y1, y2, spheres, planes, near, n_spheres, n_planes):
-    """:func:`_segment_meets` or :func:`_slab_meets` over the spheres ``near[:n_spheres]`` and the slabs
-    ``near[S:S + n_planes]`` (``S``: the number of spheres) alone."""
+    """Whether the segment ``x -> y`` meets one of the spheres ``near[:n_spheres]`` (as :func:`_segment_meets`) or
+    reaches one of the slabs ``near[S:S + n_planes]`` (``S``: the number of spheres; a slab is missed when both
+    ends lie beyond one side of it)."""
     total = spheres.shape[0]
     d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
     dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
