@@ -21,9 +21,12 @@ Random numbers: the jitter of sample ``j`` of vertex ``p`` for light ``i`` is a 
 recomputes.
 
 Tiers: :func:`light_terms` is one numba kernel per light (parallel over vertices: samples, weights, the
-shadow ray traced in the kernel through Embree, ``g_k`` and the BRDF), for :class:`prtlab.brdf.Phong` /
-Lambert receivers and a caster with an Embree scene; :func:`light_terms_reference` is its float64 numpy
-specification (shadow rays through :meth:`RayCaster.occluded`) and the fallback for anything else. Both
+shadow rays traced in the kernel through Embree 16 at a time, ``g_k`` and the BRDF), for
+:class:`prtlab.brdf.Phong` / Lambert receivers and a caster with an Embree scene; :func:`light_terms_reference`
+is its float64 numpy
+specification (shadow rays through :meth:`RayCaster.occluded`) and the fallback for anything else. With
+``probe`` both cast a sub-grid of an area light's samples first and let their agreement decide the others (the
+penumbra early-out, option ``light_probe``). Both
 return the per-light terms at unit radiance, ``S`` (V, K) and ``F`` (V, C), and the per-sample shadow mask,
 so a caller can rescale by a new radiance without casting (relighting), shade a new camera from the mask,
 and re-cast only the samples whose segment meets a moved object's bounding sphere (``visibility``/``moved``).
@@ -46,8 +49,12 @@ __all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "l
 #: vertices per chunk of the reference tier: bounds its (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
 
-#: vertices a thread of the kernel takes at a time (each block traces through its own Embree ray slot)
-_VERTICES_PER_TASK = 8
+#: samples a thread of the kernel takes at a time (a block of whole vertices: ``max(1, 512 // m)`` of them)
+_SAMPLES_PER_TASK = 512
+
+#: Whether :func:`light_terms`' kernel traces its shadow rays 16 at a time (``rtcOccluded16``, the lanes filled with
+#: a block's rays in sample order) rather than one at a time (``rtcOccluded1``); the masks are the same (tests).
+PACKETS = True
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 _GOLDEN = 0x9E3779B97F4A7C15
@@ -167,6 +174,27 @@ def blocker_bounds(caster, flat, exclude=None) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(spheres, float).reshape(-1, 4), np.asarray(planes, float).reshape(-1, 5)
 
 
+def probe_mask(light, samples: int, probe: int) -> np.ndarray:
+    """(m,) bool: the samples of ``light``'s grid cast first with ``probe`` (:func:`light_terms`), a
+    ``prow x pside`` sub-grid (:func:`sample_count`'s shape of ``probe``) of rows and columns spread evenly over
+    the grid, its first and last included; (0,) when there is nothing to probe (``probe`` 0 or at least ``m``, a
+    point light)."""
+    if isinstance(light, PointLight) or probe <= 0 or probe >= sample_count(light, samples):
+        return np.zeros(0, dtype=np.bool_)
+    rows, side = _grid_shape(samples)
+    prow, pside = _grid_shape(probe)
+    mask = np.zeros((rows, side), dtype=np.bool_)
+    mask[np.ix_(np.unique(np.round(np.linspace(0, rows - 1, min(prow, rows))).astype(int)),
+                np.unique(np.round(np.linspace(0, side - 1, min(pside, side))).astype(int)))] = True
+    return mask.ravel()
+
+
+def _check_probe(probe) -> int:
+    if isinstance(probe, bool) or not isinstance(probe, (int, np.integer)) or probe < 0:
+        raise ValueError(f"probe must be a non-negative int (the samples cast first; 0: none), got {probe!r}")
+    return int(probe)
+
+
 def _check(points, normals, wo):
     x, n, wo = (np.ascontiguousarray(a, dtype=np.float64) for a in (points, normals, wo))
     if x.ndim != 2 or x.shape[1] != 3 or n.shape != x.shape or wo.shape != x.shape:
@@ -212,15 +240,29 @@ def _segments_meet(x, y, spheres) -> np.ndarray:
     return out
 
 
+def _cast_stage(caster, x, normals, w, dist, stage, meets, visibility, blocked, stats):
+    """Into ``blocked`` (V, m): the samples ``stage`` (V, m) by shadow rays, or where ``meets`` is False (the
+    segment misses every moved sphere) the previous ``visibility``."""
+    trace = stage if meets is None else stage & meets
+    r_, c_ = np.nonzero(trace)
+    if stats is not None:
+        stats["rays_cast"] = stats.get("rays_cast", 0) + len(r_)
+    if len(r_):
+        blocked[r_, c_] = caster.occluded(x[r_], w[r_, c_], dist[r_, c_] - caster.epsilon, normals=normals[r_])
+    if visibility is not None:
+        blocked |= visibility & stage & ~trace
+
+
 def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                           visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                          previous=None):
+                          previous=None, probe: int = 0):
     """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
     ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
     first = _check_first(first)
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
+    probe = probe_mask(light, samples, _check_probe(probe))
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
     c, u, v, normal, scale = params[:3], params[3:6], params[6:9], params[9:12], params[12]
     corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
@@ -243,17 +285,23 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         cos_l = -w @ normal if area else np.ones_like(cos_x)
         live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0)
         weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
-        trace = live.copy()
-        if visibility is not None:
-            trace &= _segments_meet(xp, y, moved)
+        meets = _segments_meet(xp, y, moved) if visibility is not None else None
         blocked = np.zeros_like(live)
-        r_, c_ = np.nonzero(trace)
-        if stats is not None:
-            stats["rays_cast"] = stats.get("rays_cast", 0) + len(r_)
-        if len(r_):
-            blocked[r_, c_] = caster.occluded(xp[r_], w[r_, c_], dist[r_, c_] - caster.epsilon, normals=np_[r_])
-        if visibility is not None:
-            blocked |= visibility[part] & live & ~trace
+        first_stage = live & probe[None] if len(probe) else live
+        _cast_stage(caster, xp, np_, w, dist, first_stage, meets, None if visibility is None else visibility[part],
+                    blocked, stats)
+        if len(probe):  # the others: the probes' common answer, else cast (re-cast where the old bits were agreed)
+            n_lit = np.sum(first_stage & ~blocked, axis=1)
+            n_blocked = np.sum(first_stage & blocked, axis=1)
+            agreed = (n_lit > 0) != (n_blocked > 0)
+            others = live & ~probe[None]
+            blocked |= others & agreed[:, None] & (n_blocked > 0)[:, None]
+            if visibility is not None:
+                old = visibility[part]
+                redo = (np.sum(first_stage & ~old, axis=1) > 0) != (np.sum(first_stage & old, axis=1) > 0)
+                meets = meets | redo[:, None]
+            _cast_stage(caster, xp, np_, w, dist, others & ~agreed[:, None], meets,
+                        None if visibility is None else visibility[part], blocked, stats)
         weight[blocked] = 0.0
         blocked_all[part] = blocked
         g = sep.g(brdf.to_local(w, np.broadcast_to(np_[:, None], w.shape)))  # (V, m, K)
@@ -288,10 +336,23 @@ def _capsule_meets(x0, x1, x2, y0, y1, y2, reach, spheres):
 
 
 @numba.njit(cache=True, inline="always")
-def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
-    """Whether the segment ``x -> y`` reaches any slab of ``planes`` (P, 5: unit normal, lowest and highest
-    offset ``n . p`` of a flat object's vertices, widened): both ends beyond one side miss it."""
-    for s in range(planes.shape[0]):
+def _listed_meet(x0, x1, x2, y0, y1, y2, spheres, planes, near, n_spheres, n_planes):
+    """Whether the segment ``x -> y`` meets one of the spheres ``near[:n_spheres]`` (as :func:`_segment_meets`) or
+    reaches one of the slabs ``near[S:S + n_planes]`` (``S``: the number of spheres; a slab is missed when both
+    ends lie beyond one side of it)."""
+    total = spheres.shape[0]
+    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for q in range(n_spheres):
+        s = near[q]
+        c0, c1, c2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * c0 + d1 * c1 + d2 * c2) / dd, 0.0), 1.0)
+        g0, g1, g2 = c0 - t * d0, c1 - t * d1, c2 - t * d2
+        r = spheres[s, 3]
+        if g0 * g0 + g1 * g1 + g2 * g2 <= r * r:
+            return True
+    for q in range(n_planes):
+        s = near[total + q]
         a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
         sx, sy = a0 * x0 + a1 * x1 + a2 * x2, a0 * y0 + a1 * y1 + a2 * y2
         if not ((sx > hi and sy > hi) or (sx < lo and sy < lo)):
@@ -300,44 +361,141 @@ def _slab_meets(x0, x1, x2, y0, y1, y2, planes):
 
 
 @numba.njit(cache=True, inline="always")
-def _factor(nodes, values, k, theta, phi, freq, parity):
-    """``g_k`` at ``(theta, phi)`` (:func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
+def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
+    """The blockers a segment from ``x`` to a point of the light (``params``: within ``reach`` of its centre, on the
+    parallelogram ``c +- u +- v``) may meet, into ``near`` (spheres first, then slabs at ``near[S:]``): the spheres
+    within ``reach`` of the segment to the centre (:func:`_capsule_meets`), the slabs that ``x`` and the whole
+    parallelogram (its lowest and highest ``n . p``, widened by ``1e-9`` relative) do not both lie beyond on one
+    side. Returns ``(n_spheres, n_planes)``; the others cannot meet such a segment."""
+    c0, c1, c2 = params[0], params[1], params[2]
+    n_spheres = 0
+    for s in range(spheres.shape[0]):
+        if _capsule_meets(x0, x1, x2, c0, c1, c2, reach, spheres[s:s + 1]):
+            near[n_spheres] = s
+            n_spheres += 1
+    total = spheres.shape[0]
+    n_planes = 0
+    for s in range(planes.shape[0]):
+        a0, a1, a2, lo, hi = planes[s, 0], planes[s, 1], planes[s, 2], planes[s, 3], planes[s, 4]
+        sx = a0 * x0 + a1 * x1 + a2 * x2
+        mid = a0 * c0 + a1 * c1 + a2 * c2
+        half = abs(a0 * params[3] + a1 * params[4] + a2 * params[5]) + abs(a0 * params[6] + a1 * params[7]
+                                                                              + a2 * params[8])
+        margin = 1e-9 * (1.0 + abs(mid) + half + abs(lo) + abs(hi))
+        if not ((sx > hi and mid - half > hi + margin) or (sx < lo and mid + half < lo - margin)):
+            near[total + n_planes] = s
+            n_planes += 1
+    return n_spheres, n_planes
+
+
+#: bins of the table that starts the search of a node interval (:func:`_interval`)
+_GUIDE_BINS = 1024
+
+
+def _guide(nodes) -> tuple[np.ndarray, float]:
+    """``(guide (_GUIDE_BINS,), bins per radian)`` of :func:`_interval`: bin ``b`` starts at the node interval of
+    the bin before it, ``searchsorted(nodes, (b - 1) h) - 1`` (at least 0), at or below that of any angle in it."""
+    h = float(nodes[-1]) / _GUIDE_BINS
+    lower = np.maximum(np.arange(_GUIDE_BINS) - 1, 0) * h
+    return np.maximum(np.searchsorted(nodes, lower) - 1, 0).astype(np.int64), 1.0 / h
+
+
+@numba.njit(cache=True, inline="always")
+def _interval(nodes, guide, per_radian, theta):
+    """``(j, t)`` of ``theta`` among ``nodes`` as :func:`prtlab.brdf._kernels.factor_eval_kernel` finds them
+    (``j = searchsorted(nodes, theta) - 1``), the search started at ``guide``'s bin (:func:`_guide`)."""
     last = nodes.shape[0] - 1
     if theta <= nodes[0]:
-        j, t = 0, 0.0
-    elif theta >= nodes[last]:
-        j, t = last - 1, 1.0
-    else:
-        j = np.searchsorted(nodes, theta) - 1
-        t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+        return 0, 0.0
+    if theta >= nodes[last]:
+        return last - 1, 1.0
+    b = min(int(theta * per_radian), guide.shape[0] - 1)
+    j = guide[b]
+    while nodes[j + 1] < theta:
+        j += 1
+    return j, (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+@numba.njit(cache=True, inline="always")
+def _factor(values, k, j, t, phi, freq, parity):
+    """``g_k`` at ``(theta, phi)``, ``theta`` in node interval ``j`` at ``t`` (:func:`_interval`;
+    :func:`prtlab.brdf._kernels.factor_eval_kernel`)."""
     radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
     if parity[k] == 0:
         return radial * (1.0 if freq[k] == 0 else np.cos(freq[k] * phi))
     return radial * np.sin(freq[k] * phi)
 
 
+@numba.njit(cache=True, inline="always")
+def _vertex_frame(n, wo, p):
+    """The unit normal ``a``, tangents ``t``, ``b`` (Duff et al. 2017, as ``brdf.local_frame``), the unit ``wo``
+    and ``a . wo`` of vertex ``p``: the BRDF's frame."""
+    n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
+    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    a0, a1, a2 = n0 / length, n1 / length, n2 / length
+    sign = 1.0 if a2 >= 0.0 else -1.0
+    fa = -1.0 / (sign + a2)
+    fb = a0 * a1 * fa
+    t0, t1, t2 = 1.0 + sign * a0 * a0 * fa, sign * fb, -sign * a0
+    b0, b1, b2 = fb, sign + a1 * a1 * fa, -a1
+    o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
+    length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+    o0, o1, o2 = o0 / length, o1 / length, o2 / length
+    co = a0 * o0 + a1 * o1 + a2 * o2
+    return a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co
+
+
+#: states of a sample in :func:`_terms_kernel`'s scratch
+_DEAD, _LIT, _BLOCKED, _PENDING = 0, 1, 2, 3
+
+
+@numba.njit(cache=True, inline="always")
+def _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, state, blocked, lo, m):
+    """Trace the ``filled`` lanes of a packet (``rtcOccluded16``; the other lanes off) and resolve their samples
+    (lane ``k``: sample ``q = lane_sample[k]`` of the block from vertex ``lo``, ``m`` a vertex)."""
+    w = _embree.PACKET
+    for k in range(filled, w):
+        valid[k] = 0
+    _embree.rtc_call_packet(tracer_fn, valid.ctypes.data, tracer_scene, address)
+    for k in range(filled):
+        q = lane_sample[k]
+        if f32[_embree.TFAR * w + k] < 0.0:
+            state[q] = _BLOCKED
+            blocked[lo + q // m, q % m] = True
+        else:
+            state[q] = _LIT
+        valid[k] = 0
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, slot_f32, slot_u32, threads,
-                  eps, tnear, visibility, moved, previous_S, previous_F, reach, cull, spheres, planes, nodes, values,
-                  freq, parity, kd, ks, exponent, S, F, blocked, cast):
+def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, packet, step, slot_f32,
+                  slot_u32, slot_valid, threads, eps, tnear, visibility, moved, previous_S, previous_F, reach, cull,
+                  spheres, planes, probe, nodes, guide, per_radian, values, freq, parity, kd, ks, exponent, S, F,
+                  blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
     the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
     ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
     within it of the centre) meets no sphere of ``moved`` keeps their rows and its mask; with ``cull``, a segment that
     meets none of ``spheres`` (S, 4) and no slab of ``planes`` (P, 5) is not traced (unblocked), at vertices
-    outside every sphere; ``cast`` (V,): the samples traced per vertex. Threads take blocks of
-    ``_VERTICES_PER_TASK`` vertices from a shared counter; block ``b`` traces through slot ``b``."""
+    outside every sphere; ``probe`` (m,) or (0,): the samples decided first, whose agreement decides the others
+    (:func:`light_terms`); ``cast`` (V,): the samples traced per vertex.
+
+    Threads take blocks of ``step`` vertices from a shared counter; iteration ``t`` of the thread loop traces
+    through slot ``t``: with ``packet``, a block's rays 16 at a time in sample order (``rtcOccluded16``, lanes
+    filled with the rays to trace only), else one at a time (``rtcOccluded1``). Per block, the samples are drawn
+    and their rays traced first (the probes of every vertex, then the others), then each vertex sums its lit
+    samples in sample order."""
     n_points = x.shape[0]
     m = rows * side
     reuse = visibility.shape[0] > 0
     keep = reuse and previous_S.shape[0] > 0
+    probing = probe.shape[0] > 0
     n_terms = values.shape[0]
     n_channels = kd.shape[0]
     any_phi = False
     for k in range(n_terms):
         if freq[k] != 0 or parity[k] != 0:
             any_phi = True
-    step = _VERTICES_PER_TASK
     n_blocks = (n_points + step - 1) // step
     c0, c1, c2 = params[0], params[1], params[2]
     u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
@@ -348,95 +506,167 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         if ks[c] != 0.0:
             glossy = True
     inv_pi = 1.0 / np.pi
+    row_start, col_start = np.empty(m), np.empty(m)  # the grid cell's corner of sample j
+    for j in range(m):
+        row, col = divmod(j, side)
+        row_start[j], col_start[j] = row / rows, col / side
+    w = _embree.PACKET
     counter = np.zeros(1, dtype=np.int64)
-    for _ in numba.prange(threads):
+    for thread in numba.prange(threads):
+        f32, u32, valid = slot_f32[thread], slot_u32[thread], slot_valid[thread]
+        address = f32.ctypes.data
+        for k in range(w):
+            valid[k] = 0
+        lane_sample = np.zeros(w, dtype=np.int64)
+        state = np.zeros(step * m, dtype=np.int8)
+        weights = np.zeros(step * m)
+        dirs = np.zeros((step * m, 3))
+        kept = np.zeros(step, dtype=np.bool_)
+        culling = np.zeros(step, dtype=np.bool_)
+        near = np.zeros((step, spheres.shape[0] + planes.shape[0]), dtype=np.int64)  # blockers near a vertex's rays
+        n_near = np.zeros((step, 2), dtype=np.int64)
+        redo = np.zeros(step, dtype=np.bool_)  # probe and reuse: the previous call's other bits were agreed, not cast
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
                 break
-            f32, u32 = slot_f32[block], slot_u32[block]
-            address = f32.ctypes.data
-            for p in range(block * step, min(n_points, (block + 1) * step)):
-                cast[p] = 0
-                x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
-                if keep and not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved):
-                    for k in range(n_terms):  # no segment of this vertex meets a moved sphere: as before
+            lo, hi = block * step, min(n_points, (block + 1) * step)
+            filled = 0
+            for stage in range(2 if probing else 1):
+                for p in range(lo, hi):
+                    i = p - lo
+                    x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
+                    if stage == 0:
+                        cast[p] = 0
+                        kept[i] = keep and not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved)
+                        if kept[i]:  # no segment of this vertex meets a moved sphere: as before
+                            for j in range(m):
+                                blocked[p, j] = visibility[p, j]
+                            continue
+                        culling[i] = cull
+                        for q in range(spheres.shape[0]):  # inside a blocker's sphere: every segment meets it
+                            e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
+                            if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
+                                culling[i] = False
+                        if culling[i]:
+                            n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
+                                                                        near[i])
+                        redo[i] = False
+                    elif kept[i]:
+                        continue
+                    agreed = _PENDING  # with probe, second stage: the probes' common answer, if any
+                    if stage == 1:
+                        n_lit, n_blocked, old_lit, old_blocked = 0, 0, 0, 0
+                        for j in range(m):
+                            if probe[j] and state[i * m + j] != _DEAD:
+                                if state[i * m + j] == _BLOCKED:
+                                    n_blocked += 1
+                                else:
+                                    n_lit += 1
+                                if reuse:
+                                    if visibility[p, j]:
+                                        old_blocked += 1
+                                    else:
+                                        old_lit += 1
+                        if n_lit > 0 and n_blocked == 0:
+                            agreed = _LIT
+                        elif n_blocked > 0 and n_lit == 0:
+                            agreed = _BLOCKED
+                        # the previous call decided its other samples by agreement too: their bits were not cast
+                        redo[i] = reuse and ((old_lit > 0) != (old_blocked > 0))
+                    n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
+                    stream = _mix(np.uint64(key) ^ _mix(np.uint64(p + first)))
+                    for j in range(m):
+                        q = i * m + j
+                        if probing and probe[j] != (stage == 0):
+                            continue
+                        blocked[p, j] = False
+                        state[q] = _DEAD
+                        if area:
+                            s = (row_start[j] + _uniform(stream, np.uint64(2 * j)) * (1.0 / rows)) * 2.0 - 1.0
+                            t = (col_start[j] + _uniform(stream, np.uint64(2 * j + 1)) * (1.0 / side)) * 2.0 - 1.0
+                            y0, y1, y2 = c0 + s * u0 + t * v0, c1 + s * u1 + t * v1, c2 + s * u2 + t * v2
+                        else:
+                            y0, y1, y2 = c0, c1, c2
+                        d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
+                        dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                        safe = max(dist, 1e-300)
+                        w0, w1, w2 = d0 / safe, d1 / safe, d2 / safe
+                        cos_x = w0 * n0 + w1 * n1 + w2 * n2
+                        cos_l = -(w0 * l0 + w1 * l1 + w2 * l2) if area else 1.0
+                        if not (cos_x > 0.0 and cos_l > 0.0 and dist > 0.0):
+                            continue
+                        weights[q] = cos_x * cos_l / max(dist, 1e-300) ** 2 * scale
+                        length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+                        e0, e1, e2 = w0 / length, w1 / length, w2 / length
+                        dirs[q, 0], dirs[q, 1], dirs[q, 2] = e0, e1, e2
+                        if agreed != _PENDING:
+                            state[q] = agreed
+                            blocked[p, j] = agreed == _BLOCKED
+                            continue
+                        if reuse and not redo[i] and not _segment_meets(x0, x1, x2, y0, y1, y2, moved):
+                            state[q] = _BLOCKED if visibility[p, j] else _LIT
+                            blocked[p, j] = visibility[p, j]
+                            continue
+                        if culling[i] and not _listed_meet(x0, x1, x2, y0, y1, y2, spheres, planes, near[i],
+                                                           n_near[i, 0], n_near[i, 1]):
+                            state[q] = _LIT  # no blocker's triangle is near the segment: the ray would miss
+                            continue
+                        # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar
+                        cast[p] += 1
+                        state[q] = _LIT
+                        off = eps if n0 * e0 + n1 * e1 + n2 * e2 >= 0.0 else -eps
+                        tfar = dist - eps - tnear
+                        if tfar > _FLOAT32_MAX:
+                            tfar = np.inf
+                        if not np.float32(tfar) > 0.0:
+                            continue
+                        ox, oy, oz = x0 + off * n0 + tnear * e0, x1 + off * n1 + tnear * e1, x2 + off * n2 + tnear * e2
+                        if packet:
+                            state[q] = _PENDING
+                            _embree.set_packet_ray(f32, u32, filled, ox, oy, oz, e0, e1, e2, tfar)
+                            valid[filled] = -1
+                            lane_sample[filled] = q
+                            filled += 1
+                            if filled == w:
+                                _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, state,
+                                       blocked, lo, m)
+                                filled = 0
+                        else:
+                            _embree.set_ray(f32, u32, ox, oy, oz, e0, e1, e2, tfar)
+                            _embree.rtc_call(tracer_fn, tracer_scene, address)
+                            if f32[_embree.TFAR] < 0.0:
+                                state[q] = _BLOCKED
+                                blocked[p, j] = True
+                if filled > 0:  # the probes' answers are needed before the second stage
+                    _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, state, blocked, lo, m)
+                    filled = 0
+            for p in range(lo, hi):  # the sums, sample by sample in order
+                i = p - lo
+                if kept[i]:
+                    for k in range(n_terms):
                         S[p, k] = previous_S[p, k]
                     for c in range(n_channels):
                         F[p, c] = previous_F[p, c]
-                    for j in range(m):
-                        blocked[p, j] = visibility[p, j]
                     continue
                 for k in range(n_terms):
                     S[p, k] = 0.0
                 for c in range(n_channels):
                     F[p, c] = 0.0
-                n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
-                length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-                a0, a1, a2 = n0 / length, n1 / length, n2 / length  # unit normal: the BRDF's frame
-                sign = 1.0 if a2 >= 0.0 else -1.0  # tangents (Duff et al. 2017), as brdf.local_frame
-                fa = -1.0 / (sign + a2)
-                fb = a0 * a1 * fa
-                t0, t1, t2 = 1.0 + sign * a0 * a0 * fa, sign * fb, -sign * a0
-                b0, b1, b2 = fb, sign + a1 * a1 * fa, -a1
-                o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
-                length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
-                o0, o1, o2 = o0 / length, o1 / length, o2 / length
-                co = a0 * o0 + a1 * o1 + a2 * o2
-                stream = _mix(np.uint64(key) ^ _mix(np.uint64(p + first)))
-                culling = cull
-                for q in range(spheres.shape[0]):  # a vertex inside a blocker's sphere: every segment meets it
-                    e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
-                    if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
-                        culling = False
+                a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 for j in range(m):
-                    blocked[p, j] = False
-                    if area:
-                        row, col = divmod(j, side)
-                        s = (row / rows + _uniform(stream, np.uint64(2 * j)) * (1.0 / rows)) * 2.0 - 1.0
-                        t = (col / side + _uniform(stream, np.uint64(2 * j + 1)) * (1.0 / side)) * 2.0 - 1.0
-                        y0, y1, y2 = c0 + s * u0 + t * v0, c1 + s * u1 + t * v1, c2 + s * u2 + t * v2
-                    else:
-                        y0, y1, y2 = c0, c1, c2
-                    d0, d1, d2 = y0 - x0, y1 - x1, y2 - x2
-                    dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                    safe = max(dist, 1e-300)
-                    w0, w1, w2 = d0 / safe, d1 / safe, d2 / safe
-                    cos_x = w0 * n0 + w1 * n1 + w2 * n2
-                    cos_l = -(w0 * l0 + w1 * l1 + w2 * l2) if area else 1.0
-                    if not (cos_x > 0.0 and cos_l > 0.0 and dist > 0.0):
+                    q = i * m + j
+                    if state[q] != _LIT:
                         continue
-                    weight = cos_x * cos_l / max(dist, 1e-300) ** 2 * scale
-                    if reuse and not _segment_meets(x0, x1, x2, y0, y1, y2, moved):
-                        hit = visibility[p, j]
-                    elif culling and not _segment_meets(x0, x1, x2, y0, y1, y2, spheres) \
-                            and not _slab_meets(x0, x1, x2, y0, y1, y2, planes):
-                        hit = False  # no blocker's triangle is near the segment: the ray would miss
-                    else:  # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar
-                        cast[p] += 1
-                        length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-                        e0, e1, e2 = w0 / length, w1 / length, w2 / length
-                        off = eps if n0 * e0 + n1 * e1 + n2 * e2 >= 0.0 else -eps
-                        tfar = dist - eps - tnear
-                        if tfar > _FLOAT32_MAX:
-                            tfar = np.inf
-                        hit = False
-                        if np.float32(tfar) > 0.0:
-                            _embree.set_ray(f32, u32, x0 + off * n0 + tnear * e0, x1 + off * n1 + tnear * e1,
-                                            x2 + off * n2 + tnear * e2, e0, e1, e2, tfar)
-                            _embree.rtc_call(tracer_fn, tracer_scene, address)
-                            hit = f32[_embree.TFAR] < 0.0
-                    if hit:
-                        blocked[p, j] = True
-                        continue
+                    weight = weights[q]
+                    e0, e1, e2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
                     # the local direction (brdf.to_local) and g_k (factor_eval_kernel)
-                    length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-                    e0, e1, e2 = w0 / length, w1 / length, w2 / length
                     lx, ly, lz = t0 * e0 + t1 * e1 + t2 * e2, b0 * e0 + b1 * e1 + b2 * e2, a0 * e0 + a1 * e1 + a2 * e2
                     theta = np.arctan2(np.sqrt(lx * lx + ly * ly), lz)
                     phi = np.arctan2(ly, lx) if any_phi else 0.0
+                    interval, at = _interval(nodes, guide, per_radian, theta)
                     for k in range(n_terms):
-                        S[p, k] += weight * _factor(nodes, values, k, theta, phi, freq, parity)
+                        S[p, k] += weight * _factor(values, k, interval, at, phi, freq, parity)
                     # the Phong BRDF (phong_eval_kernel)
                     ci = a0 * e0 + a1 * e1 + a2 * e2
                     if ci * co < 0.0:
@@ -455,7 +685,7 @@ def _kernel_ready(f, sep, caster) -> bool:
 
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                 visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                previous=None):
+                previous=None, probe: int = 0):
     """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
@@ -479,11 +709,17 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     reference tier casts every ray and recomputes every vertex. ``first``: the number of the first point in the
     random streams (point ``p`` draws the jitter of point ``first + p``), so a call on ``points[a:]`` with
     ``first=a`` gives the rows ``a:`` of a call on ``points``.
+
+    ``probe``: an area light's samples are first cast at a sub-grid of about ``probe`` of them
+    (:func:`probe_mask`); at a vertex whose live probes all agree (all blocked or all clear) the other samples take
+    that answer without rays, elsewhere they are cast. 0 (or ``probe >= m``): every sample cast, the unbiased
+    estimator; otherwise biased where a shadow's edge crosses the light between the probes (the penumbra
+    early-out). The masks record the answers as given; ``visibility`` from a call with the same ``probe``.
     """
-    first = _check_first(first)
+    first, probe = _check_first(first), _check_probe(probe)
     if not _kernel_ready(f, sep, caster):
         return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
-                                     visibility, moved, stats, first=first)
+                                     visibility, moved, stats, first=first, probe=probe)
     if previous is not None and visibility is not None:
         previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
         if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
@@ -503,15 +739,16 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     if not len(x):
         return S, F, blocked
     nodes, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
-    n_blocks = -(-len(x) // _VERTICES_PER_TASK)
-    slot_f32, slot_u32 = _embree.ray_slots(n_blocks * _embree.RAYS_PER_TASK)
+    threads = numba.get_num_threads()
+    slot_f32, slot_u32, slot_valid = _embree.packet_slots(threads)
     scene = caster._scene
-    _terms_kernel(x, n, wo, params, area, rows, side, np.uint64(_key(seed, index)), first, scene.occluded_fn,
-                  scene.handle,
-                  slot_f32, slot_u32, numba.get_num_threads(), float(caster.epsilon), float(caster.tnear),
-                  np.zeros((0, m), np.bool_) if visibility is None else visibility,
+    _terms_kernel(x, n, wo, params, area, rows, side, np.uint64(_key(seed, index)), first,
+                  scene.occluded16_fn if PACKETS else scene.occluded_fn, scene.handle, PACKETS,
+                  max(1, _SAMPLES_PER_TASK // m), slot_f32, slot_u32, slot_valid, threads, float(caster.epsilon),
+                  float(caster.tnear), np.zeros((0, m), np.bool_) if visibility is None else visibility,
                   np.zeros((0, 4)) if moved is None else moved, previous_S, previous_F, _reach(params, area),
-                  blockers is not None, spheres, planes, nodes, values,
+                  blockers is not None, spheres, planes, probe_mask(light, samples, probe), nodes, *_guide(nodes),
+                  values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
                   np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
                   blocked, cast)

@@ -178,6 +178,12 @@ class InterreflectionOptions:
         choice).
     light_samples : int
         Points per vertex on each area light with ``shadows="rays"`` (a jittered grid; a run-time choice).
+    light_probe : int
+        With ``shadows="rays"``, about this many of a vertex's ``light_samples`` (a sub-grid spread over the light,
+        its corners included) are cast first; where their shadow rays all agree (all blocked or all clear) the
+        other samples take that answer without rays (the penumbra early-out: biased where a shadow's edge crosses
+        the light between them and misses every probe). 0 (or ``light_samples`` and more): every sample cast,
+        unbiased. A run-time choice.
     residual_near : float
         With ``shadows="rays"`` and the residual gather, its first-bounce rays whose hit lies nearer the receiver
         point than ``residual_near`` times the hit triangle's longest edge carry the source's radiance from the
@@ -221,8 +227,9 @@ class InterreflectionOptions:
     residual_rays: int = 64
     residual_cone: float = 0.5
     light_samples: int = 64
+    light_probe: int = 16
     residual_near: float = 2.0
-    residual_near_samples: int = 4
+    residual_near_samples: int = 2
     residual_whole: bool = False
     storage: str = "int16"
 
@@ -233,6 +240,7 @@ class InterreflectionOptions:
         check_float(self.residual_cone, "option residual_cone", 0.0,
                     meaning="steradians from which a point casts every residual ray, 0: off")
         check_int(self.light_samples, "option light_samples", 1, meaning="points per vertex on an area light")
+        check_int(self.light_probe, "option light_probe", 0, meaning="samples per vertex cast first, 0: off")
         check_float(self.residual_near, "option residual_near", 0.0, meaning="in edge lengths, 0: off")
         check_int(self.residual_near_samples, "option residual_near_samples", 1,
                   meaning="points per near hit on an area light")
@@ -437,7 +445,7 @@ class Interreflection(Precomputation):
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
         run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
-                    "residual_near", "residual_near_samples", "residual_whole")
+                    "light_probe", "residual_near", "residual_near_samples", "residual_whole")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -857,7 +865,7 @@ class Interreflection(Precomputation):
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
         offsets = None if caster is None else (caster.epsilon, caster.tnear)
-        samples, light_k, radiance = self.options.light_samples, {}, {}
+        samples, light_k, radiance = (self.options.light_samples, self.options.light_probe), {}, {}
         self.reuse.direct_counts = {"rays_cast": 0}
         for me, r in enumerate(self.objects):
             g = geo[r.name]
@@ -883,7 +891,7 @@ class Interreflection(Precomputation):
                     reuse = old is not None and old["key"] == key
                     new["S"], new["F"], new["mask"] = light_terms(
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
-                        self.seps[r.name], caster, light, i, samples,
+                        self.seps[r.name], caster, light, i, samples[0], probe=samples[1],
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
                         stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me),
                         previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)

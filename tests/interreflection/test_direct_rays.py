@@ -339,3 +339,187 @@ def test_samples_no_blocker_is_near_are_not_cast_and_change_nothing(material):
                     blockers=(np.zeros((0, 4)), blockers[1]))
         light_terms(points[behind], normals[behind], wo[behind], f, sep, caster, light, i, 64, stats=plain)
         assert slab["rays_cast"] == plain["rays_cast"] > 0
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_packets_give_the_masks_and_sums_of_one_ray_calls(material, monkeypatch):
+    """The kernel's shadow rays 16 at a time (``rtcOccluded16``, ``PACKETS``) against one at a time
+    (``rtcOccluded1``): masks, sums and ray counts bit for bit, with blockers culling, a partial re-cast after a
+    move and a probe, at 64 samples (vertex packets) and 4 (packets across vertices)."""
+    from prtlab.interreflection import _direct_rays
+    from prtlab.interreflection._direct_rays import blocker_bounds
+
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
+    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
+    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], caster.epsilon) for p in (poses[0], moved_pose)]
+    blockers = blocker_bounds(caster, [False] * 4)
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        for samples, extra in ((64, {}), (4, {}), (64, {"blockers": blockers}), (64, {"probe": 16})):
+            results = {}
+            for packets in (False, True):
+                monkeypatch.setattr(_direct_rays, "PACKETS", packets)
+                stats = {}
+                old = light_terms(points, normals, wo, f, sep, caster, light, i, samples, seed=3, stats=stats, **extra)
+                again = light_terms(points, normals, wo, f, sep, after, light, i, samples, seed=3, stats=stats,
+                                    visibility=old[2], moved=spheres, previous=old[:2], **extra)
+                results[packets] = (*old, *again, stats["rays_cast"])
+            assert results[True][-1] > 0 and results[True][2].any()
+            for a, b in zip(results[True], results[False]):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_the_probe_mask_spreads_over_the_grid_with_its_corners():
+    mask = _direct_rays_probe_mask(LIGHT, 64, 16).reshape(8, 8)
+    assert mask.sum() == 16 and mask[0, 0] and mask[0, 7] and mask[7, 0] and mask[7, 7]
+    np.testing.assert_array_equal(np.nonzero(mask.any(axis=1))[0], [0, 2, 5, 7])
+    assert _direct_rays_probe_mask(LIGHT, 64, 0).shape == (0,)
+    assert _direct_rays_probe_mask(LIGHT, 64, 64).shape == (0,)
+    assert _direct_rays_probe_mask(PointLight(position=np.zeros(3), intensity=np.ones(3)), 64, 16).shape == (0,)
+
+
+def _direct_rays_probe_mask(light, samples, probe):
+    from prtlab.interreflection._direct_rays import probe_mask
+
+    return probe_mask(light, samples, probe)
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_a_probe_decides_the_other_samples_where_it_agrees(material):
+    """``probe``: the kernel equals the reference tier (masks equal, sums to 1e-12); a vertex whose probes agree
+    takes their answer for every other live sample, a vertex whose probes disagree casts them (its mask equal
+    to the full cast's there); fewer rays than the full cast; where no sample is shadowed the probe changes
+    nothing, bit for bit."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights[:2]):
+        full_stats, probe_stats = {}, {}
+        full = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=full_stats)
+        ours = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=probe_stats, probe=16)
+        ref = light_terms_reference(points, normals, wo, f, sep, caster, light, i, 64, seed=3, probe=16)
+        np.testing.assert_array_equal(ours[2], ref[2])
+        for a, b in zip(ours[:2], ref[:2]):
+            np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12 * np.abs(b).max())
+        assert 0 < probe_stats["rays_cast"] < 0.5 * full_stats["rays_cast"]
+        probe = _direct_rays_probe_mask(light, 64, 16)
+        # liveness from a caster that blocks nothing: the samples with a weight
+        empty = RayCaster([meshes[2]], transforms=[Transform(translate=np.array([50.0, 0.0, 0.0]))])
+        unlit = light_terms(points, normals, wo, f, sep, empty, light, i, 64, seed=3)
+        lit_full = light_terms(points, normals, wo, f, sep, empty, light, i, 64, seed=3, probe=16)
+        for a, b in zip(lit_full, unlit):
+            np.testing.assert_array_equal(a, b)
+        live = _live(points, normals, light, i)
+        n_blocked = np.sum(full[2] & live & probe, axis=1)
+        n_lit = np.sum(~full[2] & live & probe, axis=1)
+        agreed = (n_lit > 0) != (n_blocked > 0)
+        np.testing.assert_array_equal(ours[2][~agreed], full[2][~agreed])
+        np.testing.assert_array_equal(ours[2][agreed], (live & (n_blocked > 0)[:, None])[agreed])
+        assert np.any(agreed & (n_blocked > 0)) and np.any(~agreed & (n_blocked > 0))
+
+
+def _live(points, normals, light, index):
+    """(V, 64) whether a sample of ``light`` faces the vertex and the light (seed 3), by the reference's jitter."""
+    st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")], axis=1)[None]
+          + jitter(3, index, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
+    y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
+    d = y - points[:, None]
+    return (np.einsum("vmi,vi->vm", d, normals) > 0.0) & (-(d @ light.normal) > 0.0)
+
+
+@pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
+def test_a_probed_recast_after_a_move_equals_a_probed_cast(terms):
+    """With ``probe``, the previous mask's bits decided by agreement are cast again where the probes now disagree,
+    so a partial re-cast (``visibility``, ``moved``, ``previous``) equals a fresh probed cast bit for bit."""
+    f = brdf.from_material(MATERIALS[1])
+    sep = brdf.separable(f, K=4)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    before = RayCaster(meshes, transforms=poses)
+    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
+    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
+    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
+    wo = mirror_wo(wo, normals)
+    for i, light in enumerate(lights):
+        for a_caster, b_caster in ((before, after), (after, before)):
+            old = terms(points, normals, wo, f, sep, a_caster, light, i, 64, probe=16)
+            fresh = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=16)
+            partial = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=16, visibility=old[2],
+                            moved=spheres)
+            kept = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=16, visibility=old[2],
+                         moved=spheres, previous=old[:2])
+            for a, b, c in zip(partial, kept, fresh):
+                np.testing.assert_array_equal(a, c)
+                np.testing.assert_array_equal(b, c)
+
+
+def test_light_terms_refuse_a_bad_probe():
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    for terms in (light_terms, light_terms_reference):
+        with pytest.raises(ValueError, match="probe must be a non-negative int"):
+            terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, probe=-1)
+
+
+def test_the_rays_cast_with_blockers_are_those_whose_segment_meets_one():
+    """The kernel tests a sample's segment against the blockers near the vertex's rays alone (its capsule to the
+    light): it casts exactly the live samples whose segment meets a blocker's sphere or slab (counted here in numpy
+    against every blocker), and every live sample at a vertex inside a sphere."""
+    from prtlab.interreflection._direct_rays import _segments_meet, blocker_bounds
+
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    wall = builtin_mesh("plane", size=[4.2, 2.0], resolution=[4, 2])
+    caster = RayCaster([wall, *meshes], transforms=[
+        Transform(translate=np.array([0.0, 1.0, -1.2]), rotate_deg=np.array([90.0, 0.0, 0.0])), *poses])
+    spheres, planes = blocker_bounds(caster, [True, False, False, False, False])
+    points = np.concatenate([points, [[0.5, 0.75, 0.3]]])  # one inside the box's sphere
+    normals = np.concatenate([normals, [[0.0, 1.0, 0.0]]])
+    wo = mirror_wo(np.concatenate([wo, [[0.0, 1.0, 0.0]]]), normals)
+    for i, light in enumerate(lights[:2]):
+        stats = {}
+        light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=stats,
+                    blockers=(spheres, planes))
+        st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")],
+                       axis=1)[None] + jitter(3, i, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
+        y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
+        d = y - points[:, None]
+        live = (np.einsum("vmi,vi->vm", d, normals) > 0.0) & (-(d @ light.normal) > 0.0)
+        sx, sy = points @ planes[:, :3].T, y @ planes[:, :3].T  # (V, P), (V, m, P)
+        slab = ~(((sx[:, None] > planes[:, 4]) & (sy > planes[:, 4])) | ((sx[:, None] < planes[:, 3])
+                                                                          & (sy < planes[:, 3])))
+        inside = np.any(np.sum((points[:, None] - spheres[None, :, :3]) ** 2, axis=-1) <= spheres[:, 3] ** 2, axis=1)
+        meets = _segments_meet(points, y, spheres) | slab.any(axis=-1) | inside[:, None]
+        assert inside[-1] and 0 < stats["rays_cast"] < live.sum()
+        assert stats["rays_cast"] == np.sum(meets & live)
+
+
+def test_the_guided_node_search_equals_searchsorted():
+    """``_interval`` (a table starts the search) finds ``searchsorted(nodes, theta) - 1`` and its ``t`` for every
+    angle: random ones, the nodes themselves and their float neighbours, the table's bin edges, the ends."""
+    from prtlab.interreflection._direct_rays import _GUIDE_BINS, _guide, _interval
+
+    sep = brdf.separable(brdf.from_material(MATERIALS[1]), K=4)
+    nodes, _ = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    guide, per_radian = _guide(nodes)
+    edges = np.arange(_GUIDE_BINS + 1) / per_radian
+    theta = np.concatenate([np.random.default_rng(4).uniform(-0.1, 1.7, 20_000), nodes, np.nextafter(nodes, -1.0),
+                            np.nextafter(nodes, 9.0), edges, np.nextafter(edges, -1.0), np.nextafter(edges, 9.0)])
+    last = len(nodes) - 1
+    for th in theta:
+        j, t = _interval(nodes, guide, per_radian, th)
+        if th <= nodes[0]:
+            assert (j, t) == (0, 0.0)
+        elif th >= nodes[last]:
+            assert (j, t) == (last - 1, 1.0)
+        else:
+            expected = np.searchsorted(nodes, th) - 1
+            assert j == expected and t == (th - nodes[j]) / (nodes[j + 1] - nodes[j])
