@@ -308,7 +308,8 @@ def _mesh_direct_parts(a, meshes) -> list:
 
 
 def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays",
-                   mesh_parts=None, ground_ray_spacing: float = SphereLightOptions().ground_ray_spacing):
+                   mesh_parts=None, ground_ray_spacing: float = SphereLightOptions().ground_ray_spacing,
+                   emission_coverage: bool = SphereLightOptions().emission_coverage):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
@@ -319,7 +320,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     the rays (their direct light and the light gathered from the objects' radiance; ``"lights"``: first, as any
     receiver, less ``ground_light``), cast where ``ground_ray_spacing`` (the option) says. With ``mesh_parts``
     (:func:`_mesh_direct_parts`; ``mesh_blockers=True``) the objects' direct light is ``mesh_direct`` against the
-    meshes and the ground instead of the second pass's, near blockers' and hidden ground light."""
+    meshes and the ground instead of the second pass's, near blockers' and hidden ground light. With
+    ``emission_coverage`` the first pass also gives the emission weighted by ``coverage_weights`` (here of a
+    coverage of 1: the same work as the meshes' coverage) for the other objects' receivers, the paper's for a
+    light's own object."""
     from prtlab.spherelights import ground_light
     from prtlab.spherelights._meshdirect import mesh_direct
     from prtlab.spherelights._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, mesh_blockers
@@ -358,8 +362,16 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                 corr[sel] = (near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
                              - near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, 0, eligible=e))
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
+    weight = None
+    if emission_coverage:  # SphereLights._emission
+        from prtlab.spherelights._samples import coverage_weights
+
+        weight = coverage_weights(np.ones(a["valid"].shape), a["valid"], geodesic_directions(a["valid"].shape[1]))
+        weight = np.stack([np.ones_like(weight), weight])
     emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
-                          a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER)
+                          a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER,
+                          sample_weight=weight)
+    own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
     if rays:
         e = ground_direct_rays(texels, env, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing)
     else:
@@ -370,7 +382,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     for own in range(0 if rays else -1, int(obj.max()) + 1):
         rows = a["recv_object"] == own
         p, n = a["points"][rows], a["normals"][rows]
-        direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission, env, order=ORDER)
+        emission_in = (np.where((obj == own)[:, None, None], own_emission, emission)  # own lights: the paper's
+                       if emission_coverage and own >= 0 else emission)
+        direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission_in, env, order=ORDER)
         exact = mesh_parts is not None and own >= 0
         if exact:
             bits, occluders = mesh_parts[own]
