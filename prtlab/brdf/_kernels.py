@@ -14,6 +14,18 @@ import numpy as np
 _INV_PI = 1.0 / np.pi
 
 
+@numba.njit(cache=True, inline="always")
+def tangent_frame_at(n0, n1, n2):
+    """The unit normal ``a`` of ``n`` and its tangents ``t``, ``b`` (Duff et al. 2017, as
+    :func:`prtlab.geometry.tangent_frame`), as nine scalars ``a0, a1, a2, t0, t1, t2, b0, b1, b2``."""
+    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    a0, a1, a2 = n0 / length, n1 / length, n2 / length
+    sign = 1.0 if a2 >= 0.0 else -1.0
+    fa = -1.0 / (sign + a2)
+    fb = a0 * a1 * fa
+    return (a0, a1, a2, 1.0 + sign * a0 * a0 * fa, sign * fb, -sign * a0, fb, sign + a1 * a1 * fa, -a1)
+
+
 @numba.njit(cache=True, parallel=True)
 def phong_eval_kernel(wi, wo, n, kd, ks, exponent, out):
     """Two-sided normalised Phong ``f(wi, wo)`` into ``out (N, C)``; wi, wo, n (N, 3) unit."""

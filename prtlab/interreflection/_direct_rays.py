@@ -38,6 +38,7 @@ import numba
 import numpy as np
 
 from prtlab import brdf
+from prtlab.brdf._kernels import tangent_frame_at
 from prtlab.geometry import _embree
 from prtlab.scene import AreaLight, PointLight
 
@@ -430,14 +431,7 @@ def _factor(values, k, j, t, phi, freq, parity):
 def _vertex_frame(n, wo, p):
     """The unit normal ``a``, tangents ``t``, ``b`` (Duff et al. 2017, as ``brdf.local_frame``), the unit ``wo``
     and ``a . wo`` of vertex ``p``: the BRDF's frame."""
-    n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
-    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-    a0, a1, a2 = n0 / length, n1 / length, n2 / length
-    sign = 1.0 if a2 >= 0.0 else -1.0
-    fa = -1.0 / (sign + a2)
-    fb = a0 * a1 * fa
-    t0, t1, t2 = 1.0 + sign * a0 * a0 * fa, sign * fb, -sign * a0
-    b0, b1, b2 = fb, sign + a1 * a1 * fa, -a1
+    a0, a1, a2, t0, t1, t2, b0, b1, b2 = tangent_frame_at(n[p, 0], n[p, 1], n[p, 2])
     o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
     length = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
     o0, o1, o2 = o0 / length, o1 / length, o2 / length

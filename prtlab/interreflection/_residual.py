@@ -41,7 +41,7 @@ import numpy as np
 
 from prtlab import brdf
 from prtlab._validate import check_choice, check_float
-from prtlab.brdf._kernels import factor_at
+from prtlab.brdf._kernels import factor_at, tangent_frame_at
 from prtlab.geometry import _embree
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
@@ -389,13 +389,7 @@ def _local_unit(x, y, z, n0, n1, n2):
     ``tangent_frame``), normalised again, as :meth:`SeparableBRDF.g` and ``h`` take it."""
     length = np.sqrt(x * x + y * y + z * z)
     x, y, z = x / length, y / length, z / length
-    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-    n0, n1, n2 = n0 / length, n1 / length, n2 / length
-    sign = 1.0 if n2 >= 0.0 else -1.0
-    a = -1.0 / (sign + n2)
-    b = n0 * n1 * a
-    t0, t1, t2 = 1.0 + sign * n0 * n0 * a, sign * b, -sign * n0
-    b0, b1, b2 = b, sign + n1 * n1 * a, -n1
+    n0, n1, n2, t0, t1, t2, b0, b1, b2 = tangent_frame_at(n0, n1, n2)
     lx = t0 * x + t1 * y + t2 * z
     ly = b0 * x + b1 * y + b2 * z
     lz = n0 * x + n1 * y + n2 * z

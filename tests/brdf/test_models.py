@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from prtlab.brdf import from_material, lambert, local_frame, phong, to_local, to_world
+from prtlab.brdf._kernels import tangent_frame_at
 from prtlab.geometry import tangent_frame
 from prtlab.reference._kernels import bsdf_eval_numpy
 from prtlab.scene import Material
@@ -163,6 +164,18 @@ def test_local_frame_is_the_tangent_frame(rng):
     np.testing.assert_allclose(R[..., 2], n, atol=TOL)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=TOL)
     np.testing.assert_allclose(np.einsum("nji,njk->nik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=TOL)
+
+
+def test_kernels_frame_is_the_tangent_frame(rng):
+    """``_kernels.tangent_frame_at`` (the kernels' inline frame) gives the unit normal and
+    ``tangent_frame``'s tangents, unnormalised normals included, the poles too."""
+    n = np.concatenate([random_directions(rng, 30) * rng.uniform(0.2, 5.0, (30, 1)), np.eye(3), -np.eye(3)])
+    unit = n / np.linalg.norm(n, axis=1, keepdims=True)
+    t, b = tangent_frame(unit)
+    got = np.array([tangent_frame_at(*row) for row in n])
+    np.testing.assert_allclose(got[:, 0:3], unit, atol=TOL)
+    np.testing.assert_allclose(got[:, 3:6], t, atol=TOL)
+    np.testing.assert_allclose(got[:, 6:9], b, atol=TOL)
 
 
 def test_to_local_and_back(rng):
