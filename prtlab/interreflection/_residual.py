@@ -1076,7 +1076,8 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     else:
         starts, rows, weights = np.zeros(len(out) + 1, np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
         residual = np.zeros((0, 3))
-    _bounce_kernel(stacked, np.ascontiguousarray(w, np.float64), starts, rows, weights, residual, extra, out)
+    _bounce_kernel(stacked, np.ascontiguousarray(np.transpose(w), np.float64), starts, rows, weights, residual, extra,
+                   out)
     return out
 
 
@@ -1102,21 +1103,29 @@ def _gather_rows(st, fc, tr, bc, fa, o, x, g):
         g[v, 2] += a2
 
 
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _dot_rgb(stacked, wt, v):
+    """``stacked[v] @ wt.T`` (``wt`` (3, M)), each value read as float64, summed in any order (``reassoc``: the
+    compiler vectorises the sums; any order's rounding is within ``(M - 1) 2**-53 sum_m |a_m w_m|``)."""
+    d0 = 0.0
+    d1 = 0.0
+    d2 = 0.0
+    for m in range(stacked.shape[1]):
+        a = np.float64(stacked[v, m])
+        d0 += a * wt[0, m]
+        d1 += a * wt[1, m]
+        d2 += a * wt[2, m]
+    return d0, d1, d2
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _bounce_kernel(stacked, w, starts, rows, weights, x, extra, out):
-    """:func:`bounce_rgb` in one parallel pass over the points: the dot product, the packed gather's terms
-    (:func:`pack_operators`; none when ``starts`` is all 0) and ``extra`` ((V, 3) or (0, 3))."""
-    n_m = stacked.shape[1]
+def _bounce_kernel(stacked, wt, starts, rows, weights, x, extra, out):
+    """:func:`bounce_rgb` in one parallel pass over the points: the dot product with ``wt`` (3, M) (:func:`_dot_rgb`),
+    the packed gather's terms (:func:`pack_operators`; none when ``starts`` is all 0) in order, and ``extra``
+    ((V, 3) or (0, 3))."""
     add = extra.shape[0] > 0
     for v in numba.prange(stacked.shape[0]):
-        d0 = 0.0
-        d1 = 0.0
-        d2 = 0.0
-        for m in range(n_m):
-            a = np.float64(stacked[v, m])
-            d0 += a * w[m, 0]
-            d1 += a * w[m, 1]
-            d2 += a * w[m, 2]
+        d0, d1, d2 = _dot_rgb(stacked, wt, v)
         g0 = 0.0
         g1 = 0.0
         g2 = 0.0

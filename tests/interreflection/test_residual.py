@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -619,19 +621,23 @@ def test_packed_float32_gather_within_its_rounding_bound():
 
 
 def test_float32_stacked_irradiance_within_its_rounding_bound():
-    """float32 stacked basis irradiance (``STACKED_IRRADIANCE``) moves a point's ``stacked @ w`` by at most
-    ``2**-24 sum_m |Phi_m| |w_m|`` (each value rounded once) plus the float64 sums' rounding (``n_m`` terms:
-    ``(n_m + 1) 2**-53`` of it), against the float64 values."""
+    """``stacked @ w`` of :func:`bounce_rgb` (summed in any order, ``_dot_rgb``) against the correctly rounded
+    sums of the float64 products (``math.fsum``): within ``(n_m + 1) 2**-53 sum_m |Phi_m| |w_m|`` (the sum's
+    ``n_m - 1`` roundings, the products', the final one); with float32 stacked basis irradiance
+    (``STACKED_IRRADIANCE``, each value rounded once) within ``2**-24`` of that magnitude more (``n_m + 2``
+    covering the second-order terms)."""
     from prtlab.interreflection._residual import bounce_rgb
 
     rng = np.random.default_rng(11)
     n_r, n_m = 500, 192
     stacked, w = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3))
-    exact = bounce_rgb(stacked, w, [], [], None, None)
-    rounded = bounce_rgb(stacked.astype(np.float32), w, [], [], None, None)
+    exact = np.array([[math.fsum(stacked[v] * w[:, c]) for c in range(3)] for v in range(n_r)])
     magnitude = np.abs(stacked) @ np.abs(w)
+    summed = bounce_rgb(stacked, w, [], [], None, None)
+    rounded = bounce_rgb(stacked.astype(np.float32), w, [], [], None, None)
+    assert np.all(np.abs(summed - exact) <= (n_m + 1) * 2.0**-53 * magnitude)
     assert np.abs(rounded - exact).max() > 0
-    assert np.all(np.abs(rounded - exact) <= (2.0**-24 + (n_m + 1) * 2.0**-53) * magnitude)
+    assert np.all(np.abs(rounded - exact) <= (2.0**-24 + (n_m + 2) * 2.0**-53) * magnitude)
 
 
 def test_moving_an_object_recasts_only_the_near_hits_it_may_shadow(low_ball):
