@@ -257,3 +257,40 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
                         uv[p, lanes[k], 0] = f32[_embree.HIT_U * w + k]
                         uv[p, lanes[k], 1] = f32[_embree.HIT_V * w + k]
                 n_lanes = 0
+
+
+@numba.njit(cache=True, parallel=True)
+def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis, h, dirs, wy, out):
+    """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
+    output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
+    over the rays ``j`` of point ``p`` that hit (``triangle[p, j] >= 0``) the front of the source, in the order of
+    ``j``; the same arithmetic, term for term, as the two kernels over ``np.nonzero(triangle >= 0)``.
+
+    triangle : (P, D) int32 face hit or -1; uv : (P, D, 2) float32 barycentrics; faces : (F, 3) int64
+    vertex_normals : (V, 3); basis : (N, V); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
+    """
+    n_dirs = triangle.shape[1]
+    n_b, n_k, n2 = basis.shape[0], h.shape[0], wy.shape[1]
+    for p in numba.prange(triangle.shape[0]):
+        psi = np.empty(n_b)
+        for j in range(n_dirs):
+            t = triangle[p, j]
+            if t < 0:
+                continue
+            b1, b2 = np.float64(uv[p, j, 0]), np.float64(uv[p, j, 1])
+            b0 = 1.0 - b1 - b2
+            i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            nx, ny, nz = barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2)
+            length = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+            nx, ny, nz = nx / length, ny / length, nz / length
+            if not nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2] < 0.0:
+                continue  # a back face: psi = 0, every term skipped as project_hits_kernel skips zeros
+            for i in range(n_b):
+                psi[i] = b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]
+            for k in range(n_k):
+                for i in range(n_b):
+                    v = h[k] * psi[i]
+                    if v != 0.0:
+                        m = k * n_b + i
+                        for c in range(n2):
+                            out[p, m, c] += v * wy[j, c]
