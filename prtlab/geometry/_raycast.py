@@ -737,6 +737,15 @@ class RayCaster:
         self._build()
         return True
 
+    def moved(self, transforms) -> "RayCaster":
+        """A new caster at ``transforms`` (as :meth:`update_transforms`), this one unchanged: the objects that did
+        not move keep their posed arrays (shared, not copied), so a move costs the moved objects' arrays and one
+        acceleration-structure build; with no transform changed it shares this caster's scene."""
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        out.update_transforms(transforms)
+        return out
+
     # --------------------------------------------------------------- queries
 
     def _rays(self, origins, dirs, tmax, normals):

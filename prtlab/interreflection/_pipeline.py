@@ -55,7 +55,6 @@ shadow field holds one visibility per point, not per distance; build rooms from 
 
 from __future__ import annotations
 
-import copy
 import time
 import dataclasses
 from dataclasses import dataclass
@@ -1342,10 +1341,9 @@ class Interreflection(Precomputation):
             if self.reuse.scene_caster is None:
                 caster, before = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces))
                                             for o in self.objects], transforms=transforms), None
-            else:  # the previous poses' caster, copied (others may hold it) and moved: unmoved objects keep arrays
+            else:  # the previous poses' caster moved (a new one: others may hold it); unmoved objects keep arrays
                 _, before, old_spheres = self.reuse.scene_caster
-                caster = copy.copy(before)
-                caster.update_transforms(transforms)
+                caster = before.moved(transforms)
             spheres = np.array([old_spheres[i] if before is not None and caster.world_vertices(i) is
                                 before.world_vertices(i) and np.array_equal(old_spheres[i, :3], geo[o.name]["center"])
                                 else [*geo[o.name]["center"],

@@ -128,18 +128,16 @@ def test_update_transforms_rebuilds_only_on_change():
 
 
 def test_moved_copy_equals_a_fresh_caster(rng):
-    """A copy of a caster moved by ``update_transforms`` (unmoved objects keep their posed arrays) has the world
-    vertices, face normals, bounds, sphere, offsets and hits of a caster built at the new poses, bit for bit; the
-    original keeps its poses."""
-    import copy
-
+    """A caster moved by ``moved`` (unmoved objects keep their posed arrays) has the world vertices, face normals,
+    bounds, sphere, offsets and hits of a caster built at the new poses, bit for bit, after one build; the original
+    keeps its poses; with no pose changed it shares the original's scene."""
     meshes = [trimesh.creation.icosphere(2), trimesh.creation.box(), trimesh.creation.cylinder(0.5, 2.0)]
     before = [Transform(translate=np.array([0.0, 0, 0])), Transform(translate=np.array([3.0, 0, 0])),
               Transform(translate=np.array([0.0, 2.5, 0]), rotate_deg=np.array([30.0, 0, 10.0]))]
     after = [before[0], Transform(translate=np.array([2.5, 0.3, 0]), rotate_deg=np.array([0.0, 45.0, 0])), before[2]]
     caster = RayCaster(meshes, before)
-    moved = copy.copy(caster)
-    assert moved.update_transforms(after)
+    moved = caster.moved(after)
+    assert moved.n_builds == caster.n_builds + 1
     fresh = RayCaster(meshes, after)
     assert moved.world_vertices(0) is caster.world_vertices(0) and moved.world_vertices(1) is not caster.world_vertices(1)
     for i in range(3):
@@ -155,6 +153,8 @@ def test_moved_copy_equals_a_fresh_caster(rng):
     for name in ("hit", "object", "triangle", "distance", "barycentric"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     np.testing.assert_array_equal(caster.world_vertices(1), RayCaster(meshes, before).world_vertices(1))
+    same = caster.moved(before)
+    assert same._scene is caster._scene and same.n_builds == caster.n_builds
 
 
 def test_scene_input_skips_portals():
