@@ -91,7 +91,8 @@ from ._fields import (
 )
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
-from ._kernels import masked_product_kernel, may_block_kernel
+from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked_product_serial, may_block_kernel,
+                       may_block_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
 from ._residual import (_bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb, gather_operator,
@@ -694,9 +695,9 @@ class Interreflection(Precomputation):
         """
         if method != "reference":
             out = np.empty(len(x), dtype=np.bool_)
-            may_block_kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(go["center"], np.float64),
-                             float(go["radius"] + gs["radius"]), float(go["reach"]),
-                             np.asarray(gs["center"], np.float64), out)
+            kernel = may_block_kernel if len(x) >= SERIAL_ITEMS else may_block_serial
+            kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(go["center"], np.float64),
+                   float(go["radius"] + gs["radius"]), float(go["reach"]), np.asarray(gs["center"], np.float64), out)
             return out
         d = gs["center"] - x
         t = np.clip(np.einsum("vi,vi->v", go["center"] - x, d) / np.maximum(np.einsum("vi,vi->v", d, d), 1e-300),
@@ -720,7 +721,8 @@ class Interreflection(Precomputation):
             if method == "reference":
                 vis[at] = sh.product(vis[at], occ_r[name][rows[at]], order, channels=False)
             else:
-                masked_product_kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
+                kernel = masked_product_kernel if len(at) > PRODUCT_TILE else masked_product_serial  # one task
+                kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
         return vis
 
     def _transfer(self, visibility, g_cos):

@@ -44,8 +44,11 @@ from prtlab._validate import check_choice, check_float
 from prtlab.brdf._kernels import factor_at, tangent_frame_at
 from prtlab.geometry import _embree
 
+from ._kernels import SERIAL_ITEMS
+
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
            "gather_operator", "apply_gather", "pack_operators", "bounce_rgb", "near_hits", "near_hit_correction"]
+
 
 @dataclass(frozen=True)
 class ResidualHits:
@@ -918,23 +921,35 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _capsule_at(points, v, centre, spheres, bound, eps):
+    """:func:`_capsule_kernel`'s test of point ``v``."""
+    x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
+    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for k in range(spheres.shape[0]):
+        t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
+                    0.0), 1.0)
+        g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
+        if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
+            return True
+    return False
+
+
 @numba.njit(cache=True, parallel=True)
 def _capsule_kernel(points, centre, spheres, bound, eps, near):
     """``near[v]``: the segment from ``points[v]`` to ``centre`` passes within ``bound + R + eps`` of a sphere ``(c, R)`` of
     ``spheres`` (S, 4). Every ray of a point lies, up to its ``tmax``, in the capsule of radius ``bound`` about that
     segment, so only such points can hold a ray that meets a sphere."""
     for v in numba.prange(points.shape[0]):
-        x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
-        d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
-        dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
-        near[v] = False
-        for k in range(spheres.shape[0]):
-            t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
-                        0.0), 1.0)
-            g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
-            if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
-                near[v] = True
-                break
+        near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
+
+
+@numba.njit(cache=True)
+def _capsule_serial(points, centre, spheres, bound, eps, near):
+    """:func:`_capsule_kernel` on one thread (no parallel region)."""
+    for v in range(points.shape[0]):
+        near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
 
 
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
@@ -946,7 +961,8 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
     widened = spheres.copy()
     widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
     near = np.empty(len(points), np.bool_)
-    _capsule_kernel(points, centre, widened, bound, float(caster.epsilon), near)
+    capsule = _capsule_kernel if len(points) >= SERIAL_ITEMS else _capsule_serial
+    capsule(points, centre, widened, bound, float(caster.epsilon), near)
     candidates = np.flatnonzero(near)
     if not len(candidates):
         return old
