@@ -588,28 +588,41 @@ class RayCaster:
         return len(self._faces)
 
     def _build(self) -> None:
-        self._world_vertices = []
-        self._face_normals = []
+        # an object whose matrix is the previous build's keeps its world vertices, face normals and box (the same
+        # arithmetic on the same arrays): a move of one object recomputes that object's arrays alone
+        previous = self.__dict__.get("_posed") or []
+        if len(self.__dict__.get("_used") or []) != len(self._faces):
+            self._used = [np.unique(f) for f in self._faces]  # the vertices the faces use
+        self._world_vertices, self._face_normals, self._posed = [], [], []
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for v, f, m in zip(self._object_vertices, self._faces, self._matrices):
-            w = v @ m[:3, :3].T + m[:3, 3]
-            self._world_vertices.append(w)
-            if len(f):
-                a, b, c = w[f[:, 0]], w[f[:, 1]], w[f[:, 2]]
-                n = np.cross(b - a, c - a)
-                length = np.linalg.norm(n, axis=1, keepdims=True)
-                self._face_normals.append(np.divide(n, length, out=np.zeros_like(n), where=length > 0))
-                used = w[np.unique(f)]
-                lo, hi = np.minimum(lo, used.min(axis=0)), np.maximum(hi, used.max(axis=0))
+        for i, (v, f, m) in enumerate(zip(self._object_vertices, self._faces, self._matrices)):
+            if i < len(previous) and np.array_equal(previous[i][0], m):
+                posed = previous[i]
             else:
-                self._face_normals.append(np.zeros((0, 3)))
+                w = v @ m[:3, :3].T + m[:3, 3]
+                if len(f):
+                    a, b, c = w[f[:, 0]], w[f[:, 1]], w[f[:, 2]]
+                    n = np.cross(b - a, c - a)
+                    length = np.linalg.norm(n, axis=1, keepdims=True)
+                    used = w[self._used[i]]
+                    posed = (m, w, np.divide(n, length, out=np.zeros_like(n), where=length > 0), used,
+                             used.min(axis=0), used.max(axis=0))
+                else:
+                    posed = (m, w, np.zeros((0, 3)), None, None, None)
+            self._posed.append(posed)
+            self._world_vertices.append(posed[1])
+            self._face_normals.append(posed[2])
+            if len(f):
+                lo, hi = np.minimum(lo, posed[4]), np.maximum(hi, posed[5])
         self._bounds = np.stack([lo, hi]) if np.all(np.isfinite(lo)) else np.zeros((2, 3))
         if np.all(np.isfinite(lo)):  # the sphere about the box centre through the farthest used vertex
             centre = 0.5 * (lo + hi)
-            used = np.concatenate([w[np.unique(f)] for w, f in zip(self._world_vertices, self._faces) if len(f)])
+            used = np.concatenate([p[3] for p, f in zip(self._posed, self._faces) if len(f)])
             self._sphere = (centre, float(np.max(np.linalg.norm(used - centre, axis=1))))
         else:
             self._sphere = (np.zeros(3), 0.0)
+        diag = float(np.linalg.norm(self._bounds[1] - self._bounds[0]))
+        self._diagonal = diag if diag > 0 else 1.0
         vert_offset = np.cumsum([0] + [len(w) for w in self._world_vertices])
         self._face_offset = np.cumsum([0] + [len(f) for f in self._faces]).astype(np.int64)
         self._all_vertices = np.concatenate(self._world_vertices + [np.zeros((0, 3))])
@@ -670,14 +683,12 @@ class RayCaster:
         """Self-intersection offset: ``RAY_EPSILON_SCALE * |bounds[1] - bounds[0]|`` (or the fixed value)."""
         if self._fixed_epsilon is not None:
             return self._fixed_epsilon
-        diag = float(np.linalg.norm(self._bounds[1] - self._bounds[0]))
-        return RAY_EPSILON_SCALE * (diag if diag > 0 else 1.0)
+        return RAY_EPSILON_SCALE * self._diagonal
 
     @property
     def tnear(self) -> float:
         """Start of every ray along its direction: ``RAY_TNEAR_SCALE * |bounds[1] - bounds[0]|``."""
-        diag = float(np.linalg.norm(self._bounds[1] - self._bounds[0]))
-        return RAY_TNEAR_SCALE * (diag if diag > 0 else 1.0)
+        return RAY_TNEAR_SCALE * self._diagonal
 
     def world_vertices(self, index: int) -> np.ndarray:
         """(n_vertices, 3) float64 world vertices of object ``index`` in the current pose."""
@@ -725,6 +736,15 @@ class RayCaster:
         self._matrices = new
         self._build()
         return True
+
+    def moved(self, transforms) -> "RayCaster":
+        """A new caster at ``transforms`` (as :meth:`update_transforms`), this one unchanged: the objects that did
+        not move keep their posed arrays (shared, not copied), so a move costs the moved objects' arrays and one
+        acceleration-structure build; with no transform changed it shares this caster's scene."""
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        out.update_transforms(transforms)
+        return out
 
     # --------------------------------------------------------------- queries
 

@@ -52,7 +52,7 @@ from prtlab._validate import as_points
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
-from ._kernels import hit_basis_kernel, project_hits_kernel, source_hits_kernel
+from ._kernels import hit_basis_kernel, project_hits_kernel, project_source_hits_kernel, source_hits_kernel
 
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance", "StoredBasisRadiance",
            "store_basis_radiance", "STORAGES"]
@@ -115,7 +115,7 @@ def source_hits(caster, points, dirs, step, method: str = "numba"):
     with no hit are skipped. ``method="numba"`` (a one-object caster with Embree) tests and traces the rays in one
     kernel (:func:`source_hits_kernel`: the candidates are the hits); ``"reference"``: :meth:`RayCaster.may_hit`
     then :meth:`RayCaster.closest_hit` of the rays it keeps. The same hits, bit for bit."""
-    fused = method == "numba" and getattr(caster, "_scene", None) is not None and caster.n_objects == 1
+    fused = method == "numba" and _fusable(caster)
     if fused:
         from ._residual import _tracer
 
@@ -141,6 +141,49 @@ def source_hits(caster, points, dirs, step, method: str = "numba"):
         at = np.flatnonzero(hits.hit)
         if len(at):
             yield a, b, point, direction, hits, at
+
+
+def _fusable(caster) -> bool:
+    """Whether :func:`source_hits_kernel` can trace for ``caster`` (one object, Embree)."""
+    return getattr(caster, "_scene", None) is not None and caster.n_objects == 1
+
+
+def _projected_hits(caster, flat, dirs, wy, faces, normals, basis, sep, step, method, out):
+    """``out`` (P, K N, n2) += the SH projection (quadrature weights and ``Y`` in ``wy``) of the basis radiance
+    at the hits of the rays from ``flat`` along ``dirs``: :func:`source_hits`, :func:`hit_basis_radiance`, then
+    the dense product (``"reference"``) or :func:`project_hits_kernel` over the hits (``"numba"``)."""
+    n_kb = sep.K * basis.shape[0]
+    for a, b, point, direction, hits, at in source_hits(caster, flat, dirs, step, method):
+        sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
+        value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep,
+                                   method).reshape(-1, n_kb)
+        if method == "reference":
+            dense = np.zeros((b - a, len(dirs), n_kb))
+            dense[sel] = value
+            out[a:b] = np.matmul(dense.transpose(0, 2, 1), wy)
+        else:
+            starts = np.searchsorted(sel[0], np.arange(b - a + 1))
+            project_hits_kernel(starts, np.ascontiguousarray(sel[1]), np.ascontiguousarray(value), wy, out[a:b])
+
+
+def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out):
+    """:func:`_projected_hits` (``"numba"``) for a source of constant ``h`` (K,) and a one-object Embree caster:
+    per batch :func:`source_hits_kernel` then :func:`project_source_hits_kernel` (the hit radiance and its
+    projection in one pass, no per-hit arrays); the same sums, term for term."""
+    from ._residual import _tracer
+
+    centre, radius, lo, hi = caster.may_hit_bounds()
+    dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+    centre, h = np.asarray(centre, np.float64), np.ascontiguousarray(h, dtype=np.float64)
+    step = max(1, _RAYS_PER_BATCH // max(1, len(dirs)))
+    triangle = np.empty((min(step, len(flat)), len(dirs)), np.int32)
+    uv = np.empty((min(step, len(flat)), len(dirs), 2), np.float32)
+    for a in range(0, len(flat), step):
+        b = min(len(flat), a + step)
+        origins = np.ascontiguousarray(flat[a:b], dtype=np.float64)
+        source_hits_kernel(_tracer(caster, b - a), origins, dirs, centre, float(radius) ** 2, lo, hi,
+                           float(caster.tnear), triangle[:b - a], uv[:b - a])
+        project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis, h, dirs, wy, out[a:b])
 
 
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,
@@ -190,18 +233,13 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     n_b, n_k, n2 = basis.shape[0], sep.K, order * order
     wy = weights[:, None] * y  # (D, n2)
     out = np.zeros((len(flat), n_k * n_b, n2))
-    step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
-    for a, b, point, direction, hits, at in source_hits(caster, flat, dirs, step, method):
-        sel = (point[at], direction[at])  # sorted by point (row-major nonzero)
-        value = hit_basis_radiance(hits, (at,), dirs[sel[1]], faces, normals, basis, sep,
-                                   method).reshape(-1, n_k * n_b)
-        if method == "reference":
-            dense = np.zeros((b - a, len(dirs), n_k * n_b))
-            dense[sel] = value
-            out[a:b] = np.matmul(dense.transpose(0, 2, 1), wy)
-        else:
-            starts = np.searchsorted(sel[0], np.arange(b - a + 1))
-            project_hits_kernel(starts, np.ascontiguousarray(sel[1]), np.ascontiguousarray(value), wy, out[a:b])
+    if method == "numba" and _constant_h(sep) and _fusable(caster) and len(flat):
+        _projected_hits_fused(caster, flat, dirs, wy, faces, np.ascontiguousarray(normals),
+                              np.ascontiguousarray(basis),
+                              np.broadcast_to(sep.h(np.array([0.0, 0.0, 1.0])), (n_k,)), out)
+    else:
+        step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
+        _projected_hits(caster, flat, dirs, wy, faces, normals, basis, sep, step, method, out)
     return out.reshape(batch + (n_k, n_b, n2))
 
 

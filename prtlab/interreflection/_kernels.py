@@ -147,6 +147,36 @@ def hit_basis_kernel(tri, uv, vertex_normals, basis, w_in, psi, shading_n):
             psi[h, i] = (b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]) if front else 0.0
 
 
+#: Items (rows, points) below which the pipeline runs a kernel's serial twin (``*_serial``: the same loop body,
+#: no parallel region; a move_one frame launches about 1,400 regions, most of them on a few hundred items).
+SERIAL_ITEMS = 4096
+
+
+@numba.njit(cache=True, inline="always")
+def _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, tile):
+    """:func:`masked_product_kernel`'s work on the ``tile`` positions of ``at`` from ``task * tile`` on."""
+    n2 = vis.shape[1]
+    start = task * tile
+    width = min(tile, at.shape[0] - start)
+    a_t = np.zeros((n2, tile))
+    b_t = np.zeros((n2, tile))
+    o_t = np.empty((n2, tile))
+    for q in range(width):
+        r = at[start + q]
+        for i in range(n2):
+            a_t[i, q] = vis[r, i]
+            b_t[i, q] = occ[rows[r], i]
+    _tile_product(a_t, b_t, gi, gj, gk, gv, o_t)
+    for q in range(width):
+        r = at[start + q]
+        for k in range(n2):
+            vis[r, k] = o_t[k, q]
+
+
+#: Positions of ``at`` a task of :func:`masked_product_kernel` takes.
+PRODUCT_TILE = 64
+
+
 @numba.njit(cache=True, parallel=True)
 def masked_product_kernel(vis, occ, at, rows, gi, gj, gk, gv):
     """``vis[a] = P_n(vis[a] occ[rows[a]])`` in place for every ``a`` in ``at``: one occluder's factor of the
@@ -157,25 +187,32 @@ def masked_product_kernel(vis, occ, at, rows, gi, gj, gk, gv):
     vertices; at : (A,) positions in ``vis``; rows : (R,) receiver vertex of each position;
     (gi, gj, gk, gv) the sparse Gaunt entries of order n.
     """
-    n2 = vis.shape[1]
-    tile = 64
-    n_tiles = (at.shape[0] + tile - 1) // tile
+    n_tiles = (at.shape[0] + PRODUCT_TILE - 1) // PRODUCT_TILE
     for task in numba.prange(n_tiles):
-        start = task * tile
-        width = min(tile, at.shape[0] - start)
-        a_t = np.zeros((n2, tile))
-        b_t = np.zeros((n2, tile))
-        o_t = np.empty((n2, tile))
-        for q in range(width):
-            r = at[start + q]
-            for i in range(n2):
-                a_t[i, q] = vis[r, i]
-                b_t[i, q] = occ[rows[r], i]
-        _tile_product(a_t, b_t, gi, gj, gk, gv, o_t)
-        for q in range(width):
-            r = at[start + q]
-            for k in range(n2):
-                vis[r, k] = o_t[k, q]
+        _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, PRODUCT_TILE)
+
+
+@numba.njit(cache=True)
+def masked_product_serial(vis, occ, at, rows, gi, gj, gk, gv):
+    """:func:`masked_product_kernel` on one thread (no parallel region): the same tiles and arithmetic."""
+    n_tiles = (at.shape[0] + PRODUCT_TILE - 1) // PRODUCT_TILE
+    for task in range(n_tiles):
+        _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, PRODUCT_TILE)
+
+
+@numba.njit(cache=True, inline="always")
+def _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre):
+    """:func:`may_block_kernel`'s test of point ``v``."""
+    cx, cy, cz = occluder_centre[0], occluder_centre[1], occluder_centre[2]
+    sx, sy, sz = source_centre[0], source_centre[1], source_centre[2]
+    px, py, pz = x[v, 0], x[v, 1], x[v, 2]
+    dx, dy, dz = sx - px, sy - py, sz - pz
+    ox, oy, oz = cx - px, cy - py, cz - pz
+    t = (ox * dx + oy * dy + oz * dz) / max(dx * dx + dy * dy + dz * dz, 1e-300)
+    t = min(max(t, 0.0), 1.0)
+    gx, gy, gz = px + t * dx - cx, py + t * dy - cy, pz + t * dz - cz
+    return (gx * gx + gy * gy + gz * gz <= radius_sum * radius_sum) and (ox * ox + oy * oy + oz * oz
+                                                                         <= reach * reach)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -185,17 +222,15 @@ def may_block_kernel(x, occluder_centre, radius_sum, reach, source_centre, out):
     within ``radius_sum`` (occluder radius + source radius) of the segment ``x[v] -> source_centre`` and
     within ``reach`` of ``x[v]``. The specification is ``Interreflection._may_block`` (``method="reference"``).
     """
-    cx, cy, cz = occluder_centre[0], occluder_centre[1], occluder_centre[2]
-    sx, sy, sz = source_centre[0], source_centre[1], source_centre[2]
     for v in numba.prange(x.shape[0]):
-        px, py, pz = x[v, 0], x[v, 1], x[v, 2]
-        dx, dy, dz = sx - px, sy - py, sz - pz
-        ox, oy, oz = cx - px, cy - py, cz - pz
-        t = (ox * dx + oy * dy + oz * dz) / max(dx * dx + dy * dy + dz * dz, 1e-300)
-        t = min(max(t, 0.0), 1.0)
-        gx, gy, gz = px + t * dx - cx, py + t * dy - cy, pz + t * dz - cz
-        out[v] = (gx * gx + gy * gy + gz * gz <= radius_sum * radius_sum) and (ox * ox + oy * oy + oz * oz
-                                                                               <= reach * reach)
+        out[v] = _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre)
+
+
+@numba.njit(cache=True)
+def may_block_serial(x, occluder_centre, radius_sum, reach, source_centre, out):
+    """:func:`may_block_kernel` on one thread (no parallel region)."""
+    for v in range(x.shape[0]):
+        out[v] = _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre)
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -257,3 +292,40 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
                         uv[p, lanes[k], 0] = f32[_embree.HIT_U * w + k]
                         uv[p, lanes[k], 1] = f32[_embree.HIT_V * w + k]
                 n_lanes = 0
+
+
+@numba.njit(cache=True, parallel=True)
+def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis, h, dirs, wy, out):
+    """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
+    output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
+    over the rays ``j`` of point ``p`` that hit (``triangle[p, j] >= 0``) the front of the source, in the order of
+    ``j``; the same arithmetic, term for term, as the two kernels over ``np.nonzero(triangle >= 0)``.
+
+    triangle : (P, D) int32 face hit or -1; uv : (P, D, 2) float32 barycentrics; faces : (F, 3) int64
+    vertex_normals : (V, 3); basis : (N, V); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
+    """
+    n_dirs = triangle.shape[1]
+    n_b, n_k, n2 = basis.shape[0], h.shape[0], wy.shape[1]
+    for p in numba.prange(triangle.shape[0]):
+        psi = np.empty(n_b)
+        for j in range(n_dirs):
+            t = triangle[p, j]
+            if t < 0:
+                continue
+            b1, b2 = np.float64(uv[p, j, 0]), np.float64(uv[p, j, 1])
+            b0 = 1.0 - b1 - b2
+            i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+            nx, ny, nz = barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2)
+            length = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+            nx, ny, nz = nx / length, ny / length, nz / length
+            if not nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2] < 0.0:
+                continue  # a back face: psi = 0, every term skipped as project_hits_kernel skips zeros
+            for i in range(n_b):
+                psi[i] = b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]
+            for k in range(n_k):
+                for i in range(n_b):
+                    v = h[k] * psi[i]
+                    if v != 0.0:
+                        m = k * n_b + i
+                        for c in range(n2):
+                            out[p, m, c] += v * wy[j, c]

@@ -91,11 +91,12 @@ from ._fields import (
 )
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
-from ._kernels import masked_product_kernel, may_block_kernel
+from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked_product_serial, may_block_kernel,
+                       may_block_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
-from ._residual import (_bounding_radius, _rgb_ready, apply_gather, bounce_rgb, gather_operator, gather_residual,
-                        near_hit_correction, near_hits, pack_operators, residual_hits)
+from ._residual import (_bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb, gather_operator,
+                        gather_residual, near_hit_correction, near_hits, pack_operators, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -694,9 +695,9 @@ class Interreflection(Precomputation):
         """
         if method != "reference":
             out = np.empty(len(x), dtype=np.bool_)
-            may_block_kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(go["center"], np.float64),
-                             float(go["radius"] + gs["radius"]), float(go["reach"]),
-                             np.asarray(gs["center"], np.float64), out)
+            kernel = may_block_kernel if len(x) >= SERIAL_ITEMS else may_block_serial
+            kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(go["center"], np.float64),
+                   float(go["radius"] + gs["radius"]), float(go["reach"]), np.asarray(gs["center"], np.float64), out)
             return out
         d = gs["center"] - x
         t = np.clip(np.einsum("vi,vi->v", go["center"] - x, d) / np.maximum(np.einsum("vi,vi->v", d, d), 1e-300),
@@ -720,7 +721,8 @@ class Interreflection(Precomputation):
             if method == "reference":
                 vis[at] = sh.product(vis[at], occ_r[name][rows[at]], order, channels=False)
             else:
-                masked_product_kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
+                kernel = masked_product_kernel if len(at) > PRODUCT_TILE else masked_product_serial  # one task
+                kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
         return vis
 
     def _transfer(self, visibility, g_cos):
@@ -1067,12 +1069,17 @@ class Interreflection(Precomputation):
             normal /= max(float(np.linalg.norm(normal)), 1e-300)
             go["plane"] = (v.mean(axis=0), normal, float(np.ptp(v, axis=0).max()))
         centre, normal, extent = go["plane"]
-        gs = geo[s.name]
+        gs, gr = geo[s.name], geo[r.name]
         if "vertices" not in gs:
             gs["vertices"] = gs["T"].apply_points(np.asarray(s.mesh.vertices, float))
-        points = np.concatenate([geo[r.name]["x"], gs["vertices"]])
+            gs["vertex_box"] = _box(gs["vertices"])
+        if "x_box" not in gr:
+            gr["x_box"] = _box(gr["x"])
+        points = np.concatenate([gr["x"], gs["vertices"]])
         side = (points - centre) @ normal
-        eps = 1e-9 * max(float(np.ptp(points, axis=0).max()), extent, 1e-300)
+        # np.ptp(points, axis=0): the boxes' extremes are those of the points
+        lo, hi = np.minimum(gr["x_box"][0], gs["vertex_box"][0]), np.maximum(gr["x_box"][1], gs["vertex_box"][1])
+        eps = 1e-9 * max(float((hi - lo).max()), extent, 1e-300)
         return bool(np.all(side >= -eps) or np.all(side <= eps))
 
     def _haar_pair(self, geo, r, s, others):
@@ -1332,9 +1339,17 @@ class Interreflection(Precomputation):
         """``(caster, spheres)``: a ray caster of every object at the poses ``key`` and their bounding spheres
         (n_objects, 4: centre, radius through the farthest vertex), built once per pose set."""
         if self.reuse.scene_caster is None or self.reuse.scene_caster[0] != key:
-            caster = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces)) for o in self.objects],
-                               transforms=[geo[o.name]["T"] for o in self.objects])
-            spheres = np.array([[*geo[o.name]["center"], _bounding_radius(caster.world_vertices(i), geo[o.name]["center"])]
+            transforms = [geo[o.name]["T"] for o in self.objects]
+            if self.reuse.scene_caster is None:
+                caster, before = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces))
+                                            for o in self.objects], transforms=transforms), None
+            else:  # the previous poses' caster moved (a new one: others may hold it); unmoved objects keep arrays
+                _, before, old_spheres = self.reuse.scene_caster
+                caster = before.moved(transforms)
+            spheres = np.array([old_spheres[i] if before is not None and caster.world_vertices(i) is
+                                before.world_vertices(i) and np.array_equal(old_spheres[i, :3], geo[o.name]["center"])
+                                else [*geo[o.name]["center"],
+                                      _bounding_radius(caster.world_vertices(i), geo[o.name]["center"])]
                                 for i, o in enumerate(self.objects)]).reshape(-1, 4)
             self.reuse.scene_caster = (key, caster, spheres)
         return self.reuse.scene_caster[1], self.reuse.scene_caster[2]
@@ -1368,7 +1383,8 @@ class Interreflection(Precomputation):
                 moved = None
         src = {i: (np.asarray(self.objects[i].mesh.faces), geo[self.objects[i].name]["n"],
                    self.seps[self.objects[i].name], geo[self.objects[i].name]["center"],
-                   geo[self.objects[i].name]["radius"]) for i in sources}
+                   geo[self.objects[i].name]["radius"], spheres[i, 3], self._facing(geo, self.objects[i]))
+               for i in sources}
         hits = residual_hits(g["x"], g["n"], self.seps[r.name], caster, src, self.options.residual_rays,
                              previous=previous, moved=moved, stats=self.reuse.residual_counts,
                              full=self.options.residual_cone)
@@ -1382,6 +1398,14 @@ class Interreflection(Precomputation):
                  "operators": operators}
         self.reuse.residual_hits[r.name] = entry
         return entry
+
+    @staticmethod
+    def _facing(geo, s) -> np.ndarray:
+        """``_residual._facing`` of source ``s``'s world vertex normals, kept with its pose's geometry entry."""
+        gs = geo[s.name]
+        if "facing" not in gs:
+            gs["facing"] = _facing(gs["n"])
+        return gs["facing"]
 
     def _residual_light(self, geo, r, residuals, phi_r, method: str = "numba"):
         """The residual gather (V, K', C) on receiver ``r`` from the sources of ``phi_r`` (the pairs not
@@ -1550,6 +1574,14 @@ class Interreflection(Precomputation):
                        "residual_near_rays_cast": self.reuse.residual_counts.get("near_rays_cast", 0),
                        "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
+
+
+def _box(points) -> tuple:
+    """``(min, max)`` (3,) over the points (``+-inf`` when there are none)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    if not len(points):
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    return points.min(axis=0), points.max(axis=0)
 
 
 def precompute(scene, options=None, cache=True, progress: bool = True) -> Interreflection:

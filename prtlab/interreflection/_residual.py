@@ -44,8 +44,11 @@ from prtlab._validate import check_choice, check_float
 from prtlab.brdf._kernels import factor_at, tangent_frame_at
 from prtlab.geometry import _embree
 
+from ._kernels import SERIAL_ITEMS
+
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
            "gather_operator", "apply_gather", "pack_operators", "bounce_rgb", "near_hits", "near_hit_correction"]
+
 
 @dataclass(frozen=True)
 class ResidualHits:
@@ -689,6 +692,19 @@ def _facing(vertex_normals) -> np.ndarray:
     return n[0] / length
 
 
+def _source_bound(caster, s, source) -> float:
+    """The radius about the source's centre through its farthest world vertex: ``source[5]`` when the caller
+    keeps it (the same :func:`_bounding_radius`), else computed."""
+    if len(source) > 5:
+        return float(source[5])
+    return _bounding_radius(caster.world_vertices(s), np.asarray(source[3], float))
+
+
+def _source_facing(source) -> np.ndarray:
+    """:func:`_facing` of the source's vertex normals: ``source[6]`` when the caller keeps it, else computed."""
+    return source[6] if len(source) > 6 else _facing(source[1])
+
+
 def _tracer(caster, n_blocks: int):
     """A closest-hit query of ``caster``'s Embree scene for ``n_blocks`` blocks of rays (``_raycast._Tracer``): packets
     of 16 (``rtcIntersect16``) when ``prtlab.geometry._raycast.PACKETS`` is set, else one ray at a time; one slot and
@@ -716,9 +732,9 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     ``"reference"`` makes them (``_rays_kernel``), traces them through ``RayCaster.closest_hit`` and weighs the
     hits with numpy and :class:`prtlab.brdf.SeparableBRDF`, the specification: the same hits, factors within
     float64 rounding."""
-    faces, vertex_normals, sep, centre, radius = source
+    faces, vertex_normals, sep, centre, radius = source[:5]
     centre = np.asarray(centre, float)
-    bound = _bounding_radius(caster.world_vertices(s), centre)
+    bound = _source_bound(caster, s, source)
     bound += _margin(caster, centre, bound)
     m = grid[0] * grid[1]
     if method == "numba" and getattr(caster, "_scene", None) is not None:
@@ -730,7 +746,7 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     buf = np.empty((len(point), 8))
     if len(point):
         _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
-                     float(caster.epsilon), grid[2], _facing(vertex_normals), buf)
+                     float(caster.epsilon), grid[2], _source_facing(source), buf)
     live = np.flatnonzero(buf[:, 7] > 0.0)
     if not len(live):
         return None
@@ -768,7 +784,7 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
     uv32 = np.empty((n_rays, 2), np.float32)
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
-                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _facing(source[1]),
+                 float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _source_facing(source),
                  float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)), state, triangle,
                  uv32)
     stats["rays_cast"] += int(np.count_nonzero(state))
@@ -783,7 +799,7 @@ def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound,
     on ``triangle`` at ``uv32``: those on its front, weighed by :func:`_hit_factor_kernel` (None if none)."""
     if not len(rows):
         return None
-    faces, vertex_normals, sep, _, radius = source
+    faces, vertex_normals, sep, _, radius = source[:5]
     triangles, uv = triangle.astype(np.int64), uv32.astype(np.float64)
     g_nodes, g_values = receiver_sep._ext(receiver_sep.theta_in, receiver_sep.g_radial, 0.5 * np.pi)
     h_max = 0.5 * np.pi if sep.parameterisation == "plain" else np.pi
@@ -791,7 +807,7 @@ def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound,
     front = np.empty(len(rows), np.bool_)
     factor = np.empty((len(rows), receiver_sep.K, sep.K))
     _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps, grid[2],
-                       _facing(vertex_normals), np.ascontiguousarray(faces, np.int64),
+                       _source_facing(source), np.ascontiguousarray(faces, np.int64),
                        np.ascontiguousarray(vertex_normals, np.float64), triangles, uv, g_nodes, g_values,
                        np.ascontiguousarray(receiver_sep.freq, np.int64),
                        np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
@@ -859,7 +875,8 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
 
     ``caster`` holds every object at its pose (its object index is the key); ``sources`` maps the indices
     that are sources of this receiver to ``(faces, world vertex normals, separable BRDF, bounding-sphere
-    centre, radius)``. Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
+    centre, radius)``, optionally followed by the radius about that centre through the farthest world vertex and
+    :func:`_facing` of the normals (kept by callers across calls; computed when absent). Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
     over the hemisphere from a point inside it), so a small far source gets all of them; a ray counts
     when its first hit is the front of that source. With ``full > 0`` (steradians) a point outside the
     sphere casts ``n_rays`` times ``omega / full`` rays (a grid of its own, each ray weighted by its size; at
@@ -904,35 +921,48 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _capsule_at(points, v, centre, spheres, bound, eps):
+    """:func:`_capsule_kernel`'s test of point ``v``."""
+    x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
+    d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
+    for k in range(spheres.shape[0]):
+        t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
+                    0.0), 1.0)
+        g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
+        if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
+            return True
+    return False
+
+
 @numba.njit(cache=True, parallel=True)
 def _capsule_kernel(points, centre, spheres, bound, eps, near):
     """``near[v]``: the segment from ``points[v]`` to ``centre`` passes within ``bound + R + eps`` of a sphere ``(c, R)`` of
     ``spheres`` (S, 4). Every ray of a point lies, up to its ``tmax``, in the capsule of radius ``bound`` about that
     segment, so only such points can hold a ray that meets a sphere."""
     for v in numba.prange(points.shape[0]):
-        x0, x1, x2 = points[v, 0], points[v, 1], points[v, 2]
-        d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
-        dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
-        near[v] = False
-        for k in range(spheres.shape[0]):
-            t = min(max(((spheres[k, 0] - x0) * d0 + (spheres[k, 1] - x1) * d1 + (spheres[k, 2] - x2) * d2) / dd,
-                        0.0), 1.0)
-            g0, g1, g2 = x0 + t * d0 - spheres[k, 0], x1 + t * d1 - spheres[k, 1], x2 + t * d2 - spheres[k, 2]
-            if g0 * g0 + g1 * g1 + g2 * g2 <= (bound + spheres[k, 3] + eps) ** 2:
-                near[v] = True
-                break
+        near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
+
+
+@numba.njit(cache=True)
+def _capsule_serial(points, centre, spheres, bound, eps, near):
+    """:func:`_capsule_kernel` on one thread (no parallel region)."""
+    for v in range(points.shape[0]):
+        near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
 
 
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
     centre, radius = np.asarray(source[3], float), float(source[4])
     m = grid[0] * grid[1]
-    bound = _bounding_radius(caster.world_vertices(s), centre)
+    bound = _source_bound(caster, s, source)
     bound += _margin(caster, centre, bound)
     widened = spheres.copy()
     widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
     near = np.empty(len(points), np.bool_)
-    _capsule_kernel(points, centre, widened, bound, float(caster.epsilon), near)
+    capsule = _capsule_kernel if len(points) >= SERIAL_ITEMS else _capsule_serial
+    capsule(points, centre, widened, bound, float(caster.epsilon), near)
     candidates = np.flatnonzero(near)
     if not len(candidates):
         return old
@@ -942,7 +972,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         uv32 = np.empty((len(candidates), m, 2), np.float32)
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
-                       float(caster.epsilon), grid[2], _facing(source[1]), float(caster.tnear), s, widened,
+                       float(caster.epsilon), grid[2], _source_facing(source), float(caster.tnear), s, widened,
                        _tracer(caster, n_blocks), state, triangle, uv32)
         i, j = np.nonzero(state)
         if not len(i):
@@ -956,7 +986,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
-                 grid[2], _facing(source[1]), widened, flags)
+                 grid[2], _source_facing(source), widened, flags)
     i, j = np.nonzero(flags)
     if not len(i):
         return old

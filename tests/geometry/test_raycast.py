@@ -127,6 +127,36 @@ def test_update_transforms_rebuilds_only_on_change():
     assert hits.object == 1 and hits.distance == pytest.approx(4.5, abs=1e-6)
 
 
+def test_moved_copy_equals_a_fresh_caster(rng):
+    """A caster moved by ``moved`` (unmoved objects keep their posed arrays) has the world vertices, face normals,
+    bounds, sphere, offsets and hits of a caster built at the new poses, bit for bit, after one build; the original
+    keeps its poses; with no pose changed it shares the original's scene."""
+    meshes = [trimesh.creation.icosphere(2), trimesh.creation.box(), trimesh.creation.cylinder(0.5, 2.0)]
+    before = [Transform(translate=np.array([0.0, 0, 0])), Transform(translate=np.array([3.0, 0, 0])),
+              Transform(translate=np.array([0.0, 2.5, 0]), rotate_deg=np.array([30.0, 0, 10.0]))]
+    after = [before[0], Transform(translate=np.array([2.5, 0.3, 0]), rotate_deg=np.array([0.0, 45.0, 0])), before[2]]
+    caster = RayCaster(meshes, before)
+    moved = caster.moved(after)
+    assert moved.n_builds == caster.n_builds + 1
+    fresh = RayCaster(meshes, after)
+    assert moved.world_vertices(0) is caster.world_vertices(0) and moved.world_vertices(1) is not caster.world_vertices(1)
+    for i in range(3):
+        np.testing.assert_array_equal(moved.world_vertices(i), fresh.world_vertices(i))
+        np.testing.assert_array_equal(moved.face_normals(i), fresh.face_normals(i))
+    np.testing.assert_array_equal(moved.bounds, fresh.bounds)
+    for a, b in zip(moved.may_hit_bounds(), fresh.may_hit_bounds()):
+        np.testing.assert_array_equal(a, b)
+    assert (moved.epsilon, moved.tnear) == (fresh.epsilon, fresh.tnear)
+    origins, dirs = rng.normal(size=(500, 3)) * 4.0, random_directions(rng, 500)
+    got, want = moved.closest_hit(origins, dirs), fresh.closest_hit(origins, dirs)
+    assert got.hit.any()
+    for name in ("hit", "object", "triangle", "distance", "barycentric"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    np.testing.assert_array_equal(caster.world_vertices(1), RayCaster(meshes, before).world_vertices(1))
+    same = caster.moved(before)
+    assert same._scene is caster._scene and same.n_builds == caster.n_builds
+
+
 def test_scene_input_skips_portals():
     objs = [
         SceneObject("floor", trimesh.creation.box(), Transform(), Material()),

@@ -185,3 +185,35 @@ def test_fused_source_hits_equal_the_casters(rng, mesh, packets):
         np.testing.assert_array_equal(direction[at], ref[3][ref[5]])
         np.testing.assert_array_equal(hits.triangle[at], ref[4].triangle[ref[5]])
         np.testing.assert_array_equal(hits.barycentric[at], ref[4].barycentric[ref[5]])
+
+
+@pytest.mark.parametrize("packets", [True, False])
+@pytest.mark.parametrize("mesh", ["plane", "sphere"])
+def test_fused_projection_equals_the_hit_kernels(rng, mesh, packets):
+    """The fused hit radiance and projection (``project_source_hits_kernel``, a constant ``h``) gives the sums of
+    the hit kernels over ``source_hits``' hits (``hit_basis_kernel``, ``project_hits_kernel``) bit for bit, over
+    several batches (points around the source, inside its bounds too, some with no hit)."""
+    from prtlab import sh
+    from prtlab.geometry import RayCaster, _raycast
+    from prtlab.interreflection import _fields
+
+    source = PLANE if mesh == "plane" else builtin_mesh("icosphere")
+    vertices, faces = np.asarray(source.vertices, float), np.asarray(source.faces, dtype=np.int64)
+    normals = np.asarray(source.vertex_normals, dtype=np.float64)
+    caster = RayCaster([(vertices, faces)])
+    points = rng.normal(size=(150, 3)) * 1.2
+    psi = rng.normal(size=(3, len(vertices)))
+    dirs, weights = sh.quadrature(ORDER, 31)
+    wy = weights[:, None] * sh.basis(dirs, ORDER)
+    h = LAMBERT.h(np.array([0.0, 0.0, 1.0]))
+    fused, kernels = np.zeros((2, len(points), 3, ORDER * ORDER))
+    default, batch = _raycast.PACKETS, _fields._RAYS_PER_BATCH
+    try:
+        _raycast.PACKETS = packets
+        _fields._RAYS_PER_BATCH = 37 * len(dirs)  # batches of 37 points
+        _fields._projected_hits_fused(caster, points, dirs, wy, faces, normals, psi, np.broadcast_to(h, (1,)), fused)
+        _fields._projected_hits(caster, points, dirs, wy, faces, normals, psi, LAMBERT, 37, "numba", kernels)
+    finally:
+        _raycast.PACKETS, _fields._RAYS_PER_BATCH = default, batch
+    assert np.count_nonzero(fused) and np.count_nonzero(~fused.any(axis=(1, 2)))
+    np.testing.assert_array_equal(fused, kernels)

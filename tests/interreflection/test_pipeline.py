@@ -210,6 +210,35 @@ def test_may_block_kernel_equals_the_numpy_tier(seed):
     assert np.mean(fast == ref) >= 0.99 and fast[1] and not fast[2]
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.sampled_from([0, 1, 63, 64, 65, 300]))
+def test_serial_twins_equal_the_parallel_kernels(seed, n):
+    """The serial twins the pipeline runs on few items (no parallel region: ``may_block_serial``,
+    ``masked_product_serial``, ``_residual._capsule_serial``) give the parallel kernels' arrays bit for bit."""
+    from prtlab.interreflection import _kernels, _residual
+    from prtlab.interreflection._pipeline import _gaunt_block
+
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3)) * 2.0
+    centre, source = rng.normal(size=3), rng.normal(size=3)
+    radius, reach = float(rng.uniform(0.1, 1.0)), float(rng.uniform(0.5, 4.0))
+    serial, parallel = np.empty((2, n), bool)
+    _kernels.may_block_serial(x, centre, radius, reach, source, serial)
+    _kernels.may_block_kernel(x, centre, radius, reach, source, parallel)
+    np.testing.assert_array_equal(serial, parallel)
+    spheres = np.c_[rng.normal(size=(3, 3)), rng.uniform(0.05, 0.5, size=3)]
+    _residual._capsule_serial(x, source, spheres, radius, 1e-6, serial)
+    _residual._capsule_kernel(x, source, spheres, radius, 1e-6, parallel)
+    np.testing.assert_array_equal(serial, parallel)
+    vis, occ = rng.normal(size=(n, 16)), rng.normal(size=(n + 5, 16))
+    rows = rng.permutation(n + 5)[:n].astype(np.int64)
+    at = np.flatnonzero(rng.random(n) < 0.7)
+    a, b = vis.copy(), vis.copy()
+    _kernels.masked_product_serial(a, occ, at, rows, *_gaunt_block(4, 4, 4))
+    _kernels.masked_product_kernel(b, occ, at, rows, *_gaunt_block(4, 4, 4))
+    np.testing.assert_array_equal(a, b)
+
+
 def test_threshold_skips_pairs(pre):
     opts = InterreflectionOptions(**QUICK, threshold=1e9)
     res = Interreflection(pre.scene, opts, pre.data).shade(bounces=1)
