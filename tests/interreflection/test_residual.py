@@ -470,13 +470,10 @@ def test_residual_whole_makes_near_points_independent_of_the_basis(low_ball, mon
         InterreflectionOptions(residual_whole=1)
 
 
-@pytest.mark.parametrize("full", [0.0, 0.3])
-@pytest.mark.parametrize("seps", [(LAMBERT, PHONG, LAMBERT), (PHONG, PHONG, PHONG)])
-@pytest.mark.parametrize("r", [0, 1, 2])
-def test_fused_cast_equals_the_reference_cast(seps, r, full):
-    """``residual_hits``'s kernels (rays made, traced and weighed in numba) give the arrays of the reference (rays
-    traced through ``RayCaster.closest_hit``, weighed with numpy), bit for bit, and count the same rays: a full cast
-    (the ball a source of itself) and, after the box moves, the incremental cast."""
+def _casts_before_and_after_a_move(seps, r, full, **kwargs):
+    """Receiver ``r``'s residual hits (``residual_hits(..., **kwargs)``) in ``_objects``' poses, a full cast (the
+    ball a source of itself), then after the box moves next to the ball, the incremental cast (``previous``), and
+    the rays both cast."""
     meshes, poses, moves = _objects()
     after_poses = [poses[0], poses[1], moves["next to the ball"]]
     before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
@@ -484,21 +481,34 @@ def test_fused_cast_equals_the_reference_cast(seps, r, full):
     indices = [i for i in range(3) if i != r or r == 1]
     src_before = _sources(meshes, poses, indices, seps)
     src_after = _sources(meshes, after_poses, indices, seps)
-    runs = {}
-    for method in ("reference", "numba"):
-        stats = {}
-        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, method=method, full=full)
-        moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
-        new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
-                            moved=moved, stats=stats, method=method, full=full)
-        runs[method] = (old, new, stats["rays_cast"])
-    assert runs["numba"][2] == runs["reference"][2]
-    for ref, fast in zip(runs["reference"][:2], runs["numba"][:2]):
-        assert set(ref) == set(fast) and ref
-        for i in ref:
-            for a, b in zip(ref[i].arrays(), fast[i].arrays()):
+    stats = {}
+    old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, full=full, **kwargs)
+    moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
+    new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
+                        moved=moved, stats=stats, full=full, **kwargs)
+    return old, new, stats["rays_cast"]
+
+
+def _assert_same_casts(one, other):
+    """Two runs of :func:`_casts_before_and_after_a_move`: the same rays cast and every array bit for bit."""
+    assert one[2] == other[2]
+    for a_hits, b_hits in zip(one[:2], other[:2]):
+        assert set(a_hits) == set(b_hits) and a_hits
+        for i in a_hits:
+            for a, b in zip(a_hits[i].arrays(), b_hits[i].arrays()):
                 assert a.dtype == b.dtype
                 np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("full", [0.0, 0.3])
+@pytest.mark.parametrize("seps", [(LAMBERT, PHONG, LAMBERT), (PHONG, PHONG, PHONG)])
+@pytest.mark.parametrize("r", [0, 1, 2])
+def test_fused_cast_equals_the_reference_cast(seps, r, full):
+    """``residual_hits``'s kernels (rays made, traced and weighed in numba) give the arrays of the reference (rays
+    traced through ``RayCaster.closest_hit``, weighed with numpy), bit for bit, and count the same rays: a full cast
+    (the ball a source of itself) and, after the box moves, the incremental cast."""
+    _assert_same_casts(_casts_before_and_after_a_move(seps, r, full, method="reference"),
+                       _casts_before_and_after_a_move(seps, r, full, method="numba"))
 
 
 def test_residual_hits_method_is_validated():
@@ -897,36 +907,14 @@ def test_kept_blockers_equal_a_fresh_instances(low_ball):
 
 @pytest.mark.parametrize("full", [0.0, 0.3])
 @pytest.mark.parametrize("r", [0, 1, 2])
-def test_packet_casts_equal_one_ray_casts(r, full):
+def test_packet_casts_equal_one_ray_casts(r, full, monkeypatch):
     """The cast kernels' packets of 16 rays (``rtcIntersect16``, ``_raycast.PACKETS``) give the arrays of one ray
     at a time (``rtcIntersect1``) bit for bit and count the same rays: a full cast (the ball a source of itself)
     and, after the box moves, the incremental cast."""
     from prtlab.geometry import _raycast
 
-    meshes, poses, moves = _objects()
-    seps = (LAMBERT, PHONG, LAMBERT)
-    after_poses = [poses[0], poses[1], moves["next to the ball"]]
-    before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
-    x, n = _receiver(meshes, poses, r)
-    indices = [i for i in range(3) if i != r or r == 1]
-    src_before = _sources(meshes, poses, indices, seps)
-    src_after = _sources(meshes, after_poses, indices, seps)
-    runs, default = {}, _raycast.PACKETS
-    try:
-        for packets in (True, False):
-            _raycast.PACKETS = packets
-            stats = {}
-            old = residual_hits(x, n, seps[r], before, src_before, 64, seed=3, stats=stats, full=full)
-            moved = {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])} if r != 2 else None
-            new = residual_hits(x, n, seps[r], after, src_after, 64, seed=3, previous=old if r != 2 else None,
-                                moved=moved, stats=stats, full=full)
-            runs[packets] = (old, new, stats["rays_cast"])
-    finally:
-        _raycast.PACKETS = default
-    assert runs[True][2] == runs[False][2]
-    for one, packet in zip(runs[False][:2], runs[True][:2]):
-        assert set(one) == set(packet) and one
-        for i in one:
-            for a, b in zip(one[i].arrays(), packet[i].arrays()):
-                assert a.dtype == b.dtype
-                np.testing.assert_array_equal(a, b)
+    runs = {}
+    for packets in (True, False):
+        monkeypatch.setattr(_raycast, "PACKETS", packets)
+        runs[packets] = _casts_before_and_after_a_move((LAMBERT, PHONG, LAMBERT), r, full)
+    _assert_same_casts(runs[False], runs[True])
