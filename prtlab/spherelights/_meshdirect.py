@@ -194,6 +194,8 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     w = np.ascontiguousarray(d @ rot.T)  # world directions
     radiance = np.ascontiguousarray((sh.basis(w, order) @ env) * (4.0 * math.pi / len(d)))  # (M, 3), weighted
     out = sh.basis(n, order) @ sh.irradiance(env) if len(p) else np.zeros((0, 3))
+    # a Fibonacci set's directions descend in height (``d_y``, object frame): the rays in a cone are a run of them
+    heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
     for s in range(0, len(p), _CHUNK):
         ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
         if method == "reference":
@@ -208,7 +210,7 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
                 visible &= ~sure
                 ip, ij = np.nonzero(cand & ~sure)
             else:  # the kernel clears the rays meeting an inner sphere
-                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible)
+                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible, heights)
             if len(ip):
                 o = (ps[ip] - occ.translate) @ occ.rotation / occ.scale
                 hit = occ.caster.occluded(o, w[ij] @ occ.rotation, normals=ns[ip] @ occ.rotation, method=cast)
@@ -222,14 +224,23 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     return out
 
 
-def _meets(points, dirs, bounds, inner, visible):
+def _meets(points, dirs, bounds, inner, visible, heights=None):
     """The visible rays meeting an inner sphere are cleared in ``visible``; returns the receiver and direction
-    indices ``(ip, ij)`` of the other visible rays meeting a bounding sphere (to cast)."""
-    n = int(visible.sum())
-    ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-    k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
-                      np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4), visible, ip, ij)
-    return ip[:k], ij[:k]
+    indices ``(ip, ij)`` (in the order of ``np.nonzero``) of the other visible rays meeting a bounding sphere (to
+    cast). ``heights (3,)``: ``dirs`` are :func:`fibonacci_directions` turned by a rotation whose second column
+    this is (only the directions in a run around each cone are tested); None: every direction."""
+    bounds = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
+    inner = np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4)
+    runs = np.empty((len(points), 2), dtype=np.int64)
+    listed = np.empty(visible.shape, dtype=np.bool_)
+    counts = np.empty(len(points) + 1, dtype=np.int64)
+    counts[0] = 0
+    _meets_kernel(points, dirs, bounds, inner, np.zeros(3) if heights is None else heights, heights is not None,
+                  visible, listed, runs, counts[1:])
+    ptr = np.cumsum(counts)
+    ip, ij = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+    _meets_list(listed, runs, ptr, ip, ij)
+    return ip, ij
 
 
 # ---------------------------------------------------------------------------------------------- float64 reference
@@ -336,16 +347,39 @@ def _cones(point, spheres, axis, cos_half):
 
 
 @numba.njit(cache=True)
-def _meets_kernel(points, dirs, bounds, inner, visible, ip, ij):
-    """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
-    inside a sphere: every ray. Returns the number listed."""
-    b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
-    i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
-    k = 0
-    for q in range(points.shape[0]):
+def _cone_run(axis, cos_half, heights, n_dirs, run):
+    """Widen ``run`` (first and last index) by the directions of a Fibonacci set of ``n_dirs`` turned by a rotation
+    of second column ``heights`` that can lie in the cone ``(axis, cos_half)``: those of object-frame height within
+    the cone's, one index of margin each side."""
+    h = min(1.0, max(-1.0, heights[0] * axis[0] + heights[1] * axis[1] + heights[2] * axis[2]))
+    polar, half = math.acos(h), math.acos(min(1.0, max(-1.0, cos_half)))
+    top, bottom = math.cos(max(0.0, polar - half)), math.cos(min(math.pi, polar + half))
+    first = int(math.floor(((1.0 - top) * n_dirs - 1.0) / 2.0)) - 1  # d_y = 1 - (2 j + 1) / n
+    last = int(math.ceil(((1.0 - bottom) * n_dirs - 1.0) / 2.0)) + 1
+    run[0], run[1] = max(0, min(run[0], first)), min(n_dirs - 1, max(run[1], last))
+
+
+@numba.njit(cache=True, parallel=True)
+def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, listed, runs, counts):
+    """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (``listed``); a
+    point inside a sphere: every ray. With ``fibonacci`` only the run of directions ``runs[q]`` around the cones is
+    tested (the others meet none; ``listed`` is set in the run only); ``counts[q]``: the rays listed."""
+    for q in numba.prange(points.shape[0]):
+        b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
+        i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
         b_in = _cones(points[q], bounds, b_axis, b_cos)
         i_in = _cones(points[q], inner, i_axis, i_cos)
-        for j in range(dirs.shape[0]):
+        run = runs[q]
+        run[0], run[1] = 0, dirs.shape[0] - 1
+        if fibonacci and not (b_in or i_in):
+            run[0], run[1] = dirs.shape[0], -1
+            for s in range(bounds.shape[0]):
+                _cone_run(b_axis[s], b_cos[s], heights, dirs.shape[0], run)
+            for s in range(inner.shape[0]):
+                _cone_run(i_axis[s], i_cos[s], heights, dirs.shape[0], run)
+        k = 0
+        for j in range(run[0], run[1] + 1):
+            listed[q, j] = False
             if not visible[q, j]:
                 continue
             dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
@@ -362,10 +396,20 @@ def _meets_kernel(points, dirs, bounds, inner, visible, ip, ij):
             while not cand and s < b_axis.shape[0]:
                 cand = b_axis[s, 0] * dx + b_axis[s, 1] * dy + b_axis[s, 2] * dz > b_cos[s]
                 s += 1
-            if cand:
+            listed[q, j] = cand
+            k += cand
+        counts[q] = k
+
+
+@numba.njit(cache=True, parallel=True)
+def _meets_list(listed, runs, ptr, ip, ij):
+    """The rays ``listed`` (within each point's run) as ``np.nonzero`` lists them, point ``q`` from ``ptr[q]``."""
+    for q in numba.prange(listed.shape[0]):
+        k = ptr[q]
+        for j in range(runs[q, 0], runs[q, 1] + 1):
+            if listed[q, j]:
                 ip[k], ij[k] = q, j
                 k += 1
-    return k
 
 
 @numba.njit(cache=True, parallel=True)
