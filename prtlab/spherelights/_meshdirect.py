@@ -229,18 +229,12 @@ def _meets(points, dirs, bounds, inner, visible, heights=None):
     indices ``(ip, ij)`` (in the order of ``np.nonzero``) of the other visible rays meeting a bounding sphere (to
     cast). ``heights (3,)``: ``dirs`` are :func:`fibonacci_directions` turned by a rotation whose second column
     this is (only the directions in a run around each cone are tested); None: every direction."""
-    bounds = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4)
-    inner = np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4)
-    runs = np.empty((len(points), 2), dtype=np.int64)
-    listed = np.empty(visible.shape, dtype=np.bool_)
-    counts = np.empty(len(points) + 1, dtype=np.int64)
-    counts[0] = 0
-    _meets_kernel(points, dirs, bounds, inner, np.zeros(3) if heights is None else heights, heights is not None,
-                  visible, listed, runs, counts[1:])
-    ptr = np.cumsum(counts)
-    ip, ij = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
-    _meets_list(listed, runs, ptr, ip, ij)
-    return ip, ij
+    n = int(visible.sum())
+    ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
+                      np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4),
+                      np.zeros(3) if heights is None else heights, heights is not None, visible, ip, ij)
+    return ip[:k], ij[:k]
 
 
 # ---------------------------------------------------------------------------------------------- float64 reference
@@ -359,17 +353,18 @@ def _cone_run(axis, cos_half, heights, n_dirs, run):
     run[0], run[1] = max(0, min(run[0], first)), min(n_dirs - 1, max(run[1], last))
 
 
-@numba.njit(cache=True, parallel=True)
-def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, listed, runs, counts):
-    """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (``listed``); a
-    point inside a sphere: every ray. With ``fibonacci`` only the run of directions ``runs[q]`` around the cones is
-    tested (the others meet none; ``listed`` is set in the run only); ``counts[q]``: the rays listed."""
-    for q in numba.prange(points.shape[0]):
-        b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
-        i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
+@numba.njit(cache=True)
+def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, ij):
+    """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
+    inside a sphere: every ray. With ``fibonacci`` only the run of directions around the cones is tested (the
+    others meet none). Returns the number listed. Serial: a parallel region per call costs more than the work."""
+    b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
+    i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
+    run = np.empty(2, dtype=np.int64)
+    k = 0
+    for q in range(points.shape[0]):
         b_in = _cones(points[q], bounds, b_axis, b_cos)
         i_in = _cones(points[q], inner, i_axis, i_cos)
-        run = runs[q]
         run[0], run[1] = 0, dirs.shape[0] - 1
         if fibonacci and not (b_in or i_in):
             run[0], run[1] = dirs.shape[0], -1
@@ -377,9 +372,7 @@ def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, list
                 _cone_run(b_axis[s], b_cos[s], heights, dirs.shape[0], run)
             for s in range(inner.shape[0]):
                 _cone_run(i_axis[s], i_cos[s], heights, dirs.shape[0], run)
-        k = 0
         for j in range(run[0], run[1] + 1):
-            listed[q, j] = False
             if not visible[q, j]:
                 continue
             dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
@@ -396,20 +389,10 @@ def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, list
             while not cand and s < b_axis.shape[0]:
                 cand = b_axis[s, 0] * dx + b_axis[s, 1] * dy + b_axis[s, 2] * dz > b_cos[s]
                 s += 1
-            listed[q, j] = cand
-            k += cand
-        counts[q] = k
-
-
-@numba.njit(cache=True, parallel=True)
-def _meets_list(listed, runs, ptr, ip, ij):
-    """The rays ``listed`` (within each point's run) as ``np.nonzero`` lists them, point ``q`` from ``ptr[q]``."""
-    for q in numba.prange(listed.shape[0]):
-        k = ptr[q]
-        for j in range(runs[q, 0], runs[q, 1] + 1):
-            if listed[q, j]:
+            if cand:
                 ip[k], ij[k] = q, j
                 k += 1
+    return k
 
 
 @numba.njit(cache=True, parallel=True)
