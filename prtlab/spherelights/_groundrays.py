@@ -412,10 +412,12 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
 def _rays(points, rule, blockers):
     """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their point and rule direction
     indices (flat, as ``np.nonzero``), the distance to the first opaque sphere ``(P, K)`` (None: none), their
-    origins and directions (flat) and each point's first ray (``(P + 1,)``)."""
+    origins (offset off the ground as the caster offsets them along a normal ``+Y``: cast them without normals)
+    and directions (flat) and each point's first ray (``(P + 1,)``)."""
     dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
     n_azimuth = _rings(dirs) if blockers.caster is not None else 0
     bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
+    lift = blockers.caster.epsilon if blockers.caster is not None else 0.0
     for s in range(0, len(points), _CHUNK):
         p = points[s:s + _CHUNK]
         counts = np.zeros(len(p), dtype=np.int64)
@@ -426,20 +428,24 @@ def _rays(points, rule, blockers):
         np.cumsum(counts, out=ptr[1:])
         ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
         origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
-        _list_rays(p, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        _list_rays(p, cand, dirs, ptr, lift, ip, ik, origins, ray_dirs)
         yield slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
 
 
 @numba.njit(cache=True, parallel=True)
-def _list_rays(points, cand, dirs, ptr, ip, ik, origins, ray_dirs):
+def _list_rays(points, cand, dirs, ptr, epsilon, ip, ik, origins, ray_dirs):
     """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
-    their point ``ip`` and direction ``ik``, origin ``points[ip]`` and direction ``dirs[ik]``."""
+    their point ``ip`` and direction ``ik``, origin ``points[ip]`` offset by ``epsilon`` along the normal ``+Y``
+    on the side of the ray (the arithmetic of ``RayCaster``'s ``normals``) and direction ``dirs[ik]``."""
     for q in numba.prange(points.shape[0]):
         i = ptr[q]
         for k in range(cand.shape[1]):
             if cand[q, k]:
                 ip[i], ik[i] = q, k
-                origins[i, 0], origins[i, 1], origins[i, 2] = points[q, 0], points[q, 1], points[q, 2]
+                side = epsilon if dirs[k, 1] >= 0.0 else -epsilon
+                origins[i, 0] = points[q, 0] + side * 0.0
+                origins[i, 1] = points[q, 1] + side * 1.0
+                origins[i, 2] = points[q, 2] + side * 0.0
                 ray_dirs[i, 0], ray_dirs[i, 1], ray_dirs[i, 2] = dirs[k, 0], dirs[k, 1], dirs[k, 2]
                 i += 1
 
@@ -481,8 +487,7 @@ def _direct(p, env, blockers, rule, method) -> np.ndarray:
     for sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ in _rays(p, rule, blockers):
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
-            hit = blockers.caster.occluded(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
-                                           method=method)
+            hit = blockers.caster.occluded(origins, ray_dirs, method=method)  # origins offset by _rays
         out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
     return out
 
@@ -573,8 +578,7 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
             if env is not None:
                 direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
             continue
-        hits = blockers.caster.closest_hit(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
-                                           method=method)
+        hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _rays
         if tier == "numba":
             # per point its rays in order (``ptr``): the sums of the reference below, term by term
             blocked = np.zeros((len(cand), 3))

@@ -220,12 +220,15 @@ def test_ray_lists_are_the_nonzero_candidates(rng):
         ptr = np.concatenate([[0], np.cumsum(cand.sum(axis=1))])
         ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
         origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
-        _list_rays(pts, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        _list_rays(pts, cand, dirs, ptr, 0.0, ip, ik, origins, ray_dirs)
         ref_p, ref_k = np.nonzero(cand)
         np.testing.assert_array_equal(ip, ref_p)
         np.testing.assert_array_equal(ik, ref_k)
         np.testing.assert_array_equal(origins, pts[ref_p])
         np.testing.assert_array_equal(ray_dirs, dirs[ref_k])
+        _list_rays(pts, cand, dirs, ptr, 1e-4, ip, ik, origins, ray_dirs)  # offset as the caster's normals do
+        side = np.where(dirs[ref_k, 1] >= 0.0, 1e-4, -1e-4)
+        np.testing.assert_array_equal(origins, pts[ref_p] + side[:, None] * np.array([0.0, 1.0, 0.0]))
 
 
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
