@@ -165,8 +165,8 @@ def ground_ray_nodes(points, spheres, spacing: float):
     if not spacing or n < 8 or not len(sph) or extent <= 0.0 or hi[1] - lo[1] > 1e-12 * extent:
         return p, rows, weights
     h0 = _FINEST * math.sqrt(max(hi[0] - lo[0], 1e-3 * extent) * max(hi[2] - lo[2], 1e-3 * extent) / n)
-    dist2 = sum((p[:, i, None] - sph[None, :, i]) ** 2 for i in range(3))  # (P, S)
-    gap = np.min(np.sqrt(dist2) - sph[None, :, 3], axis=1)
+    gap = np.empty(n)
+    _gaps(p, sph, gap)
     top = int(math.floor(math.log2(extent / h0))) if extent >= h0 else -1
     with np.errstate(divide="ignore", invalid="ignore"):
         level = np.floor(np.log2(spacing * gap / h0))
@@ -197,6 +197,17 @@ def ground_ray_nodes(points, spheres, spacing: float):
     rows[far] = len(exact) + inverse.reshape(-1, 4)
     weights[far] = np.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=1)
     return cast, rows, weights
+
+
+@numba.njit(cache=True)
+def _gaps(points, spheres, out):
+    """``out[p]``: the least ``|p - c| - r`` over the spheres, as numpy's ``min(sqrt(sum((p - c)^2)) - r)``."""
+    for q in range(points.shape[0]):
+        gap = np.inf
+        for j in range(spheres.shape[0]):
+            dx, dy, dz = points[q, 0] - spheres[j, 0], points[q, 1] - spheres[j, 1], points[q, 2] - spheres[j, 2]
+            gap = min(gap, math.sqrt(dx * dx + dy * dy + dz * dz) - spheres[j, 3])
+        out[q] = gap
 
 
 def _interpolated(values, rows, weights) -> np.ndarray:
@@ -274,13 +285,15 @@ def candidate_rays(points, dirs, bounds, *, method: str = "numba") -> np.ndarray
     return _candidates(p, d, b, _rings(d))
 
 
-def _candidates(points, dirs, bounds, n_azimuth: int) -> np.ndarray:
-    """``candidate_rays``' kernels on checked arrays; ``n_azimuth``: ``_rings(dirs)``."""
+def _candidates(points, dirs, bounds, n_azimuth: int, counts=None) -> np.ndarray:
+    """``candidate_rays``' kernels on checked arrays; ``n_azimuth``: ``_rings(dirs)``; ``counts (P,)``, if given,
+    receives each point's number of candidates."""
     out = np.empty((len(points), len(dirs)), dtype=np.bool_)
+    counts = np.empty(0, dtype=np.int64) if counts is None else counts
     if n_azimuth:
-        _candidates_rings_kernel(points, dirs, n_azimuth, bounds, out)
+        _candidates_rings_kernel(points, dirs, n_azimuth, bounds, out, counts)
     else:
-        _candidates_kernel(points, dirs, bounds, out)
+        _candidates_kernel(points, dirs, bounds, out, counts)
     return out
 
 
@@ -298,8 +311,18 @@ def _rings(dirs) -> int:
     return a if np.allclose(phi, expect, rtol=0.0, atol=1e-9) else 0
 
 
+@numba.njit(cache=True, inline="always")
+def _count_row(out, q, counts):
+    """``counts[q]``: the candidates of row ``q`` (skipped if ``counts`` is empty)."""
+    if counts.shape[0]:
+        c = 0
+        for k in range(out.shape[1]):
+            c += out[q, k]
+        counts[q] = c
+
+
 @numba.njit(cache=True, parallel=True)
-def _candidates_kernel(points, dirs, spheres, out):
+def _candidates_kernel(points, dirs, spheres, out, counts):
     """``candidate_rays``: per point, each sphere's cone (unit axis, cosine of its half angle); a ray meets the
     sphere when its cosine to the axis exceeds that (a point inside a sphere: every ray)."""
     n_s = spheres.shape[0]
@@ -324,10 +347,11 @@ def _candidates_kernel(points, dirs, spheres, out):
                 hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
                 j += 1
             out[q, k] = hit
+        _count_row(out, q, counts)
 
 
 @numba.njit(cache=True, parallel=True)
-def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
+def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
     """``_candidates_kernel`` for a product rule (``_rings``): per ring, a sphere whose cone no direction of the
     ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
     and the others are tested only at the azimuths of their window (widened by one azimuth each side); the test of
@@ -359,6 +383,7 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
         for k in range(dirs.shape[0]):
             out[q, k] = inside
         if inside:
+            _count_row(out, q, counts)
             continue
         for e in range(n_ring):
             base = e * n_azimuth
@@ -381,38 +406,46 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out):
                     k = base + t % n_azimuth
                     if not out[q, k]:
                         out[q, k] = ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]
+        _count_row(out, q, counts)
 
 
 def _rays(points, rule, blockers):
     """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their point and rule direction
     indices (flat, as ``np.nonzero``), the distance to the first opaque sphere ``(P, K)`` (None: none), their
-    origins and directions (flat) and each point's first ray (``(P + 1,)``)."""
+    origins (offset off the ground as the caster offsets them along a normal ``+Y``: cast them without normals)
+    and directions (flat) and each point's first ray (``(P + 1,)``)."""
     dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
     n_azimuth = _rings(dirs) if blockers.caster is not None else 0
     bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
+    lift = blockers.caster.epsilon if blockers.caster is not None else 0.0
     for s in range(0, len(points), _CHUNK):
         p = points[s:s + _CHUNK]
-        cand = _candidates(p, dirs, bounds, n_azimuth) if blockers.caster is not None else np.zeros(
+        counts = np.zeros(len(p), dtype=np.int64)
+        cand = _candidates(p, dirs, bounds, n_azimuth, counts) if blockers.caster is not None else np.zeros(
             (len(p), len(rule.dirs)), dtype=bool)
         t_sphere = sphere_hits(p, rule.dirs, blockers.spheres) if len(blockers.spheres) else None
         ptr = np.zeros(len(p) + 1, dtype=np.int64)
-        np.cumsum(cand.sum(axis=1), out=ptr[1:])
+        np.cumsum(counts, out=ptr[1:])
         ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
         origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
-        _list_rays(p, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        _list_rays(p, cand, dirs, ptr, lift, ip, ik, origins, ray_dirs)
         yield slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
 
 
 @numba.njit(cache=True, parallel=True)
-def _list_rays(points, cand, dirs, ptr, ip, ik, origins, ray_dirs):
+def _list_rays(points, cand, dirs, ptr, epsilon, ip, ik, origins, ray_dirs):
     """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
-    their point ``ip`` and direction ``ik``, origin ``points[ip]`` and direction ``dirs[ik]``."""
+    their point ``ip`` and direction ``ik``, origin ``points[ip]`` offset by ``epsilon`` along the normal ``+Y``
+    on the side of the ray (the arithmetic of ``RayCaster``'s ``normals``) and direction ``dirs[ik]``."""
     for q in numba.prange(points.shape[0]):
         i = ptr[q]
         for k in range(cand.shape[1]):
             if cand[q, k]:
                 ip[i], ik[i] = q, k
-                origins[i, 0], origins[i, 1], origins[i, 2] = points[q, 0], points[q, 1], points[q, 2]
+                side = epsilon if dirs[k, 1] >= 0.0 else -epsilon
+                origins[i, 0] = points[q, 0] + side * 0.0
+                origins[i, 1] = points[q, 1] + side * 1.0
+                origins[i, 2] = points[q, 2] + side * 0.0
                 ray_dirs[i, 0], ray_dirs[i, 1], ray_dirs[i, 2] = dirs[k, 0], dirs[k, 1], dirs[k, 2]
                 i += 1
 
@@ -454,8 +487,7 @@ def _direct(p, env, blockers, rule, method) -> np.ndarray:
     for sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ in _rays(p, rule, blockers):
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
-            hit = blockers.caster.occluded(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
-                                           method=method)
+            hit = blockers.caster.occluded(origins, ray_dirs, method=method)  # origins offset by _rays
         out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
     return out
 
@@ -546,8 +578,7 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
             if env is not None:
                 direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
             continue
-        hits = blockers.caster.closest_hit(origins, ray_dirs, normals=np.broadcast_to(_UP, (len(ip), 3)),
-                                           method=method)
+        hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _rays
         if tier == "numba":
             # per point its rays in order (``ptr``): the sums of the reference below, term by term
             blocked = np.zeros((len(cand), 3))

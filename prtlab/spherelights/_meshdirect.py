@@ -194,6 +194,8 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     w = np.ascontiguousarray(d @ rot.T)  # world directions
     radiance = np.ascontiguousarray((sh.basis(w, order) @ env) * (4.0 * math.pi / len(d)))  # (M, 3), weighted
     out = sh.basis(n, order) @ sh.irradiance(env) if len(p) else np.zeros((0, 3))
+    # a Fibonacci set's directions descend in height (``d_y``, object frame): the rays in a cone are a run of them
+    heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
     for s in range(0, len(p), _CHUNK):
         ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
         if method == "reference":
@@ -208,7 +210,7 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
                 visible &= ~sure
                 ip, ij = np.nonzero(cand & ~sure)
             else:  # the kernel clears the rays meeting an inner sphere
-                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible)
+                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible, heights)
             if len(ip):
                 o = (ps[ip] - occ.translate) @ occ.rotation / occ.scale
                 hit = occ.caster.occluded(o, w[ij] @ occ.rotation, normals=ns[ip] @ occ.rotation, method=cast)
@@ -222,13 +224,16 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     return out
 
 
-def _meets(points, dirs, bounds, inner, visible):
+def _meets(points, dirs, bounds, inner, visible, heights=None):
     """The visible rays meeting an inner sphere are cleared in ``visible``; returns the receiver and direction
-    indices ``(ip, ij)`` of the other visible rays meeting a bounding sphere (to cast)."""
+    indices ``(ip, ij)`` (in the order of ``np.nonzero``) of the other visible rays meeting a bounding sphere (to
+    cast). ``heights (3,)``: ``dirs`` are :func:`fibonacci_directions` turned by a rotation whose second column
+    this is (only the directions in a run around each cone are tested); None: every direction."""
     n = int(visible.sum())
     ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
-                      np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4), visible, ip, ij)
+                      np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4),
+                      np.zeros(3) if heights is None else heights, heights is not None, visible, ip, ij)
     return ip[:k], ij[:k]
 
 
@@ -336,16 +341,38 @@ def _cones(point, spheres, axis, cos_half):
 
 
 @numba.njit(cache=True)
-def _meets_kernel(points, dirs, bounds, inner, visible, ip, ij):
+def _cone_run(axis, cos_half, heights, n_dirs, run):
+    """Widen ``run`` (first and last index) by the directions of a Fibonacci set of ``n_dirs`` turned by a rotation
+    of second column ``heights`` that can lie in the cone ``(axis, cos_half)``: those of object-frame height within
+    the cone's, one index of margin each side."""
+    h = min(1.0, max(-1.0, heights[0] * axis[0] + heights[1] * axis[1] + heights[2] * axis[2]))
+    polar, half = math.acos(h), math.acos(min(1.0, max(-1.0, cos_half)))
+    top, bottom = math.cos(max(0.0, polar - half)), math.cos(min(math.pi, polar + half))
+    first = int(math.floor(((1.0 - top) * n_dirs - 1.0) / 2.0)) - 1  # d_y = 1 - (2 j + 1) / n
+    last = int(math.ceil(((1.0 - bottom) * n_dirs - 1.0) / 2.0)) + 1
+    run[0], run[1] = max(0, min(run[0], first)), min(n_dirs - 1, max(run[1], last))
+
+
+@numba.njit(cache=True)
+def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, ij):
     """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
-    inside a sphere: every ray. Returns the number listed."""
+    inside a sphere: every ray. With ``fibonacci`` only the run of directions around the cones is tested (the
+    others meet none). Returns the number listed. Serial: a parallel region per call costs more than the work."""
     b_axis, b_cos = np.empty((bounds.shape[0], 3)), np.empty(bounds.shape[0])
     i_axis, i_cos = np.empty((inner.shape[0], 3)), np.empty(inner.shape[0])
+    run = np.empty(2, dtype=np.int64)
     k = 0
     for q in range(points.shape[0]):
         b_in = _cones(points[q], bounds, b_axis, b_cos)
         i_in = _cones(points[q], inner, i_axis, i_cos)
-        for j in range(dirs.shape[0]):
+        run[0], run[1] = 0, dirs.shape[0] - 1
+        if fibonacci and not (b_in or i_in):
+            run[0], run[1] = dirs.shape[0], -1
+            for s in range(bounds.shape[0]):
+                _cone_run(b_axis[s], b_cos[s], heights, dirs.shape[0], run)
+            for s in range(inner.shape[0]):
+                _cone_run(i_axis[s], i_cos[s], heights, dirs.shape[0], run)
+        for j in range(run[0], run[1] + 1):
             if not visible[q, j]:
                 continue
             dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]

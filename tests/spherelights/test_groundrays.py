@@ -188,7 +188,7 @@ def test_candidate_rays_on_rings_match_the_direction_by_direction_test(rng, rule
     """On a product rule the kernel tests only the azimuth windows of the cones that meet a ring: the same
     result as testing every direction against every sphere (spheres below, above and around the points, some
     points inside one), and as the float64 reference but for rays grazing a cone."""
-    from prtlab.spherelights._groundrays import _candidates_kernel, _rings
+    from prtlab.spherelights._groundrays import _candidates, _candidates_kernel, _rings
 
     dirs = ground_ray_rule(*rule).dirs
     assert _rings(dirs) == rule[0] and _rings(dirs[::-1].copy()) == 0
@@ -198,8 +198,12 @@ def test_candidate_rays_on_rings_match_the_direction_by_direction_test(rng, rule
                                  axis=1)
         fast = candidate_rays(pts, dirs, spheres)
         each = np.empty_like(fast)
-        _candidates_kernel(pts, np.ascontiguousarray(dirs), spheres, each)
+        _candidates_kernel(pts, np.ascontiguousarray(dirs), spheres, each, np.empty(0, dtype=np.int64))
         np.testing.assert_array_equal(fast, each)
+        for n_azimuth in (_rings(dirs), 0):  # the counts of both kernels
+            counts = np.full(len(pts), -1, dtype=np.int64)
+            _candidates(pts, np.ascontiguousarray(dirs), spheres, n_azimuth, counts)
+            np.testing.assert_array_equal(counts, fast.sum(axis=1))
         assert (fast != candidate_rays(pts, dirs, spheres, method="reference")).mean() < 1e-4
         assert 0.05 < fast.mean() < 0.95
 
@@ -216,12 +220,15 @@ def test_ray_lists_are_the_nonzero_candidates(rng):
         ptr = np.concatenate([[0], np.cumsum(cand.sum(axis=1))])
         ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
         origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
-        _list_rays(pts, cand, dirs, ptr, ip, ik, origins, ray_dirs)
+        _list_rays(pts, cand, dirs, ptr, 0.0, ip, ik, origins, ray_dirs)
         ref_p, ref_k = np.nonzero(cand)
         np.testing.assert_array_equal(ip, ref_p)
         np.testing.assert_array_equal(ik, ref_k)
         np.testing.assert_array_equal(origins, pts[ref_p])
         np.testing.assert_array_equal(ray_dirs, dirs[ref_k])
+        _list_rays(pts, cand, dirs, ptr, 1e-4, ip, ik, origins, ray_dirs)  # offset as the caster's normals do
+        side = np.where(dirs[ref_k, 1] >= 0.0, 1e-4, -1e-4)
+        np.testing.assert_array_equal(origins, pts[ref_p] + side[:, None] * np.array([0.0, 1.0, 0.0]))
 
 
 def test_candidate_rays_leave_out_nothing_that_hits(rng):
@@ -284,6 +291,21 @@ def test_nodes_keep_the_points_near_the_spheres(rng, spacing):
     assert corner_gap.min() > 0.0
     assert np.all(~far[np.argsort(gap)[:100]])  # the nearest points are cast at themselves
     assert far.sum() > 0.5 * len(pts) if spacing >= 0.5 else far.any()
+
+
+def test_gaps_kernel_matches_numpy(rng):
+    """``_gaps`` (the distance to the nearest sphere's surface in ``ground_ray_nodes``): bitwise the numpy
+    expression it replaced, points inside spheres included."""
+    from prtlab.spherelights._groundrays import _gaps
+
+    pts = rng.normal(size=(3000, 3)) * 2.0
+    sph = np.concatenate([rng.normal(size=(14, 3)), rng.uniform(0.1, 1.0, (14, 1))], axis=1)
+    expected = np.min(np.sqrt(sum((pts[:, i, None] - sph[None, :, i]) ** 2 for i in range(3))) - sph[None, :, 3],
+                      axis=1)
+    out = np.empty(len(pts))
+    _gaps(pts, sph, out)
+    np.testing.assert_array_equal(out, expected)
+    assert (out < 0).any()
 
 
 def test_nodes_cast_at_every_point_when_they_cannot_help(rng):

@@ -131,6 +131,30 @@ def test_kernels_match_the_reference(rng):
     assert np.abs(blocked).max() > 0.1  # the case blocks something
 
 
+def test_meets_on_a_fibonacci_run_matches_every_direction(rng):
+    """``_meets`` testing only the run of a turned Fibonacci set around the cones lists the same rays, in the same
+    order, and clears the same ones as testing every direction (points near, inside and far from the spheres)."""
+    from prtlab.spherelights._meshdirect import _meets
+
+    d = fibonacci_directions(1024)
+    for _ in range(4):
+        rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        rot *= np.sign(np.linalg.det(rot))
+        w = np.ascontiguousarray(d @ rot.T)
+        p = rng.uniform(-2.0, 2.0, size=(200, 3))
+        bounds = np.concatenate([rng.uniform(-1.5, 1.5, size=(3, 3)), rng.uniform(0.05, 0.9, size=(3, 1))], axis=1)
+        inner = np.concatenate([bounds[:2, :3], 0.5 * bounds[:2, 3:]], axis=1)
+        p[:5] = bounds[0, :3] + 0.5 * bounds[0, 3]  # inside a bounding sphere (and an inner one)
+        visible = rng.random((len(p), len(d))) < 0.7
+        every, run = visible.copy(), visible.copy()
+        ip, ij = _meets(p, w, bounds, inner, every)
+        jp, jj = _meets(p, w, bounds, inner, run, np.ascontiguousarray(rot[:, 1]))
+        np.testing.assert_array_equal(ip, jp)
+        np.testing.assert_array_equal(ij, jj)
+        np.testing.assert_array_equal(every, run)
+        assert 0 < len(ip) < visible.sum()
+
+
 def test_embree_matches_the_numpy_caster(rng):
     p, n, d, bits, occ, rect, balls, rot = _random_case(rng)
     env = _env(rng)
