@@ -369,9 +369,15 @@ def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
     parallelogram (its lowest and highest ``n . p``, widened by ``1e-9`` relative) do not both lie beyond on one
     side. Returns ``(n_spheres, n_planes)``; the others cannot meet such a segment."""
     c0, c1, c2 = params[0], params[1], params[2]
+    d0, d1, d2 = c0 - x0, c1 - x1, c2 - x2  # _capsule_meets' arithmetic, the segment's terms once
+    dd = max(d0 * d0 + d1 * d1 + d2 * d2, 1e-300)
     n_spheres = 0
     for s in range(spheres.shape[0]):
-        if _capsule_meets(x0, x1, x2, c0, c1, c2, reach, spheres[s:s + 1]):
+        e0, e1, e2 = spheres[s, 0] - x0, spheres[s, 1] - x1, spheres[s, 2] - x2
+        t = min(max((d0 * e0 + d1 * e1 + d2 * e2) / dd, 0.0), 1.0)
+        g0, g1, g2 = e0 - t * d0, e1 - t * d1, e2 - t * d2
+        r = spheres[s, 3] + reach
+        if g0 * g0 + g1 * g1 + g2 * g2 <= r * r:
             near[n_spheres] = s
             n_spheres += 1
     total = spheres.shape[0]
@@ -437,6 +443,40 @@ def _vertex_frame(n, wo, p):
     o0, o1, o2 = o0 / length, o1 / length, o2 / length
     co = a0 * o0 + a1 * o1 + a2 * o2
     return a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co
+
+
+#: :func:`_polar_angle`'s reduction points ``i / 6`` (i = 0..6), numpy's ``arctan`` of them, and the Taylor series
+#: of ``atan`` (``(-1)^k / (2k + 1)``, k = 0..7) about 0
+_ATAN_POINTS = np.arange(7) / 6.0
+_ATAN_AT_POINTS = np.arctan(_ATAN_POINTS)
+_ATAN_SERIES = np.array([(-1.0) ** k / (2 * k + 1) for k in range(8)])
+
+
+@numba.njit(cache=True, inline="always")
+def _atan_unit(x):
+    """``atan(x)`` for ``0 <= x <= 1``: ``atan(t) + atan((x - t) / (1 + x t))`` at the nearest point ``t = i / 6``,
+    the second by its Taylor series (argument at most 1/12: the series' remainder is below ``2e-20``)."""
+    i = max(min(int(x * 6.0 + 0.5), 6), 0)
+    t = _ATAN_POINTS[i]
+    y = (x - t) / (1.0 + x * t)
+    yy = y * y
+    series = _ATAN_SERIES[7]
+    for k in range(6, -1, -1):
+        series = series * yy + _ATAN_SERIES[k]
+    return _ATAN_AT_POINTS[i] + y * series
+
+
+@numba.njit(cache=True, inline="always")
+def _polar_angle(r, z):
+    """``arctan2(r, z)`` for finite ``r >= 0`` (the polar angle of a direction with ``z`` along the normal and
+    ``r`` its distance from it; ``(0, -0)`` gives 0), within 1e-15 relative of numpy's (test); 9.5 ns against
+    libm's 17."""
+    if z >= r:
+        return _atan_unit(r / z) if z > 0.0 else 0.0
+    if r > -z:
+        x = z / r
+        return 0.5 * np.pi - (_atan_unit(x) if x >= 0.0 else -_atan_unit(-x))
+    return np.pi - _atan_unit(r / -z)
 
 
 #: states of a sample in :func:`_terms_kernel`'s scratch
@@ -591,9 +631,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                         if not (cos_x > 0.0 and cos_l > 0.0 and dist > 0.0):
                             continue
                         weights[q] = cos_x * cos_l / max(dist, 1e-300) ** 2 * scale
-                        length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-                        e0, e1, e2 = w0 / length, w1 / length, w2 / length
-                        dirs[q, 0], dirs[q, 1], dirs[q, 2] = e0, e1, e2
+                        dirs[q, 0], dirs[q, 1], dirs[q, 2] = w0, w1, w2  # the sums' direction, traced or not
                         if agreed != _PENDING:
                             state[q] = agreed
                             blocked[p, j] = agreed == _BLOCKED
@@ -606,7 +644,10 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                                                            n_near[i, 0], n_near[i, 1]):
                             state[q] = _LIT  # no blocker's triangle is near the segment: the ray would miss
                             continue
-                        # RayCaster.occluded(x, w, dist - eps, normals=n): _stage_ray's offset and tfar
+                        # RayCaster.occluded(x, w, dist - eps, normals=n): its unit direction, _stage_ray's offset
+                        # and tfar
+                        length = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+                        e0, e1, e2 = w0 / length, w1 / length, w2 / length
                         cast[p] += 1
                         state[q] = _LIT
                         off = eps if n0 * e0 + n1 * e1 + n2 * e2 >= 0.0 else -eps
@@ -656,7 +697,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     e0, e1, e2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
                     # the local direction (brdf.to_local) and g_k (factor_eval_kernel)
                     lx, ly, lz = t0 * e0 + t1 * e1 + t2 * e2, b0 * e0 + b1 * e1 + b2 * e2, a0 * e0 + a1 * e1 + a2 * e2
-                    theta = np.arctan2(np.sqrt(lx * lx + ly * ly), lz)
+                    theta = _polar_angle(np.sqrt(lx * lx + ly * ly), lz)
                     phi = np.arctan2(ly, lx) if any_phi else 0.0
                     interval, at = _interval(nodes, guide, per_radian, theta)
                     for k in range(n_terms):

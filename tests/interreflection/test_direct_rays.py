@@ -523,3 +523,24 @@ def test_the_guided_node_search_equals_searchsorted():
         else:
             expected = np.searchsorted(nodes, th) - 1
             assert j == expected and t == (th - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+def test_the_polar_angle_is_numpys_arctan2_within_a_few_units_in_the_last_place():
+    """``_polar_angle(r, z)`` (the kernel's ``theta``, a table and a series instead of libm's ``atan2``) is
+    ``arctan2(r, z)`` within 1e-15 relative over the upper half-plane: random directions, the reduction points'
+    ratios and their float neighbours, the axes, zero, tiny and huge components."""
+    from prtlab.interreflection._direct_rays import _ATAN_POINTS, _polar_angle
+
+    angle = np.random.default_rng(5).uniform(0.0, np.pi, 20_000)
+    r, z = [np.abs(np.sin(angle))], [np.cos(angle)]
+    for ratio in np.concatenate([_ATAN_POINTS, np.nextafter(_ATAN_POINTS, -1.0), np.nextafter(_ATAN_POINTS, 2.0),
+                                 (_ATAN_POINTS[1:] + _ATAN_POINTS[:-1]) / 2]).clip(0.0):
+        for a, b in ((ratio, 1.0), (1.0, ratio), (1.0, -ratio), (ratio, -1.0)):
+            r.append([a, 1e-200 * a, 1e200 * a])
+            z.append([b, 1e-200 * b, 1e200 * b])
+    r.append([0.0, 0.0, 0.0, 1e-300, 1.0, 1.0, 5e-324])
+    z.append([0.0, -1.0, 1.0, -1.0, 0.0, -0.0, 1.0])
+    r, z = np.concatenate(r), np.concatenate(z)
+    ours = np.array([_polar_angle(a, b) for a, b in zip(r, z)])
+    expected = np.arctan2(r, z)
+    assert np.all(np.abs(ours - expected) <= 1e-15 * np.maximum(expected, 5e-324))
