@@ -395,6 +395,26 @@ def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
     return n_spheres, n_planes
 
 
+@numba.njit(cache=True, inline="always")
+def _unlit(x0, x1, x2, n0, n1, n2, params):
+    """Whether no point of the light (``params``: ``c + s u + t v``, ``|s|, |t| <= 1``; a point light has ``u = v =
+    0``) is above the horizon of ``x`` (normal ``n``), or ``x`` is not in front of an area light (normal ``l``):
+    ``(c - x) . n + |u . n| + |v . n|`` (the largest ``(y - x) . n`` over the parallelogram, at a corner) is below
+    ``-tol``, or ``(c - x) . l - |u . l| - |v . l|`` above ``tol``, with ``tol = 1e-12 sum_i (|c_i| + |u_i| + |v_i| +
+    |x_i|) (|n_i| + |l_i|)``. The kernel's ``cos_x`` (``cos_l``) of a sample has the sign of that product up to
+    rounding of a few units in the last place of those terms, far below ``tol``: a vertex this gives True has no
+    live sample, as drawing them would find."""
+    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
+    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
+    l0, l1, l2 = params[9], params[10], params[11]
+    tol = 1e-12 * ((abs(params[0]) + abs(u0) + abs(v0) + abs(x0)) * (abs(n0) + abs(l0))
+                   + (abs(params[1]) + abs(u1) + abs(v1) + abs(x1)) * (abs(n1) + abs(l1))
+                   + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
+    above = c0 * n0 + c1 * n1 + c2 * n2 + abs(u0 * n0 + u1 * n1 + u2 * n2) + abs(v0 * n0 + v1 * n1 + v2 * n2)
+    front = c0 * l0 + c1 * l1 + c2 * l2 - abs(u0 * l0 + u1 * l1 + u2 * l2) - abs(v0 * l0 + v1 * l1 + v2 * l2)
+    return above < -tol or front > tol
+
+
 #: bins of the table that starts the search of a node interval (:func:`_interval`)
 _GUIDE_BINS = 1024
 
@@ -556,6 +576,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         weights = np.zeros(step * m)
         dirs = np.zeros((step * m, 3))
         kept = np.zeros(step, dtype=np.bool_)
+        dark = np.zeros(step, dtype=np.bool_)  # no sample of the vertex is live (_unlit)
         culling = np.zeros(step, dtype=np.bool_)
         near = np.zeros((step, spheres.shape[0] + planes.shape[0]), dtype=np.int64)  # blockers near a vertex's rays
         n_near = np.zeros((step, 2), dtype=np.int64)
@@ -577,6 +598,12 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             for j in range(m):
                                 blocked[p, j] = visibility[p, j]
                             continue
+                        dark[i] = _unlit(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params)
+                        if dark[i]:  # every sample below a horizon: not drawn
+                            for j in range(m):
+                                blocked[p, j] = False
+                                state[i * m + j] = _DEAD
+                            continue
                         culling[i] = cull
                         for q in range(spheres.shape[0]):  # inside a blocker's sphere: every segment meets it
                             e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
@@ -586,7 +613,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
                                                                         near[i])
                         redo[i] = False
-                    elif kept[i]:
+                    elif kept[i] or dark[i]:
                         continue
                     agreed = _PENDING  # with probe, second stage: the probes' common answer, if any
                     if stage == 1:
@@ -688,6 +715,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     S[p, k] = 0.0
                 for c in range(n_channels):
                     F[p, c] = 0.0
+                if dark[i]:
+                    continue
                 a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 for j in range(m):
                     q = i * m + j

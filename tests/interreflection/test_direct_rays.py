@@ -544,3 +544,31 @@ def test_the_polar_angle_is_numpys_arctan2_within_a_few_units_in_the_last_place(
     ours = np.array([_polar_angle(a, b) for a, b in zip(r, z)])
     expected = np.arctan2(r, z)
     assert np.all(np.abs(ours - expected) <= 1e-15 * np.maximum(expected, 5e-324))
+
+
+def test_a_vertex_called_unlit_has_no_live_sample():
+    """``_unlit`` (the kernel skips such a vertex's samples) is True only where no sample of the light is live
+    (``cos_x > 0`` and ``cos_l > 0`` as the reference tier draws and computes them): random vertices and
+    normals, and normals whose horizon passes through a corner of the light, tilted by tiny angles either way."""
+    from prtlab.interreflection._direct_rays import _light_geometry, _unlit
+
+    rng = np.random.default_rng(6)
+    m = 64
+    params, rows, side, _ = _light_geometry(LIGHT, m)
+    points = rng.uniform(-3.0, 3.0, (4000, 3))
+    normals = rng.normal(size=(4000, 3))
+    corners = LIGHT.center + np.array([[s, t] for s in (-1, 1) for t in (-1, 1)]) @ np.stack([LIGHT.u, LIGHT.v])
+    grazing = np.cross(corners[rng.integers(0, 4, 4000)] - points, rng.normal(size=(4000, 3)))  # n . (corner - x) = 0
+    grazing += rng.choice([-1e-13, -1e-15, 0.0, 1e-15, 1e-13], (4000, 1)) * rng.normal(size=(4000, 3))
+    points, normals = np.concatenate([points, points]), np.concatenate([normals, grazing])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
+                                                       indexing="ij")], axis=1)
+    st = (corner[None] + jitter(0, 0, np.arange(len(points)), m) * np.array([1.0 / rows, 1.0 / side])) * 2.0 - 1.0
+    y = LIGHT.center + st[..., :1] * LIGHT.u + st[..., 1:] * LIGHT.v
+    d = y - points[:, None]
+    w = d / np.linalg.norm(d, axis=-1)[..., None]
+    live = (np.einsum("vmi,vi->vm", w, normals) > 0.0) & (-w @ LIGHT.normal > 0.0)
+    unlit = np.array([_unlit(*x, *n, params) for x, n in zip(points, normals)])
+    assert not live[unlit].any()
+    assert unlit.sum() > 1000 and (~live.any(axis=1) & ~unlit).sum() > 0  # it decides many, not every one
