@@ -57,6 +57,13 @@ _SAMPLES_PER_TASK = 512
 #: a block's rays in sample order) rather than one at a time (``rtcOccluded1``); the masks are the same (tests).
 PACKETS = True
 
+#: :func:`light_terms`' kernel takes a term of ``g_k`` whose radial values agree within this fraction of their
+#: largest (and has no azimuth) as constant, the middle of its values, on a receiver with ``ks = 0``: a Lambertian
+#: BRDF's fitted separable form, whose values vary by about 1e-13 by the fit's rounding. Its sums then need the lit
+#: samples' weights alone (no polar angle, no interpolation), within half that spread (relative) of the reference
+#: tier's.
+LEVEL_SPREAD = 1e-12
+
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 _GOLDEN = 0x9E3779B97F4A7C15
 _MASK64 = 0xFFFFFFFFFFFFFFFF
@@ -560,6 +567,17 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         if ks[c] != 0.0:
             glossy = True
     inv_pi = 1.0 / np.pi
+    # g_k's radial values equal within LEVEL_SPREAD of their largest and no azimuth, ks = 0: g_k is taken as the
+    # middle of its values (off by at most half their spread) and f = kd / pi
+    level = not glossy and not any_phi
+    level_g = np.empty(n_terms)
+    for k in range(n_terms):
+        low, high = values[k, 0], values[k, 0]
+        for j in range(values.shape[1]):
+            low, high = min(low, values[k, j]), max(high, values[k, j])
+        level_g[k] = 0.5 * (low + high)
+        if not high - low <= LEVEL_SPREAD * max(abs(low), abs(high)):
+            level = False
     row_start, col_start = np.empty(m), np.empty(m)  # the grid cell's corner of sample j
     for j in range(m):
         row, col = divmod(j, side)
@@ -718,6 +736,17 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                 if dark[i]:
                     continue
                 a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
+                if level:  # g_k and f do not depend on the direction: the lit weights' sum times them
+                    total = 0.0
+                    for j in range(m):
+                        if state[i * m + j] == _LIT:
+                            total += weights[i * m + j]
+                    for k in range(n_terms):
+                        S[p, k] = total * level_g[k]
+                    if co >= 0.0:  # else a lit sample is on wo's side of the horizon only by rounding
+                        for c in range(n_channels):
+                            F[p, c] = total * (kd[c] * inv_pi)
+                    continue
                 for j in range(m):
                     q = i * m + j
                     if state[q] != _LIT:
@@ -767,7 +796,9 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     (:func:`blocker_bounds`): bounding spheres (centre, radius) and slabs of flat objects (unit normal, lowest
     and highest ``n . p``), widened for float32 and the origin offset; the receiver's own plane may be left
     out (a ray leaves it on its normal's side). A sample whose segment meets none of them is not traced: its
-    ray would be unblocked, so the results are those of casting it (``stats`` counts only traced rays).
+    ray would be unblocked, so the results are those of casting it (``stats`` counts only traced rays). On a
+    receiver with ``ks = 0`` whose ``g_k`` are level within :data:`LEVEL_SPREAD` (a Lambertian BRDF's fitted form),
+    ``g_k`` is the middle of its values: within half their spread (relative) of the reference tier.
     ``previous``: the ``(S, F)`` of the call that gave ``visibility`` (same ``wo``, BRDF and ``first``): a vertex
     none of whose segments can meet a ``moved`` sphere keeps its rows (the same sums, bit for bit). The
     reference tier casts every ray and recomputes every vertex. ``first``: the number of the first point in the

@@ -9,6 +9,8 @@ light's visibility is held to a segment-box test written here (slabs), independe
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -572,3 +574,28 @@ def test_a_vertex_called_unlit_has_no_live_sample():
     unlit = np.array([_unlit(*x, *n, params) for x, n in zip(points, normals)])
     assert not live[unlit].any()
     assert unlit.sum() > 1000 and (~live.any(axis=1) & ~unlit).sum() > 0  # it decides many, not every one
+
+
+def test_a_lambertian_receiver_takes_its_level_factor_within_half_its_spread():
+    """A Lambertian BRDF's fitted ``g_0`` varies only by rounding (within ``LEVEL_SPREAD``), so the kernel sums the
+    lit weights times the middle of its values: within half the values' spread (relative) plus rounding of the
+    reference tier, masks equal; a term beyond ``LEVEL_SPREAD`` takes the interpolating path (1e-12 as above)."""
+    from prtlab.interreflection._direct_rays import LEVEL_SPREAD
+
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    _, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    spread = float(np.ptp(values) / np.abs(values).max())
+    assert spread <= LEVEL_SPREAD  # the level path is the one tested
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    wo = mirror_wo(wo, normals)
+    tilted = dataclasses.replace(sep, g_radial=sep.g_radial * (1.0 + 1e-6 * np.linspace(0.0, 1.0,
+                                                                                       sep.g_radial.shape[-1])))
+    for s, bound in ((sep, 0.5 * spread + 1e-14), (tilted, 1e-12)):
+        for i, light in enumerate(lights):
+            S, F, blocked = light_terms(points, normals, wo, f, s, caster, light, i, 64, seed=3)
+            S_ref, F_ref, blocked_ref = light_terms_reference(points, normals, wo, f, s, caster, light, i, 64, seed=3)
+            np.testing.assert_array_equal(blocked, blocked_ref)
+            np.testing.assert_allclose(S, S_ref, rtol=0.0, atol=bound * np.abs(S_ref).max())
+            np.testing.assert_allclose(F, F_ref, rtol=0.0, atol=1e-14 * np.abs(F_ref).max())
