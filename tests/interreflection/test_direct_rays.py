@@ -9,6 +9,8 @@ light's visibility is held to a segment-box test written here (slabs), independe
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -523,3 +525,77 @@ def test_the_guided_node_search_equals_searchsorted():
         else:
             expected = np.searchsorted(nodes, th) - 1
             assert j == expected and t == (th - nodes[j]) / (nodes[j + 1] - nodes[j])
+
+
+def test_the_polar_angle_is_numpys_arctan2_within_a_few_units_in_the_last_place():
+    """``_polar_angle(r, z)`` (the kernel's ``theta``, a table and a series instead of libm's ``atan2``) is
+    ``arctan2(r, z)`` within 1e-15 relative over the upper half-plane: random directions, the reduction points'
+    ratios and their float neighbours, the axes, zero, tiny and huge components."""
+    from prtlab.interreflection._direct_rays import _ATAN_POINTS, _polar_angle
+
+    angle = np.random.default_rng(5).uniform(0.0, np.pi, 20_000)
+    r, z = [np.abs(np.sin(angle))], [np.cos(angle)]
+    for ratio in np.concatenate([_ATAN_POINTS, np.nextafter(_ATAN_POINTS, -1.0), np.nextafter(_ATAN_POINTS, 2.0),
+                                 (_ATAN_POINTS[1:] + _ATAN_POINTS[:-1]) / 2]).clip(0.0):
+        for a, b in ((ratio, 1.0), (1.0, ratio), (1.0, -ratio), (ratio, -1.0)):
+            r.append([a, 1e-200 * a, 1e200 * a])
+            z.append([b, 1e-200 * b, 1e200 * b])
+    r.append([0.0, 0.0, 0.0, 1e-300, 1.0, 1.0, 5e-324])
+    z.append([0.0, -1.0, 1.0, -1.0, 0.0, -0.0, 1.0])
+    r, z = np.concatenate(r), np.concatenate(z)
+    ours = np.array([_polar_angle(a, b) for a, b in zip(r, z)])
+    expected = np.arctan2(r, z)
+    assert np.all(np.abs(ours - expected) <= 1e-15 * np.maximum(expected, 5e-324))
+
+
+def test_a_vertex_called_unlit_has_no_live_sample():
+    """``_unlit`` (the kernel skips such a vertex's samples) is True only where no sample of the light is live
+    (``cos_x > 0`` and ``cos_l > 0`` as the reference tier draws and computes them): random vertices and
+    normals, and normals whose horizon passes through a corner of the light, tilted by tiny angles either way."""
+    from prtlab.interreflection._direct_rays import _light_geometry, _unlit
+
+    rng = np.random.default_rng(6)
+    m = 64
+    params, rows, side, _ = _light_geometry(LIGHT, m)
+    points = rng.uniform(-3.0, 3.0, (4000, 3))
+    normals = rng.normal(size=(4000, 3))
+    corners = LIGHT.center + np.array([[s, t] for s in (-1, 1) for t in (-1, 1)]) @ np.stack([LIGHT.u, LIGHT.v])
+    grazing = np.cross(corners[rng.integers(0, 4, 4000)] - points, rng.normal(size=(4000, 3)))  # n . (corner - x) = 0
+    grazing += rng.choice([-1e-13, -1e-15, 0.0, 1e-15, 1e-13], (4000, 1)) * rng.normal(size=(4000, 3))
+    points, normals = np.concatenate([points, points]), np.concatenate([normals, grazing])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
+                                                       indexing="ij")], axis=1)
+    st = (corner[None] + jitter(0, 0, np.arange(len(points)), m) * np.array([1.0 / rows, 1.0 / side])) * 2.0 - 1.0
+    y = LIGHT.center + st[..., :1] * LIGHT.u + st[..., 1:] * LIGHT.v
+    d = y - points[:, None]
+    w = d / np.linalg.norm(d, axis=-1)[..., None]
+    live = (np.einsum("vmi,vi->vm", w, normals) > 0.0) & (-w @ LIGHT.normal > 0.0)
+    unlit = np.array([_unlit(*x, *n, params) for x, n in zip(points, normals)])
+    assert not live[unlit].any()
+    assert unlit.sum() > 1000 and (~live.any(axis=1) & ~unlit).sum() > 0  # it decides many, not every one
+
+
+def test_a_lambertian_receiver_takes_its_level_factor_within_half_its_spread():
+    """A Lambertian BRDF's fitted ``g_0`` varies only by rounding (within ``LEVEL_SPREAD``), so the kernel sums the
+    lit weights times the middle of its values: within half the values' spread (relative) plus rounding of the
+    reference tier, masks equal; a term beyond ``LEVEL_SPREAD`` takes the interpolating path (1e-12 as above)."""
+    from prtlab.interreflection._direct_rays import LEVEL_SPREAD
+
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    _, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    spread = float(np.ptp(values) / np.abs(values).max())
+    assert spread <= LEVEL_SPREAD  # the level path is the one tested
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    wo = mirror_wo(wo, normals)
+    tilted = dataclasses.replace(sep, g_radial=sep.g_radial * (1.0 + 1e-6 * np.linspace(0.0, 1.0,
+                                                                                       sep.g_radial.shape[-1])))
+    for s, bound in ((sep, 0.5 * spread + 1e-14), (tilted, 1e-12)):
+        for i, light in enumerate(lights):
+            S, F, blocked = light_terms(points, normals, wo, f, s, caster, light, i, 64, seed=3)
+            S_ref, F_ref, blocked_ref = light_terms_reference(points, normals, wo, f, s, caster, light, i, 64, seed=3)
+            np.testing.assert_array_equal(blocked, blocked_ref)
+            np.testing.assert_allclose(S, S_ref, rtol=0.0, atol=bound * np.abs(S_ref).max())
+            np.testing.assert_allclose(F, F_ref, rtol=0.0, atol=1e-14 * np.abs(F_ref).max())
