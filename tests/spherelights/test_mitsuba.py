@@ -78,20 +78,27 @@ def _goal(name, obj, part, ref):
 
 @pytest.fixture(scope="module")
 def shaded():
+    """``shaded(name)``: case ``name``'s comparison at the default options and its Mitsuba reference, each
+    rendered and shaded once, when a test first asks for it (so ``-k`` renders only what it selects)."""
     pytest.importorskip("mitsuba")
     from prtlab.reference import shade_mitsuba
 
     out, refs = {}, {}
-    for name, (make, opts) in CASES.items():
-        sc = make()
-        if make not in refs:  # the two cube cases share their scene
-            spp = SPP_ONE_SPHERE if name == "one sphere" else SPP
-            refs[make] = shade_mitsuba(sc, bounces=1, spp=spp, seed=0, progress=False)
-        ref = refs[make]
-        ours = SphereLights.precompute(sc, dict(opts, fit_resolution=40), cache=True, progress=False).shade(bounces=1)
-        out[name] = (prtlab.compare(ours, ref, objects=OBJECTS[name]), ref)
-        print(f"\n{name}\n{out[name][0].table()}")
-    return out
+
+    def get(name):
+        if name not in out:
+            make, opts = CASES[name]
+            sc = make()
+            if make not in refs:  # the two cube cases share their scene
+                spp = SPP_ONE_SPHERE if name == "one sphere" else SPP
+                refs[make] = shade_mitsuba(sc, bounces=1, spp=spp, seed=0, progress=False)
+            ref = refs[make]
+            ours = SphereLights.precompute(sc, dict(opts, fit_resolution=40), cache=True, progress=False).shade(bounces=1)
+            out[name] = (prtlab.compare(ours, ref, objects=OBJECTS[name]), ref)
+            print(f"\n{name}\n{out[name][0].table()}")
+        return out[name]
+
+    return get
 
 
 def _params():
@@ -105,7 +112,7 @@ def _params():
 
 @pytest.mark.parametrize("name,obj,part", list(_params()))
 def test_fig8_against_mitsuba(shaded, name, obj, part):
-    cmp, ref = shaded[name]
+    cmp, ref = shaded(name)
     failures = cmp.check(_goal(name, obj, part, ref), parts=[part], objects=[obj])  # raises on a noisy reference
     assert not failures, failures
 
@@ -113,13 +120,17 @@ def test_fig8_against_mitsuba(shaded, name, obj, part):
 def test_indirect_error_falls_with_the_number_of_spheres(shaded):
     """The paper's Fig. 10 claim: a tighter sphere set approximates the blocker better, so the ground's indirect
     error (the reference's noise removed in quadrature) with 16 spheres on the bunny is no larger than with 1;
-    every count is scored against the same Mitsuba reference, whose noise is within a third of the goal."""
-    _, ref = shaded["bunny (16 spheres)"]
+    every count is scored against the same Mitsuba reference, whose noise is within a third of the goal. The claim
+    is about the ground shaded through the spherical lights, the paper's ``ground_shading="lights"``: with the
+    default rays the ground's light is cast against the bunny's mesh, and the sphere count no longer enters it
+    (0.0385 with 1 sphere, 0.0388 with 16, both within the goal)."""
+    _, ref = shaded("bunny (16 spheres)")
     sc = CASES["bunny (16 spheres)"][0]()
     rows = []
     for n in (1, 16):
         pre = SphereLights.precompute(sc, {"n_spheres": {"bunny": n, "sphere_green": 1, "sphere_orange": 1},
-                                           "fit_resolution": 40}, cache=True, progress=False)
+                                           "fit_resolution": 40, "ground_shading": "lights"},
+                                      cache=True, progress=False)
         rows.append(prtlab.compare(pre.shade(bounces=1), ref, objects=["plane"], parts=["indirect"]).rows[0])
     assert rows[0].noise <= INDIRECT_GOAL["bunny (16 spheres)"] / 3, rows[0]
     assert rows[1].error <= rows[0].error, rows
