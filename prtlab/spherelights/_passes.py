@@ -315,11 +315,11 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             if weight.shape[-2:] != (S, m):
                 raise ValueError(f"sample_weight must have shape (..., {S}, {m}) (lights, samples), got {weight.shape}")
             light = np.einsum("...smc,mk->...skc", weight[..., None] * radiance, cell_sums)
-            return np.einsum("ijk,...sic,sjc->...skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))
+            return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)
         light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     finally:
         numba.set_num_threads(threads)
-    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
+    return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)  # Eq. 11
 
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
@@ -482,18 +482,6 @@ def _coordinate_products(order: int) -> np.ndarray:
     for j, idx in enumerate((3, 1, 2)):  # x = c Y_1,1, y = c Y_1,-1, z = c Y_1,0
         sel = gj == idx
         np.add.at(out[j], (gk[sel], gi[sel]), c1 * gv[sel])
-    out.setflags(write=False)
-    return out
-
-
-@functools.lru_cache(maxsize=None)
-def _dense_gaunt(order: int) -> np.ndarray:
-    """Dense ``G (n*n, n*n, n*n)`` of the order-``n`` product (``c_k = sum_ij G_ijk a_i b_j``)."""
-    from prtlab.sh._gaunt import _gaunt_block
-
-    gi, gj, gk, gv = _gaunt_block(order, order, order)
-    out = np.zeros((order * order,) * 3)
-    np.add.at(out, (gi, gj, gk), gv)
     out.setflags(write=False)
     return out
 
