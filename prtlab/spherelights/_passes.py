@@ -315,11 +315,11 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             if weight.shape[-2:] != (S, m):
                 raise ValueError(f"sample_weight must have shape (..., {S}, {m}) (lights, samples), got {weight.shape}")
             light = np.einsum("...smc,mk->...skc", weight[..., None] * radiance, cell_sums)
-            return np.einsum("ijk,...sic,sjc->...skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))
+            return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)
         light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
     finally:
         numba.set_num_threads(threads)
-    return np.einsum("ijk,sic,sjc->skc", _dense_gaunt(k), light, np.asarray(albedo_sh, dtype=np.float64))  # Eq. 11
+    return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)  # Eq. 11
 
 
 def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotation, emission, env_sh, *,
@@ -486,18 +486,6 @@ def _coordinate_products(order: int) -> np.ndarray:
     return out
 
 
-@functools.lru_cache(maxsize=None)
-def _dense_gaunt(order: int) -> np.ndarray:
-    """Dense ``G (n*n, n*n, n*n)`` of the order-``n`` product (``c_k = sum_ij G_ijk a_i b_j``)."""
-    from prtlab.sh._gaunt import _gaunt_block
-
-    gi, gj, gk, gv = _gaunt_block(order, order, order)
-    out = np.zeros((order * order,) * 3)
-    np.add.at(out, (gi, gj, gk), gv)
-    out.setflags(write=False)
-    return out
-
-
 def emission_times_direction(emission) -> np.ndarray:
     """SH of ``L(u) u_j`` for each light and coordinate ``j`` (x, y, z): ``(S, 3, (n+1)**2, C)``, exact.
 
@@ -621,12 +609,13 @@ _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", 
 #: direction light -> receiver in the light's frame, ``cos_na, open_visibility (L,)``, ``kernel (1, (n+1)**2,
 #: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
 #: the emission; ``direct, indirect (3, L)`` the block's results; ``exp_direct`` and ``exp_light`` the HYB scratch
-#: of ``L`` and ``2L`` columns.
+#: of ``L`` and ``2L`` columns; ``transfer_rows ((2n-1)**2, L)`` and ``transfer_index ((2n-1)**2,)`` int the
+#: scaled basis rows of the clamped cosine that do not vanish and their coefficients.
 _BlockScratch = collections.namedtuple("_BlockScratch", [
     "recv", "blockers", "lane", "normal_basis", "transfer", "cosine", "object_dist", "object_order",
     "object_log", "object_prefix", "running", "front", "pair_log", "sums", "visibility", "light_dir", "cos_na",
     "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light",
-    "object_rank", "chain", "chain_exp"])
+    "object_rank", "chain", "chain_exp", "transfer_rows", "transfer_index"])
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
@@ -723,7 +712,8 @@ def _block_scratch(n_sph, n_obj, order, emission_order, n_lanes):
         np.empty((9, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)),
         _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes),
         np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj + 1, n2, n_lanes)),  # object_rank, chain
-        np.empty((n_obj + 1, n2, n_lanes)))  # chain_exp
+        np.empty((n_obj + 1, n2, n_lanes)),  # chain_exp
+        np.empty((hi * hi, n_lanes)), np.empty(hi * hi, dtype=np.int64))  # transfer_rows, transfer_index
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -752,24 +742,39 @@ def _environment_transfer_lanes(cosine_hi, transfer, order, scratch):
     """``T_n = cos_{2n-1}(n) @ M`` per lane into ``scratch.transfer`` (rows ``(c, k)``): the exact projection of
     ``L cos`` (see :func:`environment_transfer`; the clamped cosine's odd bands > 1 vanish). Leaves the SH basis
     at the normals in ``scratch.normal_basis``."""
-    basis, trans, row = scratch.normal_basis, scratch.transfer, scratch.sums
+    basis, trans, rows, index = scratch.normal_basis, scratch.transfer, scratch.transfer_rows, scratch.transfer_index
     hi = 2 * order - 1
-    n_lanes = trans.shape[1]
+    n_lanes, n_out = trans.shape[1], trans.shape[0]
     _basis_lanes(scratch.recv, 3, hi, basis, scratch.lane.tmp)
-    for t in range(trans.shape[0]):
-        for q in range(n_lanes):
-            trans[t, q] = 0.0
+    n_rows = 0  # the rows of the clamped cosine that do not vanish, scaled: rows[j] = f_l Y_k(n), k = index[j]
     for l in range(hi):
         if cosine_hi[l] == 0.0:
             continue
         f = _ZH_SCALE[l] * cosine_hi[l]
         for k in range(l * l, (l + 1) * (l + 1)):
             for q in range(n_lanes):
-                row[0, q] = f * basis[k, q]
-            for t in range(trans.shape[0]):
-                m = transfer[k, t]
-                for q in range(n_lanes):
-                    trans[t, q] += row[0, q] * m
+                rows[n_rows, q] = f * basis[k, q]
+            index[n_rows] = k
+            n_rows += 1
+    for t in range(n_out):
+        for q in range(n_lanes):
+            trans[t, q] = 0.0
+    # four rows per pass over ``trans`` (one load and store of an output row per four products)
+    j = 0
+    while j + 4 <= n_rows:
+        k0, k1, k2, k3 = index[j], index[j + 1], index[j + 2], index[j + 3]
+        for t in range(n_out):
+            m0, m1, m2, m3 = transfer[k0, t], transfer[k1, t], transfer[k2, t], transfer[k3, t]
+            for q in range(n_lanes):
+                trans[t, q] += (rows[j, q] * m0 + rows[j + 1, q] * m1 + rows[j + 2, q] * m2
+                                + rows[j + 3, q] * m3)
+        j += 4
+    for jj in range(j, n_rows):
+        k = index[jj]
+        for t in range(n_out):
+            m = transfer[k, t]
+            for q in range(n_lanes):
+                trans[t, q] += rows[jj, q] * m
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -1069,11 +1074,21 @@ def _project_lanes(kernel, coeffs, i, n_coeffs, n_cols, out):
     for t in range(n_cols):
         for q in range(n_lanes):
             out[t, q] = 0.0
-    for k in range(n_coeffs):
+    # four coefficients per pass over ``out``: one load and store of the output row per four products (the
+    # load and store per product bounded this loop)
+    k = 0
+    while k + 4 <= n_coeffs:
         for t in range(n_cols):
-            m = coeffs[i, k, t]
+            m0, m1, m2, m3 = coeffs[i, k, t], coeffs[i, k + 1, t], coeffs[i, k + 2, t], coeffs[i, k + 3, t]
             for q in range(n_lanes):
-                out[t, q] += kernel[0, k, q] * m
+                out[t, q] += (kernel[0, k, q] * m0 + kernel[0, k + 1, q] * m1 + kernel[0, k + 2, q] * m2
+                              + kernel[0, k + 3, q] * m3)
+        k += 4
+    for kk in range(k, n_coeffs):
+        for t in range(n_cols):
+            m = coeffs[i, kk, t]
+            for q in range(n_lanes):
+                out[t, q] += kernel[0, kk, q] * m
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
