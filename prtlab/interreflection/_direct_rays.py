@@ -213,6 +213,22 @@ def _check(points, normals, wo):
     return x, n, wo
 
 
+def _check_decided(decided, decided_before, n_points: int, visibility):
+    """``(decided, decided_before)`` as (V,) int8 arrays (or None) of :func:`light_terms`."""
+    out = []
+    for name, a in (("decided", decided), ("decided_before", decided_before)):
+        if a is not None:
+            a = np.asarray(a)
+            if a.shape != (n_points,) or a.dtype.kind not in "iub" or np.any((a < 0) | (a > 2)):
+                raise ValueError(f"{name} must be a ({n_points},) int array of 0 (cast), 1 (clear) or 2 (blocked), "
+                                 f"got {a.dtype} {a.shape}")
+            a = np.ascontiguousarray(a, np.int8)
+        out.append(a)
+    if out[1] is not None and visibility is None:
+        raise ValueError("decided_before= needs the visibility= of the call it was given to")
+    return out[0], out[1]
+
+
 def _check_first(first) -> int:
     if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
         raise ValueError(f"first must be a non-negative int (the first point's stream number), got {first!r}")
@@ -263,7 +279,7 @@ def _cast_stage(caster, x, normals, w, dist, stage, meets, visibility, blocked, 
 
 def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                           visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                          previous=None, probe: int = 0):
+                          previous=None, probe: int = 0, decided=None, decided_before=None):
     """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
     ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
@@ -272,6 +288,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
     m = rows * side
     probe = probe_mask(light, samples, _check_probe(probe))
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
+    decided, decided_before = _check_decided(decided, decided_before, len(x), visibility)
     c, u, v, normal, scale = params[:3], params[3:6], params[6:9], params[9:12], params[12]
     corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
                                                        indexing="ij")], axis=1)  # (m, 2)
@@ -294,15 +311,19 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0)
         weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
         meets = _segments_meet(xp, y, moved) if visibility is not None else None
-        blocked = np.zeros_like(live)
-        first_stage = live & probe[None] if len(probe) else live
+        given = np.zeros(len(xp), np.int8) if decided is None else decided[part]
+        if meets is not None and decided_before is not None:  # the previous bits given, not cast: cast them
+            meets |= (decided_before[part] != 0)[:, None]
+        open_ = live & (given == 0)[:, None]  # the samples not given
+        blocked = live & (given == 2)[:, None]
+        first_stage = open_ & probe[None] if len(probe) else open_
         _cast_stage(caster, xp, np_, w, dist, first_stage, meets, None if visibility is None else visibility[part],
                     blocked, stats)
         if len(probe):  # the others: the probes' common answer, else cast (re-cast where the old bits were agreed)
             n_lit = np.sum(first_stage & ~blocked, axis=1)
             n_blocked = np.sum(first_stage & blocked, axis=1)
             agreed = (n_lit > 0) != (n_blocked > 0)
-            others = live & ~probe[None]
+            others = open_ & ~probe[None]
             blocked |= others & agreed[:, None] & (n_blocked > 0)[:, None]
             if visibility is not None:
                 old = visibility[part]
@@ -531,15 +552,17 @@ def _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, st
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, packet, step, slot_f32,
                   slot_u32, slot_valid, threads, eps, tnear, visibility, moved, previous_S, previous_F, reach, cull,
-                  spheres, planes, probe, nodes, guide, per_radian, values, freq, parity, kd, ks, exponent, S, F,
-                  blocked, cast):
+                  spheres, planes, probe, decided, decided_before, nodes, guide, per_radian, values, freq, parity, kd,
+                  ks, exponent, S, F, blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
     the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
     ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
     within it of the centre) meets no sphere of ``moved`` keeps their rows and its mask; with ``cull``, a segment that
     meets none of ``spheres`` (S, 4) and no slab of ``planes`` (P, 5) is not traced (unblocked), at vertices
     outside every sphere; ``probe`` (m,) or (0,): the samples decided first, whose agreement decides the others
-    (:func:`light_terms`); ``cast`` (V,): the samples traced per vertex.
+    (:func:`light_terms`); ``decided`` (V,) int8 or (0,): a vertex's answer for every sample given (1 clear, 2
+    blocked, 0 none: traced), ``decided_before`` (V,) or (0,) that of the call that gave ``visibility`` (a vertex
+    decided there is traced wholly when it is not now); ``cast`` (V,): the samples traced per vertex.
 
     Threads take blocks of ``step`` vertices from a shared counter; iteration ``t`` of the thread loop traces
     through slot ``t``: with ``packet``, a block's rays 16 at a time in sample order (``rtcOccluded16``, lanes
@@ -551,6 +574,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
     reuse = visibility.shape[0] > 0
     keep = reuse and previous_S.shape[0] > 0
     probing = probe.shape[0] > 0
+    deciding = decided.shape[0] > 0
+    was_deciding = reuse and decided_before.shape[0] > 0
     n_terms = values.shape[0]
     n_channels = kd.shape[0]
     any_phi = False
@@ -611,8 +636,12 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     x0, x1, x2 = x[p, 0], x[p, 1], x[p, 2]
                     if stage == 0:
                         cast[p] = 0
-                        kept[i] = keep and not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved)
-                        if kept[i]:  # no segment of this vertex meets a moved sphere: as before
+                        given = decided[p] if deciding else 0
+                        given_before = decided_before[p] if was_deciding else 0
+                        # as before: no segment of the vertex meets a moved sphere, or its answer is given as it was
+                        kept[i] = keep and given == given_before and (
+                            given != 0 or not _capsule_meets(x0, x1, x2, c0, c1, c2, reach, moved))
+                        if kept[i]:
                             for j in range(m):
                                 blocked[p, j] = visibility[p, j]
                             continue
@@ -622,7 +651,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                                 blocked[p, j] = False
                                 state[i * m + j] = _DEAD
                             continue
-                        culling[i] = cull
+                        culling[i] = cull and given == 0
                         for q in range(spheres.shape[0]):  # inside a blocker's sphere: every segment meets it
                             e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
                             if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
@@ -630,11 +659,13 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                         if culling[i]:
                             n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
                                                                         near[i])
-                        redo[i] = False
+                        redo[i] = reuse and given_before != 0  # the previous bits were given, not cast
                     elif kept[i] or dark[i]:
                         continue
-                    agreed = _PENDING  # with probe, second stage: the probes' common answer, if any
-                    if stage == 1:
+                    agreed = _PENDING  # the given answer, or with probe, second stage: the probes' common answer
+                    if deciding and decided[p] != 0:
+                        agreed = _LIT if decided[p] == 1 else _BLOCKED
+                    elif stage == 1:
                         n_lit, n_blocked, old_lit, old_blocked = 0, 0, 0, 0
                         for j in range(m):
                             if probe[j] and state[i * m + j] != _DEAD:
@@ -652,7 +683,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                         elif n_blocked > 0 and n_lit == 0:
                             agreed = _BLOCKED
                         # the previous call decided its other samples by agreement too: their bits were not cast
-                        redo[i] = reuse and ((old_lit > 0) != (old_blocked > 0))
+                        redo[i] = redo[i] or (reuse and ((old_lit > 0) != (old_blocked > 0)))
                     n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
                     stream = _mix(np.uint64(key) ^ _mix(np.uint64(p + first)))
                     for j in range(m):
@@ -778,7 +809,7 @@ def _kernel_ready(f, sep, caster) -> bool:
 
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                 visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                previous=None, probe: int = 0):
+                previous=None, probe: int = 0, decided=None, decided_before=None):
     """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
@@ -810,11 +841,17 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     that answer without rays, elsewhere they are cast. 0 (or ``probe >= m``): every sample cast, the unbiased
     estimator; otherwise biased where a shadow's edge crosses the light between the probes (the penumbra
     early-out). The masks record the answers as given; ``visibility`` from a call with the same ``probe``.
+
+    ``decided``: (V,) int, per point the answer of all its samples given without rays: 1 every sample clear, 2 every
+    live sample blocked, 0 none (cast as above; the samples' weights, ``g_k`` and BRDF are computed either way).
+    With ``visibility``, ``decided_before`` is that of the call that gave it (None: all 0): a point given an answer
+    there and none now is cast wholly, so the results are those of a call without ``visibility``.
     """
     first, probe = _check_first(first), _check_probe(probe)
     if not _kernel_ready(f, sep, caster):
         return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
-                                     visibility, moved, stats, first=first, probe=probe)
+                                     visibility, moved, stats, first=first, probe=probe, decided=decided,
+                                     decided_before=decided_before)
     if previous is not None and visibility is not None:
         previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
         if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
@@ -829,6 +866,7 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
+    decided, decided_before = _check_decided(decided, decided_before, len(x), visibility)
     S, F = np.empty((len(x), sep.K)), np.empty((len(x), f.channels))
     blocked, cast = np.empty((len(x), m), dtype=np.bool_), np.zeros(len(x), dtype=np.int64)
     if not len(x):
@@ -842,8 +880,9 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
                   max(1, _SAMPLES_PER_TASK // m), slot_f32, slot_u32, slot_valid, threads, float(caster.epsilon),
                   float(caster.tnear), np.zeros((0, m), np.bool_) if visibility is None else visibility,
                   np.zeros((0, 4)) if moved is None else moved, previous_S, previous_F, _reach(params, area),
-                  blockers is not None, spheres, planes, probe_mask(light, samples, probe), nodes, *_guide(nodes),
-                  values,
+                  blockers is not None, spheres, planes, probe_mask(light, samples, probe),
+                  np.zeros(0, np.int8) if decided is None else decided,
+                  np.zeros(0, np.int8) if decided_before is None else decided_before, nodes, *_guide(nodes), values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
                   np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
                   blocked, cast)

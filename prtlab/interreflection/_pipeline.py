@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import time
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -193,6 +194,13 @@ class InterreflectionOptions:
         every hit interpolated; a run-time choice).
     residual_near_samples : int
         Points on each area light per near hit of ``residual_near`` (a jittered grid; a run-time choice).
+    residual_near_probe : bool
+        With ``residual_near``: a near hit whose triangle's three vertices agree for a light in the frame's direct
+        light (every sample of their shadow masks clear and some lit at each, or every sample blocked at each)
+        takes that answer for its own samples without shadow rays, as ``light_probe``'s agreement decides a
+        vertex's samples (biased where a shadow's edge crosses the triangle between its vertices and misses
+        them); its samples' weights, ``g_k`` and BRDF are still computed. False: every sample cast. A run-time
+        choice.
     residual_whole : bool
         With ``residual_near``: at the receiver points with a near hit on a source, gather the source's whole
         radiance by the residual gather's rays (every bounce) in place of its basis irradiance ``Phi w`` plus the
@@ -231,6 +239,7 @@ class InterreflectionOptions:
     light_probe: int = 16
     residual_near: float = 2.0
     residual_near_samples: int = 2
+    residual_near_probe: bool = True
     residual_whole: bool = False
     storage: str = "int16"
 
@@ -246,6 +255,7 @@ class InterreflectionOptions:
         check_int(self.residual_near_samples, "option residual_near_samples", 1,
                   meaning="points per near hit on an area light")
         check_bool(self.residual_whole, "option residual_whole")
+        check_bool(self.residual_near_probe, "option residual_near_probe")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
         if self.r_min > self.r_max:
@@ -446,7 +456,7 @@ class Interreflection(Precomputation):
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
         run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
-                    "light_probe", "residual_near", "residual_near_samples", "residual_whole")
+                    "light_probe", "residual_near", "residual_near_samples", "residual_near_probe", "residual_whole")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -1479,9 +1489,8 @@ class Interreflection(Precomputation):
         for i, parts in selected.items():
             s = self.objects[i]
             sep = self.seps[s.name]
-            at, normals = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
-            stats["near_hits"] = stats.get("near_hits", 0) + len(at)
-            exact = self._near_exact(i, parts, at, normals, caster, spheres, near, key[0])
+            exact = self._near_exact(i, parts, caster, spheres, near, key[0])
+            stats["near_hits"] = stats.get("near_hits", 0) + len(exact)
             colour = np.asarray(sep.colour, float)[None]
             vertex = self.reuse.direct_rays[s.name]["light_k"] * colour  # the same lights' L_k at its vertices
             bounds = np.cumsum([0] + [len(p[2]) for p in parts])
@@ -1490,54 +1499,79 @@ class Interreflection(Precomputation):
         self.reuse.near_exact = {"key": key, "corrections": out}
         return out
 
-    def _near_exact(self, i: int, parts, at, normals, caster, spheres, lights, poses) -> np.ndarray:
-        """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits ``at`` (``parts``' points one after another),
-        as :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
+    def _near_exact(self, i: int, parts, caster, spheres, lights, poses) -> np.ndarray:
+        """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits (``parts``' points one after another), as
+        :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
 
         Per light the terms and shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry,
         the source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the
         same arrays as before keep their random streams, so :func:`light_terms` recomputes only their points
         whose segments may meet a moved object's bounding sphere (before or after) and re-casts only those
         samples; the points after them are cast anew (``first=``): the result equals the full call bit for
-        bit."""
+        bit. With ``residual_near_probe`` a hit takes the answer its triangle's vertices agree on in the frame's
+        direct light (:meth:`_near_decided`; ``decided=`` of :func:`light_terms`)."""
         s = self.objects[i]
         f, sep, m = brdf.from_material(s.material), self.seps[s.name], self.options.residual_near_samples
-        wo = mirror_wo(normals, normals)
         blockers = self._shadow_blockers(caster, poses, i)
         light_keys = [(type(light).__name__, *(np.asarray(getattr(light, a), float).tobytes()
                                                for a in ("center", "u", "v", "position") if hasattr(light, a)))
                       for light in lights]
         identity = [(p[0], p[3], p[4]) for p in parts]
         old = self.reuse.near_sources.get(i)
+        same = [old is not None and k < len(old["parts"]) and name == old["parts"][k][0]
+                and (points is old["parts"][k][1] or np.array_equal(points, old["parts"][k][1]))
+                and (normal is old["parts"][k][2] or np.array_equal(normal, old["parts"][k][2]))
+                for k, (name, points, normal) in enumerate(identity)]
+        if old is not None and all(same) and len(identity) == len(old["parts"]):  # the parts stand: points as before
+            at, normals, corners = old["at"], old["normals"], old["corners"]
+        else:
+            at, normals = (np.concatenate([p[k] for p in parts]) for k in (3, 4))
+            corners = np.concatenate([hits.faces[hits.triangles[index]] for _, hits, index, _, _ in parts])
         kept = 0  # points of the leading parts that stand
         if (old is not None and old["light_keys"] == light_keys and old["samples"] == m
                 and old["offsets"] == (caster.epsilon, caster.tnear) and old["poses"][i] == poses[i]):
-            for (name, points, normal), (o_name, o_points, o_normal) in zip(identity, old["parts"]):
-                if name != o_name or not (np.array_equal(points, o_points) and np.array_equal(normal, o_normal)):
-                    break
-                kept += len(points)
+            kept = sum(len(points) for (_, points, _), _ in zip(identity, itertools.takewhile(bool, same)))
             moved = np.array([widened_sphere(sphere, caster.epsilon) for j in range(len(poses))
                               if old["poses"][j] != poses[j] for sphere in (old["spheres"][j], spheres[j])])
         stats = self.reuse.residual_counts
         stats.setdefault("near_rays_cast", 0)
         counts = {"rays_cast": 0}
+        wo = normals  # toward the normal: mirror_wo(normals, normals) is the normals themselves (n . n >= 0)
         light_k, terms = np.zeros((len(at), sep.K, 3)), []
         for li, light in enumerate(lights):
-            head, tail = (light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
-                                      stats=counts, blockers=blockers, first=a, **extra)
-                          for a, b, extra in ((0, kept, {"visibility": old["terms"][li][2][:kept], "moved": moved,
-                                                         "previous": (old["terms"][li][0][:kept],
-                                                                      old["terms"][li][1][:kept])}
-                                               if kept else {}), (kept, len(at), {})))
-            terms.append(tuple(np.concatenate([a, b]) for a, b in zip(head, tail)))
+            decided = self._near_decided(s.name, li, corners) if self.options.residual_near_probe else None
+            calls = [(kept, len(at), {})]  # the points after the standing parts: cast anew
+            if kept:  # the standing parts: their previous masks and terms
+                S_old, F_old, mask_old, decided_old = old["terms"][li]
+                calls.insert(0, (0, kept, dict(visibility=mask_old[:kept], moved=moved,
+                                               previous=(S_old[:kept], F_old[:kept]),
+                                               decided_before=None if decided_old is None else decided_old[:kept])))
+            pieces = [light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
+                                  stats=counts, blockers=blockers, first=a, **extra,
+                                  decided=None if decided is None else decided[a:b])
+                      for a, b, extra in calls if b > a or len(calls) == 1]
+            terms.append((*(np.concatenate(t) if len(pieces) > 1 else t[0] for t in zip(*pieces)), decided))
             S = terms[-1][0]
             light_k += S[:, :, None] * np.asarray(light.radiance if isinstance(light, AreaLight)
                                                   else light.intensity, float)
         stats["near_rays_cast"] += counts["rays_cast"]
         self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
-                                          poses=poses, spheres=spheres, parts=identity,
-                                          terms=terms)
+                                          poses=poses, spheres=spheres, parts=identity, at=at, normals=normals,
+                                          corners=corners, terms=terms)
         return light_k
+
+    def _near_decided(self, source: str, light: int, corners) -> np.ndarray:
+        """(Q,) int8 of ``residual_near_probe`` at near hits on ``source`` whose triangles have the vertices
+        ``corners`` (Q, 3): 1 where the three vertices have every sample of light number ``light`` clear in the
+        frame's direct light (:meth:`direct_step_rays`' masks) and some of it lit, 2 where every sample is blocked
+        at all three, else 0."""
+        entry = self.reuse.direct_rays[source]["lights"][light]
+        mask = entry["mask"]
+        code = np.zeros(len(mask), np.int8)  # bits: 1 clear and lit, 2 blocked; their AND over a triangle agrees
+        code[~mask.any(axis=1) & entry["S"].any(axis=1)] = 1
+        code[mask.all(axis=1)] = 2
+        at = code[corners]
+        return at[:, 0] & at[:, 1] & at[:, 2]
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}

@@ -460,6 +460,85 @@ def test_a_probed_recast_after_a_move_equals_a_probed_cast(terms):
                 np.testing.assert_array_equal(b, c)
 
 
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_a_decided_point_takes_its_answer_without_rays(material):
+    """``decided``: the kernel equals the reference tier (masks equal, sums to 1e-12), with and without a probe; a
+    point given 1 has every sample clear and the sums of a caster that blocks nothing, one given 2 every live sample
+    blocked and zero sums, bit for bit; the others are as without ``decided``; only the undecided points cast."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    empty = RayCaster([meshes[2]], transforms=[Transform(translate=np.array([50.0, 0.0, 0.0]))])
+    wo = mirror_wo(wo, normals)
+    decided = (np.arange(len(points)) % 3).astype(np.int8)
+    for i, light in enumerate(lights):
+        for probe in (0, 16):
+            full_stats, stats = {}, {}
+            full = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=full_stats,
+                               probe=probe)
+            ours = light_terms(points, normals, wo, f, sep, caster, light, i, 64, seed=3, stats=stats, probe=probe,
+                               decided=decided)
+            ref = light_terms_reference(points, normals, wo, f, sep, caster, light, i, 64, seed=3, probe=probe,
+                                        decided=decided)
+            np.testing.assert_array_equal(ours[2], ref[2])
+            for a, b in zip(ours[:2], ref[:2]):
+                np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12 * np.abs(b).max())
+            clear = light_terms(points, normals, wo, f, sep, empty, light, i, 64, seed=3)
+            for a, b, c in zip(ours, full, clear):
+                np.testing.assert_array_equal(a[decided == 0], b[decided == 0])
+                np.testing.assert_array_equal(a[decided == 1], c[decided == 1])
+            np.testing.assert_array_equal(ours[0][decided == 2], 0.0)
+            np.testing.assert_array_equal(ours[1][decided == 2], 0.0)
+            live = clear[1].any(axis=1) if isinstance(light, PointLight) else _live(points, normals, light, i)
+            np.testing.assert_array_equal(ours[2][decided == 2], np.broadcast_to(
+                live.reshape(len(points), -1), ours[2].shape)[decided == 2])
+            assert 0 < stats["rays_cast"] < full_stats["rays_cast"]
+
+
+@pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
+def test_a_decided_recast_after_a_move_equals_a_decided_cast(terms):
+    """With ``decided`` changing between calls (``decided_before``), a partial re-cast (``visibility``, ``moved``,
+    ``previous``) equals a fresh cast with the new ``decided`` bit for bit: points decided before and not now are
+    cast wholly."""
+    f = brdf.from_material(MATERIALS[1])
+    sep = brdf.separable(f, K=4)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    before = RayCaster(meshes, transforms=poses)
+    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
+    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
+    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
+    wo = mirror_wo(wo, normals)
+    first = (np.arange(len(points)) % 3).astype(np.int8)
+    second = (np.arange(len(points)) % 5 % 3).astype(np.int8)
+    for i, light in enumerate(lights):
+        for probe in (0, 16):
+            for a_caster, b_caster in ((before, after), (after, before)):
+                old = terms(points, normals, wo, f, sep, a_caster, light, i, 64, probe=probe, decided=first)
+                fresh = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=probe, decided=second)
+                partial = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=probe, visibility=old[2],
+                                moved=spheres, decided=second, decided_before=first)
+                kept = terms(points, normals, wo, f, sep, b_caster, light, i, 64, probe=probe, visibility=old[2],
+                             moved=spheres, previous=old[:2], decided=second, decided_before=first)
+                for a, b, c in zip(partial, kept, fresh):
+                    np.testing.assert_array_equal(a, c)
+                    np.testing.assert_array_equal(b, c)
+
+
+def test_light_terms_refuse_a_bad_decided():
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    for terms in (light_terms, light_terms_reference):
+        with pytest.raises(ValueError, match="decided must be a"):
+            terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, decided=np.full(len(points), 3))
+        with pytest.raises(ValueError, match="decided must be a"):
+            terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, decided=np.zeros(2, int))
+        with pytest.raises(ValueError, match="decided_before= needs the visibility="):
+            terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, decided_before=np.zeros(len(points), int))
+
+
 def test_light_terms_refuse_a_bad_probe():
     f = brdf.from_material(MATERIALS[0])
     sep = brdf.separable(f, K=1)

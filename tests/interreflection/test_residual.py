@@ -392,6 +392,8 @@ def test_residual_near_options_are_validated():
         InterreflectionOptions(residual_near="far")
     with pytest.raises(ValueError, match="residual_near_samples"):
         InterreflectionOptions(residual_near_samples=0)
+    with pytest.raises(TypeError, match="residual_near_probe"):
+        InterreflectionOptions(residual_near_probe=1)
 
 
 @pytest.fixture(scope="module")
@@ -673,6 +675,51 @@ def test_moving_an_object_recasts_only_the_near_hits_it_may_shadow(low_ball):
     for name, expected in fresh_ir.reuse.near_exact["corrections"].items():
         np.testing.assert_array_equal(ir.reuse.near_exact["corrections"][name], expected)
         np.testing.assert_array_equal(moved.indirect[name], fresh.indirect[name])
+
+
+def test_near_hits_take_the_answer_their_triangles_vertices_agree_on(low_ball):
+    """``residual_near_probe``: a near hit whose triangle's vertices all have a light's samples clear (and some lit)
+    or all blocked in the direct light takes that answer without rays; the others are cast as without the option,
+    so the corrections differ only at the decided hits, and fewer rays are cast."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+
+    shades = {}
+    for probe in (False, True):
+        ir = Interreflection(low_ball.scene, dataclasses.replace(low_ball.options, residual_near_probe=probe),
+                             low_ball.data)
+        shades[probe] = (ir, ir.shade(bounces=1))
+    (off_ir, off), (on_ir, on) = shades[False], shades[True]
+    assert on.info["residual_near_hits"] == off.info["residual_near_hits"] > 0
+    assert 0 < on.info["residual_near_rays_cast"] < off.info["residual_near_rays_cast"]
+    given = []
+    for i, source in enumerate(on_ir.objects):
+        if i not in on_ir.reuse.near_sources:
+            continue
+        S_on, _, mask_on, decided = on_ir.reuse.near_sources[i]["terms"][0]
+        S_off, _, mask_off, _ = off_ir.reuse.near_sources[i]["terms"][0]
+        given.append(decided)
+        np.testing.assert_array_equal(mask_on[decided == 0], mask_off[decided == 0])
+        np.testing.assert_array_equal(S_on[decided == 0], S_off[decided == 0])
+        assert not mask_on[decided == 1].any() and np.all(S_on[decided == 2] == 0.0)
+        # the decision: every corner of the hit triangle clear (and lit) or blocked in the frame's direct light
+        entry = on_ir.reuse.direct_rays[source.name]["lights"][0]
+        code = np.where(entry["mask"].all(axis=1), 2, np.where(~entry["mask"].any(axis=1) & entry["S"].any(axis=1),
+                                                                1, 0))
+        parts = [(hits, index) for r in on_ir.objects for (name, hits, index, _, _) in
+                 _near_parts(on_ir, r.name, i)]
+        corners = np.concatenate([code[hits.faces[hits.triangles[index]]] for hits, index in parts])
+        np.testing.assert_array_equal(decided, np.where(np.ptp(corners, axis=1) == 0, corners[:, 0], 0))
+    given = np.concatenate(given)
+    assert np.any(given == 1) and np.any(given == 0)
+
+
+def _near_parts(ir, receiver: str, source: int) -> list:
+    """The ``(receiver, hits, index, points, normals)`` near-hit part of ``receiver`` on source number ``source``
+    (empty when it has no near hit there), from ``ir``'s reuse."""
+    cached = [value for (name, i), value in ir.reuse.near_hits.items() if name == receiver and i == source]
+    return [(receiver, c[0], *c[2]) for c in cached if len(c[2][0])]
 
 
 def test_light_terms_first_continues_the_streams():
