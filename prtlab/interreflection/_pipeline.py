@@ -905,7 +905,7 @@ class Interreflection(Precomputation):
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
                         self.seps[r.name], caster, light, i, samples[0], probe=samples[1],
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
-                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me),
+                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me, True),
                         previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)
                 terms[i] = new
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
@@ -920,10 +920,13 @@ class Interreflection(Precomputation):
             light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
 
-    def _shadow_blockers(self, caster, poses, me: int):
+    def _shadow_blockers(self, caster, poses, me: int, vertices: bool = False):
         """The bounds of every object a shadow ray from object number ``me`` may hit (:func:`blocker_bounds`; its
-        own plane left out if it is flat), made once per pose set and ray offsets."""
-        exclude = me if self.flat[self.objects[me].name] else None
+        own plane left out if it is flat, and with ``vertices`` (rays from its shading points, each in its vertex's
+        tangent plane) its own bound if it is convex: that plane supports it, so a ray above it cannot meet it),
+        made once per pose set and ray offsets."""
+        name = self.objects[me].name
+        exclude = me if self.flat[name] or (vertices and self.convex[name]) else None
         key = (poses, caster.epsilon, caster.tnear)
         cached = self.reuse.blockers.get(exclude)
         if cached is None or cached[0] != key:

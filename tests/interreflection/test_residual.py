@@ -747,8 +747,9 @@ def test_light_terms_first_continues_the_streams():
 
 
 def test_a_convex_receiver_casts_no_rays_at_itself(low_ball):
-    """The ball is convex: its rays leave it, so the residual gather leaves it out as its own source; the frame
-    equals one that casts those rays (none hits the ball's front), with fewer rays cast."""
+    """The ball is convex: its rays leave it, so the residual gather leaves it out as its own source and its direct
+    light's shadow rays leave it out as a blocker (they start in a tangent plane that supports it); the frame equals
+    one that casts those rays (none hits the ball), with fewer rays cast."""
     import dataclasses
 
     from prtlab.interreflection import Interreflection
@@ -763,7 +764,9 @@ def test_a_convex_receiver_casts_no_rays_at_itself(low_ball):
         shades[convex] = ir.shade(state, bounces=2)
     for name in ("floor", "ball"):
         np.testing.assert_array_equal(shades[True].indirect[name], shades[False].indirect[name])
+        np.testing.assert_array_equal(shades[True].direct[name], shades[False].direct[name])
     assert shades[True].info["residual_rays_cast"] < shades[False].info["residual_rays_cast"]
+    assert shades[True].info["direct_rays_cast"] < shades[False].info["direct_rays_cast"]
 
 
 def test_residual_cone_casts_fewer_rays_in_the_pipeline(low_ball):
