@@ -1256,12 +1256,20 @@ def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, a
             normals[q, x] /= length
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _near_correction_kernel(rows, factor, triangles, uv, faces, index, exact, values, starts, out):
+    """``near_hit_correction``'s sum, hit after hit in the order of ``index`` (as ``np.add.at``); the runs
+    ``index[starts[c]:starts[c + 1]]`` in parallel (no two runs add to one row)."""
+    for c in numba.prange(starts.shape[0] - 1):
+        _near_correction_run(rows, factor, triangles, uv, faces, index, exact, values, starts[c], starts[c + 1], out)
+
+
 @numba.njit(cache=True, nogil=True)
-def _near_correction_kernel(rows, factor, triangles, uv, faces, index, exact, values, out):
-    """``near_hit_correction``'s sum, hit after hit in the order of ``index`` (as ``np.add.at``)."""
+def _near_correction_run(rows, factor, triangles, uv, faces, index, exact, values, first, last, out):
+    """The hits ``index[first:last]`` of :func:`_near_correction_kernel`, in order."""
     n_kp, n_k, n_c = factor.shape[1], factor.shape[2], exact.shape[2]
     diff = np.empty((n_k, n_c))
-    for q in range(index.shape[0]):
+    for q in range(first, last):
         h = index[q]
         f = triangles[h]
         i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
@@ -1279,6 +1287,21 @@ def _near_correction_kernel(rows, factor, triangles, uv, faces, index, exact, va
                 out[p, kp, c] += total
 
 
+#: hits per run of :func:`_near_correction_kernel` (at least; a run ends where its receiver point does)
+_CORRECTION_RUN = 4096
+
+
+def _row_runs(rows) -> np.ndarray:
+    """(R + 1,) bounds of runs of ``rows`` (the hits' receiver points in their order) of about
+    :data:`_CORRECTION_RUN` hits, each run's rows apart from every other's: the whole when ``rows`` is not
+    sorted."""
+    rows = np.asarray(rows)
+    if len(rows) <= _CORRECTION_RUN or np.any(rows[1:] < rows[:-1]):
+        return np.array([0, len(rows)], np.int64)
+    cuts = np.searchsorted(rows, rows[np.arange(_CORRECTION_RUN, len(rows), _CORRECTION_RUN)], side="left")
+    return np.unique(np.concatenate([[0], cuts, [len(rows)]])).astype(np.int64)
+
+
 def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_points: int,
                         method: str = "numba") -> np.ndarray:
     """``L_k',c`` (n_points, K', C): over the hits ``index`` of ``hits``, ``factor (exact - interp)``, with
@@ -1294,7 +1317,7 @@ def near_hit_correction(hits: ResidualHits, index, exact, vertex_values, n_point
         out = np.zeros((n_points, hits.factor.shape[1], exact.shape[2]))
         _near_correction_kernel(*(np.ascontiguousarray(a, t) for a, t in (
             (hits.rows, np.int64), (hits.factor, np.float64), (hits.triangles, np.int64), (hits.uv, np.float64),
-            (hits.faces, np.int64))), index, exact, np.ascontiguousarray(values), out)
+            (hits.faces, np.int64))), index, exact, np.ascontiguousarray(values), _row_runs(hits.rows[index]), out)
         return out
     at = np.einsum("hv,hvkc->hkc", hits.bary[index], values[hits.vertices[index]])
     per_ray = np.einsum("hqk,hkc->hqc", hits.factor[index], np.asarray(exact, float) - at)

@@ -968,3 +968,29 @@ def test_packet_casts_equal_one_ray_casts(r, full, monkeypatch):
         monkeypatch.setattr(_raycast, "PACKETS", packets)
         runs[packets] = _casts_before_and_after_a_move((LAMBERT, PHONG, LAMBERT), r, full)
     _assert_same_casts(runs[False], runs[True])
+
+
+def test_the_near_hit_correction_in_parallel_runs_equals_one_pass():
+    """:func:`near_hit_correction` adds runs of hits with distinct receiver points in parallel: bit for bit the sum
+    of one pass over the hits in order, within 1e-12 of the reference tier; unsorted rows take one pass."""
+    from prtlab.interreflection import _residual
+    from prtlab.interreflection._residual import ResidualHits, near_hit_correction
+
+    rng = np.random.default_rng(12)
+    n_hits, n_points, n_vertices = 30_000, 2_000, 50
+    faces = rng.integers(0, n_vertices, (40, 3))
+    rows = np.sort(rng.integers(0, n_points, n_hits))
+    uv = rng.uniform(0.0, 0.5, (n_hits, 2))
+    hits = ResidualHits(rows, rng.normal(size=(n_hits, 2, 3)), np.arange(n_hits), rng.integers(0, 40, n_hits), uv,
+                        faces)
+    index = np.sort(rng.choice(n_hits, 20_000, replace=False))
+    exact, values = rng.normal(size=(len(index), 3, 3)), rng.normal(size=(n_vertices, 3, 3))
+    assert len(_residual._row_runs(rows[index])) > 3
+    ours = near_hit_correction(hits, index, exact, values, n_points)
+    one = np.zeros_like(ours)
+    _residual._near_correction_kernel(rows, hits.factor, hits.triangles, uv, faces, index, exact, values,
+                                      np.array([0, len(index)]), one)
+    np.testing.assert_array_equal(ours, one)
+    ref = near_hit_correction(hits, index, exact, values, n_points, method="reference")
+    np.testing.assert_allclose(ours, ref, rtol=0.0, atol=1e-12 * np.abs(ref).max())
+    np.testing.assert_array_equal(_residual._row_runs(rows[index][::-1]), [0, len(index)])
