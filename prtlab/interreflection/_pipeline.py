@@ -55,6 +55,7 @@ shadow field holds one visibility per point, not per distance; build rooms from 
 
 from __future__ import annotations
 
+import copy
 import time
 import dataclasses
 import itertools
@@ -440,6 +441,8 @@ class FrameReuse:
     #: (receiver, near-hit points, their normals), per light (S, F, shadow mask)} of
     #: :meth:`Interreflection._near_exact`
     near_sources: dict = dataclasses.field(default_factory=dict)
+    #: (a copy of the environment light, SH order, its SH coefficients) of the direct light by rays
+    environment_sh: tuple | None = None
 
 
 class Interreflection(Precomputation):
@@ -873,7 +876,7 @@ class Interreflection(Precomputation):
         ray offsets, cast every sample."""
         env = [light for light in state.lights if isinstance(light, EnvironmentLight)]
         near = [light for light in state.lights if isinstance(light, (AreaLight, PointLight))]
-        env_sh = environment_sh(env[0], self.options.order) if env else None
+        env_sh = self._environment_sh(env[0]) if env else None
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
         offsets = None if caster is None else (caster.epsilon, caster.tnear)
@@ -911,14 +914,28 @@ class Interreflection(Precomputation):
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
                 lk += new["S"][:, :, None] * emission
                 rad += new["F"] * emission
-            self.reuse.direct_rays[r.name] = dict(poses=poses, offsets=offsets, samples=samples, spheres=spheres,
-                                                  lights=terms, light_k=lk)
-            if env_sh is not None:
+            environment = None if entry is None else entry.get("environment")
+            if env_sh is not None and (environment is None or not (
+                    environment[0] is env_sh and environment[1] is transfer[r.name] and environment[2] is g["h"])):
                 env_k = self._clamp_diffuse(r, np.einsum("vki,ic->vkc", transfer[r.name], env_sh))
-                lk = lk + env_k
-                rad = rad + outgoing_radiance(env_k, g["h"], self.seps[r.name].colour)
+                environment = (env_sh, transfer[r.name], g["h"], env_k,
+                               outgoing_radiance(env_k, g["h"], self.seps[r.name].colour))
+            self.reuse.direct_rays[r.name] = dict(poses=poses, offsets=offsets, samples=samples, spheres=spheres,
+                                                  lights=terms, light_k=lk, environment=environment)
+            if env_sh is not None:  # the environment's terms stand while its SH, the transfer and h_k do
+                lk = lk + environment[3]
+                rad = rad + environment[4]
             light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
+
+    def _environment_sh(self, env) -> np.ndarray:
+        """The SH coefficients (n^2, 3) of environment light ``env`` (:func:`environment_sh`), projected again only
+        when it differs from the last one's copy."""
+        cached = self.reuse.environment_sh
+        if cached is None or cached[1] != self.options.order or not cached[0] == env:
+            cached = self.reuse.environment_sh = (copy.deepcopy(env), self.options.order,
+                                                  environment_sh(env, self.options.order))
+        return cached[2]
 
     def _shadow_blockers(self, caster, poses, me: int, vertices: bool = False):
         """The bounds of every object a shadow ray from object number ``me`` may hit (:func:`blocker_bounds`; its

@@ -268,7 +268,8 @@ def test_light_terms_refuse_bad_input():
 
 def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
     """Relighting (the area light's radiance doubles) rescales the kept terms; moving the ball re-casts only
-    near it; a new camera reshades from the masks: each frame equals a fresh shade of the same state."""
+    near it; a new camera reshades from the masks; an equal environment keeps its SH, a new one projects again:
+    each frame equals a fresh shade of the same state."""
     from prtlab.pipeline import FrameState
 
     lights = [{"type": "environment", "constant": [0.2, 0.2, 0.2]},
@@ -305,6 +306,16 @@ def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
     assert turned.info["direct_rays_cast"] == 0
     for name in ("floor", "ball"):
         np.testing.assert_array_equal(turned.direct[name], fresh(state).direct[name])
+    coefficients = pre.reuse.environment_sh[2]
+    state.lights[0] = dataclasses.replace(state.lights[0], constant=np.array([0.2, 0.2, 0.2]))  # equal: kept
+    pre.shade(state, bounces=0)
+    assert pre.reuse.environment_sh[2] is coefficients
+    state.lights[0] = dataclasses.replace(state.lights[0], constant=np.array([0.1, 0.3, 0.2]))  # new: projected
+    brighter = pre.shade(state, bounces=0)
+    assert brighter.info["direct_rays_cast"] == 0
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(brighter.direct[name], fresh(state).direct[name])
+        assert np.any(brighter.direct[name] != turned.direct[name])
 
 
 @pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
