@@ -824,11 +824,10 @@ def test_exp_occlusion_does_not_depend_on_the_occluders_order(pre):
             assert gap > 1e-6 * np.max(np.abs(one)), gap
 
 
-def test_exp_occlusion_of_one_occluder_with_the_exact_exponential_is_its_floored_product(pre):
-    """With one occluder and ``exp_method="exact"``, ``exp*(log O)`` is the floored field ``floor 1 + (1 - floor)
-    O`` interpolated through its logs: at a floor point it matches the product path's ``self x O`` blended with
-    ``self`` (``floor``) to the interpolation's difference; at the samples' own points exactly. Checked here where
-    the lookups coincide: the sample points of the ball's field themselves (no interpolation)."""
+def test_exp_occlusion_of_one_occluder_with_the_exact_exponential_is_its_floored_visibility(pre):
+    """One occluder through ``exp*`` (exact tier) of its looked-up log is its floored visibility ``floor 1 + (1 -
+    floor) O``, within Newton's tolerance, where the lookups are not interpolated between samples: at the sample
+    points of the ball's field, posed as in the scene."""
     from prtlab import sh
     from prtlab.shadowfields import LOG_FLOOR
 
@@ -842,13 +841,13 @@ def test_exp_occlusion_of_one_occluder_with_the_exact_exponential_is_its_floored
 
 
 def test_exp_occlusion_shades_close_to_the_products(pre):
-    """The whole quick scene with ``occlusion="exp"`` (HYB) against the products: the floor under the ball and the
-    ball agree within the exponential's error (HYB's RMS error of a visibility, 0.003 on these fields, and the
-    floor's ``1 %``) -- a sanity bound, the accuracy against references is in docs/notes/interreflection.md."""
+    """The whole quick scene with ``occlusion="exp"`` (HYB) against the products: the floor and the ball differ by
+    less than the total's goal (5 % relative RMS, GOAL): a sanity bound; the option's accuracy against Mitsuba is
+    scored in the fidelity tier (``test_cluster_against_mitsuba``)."""
     import dataclasses
 
     base = Interreflection(pre.scene, pre.options, pre.data).shade(bounces=1)
     ours = Interreflection(pre.scene, dataclasses.replace(pre.options, occlusion="exp"), pre.data).shade(bounces=1)
     for name in ("floor", "ball"):
         a, b = base.total[name], ours.total[name]
-        assert np.sqrt(np.mean((a - b) ** 2)) <= 0.05 * np.sqrt(np.mean(a**2)), name
+        assert np.sqrt(np.mean((a - b) ** 2)) <= GOAL["total"] * np.sqrt(np.mean(a**2)), name
