@@ -278,24 +278,22 @@ def corner_shaded(corner_reference):
     return _shades(corner_reference[0], CORNER_CASES, corner_scene(TORUS_AWAY), "torus")
 
 
-def _corner_param(case, obj, part, bound):
-    key = (case, obj, part, bound)
-    marks = [pytest.mark.xfail(strict=True, reason=CORNER_KNOWN[key])] if key in CORNER_KNOWN else []
-    return pytest.param(case, obj, part, bound, marks=marks, id=f"{case}-{obj}-{part}-{bound}")
+def _bounded_params(cases, objects, known: dict) -> list:
+    """``(case, obj, part, bound)`` params over ``cases`` and ``objects``: every part against the module's goal
+    (GOAL) and the issue's bound (BOUND), a strict xfail where ``known`` gives the measured miss."""
+    params = []
+    for case in cases:
+        for obj in objects:
+            for part, bound in [*((p, "goal") for p in PARTS), *((p, "bound") for p in BOUND)]:
+                key = (case, obj, part, bound)
+                marks = [pytest.mark.xfail(strict=True, reason=known[key])] if key in known else []
+                params.append(pytest.param(case, obj, part, bound, marks=marks, id=f"{case}-{obj}-{part}-{bound}"))
+    return params
 
 
-_CORNER_PARAMS = [_corner_param(c, o, p, b) for c in CORNER_CASES for o in CORNER_OBJECTS
-                  for p, b in [*((p, "goal") for p in PARTS), *((p, "bound") for p in BOUND)]]
-
-
-@pytest.mark.parametrize("case, obj, part, bound", _CORNER_PARAMS)
-def test_corner_against_mitsuba(corner_reference, corner_shaded, case, obj, part, bound):
-    """The open room corner against Mitsuba with the torus at its scene pose: precomputed there, and precomputed
-    with the torus 1.16 m away then moved back by a FrameState (defaults; the paper's method). ``bound``:
-    the module's goal (GOAL) or the issue's binding bound (BOUND). The box's bottom face, on the floor, is
-    left out (``docs/DECISIONS.md``)."""
-    scene, ref = corner_reference
-    ours = corner_shaded(case)
+def _check_row(scene, ref, ours, case, obj, part, bound):
+    """One object's part against Mitsuba, within GOAL or BOUND; the box's bottom face, on the floor, left out
+    (``docs/DECISIONS.md``)."""
     masks = {"box": scene.object("box").world_vertices()[:, 1] > 0.01}
     comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=masks)
     row = comparison.row(obj, part)
@@ -303,6 +301,15 @@ def test_corner_against_mitsuba(corner_reference, corner_shaded, case, obj, part
           f"mean ratio {row.mean_ratio:.4f}")
     failures = comparison.check(GOAL[part] if bound == "goal" else BOUND[part])
     assert not failures, failures
+
+
+@pytest.mark.parametrize("case, obj, part, bound", _bounded_params(CORNER_CASES, CORNER_OBJECTS, CORNER_KNOWN))
+def test_corner_against_mitsuba(corner_reference, corner_shaded, case, obj, part, bound):
+    """The open room corner against Mitsuba with the torus at its scene pose: precomputed there, and precomputed
+    with the torus 1.16 m away then moved back by a FrameState (defaults; the paper's method). ``bound``:
+    the module's goal (GOAL) or the issue's binding bound (BOUND). The box's bottom face, on the floor, is
+    left out (``docs/DECISIONS.md``)."""
+    _check_row(*corner_reference, corner_shaded(case), case, obj, part, bound)
 
 
 # --------------------------------------------------------------------------- the corner after a move
@@ -317,7 +324,7 @@ TORUS_BY_BOX = Transform(translate=np.array([-0.11, 0.18, -0.31]), rotate_deg=np
 AFTER_MOVES = {"light_moved": (dict(light=LIGHT_MOVED), ("lights", [LIGHT_MOVED])),
                "torus_by_box": (dict(torus=TORUS_BY_BOX), ("torus", TORUS_BY_BOX))}
 #: Misses at the defaults (CORNER_SPP, seed 0): none.
-_AFTER_MOVES: dict = {}
+AFTER_KNOWN: dict = {}
 
 
 @pytest.fixture(scope="module")
@@ -343,27 +350,12 @@ def corner_after_move():
     return get
 
 
-def _after_param(case, obj, part, bound):
-    key = (case, obj, part, bound)
-    marks = [pytest.mark.xfail(strict=True, reason=_measured(*_AFTER_MOVES[key]))] if key in _AFTER_MOVES else []
-    return pytest.param(case, obj, part, bound, marks=marks, id=f"{case}-{obj}-{part}-{bound}")
-
-
-@pytest.mark.parametrize("case, obj, part, bound",
-                         [_after_param(c, o, p, b) for c in AFTER_MOVES for o in CORNER_OBJECTS
-                          for p, b in [*((p, "goal") for p in PARTS), *((p, "bound") for p in BOUND)]])
+@pytest.mark.parametrize("case, obj, part, bound", _bounded_params(AFTER_MOVES, CORNER_OBJECTS, AFTER_KNOWN))
 def test_corner_after_a_move_against_mitsuba(corner_after_move, case, obj, part, bound):
     """Issue 18's motion tests: the corner precomputed as it ships, then the area light moved and turned
     (``light_moved``) or the torus moved beside the box (``torus_by_box``) by a FrameState, against Mitsuba at
     the new state; every object, direct / indirect / total, the module's goal and the issue's bound."""
-    scene, ref, ours = corner_after_move(case)
-    masks = {"box": scene.object("box").world_vertices()[:, 1] > 0.01}
-    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=masks)
-    row = comparison.row(obj, part)
-    print(f"\n{case} {obj} {part}: rel_rms {row.rel_rms:.4f} noise {row.noise:.4f} error {row.error:.4f} "
-          f"mean ratio {row.mean_ratio:.4f}")
-    failures = comparison.check(GOAL[part] if bound == "goal" else BOUND[part])
-    assert not failures, failures
+    _check_row(*corner_after_move(case), case, obj, part, bound)
 
 
 # --------------------------------------------------------------------------- three objects nearly touching
@@ -377,7 +369,7 @@ CLUSTER_BALL = {"name": "ball", "mesh": {"builtin": "icosphere", "radius": 0.25,
 CLUSTER_CASES = {"cluster": {}, "cluster_exp": {"occlusion": "exp"}}
 CLUSTER_OBJECTS = (*CORNER_OBJECTS, "ball")
 #: Misses (CORNER_SPP, seed 0): none.
-_CLUSTER: dict = {}
+CLUSTER_KNOWN: dict = {}
 
 
 def cluster_scene() -> Scene:
@@ -403,23 +395,8 @@ def cluster():
     return get
 
 
-def _cluster_param(case, obj, part, bound):
-    key = (case, obj, part, bound)
-    marks = [pytest.mark.xfail(strict=True, reason=_measured(*_CLUSTER[key]))] if key in _CLUSTER else []
-    return pytest.param(case, obj, part, bound, marks=marks, id=f"{case}-{obj}-{part}-{bound}")
-
-
-@pytest.mark.parametrize("case, obj, part, bound",
-                         [_cluster_param(c, o, p, b) for c in CLUSTER_CASES for o in CLUSTER_OBJECTS
-                          for p, b in [*((p, "goal") for p in PARTS), *((p, "bound") for p in BOUND)]])
+@pytest.mark.parametrize("case, obj, part, bound", _bounded_params(CLUSTER_CASES, CLUSTER_OBJECTS, CLUSTER_KNOWN))
 def test_cluster_against_mitsuba(cluster, case, obj, part, bound):
     """Three objects 2 cm apart on the corner's floor (torus, box, ball), one bounce, against Mitsuba: the SH
     products nearest first (defaults) and ``occlusion="exp"`` (the paper's future work, Sec. 6); every object."""
-    scene, ref, ours = cluster(case)
-    masks = {"box": scene.object("box").world_vertices()[:, 1] > 0.01}
-    comparison = prtlab.compare(ours, ref, objects=[obj], parts=[part], masks=masks)
-    row = comparison.row(obj, part)
-    print(f"\n{case} {obj} {part}: rel_rms {row.rel_rms:.4f} noise {row.noise:.4f} error {row.error:.4f} "
-          f"mean ratio {row.mean_ratio:.4f}")
-    failures = comparison.check(GOAL[part] if bound == "goal" else BOUND[part])
-    assert not failures, failures
+    _check_row(*cluster(case), case, obj, part, bound)
