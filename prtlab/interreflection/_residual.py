@@ -451,23 +451,6 @@ def _weighing(receiver_sep, source) -> tuple:
             np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64))
 
 
-@numba.njit(cache=True, parallel=True)
-def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing,
-                       weighing, triangle, uv, front, factor):
-    """For each hit ``i`` (ray ``ray[i]`` of point ``point[i]``, made again by ``_ray``, on ``triangle[i]`` of the
-    source at barycentrics ``uv[i]``): ``front[i]`` and ``factor[i]`` by ``_weigh_hit``."""
-    n_hits = point.shape[0]
-    chunk = 256
-    for c in numba.prange((n_hits + chunk - 1) // chunk):
-        buf = np.empty(8)
-        g = np.empty(weighing[3].shape[0])
-        h = np.empty(weighing[7].shape[0])
-        for i in range(c * chunk, min(n_hits, (c + 1) * chunk)):
-            p = point[i]
-            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, full, facing, buf)
-            front[i] = _weigh_hit(buf, normals, p, triangle[i], uv[i, 0], uv[i, 1], weighing, g, h, factor[i])
-
-
 #: ``_recast_kernel``'s per-ray state: not flagged, flagged and not cast (``tmax`` 0), cast, hit the source.
 _UNFLAGGED, _FLAGGED, _FLAGGED_CAST, _FLAGGED_HIT = 0, 1, 2, 3
 
@@ -566,12 +549,13 @@ def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, r
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, tnear,
-                   source, spheres, tracer, state, triangle, uv):
+                   source, spheres, tracer, weighing, state, triangle, uv, factor):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
     ``_flag_kernel`` flags is traced (rays are made only in the rows ``_rows_meeting`` keeps, as
     ``_flag_rows_kernel``), one at a time or, with ``tracer.packet``, 16 flagged rays of a block of points at a
-    time; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax`` 0), ``_FLAGGED_CAST`` or
-    ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
+    time, and a hit on the source weighed (``_weigh_hit``); ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not
+    cast: ``tmax`` 0), ``_FLAGGED_CAST`` (cast, its first hit not the source's front) or ``_FLAGGED_HIT`` (its
+    first hit is the front of ``source``: ``triangle[i, j]``, ``uv[i, j]``, ``factor[i, j]``)."""
     m = rows * side
     w = _embree.PACKET
     n = candidates.shape[0]
@@ -582,6 +566,9 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
         need = np.empty(m, np.bool_)
         lane_i = np.empty(w, np.int64)
         lane_j = np.empty(w, np.int64)
+        lane_rays = np.empty((w, 8))
+        g = np.empty(weighing[3].shape[0])
+        h = np.empty(weighing[7].shape[0])
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
@@ -611,13 +598,17 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                         state[i, j] = _FLAGGED_CAST
                         if not tracer.packet:
                             if _hits_source(buf, tnear, source, tracer.function, tracer.scene, f32, u32, address):
-                                state[i, j] = _FLAGGED_HIT
                                 triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
                                 uv[i, j, 0] = f32[_embree.HIT_U]
                                 uv[i, j, 1] = f32[_embree.HIT_V]
+                                if _weigh_hit(buf, normals, candidates[i], np.int64(triangle[i, j]),
+                                              np.float64(uv[i, j, 0]), np.float64(uv[i, j, 1]), weighing, g, h,
+                                              factor[i, j]):
+                                    state[i, j] = _FLAGGED_HIT
                             continue
                         if _add_lane(buf, tnear, f32, u32, valid, n_lanes):
                             lane_i[n_lanes], lane_j[n_lanes] = i, j
+                            lane_rays[n_lanes] = buf
                             n_lanes += 1
                         if n_lanes < w:
                             continue
@@ -627,10 +618,13 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                     for k in range(n_lanes):
                         if _lane_hits(u32, k, source):
                             a, c = lane_i[k], lane_j[k]
-                            state[a, c] = _FLAGGED_HIT
                             triangle[a, c] = np.int32(u32[_embree.HIT_PRIM * w + k])
                             uv[a, c, 0] = f32[_embree.HIT_U * w + k]
                             uv[a, c, 1] = f32[_embree.HIT_V * w + k]
+                            if _weigh_hit(lane_rays[k], normals, candidates[a], np.int64(triangle[a, c]),
+                                          np.float64(uv[a, c, 0]), np.float64(uv[a, c, 1]), weighing, g, h,
+                                          factor[a, c]):
+                                state[a, c] = _FLAGGED_HIT
                     n_lanes = 0
 
 
@@ -826,23 +820,6 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
                         triangle[at].astype(np.int64), uv32[at].astype(np.float64), source[0])
 
 
-def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound, rows, j, rays, triangle, uv32):
-    """The :class:`ResidualHits` of the rays ``rays`` (ray ``j`` of point ``rows``) whose first hit is the source,
-    on ``triangle`` at ``uv32``: those on its front, weighed by :func:`_hit_factor_kernel` (None if none)."""
-    if not len(rows):
-        return None
-    faces, _, sep, _, radius = source[:5]
-    triangles, uv = triangle.astype(np.int64), uv32.astype(np.float64)
-    front = np.empty(len(rows), np.bool_)
-    factor = np.empty((len(rows), receiver_sep.K, sep.K))
-    _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps, grid[2],
-                       _source_facing(source), _weighing(receiver_sep, source), triangles, uv, front, factor)
-    if not np.any(front):
-        return None
-    keep = np.flatnonzero(front)
-    return ResidualHits(rows[keep], factor[keep], rays[keep].astype(np.int64), triangles[keep], uv[keep], faces)
-
-
 def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
     """``old`` without the rays ``recast`` (sorted ids), with ``new`` (their hits now), in the order of the ids."""
     parts = []
@@ -994,19 +971,22 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         state = np.empty((len(candidates), m), np.int8)
         triangle = np.empty((len(candidates), m), np.int32)
         uv32 = np.empty((len(candidates), m, 2), np.float32)
+        factor = np.empty((len(candidates), m, receiver_sep.K, source[2].K))
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
                        float(caster.epsilon), grid[2], _source_facing(source), float(caster.tnear), s, widened,
-                       _tracer(caster, n_blocks), state, triangle, uv32)
+                       _tracer(caster, n_blocks), _weighing(receiver_sep, source), state, triangle, uv32, factor)
         i, j = np.nonzero(state)
         if not len(i):
             return old
         stats["rays_cast"] += int(np.count_nonzero(state >= _FLAGGED_CAST))
         ids = candidates[i] * m + j
         hit = np.flatnonzero(state[i, j] == _FLAGGED_HIT)
-        new = _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound,
-                     candidates[i[hit]], j[hit].astype(np.int64), ids[hit], triangle[i[hit], j[hit]],
-                     uv32[i[hit], j[hit]])
+        new = None
+        if len(hit):
+            a, c = i[hit], j[hit]
+            new = ResidualHits(candidates[a], factor[a, c], ids[hit].astype(np.int64),
+                               triangle[a, c].astype(np.int64), uv32[a, c].astype(np.float64), source[0])
         return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
