@@ -1258,8 +1258,9 @@ class Interreflection(Precomputation):
         return phi, counts
 
     def _stacked_irradiance(self, r, phi_r, dtype=np.float64):
-        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r`` in ``dtype``, rebuilt only when a
-        pair changed (or the type asked for did).
+        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r`` in ``dtype``, made again only when
+        a pair changed (or the type asked for did): with the same sources, shapes and type only the changed pairs'
+        blocks are written over (the same values as a new concatenation).
 
         The bounce loop then is one matrix product per receiver and bounce
         (:func:`reflected_light` with ``method="reference"`` is the specification).
@@ -1276,6 +1277,17 @@ class Interreflection(Precomputation):
         if not arrays:
             return None, sources
         n_v, n_kp = arrays[0].shape[:2]
+        widths = [a.size // (n_v * n_kp) if n_v * n_kp else 0 for a in arrays]
+        if (cached is not None and cached[0][0] == key[0] and [s for s, _ in cached[0][1:]] == sources
+                and cached[1].shape == (n_v, n_kp, sum(widths))
+                and all(a.shape[:2] == (n_v, n_kp) for a in arrays)):
+            stacked, at = cached[1], 0
+            for (_, old), (_, new), a, width in zip(cached[0][1:], key[1:], arrays, widths):
+                if old != new:  # this pair's Phi was replaced: its block alone is written again
+                    stacked[:, :, at:at + width] = a.reshape(n_v, n_kp, width)
+                at += width
+            self.reuse.stacked[r.name] = (key, stacked)
+            return stacked, sources
         stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2), dtype)
         self.reuse.stacked[r.name] = (key, stacked)
         return stacked, sources
