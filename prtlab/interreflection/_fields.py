@@ -176,6 +176,7 @@ def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out)
     dirs = np.ascontiguousarray(dirs, dtype=np.float64)
     centre, h = np.asarray(centre, np.float64), np.ascontiguousarray(h, dtype=np.float64)
     step = max(1, _RAYS_PER_BATCH // max(1, len(dirs)))
+    basis_t = np.ascontiguousarray(np.asarray(basis, np.float64).T)  # a vertex's Psi_i in one cache line or two
     triangle = np.empty((min(step, len(flat)), len(dirs)), np.int32)
     uv = np.empty((min(step, len(flat)), len(dirs), 2), np.float32)
     for a in range(0, len(flat), step):
@@ -183,7 +184,7 @@ def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out)
         origins = np.ascontiguousarray(flat[a:b], dtype=np.float64)
         source_hits_kernel(_tracer(caster, b - a), origins, dirs, centre, float(radius) ** 2, lo, hi,
                            float(caster.tnear), triangle[:b - a], uv[:b - a])
-        project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis, h, dirs, wy, out[a:b])
+        project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis_t, h, dirs, wy, out[a:b])
 
 
 def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None = None,

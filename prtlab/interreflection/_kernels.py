@@ -51,9 +51,11 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
                     out[v, kp, m] += w * acc
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"})
 def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale, out):
-    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), accumulating in float64.
+    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), accumulating in float64 in any
+    order (``reassoc``, ``contract``: the compiler vectorises the ``n2``-term sums; each value's rounding stays
+    within a few ``2**-53`` of the sum of its terms' magnitudes).
 
     rows : (n_r, 6, res, res) int32 row of each sample point in ``values``, -1 where the field is 0
     values : (n_rows, M, n2) float64, float32 or int16
@@ -295,17 +297,18 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
 
 
 @numba.njit(cache=True, parallel=True)
-def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis, h, dirs, wy, out):
+def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, dirs, wy, out):
     """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
     output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
     over the rays ``j`` of point ``p`` that hit (``triangle[p, j] >= 0``) the front of the source, in the order of
     ``j``; the same arithmetic, term for term, as the two kernels over ``np.nonzero(triangle >= 0)``.
 
     triangle : (P, D) int32 face hit or -1; uv : (P, D, 2) float32 barycentrics; faces : (F, 3) int64
-    vertex_normals : (V, 3); basis : (N, V); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
+    vertex_normals : (V, 3); basis_t : (V, N) ``Psi_i`` at the vertices, a vertex's values contiguous (the
+    transpose of ``hit_basis_kernel``'s ``basis``); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
     """
     n_dirs = triangle.shape[1]
-    n_b, n_k, n2 = basis.shape[0], h.shape[0], wy.shape[1]
+    n_b, n_k, n2 = basis_t.shape[1], h.shape[0], wy.shape[1]
     for p in numba.prange(triangle.shape[0]):
         psi = np.empty(n_b)
         for j in range(n_dirs):
@@ -321,7 +324,7 @@ def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis, h, di
             if not nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2] < 0.0:
                 continue  # a back face: psi = 0, every term skipped as project_hits_kernel skips zeros
             for i in range(n_b):
-                psi[i] = b0 * basis[i, i0] + b1 * basis[i, i1] + b2 * basis[i, i2]
+                psi[i] = b0 * basis_t[i0, i] + b1 * basis_t[i1, i] + b2 * basis_t[i2, i]
             for k in range(n_k):
                 for i in range(n_b):
                     v = h[k] * psi[i]

@@ -72,6 +72,7 @@ from prtlab.sh._gaunt import _gaunt_block
 from prtlab.shadowfields import (
     OcclusionField,
     area_light_sh,
+    log_occlusion_field,
     occluder_order,
     occlusion_field,
     HaarOcclusionField,
@@ -206,6 +207,15 @@ class InterreflectionOptions:
         With ``residual_near``: at the receiver points with a near hit on a source, gather the source's whole
         radiance by the residual gather's rays (every bounce) in place of its basis irradiance ``Phi w`` plus the
         gathered residual (False: the basis part stays; a run-time choice).
+    occlusion : {"product", "exp"}
+        How the SH visibilities of a receiver's occluders combine (the direct transfer and Eq. 13): their order-n
+        SH products, nearest occluder first (the paper, Sec. 6: products truncated to order n depend on their
+        order), or ``exp*`` of the sum of their SH logs (Ren et al. 2006; the paper's future work: any order
+        gives the same sum). The logs are those of the occlusion fields' samples
+        (:func:`prtlab.shadowfields.log_occlusion_field`, computed when the pipeline is built: 15-35 s a distinct
+        object at the default field sizes); a run-time choice.
+    exp_method : {"hyb", "ol", "exact"}
+        The SH exponential of ``occlusion="exp"`` (:func:`prtlab.sh.exp`; a run-time choice).
     storage : {"int16", "float32", "float64"}
         Format of the basis radiance fields, at rest and in memory
         (:func:`prtlab.interreflection._fields.store_basis_radiance`; sample points
@@ -242,6 +252,8 @@ class InterreflectionOptions:
     residual_near_samples: int = 2
     residual_near_probe: bool = True
     residual_whole: bool = False
+    occlusion: str = "product"
+    exp_method: str = "hyb"
     storage: str = "int16"
 
     def __post_init__(self):
@@ -275,6 +287,8 @@ class InterreflectionOptions:
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
         check_choice(self.area_lights, "option area_lights", ("exact", "field"))
+        check_choice(self.occlusion, "option occlusion", ("product", "exp"))
+        check_choice(self.exp_method, "option exp_method", ("hyb", "ol", "exact"))
         check_choice(self.storage, "option storage", STORAGES)
         if self.cube_resolution & (self.cube_resolution - 1):
             raise ValueError(f"option cube_resolution must be a power of two (Haar on the faces), got "
@@ -459,7 +473,8 @@ class Interreflection(Precomputation):
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
         run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
-                    "light_probe", "residual_near", "residual_near_samples", "residual_near_probe", "residual_whole")
+                    "light_probe", "residual_near", "residual_near_samples", "residual_near_probe", "residual_whole",
+                    "occlusion", "exp_method")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -588,6 +603,9 @@ class Interreflection(Precomputation):
                                 pca.WeightSolver.from_basis(b, samples))
 
         self.fields = {o.name: shared("oof", o, lambda d: OcclusionField.from_arrays(d["oof"])) for o in self.objects}
+        #: the occlusion fields' SH logs (``occlusion="exp"``), else the fields themselves
+        self.occluders = {o.name: shared("log_oof", o, lambda d: log_occlusion_field(self.fields[o.name]))
+                          for o in self.objects} if options.occlusion == "exp" else self.fields
         self.radiance = {o.name: shared("radiance", o, lambda d: StoredBasisRadiance.from_arrays(d["basis_radiance"]))
                          for o in self.objects}
         self.bases = {o.name: shared("pca", o, pca_basis) for o in self.objects}
@@ -675,7 +693,8 @@ class Interreflection(Precomputation):
         return geo
 
     def _occlusion(self, geo):
-        """occ[r][o]: the occlusion field of object o looked up at the vertices of r (world frame)."""
+        """occ[r][o]: the occlusion field of object o (its log with ``occlusion="exp"``) looked up at the vertices
+        of r (world frame)."""
         occ = {}
         for r in self.objects:
             occ[r.name] = {}
@@ -685,7 +704,7 @@ class Interreflection(Precomputation):
                 key = (geo[r.name]["pose"], geo[o.name]["pose"])
                 cached = self.reuse.occlusion.get((r.name, o.name))
                 if cached is None or cached[0] != key:
-                    cached = (key, self.fields[o.name].lookup(geo[r.name]["x"], geo[o.name]["T"]))
+                    cached = (key, self.occluders[o.name].lookup(geo[r.name]["x"], geo[o.name]["T"]))
                     self.reuse.occlusion[(r.name, o.name)] = cached
                 occ[r.name][o.name] = cached[1]
         return occ
@@ -722,11 +741,24 @@ class Interreflection(Precomputation):
     def _visibility(self, g, occ_r, factors, rows, method: str = "numba"):
         """``V_j`` at ``rows`` of receiver ``g``: its self-visibility times each ``(name, mask)`` factor's occlusion
         (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is 1 and its
-        product is skipped. ``method``: the in-place kernel or ``"reference"`` (``prtlab.sh.product``)."""
+        product is skipped. ``method``: the in-place kernel or ``"reference"`` (``prtlab.sh.product``). With
+        ``occlusion="exp"`` (``occ_r`` the logs) the self-visibility times ``exp*`` of the sum of the set factors'
+        logs, the same in any order of ``factors`` up to the rounding of the sum."""
         order = self.options.order
         gaunt = _gaunt_block(order, order, order)
         vis = np.ascontiguousarray(g["self"][rows])
         rows = np.ascontiguousarray(rows, dtype=np.int64)
+        if self.options.occlusion == "exp":
+            logs, any_set = np.zeros(vis.shape), np.zeros(len(rows), bool)
+            for name, mask in factors:
+                at = np.flatnonzero(mask)
+                logs[at] += occ_r[name][rows[at]]
+                any_set[at] = True
+            at = np.flatnonzero(any_set)
+            if len(at):
+                vis[at] = sh.product(vis[at], sh.exp(logs[at], method=self.options.exp_method, channels=False),
+                                     order, channels=False)
+            return vis
         for name, mask in factors:
             at = np.flatnonzero(mask)
             if not len(at):
@@ -1257,8 +1289,9 @@ class Interreflection(Precomputation):
         return phi, counts
 
     def _stacked_irradiance(self, r, phi_r, dtype=np.float64):
-        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r`` in ``dtype``, rebuilt only when a
-        pair changed (or the type asked for did).
+        """``[Phi^s_1 | Phi^s_2 | ... | Phi^self]`` (V, K', M) of receiver ``r`` in ``dtype``, made again only when
+        a pair changed (or the type asked for did): with the same sources, shapes and type only the changed pairs'
+        blocks are written over (the same values as a new concatenation).
 
         The bounce loop then is one matrix product per receiver and bounce
         (:func:`reflected_light` with ``method="reference"`` is the specification).
@@ -1275,6 +1308,17 @@ class Interreflection(Precomputation):
         if not arrays:
             return None, sources
         n_v, n_kp = arrays[0].shape[:2]
+        widths = [a.size // (n_v * n_kp) if n_v * n_kp else 0 for a in arrays]
+        if (cached is not None and cached[0][0] == key[0] and [s for s, _ in cached[0][1:]] == sources
+                and cached[1].shape == (n_v, n_kp, sum(widths))
+                and all(a.shape[:2] == (n_v, n_kp) for a in arrays)):
+            stacked, at = cached[1], 0
+            for (_, old), (_, new), a, width in zip(cached[0][1:], key[1:], arrays, widths):
+                if old != new:  # this pair's Phi was replaced: its block alone is written again
+                    stacked[:, :, at:at + width] = a.reshape(n_v, n_kp, width)
+                at += width
+            self.reuse.stacked[r.name] = (key, stacked)
+            return stacked, sources
         stacked = np.ascontiguousarray(np.concatenate([a.reshape(n_v, n_kp, -1) for a in arrays], axis=2), dtype)
         self.reuse.stacked[r.name] = (key, stacked)
         return stacked, sources

@@ -230,7 +230,7 @@ def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, 
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
-#: ``_cast_kernel``'s per-ray state: not cast (``tmax`` 0), cast without hitting the source, hit the source.
+#: ``_cast_kernel``'s per-ray state: not cast (``tmax`` 0), cast without hitting the source's front, hit it.
 _NOT_LIVE, _CAST, _HIT = 0, 1, 2
 
 
@@ -303,10 +303,12 @@ def _cast_tasks(n_rays: int, m: int, every: bool) -> int:
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, facing,
-                 tnear, source, tracer, state, triangle, uv):
+                 tnear, source, tracer, weighing, state, triangle, uv, factor):
     """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
-    ``point`` empty ``(i // m, i % m)`` (every ray of every point). ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not
-    cast), ``_CAST`` or ``_HIT`` (the first hit is object ``source``: its ``triangle[i]`` and float32 ``uv[i]``).
+    ``point`` empty ``(i // m, i % m)`` (every ray of every point), then ``_weigh_hit`` of a hit on the source.
+    ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not cast), ``_CAST`` (cast, its first hit not the source's front) or
+    ``_HIT`` (the first hit is the front of object ``source``: its ``triangle[i]``, float32 ``uv[i]`` and
+    ``factor[i]``; ``weighing``: ``_weighing``'s tuple).
     Each ray is staged as ``_stage_ray`` stages it (no normals: the origin is already offset) and traced through
     ``tracer`` (a ``_raycast._Tracer`` of closest hits): one ray at a time through ``rtcIntersect1``, or with
     ``tracer.packet`` the next 16 rays cast of a task at a time through ``rtcIntersect16``: the same hits.
@@ -325,7 +327,10 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
     for _ in numba.prange(tracer.threads):
         buf = np.empty(8)
         lanes = np.empty(w, np.int64)
+        lane_rays = np.empty((w, 8))
         live = np.zeros(group, np.int64)
+        g = np.empty(weighing[3].shape[0])
+        h = np.empty(weighing[7].shape[0])
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_tasks:
@@ -363,13 +368,16 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                     state[i] = _CAST
                     if not tracer.packet:
                         if _hits_source(buf, tnear, source, tracer.function, tracer.scene, f32, u32, address):
-                            state[i] = _HIT
                             triangle[i] = np.int32(u32[_embree.HIT_PRIM])
                             uv[i, 0] = f32[_embree.HIT_U]
                             uv[i, 1] = f32[_embree.HIT_V]
+                            if _weigh_hit(buf, normals, p, np.int64(triangle[i]), np.float64(uv[i, 0]),
+                                          np.float64(uv[i, 1]), weighing, g, h, factor[i]):
+                                state[i] = _HIT
                         continue
                     if _add_lane(buf, tnear, f32, u32, valid, n_lanes):
                         lanes[n_lanes] = i
+                        lane_rays[n_lanes] = buf
                         n_lanes += 1
                     if n_lanes < w:
                         continue
@@ -379,10 +387,13 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                 for k in range(n_lanes):
                     if _lane_hits(u32, k, source):
                         at = lanes[k]
-                        state[at] = _HIT
                         triangle[at] = np.int32(u32[_embree.HIT_PRIM * w + k])
                         uv[at, 0] = f32[_embree.HIT_U * w + k]
                         uv[at, 1] = f32[_embree.HIT_V * w + k]
+                        p = at // m if every else point[at]
+                        if _weigh_hit(lane_rays[k], normals, p, np.int64(triangle[at]), np.float64(uv[at, 0]),
+                                      np.float64(uv[at, 1]), weighing, g, h, factor[at]):
+                            state[at] = _HIT
                 n_lanes = 0
 
 
@@ -400,43 +411,44 @@ def _local_unit(x, y, z, n0, n1, n2):
     return lx / length, ly / length, lz / length
 
 
-@numba.njit(cache=True, parallel=True)
-def _hit_factor_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing,
-                       faces, vertex_normals, triangle, uv, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values,
-                       h_freq, h_parity, front, factor):
-    """For each hit ``i`` (ray ``ray[i]`` of point ``point[i]``, made again by ``_ray``, on ``triangle[i]`` of the
-    source at barycentrics ``uv[i]``): ``front[i]``, whether the ray meets the front of the interpolated shading
-    normal, and ``factor[i, k', k] = weight g_k'(w) h_k(-w)`` in the receiver's and the source's local frames
-    (``_cast``'s numpy weighing, by :func:`prtlab.brdf._kernels.factor_at`)."""
-    n_hits = point.shape[0]
-    chunk = 256
-    for c in numba.prange((n_hits + chunk - 1) // chunk):
-        buf = np.empty(8)
-        g = np.empty(g_values.shape[0])
-        h = np.empty(h_values.shape[0])
-        for i in range(c * chunk, min(n_hits, (c + 1) * chunk)):
-            p = point[i]
-            _ray(points, normals, p, ray[i], centre, radius, bound, key, rows, side, eps, full, facing, buf)
-            f = triangle[i]
-            i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            u, v = uv[i, 0], uv[i, 1]
-            b0 = 1.0 - u - v
-            s0 = b0 * vertex_normals[i0, 0] + u * vertex_normals[i1, 0] + v * vertex_normals[i2, 0]
-            s1 = b0 * vertex_normals[i0, 1] + u * vertex_normals[i1, 1] + v * vertex_normals[i2, 1]
-            s2 = b0 * vertex_normals[i0, 2] + u * vertex_normals[i1, 2] + v * vertex_normals[i2, 2]
-            length = max(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 1e-300)
-            s0, s1, s2 = s0 / length, s1 / length, s2 / length
-            w0, w1, w2 = buf[3], buf[4], buf[5]
-            front[i] = s0 * w0 + s1 * w1 + s2 * w2 < 0.0  # the back of a surface emits nothing
-            if not front[i]:
-                continue
-            x, y, z = _local_unit(w0, w1, w2, normals[p, 0], normals[p, 1], normals[p, 2])
-            factor_at(g_nodes, g_values, g_freq, g_parity, x, y, z, g)
-            x, y, z = _local_unit(-w0, -w1, -w2, s0, s1, s2)
-            factor_at(h_nodes, h_values, h_freq, h_parity, x, y, z, h)
-            for kp in range(g.shape[0]):
-                for k in range(h.shape[0]):
-                    factor[i, kp, k] = buf[6] * g[kp] * h[k]
+@numba.njit(cache=True, inline="always")
+def _weigh_hit(buf, normals, p, f, u, v, weighing, g, h, factor):
+    """The hit of the ray ``buf`` (``_ray``'s output) of point ``p`` on triangle ``f`` of the source at
+    barycentrics ``(u, v)``: whether it meets the front of the interpolated shading normal, and then ``factor[k', k]
+    = weight g_k'(w) h_k(-w)`` in the receiver's and the source's local frames (``_cast``'s numpy weighing, by
+    :func:`prtlab.brdf._kernels.factor_at`). ``weighing``: ``_weighing``'s tuple; ``g``, ``h``: scratch."""
+    faces, vertex_normals, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq, h_parity = weighing
+    i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    b0 = 1.0 - u - v
+    s0 = b0 * vertex_normals[i0, 0] + u * vertex_normals[i1, 0] + v * vertex_normals[i2, 0]
+    s1 = b0 * vertex_normals[i0, 1] + u * vertex_normals[i1, 1] + v * vertex_normals[i2, 1]
+    s2 = b0 * vertex_normals[i0, 2] + u * vertex_normals[i1, 2] + v * vertex_normals[i2, 2]
+    length = max(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 1e-300)
+    s0, s1, s2 = s0 / length, s1 / length, s2 / length
+    w0, w1, w2 = buf[3], buf[4], buf[5]
+    if not s0 * w0 + s1 * w1 + s2 * w2 < 0.0:  # the back of a surface emits nothing
+        return False
+    x, y, z = _local_unit(w0, w1, w2, normals[p, 0], normals[p, 1], normals[p, 2])
+    factor_at(g_nodes, g_values, g_freq, g_parity, x, y, z, g)
+    x, y, z = _local_unit(-w0, -w1, -w2, s0, s1, s2)
+    factor_at(h_nodes, h_values, h_freq, h_parity, x, y, z, h)
+    for kp in range(g.shape[0]):
+        for k in range(h.shape[0]):
+            factor[kp, k] = buf[6] * g[kp] * h[k]
+    return True
+
+
+def _weighing(receiver_sep, source) -> tuple:
+    """What ``_weigh_hit`` reads of a (receiver, source) pair: the source's faces (int64) and world vertex normals,
+    then the receiver's ``g`` and the source's ``h`` tables (nodes, values, frequencies, parities)."""
+    faces, vertex_normals, sep = source[:3]
+    g_nodes, g_values = receiver_sep._ext(receiver_sep.theta_in, receiver_sep.g_radial, 0.5 * np.pi)
+    h_max = 0.5 * np.pi if sep.parameterisation == "plain" else np.pi
+    h_nodes, h_values = sep._ext(sep.theta_out, sep.h_radial, h_max)
+    return (np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(vertex_normals, np.float64), g_nodes,
+            g_values, np.ascontiguousarray(receiver_sep.freq, np.int64),
+            np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
+            np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64))
 
 
 #: ``_recast_kernel``'s per-ray state: not flagged, flagged and not cast (``tmax`` 0), cast, hit the source.
@@ -537,12 +549,13 @@ def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, r
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, tnear,
-                   source, spheres, tracer, state, triangle, uv):
+                   source, spheres, tracer, weighing, state, triangle, uv, factor):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
     ``_flag_kernel`` flags is traced (rays are made only in the rows ``_rows_meeting`` keeps, as
     ``_flag_rows_kernel``), one at a time or, with ``tracer.packet``, 16 flagged rays of a block of points at a
-    time; ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not cast: ``tmax`` 0), ``_FLAGGED_CAST`` or
-    ``_FLAGGED_HIT`` (its first hit is ``source``: ``triangle[i, j]``, ``uv[i, j]``)."""
+    time, and a hit on the source weighed (``_weigh_hit``); ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not
+    cast: ``tmax`` 0), ``_FLAGGED_CAST`` (cast, its first hit not the source's front) or ``_FLAGGED_HIT`` (its
+    first hit is the front of ``source``: ``triangle[i, j]``, ``uv[i, j]``, ``factor[i, j]``)."""
     m = rows * side
     w = _embree.PACKET
     n = candidates.shape[0]
@@ -553,6 +566,9 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
         need = np.empty(m, np.bool_)
         lane_i = np.empty(w, np.int64)
         lane_j = np.empty(w, np.int64)
+        lane_rays = np.empty((w, 8))
+        g = np.empty(weighing[3].shape[0])
+        h = np.empty(weighing[7].shape[0])
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
@@ -582,13 +598,17 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                         state[i, j] = _FLAGGED_CAST
                         if not tracer.packet:
                             if _hits_source(buf, tnear, source, tracer.function, tracer.scene, f32, u32, address):
-                                state[i, j] = _FLAGGED_HIT
                                 triangle[i, j] = np.int32(u32[_embree.HIT_PRIM])
                                 uv[i, j, 0] = f32[_embree.HIT_U]
                                 uv[i, j, 1] = f32[_embree.HIT_V]
+                                if _weigh_hit(buf, normals, candidates[i], np.int64(triangle[i, j]),
+                                              np.float64(uv[i, j, 0]), np.float64(uv[i, j, 1]), weighing, g, h,
+                                              factor[i, j]):
+                                    state[i, j] = _FLAGGED_HIT
                             continue
                         if _add_lane(buf, tnear, f32, u32, valid, n_lanes):
                             lane_i[n_lanes], lane_j[n_lanes] = i, j
+                            lane_rays[n_lanes] = buf
                             n_lanes += 1
                         if n_lanes < w:
                             continue
@@ -598,10 +618,13 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                     for k in range(n_lanes):
                         if _lane_hits(u32, k, source):
                             a, c = lane_i[k], lane_j[k]
-                            state[a, c] = _FLAGGED_HIT
                             triangle[a, c] = np.int32(u32[_embree.HIT_PRIM * w + k])
                             uv[a, c, 0] = f32[_embree.HIT_U * w + k]
                             uv[a, c, 1] = f32[_embree.HIT_V * w + k]
+                            if _weigh_hit(lane_rays[k], normals, candidates[a], np.int64(triangle[a, c]),
+                                          np.float64(uv[a, c, 0]), np.float64(uv[a, c, 1]), weighing, g, h,
+                                          factor[a, c]):
+                                state[a, c] = _FLAGGED_HIT
                     n_lanes = 0
 
 
@@ -728,7 +751,7 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
           method: str = "numba") -> ResidualHits | None:
     """The hits on the front of source ``s`` of the rays ``(point, ray)`` (ids ``ids``; ``point`` None: every ray
     of every point, ids ``point * m + ray``), ids ascending. ``method="numba"`` (with Embree) makes and traces
-    the rays in one kernel (:func:`_cast_kernel`) and weighs the hits in another (:func:`_hit_factor_kernel`);
+    the rays and weighs their hits in one kernel (:func:`_cast_kernel`);
     ``"reference"`` makes them (``_rays_kernel``), traces them through ``RayCaster.closest_hit`` and weighs the
     hits with numpy and :class:`prtlab.brdf.SeparableBRDF`, the specification: the same hits, factors within
     float64 rounding."""
@@ -776,47 +799,25 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
 
 
 def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, centre, bound):
-    """``_cast`` by :func:`_cast_kernel` and :func:`_hit_factor_kernel`."""
+    """``_cast`` by :func:`_cast_kernel`, which weighs the hits as it finds them."""
     m = grid[0] * grid[1]
     n_rays = len(points) * m if point is None else len(point)
     state = np.empty(n_rays, np.int8)
     triangle = np.empty(n_rays, np.int32)
     uv32 = np.empty((n_rays, 2), np.float32)
+    factor = np.empty((n_rays, receiver_sep.K, source[2].K))
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
                  float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _source_facing(source),
-                 float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)), state, triangle,
-                 uv32)
+                 float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)),
+                 _weighing(receiver_sep, source), state, triangle, uv32, factor)
     stats["rays_cast"] += int(np.count_nonzero(state))
     at = np.flatnonzero(state == _HIT)
-    rows, j = (at // m, at % m) if point is None else (point[at], ray[at])
-    return _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound, rows, j,
-                  at if point is None else ids[at], triangle[at], uv32[at])
-
-
-def _weigh(points, normals, receiver_sep, source, key, grid, eps, centre, bound, rows, j, rays, triangle, uv32):
-    """The :class:`ResidualHits` of the rays ``rays`` (ray ``j`` of point ``rows``) whose first hit is the source,
-    on ``triangle`` at ``uv32``: those on its front, weighed by :func:`_hit_factor_kernel` (None if none)."""
-    if not len(rows):
+    if not len(at):
         return None
-    faces, vertex_normals, sep, _, radius = source[:5]
-    triangles, uv = triangle.astype(np.int64), uv32.astype(np.float64)
-    g_nodes, g_values = receiver_sep._ext(receiver_sep.theta_in, receiver_sep.g_radial, 0.5 * np.pi)
-    h_max = 0.5 * np.pi if sep.parameterisation == "plain" else np.pi
-    h_nodes, h_values = sep._ext(sep.theta_out, sep.h_radial, h_max)
-    front = np.empty(len(rows), np.bool_)
-    factor = np.empty((len(rows), receiver_sep.K, sep.K))
-    _hit_factor_kernel(points, normals, rows, j, centre, float(radius), bound, key, grid[0], grid[1], eps, grid[2],
-                       _source_facing(source), np.ascontiguousarray(faces, np.int64),
-                       np.ascontiguousarray(vertex_normals, np.float64), triangles, uv, g_nodes, g_values,
-                       np.ascontiguousarray(receiver_sep.freq, np.int64),
-                       np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
-                       np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64), front,
-                       factor)
-    if not np.any(front):
-        return None
-    keep = np.flatnonzero(front)
-    return ResidualHits(rows[keep], factor[keep], rays[keep].astype(np.int64), triangles[keep], uv[keep], faces)
+    rows = at // m if point is None else point[at]
+    return ResidualHits(rows, factor[at], at if point is None else ids[at].astype(np.int64),
+                        triangle[at].astype(np.int64), uv32[at].astype(np.float64), source[0])
 
 
 def _merge(old: ResidualHits | None, recast: np.ndarray, new: ResidualHits | None) -> ResidualHits | None:
@@ -970,19 +971,22 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         state = np.empty((len(candidates), m), np.int8)
         triangle = np.empty((len(candidates), m), np.int32)
         uv32 = np.empty((len(candidates), m, 2), np.float32)
+        factor = np.empty((len(candidates), m, receiver_sep.K, source[2].K))
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
                        float(caster.epsilon), grid[2], _source_facing(source), float(caster.tnear), s, widened,
-                       _tracer(caster, n_blocks), state, triangle, uv32)
+                       _tracer(caster, n_blocks), _weighing(receiver_sep, source), state, triangle, uv32, factor)
         i, j = np.nonzero(state)
         if not len(i):
             return old
         stats["rays_cast"] += int(np.count_nonzero(state >= _FLAGGED_CAST))
         ids = candidates[i] * m + j
         hit = np.flatnonzero(state[i, j] == _FLAGGED_HIT)
-        new = _weigh(points, normals, receiver_sep, source, key, grid, float(caster.epsilon), centre, bound,
-                     candidates[i[hit]], j[hit].astype(np.int64), ids[hit], triangle[i[hit], j[hit]],
-                     uv32[i[hit], j[hit]])
+        new = None
+        if len(hit):
+            a, c = i[hit], j[hit]
+            new = ResidualHits(candidates[a], factor[a, c], ids[hit].astype(np.int64),
+                               triangle[a, c].astype(np.int64), uv32[a, c].astype(np.float64), source[0])
         return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),

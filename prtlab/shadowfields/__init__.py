@@ -8,7 +8,8 @@ the sample-sphere grid of its basis radiance fields.
 
 from ._grid import SphereGrid, bounding_sphere, interpolate_field, sphere_grid
 from ._direct import direct_pass, occluder_order, visibility_pass
-from ._occlusion import DEFAULT_DEGREE, OcclusionField, occlusion_field, project_visibility, self_visibility
+from ._occlusion import (DEFAULT_DEGREE, LOG_FLOOR, OcclusionField, log_occlusion_field, occlusion_field,
+                         project_visibility, self_visibility)
 from ._sources import (
     SourceRadianceField,
     area_light_sh,
@@ -46,7 +47,9 @@ __all__ = [
     "sphere_grid",
     # occlusion fields
     "DEFAULT_DEGREE",
+    "LOG_FLOOR",
     "OcclusionField",
+    "log_occlusion_field",
     "occlusion_field",
     "project_visibility",
     "self_visibility",

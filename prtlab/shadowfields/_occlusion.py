@@ -49,10 +49,14 @@ from prtlab.geometry import RayCaster
 from ._grid import SphereGrid, interpolate_field, sphere_grid
 from ._kernels import project_visibility_kernel
 
-__all__ = ["OcclusionField", "occlusion_field", "self_visibility", "project_visibility", "DEFAULT_DEGREE"]
+__all__ = ["OcclusionField", "occlusion_field", "log_occlusion_field", "self_visibility", "project_visibility",
+           "DEFAULT_DEGREE", "LOG_FLOOR"]
 
 #: Default degree of the visibility quadrature (24 x 48 rays per point).
 DEFAULT_DEGREE = 47
+#: :func:`log_occlusion_field` takes the log of ``LOG_FLOOR + (1 - LOG_FLOOR) V``: a point inside the object (no
+#: visible direction) has no log, and the log of a nearly closed visibility grows without bound.
+LOG_FLOOR = 1e-2
 #: Rays cast per batch (points x directions).
 _RAYS_PER_BATCH = 1 << 20
 _SQRT4PI = np.sqrt(4.0 * np.pi)
@@ -140,6 +144,9 @@ class OcclusionField:
     grid: SphereGrid
     order: int
     coeffs: np.ndarray
+    #: whether ``coeffs`` are SH logs of the visibility (:func:`log_occlusion_field`): beyond the outermost sphere
+    #: the lookup is then 0, the log of the constant 1
+    log: bool = False
 
     def lookup(self, points, transform=None, method: str = "numba") -> np.ndarray:
         """SH visibility of the object seen from world points, in the world frame.
@@ -156,7 +163,7 @@ class OcclusionField:
         Returns
         -------
         coeffs : (..., order**2) float64
-            Beyond the outermost sphere: the constant 1 (unoccluded).
+            Beyond the outermost sphere: the constant 1 (unoccluded), or its log 0 for a log field.
         """
         points = as_points(points)
         R = None
@@ -169,7 +176,7 @@ class OcclusionField:
         gap = flat - self.grid.center
         inside = np.einsum("vi,vi->v", gap, gap) <= self.grid.radii[-1] ** 2  # beyond: exactly unoccluded
         out = np.zeros((len(flat), self.coeffs.shape[-1]))
-        out[:, 0] = _SQRT4PI
+        out[:, 0] = 0.0 if self.log else _SQRT4PI
         if np.any(inside):
             values, _ = interpolate_field(self.grid, self.coeffs, flat[inside], method=method)
             if R is not None and not np.allclose(R, np.eye(3), rtol=0.0, atol=1e-15):
@@ -178,11 +185,30 @@ class OcclusionField:
         return out.reshape(batch + out.shape[-1:])
 
     def to_arrays(self) -> dict:
-        return {"grid": self.grid.to_arrays(), "order": np.int64(self.order), "coeffs": self.coeffs}
+        return {"grid": self.grid.to_arrays(), "order": np.int64(self.order), "coeffs": self.coeffs,
+                **({"log": np.bool_(True)} if self.log else {})}
 
     @classmethod
     def from_arrays(cls, d) -> "OcclusionField":
-        return cls(SphereGrid.from_arrays(d["grid"]), int(d["order"]), np.asarray(d["coeffs"], float))
+        return cls(SphereGrid.from_arrays(d["grid"]), int(d["order"]), np.asarray(d["coeffs"], float),
+                   bool(d["log"]) if "log" in d else False)
+
+
+def log_occlusion_field(field: OcclusionField, floor: float = LOG_FLOOR, tol: float = 1e-6) -> OcclusionField:
+    """The SH logarithm of an occlusion field at every sample (Ren et al. 2006, Sec. 4-5): ``g`` with
+    ``exp*(g) = floor 1 + (1 - floor) O`` (:func:`prtlab.sh.log`, Newton on a product rule of degree ``8 n - 1``,
+    within ``tol`` relative), so that the visibility of several occluders is ``exp*`` of the sum of their logs,
+    in any order. ``floor`` keeps every sample the moment vector of a positive function (a sample inside the
+    object sees nothing); it lets ``floor`` of an occluded direction through. Cost: about 0.6 ms a sample of a
+    solid object and 1.4 ms of a flat one at order 4 (one thread), so the field of 16 x 6 x 16 x 16 samples
+    takes 15-35 s."""
+    if not 0.0 < floor < 1.0:
+        raise ValueError(f"floor must lie in (0, 1), got {floor!r}")
+    coeffs = field.coeffs.reshape(-1, field.coeffs.shape[-1])
+    one = np.zeros(coeffs.shape[-1])
+    one[0] = _SQRT4PI
+    logs = sh.log((1.0 - floor) * coeffs + floor * one, channels=False, tol=tol, degree=8 * field.order - 1)
+    return OcclusionField(field.grid, field.order, logs.reshape(field.coeffs.shape), log=True)
 
 
 def _mesh_pair(mesh):

@@ -762,3 +762,92 @@ def test_area_lights_from_source_radiance_fields_match_the_exact_projection(pre)
     assert all(errors[1][k] <= 0.5 * errors[0][k] for k in errors[0]), errors
     with pytest.raises(ValueError, match="option area_lights must be one of 'exact', 'field'"):
         InterreflectionOptions(area_lights="srf")
+
+
+# ------------------------------------------------------------------ order-independent occlusion (occlusion="exp")
+
+
+def _two_balls(pre, **options):
+    """The quick scene with a second ball touching the first (arrays shared with it), ``options`` replaced; the
+    first ball's frame geometry and occlusion lookups, and its rows that the floor's and the other ball's fields
+    both reach."""
+    import dataclasses
+
+    from prtlab.scene import SceneObject
+
+    base = pre.scene
+    other = SceneObject("other", base.object("ball").mesh, Transform(translate=np.array([0.95, 0.7, 0.2])),
+                        base.object("ball").material)
+    sc = type(base)(objects=[*base.objects, other], lights=base.lights, camera=base.camera)
+    ir = Interreflection(sc, dataclasses.replace(pre.options, **options), {**pre.data, "other": pre.data["ball"]})
+    geo = ir._frame_geometry(FrameState.from_scene(sc))
+    occ = ir._occlusion(geo)
+    g = geo["ball"]
+    both = np.flatnonzero(ir._within_reach(g["x"], geo["floor"]) & ir._within_reach(g["x"], geo["other"]))
+    return ir, g, occ["ball"], both
+
+
+def test_log_occlusion_field_round_trips_and_is_zero_beyond(pre):
+    """``exp*`` (exact tier) of the log field gives back ``floor 1 + (1 - floor) O`` at every sample, within the
+    Newton tolerance (1e-6 relative; its rule of degree 31 against the exact tier's 80); beyond the outermost
+    sphere the log lookup is 0, the log of the unoccluded 1."""
+    from prtlab import sh
+    from prtlab.shadowfields import LOG_FLOOR, log_occlusion_field
+
+    field = Interreflection(pre.scene, pre.options, pre.data).fields["ball"]
+    logs = log_occlusion_field(field)
+    coeffs = field.coeffs.reshape(-1, 16)
+    target = (1.0 - LOG_FLOOR) * coeffs
+    target[:, 0] += LOG_FLOOR * np.sqrt(4.0 * np.pi)
+    back = sh.exp(logs.coeffs.reshape(-1, 16), method="exact", channels=False)
+    assert np.all(np.linalg.norm(back - target, axis=1) <= 1e-5 * np.linalg.norm(target, axis=1))
+    far = field.grid.center + np.array([[0.0, 0.0, 1.01 * field.grid.radii[-1]]])
+    np.testing.assert_array_equal(logs.lookup(far), 0.0)
+    assert logs.lookup(far).shape == (1, 16) and field.lookup(far)[0, 0] == np.sqrt(4.0 * np.pi)
+
+
+def test_exp_occlusion_does_not_depend_on_the_occluders_order(pre):
+    """Two touching balls over the floor: at the first ball's points (its self-visibility not constant) with the
+    floor and the other ball as occluders, the visibility of the SH products changes with their order (products
+    truncated to order n do not commute), that of ``occlusion="exp"`` does not (one sum of logs, in either order:
+    within its rounding)."""
+    for occlusion, same in (("product", False), ("exp", True)):
+        ir, g, occ_r, both = _two_balls(pre, occlusion=occlusion)
+        assert len(both) > 10
+        masks = np.ones(len(both), bool)
+        one = ir._visibility(g, occ_r, [("floor", masks), ("other", masks)], both)
+        two = ir._visibility(g, occ_r, [("other", masks), ("floor", masks)], both)
+        gap = np.max(np.abs(one - two))
+        if same:
+            assert gap <= 1e-12 * np.max(np.abs(one)), gap
+        else:
+            assert gap > 1e-6 * np.max(np.abs(one)), gap
+
+
+def test_exp_occlusion_of_one_occluder_with_the_exact_exponential_is_its_floored_visibility(pre):
+    """One occluder through ``exp*`` (exact tier) of its looked-up log is its floored visibility ``floor 1 + (1 -
+    floor) O``, within Newton's tolerance, where the lookups are not interpolated between samples: at the sample
+    points of the ball's field, posed as in the scene."""
+    from prtlab import sh
+    from prtlab.shadowfields import LOG_FLOOR
+
+    ir, _, _, _ = _two_balls(pre, occlusion="exp", exp_method="exact")
+    field, logs = ir.fields["ball"], ir.occluders["ball"]
+    points = field.grid.points().reshape(-1, 3)[:: 7] + pre.scene.object("ball").transform.translate
+    exact = sh.exp(logs.lookup(points, pre.scene.object("ball").transform), method="exact", channels=False)
+    floored = (1.0 - LOG_FLOOR) * field.lookup(points, pre.scene.object("ball").transform)
+    floored[:, 0] += LOG_FLOOR * np.sqrt(4.0 * np.pi)
+    assert np.all(np.linalg.norm(exact - floored, axis=1) <= 1e-5 * np.linalg.norm(floored, axis=1))
+
+
+def test_exp_occlusion_shades_close_to_the_products(pre):
+    """The whole quick scene with ``occlusion="exp"`` (HYB) against the products: the floor and the ball differ by
+    less than the total's goal (5 % relative RMS, GOAL): a sanity bound; the option's accuracy against Mitsuba is
+    scored in the fidelity tier (``test_cluster_against_mitsuba``)."""
+    import dataclasses
+
+    base = Interreflection(pre.scene, pre.options, pre.data).shade(bounces=1)
+    ours = Interreflection(pre.scene, dataclasses.replace(pre.options, occlusion="exp"), pre.data).shade(bounces=1)
+    for name in ("floor", "ball"):
+        a, b = base.total[name], ours.total[name]
+        assert np.sqrt(np.mean((a - b) ** 2)) <= GOAL["total"] * np.sqrt(np.mean(a**2)), name
