@@ -22,6 +22,9 @@ Projection
     the rule (measured in the tests: the projected cap of a sphere blocker
     against its closed form, :func:`prtlab.sh.blocker_zh`).
 
+Log fields (:func:`log_occlusion_field`): the SH log of every sample, for visibility products taken as the
+exponential of a sum (Ren et al. 2006), looked up the same way.
+
 Self-visibility ``V_self(x_j, w)`` of a vertex is the same projection from
 the vertex (the ray origin offset off the surface on the side of the ray,
 :mod:`prtlab.geometry._raycast`), against its own object only.
@@ -199,9 +202,10 @@ def log_occlusion_field(field: OcclusionField, floor: float = LOG_FLOOR, tol: fl
     ``exp*(g) = floor 1 + (1 - floor) O`` (:func:`prtlab.sh.log`, Newton on a product rule of degree ``8 n - 1``,
     within ``tol`` relative), so that the visibility of several occluders is ``exp*`` of the sum of their logs,
     in any order. ``floor`` keeps every sample the moment vector of a positive function (a sample inside the
-    object sees nothing); it lets ``floor`` of an occluded direction through. Cost: about 0.6 ms a sample of a
-    solid object and 1.4 ms of a flat one at order 4 (one thread), so the field of 16 x 6 x 16 x 16 samples
-    takes 15-35 s."""
+    object sees nothing); it lets ``floor`` of an occluded direction through. Slow: 15-35 s a field of 16 x 6 x 16
+    x 16 samples at order 4 (one thread)."""
+    if field.log:
+        raise ValueError("field is already a log field (log_occlusion_field's output); pass the occlusion field")
     if not 0.0 < floor < 1.0:
         raise ValueError(f"floor must lie in (0, 1), got {floor!r}")
     coeffs = field.coeffs.reshape(-1, field.coeffs.shape[-1])
