@@ -176,6 +176,21 @@ def _tier_scene():
     return points, normals, wo, meshes, poses, [LIGHT, tilted, point]
 
 
+#: The box's pose after the move of the re-cast tests
+MOVED_BOX = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
+
+
+def _before_and_after_a_move():
+    """:func:`_tier_scene`'s points, normals, view directions (mirrored, :func:`mirror_wo`), meshes and lights, its
+    casters before and after the box moves to ``MOVED_BOX``, and the box's widened bounding spheres at both poses
+    (``moved=``)."""
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    before = RayCaster(meshes, transforms=poses)
+    after = RayCaster(meshes, transforms=[MOVED_BOX, *poses[1:]])
+    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], MOVED_BOX)]
+    return points, normals, mirror_wo(wo, normals), meshes, lights, before, after, spheres
+
+
 MATERIALS = [Material(albedo=np.array([0.7, 0.6, 0.5])),
              Material(type="phong", kd=np.array([0.3, 0.2, 0.1]), ks=np.array([0.5, 0.4, 0.3]), exponent=10.0)]
 
@@ -221,13 +236,8 @@ def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
     Without ``moved`` no ray is cast: the mask of a caster of other geometry gives the same terms."""
     f = brdf.from_material(MATERIALS[1])
     sep = brdf.separable(f, K=4)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    before = RayCaster(meshes, transforms=poses)
-    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
-    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
+    points, normals, wo, meshes, lights, before, after, spheres = _before_and_after_a_move()
     assert before.epsilon == after.epsilon and before.tnear == after.tnear
-    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
-    wo = mirror_wo(wo, normals)
     for i, light in enumerate(lights):
         old = terms(points, normals, wo, f, sep, before, light, i, 64)
         fresh = terms(points, normals, wo, f, sep, after, light, i, 64)
@@ -364,13 +374,8 @@ def test_packets_give_the_masks_and_sums_of_one_ray_calls(material, monkeypatch)
 
     f = brdf.from_material(material)
     sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    caster = RayCaster(meshes, transforms=poses)
-    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
-    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
-    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], caster.epsilon) for p in (poses[0], moved_pose)]
+    points, normals, wo, _, lights, caster, after, spheres = _before_and_after_a_move()
     blockers = blocker_bounds(caster, [False] * 4)
-    wo = mirror_wo(wo, normals)
     for i, light in enumerate(lights):
         for samples, extra in ((64, {}), (4, {}), (64, {"blockers": blockers}), (64, {"probe": 16})):
             results = {}
@@ -452,12 +457,7 @@ def test_a_probed_recast_after_a_move_equals_a_probed_cast(terms):
     so a partial re-cast (``visibility``, ``moved``, ``previous``) equals a fresh probed cast bit for bit."""
     f = brdf.from_material(MATERIALS[1])
     sep = brdf.separable(f, K=4)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    before = RayCaster(meshes, transforms=poses)
-    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
-    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
-    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
-    wo = mirror_wo(wo, normals)
+    points, normals, wo, _, lights, before, after, spheres = _before_and_after_a_move()
     for i, light in enumerate(lights):
         for a_caster, b_caster in ((before, after), (after, before)):
             old = terms(points, normals, wo, f, sep, a_caster, light, i, 64, probe=16)
@@ -514,12 +514,7 @@ def test_a_decided_recast_after_a_move_equals_a_decided_cast(terms):
     cast wholly."""
     f = brdf.from_material(MATERIALS[1])
     sep = brdf.separable(f, K=4)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    before = RayCaster(meshes, transforms=poses)
-    moved_pose = Transform(translate=np.array([0.1, 0.9, 0.6]), rotate_deg=np.array([0.0, 30.0, 0.0]))
-    after = RayCaster(meshes, transforms=[moved_pose, *poses[1:]])
-    spheres = [widened_sphere([*p.translate, np.sqrt(3) * 0.3], before.epsilon) for p in (poses[0], moved_pose)]
-    wo = mirror_wo(wo, normals)
+    points, normals, wo, _, lights, before, after, spheres = _before_and_after_a_move()
     first = (np.arange(len(points)) % 3).astype(np.int8)
     second = (np.arange(len(points)) % 5 % 3).astype(np.int8)
     for i, light in enumerate(lights):
