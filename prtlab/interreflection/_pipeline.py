@@ -212,8 +212,9 @@ class InterreflectionOptions:
         SH products, nearest occluder first (the paper, Sec. 6: products truncated to order n depend on their
         order), or ``exp*`` of the sum of their SH logs (Ren et al. 2006; the paper's future work: any order
         gives the same sum). The logs are those of the occlusion fields' samples
-        (:func:`prtlab.shadowfields.log_occlusion_field`, computed when the pipeline is built: 15-35 s a distinct
-        object at the default field sizes); a run-time choice.
+        (:func:`prtlab.shadowfields.log_occlusion_field`, 15-35 s a distinct object at the default field sizes):
+        stored by a precomputation made with ``occlusion="exp"`` (a cache entry of its own), computed when the
+        pipeline is built from one made without; otherwise a run-time choice.
     exp_method : {"hyb", "ol", "exact"}
         The SH exponential of ``occlusion="exp"`` (:func:`prtlab.sh.exp`; a run-time choice).
     storage : {"int16", "float32", "float64"}
@@ -478,6 +479,8 @@ class Interreflection(Precomputation):
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
+        if options.occlusion == "exp":  # the fields' logs are stored too (the products' keys stay as they were)
+            opts["occlusion"] = "exp"
         if opts["shadows"] == "rays":  # precomputes what "sh" does
             opts["shadows"] = "sh"
         parts = [cls.method, cls.format_version, scene_geometry_key_parts(scene), opts]
@@ -568,6 +571,8 @@ class Interreflection(Precomputation):
             data[obj.name] = {"oof": oof.to_arrays(), "self_visibility": vis, "pca_basis": basis.basis,
                               "pca_samples": np.asarray(basis.samples, np.int32),
                               "basis_radiance": stored.to_arrays(), "self_irradiance": own}
+            if options.occlusion == "exp":
+                data[obj.name]["log_oof"] = log_occlusion_field(oof).to_arrays()
             if options.shadows == "haar":
                 haar = {"resolution": options.cube_resolution, "keep": options.haar_keep}
                 data[obj.name]["haar_oof"] = haar_occlusion_field(
@@ -604,8 +609,7 @@ class Interreflection(Precomputation):
 
         self.fields = {o.name: shared("oof", o, lambda d: OcclusionField.from_arrays(d["oof"])) for o in self.objects}
         #: the occlusion fields' SH logs (``occlusion="exp"``), else the fields themselves
-        self.occluders = {o.name: shared("log_oof", o, lambda d: log_occlusion_field(self.fields[o.name]))
-                          for o in self.objects} if options.occlusion == "exp" else self.fields
+        self.occluders = self._log_fields(shared) if options.occlusion == "exp" else self.fields
         self.radiance = {o.name: shared("radiance", o, lambda d: StoredBasisRadiance.from_arrays(d["basis_radiance"]))
                          for o in self.objects}
         self.bases = {o.name: shared("pca", o, pca_basis) for o in self.objects}
@@ -626,6 +630,28 @@ class Interreflection(Precomputation):
         #: a convex mesh's rays leave it (or meet its back): no residual gather from itself
         self.convex = {o.name: bool(getattr(o.mesh, "is_convex", False)) for o in self.objects}
         self.reuse = FrameReuse()
+
+    def _log_fields(self, shared) -> dict:
+        """Object -> the SH log of its occlusion field (``occlusion="exp"``): as stored by a precomputation made
+        with the option, else computed here, once per stored entry, with a progress bar (15-35 s an object)."""
+        missing = {id(self.entries[o.name]) for o in self.objects if "log_oof" not in self.entries[o.name]}
+        bar = None
+        if missing:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(missing), desc="SH logs of the occlusion fields", unit="object", disable=None)
+
+        def make(o, d):
+            if "log_oof" in d:
+                return OcclusionField.from_arrays(d["log_oof"])
+            field = log_occlusion_field(self.fields[o.name])
+            bar.update()
+            return field
+
+        logs = {o.name: shared("log_oof", o, lambda d: make(o, d)) for o in self.objects}
+        if bar is not None:
+            bar.close()
+        return logs
 
     def truncated(self, n_basis: int | None = None, order: int | None = None) -> "Interreflection":
         """The same precomputation with fewer basis functions and/or SH bands, without recomputing.
@@ -655,6 +681,8 @@ class Interreflection(Precomputation):
             for key in ("haar_oof", "haar_self"):  # the all-frequency direct shadows do not depend on n, N
                 if key in d:
                     data[obj.name][key] = d[key]
+            if "log_oof" in d and o == self.options.order:  # a log's lower bands are not the lower bands' log
+                data[obj.name]["log_oof"] = d["log_oof"]
             if "haar_radiance" in d:  # the Haar basis radiance keeps no SH bands: only N is cut
                 data[obj.name]["haar_radiance"] = HaarBasisRadianceField.from_arrays(
                     d["haar_radiance"]).truncated(n).to_arrays()

@@ -840,6 +840,31 @@ def test_exp_occlusion_of_one_occluder_with_the_exact_exponential_is_its_floored
     assert np.all(np.linalg.norm(exact - floored, axis=1) <= 1e-5 * np.linalg.norm(floored, axis=1))
 
 
+def test_exp_occlusion_logs_are_stored_by_its_precomputation(pre, cache_root, monkeypatch):
+    """A precomputation made with ``occlusion="exp"`` is a cache entry of its own that stores every object's log
+    field (the logs of its occlusion field, bit for bit); a pipeline built from it reads them and computes none,
+    and its lower-order truncation drops them (a log's lower bands are not the lower bands' log)."""
+    from prtlab.cache import Cache, cache_key
+    from prtlab.interreflection import _pipeline
+    from prtlab.shadowfields import log_occlusion_field
+
+    options = {**QUICK, "occlusion": "exp"}
+    assert (cache_key(*Interreflection.cache_key_parts(pre.scene, Interreflection.make_options(options)))
+            != cache_key(*Interreflection.cache_key_parts(pre.scene, pre.options)))
+    ours = Interreflection.precompute(pre.scene, options, cache=Cache(cache_root, progress=False), progress=False)
+    for o in ours.objects:
+        np.testing.assert_array_equal(ours.occluders[o.name].coeffs, log_occlusion_field(ours.fields[o.name]).coeffs)
+
+    def refuse(field):
+        raise AssertionError("a stored log field was computed again")
+
+    monkeypatch.setattr(_pipeline, "log_occlusion_field", refuse)
+    again = Interreflection(ours.scene, ours.options, ours.data)
+    assert all(again.occluders[o.name].log for o in again.objects)
+    with pytest.raises(AssertionError, match="computed again"):
+        ours.truncated(order=ours.options.order - 1)
+
+
 def test_exp_occlusion_shades_close_to_the_products(pre):
     """The whole quick scene with ``occlusion="exp"`` (HYB) against the products: the floor and the ball differ by
     less than the total's goal (5 % relative RMS, GOAL): a sanity bound; the option's accuracy against Mitsuba is
