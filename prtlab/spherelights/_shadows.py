@@ -265,6 +265,27 @@ def _rotated_zh_lanes(dirs, row, zh, n_bands, basis, tmp, out, out_row):
                 out[out_row, k, q] = zs * zh[l, q] * basis[k, q]
 
 
+# fdlibm's (FreeBSD msun e_asin.c) rational approximation: asin(x) = x + x R(x^2) on [0, 0.5], |error| < 2^-58.75
+_AS_P = (1.66666666666666657415e-01, -3.25565818622400915405e-01, 2.01212532134862925881e-01,
+         -4.00555345006794114027e-02, 7.91534994289814532176e-04, 3.47933107596021167570e-05)
+_AS_Q = (-2.40339491173441421878e+00, 2.02094576023350569471e+00, -6.88283971605453293030e-01,
+         7.70381505559019352791e-02)
+_PIO2_HI, _PIO2_LO = 1.57079632679489655800e+00, 6.12323399573676603587e-17
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _asin_unit(x):
+    """``asin(x)`` for ``0 <= x <= 1`` without a libm call (so that loops over it vectorise): fdlibm's rational
+    ``R``, on ``[0, 0.5]`` as ``x + x R(x^2)``, above as ``pi/2 - 2 asin(sqrt((1 - x) / 2))`` (fdlibm's form for
+    ``x >= 0.975``, used down to 0.5: within a few units in the last place of libm's there)."""
+    big = x > 0.5
+    t = 0.5 * (1.0 - x) if big else x * x
+    s = math.sqrt(t)
+    r = (t * (_AS_P[0] + t * (_AS_P[1] + t * (_AS_P[2] + t * (_AS_P[3] + t * (_AS_P[4] + t * _AS_P[5])))))
+         / (1.0 + t * (_AS_Q[0] + t * (_AS_Q[1] + t * (_AS_Q[2] + t * _AS_Q[3])))))
+    return _PIO2_HI - (2.0 * (s + s * r) - _PIO2_LO) if big else x + x * r
+
+
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _blocker_lanes(recv, centres, radii, tables, order, out, work):
     """Rotated blocker log of every light at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
@@ -312,15 +333,15 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work):
             st = min(rn * inv, 1.0) if live else -1.0
             sin_t[s, q] = st
             cos_t[s, q] = math.sqrt(1.0 - st * st) if live else 0.0
-        for q in range(n_lanes):  # angular radius and table lookup (asin, gathers: scalar)
+        for q in range(n_lanes):  # angular radius (vectorised)
             st = sin_t[s, q]
-            if st < 0.0:
-                theta[s, q] = -1.0
+            theta[s, q] = -1.0 if st < 0.0 else _asin_unit(st)
+        for q in range(n_lanes):  # table lookup (gathers: scalar)
+            th = theta[s, q]
+            if th < 0.0:
                 for l in range(order):
                     zh[l, q] = 0.0
                 continue
-            th = 0.5 * math.pi if st >= 1.0 else math.asin(st)
-            theta[s, q] = th
             j = min(int(math.floor(th / step)), N_RADII - 1)
             u0 = knots[j]
             w = ((1.0 - cos_t[s, q]) - u0) / (knots[j + 1] - u0)
