@@ -258,11 +258,16 @@ def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
             np.testing.assert_array_equal(a, b)
 
 
-def test_light_terms_refuse_bad_input():
+def _lambert_arguments():
+    """:func:`_tier_scene`'s points, normals and view directions, a Lambertian BRDF and its separable form, and the
+    scene's caster: the leading arguments of a :func:`light_terms` call."""
     f = brdf.from_material(MATERIALS[0])
-    sep = brdf.separable(f, K=1)
     points, normals, wo, meshes, poses, lights = _tier_scene()
-    caster = RayCaster(meshes, transforms=poses)
+    return points, normals, wo, f, brdf.separable(f, K=1), RayCaster(meshes, transforms=poses)
+
+
+def test_light_terms_refuse_bad_input():
+    points, normals, wo, f, sep, caster = _lambert_arguments()
     with pytest.raises(ValueError, match="must be \\(V, 3\\) arrays of one shape"):
         light_terms(points, normals[:-1], wo, f, sep, caster, LIGHT, 0, 16)
     with pytest.raises(ValueError, match="contain NaN or inf"):
@@ -532,10 +537,7 @@ def test_a_decided_recast_after_a_move_equals_a_decided_cast(terms):
 
 
 def test_light_terms_refuse_a_bad_decided():
-    f = brdf.from_material(MATERIALS[0])
-    sep = brdf.separable(f, K=1)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    caster = RayCaster(meshes, transforms=poses)
+    points, normals, wo, f, sep, caster = _lambert_arguments()
     for terms in (light_terms, light_terms_reference):
         with pytest.raises(ValueError, match="decided must be a"):
             terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, decided=np.full(len(points), 3))
@@ -546,10 +548,7 @@ def test_light_terms_refuse_a_bad_decided():
 
 
 def test_light_terms_refuse_a_bad_probe():
-    f = brdf.from_material(MATERIALS[0])
-    sep = brdf.separable(f, K=1)
-    points, normals, wo, meshes, poses, lights = _tier_scene()
-    caster = RayCaster(meshes, transforms=poses)
+    points, normals, wo, f, sep, caster = _lambert_arguments()
     for terms in (light_terms, light_terms_reference):
         with pytest.raises(ValueError, match="probe must be a non-negative int"):
             terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, probe=-1)
