@@ -285,11 +285,8 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     from ._ground import ground_blocked_transfer
     from ._shadows import blocker_log_sum
 
-    # a few thousand samples: the parallel kernels of this pass run on one thread (see _SERIAL_BELOW)
-    threads = numba.get_num_threads()
-    if np.asarray(sample_valid).size < _SERIAL_BELOW:
-        numba.set_num_threads(1)
-    try:
+    # a few thousand samples: the parallel kernels and matrix products of this pass run on one thread
+    with one_thread_below(np.asarray(sample_valid).size, _SERIAL_BELOW):
         S, m = sample_valid.shape
         env = np.asarray(env_sh, dtype=np.float64)
         k = math.isqrt(np.asarray(albedo_sh).shape[1])
@@ -317,8 +314,6 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             light = np.einsum("...smc,mk->...skc", weight[..., None] * radiance, cell_sums)
             return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)
         light = np.einsum("smc,mk->skc", radiance, cell_sums)  # Eq. 10
-    finally:
-        numba.set_num_threads(threads)
     return sh.product(light, np.asarray(albedo_sh, dtype=np.float64), k, channels=True)  # Eq. 11
 
 

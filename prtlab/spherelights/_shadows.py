@@ -90,17 +90,29 @@ def _blocker_log_table(order: int) -> np.ndarray:
     return table
 
 
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
 @contextlib.contextmanager
 def one_thread_below(size: int, threshold: int):
-    """Run the numba kernels of the block on one thread when ``size < threshold`` (then restore the count).
+    """Run the numba kernels and the BLAS calls of the block on one thread when ``size < threshold`` (then
+    restore the counts).
 
     A parallel region waits for its slowest worker; on a loaded machine a worker is descheduled for a scheduler
-    time slice, so a call with little work (a few ms) runs faster on one thread (docs/notes/spherelights.md)."""
-    threads = numba.get_num_threads()
-    if size < threshold and threads > 1:
-        numba.set_num_threads(1)
-    try:
+    time slice, so a call with little work (a few ms) runs faster on one thread; a small matrix product split over
+    BLAS threads waits for them beside numba's spinning workers (docs/notes/spherelights.md)."""
+    if size >= threshold:
         yield
+        return
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        with _blas_controller().limit(limits=1, user_api="blas"):
+            yield
     finally:
         numba.set_num_threads(threads)
 
