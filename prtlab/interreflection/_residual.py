@@ -953,6 +953,26 @@ def _capsule_serial(points, centre, spheres, bound, eps, near):
         near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
 
 
+@numba.njit(cache=True)
+def _flagged(state):
+    """``np.nonzero(state)`` of a (C, m) state array, in the same (row-major) order: the rows and columns of its
+    nonzero entries (counted, then written: two compiled scans, faster than numpy's on these mostly zero states)."""
+    rows, cols = state.shape
+    count = 0
+    for i in range(rows):
+        for j in range(cols):
+            if state[i, j] != 0:
+                count += 1
+    at_i, at_j = np.empty(count, np.int64), np.empty(count, np.int64)
+    count = 0
+    for i in range(rows):
+        for j in range(cols):
+            if state[i, j] != 0:
+                at_i[count], at_j[count] = i, j
+                count += 1
+    return at_i, at_j
+
+
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
     centre, radius = np.asarray(source[3], float), float(source[4])
@@ -976,7 +996,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
                        float(caster.epsilon), grid[2], _source_facing(source), float(caster.tnear), s, widened,
                        _tracer(caster, n_blocks), _weighing(receiver_sep, source), state, triangle, uv32, factor)
-        i, j = np.nonzero(state)
+        i, j = _flagged(state)
         if not len(i):
             return old
         stats["rays_cast"] += int(np.count_nonzero(state >= _FLAGGED_CAST))

@@ -970,6 +970,19 @@ def test_packet_casts_equal_one_ray_casts(r, full, monkeypatch):
     _assert_same_casts(runs[False], runs[True])
 
 
+@pytest.mark.parametrize("shape, density", [((0, 64), 0.5), ((3, 64), 0.0), ((200, 16), 0.05), ((50, 64), 1.0)])
+def test_flagged_rays_are_numpys_nonzero(shape, density):
+    """``_residual._flagged`` (the recast's flagged rays) gives ``np.nonzero``'s rows and columns, order and dtype,
+    empty and full arrays included."""
+    from prtlab.interreflection._residual import _flagged
+
+    rng = np.random.default_rng(8)
+    state = np.where(rng.random(shape) < density, rng.integers(1, 4, shape), 0).astype(np.int8)
+    for ours, numpys in zip(_flagged(state), np.nonzero(state)):
+        assert ours.dtype == numpys.dtype
+        np.testing.assert_array_equal(ours, numpys)
+
+
 def test_the_near_hit_correction_in_parallel_runs_equals_one_pass():
     """:func:`near_hit_correction` adds runs of hits with distinct receiver points in parallel: bit for bit the sum
     of one pass over the hits in order, within 1e-12 of the reference tier; unsorted rows take one pass."""
