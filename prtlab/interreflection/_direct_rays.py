@@ -579,6 +579,18 @@ def _vertex_frame(n, wo, p):
     return a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co
 
 
+@numba.njit(cache=True, inline="always")
+def _cos_out(n, wo, p):
+    """``a . wo`` of :func:`_vertex_frame` alone (the same arithmetic, so the same bits)."""
+    n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
+    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    a0, a1, a2 = n0 / length, n1 / length, n2 / length
+    o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
+    size = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+    o0, o1, o2 = o0 / size, o1 / size, o2 / size
+    return a0 * o0 + a1 * o1 + a2 * o2
+
+
 #: :func:`_polar_angle`'s reduction points ``i / 6`` (i = 0..6), numpy's ``arctan`` of them, and the Taylor series
 #: of ``atan`` (``(-1)^k / (2k + 1)``, k = 0..7) about 0
 _ATAN_POINTS = np.arange(7) / 6.0
@@ -797,10 +809,11 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             continue
                         whole[i] = area and _wholly_above(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params)
                         culling[i] = cull and given == 0
-                        for q in range(spheres.shape[0]):  # inside a blocker's sphere: every segment meets it
+                        for q in range(spheres.shape[0] if culling[i] else 0):
                             e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
                             if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
-                                culling[i] = False
+                                culling[i] = False  # inside a blocker's sphere: every segment meets it
+                                break
                         if culling[i]:
                             n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
                                                                         near[i])
@@ -928,8 +941,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     F[p, c] = 0.0
                 if dark[i] or known[i] == _BLOCKED:
                     continue
-                a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 if level:  # g_k and f do not depend on the direction: the lit weights' sum times them
+                    co = _cos_out(n, wo, p)
                     total, n_lit, n_blocked = 0.0, 0, 0
                     for j in range(m):
                         if state[i * m + j] == _LIT:
@@ -945,6 +958,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                         for c in range(n_channels):
                             F[p, c] = total * (kd[c] * inv_pi)
                     continue
+                a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 for j in range(m):
                     q = i * m + j
                     if state[q] != _LIT:
