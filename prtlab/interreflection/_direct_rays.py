@@ -45,7 +45,7 @@ from prtlab.scene import AreaLight, PointLight
 from ._residual import _mix, _uniform  # SplitMix64, the residual gather's counter-based streams
 
 __all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "light_terms_reference",
-           "mirror_wo", "sample_count", "widened_sphere", "blocker_bounds"]
+           "mirror_wo", "sample_count", "widened_sphere", "blocker_bounds", "lit_integral"]
 
 #: vertices per chunk of the reference tier: bounds its (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
@@ -248,6 +248,68 @@ def _check_reuse(visibility, moved, n_points: int, m: int):
     return np.ascontiguousarray(visibility), moved
 
 
+# ------------------------------------------------------------------------------------------- exact unshadowed light
+
+
+def lit_integral(points, normals, light) -> np.ndarray:
+    """(V,) ``integral (n . w)+ dw`` over the solid angle of area ``light`` (the parallelogram ``c +- u +- v``)
+    seen from ``points`` (V, 3) with unit ``normals`` (V, 3), 0 where a point is not in front of the light
+    (``(c - x) . l >= 0``): the expectation of a vertex's lit weights' sum in :func:`light_terms` when no sample is
+    blocked. Float64 numpy (the specification of the kernel's :func:`_lit_integral`).
+
+    Notes
+    -----
+    Lambert's formula for a polygon ``y_1 .. y_k`` (Arvo 1995, Eq. 4) clipped to the horizon ``n . (y - x) >= 0``
+    (one Sutherland-Hodgman pass over the corners in order): with ``a_i = y_i - x``,
+    ``E = 1/2 |sum_i angle(a_i, a_{i+1}) n . (a_i x a_{i+1}) / |a_i x a_{i+1}||``, the angle as
+    ``arctan2(|a x b|, a . b)``.
+
+    References
+    ----------
+    J. Arvo, "Applications of irradiance tensors to the simulation of non-Lambertian phenomena", SIGGRAPH 1995.
+    """
+    x, n = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
+    c, u, v, l = (np.asarray(getattr(light, f), float) for f in ("center", "u", "v", "normal"))
+    corners = [c - u - v - x, c + u - v - x, c + u + v - x, c - u + v - x]  # each (V, 3)
+    height = [np.einsum("vi,vi->v", a, n) for a in corners]
+    total, count = np.zeros(len(x)), np.zeros(len(x), np.int64)
+    first, previous = np.zeros((len(x), 3)), np.zeros((len(x), 3))
+
+    def emit(a, at):
+        nonlocal total
+        cross = np.cross(previous, a)
+        length = np.linalg.norm(cross, axis=1)
+        angle = np.arctan2(length, np.einsum("vi,vi->v", previous, a))
+        term = np.where(length > 0.0, angle * np.einsum("vi,vi->v", n, cross) / np.maximum(length, 1e-300), 0.0)
+        total = total + np.where(at & (count > 0), term, 0.0)
+        first[at & (count == 0)] = a[at & (count == 0)]
+        previous[at] = a[at]
+        count[at] += 1
+
+    for i in range(4):
+        a, b, ha, hb = corners[i], corners[(i + 1) % 4], height[i], height[(i + 1) % 4]
+        emit(a, ha >= 0.0)
+        crossing = (ha >= 0.0) != (hb >= 0.0)
+        t = np.where(crossing, ha / np.where(crossing, ha - hb, 1.0), 0.0)
+        emit(a + t[:, None] * (b - a), crossing)
+    emit(first, count >= 2)  # the closing edge
+    front = np.einsum("vi,i->v", c - x, l) < 0.0
+    return np.where(front, 0.5 * np.abs(total), 0.0)
+
+
+def _level_form(f, sep) -> bool:
+    """Whether :func:`_terms_kernel` takes receiver ``f`` (``sep`` its separable form) as direction-independent: a
+    :class:`prtlab.brdf.Phong` with ``ks = 0`` and ``g_k`` without azimuth whose radial values (as the kernel gets
+    them) agree within :data:`LEVEL_SPREAD` of their largest."""
+    if not (isinstance(f, brdf.Phong) and isinstance(sep, brdf.SeparableBRDF)) or np.any(np.asarray(f.ks) != 0.0):
+        return False
+    if np.any(np.asarray(sep.freq) != 0) or np.any(np.asarray(sep.parity) != 0):
+        return False
+    values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)[1]
+    low, high = values.min(axis=1), values.max(axis=1)
+    return bool(np.all(high - low <= LEVEL_SPREAD * np.maximum(np.abs(low), np.abs(high))))
+
+
 # ------------------------------------------------------------------------------------------- reference tier
 
 
@@ -279,7 +341,7 @@ def _cast_stage(caster, x, normals, w, dist, stage, meets, visibility, blocked, 
 
 def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                           visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                          previous=None, probe: int = 0, decided=None, decided_before=None):
+                          previous=None, probe: int = 0, decided=None, decided_before=None, exact_lit: bool = False):
     """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
     ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
@@ -290,6 +352,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
     decided, decided_before = _check_decided(decided, decided_before, len(x), visibility)
     c, u, v, normal, scale = params[:3], params[3:6], params[6:9], params[9:12], params[12]
+    exact = bool(exact_lit) and area and _level_form(f, sep)
     corner = np.stack([a.ravel() for a in np.meshgrid(np.arange(rows) / rows, np.arange(side) / side,
                                                        indexing="ij")], axis=1)  # (m, 2)
     cell = np.array([1.0 / rows, 1.0 / side])
@@ -336,6 +399,12 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         g = sep.g(brdf.to_local(w, np.broadcast_to(np_[:, None], w.shape)))  # (V, m, K)
         S[part] = np.einsum("vm,vmk->vk", weight, g)
         F[part] = np.einsum("vm,vmc->vc", weight, f.eval(w, wop[:, None], np_[:, None]))
+        if exact:  # some live sample and none blocked: the exact integral, g_k and f at the normal
+            at = np.nonzero(np.any(live, axis=1) & ~np.any(blocked, axis=1))[0]
+            if len(at):
+                total = lit_integral(xp[at], np_[at], light)[:, None]
+                S[lo + at] = total * sep.g(np.array([[0.0, 0.0, 1.0]]))
+                F[lo + at] = total * f.eval(np_[at], wop[at], np_[at])
     return S, F, blocked_all
 
 
@@ -443,6 +512,23 @@ def _unlit(x0, x1, x2, n0, n1, n2, params):
     return above < -tol or front > tol
 
 
+@numba.njit(cache=True, inline="always")
+def _wholly_above(x0, x1, x2, n0, n1, n2, params):
+    """Whether every point of area light ``params`` is above the horizon of ``x`` (normal ``n``) and ``x`` in front
+    of it, with :func:`_unlit`'s margin ``tol``: ``(c - x) . n - |u . n| - |v . n|`` (the smallest ``(y - x) . n``)
+    above ``tol`` and ``(c - x) . l + |u . l| + |v . l|`` below ``-tol``. Then every sample the kernel draws is
+    live, as drawing them would find."""
+    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
+    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
+    l0, l1, l2 = params[9], params[10], params[11]
+    tol = 1e-12 * ((abs(params[0]) + abs(u0) + abs(v0) + abs(x0)) * (abs(n0) + abs(l0))
+                   + (abs(params[1]) + abs(u1) + abs(v1) + abs(x1)) * (abs(n1) + abs(l1))
+                   + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
+    lowest = c0 * n0 + c1 * n1 + c2 * n2 - abs(u0 * n0 + u1 * n1 + u2 * n2) - abs(v0 * n0 + v1 * n1 + v2 * n2)
+    back = c0 * l0 + c1 * l1 + c2 * l2 + abs(u0 * l0 + u1 * l1 + u2 * l2) + abs(v0 * l0 + v1 * l1 + v2 * l2)
+    return lowest > tol and back < -tol
+
+
 #: bins of the table that starts the search of a node interval (:func:`_interval`)
 _GUIDE_BINS = 1024
 
@@ -493,6 +579,18 @@ def _vertex_frame(n, wo, p):
     return a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co
 
 
+@numba.njit(cache=True, inline="always")
+def _cos_out(n, wo, p):
+    """``a . wo`` of :func:`_vertex_frame` alone (the same arithmetic, so the same bits)."""
+    n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
+    length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    a0, a1, a2 = n0 / length, n1 / length, n2 / length
+    o0, o1, o2 = wo[p, 0], wo[p, 1], wo[p, 2]
+    size = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2)
+    o0, o1, o2 = o0 / size, o1 / size, o2 / size
+    return a0 * o0 + a1 * o1 + a2 * o2
+
+
 #: :func:`_polar_angle`'s reduction points ``i / 6`` (i = 0..6), numpy's ``arctan`` of them, and the Taylor series
 #: of ``atan`` (``(-1)^k / (2k + 1)``, k = 0..7) about 0
 _ATAN_POINTS = np.arange(7) / 6.0
@@ -527,6 +625,53 @@ def _polar_angle(r, z):
     return np.pi - _atan_unit(r / -z)
 
 
+@numba.njit(cache=True, inline="always")
+def _lambert_edge(p0, p1, p2, a0, a1, a2, n0, n1, n2):
+    """``angle(p, a) n . (p x a) / |p x a|`` (0 where ``p x a`` is 0): an edge's term of :func:`lit_integral`."""
+    k0, k1, k2 = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
+    length = np.sqrt(k0 * k0 + k1 * k1 + k2 * k2)
+    if not length > 0.0:
+        return 0.0
+    return _polar_angle(length, p0 * a0 + p1 * a1 + p2 * a2) * (n0 * k0 + n1 * k1 + n2 * k2) / length
+
+
+@numba.njit(cache=True)
+def _lit_integral(x0, x1, x2, n0, n1, n2, params):
+    """:func:`lit_integral` at one point (``params``: :func:`_light_geometry`'s), the clipped polygon's edges summed
+    as they are emitted."""
+    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
+    if not c0 * params[9] + c1 * params[10] + c2 * params[11] < 0.0:
+        return 0.0
+    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
+    total, count = 0.0, 0
+    f0, f1, f2, p0, p1, p2 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for i in range(4):
+        sa, ta = (-1.0, 1.0, 1.0, -1.0, -1.0)[i], (-1.0, -1.0, 1.0, 1.0, -1.0)[i]
+        sb, tb = (-1.0, 1.0, 1.0, -1.0, -1.0)[i + 1], (-1.0, -1.0, 1.0, 1.0, -1.0)[i + 1]
+        a0, a1, a2 = c0 + sa * u0 + ta * v0, c1 + sa * u1 + ta * v1, c2 + sa * u2 + ta * v2
+        b0, b1, b2 = c0 + sb * u0 + tb * v0, c1 + sb * u1 + tb * v1, c2 + sb * u2 + tb * v2
+        ha, hb = a0 * n0 + a1 * n1 + a2 * n2, b0 * n0 + b1 * n1 + b2 * n2
+        for emit in range(2):
+            if emit == 0:
+                if not ha >= 0.0:
+                    continue
+                e0, e1, e2 = a0, a1, a2
+            else:
+                if (ha >= 0.0) == (hb >= 0.0):
+                    continue
+                t = ha / (ha - hb)
+                e0, e1, e2 = a0 + t * (b0 - a0), a1 + t * (b1 - a1), a2 + t * (b2 - a2)
+            if count == 0:
+                f0, f1, f2 = e0, e1, e2
+            else:
+                total += _lambert_edge(p0, p1, p2, e0, e1, e2, n0, n1, n2)
+            p0, p1, p2 = e0, e1, e2
+            count += 1
+    if count >= 2:
+        total += _lambert_edge(p0, p1, p2, f0, f1, f2, n0, n1, n2)
+    return 0.5 * abs(total)
+
+
 #: states of a sample in :func:`_terms_kernel`'s scratch
 _DEAD, _LIT, _BLOCKED, _PENDING = 0, 1, 2, 3
 
@@ -553,7 +698,7 @@ def _flush(tracer_fn, tracer_scene, valid, address, f32, lane_sample, filled, st
 def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tracer_scene, packet, step, slot_f32,
                   slot_u32, slot_valid, threads, eps, tnear, visibility, moved, previous_S, previous_F, reach, cull,
                   spheres, planes, probe, decided, decided_before, nodes, guide, per_radian, values, freq, parity, kd,
-                  ks, exponent, S, F, blocked, cast):
+                  ks, exponent, exact, S, F, blocked, cast):
     """``S``, ``F`` and ``blocked`` of one light (see :func:`light_terms`); ``visibility`` (V, m) or (0, m):
     the previous mask, re-cast only where a segment meets a sphere of ``moved``; with ``previous_S`` and
     ``previous_F`` (else (0, K), (0, C)) a vertex whose capsule toward the light (radius ``reach``, every corner
@@ -562,7 +707,13 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
     outside every sphere; ``probe`` (m,) or (0,): the samples decided first, whose agreement decides the others
     (:func:`light_terms`); ``decided`` (V,) int8 or (0,): a vertex's answer for every sample given (1 clear, 2
     blocked, 0 none: traced), ``decided_before`` (V,) or (0,) that of the call that gave ``visibility`` (a vertex
-    decided there is traced wholly when it is not now); ``cast`` (V,): the samples traced per vertex.
+    decided there is traced wholly when it is not now); ``cast`` (V,): the samples traced per vertex; ``exact``
+    (an area light, a receiver whose ``g_k`` and BRDF do not depend on the direction): a vertex with some live
+    sample and none blocked takes :func:`_lit_integral` for its lit weights' sum.
+
+    Where every sample is live (:func:`_wholly_above`) and the answer is known before the draw (given, or every
+    segment culled, or the probes agree), a vertex draws no samples: all blocked gives zero sums, all clear with
+    ``exact`` the integral.
 
     Threads take blocks of ``step`` vertices from a shared counter; iteration ``t`` of the thread loop traces
     through slot ``t``: with ``packet``, a block's rays 16 at a time in sample order (``rtcOccluded16``, lanes
@@ -595,6 +746,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
     # g_k's radial values equal within LEVEL_SPREAD of their largest and no azimuth, ks = 0: g_k is taken as the
     # middle of its values (off by at most half their spread) and f = kd / pi
     level = not glossy and not any_phi
+    exact = exact and area
     level_g = np.empty(n_terms)
     for k in range(n_terms):
         low, high = values[k, 0], values[k, 0]
@@ -603,6 +755,7 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         level_g[k] = 0.5 * (low + high)
         if not high - low <= LEVEL_SPREAD * max(abs(low), abs(high)):
             level = False
+    exact = exact and level
     row_start, col_start = np.empty(m), np.empty(m)  # the grid cell's corner of sample j
     for j in range(m):
         row, col = divmod(j, side)
@@ -624,6 +777,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
         near = np.zeros((step, spheres.shape[0] + planes.shape[0]), dtype=np.int64)  # blockers near a vertex's rays
         n_near = np.zeros((step, 2), dtype=np.int64)
         redo = np.zeros(step, dtype=np.bool_)  # probe and reuse: the previous call's other bits were agreed, not cast
+        whole = np.zeros(step, dtype=np.bool_)  # every sample of the vertex is live (_wholly_above)
+        known = np.zeros(step, dtype=np.int8)  # answered without a draw: _LIT (exact), _BLOCKED (zero sums), or 0
         while True:
             block = _embree.fetch_add(counter, 1)
             if block >= n_blocks:
@@ -645,22 +800,35 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             for j in range(m):
                                 blocked[p, j] = visibility[p, j]
                             continue
+                        known[i] = 0
                         dark[i] = _unlit(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params)
                         if dark[i]:  # every sample below a horizon: not drawn
                             for j in range(m):
                                 blocked[p, j] = False
                                 state[i * m + j] = _DEAD
                             continue
+                        whole[i] = area and _wholly_above(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params)
                         culling[i] = cull and given == 0
-                        for q in range(spheres.shape[0]):  # inside a blocker's sphere: every segment meets it
+                        for q in range(spheres.shape[0] if culling[i] else 0):
                             e0, e1, e2 = x0 - spheres[q, 0], x1 - spheres[q, 1], x2 - spheres[q, 2]
                             if e0 * e0 + e1 * e1 + e2 * e2 <= spheres[q, 3] * spheres[q, 3]:
-                                culling[i] = False
+                                culling[i] = False  # inside a blocker's sphere: every segment meets it
+                                break
                         if culling[i]:
                             n_near[i, 0], n_near[i, 1] = _near_blockers(x0, x1, x2, params, reach, spheres, planes,
                                                                         near[i])
                         redo[i] = reuse and given_before != 0  # the previous bits were given, not cast
-                    elif kept[i] or dark[i]:
+                        if whole[i] and given == 2:
+                            known[i] = _BLOCKED
+                        elif whole[i] and exact and (given == 1 or (culling[i] and n_near[i, 0] == 0
+                                                                    and n_near[i, 1] == 0)):
+                            known[i] = _LIT  # given clear, or no blocker near any segment
+                        if known[i] != 0:
+                            for j in range(m):
+                                blocked[p, j] = known[i] == _BLOCKED
+                                state[i * m + j] = _DEAD
+                            continue
+                    elif kept[i] or dark[i] or known[i] != 0:
                         continue
                     agreed = _PENDING  # the given answer, or with probe, second stage: the probes' common answer
                     if deciding and decided[p] != 0:
@@ -684,6 +852,13 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                             agreed = _BLOCKED
                         # the previous call decided its other samples by agreement too: their bits were not cast
                         redo[i] = redo[i] or (reuse and ((old_lit > 0) != (old_blocked > 0)))
+                        # the others' answer known: not drawn (all clear: the probes' live samples decide the sums)
+                        if (agreed == _LIT and exact) or (agreed == _BLOCKED and whole[i]):
+                            for j in range(m):
+                                if not probe[j]:
+                                    blocked[p, j] = agreed == _BLOCKED
+                                    state[i * m + j] = _DEAD
+                            continue
                     n0, n1, n2 = n[p, 0], n[p, 1], n[p, 2]
                     stream = _mix(np.uint64(key) ^ _mix(np.uint64(p + first)))
                     for j in range(m):
@@ -764,20 +939,26 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                     S[p, k] = 0.0
                 for c in range(n_channels):
                     F[p, c] = 0.0
-                if dark[i]:
+                if dark[i] or known[i] == _BLOCKED:
                     continue
-                a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 if level:  # g_k and f do not depend on the direction: the lit weights' sum times them
-                    total = 0.0
+                    co = _cos_out(n, wo, p)
+                    total, n_lit, n_blocked = 0.0, 0, 0
                     for j in range(m):
                         if state[i * m + j] == _LIT:
                             total += weights[i * m + j]
+                            n_lit += 1
+                        elif state[i * m + j] == _BLOCKED:
+                            n_blocked += 1
+                    if known[i] == _LIT or (exact and n_lit > 0 and n_blocked == 0):
+                        total = _lit_integral(x[p, 0], x[p, 1], x[p, 2], n[p, 0], n[p, 1], n[p, 2], params)
                     for k in range(n_terms):
                         S[p, k] = total * level_g[k]
                     if co >= 0.0:  # else a lit sample is on wo's side of the horizon only by rounding
                         for c in range(n_channels):
                             F[p, c] = total * (kd[c] * inv_pi)
                     continue
+                a0, a1, a2, t0, t1, t2, b0, b1, b2, o0, o1, o2, co = _vertex_frame(n, wo, p)
                 for j in range(m):
                     q = i * m + j
                     if state[q] != _LIT:
@@ -809,7 +990,7 @@ def _kernel_ready(f, sep, caster) -> bool:
 
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                 visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                previous=None, probe: int = 0, decided=None, decided_before=None):
+                previous=None, probe: int = 0, decided=None, decided_before=None, exact_lit: bool = False):
     """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
@@ -846,12 +1027,18 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     live sample blocked, 0 none (cast as above; the samples' weights, ``g_k`` and BRDF are computed either way).
     With ``visibility``, ``decided_before`` is that of the call that gave it (None: all 0): a point given an answer
     there and none now is cast wholly, so the results are those of a call without ``visibility``.
+
+    ``exact_lit``: on an area light and a receiver whose ``g_k`` and BRDF do not depend on the direction (``ks = 0``,
+    ``g_k`` level as above), a point with some live sample and none blocked takes the exact unshadowed integral
+    (:func:`lit_integral`) for its lit weights' sum, ``g_k`` and the BRDF at its normal (the estimator's noise
+    removed where the light is wholly seen); the masks are as without it. Where the answer is known before the
+    draw and every point of the light is above the horizon, the kernel draws no samples.
     """
     first, probe = _check_first(first), _check_probe(probe)
     if not _kernel_ready(f, sep, caster):
         return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
                                      visibility, moved, stats, first=first, probe=probe, decided=decided,
-                                     decided_before=decided_before)
+                                     decided_before=decided_before, exact_lit=exact_lit)
     if previous is not None and visibility is not None:
         previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
         if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
@@ -884,8 +1071,8 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
                   np.zeros(0, np.int8) if decided is None else decided,
                   np.zeros(0, np.int8) if decided_before is None else decided_before, nodes, *_guide(nodes), values,
                   np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64),
-                  np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent), S, F,
-                  blocked, cast)
+                  np.ascontiguousarray(f.kd, float), np.ascontiguousarray(f.ks, float), float(f.exponent),
+                  bool(exact_lit), S, F, blocked, cast)
     if stats is not None:
         stats["rays_cast"] = stats.get("rays_cast", 0) + int(cast.sum())
     return S, F, blocked

@@ -188,6 +188,14 @@ class InterreflectionOptions:
         other samples take that answer without rays (the penumbra early-out: biased where a shadow's edge crosses
         the light between them and misses every probe). 0 (or ``light_samples`` and more): every sample cast,
         unbiased. A run-time choice.
+    light_exact_lit : bool
+        With ``shadows="rays"``, on a receiver whose BRDF and separable form do not depend on the direction (a
+        Lambertian one), a vertex some of whose samples of an area light are live and none blocked takes the exact
+        unshadowed integral of its cosine over the light (clipped to its horizon; Lambert's polygon formula) in
+        place of the samples' estimate: no sampling noise where the light is wholly seen, and no samples drawn
+        where that is known beforehand. The near hits of ``residual_near`` keep their samples' estimate (at 2
+        samples the integral costs more than the draw). False: the samples' estimate everywhere. A run-time
+        choice.
     residual_near : float
         With ``shadows="rays"`` and the residual gather, its first-bounce rays whose hit lies nearer the receiver
         point than ``residual_near`` times the hit triangle's longest edge carry the source's radiance from the
@@ -249,6 +257,7 @@ class InterreflectionOptions:
     residual_cone: float = 0.5
     light_samples: int = 64
     light_probe: int = 16
+    light_exact_lit: bool = True
     residual_near: float = 2.0
     residual_near_samples: int = 2
     residual_near_probe: bool = True
@@ -269,6 +278,7 @@ class InterreflectionOptions:
         check_int(self.residual_near_samples, "option residual_near_samples", 1,
                   meaning="points per near hit on an area light")
         check_bool(self.residual_whole, "option residual_whole")
+        check_bool(self.light_exact_lit, "option light_exact_lit")
         check_bool(self.residual_near_probe, "option residual_near_probe")
         check_float(self.r_min, "option r_min", 0.0, min_open=True, meaning="in bounding radii")
         check_float(self.r_max, "option r_max", 0.0, min_open=True, meaning="in bounding radii")
@@ -474,8 +484,8 @@ class Interreflection(Precomputation):
         """Run-time options are left out; with ``pca_occluders`` every object's pose in the scene is in."""
         # per-frame options: not part of the precomputed data
         run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
-                    "light_probe", "residual_near", "residual_near_samples", "residual_near_probe", "residual_whole",
-                    "occlusion", "exp_method")
+                    "light_probe", "light_exact_lit", "residual_near", "residual_near_samples", "residual_near_probe",
+                    "residual_whole", "occlusion", "exp_method")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -940,7 +950,8 @@ class Interreflection(Precomputation):
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
         offsets = None if caster is None else (caster.epsilon, caster.tnear)
-        samples, light_k, radiance = (self.options.light_samples, self.options.light_probe), {}, {}
+        samples = (self.options.light_samples, self.options.light_probe, self.options.light_exact_lit)
+        light_k, radiance = {}, {}
         self.reuse.direct_counts = {"rays_cast": 0}
         for me, r in enumerate(self.objects):
             g = geo[r.name]
@@ -966,7 +977,7 @@ class Interreflection(Precomputation):
                     reuse = old is not None and old["key"] == key
                     new["S"], new["F"], new["mask"] = light_terms(
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
-                        self.seps[r.name], caster, light, i, samples[0], probe=samples[1],
+                        self.seps[r.name], caster, light, i, samples[0], probe=samples[1], exact_lit=samples[2],
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
                         stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me, True),
                         previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)
@@ -1629,7 +1640,7 @@ class Interreflection(Precomputation):
         stats.setdefault("near_rays_cast", 0)
         counts = {"rays_cast": 0}
         wo = normals  # toward the normal: mirror_wo(normals, normals) is the normals themselves (n . n >= 0)
-        light_k, terms = np.zeros((len(at), sep.K, 3)), []
+        light_k, terms = None, []
         for li, light in enumerate(lights):
             decided = self._near_decided(s.name, li, corners) if self.options.residual_near_probe else None
             calls = [(kept, len(at), {})]  # the points after the standing parts: cast anew
@@ -1643,14 +1654,15 @@ class Interreflection(Precomputation):
                                   decided=None if decided is None else decided[a:b])
                       for a, b, extra in calls if b > a or len(calls) == 1]
             terms.append((*(np.concatenate(t) if len(pieces) > 1 else t[0] for t in zip(*pieces)), decided))
-            S = terms[-1][0]
-            light_k += S[:, :, None] * np.asarray(light.radiance if isinstance(light, AreaLight)
-                                                  else light.intensity, float)
+            # (Q, K, 3) as one outer product (numpy's broadcast over a last axis of 3 is several times slower)
+            part = np.multiply.outer(terms[-1][0], np.asarray(light.radiance if isinstance(light, AreaLight)
+                                                               else light.intensity, float))
+            light_k = part if light_k is None else light_k + part
         stats["near_rays_cast"] += counts["rays_cast"]
         self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
                                           poses=poses, spheres=spheres, parts=identity, at=at, normals=normals,
                                           corners=corners, terms=terms)
-        return light_k
+        return np.zeros((len(at), sep.K, 3)) if light_k is None else light_k
 
     def _near_decided(self, source: str, light: int, corners) -> np.ndarray:
         """(Q,) int8 of ``residual_near_probe`` at near hits on ``source`` whose triangles have the vertices

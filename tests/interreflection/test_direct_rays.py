@@ -683,3 +683,166 @@ def test_a_lambertian_receiver_takes_its_level_factor_within_half_its_spread():
             np.testing.assert_array_equal(blocked, blocked_ref)
             np.testing.assert_allclose(S, S_ref, rtol=0.0, atol=bound * np.abs(S_ref).max())
             np.testing.assert_allclose(F, F_ref, rtol=0.0, atol=1e-14 * np.abs(F_ref).max())
+
+
+# ------------------------------------------------------------------ exact unshadowed light (light_exact_lit)
+
+def _quadrature_of_the_cosine(points, normals, light, k=600):
+    """(V,) ``integral (n . w)+ dw`` over ``light`` by the midpoint rule on a ``k x k`` grid of the parallelogram."""
+    s = (np.arange(k) + 0.5) / k * 2.0 - 1.0
+    y = light.center + np.repeat(s, k)[:, None] * light.u + np.tile(s, k)[:, None] * light.v
+    out = np.empty(len(points))
+    for i, (x, n) in enumerate(zip(points, normals)):
+        d = y - x
+        dist = np.linalg.norm(d, axis=1)
+        cos_x, cos_l = d @ n / dist, -(d @ light.normal) / dist
+        out[i] = np.sum(np.where((cos_x > 0.0) & (cos_l > 0.0), cos_x * cos_l / dist**2, 0.0)) * light.area / k**2
+    return out
+
+
+def test_the_exact_lit_integral_is_the_cosines_integral_over_the_light():
+    """``lit_integral`` (numpy) and the kernel's ``_lit_integral``: the closed form under a parallel rectangle's
+    centre (four corner rectangles, Howell's catalogue C-11); the midpoint rule over the light at random points and
+    normals (lights cut by the horizon, points behind the light: 0) within 1e-5 of the largest value; the two tiers
+    within 1e-14."""
+    from prtlab.interreflection._direct_rays import _light_geometry, _lit_integral, lit_integral
+
+    h, a, b = 2.0, 0.3, 0.3  # under LIGHT's centre, facing it
+    A, B = a / h, b / h
+    corner = (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+              + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    below = LIGHT.center - [0.0, h, 0.0]
+    np.testing.assert_allclose(lit_integral(below[None], np.array([[0.0, 1.0, 0.0]]), LIGHT), 4 * np.pi * corner,
+                               rtol=1e-14)
+    rng = np.random.default_rng(11)
+    points = LIGHT.center + rng.uniform(-1.0, 1.0, (120, 3)) * [1.2, 1.5, 1.2] - [0.0, 0.6, 0.0]
+    normals = rng.normal(size=(120, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    exact = lit_integral(points, normals, LIGHT)
+    params = _light_geometry(LIGHT, 64)[0]
+    kernel = np.array([_lit_integral(*x, *n, params) for x, n in zip(points, normals)])
+    np.testing.assert_allclose(kernel, exact, rtol=0.0, atol=1e-14 * exact.max())
+    np.testing.assert_allclose(exact, _quadrature_of_the_cosine(points, normals, LIGHT), rtol=0.0,
+                               atol=1e-5 * exact.max())
+    behind = (points - LIGHT.center) @ LIGHT.normal <= 0.0  # the light shines along its normal
+    corners = LIGHT.center + np.array([[s, t] for s in (-1, 1) for t in (-1, 1)]) @ np.stack([LIGHT.u, LIGHT.v])
+    heights = np.einsum("vci,vi->vc", corners[None] - points[:, None], normals)
+    clipped = (heights.max(axis=1) > 0.0) & (heights.min(axis=1) < 0.0) & ~behind
+    assert np.all(exact[behind] == 0.0) and behind.sum() > 5 and clipped.sum() > 20  # both cases are tested
+
+
+def test_a_vertex_called_wholly_above_has_every_sample_live():
+    """``_wholly_above`` (the kernel answers such a vertex without drawing) is True only where every sample of the
+    light is live as the reference tier draws it: random vertices and normals, and normals whose horizon passes
+    through a corner of the light, tilted by tiny angles either way."""
+    from prtlab.interreflection._direct_rays import _light_geometry, _wholly_above
+
+    rng = np.random.default_rng(7)
+    params = _light_geometry(LIGHT, 64)[0]
+    points = LIGHT.center + rng.uniform(-2.0, 2.0, (4000, 3)) - [0.0, 1.0, 0.0]
+    normals = rng.normal(size=(4000, 3)) + [0.0, 2.0, 0.0]
+    corners = LIGHT.center + np.array([[s, t] for s in (-1, 1) for t in (-1, 1)]) @ np.stack([LIGHT.u, LIGHT.v])
+    grazing = np.cross(corners[rng.integers(0, 4, 4000)] - points, rng.normal(size=(4000, 3)))
+    grazing *= np.sign(grazing[:, 1:2] + 1e-300)  # toward the light
+    grazing += rng.choice([-1e-13, -1e-15, 0.0, 1e-15, 1e-13], (4000, 1)) * rng.normal(size=(4000, 3))
+    points, normals = np.concatenate([points, points]), np.concatenate([normals, grazing])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    live = _live_with_seed(points, normals, LIGHT, 0, 0)
+    whole = np.array([_wholly_above(*x, *n, params) for x, n in zip(points, normals)])
+    assert live[whole].all()
+    assert whole.sum() > 1000 and (live.all(axis=1) & ~whole).sum() > 0  # it decides many, not every one
+
+
+def _live_with_seed(points, normals, light, index, seed):
+    """(V, 64) whether a sample of ``light`` faces the vertex and the light, by the reference's jitter and
+    arithmetic."""
+    st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")], axis=1)[None]
+          + jitter(seed, index, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
+    y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
+    d = y - points[:, None]
+    w = d / np.linalg.norm(d, axis=-1)[..., None]
+    return (np.einsum("vmi,vi->vm", w, normals) > 0.0) & (-w @ light.normal > 0.0)
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_exact_lit_points_take_the_integral_and_keep_their_masks(material):
+    """``exact_lit``: the kernel equals the reference tier (masks equal; sums within half the level spread of
+    ``g_k``, as the level path, and 1e-13 otherwise), with and without a probe, ``decided`` and blocker culling;
+    the masks equal those without ``exact_lit``; a Lambertian point with some live sample and none blocked takes
+    ``lit_integral`` times ``g_k`` and ``kd / pi`` (a caster that blocks nothing: every such point), the others
+    keep their sums bit for bit; a Phong receiver is unchanged bit for bit."""
+    from prtlab.interreflection._direct_rays import blocker_bounds, lit_integral
+
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    _, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)
+    bound = 0.5 * float(np.ptp(values) / np.abs(values).max()) + 1e-13
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    empty = RayCaster([meshes[2]], transforms=[Transform(translate=np.array([50.0, 0.0, 0.0]))])
+    wo = mirror_wo(wo, normals)
+    decided = (np.arange(len(points)) % 3).astype(np.int8)
+    blockers = blocker_bounds(caster, [False] * len(meshes))
+    for i, light in enumerate(lights):
+        for probe, given, bounds in ((0, None, None), (16, None, blockers), (0, decided, blockers),
+                                     (16, decided, None)):
+            common = dict(seed=3, probe=probe, decided=given)
+            ours = light_terms(points, normals, wo, f, sep, caster, light, i, 64, exact_lit=True, blockers=bounds,
+                               **common)
+            ref = light_terms_reference(points, normals, wo, f, sep, caster, light, i, 64, exact_lit=True, **common)
+            estimate = light_terms(points, normals, wo, f, sep, caster, light, i, 64, blockers=bounds, **common)
+            np.testing.assert_array_equal(ours[2], ref[2])
+            np.testing.assert_array_equal(ours[2], estimate[2])
+            np.testing.assert_allclose(ours[0], ref[0], rtol=0.0, atol=bound * np.abs(ref[0]).max())
+            np.testing.assert_allclose(ours[1], ref[1], rtol=0.0, atol=1e-13 * np.abs(ref[1]).max())
+            if material.type == "phong" or isinstance(light, PointLight):
+                for a, b in zip(ours, estimate):
+                    np.testing.assert_array_equal(a, b)
+                continue
+            live = _live_with_seed(points, normals, light, i, 3)
+            whole = live.any(axis=1) & ~ours[2].any(axis=1) & (decided != 2 if given is not None else True)
+            for a, b in zip(ours[:2], estimate[:2]):
+                np.testing.assert_array_equal(a[~whole], b[~whole])
+            exact = lit_integral(points[whole], normals[whole], light)
+            np.testing.assert_allclose(ours[0][whole, 0], exact * values[0, 0], rtol=bound)
+            assert whole.sum() > 100 and np.abs(ours[0][whole] - estimate[0][whole]).max() > 1e-4 * exact.max()
+        clear = light_terms(points, normals, wo, f, sep, empty, light, i, 64, seed=3, exact_lit=True)
+        if material.type != "phong" and not isinstance(light, PointLight):
+            some = _live_with_seed(points, normals, light, i, 3).any(axis=1)
+            exact = lit_integral(points, normals, light)
+            np.testing.assert_allclose(clear[0][some, 0], exact[some] * values[0, 0], rtol=bound)
+            np.testing.assert_allclose(clear[1][some], exact[some, None] * f.kd / np.pi
+                                       * (np.einsum("vi,vi->v", wo, normals)[some, None] >= 0.0), rtol=1e-13)
+
+
+@pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
+def test_an_exact_lit_recast_after_a_move_equals_an_exact_lit_cast(terms):
+    """With ``exact_lit`` on a Lambertian receiver, a partial re-cast (``visibility``, ``moved``, ``previous``) equals
+    a fresh cast bit for bit, with and without a probe and ``decided``, blocker culling in the kernel."""
+    from prtlab.interreflection._direct_rays import blocker_bounds
+
+    f = brdf.from_material(MATERIALS[0])
+    sep = brdf.separable(f, K=1)
+    points, normals, wo, meshes, lights, before, after, spheres = _before_and_after_a_move()
+    first = (np.arange(len(points)) % 3).astype(np.int8)
+    second = (np.arange(len(points)) % 5 % 3).astype(np.int8)
+    for i, light in enumerate(lights[:2]):
+        for probe, old_given, new_given in ((0, None, None), (16, None, None), (16, first, second)):
+            for a_caster, b_caster in ((before, after), (after, before)):
+                common = dict(probe=probe, exact_lit=True)
+                if terms is light_terms:
+                    common["blockers"] = blocker_bounds(b_caster, [False] * len(meshes))
+                old = terms(points, normals, wo, f, sep, a_caster, light, i, 64, decided=old_given, **common)
+                fresh = terms(points, normals, wo, f, sep, b_caster, light, i, 64, decided=new_given, **common)
+                partial = terms(points, normals, wo, f, sep, b_caster, light, i, 64, visibility=old[2], moved=spheres,
+                                decided=new_given, decided_before=old_given, **common)
+                kept = terms(points, normals, wo, f, sep, b_caster, light, i, 64, visibility=old[2], moved=spheres,
+                             previous=old[:2], decided=new_given, decided_before=old_given, **common)
+                for a, b, c in zip(partial, kept, fresh):
+                    np.testing.assert_array_equal(a, c)
+                    np.testing.assert_array_equal(b, c)
+
+
+def test_the_option_light_exact_lit_is_a_bool():
+    with pytest.raises(TypeError, match="light_exact_lit must be True or False"):
+        InterreflectionOptions(light_exact_lit=1)
