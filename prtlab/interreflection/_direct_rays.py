@@ -493,6 +493,21 @@ def _near_blockers(x0, x1, x2, params, reach, spheres, planes, near):
 
 
 @numba.njit(cache=True, inline="always")
+def _light_extent(x0, x1, x2, n0, n1, n2, params):
+    """``((c - x) . n, |u . n|, |v . n|, (c - x) . l, |u . l|, |v . l|, tol)`` of area light ``params`` at ``x``
+    (normal ``n``): the heights of its centre and half-sides over the horizon and over the light's plane, and
+    :func:`_unlit`'s margin ``tol``."""
+    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
+    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
+    l0, l1, l2 = params[9], params[10], params[11]
+    tol = 1e-12 * ((abs(params[0]) + abs(u0) + abs(v0) + abs(x0)) * (abs(n0) + abs(l0))
+                   + (abs(params[1]) + abs(u1) + abs(v1) + abs(x1)) * (abs(n1) + abs(l1))
+                   + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
+    return (c0 * n0 + c1 * n1 + c2 * n2, abs(u0 * n0 + u1 * n1 + u2 * n2), abs(v0 * n0 + v1 * n1 + v2 * n2),
+            c0 * l0 + c1 * l1 + c2 * l2, abs(u0 * l0 + u1 * l1 + u2 * l2), abs(v0 * l0 + v1 * l1 + v2 * l2), tol)
+
+
+@numba.njit(cache=True, inline="always")
 def _unlit(x0, x1, x2, n0, n1, n2, params):
     """Whether no point of the light (``params``: ``c + s u + t v``, ``|s|, |t| <= 1``; a point light has ``u = v =
     0``) is above the horizon of ``x`` (normal ``n``), or ``x`` is not in front of an area light (normal ``l``):
@@ -501,15 +516,8 @@ def _unlit(x0, x1, x2, n0, n1, n2, params):
     |x_i|) (|n_i| + |l_i|)``. The kernel's ``cos_x`` (``cos_l``) of a sample has the sign of that product up to
     rounding of a few units in the last place of those terms, far below ``tol``: a vertex this gives True has no
     live sample, as drawing them would find."""
-    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
-    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
-    l0, l1, l2 = params[9], params[10], params[11]
-    tol = 1e-12 * ((abs(params[0]) + abs(u0) + abs(v0) + abs(x0)) * (abs(n0) + abs(l0))
-                   + (abs(params[1]) + abs(u1) + abs(v1) + abs(x1)) * (abs(n1) + abs(l1))
-                   + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
-    above = c0 * n0 + c1 * n1 + c2 * n2 + abs(u0 * n0 + u1 * n1 + u2 * n2) + abs(v0 * n0 + v1 * n1 + v2 * n2)
-    front = c0 * l0 + c1 * l1 + c2 * l2 - abs(u0 * l0 + u1 * l1 + u2 * l2) - abs(v0 * l0 + v1 * l1 + v2 * l2)
-    return above < -tol or front > tol
+    h, hu, hv, f, fu, fv, tol = _light_extent(x0, x1, x2, n0, n1, n2, params)
+    return h + hu + hv < -tol or f - fu - fv > tol
 
 
 @numba.njit(cache=True, inline="always")
@@ -518,15 +526,8 @@ def _wholly_above(x0, x1, x2, n0, n1, n2, params):
     of it, with :func:`_unlit`'s margin ``tol``: ``(c - x) . n - |u . n| - |v . n|`` (the smallest ``(y - x) . n``)
     above ``tol`` and ``(c - x) . l + |u . l| + |v . l|`` below ``-tol``. Then every sample the kernel draws is
     live, as drawing them would find."""
-    c0, c1, c2 = params[0] - x0, params[1] - x1, params[2] - x2
-    u0, u1, u2, v0, v1, v2 = params[3], params[4], params[5], params[6], params[7], params[8]
-    l0, l1, l2 = params[9], params[10], params[11]
-    tol = 1e-12 * ((abs(params[0]) + abs(u0) + abs(v0) + abs(x0)) * (abs(n0) + abs(l0))
-                   + (abs(params[1]) + abs(u1) + abs(v1) + abs(x1)) * (abs(n1) + abs(l1))
-                   + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
-    lowest = c0 * n0 + c1 * n1 + c2 * n2 - abs(u0 * n0 + u1 * n1 + u2 * n2) - abs(v0 * n0 + v1 * n1 + v2 * n2)
-    back = c0 * l0 + c1 * l1 + c2 * l2 + abs(u0 * l0 + u1 * l1 + u2 * l2) + abs(v0 * l0 + v1 * l1 + v2 * l2)
-    return lowest > tol and back < -tol
+    h, hu, hv, f, fu, fv, tol = _light_extent(x0, x1, x2, n0, n1, n2, params)
+    return h - hu - hv > tol and f + fu + fv < -tol
 
 
 #: bins of the table that starts the search of a node interval (:func:`_interval`)
