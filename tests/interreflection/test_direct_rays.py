@@ -447,13 +447,15 @@ def test_a_probe_decides_the_other_samples_where_it_agrees(material):
         assert np.any(agreed & (n_blocked > 0)) and np.any(~agreed & (n_blocked > 0))
 
 
-def _live(points, normals, light, index):
-    """(V, 64) whether a sample of ``light`` faces the vertex and the light (seed 3), by the reference's jitter."""
+def _live(points, normals, light, index, seed=3):
+    """(V, 64) whether a sample of ``light`` faces the vertex and the light, by the reference tier's jitter and
+    arithmetic (the unit direction's cosines)."""
     st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")], axis=1)[None]
-          + jitter(3, index, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
+          + jitter(seed, index, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
     y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
     d = y - points[:, None]
-    return (np.einsum("vmi,vi->vm", d, normals) > 0.0) & (-(d @ light.normal) > 0.0)
+    w = d / np.linalg.norm(d, axis=-1)[..., None]
+    return (np.einsum("vmi,vi->vm", w, normals) > 0.0) & (-w @ light.normal > 0.0)
 
 
 @pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
@@ -747,21 +749,10 @@ def test_a_vertex_called_wholly_above_has_every_sample_live():
     grazing += rng.choice([-1e-13, -1e-15, 0.0, 1e-15, 1e-13], (4000, 1)) * rng.normal(size=(4000, 3))
     points, normals = np.concatenate([points, points]), np.concatenate([normals, grazing])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    live = _live_with_seed(points, normals, LIGHT, 0, 0)
+    live = _live(points, normals, LIGHT, 0, seed=0)
     whole = np.array([_wholly_above(*x, *n, params) for x, n in zip(points, normals)])
     assert live[whole].all()
     assert whole.sum() > 1000 and (live.all(axis=1) & ~whole).sum() > 0  # it decides many, not every one
-
-
-def _live_with_seed(points, normals, light, index, seed):
-    """(V, 64) whether a sample of ``light`` faces the vertex and the light, by the reference's jitter and
-    arithmetic."""
-    st = (np.stack([a.ravel() for a in np.meshgrid(np.arange(8) / 8, np.arange(8) / 8, indexing="ij")], axis=1)[None]
-          + jitter(seed, index, np.arange(len(points)), 64) / 8) * 2.0 - 1.0
-    y = light.center + st[..., :1] * light.u + st[..., 1:] * light.v
-    d = y - points[:, None]
-    w = d / np.linalg.norm(d, axis=-1)[..., None]
-    return (np.einsum("vmi,vi->vm", w, normals) > 0.0) & (-w @ light.normal > 0.0)
 
 
 @pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
@@ -799,7 +790,7 @@ def test_exact_lit_points_take_the_integral_and_keep_their_masks(material):
                 for a, b in zip(ours, estimate):
                     np.testing.assert_array_equal(a, b)
                 continue
-            live = _live_with_seed(points, normals, light, i, 3)
+            live = _live(points, normals, light, i)
             whole = live.any(axis=1) & ~ours[2].any(axis=1) & (decided != 2 if given is not None else True)
             for a, b in zip(ours[:2], estimate[:2]):
                 np.testing.assert_array_equal(a[~whole], b[~whole])
@@ -808,7 +799,7 @@ def test_exact_lit_points_take_the_integral_and_keep_their_masks(material):
             assert whole.sum() > 100 and np.abs(ours[0][whole] - estimate[0][whole]).max() > 1e-4 * exact.max()
         clear = light_terms(points, normals, wo, f, sep, empty, light, i, 64, seed=3, exact_lit=True)
         if material.type != "phong" and not isinstance(light, PointLight):
-            some = _live_with_seed(points, normals, light, i, 3).any(axis=1)
+            some = _live(points, normals, light, i).any(axis=1)
             exact = lit_integral(points, normals, light)
             np.testing.assert_allclose(clear[0][some, 0], exact[some] * values[0, 0], rtol=bound)
             np.testing.assert_allclose(clear[1][some], exact[some, None] * f.kd / np.pi
