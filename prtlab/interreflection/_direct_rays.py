@@ -45,7 +45,7 @@ from prtlab.scene import AreaLight, PointLight
 from ._residual import _mix, _uniform  # SplitMix64, the residual gather's counter-based streams
 
 __all__ = ["ray_traced_direct", "ray_traced_direct_reference", "light_terms", "light_terms_reference",
-           "mirror_wo", "sample_count", "widened_sphere", "blocker_bounds", "lit_integral"]
+           "mirror_wo", "sample_count", "widened_sphere", "blocker_bounds", "object_bound", "lit_integral"]
 
 #: vertices per chunk of the reference tier: bounds its (chunk, m, 3) sample arrays (about 50 MB at m = 256)
 _CHUNK = 8192
@@ -156,29 +156,37 @@ def widened_sphere(sphere, epsilon: float) -> np.ndarray:
     return np.array([*c, r + 2.0 * epsilon + 1e-5 * (float(np.max(np.abs(c))) + r) + 1e-12])
 
 
-def blocker_bounds(caster, flat, exclude=None) -> tuple[np.ndarray, np.ndarray]:
+def object_bound(vertices, flat: bool, epsilon: float) -> np.ndarray | None:
+    """One object's bound in :func:`blocker_bounds` from its world ``vertices`` (V, 3): the slab (5,) of its plane
+    (unit normal, lowest and highest ``n . p``) if ``flat``, else its sphere (4,) (centre: the bounding-box centre),
+    both widened as :func:`widened_sphere` with ``epsilon``; None without vertices."""
+    v = vertices
+    if not len(v):
+        return None
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    radius = float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))
+    sphere = widened_sphere([*centre, radius], epsilon)
+    if not flat:
+        return sphere
+    _, _, vt = np.linalg.svd(v - v.mean(axis=0), full_matrices=False)
+    normal = vt[-1] / np.linalg.norm(vt[-1])
+    offset = v @ normal
+    margin = sphere[3] - radius
+    return np.array([*normal, offset.min() - margin, offset.max() + margin])
+
+
+def blocker_bounds(caster, flat, exclude=None, bounds=None) -> tuple[np.ndarray, np.ndarray]:
     """``(spheres (S, 4), planes (P, 5))`` of ``blockers=`` in :func:`light_terms` for the objects of ``caster``:
-    a flat object (``flat[i]``) as the slab of its plane (unit normal, lowest and highest ``n . p`` of its world
-    vertices), any other as its bounding sphere (centre: the vertices' bounding-box centre); both widened as
-    :func:`widened_sphere`. ``exclude``: an object number left out (a flat receiver's own plane)."""
+    :func:`object_bound` of each, a flat object (``flat[i]``) as the slab of its plane, any other as its bounding
+    sphere. ``exclude``: an object number left out (a flat receiver's own plane); ``bounds``: a function of the
+    object number giving its :func:`object_bound` (a caller's cache), else computed here."""
     spheres, planes = [], []
     for i in range(len(flat)):
         if i == exclude:
             continue
-        v = caster.world_vertices(i)
-        if not len(v):
-            continue
-        centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-        sphere = widened_sphere([*centre, float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))],
-                                caster.epsilon)
-        if flat[i]:
-            _, _, vt = np.linalg.svd(v - v.mean(axis=0), full_matrices=False)
-            normal = vt[-1] / np.linalg.norm(vt[-1])
-            offset = v @ normal
-            margin = sphere[3] - float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))
-            planes.append([*normal, offset.min() - margin, offset.max() + margin])
-        else:
-            spheres.append(sphere)
+        bound = bounds(i) if bounds is not None else object_bound(caster.world_vertices(i), flat[i], caster.epsilon)
+        if bound is not None:
+            (planes if flat[i] else spheres).append(bound)
     return np.asarray(spheres, float).reshape(-1, 4), np.asarray(planes, float).reshape(-1, 5)
 
 

@@ -97,7 +97,7 @@ from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irrad
 from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked_product_serial, may_block_kernel,
                        may_block_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import blocker_bounds, light_terms, mirror_wo, widened_sphere
+from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
 from ._residual import (_bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb, gather_operator,
                         gather_residual, near_hit_correction, near_hits, pack_operators, residual_hits)
 
@@ -462,6 +462,9 @@ class FrameReuse:
     near_hits: dict = dataclasses.field(default_factory=dict)
     #: object number left out (or None) -> (poses, caster's offsets, shadow-ray blockers of :func:`blocker_bounds`)
     blockers: dict = dataclasses.field(default_factory=dict)
+    #: object number -> (its world vertices array, caster's epsilon, its :func:`object_bound`): a blocker's bound
+    #: stands while the caster keeps the object's array (it did not move)
+    object_bounds: dict = dataclasses.field(default_factory=dict)
     #: source index -> {lights' geometry, samples, ray offsets, poses, bounding spheres, the near-hit parts
     #: (receiver, near-hit points, their normals), per light (S, F, shadow mask)} of
     #: :meth:`Interreflection._near_exact`
@@ -1018,9 +1021,19 @@ class Interreflection(Precomputation):
         key = (poses, caster.epsilon, caster.tnear)
         cached = self.reuse.blockers.get(exclude)
         if cached is None or cached[0] != key:
+            flat = [self.flat[o.name] for o in self.objects]
             cached = self.reuse.blockers[exclude] = (key, blocker_bounds(
-                caster, [self.flat[o.name] for o in self.objects], exclude))
+                caster, flat, exclude, bounds=lambda i: self._object_bound(caster, i)))
         return cached[1]
+
+    def _object_bound(self, caster, i: int):
+        """:func:`object_bound` of object number ``i`` at ``caster``'s pose, made again only when it moved."""
+        vertices = caster.world_vertices(i)
+        cached = self.reuse.object_bounds.get(i)
+        if cached is None or cached[0] is not vertices or cached[1] != caster.epsilon:
+            cached = self.reuse.object_bounds[i] = (vertices, caster.epsilon, object_bound(
+                vertices, self.flat[self.objects[i].name], caster.epsilon))
+        return cached[2]
 
     def direct_step_haar(self, state: FrameState, geo):
         """Step 1 with all-frequency shadows: ``L_k`` (V, K, C) per object from every light (Zhou et al. 2005

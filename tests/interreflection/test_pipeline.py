@@ -154,6 +154,28 @@ def test_moving_an_object_equals_a_from_scratch_shade(pre):
     np.testing.assert_allclose(relit.total["ball"], 2.0 * fresh.total["ball"], rtol=1e-10)
 
 
+def test_shadow_blockers_after_a_move_equal_fresh_bounds(pre):
+    """The shadow rays' blocker bounds kept per object (made again only for an object that moved) equal
+    :func:`blocker_bounds` computed afresh at the new poses, for every shooting object."""
+    from prtlab.interreflection._direct_rays import blocker_bounds
+
+    pipeline = Interreflection(pre.scene, pre.options, pre.data)
+    state = FrameState.from_scene(pre.scene)
+    for translate in ([0.0, 0.7, 0.0], [0.3, 0.9, -0.1]):
+        state.transforms["ball"] = Transform(translate=np.array(translate), rotate_deg=np.array([0.0, 30.0, 0.0]))
+        geo = pipeline._frame_geometry(state)
+        poses = tuple(geo[o.name]["pose"] for o in pipeline.objects)
+        caster, _ = pipeline._scene_caster(geo, poses)
+        flat = [pipeline.flat[o.name] for o in pipeline.objects]
+        for me in range(len(pipeline.objects)):
+            for vertices in (False, True):
+                name = pipeline.objects[me].name
+                exclude = me if flat[me] or (vertices and pipeline.convex[name]) else None
+                for kept, fresh in zip(pipeline._shadow_blockers(caster, poses, me, vertices),
+                                       blocker_bounds(caster, flat, exclude)):
+                    np.testing.assert_array_equal(kept, fresh)
+
+
 def test_moving_an_object_recomputes_only_the_pairs_it_touches(pre):
     """Three objects: a far third ball moves; pairs not involving it (and out of its field's reach) are
     reused, and the result equals a from-scratch shade."""
