@@ -332,3 +332,24 @@ def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, 
                         m = k * n_b + i
                         for c in range(n2):
                             out[p, m, c] += v * wy[j, c]
+
+
+@numba.njit(cache=True)
+def near_decided_kernel(mask, lit, corners, out):
+    """``out[q]`` (int8): the code its triangle's three vertices ``corners[q]`` agree on, a vertex's code being 1
+    where no sample of its shadow ``mask`` row is set and some entry of its ``lit`` row is non-zero, 2 where every
+    sample is set, else 0 (``Interreflection._near_decided``; the AND of the three codes)."""
+    code = np.zeros(mask.shape[0], np.int8)
+    for v in range(mask.shape[0]):
+        blocked = 0
+        for j in range(mask.shape[1]):
+            blocked += mask[v, j]
+        if blocked == mask.shape[1]:
+            code[v] = 2
+        elif blocked == 0:
+            for k in range(lit.shape[1]):
+                if lit[v, k] != 0.0:
+                    code[v] = 1
+                    break
+    for q in range(corners.shape[0]):
+        out[q] = code[corners[q, 0]] & code[corners[q, 1]] & code[corners[q, 2]]

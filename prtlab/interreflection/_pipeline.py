@@ -97,7 +97,7 @@ from ._fields import (
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked_product_serial, may_block_kernel,
-                       may_block_serial)
+                       may_block_serial, near_decided_kernel)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
 from ._residual import (_bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb, gather_operator,
@@ -1701,13 +1701,18 @@ class Interreflection(Precomputation):
                                           corners=corners, terms=terms)
         return np.zeros((len(at), sep.K, 3)) if light_k is None else light_k
 
-    def _near_decided(self, source: str, light: int, corners) -> np.ndarray:
+    def _near_decided(self, source: str, light: int, corners, method: str = "numba") -> np.ndarray:
         """(Q,) int8 of ``residual_near_probe`` at near hits on ``source`` whose triangles have the vertices
         ``corners`` (Q, 3): 1 where the three vertices have every sample of light number ``light`` clear in the
         frame's direct light (:meth:`direct_step_rays`' masks) and some of it lit, 2 where every sample is blocked
-        at all three, else 0."""
+        at all three, else 0. ``method``: one pass of :func:`near_decided_kernel`, or ``"reference"`` (numpy)."""
         entry = self.reuse.direct_rays[source]["lights"][light]
         mask = entry["mask"]
+        if method != "reference":
+            out = np.empty(len(corners), np.int8)
+            near_decided_kernel(np.ascontiguousarray(mask), np.ascontiguousarray(entry["S"]),
+                                np.ascontiguousarray(corners), out)
+            return out
         code = np.zeros(len(mask), np.int8)  # bits: 1 clear and lit, 2 blocked; their AND over a triangle agrees
         code[~mask.any(axis=1) & entry["S"].any(axis=1)] = 1
         code[mask.all(axis=1)] = 2

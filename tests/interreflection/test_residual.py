@@ -715,6 +715,27 @@ def test_near_hits_take_the_answer_their_triangles_vertices_agree_on(low_ball):
     assert np.any(given == 1) and np.any(given == 0)
 
 
+def test_near_decided_kernel_equals_the_numpy_reference():
+    """:func:`near_decided_kernel` gives the codes of ``_near_decided``'s numpy reference: rows all blocked, all
+    clear with and without a lit entry, mixed, and no samples at all."""
+    from types import SimpleNamespace
+
+    from prtlab.interreflection import Interreflection
+
+    rng = np.random.default_rng(5)
+    for m in (0, 1, 9):
+        mask = rng.random((40, m)) < 0.5
+        mask[:10], mask[10:20] = True, False
+        lit = rng.random((40, 2)) * (rng.random((40, 1)) < 0.6)
+        lit[15:18] = 0.0
+        corners = rng.integers(0, 40, (300, 3))
+        corners[:10] = np.arange(10)[:, None]  # triangles of blocked vertices only
+        ir = SimpleNamespace(reuse=SimpleNamespace(direct_rays={"s": {"lights": [{"mask": mask, "S": lit}]}}))
+        got = Interreflection._near_decided(ir, "s", 0, corners)
+        np.testing.assert_array_equal(got, Interreflection._near_decided(ir, "s", 0, corners, method="reference"))
+        assert got.dtype == np.int8 and (m == 0 or np.any(got == 2))
+
+
 def _near_parts(ir, receiver: str, source: int) -> list:
     """The ``(receiver, hits, index, points, normals)`` near-hit part of ``receiver`` on source number ``source``
     (empty when it has no near hit there), from ``ir``'s reuse."""
