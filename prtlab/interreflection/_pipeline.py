@@ -843,9 +843,9 @@ class Interreflection(Precomputation):
                     rows = np.arange(len(g["x"]))
                 else:  # only occluders moved, came or went: the points their fields reach, before or now
                     rows = self._changed_rows(g["x"], cached[2], now, self._within_reach)
-                factors = [(others[i], self._within_reach(g["x"][rows], geo[others[i]])
-                            & ~self._lit_past(geo, by_name[others[i]], g["x"][rows], light_points, g["n"][rows]))
-                           for i in idx]
+                x, n = g["x"][rows], g["n"][rows]
+                factors = [(others[i], self._within_reach(x, geo[others[i]])
+                            & ~self._lit_past(geo, by_name[others[i]], x, light_points, n)) for i in idx]
                 visibility = self._visibility(g, occ[r.name], factors, rows)
                 if len(rows) == len(g["x"]):
                     value = self._transfer(visibility, g["g_cos"])
@@ -1284,7 +1284,8 @@ class Interreflection(Precomputation):
     def _pair_irradiance(self, geo, occ, r, s, blockers, rows):
         """Eq. 13 of source ``s`` at the ``rows`` of receiver ``r``: masked visibility, transfer, field, near field."""
         g, gs = geo[r.name], geo[s.name]
-        factors = [(o, self._may_block(g["x"][rows], geo[o], gs)) for o in blockers]
+        x = g["x"][rows]
+        factors = [(o, self._may_block(x, geo[o], gs)) for o in blockers]
         vis = self._visibility(g, occ[r.name], factors, rows)
         transfer = self._transfer(vis, g["g_cos"][rows])
         value = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid, g["x"][rows],
