@@ -100,8 +100,8 @@ from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked
                        may_block_serial, near_decided_kernel)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
-from ._residual import (_bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb, gather_operator,
-                        gather_residual, near_hit_correction, near_hits, pack_operators, residual_hits)
+from ._residual import (PackedGather, _bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb,
+                        gather_operator, gather_residual, near_hit_correction, near_hits, residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -443,8 +443,8 @@ class FrameReuse:
     vertex_trees: dict = dataclasses.field(default_factory=dict)
     casters: dict = dataclasses.field(default_factory=dict)
     #: receiver -> {poses of every object, its sources, the caster's offsets, the objects' bounding spheres,
-    #: {source index: ResidualHits}, {source index: GatherOperator}, and once used their merged terms for
-    #: :func:`bounce_rgb` (``packed``, :func:`pack_operators`)} of the residual gather
+    #: {source index: ResidualHits}, {source index: GatherOperator}, and once used their terms packed for
+    #: :func:`bounce_rgb` (``packed``, a :class:`PackedGather` passed on from entry to entry)} of the residual gather
     residual_hits: dict = dataclasses.field(default_factory=dict)
     #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
     #: residual gather
@@ -1429,10 +1429,9 @@ class Interreflection(Precomputation):
                     w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
                     extra = corrections.get(r.name)
                     packed = None
-                    if operators:  # the operators' merged terms, kept with them (made again with new operators)
-                        if "packed" not in entry:
-                            entry["packed"] = pack_operators(list(operators.values()), list(operators), offsets)
-                        packed = entry["packed"]
+                    if operators:  # their terms packed per source, kept (re-packed where an operator changed)
+                        packed = entry.setdefault("packed", PackedGather())
+                        packed.update(list(operators.values()), list(operators), offsets)
                     lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
                                     stacked_residual, offsets,
                                     None if extra is None else extra.reshape(len(stacked), 3), packed=packed)
@@ -1546,7 +1545,7 @@ class Interreflection(Precomputation):
             else:
                 operators[i] = gather_operator(h, len(g["x"]))
         entry = {"poses": poses, "sources": sources, "offsets": offsets, "spheres": spheres, "hits": hits,
-                 "operators": operators}
+                 "operators": operators, **({"packed": entry["packed"]} if entry and "packed" in entry else {})}
         self.reuse.residual_hits[r.name] = entry
         return entry
 

@@ -47,7 +47,8 @@ from prtlab.geometry import _embree
 from ._kernels import SERIAL_ITEMS
 
 __all__ = ["ResidualHits", "GatherOperator", "cosine_directions", "residual_hits", "gather_residual",
-           "gather_operator", "apply_gather", "pack_operators", "bounce_rgb", "near_hits", "near_hit_correction"]
+           "gather_operator", "apply_gather", "pack_operators", "PackedGather", "bounce_rgb", "near_hits",
+           "near_hit_correction"]
 
 
 @dataclass(frozen=True)
@@ -1090,6 +1091,109 @@ def pack_operators(operators, sources, offsets, dtype=None) -> tuple:
     return starts, rows, weights
 
 
+def _room(n: int) -> int:
+    """Terms a segment of ``n`` terms is given in :class:`PackedGather`'s arrays: room to grow by an eighth in place."""
+    return n + n // 8 + 64
+
+
+class PackedGather:
+    """The gathers of one receiver's operators packed for :func:`bounce_rgb` in segments, re-packed segment by
+    segment.
+
+    Segment ``s`` holds :func:`pack_operators`'s terms of a run of consecutive operators: point ``v``'s terms are
+    ``starts[s, v]:starts[s, v + 1]`` of ``rows`` (C, 3) int32 and ``weights`` (C, 3) ``dtype`` (default
+    :data:`PACKED_WEIGHTS`), so that reading the segments in order for each point sums its terms in the order of
+    :func:`pack_operators`. :meth:`update` re-packs only the segments holding an operator that is not the object
+    it last packed there (or whose source's rows moved in the stacked residual), split into runs of changed and
+    unchanged operators: an operator that changes every frame gets a segment of its own, the others stay
+    merged. Segments are never merged again, so ``B`` operators changing in turn leave up to ``B`` segments (a
+    slower bounce). A segment is re-packed in its place when it fits, else after the others; the arrays are made
+    again, live segments only, when that runs out of room. Updated in place: the arrays of :meth:`arrays` hold
+    until the next :meth:`update`."""
+
+    def __init__(self, dtype=None):
+        self.dtype = PACKED_WEIGHTS if dtype is None else dtype
+        self.starts = np.zeros((0, 1), np.int64)
+        self.rows = np.zeros((0, 3), np.int32)
+        self.weights = np.zeros((0, 3), self.dtype)
+        self._keys = []  # per operator: (operator, its source's first row) last packed
+        self._segments = []  # [first operator, last operator + 1, first term, room, starts (V + 1,)]
+        self._used = 0  # terms of the arrays given to segments
+
+    def arrays(self) -> tuple:
+        """``(starts (S, V + 1) int64, rows (C, 3) int32, weights (C, 3))``, the form :func:`_bounce_kernel` reads."""
+        return self.starts, self.rows, self.weights
+
+    def update(self, operators, sources, offsets) -> PackedGather:
+        """Packs ``operators`` (:class:`GatherOperator`, :func:`_rgb_ready`) of the objects ``sources`` whose rows
+        in the stacked residual start at ``offsets[sources[b]]``, re-packing only the segments that changed;
+        returns ``self``."""
+        keys = [(op, int(offsets[j])) for op, j in zip(operators, sources)]
+        n_points = len(operators[0].starts) - 1 if operators else 0
+        if len(keys) != len(self._keys) or self.starts.shape[1] != n_points + 1:
+            self._keys, self._segments = [None] * len(keys), []
+        stale = [self._keys[b] is None or self._keys[b][0] is not key[0] or self._keys[b][1] != key[1]
+                 for b, key in enumerate(keys)]
+        if self._segments and not any(stale):
+            return self
+        kept, fresh = [], []  # fresh: [first operator, last + 1, its terms, (first term, room) it may reuse]
+        for seg in self._segments or [[0, len(keys), 0, 0, None]]:
+            lo, hi = seg[0], seg[1]
+            if not any(stale[lo:hi]) and seg[4] is not None:
+                kept.append(seg)
+                continue
+            span = (seg[2], seg[3])
+            for b in range(lo, hi):
+                if not (fresh and fresh[-1][1] == b and stale[b] == stale[b - 1]):  # else b joins the run before
+                    fresh.append([b, b + 1, 0, span])
+                    span = (0, 0)
+                else:
+                    fresh[-1][1] = b + 1
+        for run in fresh:
+            run[2] = sum(len(keys[b][0].triangles) for b in range(run[0], run[1]))
+        grown = [run for run in fresh if run[2] > run[3][1]]
+        if self._used + sum(_room(run[2]) for run in grown) > len(self.rows):
+            self._rebuild(kept, fresh)
+        else:
+            for run in grown:
+                run[3] = (self._used, _room(run[2]))
+                self._used += run[3][1]
+        for lo, hi, _, (first, room) in fresh:
+            counts = np.zeros(n_points, np.int64)
+            for b in range(lo, hi):
+                counts += np.diff(keys[b][0].starts)
+            starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64) + first
+            fill = starts[:-1].copy()
+            for b in range(lo, hi):
+                op, offset = keys[b]
+                _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), offset, fill,
+                             self.rows, self.weights)
+            kept.append([lo, hi, first, room, starts])
+        self._segments = sorted(kept, key=lambda seg: seg[0])
+        self._keys = keys
+        self.starts = np.stack([seg[4] for seg in self._segments]) if self._segments \
+            else np.zeros((0, n_points + 1), np.int64)
+        return self
+
+    def _rebuild(self, kept, fresh):
+        """New arrays with each segment's room (:func:`_room`) and an eighth more: the ``kept`` segments copied
+        into theirs, the ``fresh`` runs' rooms left for :meth:`update` to pack."""
+        rooms = [_room(int(seg[4][-1] - seg[4][0])) for seg in kept] + [_room(run[2]) for run in fresh]
+        rows = np.empty((sum(rooms) + sum(rooms) // 8, 3), np.int32)
+        weights = np.empty((len(rows), 3), self.dtype)
+        first = 0
+        for seg, room in zip(kept, rooms):
+            lo, hi = seg[4][0], seg[4][-1]
+            rows[first:first + hi - lo] = self.rows[lo:hi]
+            weights[first:first + hi - lo] = self.weights[lo:hi]
+            seg[2], seg[3], seg[4] = first, room, seg[4] + (first - lo)
+            first += room
+        for run, room in zip(fresh, rooms[len(kept):]):
+            run[3] = (first, room)
+            first += room
+        self.rows, self.weights, self._used = rows, weights, first
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _pack_kernel(st, fc, tr, bc, fa, o, fill, rows, weights):
     """One source's hits appended to each point's terms at ``fill[v]`` (advanced past them)."""
@@ -1113,8 +1217,9 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     ``stacked`` (V, M) float64 or float32 (each value read as float64), ``w`` (M, 3); ``operators``: the sources' :class:`GatherOperator` (``K = K' = 1``,
     float32 barycentrics, :func:`_rgb_ready`), ``sources`` their object numbers, ``residual`` (V_all, 3) every
     object's residual stacked by object and ``offsets`` (n_objects,) where each object's rows start;
-    ``packed``: :func:`pack_operators` of ``operators`` if the caller keeps it (else it is made here). Per point
-    the sum is ``dot + gather + extra``, in that order, the gather's terms in the order of the numpy path
+    ``packed``: a :class:`PackedGather` updated to ``operators`` or their :func:`pack_operators` (one segment) if the
+    caller keeps it (else it is made here). Per point the sum is ``dot + gather + extra``, in that order, the
+    gather's terms in the order of the numpy path
     (:func:`apply_gather` per source), which holds it to ``1e-12`` with float64 weights and to their rounding
     bound with float32 ones (``tests/interreflection/test_residual.py``); the dot product's summation order
     differs from BLAS's.
@@ -1125,10 +1230,12 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
         return out
     extra = np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64)
     if operators:
-        starts, rows, weights = pack_operators(operators, sources, offsets) if packed is None else packed
+        packed = PackedGather().update(operators, sources, offsets) if packed is None else packed
+        starts, rows, weights = packed.arrays() if isinstance(packed, PackedGather) else packed
+        starts = starts.reshape(-1, len(out) + 1)  # pack_operators' list is one segment
         residual = np.ascontiguousarray(residual, np.float64)
     else:
-        starts, rows, weights = np.zeros(len(out) + 1, np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
+        starts, rows, weights = np.zeros((0, len(out) + 1), np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
         residual = np.zeros((0, 3))
     _bounce_kernel(stacked, np.ascontiguousarray(np.transpose(w), np.float64), starts, rows, weights, residual, extra,
                    out)
@@ -1175,21 +1282,22 @@ def _dot_rgb(stacked, wt, v):
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _bounce_kernel(stacked, wt, starts, rows, weights, x, extra, out):
     """:func:`bounce_rgb` in one parallel pass over the points: the dot product with ``wt`` (3, M) (:func:`_dot_rgb`),
-    the packed gather's terms (:func:`pack_operators`; none when ``starts`` is all 0) in order, and ``extra``
-    ((V, 3) or (0, 3))."""
+    the packed gather's terms (``starts`` (S, V + 1), :class:`PackedGather`; S = 0 for none) segment after
+    segment, each in order, and ``extra`` ((V, 3) or (0, 3))."""
     add = extra.shape[0] > 0
     for v in numba.prange(stacked.shape[0]):
         d0, d1, d2 = _dot_rgb(stacked, wt, v)
         g0 = 0.0
         g1 = 0.0
         g2 = 0.0
-        for t in range(starts[v], starts[v + 1]):
-            for j in range(3):
-                i = rows[t, j]
-                c = np.float64(weights[t, j])
-                g0 += c * x[i, 0]
-                g1 += c * x[i, 1]
-                g2 += c * x[i, 2]
+        for s in range(starts.shape[0]):
+            for t in range(starts[s, v], starts[s, v + 1]):
+                for j in range(3):
+                    i = rows[t, j]
+                    c = np.float64(weights[t, j])
+                    g0 += c * x[i, 0]
+                    g1 += c * x[i, 1]
+                    g2 += c * x[i, 2]
         out[v, 0] = d0 + g0
         out[v, 1] = d1 + g1
         out[v, 2] = d2 + g2

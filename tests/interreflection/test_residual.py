@@ -610,6 +610,89 @@ def test_bounce_rgb_equals_apply_gather():
     assert bounce_rgb(np.zeros((0, n_m)), w, ops, [0, 1], residual, offsets).shape == (0, 3)
 
 
+def _merged_bounce(stacked, wt, starts, rows, weights, x):
+    """The bounce over :func:`pack_operators`' one list of terms a point, as ``_bounce_kernel`` summed before it
+    read segments: the dot product (``_dot_rgb``) plus the terms in order."""
+    import numba
+
+    from prtlab.interreflection._residual import _dot_rgb
+
+    @numba.njit
+    def kernel(stacked, wt, starts, rows, weights, x, out):
+        for v in range(stacked.shape[0]):
+            d0, d1, d2 = _dot_rgb(stacked, wt, v)
+            g0 = 0.0
+            g1 = 0.0
+            g2 = 0.0
+            for t in range(starts[v], starts[v + 1]):
+                for j in range(3):
+                    i = rows[t, j]
+                    c = np.float64(weights[t, j])
+                    g0 += c * x[i, 0]
+                    g1 += c * x[i, 1]
+                    g2 += c * x[i, 2]
+            out[v, 0] = d0 + g0
+            out[v, 1] = d1 + g1
+            out[v, 2] = d2 + g2
+
+    out = np.empty((len(stacked), 3))
+    kernel(stacked, np.ascontiguousarray(wt.T), starts, rows, weights, x, out)
+    return out
+
+
+def test_packed_gather_segments_equal_one_merged_list():
+    """:class:`PackedGather` re-packs only the operators that changed, and :func:`bounce_rgb` over its segments
+    equals, bit for bit, the sum over :func:`pack_operators`' one merged list (the terms of every source in
+    order, each point's sum in the same order): when packed whole, after one source's operator changes (the
+    others' terms reused, not re-packed), after the first and last change, when none does, with more room than
+    the arrays hold (made again), and with a source's rows moved."""
+    import dataclasses
+
+    from prtlab.interreflection._residual import PackedGather, bounce_rgb, pack_operators
+
+    rng = np.random.default_rng(21)
+    n_r, n_m, sizes = 200, 12, [30, 45, 20, 60]
+    sources = [0, 1, 2, 3]
+    ops, residual, offsets = _random_gathers(rng, n_r, sizes)
+    stacked, w = rng.normal(size=(n_r, n_m)), rng.normal(size=(n_m, 3))
+    packed = PackedGather()
+
+    def check(ops, n_segments, offsets=offsets):
+        assert packed.update(ops, sources, offsets) is packed
+        assert packed.starts.shape == (n_segments, n_r + 1)
+        merged = pack_operators(ops, sources, offsets)
+        expected = _merged_bounce(stacked, w, *merged, residual)
+        np.testing.assert_array_equal(bounce_rgb(stacked, w, ops, sources, residual, offsets, packed=packed),
+                                      expected)
+        np.testing.assert_array_equal(bounce_rgb(stacked, w, ops, sources, residual, offsets, packed=merged),
+                                      expected)
+        np.testing.assert_array_equal(bounce_rgb(stacked, w, ops, sources, residual, offsets), expected)
+
+    check(ops, 1)
+    more, _, _ = _random_gathers(rng, n_r, sizes)
+    ops = ops[:2] + [more[2]] + ops[3:]  # one source's operator changes: three segments
+    check(ops, 3)
+    rows, segments = packed.rows, packed.starts.copy()
+    kept = [rows[a:b].copy() for a, b in zip(segments[:, 0], segments[:, -1])]
+    for _ in range(3):  # the same source changes again and again: its own segment alone is re-packed, in place
+        ops = ops[:2] + [dataclasses.replace(more[2], factor=rng.normal(size=more[2].factor.shape))] + ops[3:]
+        check(ops, 3)
+        assert packed.rows is rows
+        np.testing.assert_array_equal(packed.starts, segments)
+        for s in (0, 2):
+            np.testing.assert_array_equal(rows[segments[s, 0]:segments[s, -1]], kept[s])
+    check(ops, 3)  # nothing changes
+    ops = [more[0]] + ops[1:3] + [more[3]]  # the first and last change: the first segment splits in two
+    check(ops, 4)
+    grown, _, _ = _random_gathers(np.random.default_rng(5), 4 * n_r, sizes)
+    big = dataclasses.replace(grown[1], starts=np.concatenate([[0], grown[1].starts[4:4 * n_r + 1:4]]))
+    ops = ops[:1] + [big] + ops[2:]  # more terms than the arrays have room for: made again
+    check(ops, 4)
+    assert packed.rows is not rows
+    check(ops, 4, offsets=offsets + np.array([0, 0, 0, 1]))  # the last source's rows moved: it is re-packed
+    check(list(reversed(ops)), 1)  # other operators throughout: packed whole
+
+
 def test_packed_float32_gather_within_its_rounding_bound():
     """The default float32 weights (``PACKED_WEIGHTS``) move a point's gather by at most ``2**-24`` times the
     sum of its terms' magnitudes ``sum_h |factor b_j r_j|`` (each weight rounded once, relative ``2**-24``),
