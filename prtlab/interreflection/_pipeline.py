@@ -55,12 +55,10 @@ shadow field holds one visibility per point, not per distance; build rooms from 
 
 from __future__ import annotations
 
-import concurrent.futures
 import copy
+import time
 import dataclasses
 import itertools
-import os
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -449,8 +447,6 @@ class FrameReuse:
     #: (poses of every object, a ray caster of every object at them, their bounding spheres) for the
     #: residual gather
     scene_caster: tuple | None = None
-    #: (poses, a Future of ``scene_caster``'s tuple at them) started by :meth:`Interreflection._start_scene_caster`
-    caster_build: tuple | None = None
     #: receiver -> {poses of every object, the caster's offsets, light_samples, the objects' bounding spheres,
     #: lights: {light index: {its geometry, camera, S and F at unit emission, per-sample shadow mask}},
     #: light_k: the frame's ``L_k`` (V, K, C) from those lights} of the direct light by rays
@@ -1467,42 +1463,22 @@ class Interreflection(Precomputation):
 
     def _scene_caster(self, geo, key):
         """``(caster, spheres)``: a ray caster of every object at the poses ``key`` and their bounding spheres
-        (n_objects, 4: centre, radius through the farthest vertex), built once per pose set (or taken from the
-        build :meth:`_start_scene_caster` started)."""
-        pending, self.reuse.caster_build = self.reuse.caster_build, None
-        if pending is not None:
-            self.reuse.scene_caster = pending[1].result()
+        (n_objects, 4: centre, radius through the farthest vertex), built once per pose set."""
         if self.reuse.scene_caster is None or self.reuse.scene_caster[0] != key:
-            self.reuse.scene_caster = self._build_scene_caster(geo, key, self.reuse.scene_caster)
+            transforms = [geo[o.name]["T"] for o in self.objects]
+            if self.reuse.scene_caster is None:
+                caster, before = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces))
+                                            for o in self.objects], transforms=transforms), None
+            else:  # the previous poses' caster moved (a new one: others may hold it); unmoved objects keep arrays
+                _, before, old_spheres = self.reuse.scene_caster
+                caster = before.moved(transforms)
+            spheres = np.array([old_spheres[i] if before is not None and caster.world_vertices(i) is
+                                before.world_vertices(i) and np.array_equal(old_spheres[i, :3], geo[o.name]["center"])
+                                else [*geo[o.name]["center"],
+                                      _bounding_radius(caster.world_vertices(i), geo[o.name]["center"])]
+                                for i, o in enumerate(self.objects)]).reshape(-1, 4)
+            self.reuse.scene_caster = (key, caster, spheres)
         return self.reuse.scene_caster[1], self.reuse.scene_caster[2]
-
-    def _start_scene_caster(self, geo) -> None:
-        """Start building the scene caster at the poses of ``geo`` on a worker thread (:func:`_caster_builder`)
-        unless it stands: Embree's build (on one core) then runs beside the field lookups and transfers that
-        come before the frame's first ray, and :meth:`_scene_caster` takes its result."""
-        key = tuple(geo[o.name]["pose"] for o in self.objects)
-        pending = self.reuse.caster_build
-        if (pending or self.reuse.scene_caster or (None,))[0] == key:
-            return
-        previous = pending[1].result() if pending is not None else self.reuse.scene_caster
-        self.reuse.caster_build = (key, _caster_builder().submit(self._build_scene_caster, geo, key, previous))
-
-    def _build_scene_caster(self, geo, key, previous) -> tuple:
-        """``(key, caster, spheres)`` of :meth:`_scene_caster` at the poses ``key``, made from ``previous`` (such a
-        tuple or None): its caster moved, and the spheres of objects whose world vertices it kept."""
-        transforms = [geo[o.name]["T"] for o in self.objects]
-        if previous is None:
-            caster, before = RayCaster([(np.asarray(o.mesh.vertices, float), np.asarray(o.mesh.faces))
-                                        for o in self.objects], transforms=transforms), None
-        else:  # the previous poses' caster moved (a new one: others may hold it); unmoved objects keep arrays
-            _, before, old_spheres = previous
-            caster = before.moved(transforms)
-        spheres = np.array([old_spheres[i] if before is not None and caster.world_vertices(i) is
-                            before.world_vertices(i) and np.array_equal(old_spheres[i, :3], geo[o.name]["center"])
-                            else [*geo[o.name]["center"],
-                                  _bounding_radius(caster.world_vertices(i), geo[o.name]["center"])]
-                            for i, o in enumerate(self.objects)]).reshape(-1, 4)
-        return key, caster, spheres
 
     def _residual_entry(self, geo, r, phi_r):
         """The receiver's residual-gather entry at the frame's poses (``FrameReuse.residual_hits``): its hits
@@ -1729,9 +1705,6 @@ class Interreflection(Precomputation):
             geo, occ, transfer = self.reuse.frame[1]
         else:  # poses, camera or the lights' extent changed: look the fields up again
             geo = self._frame_geometry(state)
-            if (self.options.residual_rays and bounces) or (self.options.shadows == "rays" and any(
-                    isinstance(light, (AreaLight, PointLight)) for light in state.lights)):
-                self._start_scene_caster(geo)  # its rays come after the lookups and transfers below
             occ = self._occlusion(geo)
             # shadows="rays" needs the SH transfer for an environment light alone
             rays_only = self.options.shadows == "rays" and not any(isinstance(light, EnvironmentLight)
@@ -1757,17 +1730,6 @@ class Interreflection(Precomputation):
                        "residual_near_rays_cast": self.reuse.residual_counts.get("near_rays_cast", 0),
                        "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
-
-
-_BUILDER: list = []  # [(process id, the executor)] of _caster_builder
-
-
-def _caster_builder() -> concurrent.futures.ThreadPoolExecutor:
-    """One worker thread (per process: a forked child makes its own) that builds scene casters beside a frame's
-    other work (:meth:`Interreflection._start_scene_caster`)."""
-    if not _BUILDER or _BUILDER[0][0] != os.getpid():
-        _BUILDER[:] = [(os.getpid(), concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="prtlab-caster"))]
-    return _BUILDER[0][1]
 
 
 def _box(points) -> tuple:
