@@ -611,32 +611,13 @@ def test_bounce_rgb_equals_apply_gather():
 
 
 def _merged_bounce(stacked, wt, starts, rows, weights, x):
-    """The bounce over :func:`pack_operators`' one list of terms a point, as ``_bounce_kernel`` summed before it
-    read segments: the dot product (``_dot_rgb``) plus the terms in order."""
-    import numba
-
-    from prtlab.interreflection._residual import _dot_rgb
-
-    @numba.njit
-    def kernel(stacked, wt, starts, rows, weights, x, out):
-        for v in range(stacked.shape[0]):
-            d0, d1, d2 = _dot_rgb(stacked, wt, v)
-            g0 = 0.0
-            g1 = 0.0
-            g2 = 0.0
-            for t in range(starts[v], starts[v + 1]):
-                for j in range(3):
-                    i = rows[t, j]
-                    c = np.float64(weights[t, j])
-                    g0 += c * x[i, 0]
-                    g1 += c * x[i, 1]
-                    g2 += c * x[i, 2]
-            out[v, 0] = d0 + g0
-            out[v, 1] = d1 + g1
-            out[v, 2] = d2 + g2
+    """The bounce over :func:`pack_operators`' one list of terms a point: ``_bounce_kernel`` with that list as its
+    one segment (the loop it ran before it read segments)."""
+    from prtlab.interreflection._residual import _bounce_kernel
 
     out = np.empty((len(stacked), 3))
-    kernel(stacked, np.ascontiguousarray(wt.T), starts, rows, weights, x, out)
+    _bounce_kernel(stacked, np.ascontiguousarray(wt.T), starts.reshape(1, -1), rows, weights, x, np.zeros((0, 3)),
+                   out)
     return out
 
 
