@@ -77,10 +77,13 @@ def factor_at(nodes, values, freq, parity, x, y, z, out):
         t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
     for k in range(values.shape[0]):
         radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
-        if parity[k] == 0:
-            out[k] = radial * np.cos(freq[k] * phi)
+        angle = freq[k] * phi
+        if angle == 0.0:  # cos(+-0) = 1 and sin(+-0) = +-0 exactly: no libm call (most terms have freq 0)
+            out[k] = radial if parity[k] == 0 else radial * angle
+        elif parity[k] == 0:
+            out[k] = radial * np.cos(angle)
         else:
-            out[k] = radial * np.sin(freq[k] * phi)
+            out[k] = radial * np.sin(angle)
 
 
 @numba.njit(cache=True, parallel=True)

@@ -171,6 +171,25 @@ def _cone(points, normals, p, centre, radius, rows, side, full):
 
 
 @numba.njit(cache=True, inline="always")
+def _point_cone(points, normals, p, centre, radius, rows, side, full, key):
+    """What every ray of point ``p`` toward a source shares (``_ray``'s per-point work, done once a point by a
+    kernel that casts all of a point's rays): ``(rows', side', inside, cos_max, weight, t0, t1, t2, b0, b1, b2,
+    a0, a1, a2, stream)``, its grid and the side of the sphere (``_cone``), the weight of a ray before its cosine,
+    the frame ``(t, b, a)`` about the sampling axis and the point's random stream."""
+    rows, side, inside, q, cos_max, d0, d1, d2, dist = _cone(points, normals, p, centre, radius, rows, side, full)
+    m = rows * side
+    if inside:  # inside the sphere: cosine-weighted about the normal
+        a0, a1, a2 = normals[p, 0], normals[p, 1], normals[p, 2]
+        weight = math.pi / m
+    else:
+        a0, a1, a2 = d0 / dist, d1 / dist, d2 / dist
+        weight = 2.0 * math.pi * (1.0 - cos_max) / m
+    t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
+    return (rows, side, inside, cos_max, weight, t0, t1, t2, b0, b1, b2, a0, a1, a2,
+            _mix(key ^ _mix(np.uint64(p))))
+
+
+@numba.njit(cache=True, inline="always")
 def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, out):
     """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
 
@@ -182,29 +201,29 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, ful
     by every vertex of a flat source (:func:`_facing`), or zeros: a ray with ``facing . w > FACING_MARGIN``
     cannot meet the source's front, so its ``tmax`` is 0 (its weight stands).
     """
+    _ray_at(points, normals, p, j, _point_cone(points, normals, p, centre, radius, rows, side, full, key), centre,
+            bound, eps, facing, out)
+
+
+@numba.njit(cache=True, inline="always")
+def _ray_at(points, normals, p, j, cone, centre, bound, eps, facing, out):
+    """``_ray`` from point ``p``'s ``_point_cone`` tuple ``cone``."""
+    rows, side, inside, cos_max, weight, t0, t1, t2, b0, b1, b2, a0, a1, a2, stream = cone
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
-    rows, side, inside, q, cos_max, d0, d1, d2, dist = _cone(points, normals, p, centre, radius, rows, side, full)
     if j >= rows * side:
         out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = x0, x1, x2, n0, n1, n2, 0.0, 0.0
         return
-    m = rows * side
-    stream = _mix(key ^ _mix(np.uint64(p)))
     u1 = ((j // side) + _uniform(stream, np.uint64(2 * j))) / rows
     u2 = ((j % side) + _uniform(stream, np.uint64(2 * j + 1))) / side
     phi = 2.0 * math.pi * u2
-    if inside:  # inside the sphere: cosine-weighted about the normal
+    if inside:
         r = math.sqrt(u1)
         l0, l1, l2 = r * math.cos(phi), r * math.sin(phi), math.sqrt(max(1.0 - u1, 0.0))
-        a0, a1, a2 = n0, n1, n2
-        weight = math.pi / m
     else:
         cos_t = 1.0 - u1 * (1.0 - cos_max)
         sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
         l0, l1, l2 = sin_t * math.cos(phi), sin_t * math.sin(phi), cos_t
-        a0, a1, a2 = d0 / dist, d1 / dist, d2 / dist
-        weight = 2.0 * math.pi * (1.0 - cos_max) / m
-    t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
     w0 = t0 * l0 + b0 * l1 + a0 * l2
     w1 = t1 * l0 + b1 * l1 + a1 * l2
     w2 = t2 * l0 + b2 * l1 + a2 * l2
@@ -314,8 +333,8 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
     ``tracer`` (a ``_raycast._Tracer`` of closest hits): one ray at a time through ``rtcIntersect1``, or with
     ``tracer.packet`` the next 16 rays cast of a task at a time through ``rtcIntersect16``: the same hits.
     Threads take tasks from a shared counter (``_cast_tasks``): ``RAYS_PER_TASK`` rays of the list, or
-    ``_POINTS_PER_PACKET`` points, ray ``j`` of each point after ray ``j - 1`` of all (rays past a point's own grid,
-    ``_cone``, are not made)."""
+    ``_POINTS_PER_PACKET`` points, ray ``j`` of each point after ray ``j - 1`` of all (each point's ``_point_cone``
+    made once for its rays; rays past the point's own grid are not made)."""
     m = rows * side
     every = point.shape[0] == 0
     step = _embree.RAYS_PER_TASK
@@ -330,6 +349,10 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
         lanes = np.empty(w, np.int64)
         lane_rays = np.empty((w, 8))
         live = np.zeros(group, np.int64)
+        cone_grid = np.zeros((group, 2), np.int64)
+        cone_inside = np.zeros(group, np.bool_)
+        cone_values = np.zeros((group, 11))
+        cone_stream = np.zeros(group, np.uint64)
         g = np.empty(weighing[3].shape[0])
         h = np.empty(weighing[7].shape[0])
         while True:
@@ -344,9 +367,13 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                 for k in range(group):
                     p = block * group + k
                     live[k] = 0
-                    if p < n_points:
-                        grid = _cone(points, normals, p, centre, radius, rows, side, full)
-                        live[k] = grid[0] * grid[1]
+                    if p < n_points:  # the point's _point_cone, kept for its rays
+                        cone = _point_cone(points, normals, p, centre, radius, rows, side, full, key)
+                        cone_grid[k, 0], cone_grid[k, 1], cone_inside[k], cone_stream[k] = cone[0], cone[1], \
+                            cone[2], cone[14]
+                        v = cone_values[k]
+                        v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9], v[10] = cone[3:14]
+                        live[k] = cone[0] * cone[1]
                         for j in range(live[k], m):
                             state[p * m + j] = _NOT_LIVE
             for t in range(per_task + 1):
@@ -357,12 +384,16 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                         if j >= live[k]:  # past the point's own grid (or no point): not cast
                             continue
                         i = p * m + j
+                        v = cone_values[k]
+                        _ray_at(points, normals, p, j, (cone_grid[k, 0], cone_grid[k, 1], cone_inside[k], v[0], v[1],
+                                                        v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9], v[10],
+                                                        cone_stream[k]), centre, bound, eps, facing, buf)
                     else:
                         i = block * step + t
                         if i >= n_rays:
                             continue
                         p, j = point[i], ray[i]
-                    _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+                        _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
                     state[i] = _NOT_LIVE
                     if not buf[7] > 0.0:
                         continue
