@@ -99,7 +99,8 @@ from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
 from ._residual import (PackedGather, _bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb,
-                        gather_operator, gather_residual, near_hit_correction, near_hits, residual_hits)
+                        gather_operator, gather_residual, light_outer_kernel, near_hit_correction, near_hits,
+                        residual_hits)
 
 __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_scene"]
 
@@ -1653,7 +1654,7 @@ class Interreflection(Precomputation):
         stats.setdefault("near_rays_cast", 0)
         counts = {"rays_cast": 0}
         wo = normals  # toward the normal: mirror_wo(normals, normals) is the normals themselves (n . n >= 0)
-        light_k, terms = None, []
+        light_k, terms = np.empty((len(at), sep.K, 3)), []
         for li, light in enumerate(lights):
             decided = self._near_decided(s.name, li, corners) if self.options.residual_near_probe else None
             calls = [(kept, len(at), {})]  # the points after the standing parts: cast anew
@@ -1667,15 +1668,14 @@ class Interreflection(Precomputation):
                                   decided=None if decided is None else decided[a:b])
                       for a, b, extra in calls if b > a or len(calls) == 1]
             terms.append((*(np.concatenate(t) if len(pieces) > 1 else t[0] for t in zip(*pieces)), decided))
-            # (Q, K, 3) as one outer product (numpy's broadcast over a last axis of 3 is several times slower)
-            part = np.multiply.outer(terms[-1][0], np.asarray(light.radiance if isinstance(light, AreaLight)
-                                                               else light.intensity, float))
-            light_k = part if light_k is None else light_k + part
+            light_outer_kernel(np.ascontiguousarray(terms[-1][0], np.float64),  # (Q, K, 3): light_k + S radiance
+                               np.broadcast_to(light.radiance if isinstance(light, AreaLight) else light.intensity,
+                                               (3,)).astype(np.float64), light_k, li > 0)
         stats["near_rays_cast"] += counts["rays_cast"]
         self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
                                           poses=poses, spheres=spheres, parts=identity, at=at, normals=normals,
                                           corners=corners, terms=terms)
-        return np.zeros((len(at), sep.K, 3)) if light_k is None else light_k
+        return light_k if lights else np.zeros((len(at), sep.K, 3))
 
     def _near_decided(self, source: str, light: int, corners, method: str = "numba") -> np.ndarray:
         """(Q,) int8 of ``residual_near_probe`` at near hits on ``source`` whose triangles have the vertices

@@ -1450,6 +1450,17 @@ def _near_correction_run(rows, factor, triangles, uv, faces, index, exact, value
                 out[p, kp, c] += total
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def light_outer_kernel(terms, radiance, out, add):
+    """``out[q, k, c] = terms[q, k] radiance[c]`` (``np.multiply.outer``), or with ``add`` that added to ``out``
+    (``out + outer``): the same roundings, element by element, as numpy's two operations."""
+    for q in numba.prange(terms.shape[0]):
+        for k in range(terms.shape[1]):
+            for c in range(radiance.shape[0]):
+                part = terms[q, k] * radiance[c]
+                out[q, k, c] = out[q, k, c] + part if add else part
+
+
 #: hits per run of :func:`_near_correction_kernel` (at least; a run ends where its receiver point does)
 _CORRECTION_RUN = 4096
 

@@ -1092,3 +1092,17 @@ def test_the_near_hit_correction_in_parallel_runs_equals_one_pass():
     ref = near_hit_correction(hits, index, exact, values, n_points, method="reference")
     np.testing.assert_allclose(ours, ref, rtol=0.0, atol=1e-12 * np.abs(ref).max())
     np.testing.assert_array_equal(_residual._row_runs(rows[index][::-1]), [0, len(index)])
+
+
+def test_light_outer_kernel_is_numpys_outer_and_sum():
+    """``light_outer_kernel`` gives ``np.multiply.outer`` and then ``out + outer`` bit for bit."""
+    from prtlab.interreflection._residual import light_outer_kernel
+
+    rng = np.random.default_rng(4)
+    first, second = rng.normal(size=(37, 2)), rng.normal(size=(37, 2))
+    r1, r2 = rng.normal(size=3), rng.normal(size=3) * 1e3
+    out = np.empty((37, 2, 3))
+    light_outer_kernel(first, r1, out, False)
+    assert np.array_equal(out, np.multiply.outer(first, r1))
+    light_outer_kernel(second, r2, out, True)
+    assert np.array_equal(out, np.multiply.outer(first, r1) + np.multiply.outer(second, r2))
