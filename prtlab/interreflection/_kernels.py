@@ -9,7 +9,7 @@ import numpy as np
 
 from prtlab.geometry import _embree
 from prtlab.geometry._raycast import barycentric_normal, may_hit_ray
-from prtlab.sh._product_kernels import _tile_product
+from prtlab.sh._product_kernels import _tile_product, _tile_product_prefix
 from prtlab.shadowfields._kernels import sample_corners
 
 
@@ -200,6 +200,66 @@ def masked_product_serial(vis, occ, at, rows, gi, gj, gk, gv):
     n_tiles = (at.shape[0] + PRODUCT_TILE - 1) // PRODUCT_TILE
     for task in range(n_tiles):
         _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, PRODUCT_TILE)
+
+
+#: Positions of ``vis`` a task of :func:`visibility_product_kernel` takes (a multiple of ``PRODUCT_TILE``).
+VISIBILITY_BLOCK = 256
+
+
+@numba.njit(cache=True, inline="always")
+def _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gk, gv, block):
+    """:func:`visibility_product_kernel`'s work on the positions ``block * VISIBILITY_BLOCK`` on: per factor, in
+    order, the products at the block's positions its mask sets, in tiles of up to ``PRODUCT_TILE``."""
+    n2 = vis.shape[1]
+    start = block * VISIBILITY_BLOCK
+    stop = min(start + VISIBILITY_BLOCK, vis.shape[0])
+    at = np.empty(stop - start, np.int64)
+    a_t = np.empty((n2, PRODUCT_TILE))
+    b_t = np.empty((n2, PRODUCT_TILE))
+    o_t = np.empty((n2, PRODUCT_TILE))
+    for f in range(which.shape[0]):
+        occ = fields[which[f]]
+        n_at = 0
+        for a in range(start, stop):
+            if masks[f, a]:
+                at[n_at] = a
+                n_at += 1
+        for first in range(0, n_at, PRODUCT_TILE):
+            width = min(PRODUCT_TILE, n_at - first)
+            for q in range(width):
+                r = at[first + q]
+                for i in range(n2):
+                    a_t[i, q] = vis[r, i]
+                    b_t[i, q] = occ[rows[r], i]
+            _tile_product_prefix(a_t, b_t, gi, gj, gk, gv, o_t, width)
+            for q in range(width):
+                r = at[first + q]
+                for k in range(n2):
+                    vis[r, k] = o_t[k, q]
+
+
+@numba.njit(cache=True, parallel=True)
+def visibility_product_kernel(vis, fields, which, masks, rows, gi, gj, gk, gv):
+    """``vis[a] = P_n(... P_n(vis[a] occ_1[rows[a]]) ... occ_F[rows[a]])`` in place, over the factors ``f``
+    (in order) whose ``masks[f, a]`` is set: every occluder's factor of the visibility product in one call, each
+    product the arithmetic of :func:`masked_product_kernel` (the same bits as one call of it per factor).
+
+    vis : (R, n2) visibility at the rows being computed; fields : (n_occ, V, n2) occlusion fields at all
+    receiver vertices; which : (F,) the field of each factor; masks : (F, R) bool, where each factor applies;
+    rows : (R,) receiver vertex of each position; (gi, gj, gk, gv) the sparse Gaunt entries of order n.
+    Parallel over blocks of ``VISIBILITY_BLOCK`` positions.
+    """
+    n_blocks = (vis.shape[0] + VISIBILITY_BLOCK - 1) // VISIBILITY_BLOCK
+    for block in numba.prange(n_blocks):
+        _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gk, gv, block)
+
+
+@numba.njit(cache=True)
+def visibility_product_serial(vis, fields, which, masks, rows, gi, gj, gk, gv):
+    """:func:`visibility_product_kernel` on one thread (no parallel region): the same blocks and arithmetic."""
+    n_blocks = (vis.shape[0] + VISIBILITY_BLOCK - 1) // VISIBILITY_BLOCK
+    for block in range(n_blocks):
+        _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gk, gv, block)
 
 
 @numba.njit(cache=True, inline="always")
