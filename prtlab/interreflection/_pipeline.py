@@ -58,6 +58,7 @@ from __future__ import annotations
 import copy
 import time
 import dataclasses
+import functools
 import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -433,6 +434,16 @@ class OcclusionFields(Mapping):
 
     def __len__(self) -> int:
         return len(self.index)
+
+
+@functools.lru_cache(maxsize=None)
+def _gaunt_runs(order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(gi, gj, gv, starts)``: the order-``order`` Gaunt entries of ``_gaunt_block`` (sorted by k; a stable
+    sort keeps each k's order) and ``starts`` (n2 + 1,), where each k's entries start."""
+    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    by_k = np.argsort(gk, kind="stable")
+    starts = np.searchsorted(gk[by_k], np.arange(order * order + 1)).astype(np.int64)
+    return gi[by_k], gj[by_k], gv[by_k], starts
 
 
 @dataclass
@@ -847,7 +858,7 @@ class Interreflection(Precomputation):
             which = np.array([occ_r.index[name] for name, _ in factors], dtype=np.int64)
             parallel = np.count_nonzero(masks) >= SERIAL_ITEMS and len(rows) > VISIBILITY_BLOCK
             kernel = visibility_product_kernel if parallel else visibility_product_serial
-            kernel(vis, occ_r.fields, which, masks, rows, *gaunt)
+            kernel(vis, occ_r.fields, which, masks, rows, *_gaunt_runs(order))
             return vis
         for name, mask in factors:
             at = np.flatnonzero(mask)

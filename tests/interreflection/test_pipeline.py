@@ -218,16 +218,18 @@ def test_visibility_product_kernel_equals_the_product_tier(pre, seed, n_factors)
 def test_one_visibility_kernel_call_equals_one_call_per_factor(pre, seed, n_rows):
     """``_visibility``'s one kernel call for every factor (``visibility_product_kernel`` and its serial twin)
     gives the per-factor kernel calls' arrays bit for bit: factors in a random order, a field used twice, masks
-    empty, full, sparse and overlapping, row counts about a tile, a block and (with 5 factors at 2,100 rows)
-    ``SERIAL_ITEMS`` products."""
+    empty, full, sparse and overlapping, signed zeros, row counts about a tile, a block and (with 5 factors at
+    2,100 rows) ``SERIAL_ITEMS`` products."""
     from prtlab.interreflection import _kernels
-    from prtlab.interreflection._pipeline import OcclusionFields, _gaunt_block
+    from prtlab.interreflection._pipeline import OcclusionFields, _gaunt_runs
 
     rng = np.random.default_rng(seed)
     n_v, n2 = n_rows + 40, pre.options.order ** 2
     g = {"self": rng.normal(size=(n_v, n2))}
     names = ["a", "b", "c", "d"]
     occ = OcclusionFields(names, rng.normal(size=(len(names), n_v, n2)))
+    g["self"][: n_v // 7] *= rng.choice([0.0, -0.0, 1.0], size=(n_v // 7, n2))  # signed zeros in the sums
+    occ.fields[0, : n_v // 5, 1:] = -0.0
     rows = np.sort(rng.choice(n_v, size=n_rows, replace=False))
     density = [1.0, 0.0, 0.05, 0.5, 0.9]
     factors = [(name, rng.random(n_rows) < density[i])
@@ -240,7 +242,7 @@ def test_one_visibility_kernel_call_equals_one_call_per_factor(pre, seed, n_rows
     which = np.array([occ.index[name] for name, _ in factors], np.int64)
     for kernel in (_kernels.visibility_product_kernel, _kernels.visibility_product_serial):
         vis = np.ascontiguousarray(g["self"][rows])
-        kernel(vis, occ.fields, which, masks, rows, *_gaunt_block(4, 4, 4))
+        kernel(vis, occ.fields, which, masks, rows, *_gaunt_runs(4))
         assert np.array_equal(vis, per_factor)
     as_dict = pre._visibility(g, dict(occ), factors, rows)  # plain mapping: its fields stacked first
     assert np.array_equal(as_dict, per_factor)
