@@ -202,6 +202,95 @@ def masked_product_serial(vis, occ, at, rows, gi, gj, gk, gv):
         _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, PRODUCT_TILE)
 
 
+#: Positions of ``vis`` a task of :func:`visibility_product_kernel` takes (a multiple of ``PRODUCT_TILE``).
+VISIBILITY_BLOCK = 256
+
+
+@numba.njit(cache=True, inline="always")
+def _tile_product_runs(at, bt, gi, gj, gv, starts, ot, width):
+    """``prtlab.sh._product_kernels._tile_product_prefix`` with the Gaunt entries of each output coefficient k
+    (``starts[k]:starts[k + 1]`` of entries sorted by k) added four at a time: the same terms added in the same
+    order (the same bits), a quarter of the loads and stores of ``ot``."""
+    for k in range(starts.shape[0] - 1):
+        for q in range(width):
+            ot[k, q] = 0.0
+        e = starts[k]
+        end = starts[k + 1]
+        while e + 4 <= end:
+            i0, j0, v0 = gi[e], gj[e], gv[e]
+            i1, j1, v1 = gi[e + 1], gj[e + 1], gv[e + 1]
+            i2, j2, v2 = gi[e + 2], gj[e + 2], gv[e + 2]
+            i3, j3, v3 = gi[e + 3], gj[e + 3], gv[e + 3]
+            for q in range(width):
+                acc = ot[k, q] + v0 * at[i0, q] * bt[j0, q]
+                acc = acc + v1 * at[i1, q] * bt[j1, q]
+                acc = acc + v2 * at[i2, q] * bt[j2, q]
+                ot[k, q] = acc + v3 * at[i3, q] * bt[j3, q]
+            e += 4
+        while e < end:
+            i0, j0, v0 = gi[e], gj[e], gv[e]
+            for q in range(width):
+                ot[k, q] += v0 * at[i0, q] * bt[j0, q]
+            e += 1
+
+
+@numba.njit(cache=True, inline="always")
+def _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gv, starts, block):
+    """:func:`visibility_product_kernel`'s work on the positions ``block * VISIBILITY_BLOCK`` on: per factor, in
+    order, the products at the block's positions its mask sets, in tiles of up to ``PRODUCT_TILE``."""
+    n2 = vis.shape[1]
+    start = block * VISIBILITY_BLOCK
+    stop = min(start + VISIBILITY_BLOCK, vis.shape[0])
+    at = np.empty(stop - start, np.int64)
+    a_t = np.empty((n2, PRODUCT_TILE))
+    b_t = np.empty((n2, PRODUCT_TILE))
+    o_t = np.empty((n2, PRODUCT_TILE))
+    for f in range(which.shape[0]):
+        occ = fields[which[f]]
+        n_at = 0
+        for a in range(start, stop):
+            if masks[f, a]:
+                at[n_at] = a
+                n_at += 1
+        for first in range(0, n_at, PRODUCT_TILE):
+            width = min(PRODUCT_TILE, n_at - first)
+            for q in range(width):
+                r = at[first + q]
+                for i in range(n2):
+                    a_t[i, q] = vis[r, i]
+                    b_t[i, q] = occ[rows[r], i]
+            _tile_product_runs(a_t, b_t, gi, gj, gv, starts, o_t, width)
+            for q in range(width):
+                r = at[first + q]
+                for k in range(n2):
+                    vis[r, k] = o_t[k, q]
+
+
+@numba.njit(cache=True, parallel=True)
+def visibility_product_kernel(vis, fields, which, masks, rows, gi, gj, gv, starts):
+    """``vis[a] = P_n(... P_n(vis[a] occ_1[rows[a]]) ... occ_F[rows[a]])`` in place, over the factors ``f``
+    (in order) whose ``masks[f, a]`` is set: every occluder's factor of the visibility product in one call, each
+    product the arithmetic of :func:`masked_product_kernel` (the same bits as one call of it per factor).
+
+    vis : (R, n2) visibility at the rows being computed; fields : (n_occ, V, n2) occlusion fields at all
+    receiver vertices; which : (F,) the field of each factor; masks : (F, R) bool, where each factor applies;
+    rows : (R,) receiver vertex of each position; (gi, gj, gv) the sparse Gaunt entries of order n sorted by
+    their k, ``starts`` (n2 + 1,) where each k's entries start. Parallel over blocks of ``VISIBILITY_BLOCK``
+    positions.
+    """
+    n_blocks = (vis.shape[0] + VISIBILITY_BLOCK - 1) // VISIBILITY_BLOCK
+    for block in numba.prange(n_blocks):
+        _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gv, starts, block)
+
+
+@numba.njit(cache=True)
+def visibility_product_serial(vis, fields, which, masks, rows, gi, gj, gv, starts):
+    """:func:`visibility_product_kernel` on one thread (no parallel region): the same blocks and arithmetic."""
+    n_blocks = (vis.shape[0] + VISIBILITY_BLOCK - 1) // VISIBILITY_BLOCK
+    for block in range(n_blocks):
+        _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gv, starts, block)
+
+
 @numba.njit(cache=True, inline="always")
 def _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre):
     """:func:`may_block_kernel`'s test of point ``v``."""

@@ -58,7 +58,9 @@ from __future__ import annotations
 import copy
 import time
 import dataclasses
+import functools
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,8 +96,9 @@ from ._fields import (
 )
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
-from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, masked_product_kernel, masked_product_serial, may_block_kernel,
-                       may_block_serial, near_decided_kernel)
+from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, VISIBILITY_BLOCK, masked_product_kernel, masked_product_serial,
+                       may_block_kernel, may_block_serial, near_decided_kernel, visibility_product_kernel,
+                       visibility_product_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
 from ._residual import (PackedGather, _bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb,
@@ -404,6 +407,46 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     return pca.PCABasis(basis, sv, energy, samples, lights, pca.WeightSolver.from_basis(basis, samples))
 
 
+class OcclusionFields(Mapping):
+    """The occlusion fields (their logs with ``occlusion="exp"``) of the other objects at one receiver's vertices,
+    all in one array so that one kernel call takes any of them.
+
+    ``fields`` : (n_occluders, V, n2); ``index`` : occluder name -> its slice; ``self[name]`` is that (V, n2)
+    slice, a view: :meth:`Interreflection._occlusion` overwrites it in place when the occluder's pose relative
+    to the receiver changes (``poses`` holds the poses each slice was looked up at).
+    """
+
+    def __init__(self, names, fields: np.ndarray):
+        self.index = {name: i for i, name in enumerate(names)}
+        self.fields = fields
+        self.poses = [None] * len(self.index)
+
+    @classmethod
+    def stacked(cls, fields: Mapping) -> "OcclusionFields":
+        """A copy of ``fields`` (name -> (V, n2) arrays of one shape) in one array."""
+        names = list(fields)
+        return cls(names, np.ascontiguousarray(np.array([fields[name] for name in names], dtype=np.float64)))
+
+    def __getitem__(self, name) -> np.ndarray:
+        return self.fields[self.index[name]]
+
+    def __iter__(self):
+        return iter(self.index)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+@functools.lru_cache(maxsize=None)
+def _gaunt_runs(order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(gi, gj, gv, starts)``: the order-``order`` Gaunt entries of ``_gaunt_block`` (sorted by k; a stable
+    sort keeps each k's order) and ``starts`` (n2 + 1,), where each k's entries start."""
+    gi, gj, gk, gv = _gaunt_block(order, order, order)
+    by_k = np.argsort(gk, kind="stable")
+    starts = np.searchsorted(gk[by_k], np.arange(order * order + 1)).astype(np.int64)
+    return gi[by_k], gj[by_k], gv[by_k], starts
+
+
 @dataclass
 class FrameReuse:
     """What consecutive frames of one :class:`Interreflection` reuse, each entry with the poses it was made at.
@@ -417,7 +460,8 @@ class FrameReuse:
     frame: tuple | None = None
     #: object -> (pose and camera, per-object geometry of :meth:`Interreflection._frame_geometry`)
     geometry: dict = dataclasses.field(default_factory=dict)
-    #: (receiver, occluder) -> (poses, occlusion field looked up at the receiver's points)
+    #: receiver -> the other objects' occlusion fields looked up at its points (:class:`OcclusionFields`, with
+    #: the poses of each)
     occlusion: dict = dataclasses.field(default_factory=dict)
     #: receiver -> (poses, P_n(V G_k), the occluders' geometry)
     direct_transfer: dict = dataclasses.field(default_factory=dict)
@@ -735,20 +779,23 @@ class Interreflection(Precomputation):
         return geo
 
     def _occlusion(self, geo):
-        """occ[r][o]: the occlusion field of object o (its log with ``occlusion="exp"``) looked up at the vertices
-        of r (world frame)."""
+        """occ[r] (:class:`OcclusionFields`): occ[r][o] is the occlusion field of object o (its log with
+        ``occlusion="exp"``) looked up at the vertices of r (world frame). Only the fields whose receiver or
+        occluder moved are looked up again, into the receiver's array (the last frame's ``occ`` changes with it)."""
         occ = {}
         for r in self.objects:
-            occ[r.name] = {}
-            for o in self.objects:
-                if o.name == r.name:
+            names = [o.name for o in self.objects if o.name != r.name]
+            stack = self.reuse.occlusion.get(r.name)
+            for i, name in enumerate(names):
+                key = (geo[r.name]["pose"], geo[name]["pose"])
+                if stack is not None and stack.poses[i] == key:
                     continue
-                key = (geo[r.name]["pose"], geo[o.name]["pose"])
-                cached = self.reuse.occlusion.get((r.name, o.name))
-                if cached is None or cached[0] != key:
-                    cached = (key, self.occluders[o.name].lookup(geo[r.name]["x"], geo[o.name]["T"]))
-                    self.reuse.occlusion[(r.name, o.name)] = cached
-                occ[r.name][o.name] = cached[1]
+                field = self.occluders[name].lookup(geo[r.name]["x"], geo[name]["T"])
+                if stack is None:
+                    stack = self.reuse.occlusion[r.name] = OcclusionFields(names, np.empty((len(names),) + field.shape))
+                stack.fields[i] = field
+                stack.poses[i] = key
+            occ[r.name] = stack if stack is not None else OcclusionFields([], np.zeros((0, len(geo[r.name]["x"]), 0)))
         return occ
 
     @staticmethod
@@ -782,10 +829,12 @@ class Interreflection(Precomputation):
 
     def _visibility(self, g, occ_r, factors, rows, method: str = "numba"):
         """``V_j`` at ``rows`` of receiver ``g``: its self-visibility times each ``(name, mask)`` factor's occlusion
-        (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is 1 and its
-        product is skipped. ``method``: the in-place kernel or ``"reference"`` (``prtlab.sh.product``). With
-        ``occlusion="exp"`` (``occ_r`` the logs) the self-visibility times ``exp*`` of the sum of the set factors'
-        logs, the same in any order of ``factors`` up to the rounding of the sum."""
+        ``occ_r[name]`` (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is
+        1 and its product is skipped. ``method``: one kernel call for every factor (``"numba"``; ``occ_r`` an
+        :class:`OcclusionFields`, else its fields are copied into one), one call per factor (``"per_factor"``,
+        the same bits) or ``"reference"`` (``prtlab.sh.product``). With ``occlusion="exp"`` (``occ_r`` the logs)
+        the self-visibility times ``exp*`` of the sum of the set factors' logs, the same in any order of
+        ``factors`` up to the rounding of the sum."""
         order = self.options.order
         gaunt = _gaunt_block(order, order, order)
         vis = np.ascontiguousarray(g["self"][rows])
@@ -800,6 +849,17 @@ class Interreflection(Precomputation):
             if len(at):
                 vis[at] = sh.product(vis[at], sh.exp(logs[at], method=self.options.exp_method, channels=False),
                                      order, channels=False)
+            return vis
+        if method == "numba":
+            if not len(factors) or not len(rows):
+                return vis
+            if not isinstance(occ_r, OcclusionFields):
+                occ_r = OcclusionFields.stacked({name: occ_r[name] for name, _ in factors})
+            masks = np.array([mask for _, mask in factors], dtype=np.bool_).reshape(len(factors), len(rows))
+            which = np.array([occ_r.index[name] for name, _ in factors], dtype=np.int64)
+            parallel = np.count_nonzero(masks) >= SERIAL_ITEMS and len(rows) > VISIBILITY_BLOCK
+            kernel = visibility_product_kernel if parallel else visibility_product_serial
+            kernel(vis, occ_r.fields, which, masks, rows, *_gaunt_runs(order))
             return vis
         for name, mask in factors:
             at = np.flatnonzero(mask)

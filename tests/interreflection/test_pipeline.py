@@ -213,6 +213,61 @@ def test_visibility_product_kernel_equals_the_product_tier(pre, seed, n_factors)
     np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
 
 
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_rows=st.sampled_from([0, 1, 63, 64, 65, 255, 256, 257, 700, 2100]))
+def test_one_visibility_kernel_call_equals_one_call_per_factor(pre, seed, n_rows):
+    """``_visibility``'s one kernel call for every factor (``visibility_product_kernel`` and its serial twin)
+    gives the per-factor kernel calls' arrays bit for bit: factors in a random order, a field used twice, masks
+    empty, full, sparse and overlapping, signed zeros, row counts about a tile, a block and (with 5 factors at
+    2,100 rows) ``SERIAL_ITEMS`` products."""
+    from prtlab.interreflection import _kernels
+    from prtlab.interreflection._pipeline import OcclusionFields, _gaunt_runs
+
+    rng = np.random.default_rng(seed)
+    n_v, n2 = n_rows + 40, pre.options.order ** 2
+    g = {"self": rng.normal(size=(n_v, n2))}
+    names = ["a", "b", "c", "d"]
+    occ = OcclusionFields(names, rng.normal(size=(len(names), n_v, n2)))
+    g["self"][: n_v // 7] *= rng.choice([0.0, -0.0, 1.0], size=(n_v // 7, n2))  # signed zeros in the sums
+    occ.fields[0, : n_v // 5, 1:] = -0.0
+    rows = np.sort(rng.choice(n_v, size=n_rows, replace=False))
+    density = [1.0, 0.0, 0.05, 0.5, 0.9]
+    factors = [(name, rng.random(n_rows) < density[i])
+               for i, name in enumerate([*rng.permutation(names), rng.choice(names)])]
+    per_factor = pre._visibility(g, occ, factors, rows, method="per_factor")
+    fused = pre._visibility(g, occ, factors, rows)
+    assert fused.shape == (n_rows, n2)
+    assert np.array_equal(fused, per_factor)
+    masks = np.array([m for _, m in factors], bool).reshape(len(factors), n_rows)
+    which = np.array([occ.index[name] for name, _ in factors], np.int64)
+    for kernel in (_kernels.visibility_product_kernel, _kernels.visibility_product_serial):
+        vis = np.ascontiguousarray(g["self"][rows])
+        kernel(vis, occ.fields, which, masks, rows, *_gaunt_runs(4))
+        assert np.array_equal(vis, per_factor)
+    as_dict = pre._visibility(g, dict(occ), factors, rows)  # plain mapping: its fields stacked first
+    assert np.array_equal(as_dict, per_factor)
+    if n_rows >= 1000:
+        assert np.count_nonzero(masks) >= _kernels.SERIAL_ITEMS
+
+
+def test_moved_frame_is_the_same_with_one_visibility_kernel_call_per_factor(pre, monkeypatch):
+    """A frame after a move, shaded with ``_visibility``'s one call for every factor and with one call per
+    factor (fresh pipelines, the same poses), gives the same arrays bit for bit."""
+    def shaded(method):
+        monkeypatch.setattr(Interreflection, "_visibility", functools.partialmethod(visibility, method=method))
+        ir = Interreflection(pre.scene, pre.options, pre.data)
+        ir.shade(bounces=1)
+        state = FrameState.from_scene(pre.scene)
+        state.transforms["ball"] = Transform(translate=[0.1, 0.65, 0.05])
+        return ir.shade(state, bounces=1)
+
+    visibility = Interreflection._visibility
+    fused, per_factor = shaded("numba"), shaded("per_factor")
+    for name in fused.total:
+        for part in ("direct", "indirect", "total"):
+            assert np.array_equal(getattr(fused, part)[name], getattr(per_factor, part)[name])
+
+
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_may_block_kernel_equals_the_numpy_tier(seed):
