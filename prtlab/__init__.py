@@ -27,6 +27,10 @@ __version__ = "0.1.0"
 # threads than on one (docs/DECISIONS.md). Sleeping at once costs microseconds per loop. It takes effect
 # when prtlab is imported before the OpenMP runtime loads; the user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenBLAS's workers likewise busy-wait about 2**28 cycles after each call, on the cores numba's threads need
+# next; 2**16 keeps them awake between close calls (docs/DECISIONS.md). It takes effect when prtlab is
+# imported before numpy loads OpenBLAS; the user's own setting wins.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "16")
 
 _SUBPACKAGES = {
     "sh", "wavelet", "brdf", "pca", "geometry", "scene", "shadowfields", "interreflection",
