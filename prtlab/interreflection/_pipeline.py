@@ -101,7 +101,7 @@ from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, VISIBILITY_BLOCK, masked_prod
                        visibility_product_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
 from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
-from ._residual import (PackedGather, _bounding_radius, _facing, _rgb_ready, apply_gather, bounce_rgb,
+from ._residual import (PackedGather, _bounding_radius, _facing, _points_box, _rgb_ready, apply_gather, bounce_rgb,
                         gather_operator, gather_residual, light_outer_kernel, near_hit_correction, near_hits,
                         residual_hits)
 
@@ -1247,9 +1247,9 @@ class Interreflection(Precomputation):
         gs, gr = geo[s.name], geo[r.name]
         if "vertices" not in gs:
             gs["vertices"] = gs["T"].apply_points(np.asarray(s.mesh.vertices, float))
-            gs["vertex_box"] = _box(gs["vertices"])
+            gs["vertex_box"] = _points_box(gs["vertices"])
         if "x_box" not in gr:
-            gr["x_box"] = _box(gr["x"])
+            gr["x_box"] = _points_box(gr["x"])
         points = np.concatenate([gr["x"], gs["vertices"]])
         side = (points - centre) @ normal
         # np.ptp(points, axis=0): the boxes' extremes are those of the points
@@ -1570,7 +1570,8 @@ class Interreflection(Precomputation):
                 moved = None
         src = {i: (np.asarray(self.objects[i].mesh.faces), geo[self.objects[i].name]["n"],
                    self.seps[self.objects[i].name], geo[self.objects[i].name]["center"],
-                   geo[self.objects[i].name]["radius"], spheres[i, 3], self._facing(geo, self.objects[i]))
+                   geo[self.objects[i].name]["radius"], spheres[i, 3], self._facing(geo, self.objects[i]),
+                   self._world_box(geo, caster, i))
                for i in sources}
         hits = residual_hits(g["x"], g["n"], self.seps[r.name], caster, src, self.options.residual_rays,
                              previous=previous, moved=moved, stats=self.reuse.residual_counts,
@@ -1585,6 +1586,13 @@ class Interreflection(Precomputation):
                  "operators": operators, **({"packed": entry["packed"]} if entry and "packed" in entry else {})}
         self.reuse.residual_hits[r.name] = entry
         return entry
+
+    def _world_box(self, geo, caster, i) -> np.ndarray:
+        """The box (2, 3) of object ``i``'s world vertices, kept with its pose's geometry entry (``"vertex_box"``)."""
+        gs = geo[self.objects[i].name]
+        if "vertex_box" not in gs:
+            gs["vertex_box"] = _points_box(caster.world_vertices(i))
+        return gs["vertex_box"]
 
     @staticmethod
     def _facing(geo, s) -> np.ndarray:
@@ -1790,14 +1798,6 @@ class Interreflection(Precomputation):
                        "residual_near_rays_cast": self.reuse.residual_counts.get("near_rays_cast", 0),
                        "direct_rays_cast": self.reuse.direct_counts["rays_cast"]}
         return result
-
-
-def _box(points) -> tuple:
-    """``(min, max)`` (3,) over the points (``+-inf`` when there are none)."""
-    points = np.asarray(points, float).reshape(-1, 3)
-    if not len(points):
-        return np.full(3, np.inf), np.full(3, -np.inf)
-    return points.min(axis=0), points.max(axis=0)
 
 
 def precompute(scene, options=None, cache=True, progress: bool = True) -> Interreflection:

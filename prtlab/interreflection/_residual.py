@@ -189,8 +189,29 @@ def _point_cone(points, normals, p, centre, radius, rows, side, full, key):
             _mix(key ^ _mix(np.uint64(p))))
 
 
+#: ``box`` of a source whose box is not known (every ray meets it).
+NO_BOX = np.array([-np.inf, -np.inf, -np.inf, np.inf, np.inf, np.inf])
+
+
 @numba.njit(cache=True, inline="always")
-def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, out):
+def _meets_box(o0, o1, o2, w0, w1, w2, tmax, box):
+    """Whether the segment ``o + t w``, ``0 <= t <= tmax``, meets the box ``box`` (6,: lowest then highest corner)
+    (slab test)."""
+    enter, leave = 0.0, tmax
+    for axis in range(3):
+        start, step = (o0, o1, o2)[axis], (w0, w1, w2)[axis]
+        lo, hi = box[axis], box[3 + axis]
+        if step == 0.0:
+            if start < lo or start > hi:
+                return False
+        else:
+            t1, t2 = (lo - start) / step, (hi - start) / step
+            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+    return enter <= leave
+
+
+@numba.njit(cache=True, inline="always")
+def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, box, out):
     """Ray ``j`` of point ``p`` toward a source: ``out`` = (origin xyz, direction xyz, weight, tmax).
 
     Uniform in the cone of the sphere ``(centre, radius)``, cosine-weighted on the hemisphere from inside it;
@@ -199,14 +220,16 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, ful
     ``full > 0`` a point outside the sphere casts only the rays ``j`` of its own grid (``_point_grid``), each
     weighted by that grid's size; the others get weight and ``tmax`` 0. ``facing`` (3,): the unit normal shared
     by every vertex of a flat source (:func:`_facing`), or zeros: a ray with ``facing . w > FACING_MARGIN``
-    cannot meet the source's front, so its ``tmax`` is 0 (its weight stands).
+    cannot meet the source's front, so its ``tmax`` is 0 (its weight stands). ``box`` (6,): the lowest then the
+    highest corner of a box holding the source's triangles (:func:`_source_box`, or :data:`NO_BOX`): a ray whose
+    segment up to ``tmax`` misses it cannot hit the source, so its ``tmax`` is 0 too.
     """
     _ray_at(points, normals, p, j, _point_cone(points, normals, p, centre, radius, rows, side, full, key), centre,
-            bound, eps, facing, out)
+            bound, eps, facing, box, out)
 
 
 @numba.njit(cache=True, inline="always")
-def _ray_at(points, normals, p, j, cone, centre, bound, eps, facing, out):
+def _ray_at(points, normals, p, j, cone, centre, bound, eps, facing, box, out):
     """``_ray`` from point ``p``'s ``_point_cone`` tuple ``cone``."""
     rows, side, inside, cos_max, weight, t0, t1, t2, b0, b1, b2, a0, a1, a2, stream = cone
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
@@ -238,14 +261,18 @@ def _ray_at(points, normals, p, j, cone, centre, bound, eps, facing, out):
     tmax = -bb + math.sqrt(disc) if disc >= 0.0 and weight > 0.0 else 0.0
     if facing[0] * w0 + facing[1] * w1 + facing[2] * w2 > FACING_MARGIN:
         tmax = 0.0  # away from a flat source's front: no hit of it can count
+    if tmax > 0.0 and not _meets_box(o0, o1, o2, w0, w1, w2, tmax, box):
+        tmax = 0.0  # the segment misses the source's box: it cannot hit the source
     out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = o0, o1, o2, w0, w1, w2, weight, max(tmax, 0.0)
 
 
 @numba.njit(cache=True, parallel=True)
-def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing, out):
+def _rays_kernel(points, normals, point, ray, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                 out):
     """``_ray`` for each ``(point[i], ray[i])``: ``out`` (Q, 8)."""
     for i in numba.prange(point.shape[0]):
-        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, full, facing, out[i])
+        _ray(points, normals, point[i], ray[i], centre, radius, bound, key, rows, side, eps, full, facing, box,
+             out[i])
 
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -323,7 +350,7 @@ def _cast_tasks(n_rays: int, m: int, every: bool) -> int:
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key, rows, side, eps, full, facing,
-                 tnear, source, tracer, weighing, state, triangle, uv, factor):
+                 box, tnear, source, tracer, weighing, state, triangle, uv, factor):
     """``_ray`` then ``RayCaster.closest_hit`` for each ray ``i < n_rays``: ``(point[i], ray[i])``, or with
     ``point`` empty ``(i // m, i % m)`` (every ray of every point), then ``_weigh_hit`` of a hit on the source.
     ``state[i]``: ``_NOT_LIVE`` (``tmax`` 0, not cast), ``_CAST`` (cast, its first hit not the source's front) or
@@ -387,13 +414,14 @@ def _cast_kernel(points, normals, point, ray, n_rays, centre, radius, bound, key
                         v = cone_values[k]
                         _ray_at(points, normals, p, j, (cone_grid[k, 0], cone_grid[k, 1], cone_inside[k], v[0], v[1],
                                                         v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9], v[10],
-                                                        cone_stream[k]), centre, bound, eps, facing, buf)
+                                                        cone_stream[k]), centre, bound, eps, facing, box, buf)
                     else:
                         i = block * step + t
                         if i >= n_rays:
                             continue
                         p, j = point[i], ray[i]
-                        _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+                        _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                             buf)
                     state[i] = _NOT_LIVE
                     if not buf[7] > 0.0:
                         continue
@@ -562,8 +590,8 @@ def _rows_meeting(points, normals, p, centre, radius, rows, side, eps, full, sph
 
 
 @numba.njit(cache=True, parallel=True)
-def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, spheres,
-                      flags):
+def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                      spheres, flags):
     """``_flag_kernel`` by ``_recast_kernel``'s way: rays of the rows ``_rows_meeting`` leaves out are not made
     (unflagged); the same flags."""
     m = rows * side
@@ -575,13 +603,14 @@ def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, r
             flags[i, j] = False
             if j >= rp * sp or not need[j // sp]:  # not cast (tmax 0), or in a row no ray of which meets them
                 continue
-            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                 buf)
             flags[i, j] = _meets(buf, spheres)
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, tnear,
-                   source, spheres, tracer, weighing, state, triangle, uv, factor):
+def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                   tnear, source, spheres, tracer, weighing, state, triangle, uv, factor):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
     ``_flag_kernel`` flags is traced (rays are made only in the rows ``_rows_meeting`` keeps, as
     ``_flag_rows_kernel``), one at a time or, with ``tracer.packet``, 16 flagged rays of a block of points at a
@@ -621,7 +650,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                         if j >= rp * sp or not need[j // sp]:  # as _flag_rows_kernel: no ray of the row is flagged
                             continue
                         _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full,
-                             facing, buf)
+                             facing, box, buf)
                         if not _meets(buf, spheres):
                             continue
                         state[i, j] = _FLAGGED
@@ -661,7 +690,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
 
 
 @numba.njit(cache=True, parallel=True)
-def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, spheres,
+def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box, spheres,
                  flags):
     """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
     (S, 4: centre, radius)."""
@@ -669,7 +698,8 @@ def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, 
     for i in numba.prange(candidates.shape[0]):
         buf = np.empty(8)
         for j in range(m):
-            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, buf)
+            _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, box,
+                 buf)
             flags[i, j] = _meets(buf, spheres)
 
 
@@ -725,7 +755,7 @@ def cosine_directions(normals, n: int, seed: int = 0) -> np.ndarray:
     out = np.empty((len(point), 8))
     inside = np.zeros(3)  # a point at the sphere's centre
     _rays_kernel(np.zeros_like(normals), normals, point, ray, inside, 1.0, 1.0, _key(seed, 0), rows, side, 0.0, 0.0,
-                 np.zeros(3), out)
+                 np.zeros(3), NO_BOX, out)
     return out[:, 3:6].reshape(len(normals), m, 3)
 
 
@@ -760,6 +790,22 @@ def _source_facing(source) -> np.ndarray:
     return source[6] if len(source) > 6 else _facing(source[1])
 
 
+def _source_box(caster, s, source, margin: float) -> np.ndarray:
+    """(6,) the lowest then the highest corner of the source's world vertices (``source[7]``, a ``(2, 3)`` array, when
+    the caller keeps it, else computed) widened by ``margin`` (:func:`_margin`: far above the float32 rounding of
+    Embree's vertices and hits): a ray that misses it cannot hit the source."""
+    lo, hi = (np.asarray(source[7], float) if len(source) > 7 else _points_box(caster.world_vertices(s)))
+    return np.concatenate([lo - margin, hi + margin])
+
+
+def _points_box(points) -> np.ndarray:
+    """(2, 3) the lowest and the highest corner of ``points`` (``+inf`` and ``-inf`` when there are none)."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    if not len(points):
+        return np.array([[np.inf] * 3, [-np.inf] * 3])
+    return np.stack([points.min(axis=0), points.max(axis=0)])
+
+
 def _tracer(caster, n_blocks: int):
     """A closest-hit query of ``caster``'s Embree scene for ``n_blocks`` blocks of rays (``_raycast._Tracer``): packets
     of 16 (``rtcIntersect16``) when ``prtlab.geometry._raycast.PACKETS`` is set, else one ray at a time; one slot and
@@ -779,6 +825,16 @@ def _margin(caster, centre, radius) -> float:
     return 2.0 * caster.epsilon + 1e-5 * (float(np.max(np.abs(centre))) + radius) + 1e-12
 
 
+def _source_limits(caster, s, source) -> tuple:
+    """``(centre, bound, box)`` of source ``s`` as the ray kernels take them: its bounding-sphere centre, the radius
+    through its farthest vertex (:func:`_source_bound`) and its box (:func:`_source_box`), both widened by
+    :func:`_margin`."""
+    centre = np.asarray(source[3], float)
+    bound = _source_bound(caster, s, source)
+    margin = _margin(caster, centre, bound)
+    return centre, bound + margin, _source_box(caster, s, source, margin)
+
+
 def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats,
           method: str = "numba") -> ResidualHits | None:
     """The hits on the front of source ``s`` of the rays ``(point, ray)`` (ids ``ids``; ``point`` None: every ray
@@ -788,20 +844,18 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     hits with numpy and :class:`prtlab.brdf.SeparableBRDF`, the specification: the same hits, factors within
     float64 rounding."""
     faces, vertex_normals, sep, centre, radius = source[:5]
-    centre = np.asarray(centre, float)
-    bound = _source_bound(caster, s, source)
-    bound += _margin(caster, centre, bound)
+    centre, bound, box = _source_limits(caster, s, source)
     m = grid[0] * grid[1]
     if method == "numba" and getattr(caster, "_scene", None) is not None:
         return _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats,
-                           centre, bound)
+                           centre, bound, box)
     if point is None:
         point, ray = np.repeat(np.arange(len(points)), m), np.tile(np.arange(m), len(points))
         ids = np.arange(len(points) * m, dtype=np.int64)
     buf = np.empty((len(point), 8))
     if len(point):
         _rays_kernel(points, normals, point, ray, centre, float(radius), bound, key, grid[0], grid[1],
-                     float(caster.epsilon), grid[2], _source_facing(source), buf)
+                     float(caster.epsilon), grid[2], _source_facing(source), box, buf)
     live = np.flatnonzero(buf[:, 7] > 0.0)
     if not len(live):
         return None
@@ -830,7 +884,8 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     return ResidualHits(rows, factor, ids[live[sel]], triangles, uv, faces)
 
 
-def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, centre, bound):
+def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, centre, bound,
+                box):
     """``_cast`` by :func:`_cast_kernel`, which weighs the hits as it finds them."""
     m = grid[0] * grid[1]
     n_rays = len(points) * m if point is None else len(point)
@@ -841,7 +896,7 @@ def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, ke
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
                  float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _source_facing(source),
-                 float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)),
+                 box, float(caster.tnear), s, _tracer(caster, _cast_tasks(n_rays, m, point is None)),
                  _weighing(receiver_sep, source), state, triangle, uv32, factor)
     stats["rays_cast"] += int(np.count_nonzero(state))
     at = np.flatnonzero(state == _HIT)
@@ -908,8 +963,9 @@ def residual_hits(points, normals, receiver_sep, caster, sources: dict, n_rays: 
 
     ``caster`` holds every object at its pose (its object index is the key); ``sources`` maps the indices
     that are sources of this receiver to ``(faces, world vertex normals, separable BRDF, bounding-sphere
-    centre, radius)``, optionally followed by the radius about that centre through the farthest world vertex and
-    :func:`_facing` of the normals (kept by callers across calls; computed when absent). Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
+    centre, radius)``, optionally followed by the radius about that centre through the farthest world vertex,
+    :func:`_facing` of the normals and the box of the world vertices (:func:`_points_box`) (kept by callers across
+    calls; computed when absent). Rays go uniformly into the cone of the source's bounding sphere (cosine-weighted
     over the hemisphere from a point inside it), so a small far source gets all of them; a ray counts
     when its first hit is the front of that source. With ``full > 0`` (steradians) a point outside the
     sphere casts ``n_rays`` times ``omega / full`` rays (a grid of its own, each ray weighted by its size; at
@@ -1007,10 +1063,9 @@ def _flagged(state):
 
 def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres, old, stats, method):
     """The hits of source ``s`` after the objects of ``spheres`` (old and new bounding spheres) moved."""
-    centre, radius = np.asarray(source[3], float), float(source[4])
+    radius = float(source[4])
+    centre, bound, box = _source_limits(caster, s, source)
     m = grid[0] * grid[1]
-    bound = _source_bound(caster, s, source)
-    bound += _margin(caster, centre, bound)
     widened = spheres.copy()
     widened[:, 3] += np.array([_margin(caster, c[:3], c[3]) for c in spheres])
     near = np.empty(len(points), np.bool_)
@@ -1026,7 +1081,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         factor = np.empty((len(candidates), m, receiver_sep.K, source[2].K))
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
-                       float(caster.epsilon), grid[2], _source_facing(source), float(caster.tnear), s, widened,
+                       float(caster.epsilon), grid[2], _source_facing(source), box, float(caster.tnear), s, widened,
                        _tracer(caster, n_blocks), _weighing(receiver_sep, source), state, triangle, uv32, factor)
         i, j = _flagged(state)
         if not len(i):
@@ -1042,7 +1097,7 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
         return _update(old, ids, new)
     flags = np.empty((len(candidates), m), np.bool_)
     _flag_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1], float(caster.epsilon),
-                 grid[2], _source_facing(source), widened, flags)
+                 grid[2], _source_facing(source), box, widened, flags)
     i, j = np.nonzero(flags)
     if not len(i):
         return old
