@@ -997,10 +997,24 @@ def _kernel_ready(f, sep, caster) -> bool:
             and getattr(caster, "_scene", None) is not None)
 
 
+def _terms_out(out, n: int, m: int, n_k: int, n_c: int) -> tuple:
+    """``(S (n, n_k), F (n, n_c), blocked (n, m))`` of :func:`light_terms`: new arrays, or ``out`` once checked."""
+    shapes, types = ((n, n_k), (n, n_c), (n, m)), (np.float64, np.float64, np.bool_)
+    if out is None:
+        return tuple(np.empty(shape, t) for shape, t in zip(shapes, types))
+    if len(out) != 3 or any(a.shape != shape or a.dtype != t or not a.flags.c_contiguous
+                            for a, shape, t in zip(out, shapes, types)):
+        raise ValueError(f"out must be C-contiguous arrays of shapes {shapes} (float64, float64, bool), got "
+                         f"{[(np.shape(a), getattr(a, 'dtype', None)) for a in out]}")
+    return tuple(out)
+
+
 def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples: int, seed: int = 0,
                 visibility=None, moved=None, stats: dict | None = None, blockers=None, first: int = 0,
-                previous=None, probe: int = 0, decided=None, decided_before=None, exact_lit: bool = False):
-    """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission.
+                previous=None, probe: int = 0, decided=None, decided_before=None, exact_lit: bool = False,
+                out=None):
+    """``(S (V, K), F (V, C), blocked (V, m))`` of one area or point light at unit emission (written into
+    ``out``, three C-contiguous arrays of those shapes, float64, float64 and bool, when given).
 
     ``S[v, k] = sum_j W_j g_k(w_j)`` and ``F[v, c] = sum_j W_j f_c(w_j, wo_v)`` over the samples ``j`` of the
     light seen from ``points`` (``W``: the estimator's weight ``A / m cos_x cos_l / d^2``, or ``cos_x / d^2``
@@ -1045,9 +1059,14 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     """
     first, probe = _check_first(first), _check_probe(probe)
     if not _kernel_ready(f, sep, caster):
-        return light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
-                                     visibility, moved, stats, first=first, probe=probe, decided=decided,
-                                     decided_before=decided_before, exact_lit=exact_lit)
+        terms = light_terms_reference(points, normals, wo, f, sep, caster, light, index, samples, seed,
+                                      visibility, moved, stats, first=first, probe=probe, decided=decided,
+                                      decided_before=decided_before, exact_lit=exact_lit)
+        if out is None:
+            return terms
+        for target, value in zip(_terms_out(out, *terms[2].shape, *(t.shape[1] for t in terms[:2])), terms):
+            target[...] = value
+        return out
     if previous is not None and visibility is not None:
         previous_S, previous_F = (np.ascontiguousarray(a, np.float64) for a in previous)
         if previous_S.shape != (len(points), sep.K) or previous_F.shape != (len(points), f.channels):
@@ -1063,8 +1082,8 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     m = rows * side
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
     decided, decided_before = _check_decided(decided, decided_before, len(x), visibility)
-    S, F = np.empty((len(x), sep.K)), np.empty((len(x), f.channels))
-    blocked, cast = np.empty((len(x), m), dtype=np.bool_), np.zeros(len(x), dtype=np.int64)
+    S, F, blocked = _terms_out(out, len(x), m, sep.K, f.channels)
+    cast = np.zeros(len(x), dtype=np.int64)
     if not len(x):
         return S, F, blocked
     nodes, values = sep._ext(sep.theta_in, sep.g_radial, 0.5 * np.pi)

@@ -100,7 +100,8 @@ from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, VISIBILITY_BLOCK, masked_prod
                        may_block_kernel, may_block_serial, near_decided_kernel, visibility_product_kernel,
                        visibility_product_serial)
 from ._passes import basis_irradiance, fit_weights, outgoing_radiance
-from ._direct_rays import blocker_bounds, light_terms, mirror_wo, object_bound, widened_sphere
+from ._direct_rays import (blocker_bounds, light_terms, mirror_wo, object_bound, sample_count,
+                          widened_sphere)
 from ._residual import (PackedGather, _bounding_radius, _facing, _points_box, _rgb_ready, apply_gather, bounce_rgb,
                         gather_operator, gather_residual, light_outer_kernel, near_hit_correction, near_hits,
                         residual_hits)
@@ -1731,11 +1732,14 @@ class Interreflection(Precomputation):
                 calls.insert(0, (0, kept, dict(visibility=mask_old[:kept], moved=moved,
                                                previous=(S_old[:kept], F_old[:kept]),
                                                decided_before=None if decided_old is None else decided_old[:kept])))
-            pieces = [light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
-                                  stats=counts, blockers=blockers, first=a, **extra,
-                                  decided=None if decided is None else decided[a:b])
-                      for a, b, extra in calls if b > a or len(calls) == 1]
-            terms.append((*(np.concatenate(t) if len(pieces) > 1 else t[0] for t in zip(*pieces)), decided))
+            whole = (np.empty((len(at), sep.K)), np.empty((len(at), f.channels)),
+                     np.empty((len(at), sample_count(light, m)), np.bool_))
+            for a, b, extra in calls:  # each part written into its rows of ``whole``
+                if b > a or len(calls) == 1:
+                    light_terms(at[a:b], normals[a:b], wo[a:b], f, sep, caster, light, li, m, seed=1 + i,
+                                stats=counts, blockers=blockers, first=a, **extra,
+                                decided=None if decided is None else decided[a:b], out=tuple(w[a:b] for w in whole))
+            terms.append((*whole, decided))
             light_outer_kernel(np.ascontiguousarray(terms[-1][0], np.float64),  # (Q, K, 3): light_k + S radiance
                                np.broadcast_to(light.radiance if isinstance(light, AreaLight) else light.intensity,
                                                (3,)).astype(np.float64), light_k, li > 0)

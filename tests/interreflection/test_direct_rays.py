@@ -258,6 +258,33 @@ def test_recasting_the_samples_near_a_moved_object_equals_casting_all(terms):
             np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "reference"])
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_light_terms_write_into_out_as_they_return(material, kernel, monkeypatch):
+    """``out=``: the rows of a call written into given arrays (here two parts of the points, the second with
+    ``first=``, as the pipeline's near hits call it) are the arrays of one call, bit for bit, by the kernel and by
+    the reference tier it falls back to; bad ``out`` refused."""
+    from prtlab.interreflection import _direct_rays
+
+    if not kernel:
+        monkeypatch.setattr(_direct_rays, "_kernel_ready", lambda *args: False)
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    one = light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16)
+    whole = (np.empty_like(one[0]), np.empty_like(one[1]), np.empty_like(one[2]))
+    cut = len(points) // 3
+    for a, b in ((0, cut), (cut, len(points))):
+        got = light_terms(points[a:b], normals[a:b], wo[a:b], f, sep, caster, LIGHT, 0, 16, first=a,
+                          out=tuple(w[a:b] for w in whole))
+        assert all(g is w_ or np.shares_memory(g, w_) for g, w_ in zip(got, whole))
+    for a, b in zip(whole, one):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="out must be C-contiguous arrays of shapes"):
+        light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, out=(whole[0][:, :1], whole[1], whole[2]))
+
+
 def _lambert_arguments():
     """:func:`_tier_scene`'s points, normals and view directions, a Lambertian BRDF and its separable form, and the
     scene's caster: the leading arguments of a :func:`light_terms` call."""
