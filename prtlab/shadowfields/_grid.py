@@ -41,7 +41,7 @@ import numpy as np
 from prtlab._validate import as_points, check_int
 from prtlab.geometry import cubemap_directions, direction_to_cubemap
 
-from ._kernels import trilinear_kernel
+from ._kernels import locate_kernel, trilinear_kernel
 
 __all__ = ["SphereGrid", "sphere_grid", "interpolate_field", "bounding_sphere"]
 
@@ -96,8 +96,11 @@ class SphereGrid:
         """(n_r, 6, res, res, 3) sample points in object space."""
         return self.center + self.radii[:, None, None, None, None] * self.directions()[None]
 
-    def locate(self, points) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Fractional sphere index, face, face coordinates and the ``beyond`` mask of object-space points.
+    def locate(self, points, method: str = "numba") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                              np.ndarray]:
+        """Fractional sphere index, face, face coordinates and the ``beyond`` mask of object-space points: by one
+        kernel (``"numba"``, :func:`locate_kernel`) or by numpy (``"numpy"``, the specification): the same values,
+        bit for bit.
 
         Returns
         -------
@@ -107,7 +110,16 @@ class SphereGrid:
         beyond : (Q,) bool
             ``r > radii[-1]``.
         """
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3) - self.center
+        if method not in ("numba", "numpy"):
+            raise ValueError(f"method must be 'numba' or 'numpy', got {method!r}")
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if method == "numba" and len(self.radii) >= 2 and np.all(np.isfinite(points)):  # else numpy's checks
+            out = (np.empty(len(points)), np.empty(len(points), np.int64), np.empty(len(points)), np.empty(len(points)),
+                   np.empty(len(points), np.bool_))
+            locate_kernel(np.ascontiguousarray(points), np.asarray(self.center, np.float64),
+                          np.ascontiguousarray(self.radii, np.float64), *out)
+            return out
+        p = points - self.center
         r = np.linalg.norm(p, axis=1)
         d = np.where(r[:, None] > 0, p, np.array([0.0, 0.0, 1.0]))
         face, s, t = direction_to_cubemap(d)

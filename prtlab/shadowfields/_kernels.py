@@ -71,3 +71,58 @@ def project_visibility_kernel(blocked, wy, out):
             if not blocked[p, d]:
                 for k in range(n2):
                     out[p, k] += wy[d, k]
+
+
+@numba.njit(cache=True, inline="always")
+def _interp_index(x, xp):
+    """``np.interp(x, xp, arange(len(xp)))`` for finite ``x`` and increasing ``xp`` (``len(xp) >= 2``), by numpy's
+    own steps: the end values outside ``xp``, ``j`` at ``x == xp[j]``, else ``slope (x - xp[j]) + j``."""
+    last = xp.shape[0] - 1
+    if x > xp[last]:
+        return float(last)
+    if x < xp[0]:
+        return 0.0
+    j = np.searchsorted(xp, x, side="right") - 1  # the largest j with xp[j] <= x
+    if j >= last or xp[j] == x:
+        return float(j)
+    slope = (float(j + 1) - float(j)) / (xp[j + 1] - xp[j])
+    value = slope * (x - xp[j]) + float(j)
+    if np.isnan(value):
+        value = slope * (x - xp[j + 1]) + float(j + 1)
+    return value
+
+
+@numba.njit(cache=True, parallel=True)
+def locate_kernel(points, center, radii, rpos, face, s, t, beyond):
+    """``SphereGrid.locate`` of object-space ``points`` (Q, 3), the same floating-point steps as its numpy path: the
+    radius ``sqrt((x^2 + y^2) + z^2)`` of ``points - center``, ``rpos`` by ``np.interp`` over ``radii`` (at least
+    two), the cube face and face coordinates of the direction (``direction_to_cubemap``; ``+z`` at the centre)."""
+    for q in numba.prange(points.shape[0]):
+        x, y, z = points[q, 0] - center[0], points[q, 1] - center[1], points[q, 2] - center[2]
+        r = np.sqrt((x * x + y * y) + z * z)
+        if not r > 0.0:
+            x, y, z = 0.0, 0.0, 1.0
+        ax, ay, az = abs(x), abs(y), abs(z)
+        if ax >= ay and ax >= az:
+            f, ma = (0 if x >= 0.0 else 1), ax
+        elif ay >= az:
+            f, ma = (2 if y >= 0.0 else 3), ay
+        else:
+            f, ma = (4 if z >= 0.0 else 5), az
+        if f == 0:
+            sc, tc = -z, -y
+        elif f == 1:
+            sc, tc = z, -y
+        elif f == 2:
+            sc, tc = x, z
+        elif f == 3:
+            sc, tc = x, -z
+        elif f == 4:
+            sc, tc = x, -y
+        else:
+            sc, tc = -x, -y
+        face[q] = f
+        s[q] = min(max(0.5 * (sc / ma + 1.0), 0.0), 1.0)
+        t[q] = min(max(0.5 * (tc / ma + 1.0), 0.0), 1.0)
+        rpos[q] = _interp_index(r, radii)
+        beyond[q] = r > radii[radii.shape[0] - 1]

@@ -105,3 +105,29 @@ def test_errors():
         interpolate_field(grid, np.zeros(grid.shape), [[np.nan, 0, 0]])
     with pytest.raises(ValueError, match="method must be"):
         interpolate_field(grid, np.zeros(grid.shape), np.zeros((1, 3)), method="fast")
+
+
+@pytest.mark.parametrize("spacing", ["geometric", "uniform"])
+def test_locate_kernel_is_the_numpy_path_bit_for_bit(spacing):
+    """``SphereGrid.locate``'s kernel against its numpy path: random points near and far (inside the innermost
+    sphere, beyond the outermost), on the radii exactly, at the centre, on the cube's edges and corners (ties of
+    ``|x|``, ``|y|``, ``|z|``, signed zeros); a call with a non-finite point takes the numpy path."""
+    grid = sphere_grid(MESH, n_radii=6, resolution=8, spacing=spacing)
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(20_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.exp(rng.uniform(np.log(0.01), np.log(12.0), size=(20_000, 1)))
+    ties = np.array([[1.0, 1.0, 0.0], [1.0, -1.0, 1.0], [-0.0, 0.0, 1.0], [0.0, -0.0, -1.0], [-1.0, -1.0, -1.0],
+                     [0.0, 2.0, -2.0], [3.0, 0.0, 0.0], [-0.0, -0.0, 0.0]])
+    on_radii = grid.center + grid.radii[:, None] * d[:len(grid.radii)]
+    points = np.concatenate([grid.center + r * d, grid.center + ties, on_radii, grid.center[None]])
+    got, want = grid.locate(points), grid.locate(points, method="numpy")
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert want[4].any() and not want[4].all()
+    bad = np.array([[np.nan, 0.0, 0.0], [1.0, 0.0, 0.0]])  # non-finite points: numpy's answers, whatever they are
+    for a, b in zip(grid.locate(bad), grid.locate(bad, method="numpy")):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="method"):
+        grid.locate(points, method="fast")
