@@ -385,21 +385,20 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
                 n_lanes = 0
 
 
-@numba.njit(cache=True, parallel=True)
-def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, dirs, wy, out):
-    """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
-    output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
-    over the rays ``j`` of point ``p`` that hit (``triangle[p, j] >= 0``) the front of the source, in the order of
-    ``j``; the same arithmetic, term for term, as the two kernels over ``np.nonzero(triangle >= 0)``.
+#: Front hits of one point gathered (their ``h_k Psi_i`` and direction) before they are added to its projection.
+HIT_BLOCK = 64
+#: Points a task of :func:`project_source_hits_kernel` takes (its scratch allocated once for them).
+HIT_POINTS = 8
 
-    triangle : (P, D) int32 face hit or -1; uv : (P, D, 2) float32 barycentrics; faces : (F, 3) int64
-    vertex_normals : (V, 3); basis_t : (V, N) ``Psi_i`` at the vertices, a vertex's values contiguous (the
-    transpose of ``hit_basis_kernel``'s ``basis``); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
-    """
+
+@numba.njit(cache=True)
+def project_source_hits_reference(triangle, uv, faces, vertex_normals, basis_t, h, dirs, wy, out):
+    """:func:`project_source_hits_kernel`'s specification, serial: each front hit's terms added straight into
+    ``out`` in the order of ``j``, a term ``h_k Psi_i wy[j, c]`` skipped where ``h_k Psi_i`` is zero."""
     n_dirs = triangle.shape[1]
     n_b, n_k, n2 = basis_t.shape[1], h.shape[0], wy.shape[1]
-    for p in numba.prange(triangle.shape[0]):
-        psi = np.empty(n_b)
+    psi = np.empty(n_b)
+    for p in range(triangle.shape[0]):
         for j in range(n_dirs):
             t = triangle[p, j]
             if t < 0:
@@ -421,6 +420,139 @@ def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, 
                         m = k * n_b + i
                         for c in range(n2):
                             out[p, m, c] += v * wy[j, c]
+
+
+@numba.njit(cache=True)
+def _front_hit_values(triangle, uv, faces, vertex_normals, basis_t, h, dirs, p, rays, start, stop, value, hit):
+    """The front hits among the rays ``rays[start:stop]`` of point ``p`` (each hits the source), in order:
+    ``value[q, k N + i] = h_k Psi_i`` and ``hit[q]`` the ray of the ``q``-th. Returns their count and whether
+    some ``h_k Psi_i`` is zero."""
+    n_b, n_k = basis_t.shape[1], h.shape[0]
+    n_hits = 0
+    zero = False
+    for r in range(start, stop):
+        j = rays[r]
+        t = triangle[p, j]
+        b1, b2 = np.float64(uv[p, j, 0]), np.float64(uv[p, j, 1])
+        b0 = 1.0 - b1 - b2
+        i0, i1, i2 = faces[t, 0], faces[t, 1], faces[t, 2]
+        nx, ny, nz = barycentric_normal(vertex_normals, i0, i1, i2, b0, b1, b2)
+        length = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+        nx, ny, nz = nx / length, ny / length, nz / length
+        if not nx * dirs[j, 0] + ny * dirs[j, 1] + nz * dirs[j, 2] < 0.0:
+            continue  # a back face
+        for k in range(n_k):
+            hk = h[k]
+            for i in range(n_b):
+                v = hk * (b0 * basis_t[i0, i] + b1 * basis_t[i1, i] + b2 * basis_t[i2, i])
+                value[n_hits, k * n_b + i] = v
+                zero |= v == 0.0
+        hit[n_hits] = j
+        n_hits += 1
+    return n_hits, zero
+
+
+@numba.njit(cache=True)
+def _add_hits(value, hit, n_hits, wy, acc):
+    """``acc[m n2 + c] += value[q, m] wy[hit[q], c]`` for ``q < n_hits`` in order, zero ``value`` skipped."""
+    n2 = wy.shape[1]
+    for m in range(value.shape[1]):
+        for q in range(n_hits):
+            v = value[q, m]
+            if v != 0.0:
+                j = hit[q]
+                for c in range(n2):
+                    acc[m * n2 + c] += v * wy[j, c]
+
+
+@numba.njit(cache=True, inline="always")
+def _madd4(a0, a1, a2, a3, v0, v1, v2, v3, w):
+    """``a_r + v_r w`` for four rows."""
+    return a0 + v0 * w, a1 + v1 * w, a2 + v2 * w, a3 + v3 * w
+
+
+@numba.njit(cache=True)
+def _add_hits16(value, hit, n_hits, wy, acc):
+    """:func:`_add_hits` for ``n2 = 16`` and no zero ``value``: tiles of 4 hits x 4 rows x 16 coefficients, each
+    entry's terms still added one at a time in the order of ``q``."""
+    n_m = value.shape[1]
+    q = 0
+    while q + 4 <= n_hits:
+        j0, j1, j2, j3 = hit[q], hit[q + 1], hit[q + 2], hit[q + 3]
+        m = 0
+        while m + 4 <= n_m:
+            v00, v01, v02, v03 = value[q, m], value[q, m + 1], value[q, m + 2], value[q, m + 3]
+            v10, v11, v12, v13 = value[q + 1, m], value[q + 1, m + 1], value[q + 1, m + 2], value[q + 1, m + 3]
+            v20, v21, v22, v23 = value[q + 2, m], value[q + 2, m + 1], value[q + 2, m + 2], value[q + 2, m + 3]
+            v30, v31, v32, v33 = value[q + 3, m], value[q + 3, m + 1], value[q + 3, m + 2], value[q + 3, m + 3]
+            for c in range(16):
+                a0, a1, a2, a3 = acc[m * 16 + c], acc[m * 16 + 16 + c], acc[m * 16 + 32 + c], acc[m * 16 + 48 + c]
+                a0, a1, a2, a3 = _madd4(a0, a1, a2, a3, v00, v01, v02, v03, wy[j0, c])
+                a0, a1, a2, a3 = _madd4(a0, a1, a2, a3, v10, v11, v12, v13, wy[j1, c])
+                a0, a1, a2, a3 = _madd4(a0, a1, a2, a3, v20, v21, v22, v23, wy[j2, c])
+                a0, a1, a2, a3 = _madd4(a0, a1, a2, a3, v30, v31, v32, v33, wy[j3, c])
+                acc[m * 16 + c], acc[m * 16 + 16 + c], acc[m * 16 + 32 + c], acc[m * 16 + 48 + c] = a0, a1, a2, a3
+            m += 4
+        while m < n_m:
+            v0, v1, v2, v3 = value[q, m], value[q + 1, m], value[q + 2, m], value[q + 3, m]
+            for c in range(16):
+                acc[m * 16 + c] = acc[m * 16 + c] + v0 * wy[j0, c] + v1 * wy[j1, c] + v2 * wy[j2, c] + v3 * wy[j3, c]
+            m += 1
+        q += 4
+    while q < n_hits:
+        j = hit[q]
+        for m in range(n_m):
+            v = value[q, m]
+            for c in range(16):
+                acc[m * 16 + c] += v * wy[j, c]
+        q += 1
+
+
+@numba.njit(cache=True, parallel=True)
+def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, dirs, wy, out):
+    """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
+    output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
+    over the rays ``j`` of point ``p`` that hit (``triangle[p, j] >= 0``) the front of the source, in the order of
+    ``j``; the same arithmetic, term for term, as the two kernels over ``np.nonzero(triangle >= 0)`` and as
+    :func:`project_source_hits_reference`, bit for bit whatever ``out`` holds on entry.
+
+    triangle : (P, D) int32 face hit or -1; uv : (P, D, 2) float32 barycentrics; faces : (F, 3) int64
+    vertex_normals : (V, 3); basis_t : (V, N) ``Psi_i`` at the vertices, a vertex's values contiguous (the
+    transpose of ``hit_basis_kernel``'s ``basis``); dirs : (D, 3) ray directions; wy : (D, n2); out : (P, K N, n2)
+
+    A point's row of ``out`` is summed in a scratch copy of it, :data:`HIT_BLOCK` front hits at a time (their
+    ``h_k Psi_i`` first, then their terms; for ``n2 = 16`` in register tiles), and written back once. Tiles add
+    every term, so a block with a zero ``h_k Psi_i`` takes the loop that skips it (adding its signed zero would
+    turn a ``-0.0`` in ``out`` into ``+0.0``).
+    """
+    n_points, n_dirs = triangle.shape
+    n_b, n_k, n2 = basis_t.shape[1], h.shape[0], wy.shape[1]
+    n_m = n_k * n_b
+    for chunk in numba.prange((n_points + HIT_POINTS - 1) // HIT_POINTS):
+        rays = np.empty(n_dirs, np.int64)
+        value = np.empty((HIT_BLOCK, n_m))
+        hit = np.empty(HIT_BLOCK, np.int64)
+        acc = np.empty(n_m * n2)
+        for p in range(chunk * HIT_POINTS, min(n_points, (chunk + 1) * HIT_POINTS)):
+            n_rays = 0
+            for j in range(n_dirs):  # the rays that hit, without a branch
+                rays[n_rays] = j
+                n_rays += triangle[p, j] >= 0
+            if n_rays == 0:
+                continue
+            for m in range(n_m):
+                for c in range(n2):
+                    acc[m * n2 + c] = out[p, m, c]
+            for start in range(0, n_rays, HIT_BLOCK):
+                n_hits, zero = _front_hit_values(triangle, uv, faces, vertex_normals, basis_t, h, dirs, p, rays,
+                                                 start, min(n_rays, start + HIT_BLOCK), value, hit)
+                if n2 == 16 and not zero:
+                    _add_hits16(value, hit, n_hits, wy, acc)
+                else:
+                    _add_hits(value, hit, n_hits, wy, acc)
+            for m in range(n_m):
+                for c in range(n2):
+                    out[p, m, c] = acc[m * n2 + c]
 
 
 @numba.njit(cache=True)

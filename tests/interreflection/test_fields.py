@@ -217,3 +217,42 @@ def test_fused_projection_equals_the_hit_kernels(rng, mesh, packets):
         _raycast.PACKETS, _fields._RAYS_PER_BATCH = default, batch
     assert np.count_nonzero(fused) and np.count_nonzero(~fused.any(axis=(1, 2)))
     np.testing.assert_array_equal(fused, kernels)
+
+
+@pytest.mark.parametrize("n_b, n_k, n2", [(16, 1, 16), (5, 2, 16), (16, 3, 9), (7, 1, 25), (3, 2, 1)])
+def test_projection_kernel_equals_its_reference_bit_for_bit(rng, n_b, n_k, n2):
+    """``project_source_hits_kernel`` (scratch rows, blocks of hits, register tiles at ``n2 = 16``) gives the bits
+    of ``project_source_hits_reference`` (each term added into ``out`` in ray order) on random hits: more
+    front hits a point than ``HIT_BLOCK``, counts not a multiple of the tile, back faces, points without
+    hits, zero ``h_k`` and zero ``Psi`` at some vertices (their terms skipped, in some blocks only) and any
+    values, signed zeros included, in ``out`` on entry."""
+    from prtlab.interreflection import _kernels
+
+    n_points, n_dirs, n_vertices, n_faces = 23, 300, 40, 60
+    faces = rng.integers(0, n_vertices, size=(n_faces, 3)).astype(np.int64)
+    normals = rng.normal(size=(n_vertices, 3))
+    dirs = rng.normal(size=(n_dirs, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    triangle = np.where(rng.random((n_points, n_dirs)) < rng.random((n_points, 1)),
+                        rng.integers(0, n_faces, size=(n_points, n_dirs)), -1).astype(np.int32)
+    triangle[:3] = -1  # no hit
+    triangle[3, 150:] = -1
+    triangle[4, 200:] = -1
+    uv = rng.dirichlet(np.ones(3), size=(n_points, n_dirs))[..., :2].astype(np.float32)
+    basis_t = rng.normal(size=(n_vertices, n_b))
+    basis_t[rng.random((n_vertices, n_b)) < 0.02] = 0.0  # Psi = 0 where the three corners are 0
+    basis_t[:8, 0] = 0.0
+    faces[:5] = [0, 1, 2]
+    h = rng.uniform(0.5, 2.0, n_k)
+    if n_k > 1:
+        h[1] = 0.0
+    wy = rng.normal(size=(n_dirs, n2))
+    out = rng.normal(size=(n_points, n_k * n_b, n2))
+    out[::2, ::3] = -0.0
+    out[1::2, 1::3] = 0.0
+    ref = out.copy()
+    _kernels.project_source_hits_reference(triangle, uv, faces, normals, basis_t, h, dirs, wy, ref)
+    _kernels.project_source_hits_kernel(triangle, uv, faces, normals, basis_t, h, dirs, wy, out)
+    front = (triangle >= 0).sum(axis=1)
+    assert front.max() > 2 * _kernels.HIT_BLOCK and np.any(ref != out.copy() * 0)  # many hits, some terms
+    np.testing.assert_array_equal(out.view(np.int64), ref.view(np.int64))
