@@ -194,20 +194,20 @@ NO_BOX = np.array([-np.inf, -np.inf, -np.inf, np.inf, np.inf, np.inf])
 
 
 @numba.njit(cache=True, inline="always")
-def _meets_box(o0, o1, o2, w0, w1, w2, tmax, box):
-    """Whether the segment ``o + t w``, ``0 <= t <= tmax``, meets the box ``box`` (6,: lowest then highest corner)
-    (slab test)."""
+def _clip_to_box(o0, o1, o2, w0, w1, w2, tmax, box):
+    """The segment ``o + t w``, ``0 <= t <= tmax``, clipped to the box ``box`` (6,: lowest then highest corner): the
+    ``t`` at which it leaves the box, or 0 if it misses the box (slab test)."""
     enter, leave = 0.0, tmax
     for axis in range(3):
         start, step = (o0, o1, o2)[axis], (w0, w1, w2)[axis]
         lo, hi = box[axis], box[3 + axis]
         if step == 0.0:
             if start < lo or start > hi:
-                return False
+                return 0.0
         else:
             t1, t2 = (lo - start) / step, (hi - start) / step
             enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
-    return enter <= leave
+    return leave if enter <= leave else 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -221,8 +221,8 @@ def _ray(points, normals, p, j, centre, radius, bound, key, rows, side, eps, ful
     weighted by that grid's size; the others get weight and ``tmax`` 0. ``facing`` (3,): the unit normal shared
     by every vertex of a flat source (:func:`_facing`), or zeros: a ray with ``facing . w > FACING_MARGIN``
     cannot meet the source's front, so its ``tmax`` is 0 (its weight stands). ``box`` (6,): the lowest then the
-    highest corner of a box holding the source's triangles (:func:`_source_box`, or :data:`NO_BOX`): a ray whose
-    segment up to ``tmax`` misses it cannot hit the source, so its ``tmax`` is 0 too.
+    highest corner of a box holding the source's triangles (:func:`_source_box`, or :data:`NO_BOX`): ``tmax`` is
+    cut to where the ray leaves it, 0 if it misses it (no hit of the source lies beyond).
     """
     _ray_at(points, normals, p, j, _point_cone(points, normals, p, centre, radius, rows, side, full, key), centre,
             bound, eps, facing, box, out)
@@ -261,8 +261,8 @@ def _ray_at(points, normals, p, j, cone, centre, bound, eps, facing, box, out):
     tmax = -bb + math.sqrt(disc) if disc >= 0.0 and weight > 0.0 else 0.0
     if facing[0] * w0 + facing[1] * w1 + facing[2] * w2 > FACING_MARGIN:
         tmax = 0.0  # away from a flat source's front: no hit of it can count
-    if tmax > 0.0 and not _meets_box(o0, o1, o2, w0, w1, w2, tmax, box):
-        tmax = 0.0  # the segment misses the source's box: it cannot hit the source
+    if tmax > 0.0:  # the source's hits lie in its box: past it (or missing it) the ray cannot hit the source
+        tmax = _clip_to_box(o0, o1, o2, w0, w1, w2, tmax, box)
     out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7] = o0, o1, o2, w0, w1, w2, weight, max(tmax, 0.0)
 
 

@@ -929,9 +929,10 @@ def test_rays_away_from_a_flat_sources_front_are_not_cast(monkeypatch, method, r
 
 @pytest.mark.parametrize("method", ["numba", "reference"])
 @pytest.mark.parametrize("r", [1, 2])
-def test_rays_that_miss_a_sources_box_are_not_cast(monkeypatch, method, r):
-    """A ray whose segment misses the box of a source's vertices cannot hit it: with those rays left uncast the
-    hits (full and incremental casts) are those of casting them, bit for bit, and fewer rays are cast."""
+def test_rays_are_cut_to_a_sources_box(monkeypatch, method, r):
+    """A ray cannot hit a source outside the box of its vertices: with the rays that miss it left uncast and the
+    others cut where they leave it, the hits (full and incremental casts) are those of casting them whole, bit for
+    bit, and fewer rays are cast."""
     from prtlab.interreflection import _residual
 
     meshes, poses, moves = _objects()
@@ -959,10 +960,10 @@ def test_rays_that_miss_a_sources_box_are_not_cast(monkeypatch, method, r):
                 np.testing.assert_array_equal(a, b)
 
 
-def test_meets_box_is_the_slab_test():
-    """``_meets_box`` against a dense sampling of each segment: a segment with a sample inside the box meets it; one
-    that the test says misses it has no sample inside; a direction with a zero component; ``NO_BOX`` meets all."""
-    from prtlab.interreflection._residual import NO_BOX, _meets_box
+def test_clip_to_box_is_the_slab_test():
+    """``_clip_to_box`` against a dense sampling of each segment: the samples inside the box lie within the clipped
+    segment (so none of a segment called a miss); ``NO_BOX`` leaves every segment whole."""
+    from prtlab.interreflection._residual import NO_BOX, _clip_to_box
 
     rng = np.random.default_rng(3)
     box = np.array([-1.0, -0.05, -2.0, 1.0, 0.05, 2.0])
@@ -974,11 +975,13 @@ def test_meets_box_is_the_slab_test():
         w /= np.linalg.norm(w)
         tmax = float(rng.uniform(0.0, 6.0))
         p = o + (tmax * t)[:, None] * w
-        inside = np.all((p >= box[:3]) & (p <= box[3:]), axis=1).any()
-        meets = _meets_box(*o, *w, tmax, box)
-        assert meets or not inside
-        met += meets
-        assert _meets_box(*o, *w, tmax, NO_BOX)
+        inside = np.all((p >= box[:3]) & (p <= box[3:]), axis=1)
+        clipped = _clip_to_box(*o, *w, tmax, box)
+        assert 0.0 <= clipped <= tmax
+        if inside.any():
+            assert tmax * t[inside].max() <= clipped * (1 + 1e-12) + 1e-12
+        met += clipped > 0.0
+        assert _clip_to_box(*o, *w, tmax, NO_BOX) == tmax
     assert 0 < met < 400
 
 
