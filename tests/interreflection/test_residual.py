@@ -893,15 +893,22 @@ def test_facing_is_the_normal_of_a_flat_source_alone():
     np.testing.assert_array_equal(_facing(np.zeros((0, 3))), np.zeros(3))
 
 
+@pytest.mark.parametrize("cut", ["facing", "box"])
 @pytest.mark.parametrize("method", ["numba", "reference"])
 @pytest.mark.parametrize("r", [1, 2])
-def test_rays_away_from_a_flat_sources_front_are_not_cast(monkeypatch, method, r):
-    """Rays along which the floor rises cannot meet its front: with them left uncast the hits (full and
-    incremental casts) are those of casting every ray, bit for bit, and fewer rays are cast (the sources' boxes left
-    out, which would leave most of those rays uncast too)."""
+def test_rays_that_cannot_count_are_not_cast(monkeypatch, cut, method, r):
+    """Each cut of rays that cannot count against casting them: ``"facing"``, rays along which the floor rises cannot
+    meet its front (left uncast; the sources' boxes left out on both sides, which would leave most of them uncast
+    too); ``"box"``, a ray cannot hit a source outside the box of its vertices (the rays that miss it left uncast, the
+    others cut where they leave it). With the cut the hits (full and incremental casts) are those without it, bit
+    for bit, and fewer rays are cast."""
     from prtlab.interreflection import _residual
 
-    monkeypatch.setattr(_residual, "_points_box", lambda points: _residual.NO_BOX.reshape(2, 3))
+    def no_box(points):
+        return _residual.NO_BOX.reshape(2, 3)
+
+    if cut == "facing":
+        monkeypatch.setattr(_residual, "_points_box", no_box)
     meshes, poses, moves = _objects()
     seps = (LAMBERT, PHONG, LAMBERT)
     after_poses = [poses[0], poses[1], moves["next to the ball"]]
@@ -910,48 +917,18 @@ def test_rays_away_from_a_flat_sources_front_are_not_cast(monkeypatch, method, r
     indices = [i for i in range(3) if i != r]
     src_before, src_after = _sources(meshes, poses, indices, seps), _sources(meshes, after_poses, indices, seps)
     runs = {}
-    for skip in (True, False):
-        if not skip:
-            monkeypatch.setattr(_residual, "_facing", lambda normals: np.zeros(3))
+    for with_cut in (True, False):
+        if not with_cut:
+            if cut == "facing":
+                monkeypatch.setattr(_residual, "_facing", lambda normals: np.zeros(3))
+            else:
+                monkeypatch.setattr(_residual, "_points_box", no_box)
         stats = {}
         old = residual_hits(x, n, seps[r], before, src_before, 64, seed=2, stats=stats, method=method, full=0.3)
         moved = None if r == 2 else {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])}
         new = residual_hits(x, n, seps[r], after, src_after, 64, seed=2, stats=stats, method=method, full=0.3,
                             previous=None if r == 2 else old, moved=moved)
-        runs[skip] = (old, new, stats["rays_cast"])
-    assert runs[True][2] < runs[False][2]
-    for fast, every in zip(runs[True][:2], runs[False][:2]):
-        assert set(fast) == set(every) and 0 in fast
-        for i in fast:
-            for a, b in zip(fast[i].arrays(), every[i].arrays()):
-                np.testing.assert_array_equal(a, b)
-
-
-@pytest.mark.parametrize("method", ["numba", "reference"])
-@pytest.mark.parametrize("r", [1, 2])
-def test_rays_are_cut_to_a_sources_box(monkeypatch, method, r):
-    """A ray cannot hit a source outside the box of its vertices: with the rays that miss it left uncast and the
-    others cut where they leave it, the hits (full and incremental casts) are those of casting them whole, bit for
-    bit, and fewer rays are cast."""
-    from prtlab.interreflection import _residual
-
-    meshes, poses, moves = _objects()
-    seps = (LAMBERT, PHONG, LAMBERT)
-    after_poses = [poses[0], poses[1], moves["next to the ball"]]
-    before, after = RayCaster(meshes, transforms=poses), RayCaster(meshes, transforms=after_poses)
-    x, n = _receiver(meshes, poses, r)
-    indices = [i for i in range(3) if i != r]
-    src_before, src_after = _sources(meshes, poses, indices, seps), _sources(meshes, after_poses, indices, seps)
-    runs = {}
-    for boxed in (True, False):
-        if not boxed:
-            monkeypatch.setattr(_residual, "_points_box", lambda points: _residual.NO_BOX.reshape(2, 3))
-        stats = {}
-        old = residual_hits(x, n, seps[r], before, src_before, 64, seed=2, stats=stats, method=method, full=0.3)
-        moved = None if r == 2 else {2: np.stack([_sphere(before, src_before[2]), _sphere(after, src_after[2])])}
-        new = residual_hits(x, n, seps[r], after, src_after, 64, seed=2, stats=stats, method=method, full=0.3,
-                            previous=None if r == 2 else old, moved=moved)
-        runs[boxed] = (old, new, stats["rays_cast"])
+        runs[with_cut] = (old, new, stats["rays_cast"])
     assert runs[True][2] < runs[False][2]
     for fast, every in zip(runs[True][:2], runs[False][:2]):
         assert set(fast) == set(every) and 0 in fast
