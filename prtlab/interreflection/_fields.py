@@ -52,7 +52,8 @@ from prtlab._validate import as_points
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
-from ._kernels import hit_basis_kernel, project_hits_kernel, project_source_hits_kernel, source_hits_kernel
+from ._kernels import (hit_basis_kernel, project_hits_kernel, project_source_hits_kernel, source_hit_tasks,
+                       source_hits_kernel)
 
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance", "StoredBasisRadiance",
            "store_basis_radiance", "STORAGES"]
@@ -127,7 +128,7 @@ def source_hits(caster, points, dirs, step, method: str = "numba"):
             origins = np.ascontiguousarray(points[a:b], dtype=np.float64)
             triangle = np.empty((b - a, len(dirs64)), np.int32)
             uv = np.empty((b - a, len(dirs64), 2), np.float32)
-            source_hits_kernel(_tracer(caster, b - a), origins, dirs64,
+            source_hits_kernel(_tracer(caster, source_hit_tasks(b - a)), origins, dirs64,
                                np.asarray(centre, np.float64), float(radius) ** 2, lo, hi, float(caster.tnear),
                                triangle, uv)
             point, direction = np.nonzero(triangle >= 0)
@@ -182,8 +183,8 @@ def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out)
     for a in range(0, len(flat), step):
         b = min(len(flat), a + step)
         origins = np.ascontiguousarray(flat[a:b], dtype=np.float64)
-        source_hits_kernel(_tracer(caster, b - a), origins, dirs, centre, float(radius) ** 2, lo, hi,
-                           float(caster.tnear), triangle[:b - a], uv[:b - a])
+        source_hits_kernel(_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre, float(radius) ** 2, lo,
+                           hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
         project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis_t, h, dirs, wy, out[a:b])
 
 

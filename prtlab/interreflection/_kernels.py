@@ -8,7 +8,7 @@ import numba
 import numpy as np
 
 from prtlab.geometry import _embree
-from prtlab.geometry._raycast import barycentric_normal, may_hit_ray
+from prtlab.geometry._raycast import barycentric_normal
 from prtlab.sh._product_kernels import _tile_product
 from prtlab.shadowfields._kernels import sample_corners
 
@@ -324,65 +324,128 @@ def may_block_serial(x, occluder_centre, radius_sum, reach, source_centre, out):
         out[v] = _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre)
 
 
+#: Origins a task of :func:`source_hits_kernel` takes: ray ``j`` of each fills a packet's lanes (parallel rays
+#: from neighbouring points) before ray ``j + 1``.
+SOURCE_HIT_POINTS = 16
+
+
+def source_hit_tasks(n_points: int) -> int:
+    """Tasks (ray slots) of one :func:`source_hits_kernel` call of ``n_points`` origins."""
+    return -(-int(n_points) // SOURCE_HIT_POINTS)
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangle, uv):
     """Closest hits on a one-object caster of the rays from each of ``origins`` (P, 3) along each of ``dirs``
     (D, 3): ``triangle[p, j]`` the face hit (int32, -1 where the ray misses it or fails ``may_hit``'s test of the
     sphere ``(centre, r2)`` and box ``[lo, hi]``, then not cast) and ``uv[p, j]`` its float32 barycentrics.
     Rays are staged as ``RayCaster.closest_hit`` stages them (no normals, ``tmax`` inf) and traced through
-    ``tracer`` (``_raycast._Tracer``: one ray at a time, or 16 of a point's rays at a time); a thread takes one
-    origin at a time (its slot)."""
+    ``tracer`` (``_raycast._Tracer``: one ray at a time, or 16 at a time). A task (its slot; ``tracer`` holds at
+    least :func:`source_hit_tasks` of them) takes :data:`SOURCE_HIT_POINTS` consecutive origins and casts ray
+    ``j`` of each after ray ``j - 1`` of all, a packet traced when its 16 lanes are filled: the hits of each ray
+    do not depend on the grouping."""
     n_points, n_dirs = origins.shape[0], dirs.shape[0]
     w = _embree.PACKET
+    group = SOURCE_HIT_POINTS
+    n_tasks = (n_points + group - 1) // group
     counter = np.zeros(1, dtype=np.int64)
     for _ in numba.prange(tracer.threads):
-        lanes = np.empty(w, np.int64)
+        lane_point = np.empty(w, np.int64)
+        lane_dir = np.empty(w, np.int64)
+        origin = np.zeros((7, group))  # rows: the origin, centre - origin, its squared length
+        may_hit = np.empty(group, np.bool_)
         while True:
-            p = _embree.fetch_add(counter, 1)
-            if p >= n_points:
+            block = _embree.fetch_add(counter, 1)
+            if block >= n_tasks:
                 break
-            f32, u32 = tracer.slot_f32[p], tracer.slot_u32[p]
-            valid = tracer.valid[p]
-            ox, oy, oz = origins[p, 0], origins[p, 1], origins[p, 2]
-            cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
-            dist2 = cx * cx + cy * cy + cz * cz
+            f32, u32 = tracer.slot_f32[block], tracer.slot_u32[block]
+            valid = tracer.valid[block]
+            first = block * group
+            n_group = min(group, n_points - first)
+            for k in range(n_group):
+                ox, oy, oz = origins[first + k, 0], origins[first + k, 1], origins[first + k, 2]
+                cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+                origin[0, k], origin[1, k], origin[2, k] = ox, oy, oz
+                origin[3, k], origin[4, k], origin[5, k] = cx, cy, cz
+                origin[6, k] = cx * cx + cy * cy + cz * cz
+                triangle[first + k, :] = -1
             n_lanes = 0
             for j in range(n_dirs + 1):
                 if j < n_dirs:
-                    triangle[p, j] = -1
                     dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-                    if not may_hit_ray(ox, oy, oz, cx, cy, cz, dist2, r2, dx, dy, dz, lo, hi):
-                        continue
                     length = np.sqrt(dx * dx + dy * dy + dz * dz)
-                    dx /= length
-                    dy /= length
-                    dz /= length
-                    if not tracer.packet:
-                        _embree.set_ray(f32, u32, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz, dx, dy, dz, np.inf)
-                        _embree.rtc_call(tracer.function, tracer.scene, f32.ctypes.data)
-                        if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
-                            triangle[p, j] = np.int32(u32[_embree.HIT_PRIM])
-                            uv[p, j, 0] = f32[_embree.HIT_U]
-                            uv[p, j, 1] = f32[_embree.HIT_V]
-                        continue
-                    _embree.set_packet_ray(f32, u32, n_lanes, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz,
-                                           dx, dy, dz, np.inf)
-                    valid[n_lanes] = -1
-                    lanes[n_lanes] = j
-                    n_lanes += 1
-                    if n_lanes < w:
-                        continue
-                if n_lanes == 0:
-                    continue
-                for k in range(n_lanes, w):
-                    valid[k] = 0
-                _embree.rtc_call_packet(tracer.function, valid.ctypes.data, tracer.scene, f32.ctypes.data)
-                for k in range(n_lanes):
-                    if u32[_embree.HIT_GEOM * w + k] != _embree.INVALID_ID:
-                        triangle[p, lanes[k]] = np.int32(u32[_embree.HIT_PRIM * w + k])
-                        uv[p, lanes[k], 0] = f32[_embree.HIT_U * w + k]
-                        uv[p, lanes[k], 1] = f32[_embree.HIT_V * w + k]
-                n_lanes = 0
+                    ux, uy, uz = dx / length, dy / length, dz / length
+                    _may_hit_group(origin, n_group, r2, dx, dy, dz, lo, hi, may_hit)
+                    for k in range(n_group):
+                        if not may_hit[k]:
+                            continue
+                        p = first + k
+                        ox, oy, oz = origin[0, k], origin[1, k], origin[2, k]
+                        if not tracer.packet:
+                            _embree.set_ray(f32, u32, ox + tnear * ux, oy + tnear * uy, oz + tnear * uz, ux, uy, uz,
+                                            np.inf)
+                            _embree.rtc_call(tracer.function, tracer.scene, f32.ctypes.data)
+                            if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                                triangle[p, j] = np.int32(u32[_embree.HIT_PRIM])
+                                uv[p, j, 0] = f32[_embree.HIT_U]
+                                uv[p, j, 1] = f32[_embree.HIT_V]
+                            continue
+                        _embree.set_packet_ray(f32, u32, n_lanes, ox + tnear * ux, oy + tnear * uy, oz + tnear * uz,
+                                               ux, uy, uz, np.inf)
+                        valid[n_lanes] = -1
+                        lane_point[n_lanes] = p
+                        lane_dir[n_lanes] = j
+                        n_lanes += 1
+                        if n_lanes == w:
+                            _source_hits_packet(tracer, f32, u32, valid, n_lanes, lane_point, lane_dir, triangle, uv)
+                            n_lanes = 0
+                elif n_lanes > 0:
+                    _source_hits_packet(tracer, f32, u32, valid, n_lanes, lane_point, lane_dir, triangle, uv)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _may_hit_group(origin, n_group, r2, dx, dy, dz, lo, hi, may_hit):
+    """``may_hit[k]``: ``_raycast.may_hit_ray`` of the ray along ``d`` from each of the first ``n_group`` origins
+    (``origin``'s rows: the origins, ``centre`` minus them, its squared length), its arithmetic without its
+    branches (the box always tested), so that the origins are tested side by side: the same tests."""
+    lx, ly, lz, hx, hy, hz = lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    for k in range(n_group):
+        ox, oy, oz = origin[0, k], origin[1, k], origin[2, k]
+        dist2 = origin[6, k]
+        along = origin[3, k] * dx + origin[4, k] * dy + origin[5, k] * dz
+        ok = (dist2 <= r2) | ((along > 0.0) & (dist2 - along * along <= r2))
+        enter, leave = 0.0, np.inf
+        if dx == 0.0:
+            ok &= not ((ox < lx) | (ox > hx))
+        else:
+            t1, t2 = (lx - ox) / dx, (hx - ox) / dx
+            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+        if dy == 0.0:
+            ok &= not ((oy < ly) | (oy > hy))
+        else:
+            t1, t2 = (ly - oy) / dy, (hy - oy) / dy
+            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+        if dz == 0.0:
+            ok &= not ((oz < lz) | (oz > hz))
+        else:
+            t1, t2 = (lz - oz) / dz, (hz - oz) / dz
+            enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+        may_hit[k] = ok & (enter <= leave)
+
+
+@numba.njit(cache=True, inline="always")
+def _source_hits_packet(tracer, f32, u32, valid, n_lanes, lane_point, lane_dir, triangle, uv):
+    """Trace the first ``n_lanes`` lanes of a packet and write each lane's hit at its ``(point, direction)``."""
+    w = _embree.PACKET
+    for k in range(n_lanes, w):
+        valid[k] = 0
+    _embree.rtc_call_packet(tracer.function, valid.ctypes.data, tracer.scene, f32.ctypes.data)
+    for k in range(n_lanes):
+        if u32[_embree.HIT_GEOM * w + k] != _embree.INVALID_ID:
+            p, j = lane_point[k], lane_dir[k]
+            triangle[p, j] = np.int32(u32[_embree.HIT_PRIM * w + k])
+            uv[p, j, 0] = f32[_embree.HIT_U * w + k]
+            uv[p, j, 1] = f32[_embree.HIT_V * w + k]
 
 
 #: Front hits of one point gathered (their ``h_k Psi_i`` and direction) before they are added to its projection.

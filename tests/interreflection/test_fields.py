@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from prtlab import brdf
-from prtlab.geometry import builtin_mesh
+from prtlab.geometry import _embree, builtin_mesh
+from prtlab.geometry._raycast import may_hit_ray
 from prtlab.interreflection import basis_radiance_at, basis_radiance_field
 from prtlab.scene import AreaLight
 from prtlab.shadowfields import area_light_sh, sphere_grid
@@ -185,6 +187,141 @@ def test_fused_source_hits_equal_the_casters(rng, mesh, packets):
         np.testing.assert_array_equal(direction[at], ref[3][ref[5]])
         np.testing.assert_array_equal(hits.triangle[at], ref[4].triangle[ref[5]])
         np.testing.assert_array_equal(hits.barycentric[at], ref[4].barycentric[ref[5]])
+
+
+@numba.njit(parallel=True, nogil=True)
+def _source_hits_by_point(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangle, uv):
+    """``source_hits_kernel`` as it was before its tasks took 16 origins: a task takes one origin (its slot) and
+    fills a packet with 16 of that origin's rays in the order of ``j``."""
+    n_points, n_dirs = origins.shape[0], dirs.shape[0]
+    w = _embree.PACKET
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in numba.prange(tracer.threads):
+        lanes = np.empty(w, np.int64)
+        while True:
+            p = _embree.fetch_add(counter, 1)
+            if p >= n_points:
+                break
+            f32, u32 = tracer.slot_f32[p], tracer.slot_u32[p]
+            valid = tracer.valid[p]
+            ox, oy, oz = origins[p, 0], origins[p, 1], origins[p, 2]
+            cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+            dist2 = cx * cx + cy * cy + cz * cz
+            n_lanes = 0
+            for j in range(n_dirs + 1):
+                if j < n_dirs:
+                    triangle[p, j] = -1
+                    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                    if not may_hit_ray(ox, oy, oz, cx, cy, cz, dist2, r2, dx, dy, dz, lo, hi):
+                        continue
+                    length = np.sqrt(dx * dx + dy * dy + dz * dz)
+                    dx /= length
+                    dy /= length
+                    dz /= length
+                    if not tracer.packet:
+                        _embree.set_ray(f32, u32, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz, dx, dy, dz,
+                                        np.inf)
+                        _embree.rtc_call(tracer.function, tracer.scene, f32.ctypes.data)
+                        if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                            triangle[p, j] = np.int32(u32[_embree.HIT_PRIM])
+                            uv[p, j, 0] = f32[_embree.HIT_U]
+                            uv[p, j, 1] = f32[_embree.HIT_V]
+                        continue
+                    _embree.set_packet_ray(f32, u32, n_lanes, ox + tnear * dx, oy + tnear * dy, oz + tnear * dz,
+                                           dx, dy, dz, np.inf)
+                    valid[n_lanes] = -1
+                    lanes[n_lanes] = j
+                    n_lanes += 1
+                    if n_lanes < w:
+                        continue
+                if n_lanes == 0:
+                    continue
+                for k in range(n_lanes, w):
+                    valid[k] = 0
+                _embree.rtc_call_packet(tracer.function, valid.ctypes.data, tracer.scene, f32.ctypes.data)
+                for k in range(n_lanes):
+                    if u32[_embree.HIT_GEOM * w + k] != _embree.INVALID_ID:
+                        triangle[p, lanes[k]] = np.int32(u32[_embree.HIT_PRIM * w + k])
+                        uv[p, lanes[k], 0] = f32[_embree.HIT_U * w + k]
+                        uv[p, lanes[k], 1] = f32[_embree.HIT_V * w + k]
+                n_lanes = 0
+
+
+def _hit_origins(rng, mesh, where, n):
+    """``n`` origins about the source (``"plane"``: y = 0, half size 1; ``"sphere"``: the unit icosphere): a small
+    icosphere's vertices (neighbouring origins) above, below or beside it, or scattered points around and in it."""
+    if where == "scattered":
+        return rng.normal(size=(n, 3)) * 1.2
+    ball = np.asarray(builtin_mesh("icosphere", subdivisions=2).vertices, float)[:n]
+    offset = {"above": [0.2, 0.35, -0.1], "below": [-0.3, -0.32, 0.4], "beside": [1.6, 0.05, 0.2]}[where]
+    if mesh == "sphere":
+        offset = np.array(offset) * [1.0, 4.0, 1.0]
+    return 0.3 * ball + offset
+
+
+@pytest.mark.parametrize("where", ["above", "below", "beside", "scattered"])
+@pytest.mark.parametrize("mesh", ["plane", "sphere"])
+def test_source_hits_kernel_equals_the_former_kernel_and_one_ray(rng, mesh, where):
+    """``source_hits_kernel`` (16 origins a task, ray ``j`` of each in a packet's lanes) gives the faces and
+    barycentrics of the former kernel (one origin a task, 16 of its rays a packet) and of one ray at a time, bit
+    for bit, for every ray (P not a multiple of 16, origins above, below and beside the source and about it)."""
+    from prtlab import sh
+    from prtlab.geometry import RayCaster, _raycast
+    from prtlab.interreflection import _kernels
+    from prtlab.interreflection._residual import _tracer
+
+    source = PLANE if mesh == "plane" else builtin_mesh("icosphere")
+    caster = RayCaster([(np.asarray(source.vertices, float), np.asarray(source.faces))])
+    origins = np.ascontiguousarray(_hit_origins(rng, mesh, where, 157))
+    dirs, _ = sh.quadrature(ORDER, 23)
+    dirs = np.ascontiguousarray(dirs, dtype=np.float64)
+    centre, radius, lo, hi = caster.may_hit_bounds()
+    bounds = (np.asarray(centre, np.float64), float(radius) ** 2, lo, hi, float(caster.tnear))
+    results = {}
+    default = _raycast.PACKETS
+    try:
+        for packets in (True, False):
+            _raycast.PACKETS = packets
+            for name, kernel, n_tasks in (("new", _kernels.source_hits_kernel, _kernels.source_hit_tasks(157)),
+                                          ("former", _source_hits_by_point, 157)):
+                triangle = np.full((157, len(dirs)), 7, np.int32)
+                uv = np.full((157, len(dirs), 2), np.nan, np.float32)
+                kernel(_tracer(caster, n_tasks), origins, dirs, *bounds, triangle, uv)
+                results[name, packets] = triangle, uv
+    finally:
+        _raycast.PACKETS = default
+    triangle, uv = results["former", True]
+    hit = triangle >= 0
+    assert hit.any() and (~hit).any()
+    for key, (t, u) in results.items():
+        np.testing.assert_array_equal(t, triangle, err_msg=str(key))
+        np.testing.assert_array_equal(u[hit], uv[hit], err_msg=str(key))
+        assert u[hit].view(np.uint32).tolist() == uv[hit].view(np.uint32).tolist()
+
+
+def test_may_hit_group_equals_may_hit_ray(rng):
+    """``_may_hit_group`` (16 origins side by side, no branches) gives ``may_hit_ray``'s test of each ray: random
+    and axis-aligned directions, origins inside, outside and on the faces of the box, inside and outside the
+    sphere."""
+    from prtlab.interreflection._kernels import _may_hit_group
+
+    lo, hi = np.array([-1.0, -1e-6, -0.5]), np.array([1.0, 1e-6, 0.75])
+    centre, r2 = np.array([0.0, 0.0, 0.1]), 1.3**2
+    origins = rng.normal(size=(16 * 20, 3)) * 1.5
+    origins[::5] = np.where(rng.random((len(origins[::5]), 3)) < 0.5, lo, hi)  # corners of the box
+    origins[1::5, 1] = 0.0
+    dirs = np.concatenate([rng.normal(size=(40, 3)), np.eye(3), -np.eye(3), [[1.0, 1.0, 0.0], [0.0, -1.0, 1.0]]])
+    for group in origins.reshape(-1, 16, 3):
+        rows = np.zeros((7, 16))
+        rows[:3] = group.T
+        rows[3:6] = (centre - group).T
+        rows[6] = np.sum((centre - group) ** 2, axis=1)
+        for n in (16, 11):
+            for d in dirs:
+                got = np.zeros(16, bool)
+                _may_hit_group(rows, n, r2, d[0], d[1], d[2], lo, hi, got)
+                want = [may_hit_ray(*o, *c, c2, r2, *d, lo, hi) for o, c, c2 in zip(group, rows[3:6].T, rows[6])]
+                np.testing.assert_array_equal(got[:n], want[:n])
 
 
 @pytest.mark.parametrize("packets", [True, False])
