@@ -51,7 +51,7 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
                     out[v, kp, m] += w * acc
 
 
-@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, nogil=True)
 def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale, out):
     """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), accumulating in float64 in any
     order (``reassoc``, ``contract``: the compiler vectorises the ``n2``-term sums; each value's rounding stays
@@ -179,7 +179,7 @@ def _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, tile):
 PRODUCT_TILE = 64
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def masked_product_kernel(vis, occ, at, rows, gi, gj, gk, gv):
     """``vis[a] = P_n(vis[a] occ[rows[a]])`` in place for every ``a`` in ``at``: one occluder's factor of the
     visibility product (``prtlab.sh.product`` truncated to the order of ``vis``) at the receiver rows it
@@ -194,7 +194,7 @@ def masked_product_kernel(vis, occ, at, rows, gi, gj, gk, gv):
         _masked_product_tile(vis, occ, at, rows, gi, gj, gk, gv, task, PRODUCT_TILE)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def masked_product_serial(vis, occ, at, rows, gi, gj, gk, gv):
     """:func:`masked_product_kernel` on one thread (no parallel region): the same tiles and arithmetic."""
     n_tiles = (at.shape[0] + PRODUCT_TILE - 1) // PRODUCT_TILE
@@ -266,7 +266,7 @@ def _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gv, start
                     vis[r, k] = o_t[k, q]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def visibility_product_kernel(vis, fields, which, masks, rows, gi, gj, gv, starts):
     """``vis[a] = P_n(... P_n(vis[a] occ_1[rows[a]]) ... occ_F[rows[a]])`` in place, over the factors ``f``
     (in order) whose ``masks[f, a]`` is set: every occluder's factor of the visibility product in one call, each
@@ -283,7 +283,7 @@ def visibility_product_kernel(vis, fields, which, masks, rows, gi, gj, gv, start
         _visibility_product_block(vis, fields, which, masks, rows, gi, gj, gv, starts, block)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def visibility_product_serial(vis, fields, which, masks, rows, gi, gj, gv, starts):
     """:func:`visibility_product_kernel` on one thread (no parallel region): the same blocks and arithmetic."""
     n_blocks = (vis.shape[0] + VISIBILITY_BLOCK - 1) // VISIBILITY_BLOCK
@@ -306,7 +306,7 @@ def _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre):
                                                                          <= reach * reach)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def may_block_kernel(x, occluder_centre, radius_sum, reach, source_centre, out):
     """``out[v]``: whether an occluder (bounding sphere about ``occluder_centre``, its field reaching ``reach``
     from it) may block a ray from ``x[v]`` to a source (centre ``source_centre``): the occluder's centre is
@@ -317,7 +317,7 @@ def may_block_kernel(x, occluder_centre, radius_sum, reach, source_centre, out):
         out[v] = _may_block_at(x, v, occluder_centre, radius_sum, reach, source_centre)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def may_block_serial(x, occluder_centre, radius_sum, reach, source_centre, out):
     """:func:`may_block_kernel` on one thread (no parallel region)."""
     for v in range(x.shape[0]):
@@ -571,7 +571,7 @@ def _add_hits16(value, hit, n_hits, wy, acc):
         q += 1
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, dirs, wy, out):
     """:func:`hit_basis_kernel` then :func:`project_hits_kernel` in one pass over :func:`source_hits_kernel`'s
     output, for a source whose ``h_k`` is a constant ``h`` (K,): ``out[p, k N + i, c] += h_k Psi_i(hit) wy[j, c]``
@@ -618,7 +618,7 @@ def project_source_hits_kernel(triangle, uv, faces, vertex_normals, basis_t, h, 
                     out[p, m, c] = acc[m * n2 + c]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def near_decided_kernel(mask, lit, corners, out):
     """``out[q]`` (int8): the code its triangle's three vertices ``corners[q]`` agree on, a vertex's code being 1
     where no sample of its shadow ``mask`` row is set and some entry of its ``lit`` row is non-zero, 2 where every

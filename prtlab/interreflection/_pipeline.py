@@ -58,11 +58,15 @@ from __future__ import annotations
 import copy
 import time
 import dataclasses
+import os
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 import functools
 import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from prtlab import brdf, pca, sh
@@ -113,6 +117,23 @@ __all__ = ["InterreflectionOptions", "Interreflection", "precompute", "shade_sce
 #: at most ``2**-24 sum_m |Phi_m w_m|`` (``tests/interreflection/test_residual.py``). The reference tier stays
 #: float64.
 STACKED_IRRADIANCE = np.float32
+
+#: Whether :meth:`Interreflection.shade_frame` runs step 1 (the direct light) and each receiver's residual-gather
+#: casts (:meth:`Interreflection._residual_entry`) on a second Python thread while step 2 (the basis irradiance) runs
+#: on the caller's, when an object moved since the scene's ray caster was made (else step 2 and the entries stand):
+#: each part's Python work then overlaps the other's parallel kernels. The parts share no state they write, so the
+#: frame is the same, bit for bit (test); False runs them one after another.
+OVERLAP = True
+
+_WORKER: list = []  # [(process id, ThreadPoolExecutor)]: OVERLAP's second thread, kept so its OpenMP team is too
+
+
+def _frame_worker() -> ThreadPoolExecutor:
+    """The one worker thread of :data:`OVERLAP`, made on first use in each process (a forked child makes its own)."""
+    if not _WORKER or _WORKER[0][0] != os.getpid():
+        _WORKER[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-frame"))]
+    return _WORKER[0][1]
+
 
 
 @dataclass
@@ -1351,12 +1372,13 @@ class Interreflection(Precomputation):
         self._near_field(s, gs["T"], g["x"], rows, transfer, value)
         return value
 
-    def basis_irradiance_step(self, geo, occ):
+    def basis_irradiance_step(self, geo, occ, done=None):
         """Step 2: ``Phi[r][s]`` (V_r, K'_r, K_s, N_s) for every ordered pair, recomputing only what changed.
 
         A pair whose receiver or source moved is recomputed; when only its occluders moved (or came or
         went), only the receiver points from which they may block the source (:meth:`_may_block`, at
-        their old and new poses) are (``info["updated_pairs"]``, ``info["updated_rows"]``).
+        their old and new poses) are (``info["updated_pairs"]``, ``info["updated_rows"]``). ``done``: called with
+        each receiver and its finished ``Phi[r]`` (a dict not changed afterwards) as soon as its pairs are made.
         """
         phi = {}
         counts = {"computed_pairs": 0, "updated_pairs": 0, "updated_rows": 0, "skipped_pairs": 0, "reused_pairs": 0}
@@ -1401,6 +1423,8 @@ class Interreflection(Precomputation):
                 if cached is None or value is not cached[1]:  # a new value: the stacked irradiance is rebuilt
                     self.reuse.revision[key] = self.reuse.revision.get(key, 0) + 1
                 self.reuse.pair_irradiance[key] = (depends, value, now)
+            if done is not None:
+                done(r, phi[r.name])
         return phi, counts
 
     def _stacked_irradiance(self, r, phi_r, dtype=np.float64):
@@ -1542,9 +1566,10 @@ class Interreflection(Precomputation):
             self.reuse.scene_caster = (key, caster, spheres)
         return self.reuse.scene_caster[1], self.reuse.scene_caster[2]
 
-    def _residual_entry(self, geo, r, phi_r):
+    def _residual_entry(self, geo, r, phi_r, stats: dict | None = None):
         """The receiver's residual-gather entry at the frame's poses (``FrameReuse.residual_hits``): its hits
-        and their gather operators, made again only where a pose change may have changed them.
+        and their gather operators, made again only where a pose change may have changed them; the rays cast are
+        counted in ``stats`` (default the frame's ``residual_counts``).
 
         When objects other than ``r`` moved and the caster's offsets stand, only the rays they may block or
         unblock are cast again (:func:`residual_hits` with ``previous``), and a source whose hits did not change
@@ -1575,7 +1600,8 @@ class Interreflection(Precomputation):
                    self._world_box(geo, caster, i))
                for i in sources}
         hits = residual_hits(g["x"], g["n"], self.seps[r.name], caster, src, self.options.residual_rays,
-                             previous=previous, moved=moved, stats=self.reuse.residual_counts,
+                             previous=previous, moved=moved,
+                             stats=self.reuse.residual_counts if stats is None else stats,
                              full=self.options.residual_cone)
         operators = {}
         for i, h in hits.items():
@@ -1767,6 +1793,56 @@ class Interreflection(Precomputation):
         at = code[corners]
         return at[:, 0] & at[:, 1] & at[:, 2]
 
+    def _overlapped(self, state: FrameState, geo, occ, transfer, t0: float):
+        """``(direct_step, basis_irradiance_step, seconds to the direct step's end, seconds from there to the end)``
+        of :data:`OVERLAP`: step 1, then each receiver's residual-gather entry as soon as its ``Phi`` is made, on a
+        second thread (numba's thread count carried over) while step 2 runs here; the entries not started when
+        step 2 ends are made here.
+
+        The worker's first task makes the scene caster and the direct light's reuse entries; each entry task writes
+        its receiver's entry and its own ray counts (added to the frame's at the end); step 2 its pairs, blockers
+        and near field; any may fill the same pose-derived entries of ``geo``, with the same values.
+        """
+        threads = numba.get_num_threads()
+        ended = []
+
+        def direct():
+            numba.set_num_threads(threads)
+            if self.options.residual_rays:  # the entries' caster, before any entry task
+                self._scene_caster(geo, tuple(geo[o.name]["pose"] for o in self.objects))
+            out = self.direct_step(state, geo, transfer)
+            ended.append(time.perf_counter())
+            return out
+
+        def entry(r, phi_r, stats):
+            numba.set_num_threads(threads)
+            self._residual_entry(geo, r, phi_r, stats)
+
+        tasks = []  # (future, receiver, Phi[r], ray counts)
+        worker = _frame_worker()
+        step1 = worker.submit(direct)
+
+        def done(r, phi_r):
+            stats = {"rays_cast": 0}
+            tasks.append((worker.submit(entry, r, phi_r, stats), r, phi_r, stats))
+
+        try:
+            step2 = self.basis_irradiance_step(geo, occ, done=done if self.options.residual_rays else None)
+            step1.result()  # the scene caster stands before an entry is made here
+            for future, r, phi_r, stats in tasks:
+                if future.cancel():  # not started: made here
+                    self._residual_entry(geo, r, phi_r, stats)
+        finally:  # no task of this frame runs on after it
+            for future in [step1] + [task[0] for task in tasks]:
+                if not future.cancel():
+                    futures_wait([future])
+        for future in [step1] + [task[0] for task in tasks]:
+            if not future.cancelled():
+                future.result()
+        for *_, stats in tasks:
+            self.reuse.residual_counts["rays_cast"] += stats["rays_cast"]
+        return step1.result(), step2, ended[0] - t0, time.perf_counter() - ended[0]
+
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         times = {}
         self.reuse.residual_counts = {"rays_cast": 0}
@@ -1783,12 +1859,17 @@ class Interreflection(Precomputation):
                                                                    for light in state.lights)
             transfer = None if rays_only else self.direct_transfer(geo, occ, state.lights)
             self.reuse.frame = (key, (geo, occ, transfer))
-        light_k, direct = self.direct_step(state, geo, transfer)
-        times["direct"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},
-                                                                            {})
-        times["basis_irradiance"] = time.perf_counter() - t0
+        poses = tuple(geo[o.name]["pose"] for o in self.objects)
+        if OVERLAP and bounces and (self.reuse.scene_caster is None or self.reuse.scene_caster[0] != poses):
+            (light_k, direct), (phi, counts), times["direct"], times["basis_irradiance"] = self._overlapped(
+                state, geo, occ, transfer, t0)
+        else:
+            light_k, direct = self.direct_step(state, geo, transfer)
+            times["direct"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},
+                                                                                {})
+            times["basis_irradiance"] = time.perf_counter() - t0
         indirect, t_weights, t_bounces, t_near = self._bounces(geo, phi, light_k, bounces, state.lights)
         times["weights"], times["bounces"], times["near_hits"] = t_weights, t_bounces, t_near
         result = ShadeResult()

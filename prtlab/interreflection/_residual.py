@@ -689,7 +689,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
                     n_lanes = 0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _flag_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box, spheres,
                  flags):
     """``flags[i, j]``: whether ray ``j`` of point ``candidates[i]``, up to its ``tmax``, meets any of ``spheres``
@@ -1025,7 +1025,7 @@ def _capsule_at(points, v, centre, spheres, bound, eps):
     return False
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _capsule_kernel(points, centre, spheres, bound, eps, near):
     """``near[v]``: the segment from ``points[v]`` to ``centre`` passes within ``bound + R + eps`` of a sphere ``(c, R)`` of
     ``spheres`` (S, 4). Every ray of a point lies, up to its ``tmax``, in the capsule of radius ``bound`` about that
@@ -1034,14 +1034,14 @@ def _capsule_kernel(points, centre, spheres, bound, eps, near):
         near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _capsule_serial(points, centre, spheres, bound, eps, near):
     """:func:`_capsule_kernel` on one thread (no parallel region)."""
     for v in range(points.shape[0]):
         near[v] = _capsule_at(points, v, centre, spheres, bound, eps)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _flagged(state):
     """``np.nonzero(state)`` of a (C, m) state array, in the same (row-major) order: the rows and columns of its
     nonzero entries (counted, then written: two compiled scans, faster than numpy's on these mostly zero states)."""
@@ -1435,7 +1435,7 @@ def _barycentric_point(vertices, i0, i1, i2, b0, u, v, x):
     return b0 * vertices[i0, x] + u * vertices[i1, x] + v * vertices[i2, x]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _near_kernel(points, vertices, faces, rows, triangles, uv, near, flags):
     """``flags[h]``: hit ``h`` lies nearer its receiver point than ``near`` times its triangle's longest edge
     (``near_hits``'s numpy test)."""
@@ -1457,7 +1457,7 @@ def _near_kernel(points, vertices, faces, rows, triangles, uv, near, flags):
         flags[h] = g0 ** 2 + g1 ** 2 + g2 ** 2 < near * near * edge2
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals):
     """The hit points ``at`` and unit interpolated normals of the hits ``index`` (``near_hits``)."""
     for q in numba.prange(index.shape[0]):

@@ -140,7 +140,7 @@ def _high_bands(x, y, z, order, pmm, a, b, out, i):
                     out[i, base - m] = p * s
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _sh_basis(dirs, order, pmm, a, b, out):
     n = dirs.shape[0]
     n_bad = 0
@@ -205,7 +205,7 @@ def _ir_p(blocks, r, off1, offp, l, i, a, bb):
         return _blk(blocks, r, off1, 1, i, 0) * _blk(blocks, r, offp, l - 1, a, bb)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def ivanic_ruedenberg(rot, order, offsets, blocks):
     """Packed per-band rotation blocks of ``rot (B, 3, 3)`` into ``blocks (B, offsets[order])``.
 
@@ -281,7 +281,7 @@ def _ivanic_ruedenberg_one(rot, r, order, offsets, blocks):
 _TILE = 64  # vectors per tile in apply_blocks
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def apply_blocks(blocks, offsets, rot_index, coeffs, out):
     """``out[i, band l, c] = block_l(rot_index[i]) @ coeffs[i, band l, c]`` for ``coeffs (N, n*n, C)``.
 

@@ -43,7 +43,7 @@ def _tile_product(at, bt, gi, gj, gk, gv, ot):
     _tile_product_prefix(at, bt, gi, gj, gk, gv, ot, ot.shape[1])
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _sparse_product(a, b, gi, gj, gk, gv, out):
     """Batched SH product over the sparse Gaunt tensor.
 

@@ -27,7 +27,7 @@ def sample_corners(rpos, s, t, n_r, res):
     return r0, r1, fr, i0, i1, y - i0, j0, j1, x - j0
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def trilinear_kernel(values, rpos, face, s, t, out):
     """Trilinear interpolation of a field sampled on concentric cubemap-gridded spheres.
 
@@ -92,7 +92,7 @@ def _interp_index(x, xp):
     return value
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def locate_kernel(points, center, radii, rpos, face, s, t, beyond):
     """``SphereGrid.locate`` of object-space ``points`` (Q, 3), the same floating-point steps as its numpy path: the
     radius ``sqrt((x^2 + y^2) + z^2)`` of ``points - center``, ``rpos`` by ``np.interp`` over ``radii`` (at least

@@ -268,6 +268,60 @@ def test_moved_frame_is_the_same_with_one_visibility_kernel_call_per_factor(pre,
             assert np.array_equal(getattr(fused, part)[name], getattr(per_factor, part)[name])
 
 
+class _Stalled:
+    """A frame worker that runs the first task it is given (step 1) and leaves the others pending, so the frame's
+    own thread makes every residual-gather entry."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        self.calls += 1
+        future = Future()
+        if self.calls == 1:
+            future.set_result(fn(*args))
+        return future
+
+
+@pytest.mark.parametrize("worker", ["thread", "stalled"])
+def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
+    """Frames with ``OVERLAP`` (step 1 and the residual-gather entries on a second thread, or every entry taken
+    back by the frame's thread) equal frames without it bit for bit, ray counts included: the first frame, an
+    object moved twice, then an area light added and moved."""
+    from prtlab.interreflection import _pipeline
+    from prtlab.scene import AreaLight
+
+    def frames(overlap):
+        monkeypatch.setattr(_pipeline, "OVERLAP", overlap)
+        if overlap and worker == "stalled":
+            monkeypatch.setattr(_pipeline, "_frame_worker", lambda: _Stalled())
+        ir = Interreflection(pre.scene, pre.options, pre.data)
+        state = FrameState.from_scene(pre.scene)
+        out = [ir.shade(state, bounces=2)]
+        for translate in ([0.1, 0.65, 0.05], [-0.05, 0.6, 0.1]):
+            state.transforms["ball"] = Transform(translate=translate)
+            out.append(ir.shade(state, bounces=2))
+        for centre in ([0.2, 2.0, 0.1], [0.0, 2.2, 0.1]):
+            state.lights = [*pre.scene.lights, AreaLight(center=np.array(centre), u=np.array([0.3, 0, 0]),
+                                                         v=np.array([0, 0, 0.3]), radiance=np.full(3, 5.0))]
+            state.transforms["ball"] = Transform(translate=[0.05, 0.6 + centre[1] / 10, 0.0])
+            out.append(ir.shade(state, bounces=2))
+        monkeypatch.undo()
+        return out
+
+    sequential, overlapped = frames(False), frames(True)
+    for a, b in zip(sequential, overlapped):
+        for key in ("residual_rays_cast", "direct_rays_cast", "residual_near_hits", "computed_pairs",
+                    "updated_pairs"):
+            assert a.info[key] == b.info[key], key
+        for name in a.total:
+            for part in ("direct", "indirect", "total"):
+                assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name])
+    assert sequential[1].info["residual_rays_cast"] > 0
+
+
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_may_block_kernel_equals_the_numpy_tier(seed):
