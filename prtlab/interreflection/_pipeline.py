@@ -1794,8 +1794,9 @@ class Interreflection(Precomputation):
         return at[:, 0] & at[:, 1] & at[:, 2]
 
     def _overlapped(self, state: FrameState, geo, occ, transfer, t0: float):
-        """``(direct_step, basis_irradiance_step, seconds to the direct step's end, seconds from there to the end)``
-        of :data:`OVERLAP`: step 1, then each receiver's residual-gather entry as soon as its ``Phi`` is made, on a
+        """``((*direct_step, transfer), basis_irradiance_step, seconds to the direct step's end, seconds from there to
+        the end)`` of :data:`OVERLAP`: the SH transfer (``transfer``, or its call when it is one), step 1, then each
+        receiver's residual-gather entry as soon as its ``Phi`` is made, on a
         second thread (numba's thread count carried over) while step 2 runs here; the entries not started when
         step 2 ends are made here.
 
@@ -1810,7 +1811,8 @@ class Interreflection(Precomputation):
             numba.set_num_threads(threads)
             if self.options.residual_rays:  # the entries' caster, before any entry task
                 self._scene_caster(geo, tuple(geo[o.name]["pose"] for o in self.objects))
-            out = self.direct_step(state, geo, transfer)
+            sh_transfer = transfer() if callable(transfer) else transfer
+            out = (*self.direct_step(state, geo, sh_transfer), sh_transfer)
             ended.append(time.perf_counter())
             return out
 
@@ -1857,19 +1859,20 @@ class Interreflection(Precomputation):
             # shadows="rays" needs the SH transfer for an environment light alone
             rays_only = self.options.shadows == "rays" and not any(isinstance(light, EnvironmentLight)
                                                                    for light in state.lights)
-            transfer = None if rays_only else self.direct_transfer(geo, occ, state.lights)
-            self.reuse.frame = (key, (geo, occ, transfer))
+            transfer = None if rays_only else functools.partial(self.direct_transfer, geo, occ, state.lights)
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         if OVERLAP and bounces and (self.reuse.scene_caster is None or self.reuse.scene_caster[0] != poses):
-            (light_k, direct), (phi, counts), times["direct"], times["basis_irradiance"] = self._overlapped(
-                state, geo, occ, transfer, t0)
+            (light_k, direct, transfer), (phi, counts), times["direct"], times["basis_irradiance"] = \
+                self._overlapped(state, geo, occ, transfer, t0)
         else:
+            transfer = transfer() if callable(transfer) else transfer
             light_k, direct = self.direct_step(state, geo, transfer)
             times["direct"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             phi, counts = self.basis_irradiance_step(geo, occ) if bounces else ({o.name: {} for o in self.objects},
                                                                                 {})
             times["basis_irradiance"] = time.perf_counter() - t0
+        self.reuse.frame = (key, (geo, occ, transfer))
         indirect, t_weights, t_bounces, t_near = self._bounces(geo, phi, light_k, bounces, state.lights)
         times["weights"], times["bounces"], times["near_hits"] = t_weights, t_bounces, t_near
         result = ShadeResult()
