@@ -1490,74 +1490,53 @@ class Interreflection(Precomputation):
             residuals = self._residuals(light_k, weights) if self.options.residual_rays else {}
             t_weights += time.perf_counter() - t0
             t0 = time.perf_counter()
-            corrections, pending = {}, None
-            if residuals and bounce == 0 and self._near_on(lights):
-                if OVERLAP and method != "reference" and not self.options.residual_whole:
-                    # made on the worker while the receivers' sums run here; added to them below, in the order the
-                    # sums would have added them
-                    threads = numba.get_num_threads()
-                    pending = _frame_worker().submit(self._on_thread, threads, self._near_corrections, geo, phi,
-                                                     lights)
-                else:
-                    corrections = self._near_corrections(geo, phi, lights)
+            corrections = self._near_corrections(geo, phi, lights) if residuals and bounce == 0 \
+                and self._near_on(lights) else {}
             t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
-            new_light, summed = {}, {}
+            new_light = {}
             stacked_residual = offsets = None  # every object's residual (K = 1, RGB), stacked for bounce_rgb
             if residuals and method != "reference" and all(v.shape[1:] == (1, 3) for v in residuals.values()):
                 offsets = np.cumsum([0] + [len(residuals[o.name]) for o in self.objects])
                 stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
-            try:  # no task of this frame runs on after it
-                for r in self.objects:
-                    g = geo[r.name]
-                    fused = method != "reference" and self.seps[r.name].K == 1  # bounce_rgb may take it
-                    stacked, sources = self._stacked_irradiance(r, phi[r.name],
-                                                                STACKED_IRRADIANCE if fused else np.float64)
-                    entry = self._residual_entry(geo, r, phi[r.name]) if residuals else {}
-                    operators = entry.get("operators", {})
-                    if (method != "reference" and stacked is not None and stacked.shape[1] == 1
-                            and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
-                        # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
-                        w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
-                        extra = None if pending is not None else corrections.get(r.name)
-                        packed = None
-                        if operators:  # their terms packed per source, kept (re-packed where an operator changed)
-                            packed = entry.setdefault("packed", PackedGather())
-                            packed.update(list(operators.values()), list(operators), offsets)
-                        lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
-                                        stacked_residual, offsets,
-                                        None if extra is None else extra.reshape(len(stacked), 3), packed=packed)
-                        lk = lk.reshape(len(stacked), 1, 3)
-                        if residuals and self.options.residual_whole and self._near_on(lights):
-                            lk = lk + self._whole_light(geo, r, phi[r.name], weights)
-                    else:
-                        if sources:
-                            # Eq. 12 before h: every source's (k, i) side by side
-                            w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
-                            lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
-                        else:
-                            lk = np.zeros(g["g_cos"].shape[:2] + (3,))
-                        if residuals:
-                            lk = lk + self._residual_light(geo, r, residuals, phi[r.name], method=method)
-                            if corrections:
-                                lk = lk + corrections[r.name]
-                            if self.options.residual_whole and self._near_on(lights):
-                                lk = lk + self._whole_light(geo, r, phi[r.name], weights)
-                    summed[r.name] = lk
-            finally:
-                if pending is not None:
-                    futures_wait([pending])
-            if pending is not None:  # added as bounce_rgb's extra would have been: (dot + gather) + extra
-                t_wait = time.perf_counter()
-                corrections = pending.result()
-                t_near += time.perf_counter() - t_wait
-                t0 += time.perf_counter() - t_wait
-                for r in self.objects:
-                    summed[r.name] = summed[r.name] + corrections[r.name]
             for r in self.objects:
-                lk = self._clamp_diffuse(r, summed[r.name])
+                g = geo[r.name]
+                fused = method != "reference" and self.seps[r.name].K == 1  # bounce_rgb may take it
+                stacked, sources = self._stacked_irradiance(r, phi[r.name],
+                                                            STACKED_IRRADIANCE if fused else np.float64)
+                entry = self._residual_entry(geo, r, phi[r.name]) if residuals else {}
+                operators = entry.get("operators", {})
+                if (method != "reference" and stacked is not None and stacked.shape[1] == 1
+                        and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
+                    # one pass per receiver (bounce_rgb): Eq. 12, the residual gather, the near hits' correction
+                    w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                    extra = corrections.get(r.name)
+                    packed = None
+                    if operators:  # their terms packed per source, kept (re-packed where an operator changed)
+                        packed = entry.setdefault("packed", PackedGather())
+                        packed.update(list(operators.values()), list(operators), offsets)
+                    lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
+                                    stacked_residual, offsets,
+                                    None if extra is None else extra.reshape(len(stacked), 3), packed=packed)
+                    lk = lk.reshape(len(stacked), 1, 3)
+                    if residuals and self.options.residual_whole and self._near_on(lights):
+                        lk = lk + self._whole_light(geo, r, phi[r.name], weights)
+                else:
+                    if sources:
+                        # Eq. 12 before h: every source's (k, i) side by side
+                        w = np.concatenate([weights[s].reshape(-1, 3) for s in sources], axis=0)
+                        lk = (stacked.reshape(-1, stacked.shape[2]) @ w).reshape(stacked.shape[:2] + (3,))
+                    else:
+                        lk = np.zeros(g["g_cos"].shape[:2] + (3,))
+                    if residuals:
+                        lk = lk + self._residual_light(geo, r, residuals, phi[r.name], method=method)
+                        if corrections:
+                            lk = lk + corrections[r.name]
+                        if self.options.residual_whole and self._near_on(lights):
+                            lk = lk + self._whole_light(geo, r, phi[r.name], weights)
+                lk = self._clamp_diffuse(r, lk)
                 new_light[r.name] = lk
-                indirect[r.name] += outgoing_radiance(lk, geo[r.name]["h"], self.seps[r.name].colour)
+                indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
             light_k = new_light
             t_bounces += time.perf_counter() - t0
         return indirect, t_weights, t_bounces, t_near
@@ -1815,12 +1794,6 @@ class Interreflection(Precomputation):
         at = code[corners]
         return at[:, 0] & at[:, 1] & at[:, 2]
 
-    @staticmethod
-    def _on_thread(threads: int, method, *args):
-        """``method(*args)`` on a worker thread with numba's thread count of the caller (``threads``)."""
-        numba.set_num_threads(threads)
-        return method(*args)
-
     def _overlapped(self, state: FrameState, geo, occ, transfer, t0: float):
         """``((*direct_step, transfer), basis_irradiance_step, seconds to the direct step's end, seconds from there to
         the end)`` of :data:`OVERLAP`: the SH transfer (``transfer``, or its call when it is one), step 1, then each
@@ -1844,14 +1817,17 @@ class Interreflection(Precomputation):
             ended.append(time.perf_counter())
             return out
 
+        def entry(r, phi_r, stats):
+            numba.set_num_threads(threads)
+            self._residual_entry(geo, r, phi_r, stats)
+
         tasks = []  # (future, receiver, Phi[r], ray counts)
         worker = _frame_worker()
         step1 = worker.submit(direct)
 
         def done(r, phi_r):
             stats = {"rays_cast": 0}
-            tasks.append((worker.submit(self._on_thread, threads, self._residual_entry, geo, r, phi_r, stats), r,
-                          phi_r, stats))
+            tasks.append((worker.submit(entry, r, phi_r, stats), r, phi_r, stats))
 
         try:
             step2 = self.basis_irradiance_step(geo, occ, done=done if self.options.residual_rays else None)
