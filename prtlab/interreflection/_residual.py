@@ -1172,8 +1172,8 @@ def pack_operators(operators, sources, offsets, dtype=None) -> tuple:
     weights = np.empty((starts[-1], 3), dtype)
     fill = starts[:-1].copy()
     for op, j in zip(operators, sources):
-        _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), int(offsets[j]), fill,
-                     rows, weights)
+        _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), int(offsets[j]),
+                     np.zeros(0, np.int32), fill, rows, weights)
     return starts, rows, weights
 
 
@@ -1182,33 +1182,57 @@ def _room(n: int) -> int:
     return n + n // 8 + 64
 
 
+#: Most rows :class:`PackedGather`'s compact residual holds with uint16 row numbers (above: int32).
+SHORT_ROWS = 1 << 16
+
+#: :class:`PackedGather` packs every operator again when its compact residual has grown past
+#: ``COMPACT_GROWTH`` times the rows it held when last packed whole plus ``COMPACT_SLACK`` (rows no term reads
+#: any more are dropped only then).
+COMPACT_GROWTH, COMPACT_SLACK = 1.5, 1024
+
+
 class PackedGather:
     """The gathers of one receiver's operators packed for :func:`bounce_rgb` in segments, re-packed segment by
-    segment.
+    segment, over a compact copy of the residual rows they read.
 
     Segment ``s`` holds :func:`pack_operators`'s terms of a run of consecutive operators: point ``v``'s terms are
-    ``starts[s, v]:starts[s, v + 1]`` of ``rows`` (C, 3) int32 and ``weights`` (C, 3) ``dtype`` (default
+    ``starts[s, v]:starts[s, v + 1]`` of ``rows`` (C, 3) and ``weights`` (C, 3) ``dtype`` (default
     :data:`PACKED_WEIGHTS`), so that reading the segments in order for each point sums its terms in the order of
-    :func:`pack_operators`. :meth:`update` re-packs only the segments holding an operator that is not the object
-    it last packed there (or whose source's rows moved in the stacked residual), split into runs of changed and
-    unchanged operators: an operator that changes every frame gets a segment of its own, the others stay
-    merged. Segments are never merged again, so ``B`` operators changing in turn leave up to ``B`` segments (a
-    slower bounce). A segment is re-packed in its place when it fits, else after the others; the arrays are made
-    again, live segments only, when that runs out of room. Updated in place: the arrays of :meth:`arrays` hold
-    until the next :meth:`update`."""
+    :func:`pack_operators`. ``rows`` number rows of the compact residual: compact row ``k`` is row
+    ``residual_rows[k]`` of the stacked residual (each row at most once; uint16 while there are at most
+    :data:`SHORT_ROWS`, else int32), so that a bounce copies the rows its terms read together (about half the
+    stacked residual a receiver, small enough to stay in a core's cache) and reads 18 bytes a term.
+    :meth:`update` re-packs only the segments holding an operator that is not the object it last packed there
+    (or whose source's rows moved in the stacked residual), split into runs of changed and unchanged operators:
+    an operator that changes every frame gets a segment of its own, the others stay merged. Segments are never
+    merged again, so ``B`` operators changing in turn leave up to ``B`` segments (a slower bounce). A segment is
+    re-packed in its place when it fits, else after the others; the arrays are made again, live segments only,
+    when that runs out of room. Rows a re-packed segment reads anew join the compact residual; every operator is
+    packed again, in one segment over only the rows read, when the compact residual has grown past
+    :data:`COMPACT_GROWTH` times its size when last packed whole and :data:`COMPACT_SLACK` rows (or past
+    :data:`SHORT_ROWS` with uint16 rows).
+    Updated in place: the arrays of :meth:`arrays` hold until the next :meth:`update`."""
 
     def __init__(self, dtype=None):
         self.dtype = PACKED_WEIGHTS if dtype is None else dtype
         self.starts = np.zeros((0, 1), np.int64)
-        self.rows = np.zeros((0, 3), np.int32)
+        self._reset(0)
+
+    def _reset(self, n_operators: int):
+        """No segment, no compact row: every one of ``n_operators`` operators is packed anew."""
+        self.rows = np.zeros((0, 3), np.uint16)
         self.weights = np.zeros((0, 3), self.dtype)
-        self._keys = []  # per operator: (operator, its source's first row) last packed
+        self.residual_rows = np.zeros(0, np.int64)
+        self._compact = np.zeros(0, np.int32)  # per stacked residual row: its compact row, or -1
+        self._compacted = 0  # compact rows when last packed whole
+        self._keys = [None] * n_operators  # per operator: (operator, its source's first row) last packed
         self._segments = []  # [first operator, last operator + 1, first term, room, starts (V + 1,)]
         self._used = 0  # terms of the arrays given to segments
 
     def arrays(self) -> tuple:
-        """``(starts (S, V + 1) int64, rows (C, 3) int32, weights (C, 3))``, the form :func:`_bounce_kernel` reads."""
-        return self.starts, self.rows, self.weights
+        """``(starts (S, V + 1) int64, rows (C, 3) uint16 or int32, weights (C, 3), residual_rows (R,) int64)``,
+        the form :func:`_bounce_kernel` reads."""
+        return self.starts, self.rows, self.weights, self.residual_rows
 
     def update(self, operators, sources, offsets) -> PackedGather:
         """Packs ``operators`` (:class:`GatherOperator`, :func:`_rgb_ready`) of the objects ``sources`` whose rows
@@ -1217,11 +1241,15 @@ class PackedGather:
         keys = [(op, int(offsets[j])) for op, j in zip(operators, sources)]
         n_points = len(operators[0].starts) - 1 if operators else 0
         if len(keys) != len(self._keys) or self.starts.shape[1] != n_points + 1:
-            self._keys, self._segments = [None] * len(keys), []
+            self._reset(len(keys))
         stale = [self._keys[b] is None or self._keys[b][0] is not key[0] or self._keys[b][1] != key[1]
                  for b, key in enumerate(keys)]
         if self._segments and not any(stale):
             return self
+        if not self._add_rows([key for key, changed in zip(keys, stale) if changed]):
+            self._reset(len(keys))  # grown too far: every operator packed again, over the rows read only
+            stale = [True] * len(keys)
+            self._add_rows(keys)
         kept, fresh = [], []  # fresh: [first operator, last + 1, its terms, (first term, room) it may reuse]
         for seg in self._segments or [[0, len(keys), 0, 0, None]]:
             lo, hi = seg[0], seg[1]
@@ -1252,8 +1280,8 @@ class PackedGather:
             fill = starts[:-1].copy()
             for b in range(lo, hi):
                 op, offset = keys[b]
-                _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), offset, fill,
-                             self.rows, self.weights)
+                _pack_kernel(op.starts, op.faces, op.triangles, op.uv, op.factor.reshape(-1), offset, self._compact,
+                             fill, self.rows, self.weights)
             kept.append([lo, hi, first, room, starts])
         self._segments = sorted(kept, key=lambda seg: seg[0])
         self._keys = keys
@@ -1261,11 +1289,36 @@ class PackedGather:
             else np.zeros((0, n_points + 1), np.int64)
         return self
 
+    def _add_rows(self, keys) -> bool:
+        """Gives every stacked residual row that the hits of ``keys`` (``(operator, first row)``) read a compact
+        row; False, changing nothing, if that grows a compact residual already packed past its bounds
+        (:data:`COMPACT_GROWTH`, :data:`COMPACT_SLACK`, :data:`SHORT_ROWS`)."""
+        n_rows = max([offset + int(op.faces.max()) + 1 for op, offset in keys if len(op.faces)], default=0)
+        read = np.zeros(max(n_rows, len(self._compact)), np.bool_)
+        for op, offset in keys:
+            _mark_rows(op.faces, op.triangles, offset, read)
+        compact = np.full(len(read), -1, np.int32)
+        compact[:len(self._compact)] = self._compact
+        new = np.flatnonzero(read & (compact < 0))
+        total = len(self.residual_rows) + len(new)
+        short = self.rows.dtype == np.uint16
+        grown = total > COMPACT_GROWTH * self._compacted + COMPACT_SLACK
+        if self._segments and (grown or (short and total > SHORT_ROWS)):
+            return False
+        if short and total > SHORT_ROWS:  # packed whole: int32 rows (the arrays made again)
+            self.rows, self.weights, self._used = np.zeros((0, 3), np.int32), np.zeros((0, 3), self.dtype), 0
+        compact[new] = np.arange(len(self.residual_rows), total, dtype=np.int32)
+        self._compact = compact
+        self.residual_rows = np.concatenate([self.residual_rows, new]).astype(np.int64)
+        if not self._segments:
+            self._compacted = total
+        return True
+
     def _rebuild(self, kept, fresh):
         """New arrays with each segment's room (:func:`_room`) and an eighth more: the ``kept`` segments copied
         into theirs, the ``fresh`` runs' rooms left for :meth:`update` to pack."""
         rooms = [_room(int(seg[4][-1] - seg[4][0])) for seg in kept] + [_room(run[2]) for run in fresh]
-        rows = np.empty((sum(rooms) + sum(rooms) // 8, 3), np.int32)
+        rows = np.empty((sum(rooms) + sum(rooms) // 8, 3), self.rows.dtype)
         weights = np.empty((len(rows), 3), self.dtype)
         first = 0
         for seg, room in zip(kept, rooms):
@@ -1280,16 +1333,29 @@ class PackedGather:
         self.rows, self.weights, self._used = rows, weights, first
 
 
+@numba.njit(cache=True, nogil=True)
+def _mark_rows(fc, tr, o, read):
+    """``read[o + fc[tr[h], j]] = True`` for every hit ``h`` and vertex ``j``."""
+    for h in range(tr.shape[0]):
+        f = tr[h]
+        read[o + fc[f, 0]] = True
+        read[o + fc[f, 1]] = True
+        read[o + fc[f, 2]] = True
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _pack_kernel(st, fc, tr, bc, fa, o, fill, rows, weights):
-    """One source's hits appended to each point's terms at ``fill[v]`` (advanced past them)."""
+def _pack_kernel(st, fc, tr, bc, fa, o, compact, fill, rows, weights):
+    """One source's hits appended to each point's terms at ``fill[v]`` (advanced past them); each term's rows
+    ``compact[o + vertex]``, or ``o + vertex`` itself if ``compact`` is empty."""
+    direct = compact.shape[0] == 0
     for v in numba.prange(st.shape[0] - 1):
         t = fill[v]
         for h in range(st[v], st[v + 1]):
             f = tr[h]
             u, w = np.float64(bc[h, 0]), np.float64(bc[h, 1])
             c = fa[h]
-            rows[t, 0], rows[t, 1], rows[t, 2] = o + fc[f, 0], o + fc[f, 1], o + fc[f, 2]
+            for j in range(3):
+                rows[t, j] = o + fc[f, j] if direct else compact[o + fc[f, j]]
             weights[t, 0], weights[t, 1], weights[t, 2] = c * (1.0 - u - w), c * u, c * w
             t += 1
         fill[v] = t
@@ -1308,23 +1374,28 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     gather's terms in the order of the numpy path
     (:func:`apply_gather` per source), which holds it to ``1e-12`` with float64 weights and to their rounding
     bound with float32 ones (``tests/interreflection/test_residual.py``); the dot product's summation order
-    differs from BLAS's.
+    differs from BLAS's. A :class:`PackedGather`'s compact residual rows are copied first, so each value read
+    is the same.
     """
     stacked = np.ascontiguousarray(stacked, np.float32 if stacked.dtype == np.float32 else np.float64)
     out = np.empty((stacked.shape[0], 3))
     if not len(out):
         return out
     extra = np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64)
+    residual_rows = np.zeros(0, np.int64)  # none: the terms' rows are the stacked residual's
     if operators:
         packed = PackedGather().update(operators, sources, offsets) if packed is None else packed
-        starts, rows, weights = packed.arrays() if isinstance(packed, PackedGather) else packed
+        if isinstance(packed, PackedGather):
+            starts, rows, weights, residual_rows = packed.arrays()
+        else:
+            starts, rows, weights = packed
         starts = starts.reshape(-1, len(out) + 1)  # pack_operators' list is one segment
         residual = np.ascontiguousarray(residual, np.float64)
     else:
         starts, rows, weights = np.zeros((0, len(out) + 1), np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
         residual = np.zeros((0, 3))
-    _bounce_kernel(stacked, np.ascontiguousarray(np.transpose(w), np.float64), starts, rows, weights, residual, extra,
-                   out)
+    _bounce_kernel(stacked, np.ascontiguousarray(np.transpose(w), np.float64), starts, rows, weights, residual,
+                   residual_rows, np.empty((len(residual_rows), 3)), extra, out)
     return out
 
 
@@ -1366,10 +1437,17 @@ def _dot_rgb(stacked, wt, v):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _bounce_kernel(stacked, wt, starts, rows, weights, x, extra, out):
+def _bounce_kernel(stacked, wt, starts, rows, weights, x, x_rows, compact, extra, out):
     """:func:`bounce_rgb` in one parallel pass over the points: the dot product with ``wt`` (3, M) (:func:`_dot_rgb`),
     the packed gather's terms (``starts`` (S, V + 1), :class:`PackedGather`; S = 0 for none) segment after
-    segment, each in order, and ``extra`` ((V, 3) or (0, 3))."""
+    segment, each in order, and ``extra`` ((V, 3) or (0, 3)). The terms' ``rows`` number rows of ``compact``
+    (R, 3), filled first with the rows ``x_rows`` (R,) of ``x``, or if R = 0 rows of ``x`` itself."""
+    for k in numba.prange(x_rows.shape[0]):
+        i = x_rows[k]
+        compact[k, 0] = x[i, 0]
+        compact[k, 1] = x[i, 1]
+        compact[k, 2] = x[i, 2]
+    table = compact if x_rows.shape[0] > 0 else x
     add = extra.shape[0] > 0
     for v in numba.prange(stacked.shape[0]):
         d0, d1, d2 = _dot_rgb(stacked, wt, v)
@@ -1381,9 +1459,9 @@ def _bounce_kernel(stacked, wt, starts, rows, weights, x, extra, out):
                 for j in range(3):
                     i = rows[t, j]
                     c = np.float64(weights[t, j])
-                    g0 += c * x[i, 0]
-                    g1 += c * x[i, 1]
-                    g2 += c * x[i, 2]
+                    g0 += c * table[i, 0]
+                    g1 += c * table[i, 1]
+                    g2 += c * table[i, 2]
         out[v, 0] = d0 + g0
         out[v, 1] = d1 + g1
         out[v, 2] = d2 + g2

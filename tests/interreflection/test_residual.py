@@ -619,8 +619,8 @@ def _merged_bounce(stacked, wt, starts, rows, weights, x):
     from prtlab.interreflection._residual import _bounce_kernel
 
     out = np.empty((len(stacked), 3))
-    _bounce_kernel(stacked, np.ascontiguousarray(wt.T), starts.reshape(1, -1), rows, weights, x, np.zeros((0, 3)),
-                   out)
+    _bounce_kernel(stacked, np.ascontiguousarray(wt.T), starts.reshape(1, -1), rows, weights, x, np.zeros(0, np.int64),
+                   np.zeros((0, 3)), np.zeros((0, 3)), out)
     return out
 
 
@@ -675,6 +675,76 @@ def test_packed_gather_segments_equal_one_merged_list():
     assert packed.rows is not rows
     check(ops, 4, offsets=offsets + np.array([0, 0, 0, 1]))  # the last source's rows moved: it is re-packed
     check(list(reversed(ops)), 1)  # other operators throughout: packed whole
+
+
+def _gather_in_order(starts, rows, weights, x):
+    """The packed gather's specification, one Python float at a time: per point ``sum_t sum_j w[t, j] x[rows[t,
+    j]]`` over its terms of every segment in order (``starts`` (S, V + 1)), as the kernel read the stacked residual
+    before it read a compact copy."""
+    out = np.zeros((starts.shape[1] - 1, 3))
+    for v in range(len(out)):
+        g = [0.0, 0.0, 0.0]
+        for s in range(len(starts)):
+            for t in range(starts[s, v], starts[s, v + 1]):
+                for j in range(3):
+                    c = float(weights[t, j])
+                    for k in range(3):
+                        g[k] += c * float(x[rows[t, j], k])
+        out[v] = g
+    return out
+
+
+def test_packed_gather_compact_residual_equals_the_stacked_rows(monkeypatch):
+    """:class:`PackedGather`'s compact residual holds each stacked residual row its terms read once (uint16 row
+    numbers; int32 past ``SHORT_ROWS``), and :func:`bounce_rgb` over it equals, bit for bit, the gather in order
+    over :func:`pack_operators`' stacked rows (``_gather_in_order``): packed whole, after operators change (the
+    rows they read anew appended), and after growing past ``COMPACT_GROWTH`` (every operator packed again, over
+    the rows read only)."""
+    import dataclasses
+
+    from prtlab.interreflection import _residual
+    from prtlab.interreflection._residual import PackedGather, bounce_rgb, pack_operators
+
+    rng = np.random.default_rng(34)
+    n_r, n_m, sizes = 120, 4, [50, 80, 40]
+    sources = [0, 1, 2]
+    ops, residual, offsets = _random_gathers(rng, n_r, sizes)
+    stacked, w = np.zeros((n_r, n_m), np.float32), np.zeros((n_m, 3))  # the dot product adds exact zeros
+
+    def read_rows(ops):
+        return np.unique(np.concatenate([a + op.faces[op.triangles].ravel() for op, a in zip(ops, offsets)]))
+
+    def check(packed, ops, dtype, exact_set):
+        assert packed.update(ops, sources, offsets) is packed
+        starts, rows, weights, residual_rows = packed.arrays()
+        assert rows.dtype == dtype
+        assert len(np.unique(residual_rows)) == len(residual_rows)
+        assert set(read_rows(ops)) <= set(residual_rows)
+        if exact_set:
+            np.testing.assert_array_equal(np.sort(residual_rows), read_rows(ops))
+        merged = pack_operators(ops, sources, offsets)
+        expected = _gather_in_order(merged[0].reshape(1, -1), merged[1], merged[2], residual)
+        np.testing.assert_array_equal(bounce_rgb(stacked, w, ops, sources, residual, offsets, packed=packed), expected)
+        terms = np.concatenate([np.arange(starts[s, v], starts[s, v + 1]) for v in range(n_r)
+                                for s in range(len(starts))]).astype(np.int64)
+        np.testing.assert_array_equal(residual_rows[rows[terms]], merged[1])  # the same stacked rows, term by term
+        np.testing.assert_array_equal(weights[terms], merged[2])
+
+    packed = PackedGather()
+    check(packed, ops, np.uint16, True)
+    more, _, _ = _random_gathers(rng, n_r, sizes)
+    ops = ops[:1] + [more[1]] + ops[2:]
+    check(packed, ops, np.uint16, False)  # more rows appended, within the growth allowed
+    check(packed, ops[:1] + [more[1]] + [more[2]], np.uint16, False)  # a third segment
+    assert packed.starts.shape[0] == 3
+    monkeypatch.setattr(_residual, "COMPACT_GROWTH", 1.0)
+    monkeypatch.setattr(_residual, "COMPACT_SLACK", 0)
+    ops = ops[:1] + [more[1]] + [dataclasses.replace(more[2], faces=(more[2].faces + 7) % sizes[2])]
+    assert not set(read_rows(ops)) <= set(packed.residual_rows)  # rows read anew: grown, packed whole again
+    check(packed, ops, np.uint16, True)
+    assert packed.starts.shape[0] == 1
+    monkeypatch.setattr(_residual, "SHORT_ROWS", 16)
+    check(PackedGather(), ops, np.int32, True)  # too many rows for uint16
 
 
 def test_packed_float32_gather_within_its_rounding_bound():
