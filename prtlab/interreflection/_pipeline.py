@@ -58,11 +58,11 @@ from __future__ import annotations
 import copy
 import time
 import dataclasses
+import functools
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
-import functools
-import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -133,7 +133,6 @@ def _frame_worker() -> ThreadPoolExecutor:
     if not _WORKER or _WORKER[0][0] != os.getpid():
         _WORKER[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-frame"))]
     return _WORKER[0][1]
-
 
 
 @dataclass
@@ -1797,9 +1796,8 @@ class Interreflection(Precomputation):
     def _overlapped(self, state: FrameState, geo, occ, transfer, t0: float):
         """``((*direct_step, transfer), basis_irradiance_step, seconds to the direct step's end, seconds from there to
         the end)`` of :data:`OVERLAP`: the SH transfer (``transfer``, or its call when it is one), step 1, then each
-        receiver's residual-gather entry as soon as its ``Phi`` is made, on a
-        second thread (numba's thread count carried over) while step 2 runs here; the entries not started when
-        step 2 ends are made here.
+        receiver's residual-gather entry as soon as its ``Phi`` is made, on a second thread (numba's thread count
+        carried over) while step 2 runs here; the entries not started when step 2 ends are made here.
 
         The worker's first task makes the scene caster and the direct light's reuse entries; each entry task writes
         its receiver's entry and its own ray counts (added to the frame's at the end); step 2 its pairs, blockers
