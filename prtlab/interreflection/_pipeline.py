@@ -61,7 +61,7 @@ import dataclasses
 import functools
 import itertools
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -133,6 +133,42 @@ def _frame_worker() -> ThreadPoolExecutor:
     if not _WORKER or _WORKER[0][0] != os.getpid():
         _WORKER[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-frame"))]
     return _WORKER[0][1]
+
+
+#: Whether the frame's per-object work (each receiver's direct light by shadow rays, each source's near-hit light,
+#: each receiver's bounce) runs as tasks on as many Python threads as numba has threads, each task's kernels on one
+#: numba thread, rather than object after object with every thread in each kernel: one task's Python then overlaps
+#: the others' kernels, and a small object's kernel no longer leaves threads idle at its parallel region's end. A
+#: task writes only its own results (and its own object's entries of the frame's caches), merged in object order,
+#: so the frame is the same bit for bit (test); False runs the objects one after another.
+TASKS = True
+
+_TASK_POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor of TASKS
+
+
+def _per_object(jobs, sizes) -> list:
+    """``[job() for job in jobs]``. With :data:`TASKS` and more than one numba thread, a job whose ``size`` is more
+    than ``1 / threads`` of their sum runs first on the caller's thread (every thread in its kernels), then the
+    others on a kept pool of as many threads (numba's thread count 1 in each), largest first; every job has ended
+    when this returns (the first job's error in list order is raised)."""
+    threads = numba.get_num_threads()
+    if not TASKS or threads < 2 or len(jobs) < 2:
+        return [job() for job in jobs]
+    key = (os.getpid(), threads)
+    if key not in _TASK_POOLS:
+        _TASK_POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="prtlab-task",
+                                              initializer=numba.set_num_threads, initargs=(1,))
+    futures = [Future() for _ in jobs]
+    for k in [k for k in range(len(jobs)) if sizes[k] * threads > sum(sizes)]:
+        try:
+            futures[k].set_result(jobs[k]())
+        except Exception as error:  # raised below, in list order, once every job has ended
+            futures[k].set_exception(error)
+    for k in sorted(range(len(jobs)), key=lambda k: -sizes[k]):
+        if not futures[k].done():
+            futures[k] = _TASK_POOLS[key].submit(jobs[k])
+    futures_wait(futures)
+    return [future.result() for future in futures]
 
 
 @dataclass
@@ -1036,9 +1072,10 @@ class Interreflection(Precomputation):
         caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
         offsets = None if caster is None else (caster.epsilon, caster.tnear)
         samples = (self.options.light_samples, self.options.light_probe, self.options.light_exact_lit)
-        light_k, radiance = {}, {}
-        self.reuse.direct_counts = {"rays_cast": 0}
-        for me, r in enumerate(self.objects):
+        blockers = [self._shadow_blockers(caster, poses, me, True) if near else None
+                    for me in range(len(self.objects))]
+
+        def receiver(me, r):  # a task of _per_object: its light terms and environment, and its rays cast
             g = geo[r.name]
             lk, rad = np.zeros(g["g_cos"].shape[:2] + (3,)), np.zeros((len(g["x"]), 3))
             entry = self.reuse.direct_rays.get(r.name)
@@ -1050,7 +1087,7 @@ class Interreflection(Precomputation):
                 changed = [i for i in range(len(poses)) if entry["poses"][i] != poses[i]]
                 moved = np.array([widened_sphere(sphere, caster.epsilon) for i in changed
                                   for sphere in (entry["spheres"][i], spheres[i])]).reshape(-1, 4)
-            terms = {}
+            terms, counts = {}, {"rays_cast": 0}
             for i, light in enumerate(near):
                 key = (type(light).__name__, *(np.asarray(getattr(light, f), float).tobytes()
                                                for f in ("center", "u", "v", "position") if hasattr(light, f)))
@@ -1064,7 +1101,7 @@ class Interreflection(Precomputation):
                         g["x"], g["n"], mirror_wo(g["wo"], g["n"]), brdf.from_material(r.material),
                         self.seps[r.name], caster, light, i, samples[0], probe=samples[1], exact_lit=samples[2],
                         visibility=old["mask"] if reuse else None, moved=moved if reuse else None,
-                        stats=self.reuse.direct_counts, blockers=self._shadow_blockers(caster, poses, me, True),
+                        stats=counts, blockers=blockers[me],
                         previous=(old["S"], old["F"]) if reuse and old["wo"] == new["wo"] else None)
                 terms[i] = new
                 emission = np.asarray(light.radiance if isinstance(light, AreaLight) else light.intensity, float)
@@ -1076,6 +1113,14 @@ class Interreflection(Precomputation):
                 env_k = self._clamp_diffuse(r, np.einsum("vki,ic->vkc", transfer[r.name], env_sh))
                 environment = (env_sh, transfer[r.name], g["h"], env_k,
                                outgoing_radiance(env_k, g["h"], self.seps[r.name].colour))
+            return lk, rad, terms, environment, counts
+
+        done = _per_object([functools.partial(receiver, me, r) for me, r in enumerate(self.objects)],
+                           [len(geo[r.name]["x"]) for r in self.objects])
+        light_k, radiance = {}, {}
+        self.reuse.direct_counts = {"rays_cast": 0}
+        for r, (lk, rad, terms, environment, counts) in zip(self.objects, done):
+            self.reuse.direct_counts["rays_cast"] += counts["rays_cast"]
             self.reuse.direct_rays[r.name] = dict(poses=poses, offsets=offsets, samples=samples, spheres=spheres,
                                                   lights=terms, light_k=lk, environment=environment)
             if env_sh is not None:  # the environment's terms stand while its SH, the transfer and h_k do
@@ -1493,17 +1538,18 @@ class Interreflection(Precomputation):
                 and self._near_on(lights) else {}
             t_near += time.perf_counter() - t0
             t0 = time.perf_counter()
-            new_light = {}
             stacked_residual = offsets = None  # every object's residual (K = 1, RGB), stacked for bounce_rgb
             if residuals and method != "reference" and all(v.shape[1:] == (1, 3) for v in residuals.values()):
                 offsets = np.cumsum([0] + [len(residuals[o.name]) for o in self.objects])
                 stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
-            for r in self.objects:
+            entries = {r.name: self._residual_entry(geo, r, phi[r.name]) if residuals else {} for r in self.objects}
+
+            def receiver(r):  # a task of _per_object: the receiver's reflected light and its outgoing radiance
                 g = geo[r.name]
                 fused = method != "reference" and self.seps[r.name].K == 1  # bounce_rgb may take it
                 stacked, sources = self._stacked_irradiance(r, phi[r.name],
                                                             STACKED_IRRADIANCE if fused else np.float64)
-                entry = self._residual_entry(geo, r, phi[r.name]) if residuals else {}
+                entry = entries[r.name]
                 operators = entry.get("operators", {})
                 if (method != "reference" and stacked is not None and stacked.shape[1] == 1
                         and (not residuals or (stacked_residual is not None and _rgb_ready(operators.values())))):
@@ -1534,8 +1580,15 @@ class Interreflection(Precomputation):
                         if self.options.residual_whole and self._near_on(lights):
                             lk = lk + self._whole_light(geo, r, phi[r.name], weights)
                 lk = self._clamp_diffuse(r, lk)
+                return lk, outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
+
+            jobs = [functools.partial(receiver, r) for r in self.objects]
+            done = ([job() for job in jobs] if method == "reference"
+                    else _per_object(jobs, [o.n_vertices for o in self.objects]))
+            new_light = {}
+            for r, (lk, radiance) in zip(self.objects, done):
                 new_light[r.name] = lk
-                indirect[r.name] += outgoing_radiance(lk, g["h"], self.seps[r.name].colour)
+                indirect[r.name] += radiance
             light_k = new_light
             t_bounces += time.perf_counter() - t0
         return indirect, t_weights, t_bounces, t_near
@@ -1696,24 +1749,35 @@ class Interreflection(Precomputation):
                         self.options.residual_near))
                 if len(cached[2][0]):
                     selected.setdefault(i, []).append((r.name, hits, *cached[2]))
+        for i in selected:  # made here, then read by the tasks
+            self._shadow_blockers(caster, key[0], i)
+
+        def source(i, parts):  # a task of _per_object: the source's near-hit light and each part's correction
+            colour = np.asarray(self.seps[self.objects[i].name].colour, float)[None]
+            counts = {"rays_cast": 0}
+            exact = self._near_exact(i, parts, caster, spheres, near, key[0], counts)
+            vertex = self.reuse.direct_rays[self.objects[i].name]["light_k"] * colour  # its vertices' L_k
+            bounds = np.cumsum([0] + [len(p[2]) for p in parts])
+            return len(exact), counts["rays_cast"], [
+                near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
+                for (name, hits, index, _, _), a, b in zip(parts, bounds[:-1], bounds[1:])]
+
+        done = _per_object([functools.partial(source, i, parts) for i, parts in selected.items()],
+                           [sum(len(p[2]) for p in parts) for parts in selected.values()])
         out = {r.name: np.zeros(geo[r.name]["g_cos"].shape[:2] + (3,)) for r in self.objects}
         stats = self.reuse.residual_counts
-        for i, parts in selected.items():
-            s = self.objects[i]
-            sep = self.seps[s.name]
-            exact = self._near_exact(i, parts, caster, spheres, near, key[0])
-            stats["near_hits"] = stats.get("near_hits", 0) + len(exact)
-            colour = np.asarray(sep.colour, float)[None]
-            vertex = self.reuse.direct_rays[s.name]["light_k"] * colour  # the same lights' L_k at its vertices
-            bounds = np.cumsum([0] + [len(p[2]) for p in parts])
-            for (name, hits, index, _, _), a, b in zip(parts, bounds[:-1], bounds[1:]):
-                out[name] += near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
+        for parts, (n_hits, n_rays, corrections) in zip(selected.values(), done):
+            stats["near_hits"] = stats.get("near_hits", 0) + n_hits
+            stats["near_rays_cast"] = stats.get("near_rays_cast", 0) + n_rays
+            for (name, *_), correction in zip(parts, corrections):
+                out[name] += correction
         self.reuse.near_exact = {"key": key, "corrections": out}
         return out
 
-    def _near_exact(self, i: int, parts, caster, spheres, lights, poses) -> np.ndarray:
+    def _near_exact(self, i: int, parts, caster, spheres, lights, poses, counts: dict) -> np.ndarray:
         """``L_k`` (Q, K, C) of the lights at source ``i``'s near hits (``parts``' points one after another), as
-        :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it.
+        :func:`ray_traced_direct` (``residual_near_samples``, seed ``1 + i``) computes it; the shadow rays cast are
+        added to ``counts["rays_cast"]``.
 
         Per light the terms and shadow masks are kept (``FrameReuse.near_sources``). When the lights' geometry,
         the source's pose and the ray offsets stand, the leading parts whose near-hit points and normals are the
@@ -1745,9 +1809,6 @@ class Interreflection(Precomputation):
             kept = sum(len(points) for (_, points, _), _ in zip(identity, itertools.takewhile(bool, same)))
             moved = np.array([widened_sphere(sphere, caster.epsilon) for j in range(len(poses))
                               if old["poses"][j] != poses[j] for sphere in (old["spheres"][j], spheres[j])])
-        stats = self.reuse.residual_counts
-        stats.setdefault("near_rays_cast", 0)
-        counts = {"rays_cast": 0}
         wo = normals  # toward the normal: mirror_wo(normals, normals) is the normals themselves (n . n >= 0)
         light_k, terms = np.empty((len(at), sep.K, 3)), []
         for li, light in enumerate(lights):
@@ -1769,7 +1830,6 @@ class Interreflection(Precomputation):
             light_outer_kernel(np.ascontiguousarray(terms[-1][0], np.float64),  # (Q, K, 3): light_k + S radiance
                                np.broadcast_to(light.radiance if isinstance(light, AreaLight) else light.intensity,
                                                (3,)).astype(np.float64), light_k, li > 0)
-        stats["near_rays_cast"] += counts["rays_cast"]
         self.reuse.near_sources[i] = dict(light_keys=light_keys, samples=m, offsets=(caster.epsilon, caster.tnear),
                                           poses=poses, spheres=spheres, parts=identity, at=at, normals=normals,
                                           corners=corners, terms=terms)

@@ -322,6 +322,82 @@ def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
     assert sequential[1].info["residual_rays_cast"] > 0
 
 
+def _two_numba_threads():
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads (one core here)")
+    numba.set_num_threads(2)
+
+
+def test_per_object_runs_large_jobs_here_and_the_others_on_one_numba_thread_each():
+    """``_per_object``: the results in list order; a job with more than half the sizes runs on the caller's
+    thread with every numba thread, the others on the pool with one; an error is raised once every job ended."""
+    import threading
+    import time
+
+    import numba
+
+    from prtlab.interreflection import _pipeline
+
+    _two_numba_threads()
+    seen = []
+
+    def job(k, fail=False):
+        seen.append((k, threading.current_thread() is threading.main_thread(), numba.get_num_threads()))
+        time.sleep(0.01)
+        if fail:
+            raise ValueError(f"job {k}")
+        return k
+
+    jobs = [functools.partial(job, k) for k in range(4)]
+    assert _pipeline._per_object(jobs, [1, 10, 2, 3]) == [0, 1, 2, 3]
+    assert sorted(seen) == [(0, False, 1), (1, True, 2), (2, False, 1), (3, False, 1)]
+    assert seen[0][0] == 1  # the large job first, here
+    seen.clear()
+    with pytest.raises(ValueError, match="job 1"):
+        _pipeline._per_object([functools.partial(job, 0), functools.partial(job, 1, True),
+                               functools.partial(job, 2, True)], [1, 1, 1])
+    assert len(seen) == 3  # the first error in list order, after every job ran
+
+
+def test_task_frames_equal_serial_frames(pre, monkeypatch):
+    """Frames with ``TASKS`` (each object's direct light, near-hit light and bounce as a task on one numba thread)
+    equal frames without it bit for bit, ray counts included: the first frame, an object moved twice, an area light
+    added and moved with the object, then the light alone moved."""
+    from prtlab.interreflection import _pipeline
+    from prtlab.scene import AreaLight
+
+    _two_numba_threads()
+
+    def frames(tasks):
+        monkeypatch.setattr(_pipeline, "TASKS", tasks)
+        ir = Interreflection(pre.scene, pre.options, pre.data)
+        state = FrameState.from_scene(pre.scene)
+        out = [ir.shade(state, bounces=2)]
+        for translate in ([0.1, 0.65, 0.05], [-0.05, 0.6, 0.1]):
+            state.transforms["ball"] = Transform(translate=translate)
+            out.append(ir.shade(state, bounces=2))
+        for centre, ball in (([0.2, 2.0, 0.1], True), ([0.0, 2.2, 0.1], True), ([0.1, 2.1, 0.0], False)):
+            state.lights = [*pre.scene.lights, AreaLight(center=np.array(centre), u=np.array([0.3, 0, 0]),
+                                                         v=np.array([0, 0, 0.3]), radiance=np.full(3, 5.0))]
+            if ball:
+                state.transforms["ball"] = Transform(translate=[0.05, 0.6 + centre[1] / 10, 0.0])
+            out.append(ir.shade(state, bounces=2))
+        monkeypatch.undo()
+        return out
+
+    serial, tasks = frames(False), frames(True)
+    for a, b in zip(serial, tasks):
+        for key in ("residual_rays_cast", "direct_rays_cast", "residual_near_hits", "residual_near_rays_cast",
+                    "computed_pairs", "updated_pairs"):
+            assert a.info[key] == b.info[key], key
+        for name in a.total:
+            for part in ("direct", "indirect", "total"):
+                assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name])
+    assert serial[-1].info["residual_near_hits"] > 0 and serial[-1].info["direct_rays_cast"] > 0
+
+
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_may_block_kernel_equals_the_numpy_tier(seed):
