@@ -221,6 +221,22 @@ def _check(points, normals, wo):
     return x, n, wo
 
 
+def _without_normal(normals) -> np.ndarray:
+    """(V,) bool: the points without a normal, ``n . n == 0`` in float64 (a zero normal, or one whose components'
+    squares all underflow, each below about 1.5e-162): the normals :func:`prtlab.brdf.local_frame` refuses."""
+    return ~(np.einsum("vi,vi->v", normals, normals) > 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_without_wo(normals, wo) -> int:
+    """The first point with a normal (``n . n > 0``) whose ``wo . wo`` is 0 (-1: none), in one pass."""
+    for p in range(normals.shape[0]):
+        o0, o1, o2, n0, n1, n2 = wo[p, 0], wo[p, 1], wo[p, 2], normals[p, 0], normals[p, 1], normals[p, 2]
+        if not o0 * o0 + o1 * o1 + o2 * o2 > 0.0 and n0 * n0 + n1 * n1 + n2 * n2 > 0.0:
+            return p
+    return -1
+
+
 def _check_decided(decided, decided_before, n_points: int, visibility):
     """``(decided, decided_before)`` as (V,) int8 arrays (or None) of :func:`light_terms`."""
     out = []
@@ -353,6 +369,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
     """Float64 numpy specification of :func:`light_terms` (same arguments and results; every ray is cast,
     ``blockers`` and ``previous`` are not used)."""
     x, n, wo = _check(points, normals, wo)
+    bare = _without_normal(n)
     first = _check_first(first)
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
@@ -368,7 +385,10 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
     blocked_all = np.zeros((len(x), m), dtype=bool)
     for lo in range(0, len(x), _CHUNK):
         part = slice(lo, lo + _CHUNK)
-        xp, np_, wop = x[part], n[part], wo[part]
+        xp, np_, wop, barep = x[part], n[part], wo[part], bare[part]
+        if barep.any():  # no normal: no live sample; a placeholder frame and wo for g and f (their weights are 0)
+            np_, wop = np_.copy(), wop.copy()
+            np_[barep] = wop[barep] = (0.0, 0.0, 1.0)
         if area:
             st = (corner[None] + jitter(seed, index, np.arange(lo, lo + len(xp)) + first, m) * cell) * 2.0 - 1.0
             y = c + st[..., :1] * u + st[..., 1:] * v  # (V, m, 3)
@@ -379,7 +399,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         w = d / np.maximum(dist, 1e-300)[..., None]
         cos_x = np.einsum("vmi,vi->vm", w, np_)
         cos_l = -w @ normal if area else np.ones_like(cos_x)
-        live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0)
+        live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0) & ~barep[:, None]
         weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
         meets = _segments_meet(xp, y, moved) if visibility is not None else None
         given = np.zeros(len(xp), np.int8) if decided is None else decided[part]
@@ -407,6 +427,7 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         g = sep.g(brdf.to_local(w, np.broadcast_to(np_[:, None], w.shape)))  # (V, m, K)
         S[part] = np.einsum("vm,vmk->vk", weight, g)
         F[part] = np.einsum("vm,vmc->vc", weight, f.eval(w, wop[:, None], np_[:, None]))
+        S[part][barep], F[part][barep] = 0.0, 0.0  # +0 (a zero weight times a negative g_k is -0)
         if exact:  # some live sample and none blocked: the exact integral, g_k and f at the normal
             at = np.nonzero(np.any(live, axis=1) & ~np.any(blocked, axis=1))[0]
             if len(at):
@@ -513,6 +534,13 @@ def _light_extent(x0, x1, x2, n0, n1, n2, params):
                    + (abs(params[2]) + abs(u2) + abs(v2) + abs(x2)) * (abs(n2) + abs(l2)))
     return (c0 * n0 + c1 * n1 + c2 * n2, abs(u0 * n0 + u1 * n1 + u2 * n2), abs(v0 * n0 + v1 * n1 + v2 * n2),
             c0 * l0 + c1 * l1 + c2 * l2, abs(u0 * l0 + u1 * l1 + u2 * l2), abs(v0 * l0 + v1 * l1 + v2 * l2), tol)
+
+
+@numba.njit(cache=True, inline="always")
+def _no_normal(n0, n1, n2):
+    """Whether ``n`` is no normal, ``n . n == 0`` (as :func:`_without_normal`; the order of the sum does not matter:
+    it is 0 exactly when each square is)."""
+    return not n0 * n0 + n1 * n1 + n2 * n2 > 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -716,7 +744,8 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
     outside every sphere; ``probe`` (m,) or (0,): the samples decided first, whose agreement decides the others
     (:func:`light_terms`); ``decided`` (V,) int8 or (0,): a vertex's answer for every sample given (1 clear, 2
     blocked, 0 none: traced), ``decided_before`` (V,) or (0,) that of the call that gave ``visibility`` (a vertex
-    decided there is traced wholly when it is not now); ``cast`` (V,): the samples traced per vertex; ``exact``
+    decided there is traced wholly when it is not now); a vertex without a normal (:func:`_no_normal`) draws no
+    samples, as one below the light's horizon; ``cast`` (V,): the samples traced per vertex; ``exact``
     (an area light, a receiver whose ``g_k`` and BRDF do not depend on the direction): a vertex with some live
     sample and none blocked takes :func:`_lit_integral` for its lit weights' sum.
 
@@ -810,8 +839,9 @@ def _terms_kernel(x, n, wo, params, area, rows, side, key, first, tracer_fn, tra
                                 blocked[p, j] = visibility[p, j]
                             continue
                         known[i] = 0
-                        dark[i] = _unlit(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params)
-                        if dark[i]:  # every sample below a horizon: not drawn
+                        dark[i] = (_no_normal(n[p, 0], n[p, 1], n[p, 2])
+                                   or _unlit(x0, x1, x2, n[p, 0], n[p, 1], n[p, 2], params))
+                        if dark[i]:  # no normal, or every sample below a horizon: not drawn
                             for j in range(m):
                                 blocked[p, j] = False
                                 state[i * m + j] = _DEAD
@@ -1056,6 +1086,11 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
     (:func:`lit_integral`) for its lit weights' sum, ``g_k`` and the BRDF at its normal (the estimator's noise
     removed where the light is wholly seen); the masks are as without it. Where the answer is known before the
     draw and every point of the light is above the horizon, the kernel draws no samples.
+
+    A point without a normal (``n . n == 0`` in float64: a zero normal, or components each below about 1.5e-162;
+    the pipeline's near hits can interpolate one between opposite vertex normals) has no live sample: zero ``S``
+    and ``F`` and an all-False mask in both tiers, whatever its ``wo``. At a point with a normal, a zero ``wo``
+    (``wo . wo == 0``) is refused with the reference tier's ``ValueError``.
     """
     first, probe = _check_first(first), _check_probe(probe)
     if not _kernel_ready(f, sep, caster):
@@ -1078,6 +1113,8 @@ def light_terms(points, normals, wo, f, sep, caster, light, index: int, samples:
         np.ascontiguousarray(blockers[0], np.float64).reshape(-1, 4),
         np.ascontiguousarray(blockers[1], np.float64).reshape(-1, 5))
     x, n, wo = _check(points, normals, wo)
+    if _first_without_wo(n, wo) >= 0:  # as the reference tier's BRDF refuses it
+        raise ValueError("wo contains a zero vector; every direction must be a unit vector")
     params, rows, side, area = _light_geometry(light, samples)
     m = rows * side
     visibility, moved = _check_reuse(visibility, moved, len(x), m)
@@ -1133,7 +1170,7 @@ def ray_traced_direct(points, normals, wo, f, sep, caster, lights, samples: int,
     form's horizon value does); ``f``: the receiver's BRDF (:mod:`prtlab.brdf`) and ``sep`` its separable
     form. ``samples`` points per vertex on each area light (a ``rows x side <= samples`` grid jittered per
     vertex by a hash of ``(seed, light number, vertex, sample)``, so a frame is deterministic). The sum over
-    the lights of :func:`light_terms` times their radiance.
+    the lights of :func:`light_terms` times their radiance (a point without a normal, ``n . n == 0``, gets none).
     """
     return _direct(light_terms, points, normals, wo, f, sep, caster, lights, samples, seed)
 

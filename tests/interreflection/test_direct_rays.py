@@ -13,6 +13,8 @@ import dataclasses
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from prtlab import brdf
 from prtlab.cache import cache_key
@@ -306,6 +308,113 @@ def test_light_terms_refuse_bad_input():
     with pytest.raises(ValueError, match="previous must be the"):
         light_terms(points, normals, wo, f, sep, caster, LIGHT, 0, 16, visibility=np.zeros((625, 16), bool),
                     moved=np.zeros((0, 4)), previous=(np.zeros((3, 1)), np.zeros((3, 3))))
+
+
+# ------------------------------------------------------------------ points without a normal
+
+#: normals with ``n . n == 0`` in float64 (each square underflows, below about 1.5e-162): zero, tiny, subnormal, mixed
+NO_NORMALS = np.array([[0.0, 0.0, 0.0], [-0.0, 0.0, -0.0], [1e-200, 1e-200, 1e-200], [5e-324, -1e-310, 1e-163],
+                       [0.0, -1.49e-162, 0.0]])
+
+
+def test_a_normal_is_missing_exactly_where_numpy_refuses_it():
+    """``_without_normal`` (the reference tier) and ``_no_normal`` (the kernel) take a normal as missing exactly
+    where ``np.linalg.norm`` gives 0 and :func:`prtlab.brdf.local_frame` refuses it: around the underflow of the
+    squares (``2^-537.5``, about 1.4917e-162) on one, two and three components, subnormals, zeros."""
+    from prtlab.interreflection._direct_rays import _no_normal, _without_normal
+
+    edge = 2.0**-537.5
+    values = np.array([0.0, 5e-324, 1e-310, 1e-200, 1e-163, edge * (1 - 1e-15), edge, edge * (1 + 1e-15), 1.5e-162,
+                       1e-161, 1e-160, 1e-100, 1.0])
+    rng = np.random.default_rng(4)
+    normals = rng.choice(values, (2000, 3)) * rng.choice([-1.0, 1.0], (2000, 3))
+    missing = _without_normal(normals)
+    np.testing.assert_array_equal(missing, np.linalg.norm(normals, axis=1) == 0.0)
+    np.testing.assert_array_equal(missing, [_no_normal(*n) for n in normals])
+    assert 100 < missing.sum() < 1900  # both kinds, many of each
+    with pytest.raises(ValueError, match="normal contains a zero vector"):
+        brdf.local_frame(normals[missing][:1])
+    assert np.all(np.isfinite(brdf.local_frame(normals[~missing])))
+
+
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_a_point_without_a_normal_gets_no_light_in_both_tiers(material):
+    """Points whose normal has ``n . n == 0`` (:data:`NO_NORMALS`) have no live sample in either tier: zero terms
+    and an all-False mask, whatever their ``wo`` (here their normal, as the pipeline's near hits pass it), with
+    ``probe``, ``exact_lit`` and ``decided`` too; the other points' rows are those of a call without them, bit for
+    bit."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    wo = mirror_wo(wo, normals)
+    bare = np.arange(len(points)) % 4 == 1
+    given_normals, given_wo = normals.copy(), wo.copy()
+    given_normals[bare] = np.resize(NO_NORMALS, (bare.sum(), 3))
+    given_wo[bare] = given_normals[bare]
+    decided = np.random.default_rng(2).integers(0, 3, len(points)).astype(np.int8)
+    for i, light in enumerate(lights):
+        for options in ({}, dict(probe=4, exact_lit=True), dict(decided=decided)):
+            tiers = []
+            for terms in (light_terms, light_terms_reference):
+                ours = terms(points, given_normals, given_wo, f, sep, caster, light, i, 16, seed=1, **options)
+                whole = terms(points, normals, wo, f, sep, caster, light, i, 16, seed=1, **options)
+                assert all(np.all(np.isfinite(a)) for a in ours[:2])
+                for a, b in zip(ours, whole):
+                    assert not np.any(a[bare]) and np.all(np.signbit(a[bare]) == 0)  # +0 and False
+                    np.testing.assert_array_equal(a[~bare], b[~bare])
+                assert np.any(ours[0][~bare])  # lit elsewhere: not a check of zeros
+                tiers.append(ours)
+            np.testing.assert_array_equal(tiers[0][2], tiers[1][2])
+
+
+@pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
+def test_both_tiers_refuse_a_nan_normal_and_a_zero_wo_at_a_normal(terms):
+    """A NaN or inf normal (either tier: ``_check``) and a zero or underflowing ``wo`` at a point with a normal (the
+    kernel's wrapper with the reference tier's message, which its BRDF gives) are refused alike."""
+    points, normals, wo, f, sep, caster = _lambert_arguments()
+    for bad in (np.nan, np.inf):
+        given = normals.copy()
+        given[7, 1] = bad
+        with pytest.raises(ValueError, match="contain NaN or inf"):
+            terms(points, given, wo, f, sep, caster, LIGHT, 0, 16)
+    for bad in (0.0, 1e-200):
+        given = wo.copy()
+        given[7] = bad
+        with pytest.raises(ValueError, match="wo contains a zero vector; every direction must be a unit vector"):
+            terms(points, normals, given, f, sep, caster, LIGHT, 0, 16)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), scale=st.sampled_from([1.0, 1e-100, 1e-160, 1.5e-162, 1e-200, 1e-310, 0.0]),
+       glossy=st.booleans())
+def test_the_kernel_never_returns_nan_for_finite_points_and_normals(seed, scale, glossy):
+    """Random points around the scene's casters and lights, normals of length 1 or ``scale`` (tiny, subnormal,
+    zero; some components set to 0 or their sign flipped), every sample cast or probed: the kernel's terms are
+    finite, and zero with all-False masks exactly at the points without a normal, where the reference tier's are
+    too."""
+    from prtlab.interreflection._direct_rays import _without_normal
+
+    rng = np.random.default_rng(seed)
+    f = brdf.from_material(MATERIALS[1 if glossy else 0])
+    sep = brdf.separable(f, K=4 if glossy else 1)
+    _, _, _, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    points = rng.uniform([-2.5, -0.5, -2.5], [2.5, 3.0, 2.5], (60, 3))
+    normals = rng.normal(size=(60, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals *= np.where(rng.random((60, 1)) < 0.5, scale, 1.0)
+    normals[rng.random((60, 3)) < 0.2] = 0.0
+    wo = mirror_wo(rng.normal(size=(60, 3)), normals)
+    bare = _without_normal(normals)
+    wo[bare] *= scale  # any wo at a point without a normal
+    for i, light in enumerate(lights):
+        for probe in (0, 4):
+            S, F, blocked = light_terms(points, normals, wo, f, sep, caster, light, i, 16, seed=seed, probe=probe)
+            assert np.all(np.isfinite(S)) and np.all(np.isfinite(F))
+            assert not (np.any(S[bare]) or np.any(F[bare]) or np.any(blocked[bare]))
+            ref = light_terms_reference(points, normals, wo, f, sep, caster, light, i, 16, seed=seed, probe=probe)
+            assert not any(np.any(a[bare]) for a in ref)
 
 
 def test_the_pipeline_reuses_the_shadow_masks_and_equals_a_fresh_shade():
