@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_tasks, task_threads
 
 __all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "inner_spheres",
            "mesh_direct"]
@@ -170,6 +171,10 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
         The kernels or their float64 numpy specification.
     cast : {"embree", "numpy"}
         The ray caster's engine for the other objects' meshes.
+
+    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier tests the other
+    objects as tasks, each on its own copy of the visible rays (the same result bit for bit; a ray that two objects
+    block is then cast against both).
     """
     from prtlab._validate import check_choice
 
@@ -203,18 +208,23 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
         else:
             visible = np.empty((len(ps), len(w)), dtype=np.bool_)
             _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
-        for occ in occluders:
-            if method == "reference":
-                cand = _meets_reference(ps, w, occ.bounds, visible)
-                sure = _meets_reference(ps, w, occ.inner, visible)
-                visible &= ~sure
-                ip, ij = np.nonzero(cand & ~sure)
-            else:  # the kernel clears the rays meeting an inner sphere
-                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible, heights)
-            if len(ip):
-                o = (ps[ip] - occ.translate) @ occ.rotation / occ.scale
-                hit = occ.caster.occluded(o, w[ij] @ occ.rotation, normals=ns[ip] @ occ.rotation, method=cast)
-                visible[ip[hit], ij[hit]] = False
+        if method == "numba" and len(occluders) > 1 and task_threads() > 1:
+            # each occluder a task on a copy of the mask; a ray is cleared when one of them blocks it, as below
+            for mine in run_tasks([functools.partial(_occluder_visible, ps, ns, w, occ, visible.copy(), heights, cast)
+                                   for occ in occluders]):
+                visible &= mine
+        else:
+            for occ in occluders:
+                if method == "reference":
+                    cand = _meets_reference(ps, w, occ.bounds, visible)
+                    sure = _meets_reference(ps, w, occ.inner, visible)
+                    visible &= ~sure
+                    ip, ij = np.nonzero(cand & ~sure)
+                    if len(ip):
+                        hit = _occluder_hits(ps, ns, w, occ, ip, ij, cast)
+                        visible[ip[hit], ij[hit]] = False
+                else:
+                    _occluder_visible(ps, ns, w, occ, visible, heights, cast)
         if method == "reference":
             out[s:s + _CHUNK] -= _blocked_reference(ns, w, visible, radiance)
         else:
@@ -222,6 +232,24 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
             _blocked_kernel(ns, w, visible, radiance, lost)
             out[s:s + _CHUNK] -= lost
     return out
+
+
+def _occluder_visible(points, normals, dirs, occ, visible, heights, cast):
+    """``visible`` (returned) with the rays blocked by the occluder ``occ`` cleared: those meeting one of its inner
+    spheres, and those meeting one of its bounding spheres whose cast meets its mesh. The rays cleared depend only on
+    the rays visible on entry, so the occluders may clear the rays in any order (or each on its own copy, the
+    copies' ``&`` then the same mask)."""
+    ip, ij = _meets(points, dirs, occ.bounds, occ.inner, visible, heights)  # the kernel clears the inner spheres'
+    if len(ip):
+        hit = _occluder_hits(points, normals, dirs, occ, ip, ij, cast)
+        visible[ip[hit], ij[hit]] = False
+    return visible
+
+
+def _occluder_hits(points, normals, dirs, occ, ip, ij, cast):
+    """Whether the rays from ``points[ip]`` along ``dirs[ij]`` meet the occluder's mesh (cast in its space)."""
+    o = (points[ip] - occ.translate) @ occ.rotation / occ.scale
+    return occ.caster.occluded(o, dirs[ij] @ occ.rotation, normals=normals[ip] @ occ.rotation, method=cast)
 
 
 def _meets(points, dirs, bounds, inner, visible, heights=None):
@@ -353,7 +381,7 @@ def _cone_run(axis, cos_half, heights, n_dirs, run):
     run[0], run[1] = max(0, min(run[0], first)), min(n_dirs - 1, max(run[1], last))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, ij):
     """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
     inside a sphere: every ray. With ``fibonacci`` only the run of directions around the cones is tested (the

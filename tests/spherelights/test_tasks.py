@@ -1,0 +1,87 @@
+"""The frame's work as tasks on numba's threads (``prtlab._tasks``): the same results bit for bit."""
+
+import threading
+import time
+
+import numba
+import numpy as np
+import pytest
+
+from prtlab import _tasks
+
+
+def _two_numba_threads():
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads (one core here)")
+    numba.set_num_threads(2)
+
+
+def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(monkeypatch):
+    """``run_tasks``: the results in list order; a job with more than half the sizes runs on the caller's thread
+    with every numba thread, the others on the pool with one (and a job's own ``run_tasks`` one after another);
+    an error is raised once every job ended; without ``TASKS`` every job runs here."""
+    _two_numba_threads()
+    seen = []
+
+    def job(k, fail=False):
+        seen.append((k, threading.current_thread() is threading.main_thread(), numba.get_num_threads()))
+        time.sleep(0.01)
+        if fail:
+            raise ValueError(k)
+        return k
+
+    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(4)], [10, 1, 2, 1]) == [0, 1, 2, 3]
+    assert sorted(seen) == [(0, True, 2), (1, False, 1), (2, False, 1), (3, False, 1)]
+    seen.clear()
+    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
+    assert sorted(seen) == [(0, False, 1), (1, False, 1), (2, False, 1)]
+    nested = _tasks.run_tasks([lambda: [threading.current_thread() for _ in range(1)] +
+                               _tasks.run_tasks([threading.current_thread] * 2)] * 2)
+    assert all(len(set(threads)) == 1 for threads in nested)  # the inner jobs on the outer job's thread
+    ended = []
+
+    def slow():
+        time.sleep(0.05)
+        ended.append(True)
+
+    with pytest.raises(ValueError, match="1"):
+        _tasks.run_tasks([lambda: job(0), lambda: job(1, fail=True), slow, lambda: job(3, fail=True)])
+    assert ended == [True]
+    monkeypatch.setattr(_tasks, "TASKS", False)
+    seen.clear()
+    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
+    assert seen == [(0, True, 2), (1, True, 2), (2, True, 2)]
+
+
+def test_task_frames_equal_serial_frames(monkeypatch):
+    """The benchmark's frame of the pipeline's defaults with the ground (``_default_frame``: the ground's rays in
+    chunks, the objects' direct light against the other objects' meshes, the first pass's ground transfer) at 4,000
+    receivers, with ``TASKS`` (each chunk, occluder or block a task on one numba thread) and without: every
+    object's direct and indirect light and the ground's equal bit for bit, and the frame ran tasks."""
+    from prtlab import bench
+    from prtlab.benchmarks import bench_spherelights  # noqa: F401  (registers the cases)
+    from prtlab.spherelights import _ground, _groundrays, _meshdirect, _passes
+
+    _two_numba_threads()
+    spec = bench._CASES["spherelights.frame.per_object_ground_near.21k"](True)
+    calls = []
+    run_tasks = _tasks.run_tasks
+
+    def counted(jobs, sizes=None, threads=None):
+        if _tasks.TASKS:
+            calls.append(len(jobs))
+        return run_tasks(jobs, sizes, threads)
+
+    for module in (_ground, _groundrays, _meshdirect, _passes):
+        monkeypatch.setattr(module, "run_tasks", counted)
+    frames = {}
+    for tasks in (False, True, False, True):
+        monkeypatch.setattr(_tasks, "TASKS", tasks)
+        frames.setdefault(tasks, []).append(spec["run"]())
+    assert len(calls) >= 4 and min(calls) > 1  # chunks, occluders, blocks of the ground's transfer, receivers
+    serial, tasks = frames[False], frames[True]
+    assert len(serial[0]) == 8  # the ground and 7 objects
+    for a, b in zip(serial + serial, tasks + tasks[::-1]):
+        for (direct_a, indirect_a), (direct_b, indirect_b) in zip(a, b, strict=True):
+            assert np.array_equal(direct_a, direct_b)
+            assert np.array_equal(indirect_a, indirect_b)
