@@ -10,6 +10,7 @@ those of running them one after another, bit for bit.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 
@@ -19,6 +20,12 @@ import numba
 TASKS = True
 
 _POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor
+_WORKER = threading.local()  # .task: this thread is a pool's
+
+
+def _start_worker() -> None:
+    numba.set_num_threads(1)
+    _WORKER.task = True
 
 
 def task_threads() -> int:
@@ -33,15 +40,15 @@ def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
     numba threads), then the others on a kept pool of ``threads`` threads (numba's thread count 1 in each): largest
     first, or in list order without ``sizes``. ``threads``: default numba's thread count of the caller (a caller
     that runs its own kernels on one thread may pass the count it had before). Every job has ended when this returns
-    (the first job's error in list order is raised). A job calling this runs its jobs one after another (its thread
-    has one numba thread)."""
+    (the first job's error in list order is raised). A job calling this runs its jobs one after another on its own
+    thread (a pool's thread waiting for the pool could leave none to run them)."""
     threads = numba.get_num_threads() if threads is None else int(threads)
-    if not TASKS or threads < 2 or len(jobs) < 2:
+    if not TASKS or threads < 2 or len(jobs) < 2 or getattr(_WORKER, "task", False):
         return [job() for job in jobs]
     key = (os.getpid(), threads)
     if key not in _POOLS:
         _POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="prtlab-task",
-                                         initializer=numba.set_num_threads, initargs=(1,))
+                                         initializer=_start_worker)
     futures = [Future() for _ in jobs]
     order = list(range(len(jobs)))
     if sizes is not None:

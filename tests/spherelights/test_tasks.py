@@ -18,7 +18,8 @@ def _two_numba_threads():
 
 def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(monkeypatch):
     """``run_tasks``: the results in list order; a job with more than half the sizes runs on the caller's thread
-    with every numba thread, the others on the pool with one (and a job's own ``run_tasks`` one after another);
+    with every numba thread, the others on the pool with one (a job's own ``run_tasks`` one after another on its
+    thread, even given ``threads``);
     an error is raised once every job ended; without ``TASKS`` every job runs here."""
     _two_numba_threads()
     seen = []
@@ -35,8 +36,8 @@ def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(
     seen.clear()
     assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
     assert sorted(seen) == [(0, False, 1), (1, False, 1), (2, False, 1)]
-    nested = _tasks.run_tasks([lambda: [threading.current_thread() for _ in range(1)] +
-                               _tasks.run_tasks([threading.current_thread] * 2)] * 2)
+    nested = _tasks.run_tasks([lambda: [threading.current_thread()] + _tasks.run_tasks([threading.current_thread] * 2)
+                               + _tasks.run_tasks([threading.current_thread] * 2, threads=2)] * 2)
     assert all(len(set(threads)) == 1 for threads in nested)  # the inner jobs on the outer job's thread
     ended = []
 
