@@ -257,7 +257,7 @@ def _meets(points, dirs, bounds, inner, visible, heights=None):
     indices ``(ip, ij)`` (in the order of ``np.nonzero``) of the other visible rays meeting a bounding sphere (to
     cast). ``heights (3,)``: ``dirs`` are :func:`fibonacci_directions` turned by a rotation whose second column
     this is (only the directions in a run around each cone are tested); None: every direction."""
-    n = int(visible.sum())
+    n = np.count_nonzero(visible)  # a bound of the rays listed (count_nonzero: a pass over bytes, no sum of ints)
     ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
                       np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4),
