@@ -28,14 +28,24 @@ def _start_worker() -> None:
     _WORKER.task = True
 
 
+def _concurrent_kernels() -> bool:
+    """Whether numba's threading layer runs parallel kernels launched from several threads at once (OpenMP, TBB;
+    its ``workqueue`` aborts the process). False before a parallel kernel has chosen the layer."""
+    try:
+        return numba.threading_layer() != "workqueue"
+    except ValueError:  # not chosen yet
+        return False
+
+
 def task_threads() -> int:
     """The threads :func:`run_tasks` would use here: numba's thread count of the caller (1: no tasks), or 1 when
     :data:`TASKS` is off."""
-    return numba.get_num_threads() if TASKS else 1
+    return numba.get_num_threads() if TASKS and _concurrent_kernels() else 1
 
 
 def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
-    """``[job() for job in jobs]``. With :data:`TASKS`, more than one thread and more than one job, a job whose
+    """``[job() for job in jobs]``. With :data:`TASKS`, more than one thread and more than one job (and numba's
+    threading layer OpenMP or TBB, chosen: its ``workqueue`` aborts on concurrent kernels), a job whose
     ``size`` is more than ``1 / threads`` of their sum runs first on the caller's thread (its kernels on the caller's
     numba threads), then the others on a kept pool of ``threads`` threads (numba's thread count 1 in each): largest
     first, or in list order without ``sizes``. ``threads``: default numba's thread count of the caller (a caller
@@ -43,7 +53,7 @@ def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
     (the first job's error in list order is raised). A job calling this runs its jobs one after another on its own
     thread (a pool's thread waiting for the pool could leave none to run them)."""
     threads = numba.get_num_threads() if threads is None else int(threads)
-    if not TASKS or threads < 2 or len(jobs) < 2 or getattr(_WORKER, "task", False):
+    if not TASKS or threads < 2 or len(jobs) < 2 or getattr(_WORKER, "task", False) or not _concurrent_kernels():
         return [job() for job in jobs]
     key = (os.getpid(), threads)
     if key not in _POOLS:

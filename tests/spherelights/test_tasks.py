@@ -10,17 +10,26 @@ import pytest
 from prtlab import _tasks
 
 
+@numba.njit(parallel=True)
+def _count(x):
+    for i in numba.prange(x.shape[0]):
+        x[i] = i
+
+
 def _two_numba_threads():
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("needs 2 numba threads (one core here)")
     numba.set_num_threads(2)
+    _count(np.zeros(4))  # a parallel kernel chooses numba's threading layer
+    if numba.threading_layer() == "workqueue":
+        pytest.skip("numba's workqueue layer: no tasks")
 
 
 def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(monkeypatch):
     """``run_tasks``: the results in list order; a job with more than half the sizes runs on the caller's thread
     with every numba thread, the others on the pool with one (a job's own ``run_tasks`` one after another on its
     thread, even given ``threads``);
-    an error is raised once every job ended; without ``TASKS`` every job runs here."""
+    an error is raised once every job ended; without ``TASKS`` or on numba's workqueue layer every job runs here."""
     _two_numba_threads()
     seen = []
 
@@ -48,10 +57,12 @@ def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(
     with pytest.raises(ValueError, match="1"):
         _tasks.run_tasks([lambda: job(0), lambda: job(1, fail=True), slow, lambda: job(3, fail=True)])
     assert ended == [True]
-    monkeypatch.setattr(_tasks, "TASKS", False)
-    seen.clear()
-    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
-    assert seen == [(0, True, 2), (1, True, 2), (2, True, 2)]
+    for off in ((_tasks, "TASKS", False), (numba, "threading_layer", lambda: "workqueue")):
+        monkeypatch.setattr(*off)
+        seen.clear()
+        assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
+        assert seen == [(0, True, 2), (1, True, 2), (2, True, 2)] and _tasks.task_threads() == 1
+        monkeypatch.undo()
 
 
 def test_task_frames_equal_serial_frames(monkeypatch):
