@@ -97,3 +97,42 @@ def test_task_frames_equal_serial_frames(monkeypatch):
         for (direct_a, indirect_a), (direct_b, indirect_b) in zip(a, b, strict=True):
             assert np.array_equal(direct_a, direct_b)
             assert np.array_equal(indirect_a, indirect_b)
+
+
+def test_task_pipeline_frames_equal_serial_frames(monkeypatch):
+    """``SphereLights.shade`` (the defaults: the ground's rays, the objects against the others' meshes) of a ground
+    with three objects, one and two bounces and an object moved: the same results with ``TASKS`` and without."""
+    from prtlab.pipeline import FrameState
+    from prtlab.scene import Scene, Transform
+    from prtlab.spherelights import SphereLights
+
+    _two_numba_threads()
+
+    def thing(name, mesh, translate, albedo):
+        return {"name": name, "mesh": mesh, "transform": {"translate": translate},
+                "material": {"type": "diffuse", "albedo": albedo}, "dynamic": True}
+
+    scene = Scene.from_dict({
+        "objects": [
+            {"name": "plane", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [40, 40]},
+             "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}},
+            thing("ball", {"builtin": "icosphere", "radius": 0.5, "subdivisions": 3}, [0.3, 0.5, -0.2], [0.8, 0.3, 0.2]),
+            thing("box", {"builtin": "box", "size": [0.6, 0.6, 0.6], "subdivisions": 2}, [-0.9, 0.3, 0.4],
+                  [0.3, 0.6, 0.8]),
+            thing("small", {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2}, [0.8, 0.3, 0.9], [0.5, 0.5, 0.2]),
+        ],
+        "lights": [{"type": "environment", "constant": [1.0, 0.9, 0.8]}],
+    })
+    pre = SphereLights.precompute(scene, {"n_spheres": 2, "fit_resolution": 16}, cache=False, progress=False)
+    frames = {}
+    for tasks in (False, True):
+        monkeypatch.setattr(_tasks, "TASKS", tasks)
+        state = FrameState.from_scene(scene)
+        out = [pre.shade(state, bounces=1), pre.shade(state, bounces=2)]
+        state.transforms["ball"] = Transform(translate=[0.1, 0.5, 0.0])
+        out.append(pre.shade(state, bounces=1))
+        frames[tasks] = out
+    for a, b in zip(frames[False], frames[True], strict=True):
+        for name in a.total:
+            for part in ("direct", "indirect", "total"):
+                assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name]), (name, part)
