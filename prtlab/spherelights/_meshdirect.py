@@ -172,9 +172,8 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     cast : {"embree", "numpy"}
         The ray caster's engine for the other objects' meshes.
 
-    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier tests the other
-    objects as tasks, each on its own copy of the visible rays (the same result bit for bit; a ray that two objects
-    block is then cast against both).
+    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier shades interleaved
+    parts of the receivers as tasks (every receiver's rays and sums are its own: the same result bit for bit).
     """
     from prtlab._validate import check_choice
 
@@ -201,19 +200,15 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     out = sh.basis(n, order) @ sh.irradiance(env) if len(p) else np.zeros((0, 3))
     # a Fibonacci set's directions descend in height (``d_y``, object frame): the rays in a cone are a run of them
     heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
-    for s in range(0, len(p), _CHUNK):
-        ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
-        if method == "reference":
-            visible = _visible_reference(ps, ns, w, bits[s:s + _CHUNK], rects, balls)
-        else:
-            visible = np.empty((len(ps), len(w)), dtype=np.bool_)
-            _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
-        if method == "numba" and len(occluders) > 1 and task_threads() > 1:
-            # each occluder a task on a copy of the mask; a ray is cleared when one of them blocks it, as below
-            for mine in run_tasks([functools.partial(_occluder_visible, ps, ns, w, occ, visible.copy(), heights, cast)
-                                   for occ in occluders]):
-                visible &= mine
-        else:
+    def blocked(p, n, bits):  # (P, 3) the light the meshes block at these receivers, chunk after chunk
+        lost = np.empty((len(p), 3))
+        for s in range(0, len(p), _CHUNK):
+            ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
+            if method == "reference":
+                visible = _visible_reference(ps, ns, w, bits[s:s + _CHUNK], rects, balls)
+            else:
+                visible = np.empty((len(ps), len(w)), dtype=np.bool_)
+                _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
             for occ in occluders:
                 if method == "reference":
                     cand = _meets_reference(ps, w, occ.bounds, visible)
@@ -225,20 +220,27 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
                         visible[ip[hit], ij[hit]] = False
                 else:
                     _occluder_visible(ps, ns, w, occ, visible, heights, cast)
-        if method == "reference":
-            out[s:s + _CHUNK] -= _blocked_reference(ns, w, visible, radiance)
-        else:
-            lost = np.empty((len(ps), 3))
-            _blocked_kernel(ns, w, visible, radiance, lost)
-            out[s:s + _CHUNK] -= lost
+            if method == "reference":
+                lost[s:s + _CHUNK] = _blocked_reference(ns, w, visible, radiance)
+            else:
+                _blocked_kernel(ns, w, visible, radiance, lost[s:s + _CHUNK])
+        return lost
+
+    threads = task_threads() if method == "numba" else 1
+    if threads > 1 and len(p) > _CHUNK // 4:
+        # every receiver's rays and sums are its own: interleaved parts of the receivers as tasks
+        parts = [np.arange(k, len(p), threads) for k in range(threads)]
+        for rows, lost in zip(parts, run_tasks([functools.partial(blocked, p[rows], n[rows], bits[rows])
+                                                for rows in parts])):
+            out[rows] -= lost
+    else:
+        out -= blocked(p, n, bits)
     return out
 
 
 def _occluder_visible(points, normals, dirs, occ, visible, heights, cast):
     """``visible`` (returned) with the rays blocked by the occluder ``occ`` cleared: those meeting one of its inner
-    spheres, and those meeting one of its bounding spheres whose cast meets its mesh. The rays cleared depend only on
-    the rays visible on entry, so the occluders may clear the rays in any order (or each on its own copy, the
-    copies' ``&`` then the same mask)."""
+    spheres, and those meeting one of its bounding spheres whose cast meets its mesh."""
     ip, ij = _meets(points, dirs, occ.bounds, occ.inner, visible, heights)  # the kernel clears the inner spheres'
     if len(ip):
         hit = _occluder_hits(points, normals, dirs, occ, ip, ij, cast)
@@ -314,7 +316,7 @@ def _blocked_reference(normals, dirs, visible, radiance):
 # ---------------------------------------------------------------------------------------------- numba kernels
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _visible_kernel(points, normals, dirs, bits, rects, balls, out):
     """``_visible_reference``: per receiver and direction, the tangent plane, the own mesh's bit, the rectangles'
     slab test and the opaque spheres (a point inside one sees nothing)."""
@@ -423,7 +425,7 @@ def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, 
     return k
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _blocked_kernel(normals, dirs, visible, radiance, out):
     """``_blocked_reference``."""
     for q in numba.prange(normals.shape[0]):
