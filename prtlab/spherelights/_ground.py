@@ -42,6 +42,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_tasks, task_threads
 
 from ._shadows import _adjust
 
@@ -107,7 +108,7 @@ def _lower_hemisphere_grid(n_azimuth: int, n_elevation: int):
 _WEIGHT_BLOCK_BYTES = 3 << 20
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, parallel=True, error_model="numpy", nogil=True)
 def _ground_weights(points, normals, dirs, weights, rects, out):
     """out[q, j] = weights[j] * hit(q, j) * max(0, n_q . d_j); hit: the ray from q along d_j meets a rectangle.
 
@@ -157,7 +158,7 @@ def _ground_weights_reference(points, normals, dirs, weights, rects):
 
 
 def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: int = 128, n_elevation: int = 32,
-                            method: str = "numba", order: int | None = None) -> np.ndarray:
+                            method: str = "numba", order: int | None = None, threads: int | None = None) -> np.ndarray:
     """The part of the environment transfer that the ground hides: ``P_n(L G_q max(0, n_q . w))``.
 
     Parameters
@@ -174,6 +175,9 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
         Tier of the weight matrix ``W``.
     order : int, optional
         Order ``n`` of the result (default: ``N``).
+    threads : int, optional
+        The ``"numba"`` tier's blocks of rows as tasks on this many threads (:func:`prtlab._tasks.run_tasks`, each
+        block's products as one after another; default numba's thread count here).
 
     Returns
     -------
@@ -210,13 +214,19 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     # the weights in blocks of rows under 4 MiB: a fresh larger array is backed by huge pages, whose faults
     # (zeroing, compaction) cost more system time than the block's product on a busy machine
     rows = max(1, _WEIGHT_BLOCK_BYTES // (8 * dirs.shape[0]))
-    w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
     dirs, weights = np.ascontiguousarray(dirs), np.ascontiguousarray(weights)
     flat = out.reshape(p.shape[0], -1)
-    for s in range(0, p.shape[0], rows):
-        e = min(p.shape[0], s + rows)
-        _ground_weights(p[s:e], n[s:e], dirs, weights, rects, w[: e - s])
-        np.matmul(w[: e - s], a, out=flat[s:e])
+
+    def blocks(starts):  # a task of run_tasks: blocks of rows, one scratch for them
+        w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
+        for s in starts:
+            e = min(p.shape[0], s + rows)
+            _ground_weights(p[s:e], n[s:e], dirs, weights, rects, w[: e - s])
+            np.matmul(w[: e - s], a, out=flat[s:e])
+
+    starts = list(range(0, p.shape[0], rows))
+    k = max(1, min(len(starts), task_threads() if threads is None else threads))
+    run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=threads)
     return out
 
 

@@ -19,6 +19,8 @@ hit, from a point inside a closed object, gives 0). Only rays that meet a boundi
 local light) are cast: the spheres bound the meshes (``_fit``), so the others hit nothing. With ``spacing > 0``
 the rays are cast only at the points near the spheres and at the nodes of coarser grids farther out, the light
 between interpolated bilinearly (:func:`ground_ray_nodes`; the ground's light is smooth away from the contacts).
+The points are cast in chunks of :data:`_CHUNK`, the chunks as tasks on numba's threads (:mod:`prtlab._tasks`;
+each chunk writes its own rows, so the results are the same bit for bit).
 
 Measured figures: ``docs/notes/spherelights.md``.
 """
@@ -33,6 +35,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_tasks
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
            "ground_gather_rays", "ground_light_rays", "contact_radiance",
@@ -248,7 +251,7 @@ def _sphere_hits_reference(points, dirs, spheres) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _sphere_hits_kernel(points, dirs, spheres, out):
     """``sphere_hits``: per point, the spheres it does not lie in are tested along every ray."""
     for q in numba.prange(points.shape[0]):
@@ -321,7 +324,7 @@ def _count_row(out, q, counts):
         counts[q] = c
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _candidates_kernel(points, dirs, spheres, out, counts):
     """``candidate_rays``: per point, each sphere's cone (unit axis, cosine of its half angle); a ray meets the
     sphere when its cosine to the axis exceeds that (a point inside a sphere: every ray)."""
@@ -350,7 +353,7 @@ def _candidates_kernel(points, dirs, spheres, out, counts):
         _count_row(out, q, counts)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
     """``_candidates_kernel`` for a product rule (``_rings``): per ring, a sphere whose cone no direction of the
     ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
@@ -409,16 +412,18 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
         _count_row(out, q, counts)
 
 
-def _rays(points, rule, blockers):
-    """Per chunk of receivers: the chunk's slice, the candidate rays ``(P, K)``, their point and rule direction
-    indices (flat, as ``np.nonzero``), the distance to the first opaque sphere ``(P, K)`` (None: none), their
-    origins (offset off the ground as the caster offsets them along a normal ``+Y``: cast them without normals)
-    and directions (flat) and each point's first ray (``(P + 1,)``)."""
+def _chunk_rays(rule, blockers):
+    """``chunk(points, s)``, for the chunk of ``points`` from ``s`` (:data:`_CHUNK` points): its slice, the
+    candidate rays ``(P, K)``, their point and rule direction indices (flat, as ``np.nonzero``), the distance to
+    the first opaque sphere ``(P, K)`` (None: none), their origins (offset off the ground as the caster offsets
+    them along a normal ``+Y``: cast them without normals) and directions (flat) and each point's first ray
+    (``(P + 1,)``)."""
     dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
     n_azimuth = _rings(dirs) if blockers.caster is not None else 0
     bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64)
     lift = blockers.caster.epsilon if blockers.caster is not None else 0.0
-    for s in range(0, len(points), _CHUNK):
+
+    def chunk(points, s):
         p = points[s:s + _CHUNK]
         counts = np.zeros(len(p), dtype=np.int64)
         cand = _candidates(p, dirs, bounds, n_azimuth, counts) if blockers.caster is not None else np.zeros(
@@ -429,10 +434,18 @@ def _rays(points, rule, blockers):
         ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
         origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
         _list_rays(p, cand, dirs, ptr, lift, ip, ik, origins, ray_dirs)
-        yield slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
+        return slice(s, s + len(p)), cand, ip, ik, t_sphere, origins, ray_dirs, ptr
+
+    return chunk
 
 
-@numba.njit(cache=True, parallel=True)
+def _per_chunk(points, job) -> None:
+    """``job(s)`` for each chunk of ``points`` (from ``s``, :data:`_CHUNK` points), as tasks
+    (:func:`prtlab._tasks.run_tasks`, in order): each chunk writes only its own rows of the outputs."""
+    run_tasks([functools.partial(job, s) for s in range(0, len(points), _CHUNK)])
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _list_rays(points, cand, dirs, ptr, epsilon, ip, ik, origins, ray_dirs):
     """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
     their point ``ip`` and direction ``ik``, origin ``points[ip]`` offset by ``epsilon`` along the normal ``+Y``
@@ -484,11 +497,16 @@ def _direct(p, env, blockers, rule, method) -> np.ndarray:
     e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
     radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
     out = np.empty((len(p), 3))
-    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ in _rays(p, rule, blockers):
+    rays = _chunk_rays(rule, blockers)
+
+    def chunk(s):  # a task of _per_chunk: the rows of one chunk
+        sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ = rays(p, s)
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
-            hit = blockers.caster.occluded(origins, ray_dirs, method=method)  # origins offset by _rays
+            hit = blockers.caster.occluded(origins, ray_dirs, method=method)  # origins offset by _chunk_rays
         out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
+
+    _per_chunk(p, chunk)
     return out
 
 
@@ -573,12 +591,15 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
     if tier == "numba" and len(rad):
         faces, face_start, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
         rad_all = np.ascontiguousarray(np.concatenate(rad))
-    for sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr in _rays(p, rule, blockers):
+    rays = _chunk_rays(rule, blockers)
+
+    def chunk(s):  # a task of _per_chunk: the rows of one chunk (the reference tier: one after another)
+        sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr = rays(p, s)
         if not len(ip):
             if env is not None:
                 direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
-            continue
-        hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _rays
+            return
+        hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _chunk_rays
         if tier == "numba":
             # per point its rays in order (``ptr``): the sums of the reference below, term by term
             blocked = np.zeros((len(cand), 3))
@@ -590,7 +611,7 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
             if env is not None:
                 direct[sl] = e_open - blocked if with_env else e_open - _blocked_sum(
                     len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
-            continue
+            return
         if env is not None:
             direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
         d = rule.dirs[ik]
@@ -598,14 +619,19 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
         if t_sphere is not None:
             live &= hits.distance < t_sphere[ip, ik]
         value = np.zeros((len(ip), 3))
-        for g, faces in enumerate(blockers.faces):
+        for g, mesh_faces in enumerate(blockers.faces):
             m = live & (hits.object == g)
             if not m.any():
                 continue
-            f = faces[hits.triangle[m]]
+            f = mesh_faces[hits.triangle[m]]
             u, v = hits.barycentric[m, :1], hits.barycentric[m, 1:]
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
+    if tier == "numba":
+        _per_chunk(p, chunk)
+    else:
+        for s in range(0, len(p), _CHUNK):
+            chunk(s)
     return direct, out
 
 
@@ -621,7 +647,7 @@ def _stacked_faces(faces, n_verts):
     return np.ascontiguousarray(stacked), face_start, vert_start
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _hit_sums(ptr, ik, hit, obj, tri, bary, normal, dist, dirs, weights, blocked_radiance, t_sphere, faces,
               face_start, radiance, blocked, gathered):
     """Per point ``q`` (its rays ``ptr[q]:ptr[q + 1]``, rule directions ``ik``), in ray order: ``blocked[q] +=

@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_tasks, task_threads
 
 __all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "inner_spheres",
            "mesh_direct"]
@@ -170,6 +171,9 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
         The kernels or their float64 numpy specification.
     cast : {"embree", "numpy"}
         The ray caster's engine for the other objects' meshes.
+
+    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier shades interleaved
+    parts of the receivers as tasks (every receiver's rays and sums are its own: the same result bit for bit).
     """
     from prtlab._validate import check_choice
 
@@ -196,32 +200,58 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     out = sh.basis(n, order) @ sh.irradiance(env) if len(p) else np.zeros((0, 3))
     # a Fibonacci set's directions descend in height (``d_y``, object frame): the rays in a cone are a run of them
     heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
-    for s in range(0, len(p), _CHUNK):
-        ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
-        if method == "reference":
-            visible = _visible_reference(ps, ns, w, bits[s:s + _CHUNK], rects, balls)
-        else:
-            visible = np.empty((len(ps), len(w)), dtype=np.bool_)
-            _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
-        for occ in occluders:
+    def blocked(p, n, bits):  # (P, 3) the light the meshes block at these receivers, chunk after chunk
+        lost = np.empty((len(p), 3))
+        for s in range(0, len(p), _CHUNK):
+            ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
             if method == "reference":
-                cand = _meets_reference(ps, w, occ.bounds, visible)
-                sure = _meets_reference(ps, w, occ.inner, visible)
-                visible &= ~sure
-                ip, ij = np.nonzero(cand & ~sure)
-            else:  # the kernel clears the rays meeting an inner sphere
-                ip, ij = _meets(ps, w, occ.bounds, occ.inner, visible, heights)
-            if len(ip):
-                o = (ps[ip] - occ.translate) @ occ.rotation / occ.scale
-                hit = occ.caster.occluded(o, w[ij] @ occ.rotation, normals=ns[ip] @ occ.rotation, method=cast)
-                visible[ip[hit], ij[hit]] = False
-        if method == "reference":
-            out[s:s + _CHUNK] -= _blocked_reference(ns, w, visible, radiance)
-        else:
-            lost = np.empty((len(ps), 3))
-            _blocked_kernel(ns, w, visible, radiance, lost)
-            out[s:s + _CHUNK] -= lost
+                visible = _visible_reference(ps, ns, w, bits[s:s + _CHUNK], rects, balls)
+            else:
+                visible = np.empty((len(ps), len(w)), dtype=np.bool_)
+                _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
+            for occ in occluders:
+                if method == "reference":
+                    cand = _meets_reference(ps, w, occ.bounds, visible)
+                    sure = _meets_reference(ps, w, occ.inner, visible)
+                    visible &= ~sure
+                    ip, ij = np.nonzero(cand & ~sure)
+                    if len(ip):
+                        hit = _occluder_hits(ps, ns, w, occ, ip, ij, cast)
+                        visible[ip[hit], ij[hit]] = False
+                else:
+                    _occluder_visible(ps, ns, w, occ, visible, heights, cast)
+            if method == "reference":
+                lost[s:s + _CHUNK] = _blocked_reference(ns, w, visible, radiance)
+            else:
+                _blocked_kernel(ns, w, visible, radiance, lost[s:s + _CHUNK])
+        return lost
+
+    threads = task_threads() if method == "numba" else 1
+    if threads > 1 and len(p) > _CHUNK // 4:
+        # every receiver's rays and sums are its own: interleaved parts of the receivers as tasks
+        parts = [np.arange(k, len(p), threads) for k in range(threads)]
+        for rows, lost in zip(parts, run_tasks([functools.partial(blocked, p[rows], n[rows], bits[rows])
+                                                for rows in parts])):
+            out[rows] -= lost
+    else:
+        out -= blocked(p, n, bits)
     return out
+
+
+def _occluder_visible(points, normals, dirs, occ, visible, heights, cast):
+    """``visible`` (returned) with the rays blocked by the occluder ``occ`` cleared: those meeting one of its inner
+    spheres, and those meeting one of its bounding spheres whose cast meets its mesh."""
+    ip, ij = _meets(points, dirs, occ.bounds, occ.inner, visible, heights)  # the kernel clears the inner spheres'
+    if len(ip):
+        hit = _occluder_hits(points, normals, dirs, occ, ip, ij, cast)
+        visible[ip[hit], ij[hit]] = False
+    return visible
+
+
+def _occluder_hits(points, normals, dirs, occ, ip, ij, cast):
+    """Whether the rays from ``points[ip]`` along ``dirs[ij]`` meet the occluder's mesh (cast in its space)."""
+    o = (points[ip] - occ.translate) @ occ.rotation / occ.scale
+    return occ.caster.occluded(o, dirs[ij] @ occ.rotation, normals=normals[ip] @ occ.rotation, method=cast)
 
 
 def _meets(points, dirs, bounds, inner, visible, heights=None):
@@ -229,7 +259,7 @@ def _meets(points, dirs, bounds, inner, visible, heights=None):
     indices ``(ip, ij)`` (in the order of ``np.nonzero``) of the other visible rays meeting a bounding sphere (to
     cast). ``heights (3,)``: ``dirs`` are :func:`fibonacci_directions` turned by a rotation whose second column
     this is (only the directions in a run around each cone are tested); None: every direction."""
-    n = int(visible.sum())
+    n = np.count_nonzero(visible)  # a bound of the rays listed (count_nonzero: a pass over bytes, no sum of ints)
     ip, ij = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     k = _meets_kernel(points, dirs, np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 4),
                       np.ascontiguousarray(inner, dtype=np.float64).reshape(-1, 4),
@@ -286,7 +316,7 @@ def _blocked_reference(normals, dirs, visible, radiance):
 # ---------------------------------------------------------------------------------------------- numba kernels
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _visible_kernel(points, normals, dirs, bits, rects, balls, out):
     """``_visible_reference``: per receiver and direction, the tangent plane, the own mesh's bit, the rectangles'
     slab test and the opaque spheres (a point inside one sees nothing)."""
@@ -353,7 +383,7 @@ def _cone_run(axis, cos_half, heights, n_dirs, run):
     run[0], run[1] = max(0, min(run[0], first)), min(n_dirs - 1, max(run[1], last))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, ij):
     """``_meets``: per visible ray, the inner spheres' cones (cleared), else the bounding spheres' (listed); a point
     inside a sphere: every ray. With ``fibonacci`` only the run of directions around the cones is tested (the
@@ -395,7 +425,7 @@ def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, 
     return k
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _blocked_kernel(normals, dirs, visible, radiance, out):
     """``_blocked_reference``."""
     for q in numba.prange(normals.shape[0]):

@@ -43,6 +43,7 @@ import numba
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_tasks, task_threads
 from prtlab.sh._explog import _HYB_THRESHOLD, _ol_table
 from prtlab.sh._gaunt import _gaunt_block
 from prtlab.sh._product_kernels import _tile_product_prefix
@@ -285,7 +286,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     from ._ground import ground_blocked_transfer
     from ._shadows import blocker_log_sum
 
-    # a few thousand samples: the parallel kernels and matrix products of this pass run on one thread
+    # a few thousand samples: the parallel kernels and matrix products of this pass run on one thread (the ground's
+    # transfer in blocks, as tasks on the threads there were)
+    threads = task_threads()
     with one_thread_below(np.asarray(sample_valid).size, _SERIAL_BELOW):
         S, m = sample_valid.shape
         env = np.asarray(env_sh, dtype=np.float64)
@@ -299,7 +302,7 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
             t = environment_transfer(nrm, env, order)  # Eq. 8
             if ground is not None and len(ground):
-                t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order)
+                t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order, threads=threads)
             radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
         if extra_irradiance is not None:
             extra = np.asarray(extra_irradiance, dtype=np.float64)
@@ -645,13 +648,22 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
                                                  2 * int(alone.sum()) > n_obj + 1), int(m))
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
+    p, n = np.array(p, order="C"), np.array(n, order="C")
+    n_blocks = -(-p.shape[0] // _LANES)
+    threads = min(task_threads(), n_blocks)
+    if p.shape[0] < _FUSED_SERIAL_BELOW and threads > 1:
+        # a receiving object of a few blocks: runs of whole blocks as tasks, each on one thread (a block's
+        # receivers and results are the same whichever run it is in)
+        step = _LANES * -(-n_blocks // threads)
+        run_tasks([functools.partial(_second_pass_fused, p[s:s + step], n[s:s + step], lights, tables, exp_tables,
+                                     mode, direct[s:s + step], ind[s:s + step]) for s in range(0, p.shape[0], step)])
+        return direct, ind
     with one_thread_below(p.shape[0], _FUSED_SERIAL_BELOW):  # a receiving object of a few blocks
-        _second_pass_fused(np.array(p, order="C"), np.array(n, order="C"), lights, tables, exp_tables, mode, direct,
-                           ind)
+        _second_pass_fused(p, n, lights, tables, exp_tables, mode, direct, ind)
     return direct, ind
 
 
-@numba.njit(cache=True, parallel=True, error_model="numpy")
+@numba.njit(cache=True, parallel=True, error_model="numpy", nogil=True)
 def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out):
     """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``mode.n_lanes`` receivers, the receivers of a block
     as the SIMD lanes of the inner loops: blocker logs, direct light, then per light the front sums,
