@@ -28,7 +28,7 @@ def _start_worker() -> None:
     _WORKER.task = True
 
 
-def _concurrent_kernels() -> bool:
+def concurrent_kernels() -> bool:
     """Whether numba's threading layer runs parallel kernels launched from several threads at once (OpenMP, TBB;
     its ``workqueue`` aborts the process). False before a parallel kernel has chosen the layer."""
     try:
@@ -37,10 +37,25 @@ def _concurrent_kernels() -> bool:
         return False
 
 
+def pool(threads: int) -> ThreadPoolExecutor:
+    """The kept pool of ``threads`` threads of this process (made on first use; a forked child makes its own), each
+    with numba's thread count 1; a job on it that calls :func:`run_tasks` runs its jobs on its own thread."""
+    key = (os.getpid(), int(threads))
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(max_workers=key[1], thread_name_prefix="prtlab-task",
+                                         initializer=_start_worker)
+    return _POOLS[key]
+
+
+def on_pool() -> bool:
+    """Whether this thread is one of a :func:`pool`'s."""
+    return getattr(_WORKER, "task", False)
+
+
 def task_threads() -> int:
     """The threads :func:`run_tasks` would use here: numba's thread count of the caller (1: no tasks), or 1 when
     :data:`TASKS` is off."""
-    return numba.get_num_threads() if TASKS and _concurrent_kernels() else 1
+    return numba.get_num_threads() if TASKS and concurrent_kernels() else 1
 
 
 def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
@@ -53,12 +68,8 @@ def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
     (the first job's error in list order is raised). A job calling this runs its jobs one after another on its own
     thread (a pool's thread waiting for the pool could leave none to run them)."""
     threads = numba.get_num_threads() if threads is None else int(threads)
-    if not TASKS or threads < 2 or len(jobs) < 2 or getattr(_WORKER, "task", False) or not _concurrent_kernels():
+    if not TASKS or threads < 2 or len(jobs) < 2 or on_pool() or not concurrent_kernels():
         return [job() for job in jobs]
-    key = (os.getpid(), threads)
-    if key not in _POOLS:
-        _POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="prtlab-task",
-                                         initializer=_start_worker)
     futures = [Future() for _ in jobs]
     order = list(range(len(jobs)))
     if sizes is not None:
@@ -71,6 +82,6 @@ def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
         order.sort(key=lambda k: -sizes[k])
     for k in order:
         if not futures[k].done():
-            futures[k] = _POOLS[key].submit(jobs[k])
+            futures[k] = pool(threads).submit(jobs[k])
     futures_wait(futures)
     return [future.result() for future in futures]

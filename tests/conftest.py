@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
@@ -51,3 +52,20 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     if np.linalg.det(q) < 0:
         q[:, 0] = -q[:, 0]
     return q
+
+
+@numba.njit(parallel=True)
+def _fill(x):
+    for i in numba.prange(x.shape[0]):
+        x[i] = i
+
+
+def two_numba_threads():
+    """Two numba threads for a test of tasks, and a parallel kernel run so that numba's threading layer is chosen;
+    skips on one core or numba's ``workqueue`` layer (no tasks there: ``prtlab._tasks``)."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads (one core here)")
+    numba.set_num_threads(2)
+    _fill(np.zeros(4))
+    if numba.threading_layer() == "workqueue":
+        pytest.skip("numba's workqueue layer: no tasks")

@@ -61,7 +61,7 @@ import dataclasses
 import functools
 import itertools
 import os
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -70,6 +70,7 @@ import numba
 import numpy as np
 
 from prtlab import brdf, pca, sh
+from prtlab._tasks import concurrent_kernels, run_tasks
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import RayCaster, offset_origins, shading_points
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
@@ -122,7 +123,8 @@ STACKED_IRRADIANCE = np.float32
 #: casts (:meth:`Interreflection._residual_entry`) on a second Python thread while step 2 (the basis irradiance) runs
 #: on the caller's, when an object moved since the scene's ray caster was made (else step 2 and the entries stand):
 #: each part's Python work then overlaps the other's parallel kernels. The parts share no state they write, so the
-#: frame is the same, bit for bit (test); False runs them one after another.
+#: frame is the same, bit for bit (test); False runs them one after another, as does numba's ``workqueue`` threading
+#: layer (it cannot run kernels from two threads at once: :func:`prtlab._tasks.concurrent_kernels`).
 OVERLAP = True
 
 _WORKER: list = []  # [(process id, ThreadPoolExecutor)]: OVERLAP's second thread, kept so its OpenMP team is too
@@ -133,42 +135,6 @@ def _frame_worker() -> ThreadPoolExecutor:
     if not _WORKER or _WORKER[0][0] != os.getpid():
         _WORKER[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-frame"))]
     return _WORKER[0][1]
-
-
-#: Whether the frame's per-object work (each receiver's direct light by shadow rays, each source's near-hit light,
-#: each receiver's bounce) runs as tasks on as many Python threads as numba has threads, each task's kernels on one
-#: numba thread, rather than object after object with every thread in each kernel: one task's Python then overlaps
-#: the others' kernels, and a small object's kernel no longer leaves threads idle at its parallel region's end. A
-#: task writes only its own results (and its own object's entries of the frame's caches), merged in object order,
-#: so the frame is the same bit for bit (test); False runs the objects one after another.
-TASKS = True
-
-_TASK_POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor of TASKS
-
-
-def _per_object(jobs, sizes) -> list:
-    """``[job() for job in jobs]``. With :data:`TASKS` and more than one numba thread, a job whose ``size`` is more
-    than ``1 / threads`` of their sum runs first on the caller's thread (every thread in its kernels), then the
-    others on a kept pool of as many threads (numba's thread count 1 in each), largest first; every job has ended
-    when this returns (the first job's error in list order is raised)."""
-    threads = numba.get_num_threads()
-    if not TASKS or threads < 2 or len(jobs) < 2:
-        return [job() for job in jobs]
-    key = (os.getpid(), threads)
-    if key not in _TASK_POOLS:
-        _TASK_POOLS[key] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="prtlab-task",
-                                              initializer=numba.set_num_threads, initargs=(1,))
-    futures = [Future() for _ in jobs]
-    for k in [k for k in range(len(jobs)) if sizes[k] * threads > sum(sizes)]:
-        try:
-            futures[k].set_result(jobs[k]())
-        except Exception as error:  # raised below, in list order, once every job has ended
-            futures[k].set_exception(error)
-    for k in sorted(range(len(jobs)), key=lambda k: -sizes[k]):
-        if not futures[k].done():
-            futures[k] = _TASK_POOLS[key].submit(jobs[k])
-    futures_wait(futures)
-    return [future.result() for future in futures]
 
 
 @dataclass
@@ -1075,7 +1041,7 @@ class Interreflection(Precomputation):
         blockers = [self._shadow_blockers(caster, poses, me, True) if near else None
                     for me in range(len(self.objects))]
 
-        def receiver(me, r):  # a task of _per_object: its light terms and environment, and its rays cast
+        def receiver(me, r):  # a task of run_tasks: its light terms and environment, and its rays cast
             g = geo[r.name]
             lk, rad = np.zeros(g["g_cos"].shape[:2] + (3,)), np.zeros((len(g["x"]), 3))
             entry = self.reuse.direct_rays.get(r.name)
@@ -1115,7 +1081,7 @@ class Interreflection(Precomputation):
                                outgoing_radiance(env_k, g["h"], self.seps[r.name].colour))
             return lk, rad, terms, environment, counts
 
-        done = _per_object([functools.partial(receiver, me, r) for me, r in enumerate(self.objects)],
+        done = run_tasks([functools.partial(receiver, me, r) for me, r in enumerate(self.objects)],
                            [len(geo[r.name]["x"]) for r in self.objects])
         light_k, radiance = {}, {}
         self.reuse.direct_counts = {"rays_cast": 0}
@@ -1544,7 +1510,7 @@ class Interreflection(Precomputation):
                 stacked_residual = np.concatenate([residuals[o.name].reshape(-1, 3) for o in self.objects])
             entries = {r.name: self._residual_entry(geo, r, phi[r.name]) if residuals else {} for r in self.objects}
 
-            def receiver(r):  # a task of _per_object: the receiver's reflected light and its outgoing radiance
+            def receiver(r):  # a task of run_tasks: the receiver's reflected light and its outgoing radiance
                 g = geo[r.name]
                 fused = method != "reference" and self.seps[r.name].K == 1  # bounce_rgb may take it
                 stacked, sources = self._stacked_irradiance(r, phi[r.name],
@@ -1584,7 +1550,7 @@ class Interreflection(Precomputation):
 
             jobs = [functools.partial(receiver, r) for r in self.objects]
             done = ([job() for job in jobs] if method == "reference"
-                    else _per_object(jobs, [o.n_vertices for o in self.objects]))
+                    else run_tasks(jobs, [o.n_vertices for o in self.objects]))
             new_light = {}
             for r, (lk, radiance) in zip(self.objects, done):
                 new_light[r.name] = lk
@@ -1752,7 +1718,7 @@ class Interreflection(Precomputation):
         for i in selected:  # made here, then read by the tasks
             self._shadow_blockers(caster, key[0], i)
 
-        def source(i, parts):  # a task of _per_object: the source's near-hit light and each part's correction
+        def source(i, parts):  # a task of run_tasks: the source's near-hit light and each part's correction
             colour = np.asarray(self.seps[self.objects[i].name].colour, float)[None]
             counts = {"rays_cast": 0}
             exact = self._near_exact(i, parts, caster, spheres, near, key[0], counts)
@@ -1762,7 +1728,7 @@ class Interreflection(Precomputation):
                 near_hit_correction(hits, index, exact[a:b] * colour, vertex, len(geo[name]["x"]))
                 for (name, hits, index, _, _), a, b in zip(parts, bounds[:-1], bounds[1:])]
 
-        done = _per_object([functools.partial(source, i, parts) for i, parts in selected.items()],
+        done = run_tasks([functools.partial(source, i, parts) for i, parts in selected.items()],
                            [sum(len(p[2]) for p in parts) for parts in selected.values()])
         out = {r.name: np.zeros(geo[r.name]["g_cos"].shape[:2] + (3,)) for r in self.objects}
         stats = self.reuse.residual_counts
@@ -1920,7 +1886,8 @@ class Interreflection(Precomputation):
                                                                    for light in state.lights)
             transfer = None if rays_only else functools.partial(self.direct_transfer, geo, occ, state.lights)
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
-        if OVERLAP and bounces and (self.reuse.scene_caster is None or self.reuse.scene_caster[0] != poses):
+        if OVERLAP and bounces and concurrent_kernels() and (self.reuse.scene_caster is None
+                                                             or self.reuse.scene_caster[0] != poses):
             (light_k, direct, transfer), (phi, counts), times["direct"], times["basis_irradiance"] = \
                 self._overlapped(state, geo, occ, transfer, t0)
         else:

@@ -29,7 +29,7 @@ from prtlab.interreflection import Interreflection, InterreflectionOptions, shad
 from prtlab.pipeline import FrameState
 from prtlab.reference import path_trace
 from prtlab.scene import PointLight, Transform
-from tests.conftest import MC_SIGMAS
+from tests.conftest import MC_SIGMAS, two_numba_threads
 from tests.scenes import ball_over_floor
 
 QUICK = dict(n_radii=8, resolution=8, degree=31, n_lights=64, n_basis=8)
@@ -322,56 +322,17 @@ def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
     assert sequential[1].info["residual_rays_cast"] > 0
 
 
-def _two_numba_threads():
-    import numba
-
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs 2 numba threads (one core here)")
-    numba.set_num_threads(2)
-
-
-def test_per_object_runs_large_jobs_here_and_the_others_on_one_numba_thread_each():
-    """``_per_object``: the results in list order; a job with more than half the sizes runs on the caller's
-    thread with every numba thread, the others on the pool with one; an error is raised once every job ended."""
-    import threading
-    import time
-
-    import numba
-
-    from prtlab.interreflection import _pipeline
-
-    _two_numba_threads()
-    seen = []
-
-    def job(k, fail=False):
-        seen.append((k, threading.current_thread() is threading.main_thread(), numba.get_num_threads()))
-        time.sleep(0.01)
-        if fail:
-            raise ValueError(f"job {k}")
-        return k
-
-    jobs = [functools.partial(job, k) for k in range(4)]
-    assert _pipeline._per_object(jobs, [1, 10, 2, 3]) == [0, 1, 2, 3]
-    assert sorted(seen) == [(0, False, 1), (1, True, 2), (2, False, 1), (3, False, 1)]
-    assert seen[0][0] == 1  # the large job first, here
-    seen.clear()
-    with pytest.raises(ValueError, match="job 1"):
-        _pipeline._per_object([functools.partial(job, 0), functools.partial(job, 1, True),
-                               functools.partial(job, 2, True)], [1, 1, 1])
-    assert len(seen) == 3  # the first error in list order, after every job ran
-
-
 def test_task_frames_equal_serial_frames(pre, monkeypatch):
     """Frames with ``TASKS`` (each object's direct light, near-hit light and bounce as a task on one numba thread)
     equal frames without it bit for bit, ray counts included: the first frame, an object moved twice, an area light
     added and moved with the object, then the light alone moved."""
-    from prtlab.interreflection import _pipeline
+    from prtlab import _tasks
     from prtlab.scene import AreaLight
 
-    _two_numba_threads()
+    two_numba_threads()
 
     def frames(tasks):
-        monkeypatch.setattr(_pipeline, "TASKS", tasks)
+        monkeypatch.setattr(_tasks, "TASKS", tasks)
         ir = Interreflection(pre.scene, pre.options, pre.data)
         state = FrameState.from_scene(pre.scene)
         out = [ir.shade(state, bounces=2)]

@@ -1,68 +1,9 @@
 """The frame's work as tasks on numba's threads (``prtlab._tasks``): the same results bit for bit."""
 
-import threading
-import time
-
-import numba
 import numpy as np
-import pytest
 
 from prtlab import _tasks
-
-
-@numba.njit(parallel=True)
-def _count(x):
-    for i in numba.prange(x.shape[0]):
-        x[i] = i
-
-
-def _two_numba_threads():
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs 2 numba threads (one core here)")
-    numba.set_num_threads(2)
-    _count(np.zeros(4))  # a parallel kernel chooses numba's threading layer
-    if numba.threading_layer() == "workqueue":
-        pytest.skip("numba's workqueue layer: no tasks")
-
-
-def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(monkeypatch):
-    """``run_tasks``: the results in list order; a job with more than half the sizes runs on the caller's thread
-    with every numba thread, the others on the pool with one (a job's own ``run_tasks`` one after another on its
-    thread, even given ``threads``);
-    an error is raised once every job ended; without ``TASKS`` or on numba's workqueue layer every job runs here."""
-    _two_numba_threads()
-    seen = []
-
-    def job(k, fail=False):
-        seen.append((k, threading.current_thread() is threading.main_thread(), numba.get_num_threads()))
-        time.sleep(0.01)
-        if fail:
-            raise ValueError(k)
-        return k
-
-    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(4)], [10, 1, 2, 1]) == [0, 1, 2, 3]
-    assert sorted(seen) == [(0, True, 2), (1, False, 1), (2, False, 1), (3, False, 1)]
-    seen.clear()
-    assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
-    assert sorted(seen) == [(0, False, 1), (1, False, 1), (2, False, 1)]
-    nested = _tasks.run_tasks([lambda: [threading.current_thread()] + _tasks.run_tasks([threading.current_thread] * 2)
-                               + _tasks.run_tasks([threading.current_thread] * 2, threads=2)] * 2)
-    assert all(len(set(threads)) == 1 for threads in nested)  # the inner jobs on the outer job's thread
-    ended = []
-
-    def slow():
-        time.sleep(0.05)
-        ended.append(True)
-
-    with pytest.raises(ValueError, match="1"):
-        _tasks.run_tasks([lambda: job(0), lambda: job(1, fail=True), slow, lambda: job(3, fail=True)])
-    assert ended == [True]
-    for off in ((_tasks, "TASKS", False), (numba, "threading_layer", lambda: "workqueue")):
-        monkeypatch.setattr(*off)
-        seen.clear()
-        assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
-        assert seen == [(0, True, 2), (1, True, 2), (2, True, 2)] and _tasks.task_threads() == 1
-        monkeypatch.undo()
+from tests.conftest import two_numba_threads
 
 
 def test_task_frames_equal_serial_frames(monkeypatch):
@@ -74,7 +15,7 @@ def test_task_frames_equal_serial_frames(monkeypatch):
     from prtlab.benchmarks import bench_spherelights  # noqa: F401  (registers the cases)
     from prtlab.spherelights import _ground, _groundrays, _meshdirect, _passes
 
-    _two_numba_threads()
+    two_numba_threads()
     spec = bench._CASES["spherelights.frame.per_object_ground_near.21k"](True)
     calls = []
     run_tasks = _tasks.run_tasks
@@ -106,7 +47,7 @@ def test_task_pipeline_frames_equal_serial_frames(monkeypatch):
     from prtlab.scene import Scene, Transform
     from prtlab.spherelights import SphereLights
 
-    _two_numba_threads()
+    two_numba_threads()
 
     def thing(name, mesh, translate, albedo):
         return {"name": name, "mesh": mesh, "transform": {"translate": translate},
