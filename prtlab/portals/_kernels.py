@@ -95,7 +95,7 @@ def _masked_term(codes, e, j, rest, f0, f1, f2, k):
 
 @numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scale, basis, sign_bit, light_t, lit,
-                       light32_t, albedo, out):
+                       light32_t, albedo, out, part):
     """:func:`direct_pass_kernel` with the pulse rows read as runs of consecutive texels, skipping the runs whose
     texels the shell light leaves black (exactly zero: the ground below the horizon); same sums, float64.
 
@@ -117,6 +117,9 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
     Pulse rows sum in float32 from ``light32_t`` (forward error at most ``(n + 2) eps_32`` times the row's sum of
     absolute terms, ``n`` its entries; measured 5e-7 of the 45k frame's largest value, against the 8-bit codes'
     ``1/510``); Haar rows (signed, cancelling terms) in float64.
+
+    ``part``: 0 the pulse rows only, 1 the Haar rows only (the others' ``out`` rows left as they are; a pulse row
+    reads no Haar coefficient of ``light_t``), 2 every row.
     """
     n_vertices = indptr.shape[0] - 1
     n = np.uint64(light_t.shape[1] // 2)
@@ -133,6 +136,8 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
     f1 = light32_t[1]
     f2 = light32_t[2]
     for v in numba.prange(n_vertices):
+        if part != 2 and basis[v] != part:
+            continue
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0

@@ -1275,13 +1275,13 @@ class Portals(Precomputation):
                                                      method=method), len(w))
             else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
                 _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
-                light = shell_coefficients(cube)
                 if overlap:
-                    radiance, indirect = shade_surface(self.direct_transfer(k), albedo, light, self.source_operator(k),
+                    radiance, indirect = shade_surface(self.direct_transfer(k), albedo, cube, self.source_operator(k),
                                                        surface, bounces)
                     direct += radiance
                     timings["direct_and_indirect"] = time.perf_counter() - t0
                     break
+                light = shell_coefficients(cube)
                 if len(w):
                     direct += _block_sum(direct_from_light(self.direct_transfer(k, strips=block), rows_albedo, light),
                                          len(w))

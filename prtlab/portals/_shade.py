@@ -151,13 +151,13 @@ def direct_operands(direct: SparseTransfer, albedo, light) -> tuple:
             np.int64(direct.sign_bit), light_t, lit, light32_t, np.ascontiguousarray(albedo))
 
 
-def direct_rows(operands: tuple, a: int, b: int, out) -> None:
+def direct_rows(operands: tuple, a: int, b: int, out, part: int = 2) -> None:
     """The direct radiance of vertices ``a .. b - 1`` into ``out[a:b]`` (each vertex's sums on its own: the same
-    bits whatever the split of the rows)."""
+    bits whatever the split of the rows); ``part`` 0 their pulse rows only, 1 their Haar rows only, 2 all."""
     indptr, run_ptr, run_start, run_len, indices, codes, scale, basis, sign_bit, light_t, lit, light32_t, albedo = \
         operands
     _kernels.direct_runs_kernel(indptr[a : b + 1], run_ptr[a : b + 1], run_start, run_len, indices, codes, scale[a:b],
-                                basis[a:b], sign_bit, light_t, lit, light32_t, albedo[a:b], out[a:b])
+                                basis[a:b], sign_bit, light_t, lit, light32_t, albedo[a:b], out[a:b], np.int64(part))
 
 
 def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:

@@ -640,44 +640,65 @@ def _cuts(n: int, k: int, indptr=None) -> list:
     return [(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
 
-def shade_surface(direct, albedo, light, source_operator: SourceOperator, surface: SurfaceTransfer,
+def shade_surface(direct, albedo, cube, source_operator: SourceOperator, surface: SurfaceTransfer,
                   bounces: int) -> tuple[np.ndarray, np.ndarray]:
-    """The default frame's direct and indirect radiance, ``(V, 3)`` float64 each, numba tiers: ``L_d =
-    direct_from_light(direct, albedo, light)`` and ``surface.frame(source_operator.apply(light), bounces,
-    direct=L_d)``, from the shell light's coefficients ``light`` (:func:`prtlab.portals._shade.shell_coefficients`)
-    and a checked ``(V, 3)`` float64 ``albedo``; with :data:`TASKS` and more than one numba thread as tasks on
-    Python threads (the same bits)."""
-    from ._shade import direct_from_light, direct_operands, direct_rows
+    """The default frame's direct and indirect radiance, ``(V, 3)`` float64 each, numba tiers, from a checked shell
+    light ``cube (6, r, r, 3)`` and ``(V, 3)`` float64 ``albedo``: with ``L = shell_coefficients(cube)``, ``L_d =
+    direct_from_light(direct, albedo, L)`` and ``surface.frame(source_operator.apply(L), bounces, direct=L_d)``.
 
-    threads = numba.get_num_threads()
+    With :func:`tasks_on`, as tasks on Python threads, each kernel on one numba thread (the same bits): one thread
+    runs the chain: the light's Haar coefficients, ``G L``, ``S_B s`` (and ``S_(B-1) s``), the near rays' patch
+    reads ``N_patch S_B s``, then row chunks of the gather product, each followed by the near partners among its
+    rows (their rows still in cache); the others row chunks of the direct pass's pulse rows (which need no Haar
+    coefficient), then its Haar rows; each thread takes the other queue's chunks once its own is done. Then the
+    near rays' point reads in one serial kernel."""
+    from prtlab.wavelet import SparseTransfer, haar2d
+
+    from ._shade import direct_from_light, direct_operands, direct_rows, shell_coefficients
+
     if not tasks_on() or bounces <= 0 or not direct.n_vertices or direct.n_vertices != len(surface.patch):
+        light = shell_coefficients(cube)
         radiance = direct_from_light(direct, albedo, light)
         return radiance, surface.frame(source_operator.apply(light), bounces, direct=radiance)
+    threads = numba.get_num_threads()
     bounces = int(bounces)
     n = direct.n_vertices
+    cube = np.asarray(cube, dtype=np.float64)
+    n_texels = cube.shape[0] * cube.shape[1] * cube.shape[2]
+    light = np.zeros((2 * n_texels, 3))  # shell_coefficients(cube): its Haar half filled by the chain
+    light[:n_texels] = cube.reshape(n_texels, 3)
     operands = direct_operands(direct, albedo, light)
+    light_t = operands[9]  # (3, 2 T): its Haar half copied in by the chain
     radiance = np.empty((n, 3))
     indirect = np.empty((n, 3))
     near = surface.near
     partners = surface.partners if near is not None and bounces > 1 else np.zeros(0, dtype=np.int64)
     partner_light = np.empty((len(partners), 3))
     lights = {}
+    haar_ready, ready = threading.Event(), threading.Event()
     claimed = itertools.count()  # the chain's claim: next() on a count is atomic under the GIL
+    errors = []
 
-    def chain():  # G L -> S_B s (and S_(B-1) s) -> the near rays' patch reads; run by the first thread to claim it
+    def chain():  # run by the first thread to claim it
         try:
+            try:
+                light[n_texels:] = haar2d(cube, channels=True).reshape(n_texels, 3)  # as shell_coefficients
+                light_t[:, n_texels:] = light[n_texels:].T
+            finally:
+                haar_ready.set()
             source = np.asarray(source_operator.apply(light), dtype=np.float64)
             lights["B"] = np.ascontiguousarray(surface._light(source, bounces, "numba").T)
             if len(partners):
                 lights["B-1"] = np.ascontiguousarray(surface._light(source, bounces - 1, "numba").T)
             if near is not None:
                 lights["patch"] = near[0] @ np.asarray(lights["B"].T, dtype=np.float64)
-        except BaseException as error:  # before the product's chunks wake: they see it and stop
+        except BaseException as error:  # before the chunks waiting on it wake: they see it and stop
             errors.append(error)
         finally:
+            haar_ready.set()
             ready.set()
 
-    def product(a, b, pa, pb):  # rows a .. b - 1, then the partners among them (their rows still in cache)
+    def product(a, b, pa, pb):  # rows a .. b - 1, then the partners among them
         _kernels.gather_product_kernel(surface.codes, surface.scale, lights["B"], surface.albedo[a:b], indirect[a:b],
                                        surface._all_rows[a:b])
         if pb > pa:
@@ -686,28 +707,30 @@ def shade_surface(direct, albedo, light, source_operator: SourceOperator, surfac
 
     k = TASK_CHUNKS * threads
     key = (k, len(partners))
-    if key not in _DIRECT_CUTS.setdefault(direct, {}):
-        _DIRECT_CUTS[direct][key] = _cuts(n, k, direct.indptr)
+    if key not in _DIRECT_CUTS.setdefault(direct, {}):  # pulse row chunks, Haar row chunks (if any)
+        haar_rows = bool(np.any(direct.basis == SparseTransfer.HAAR))
+        _DIRECT_CUTS[direct][key] = (_cuts(n, k, direct.indptr), _cuts(n, 2 * threads, direct.indptr) if haar_rows
+                                     else [])
     if key not in surface.task_cuts:  # row chunks and the partners among them
         surface.task_cuts[key] = [(a, b, *np.searchsorted(partners, (a, b)).tolist()) for a, b in _cuts(n, k)]
-    rows = [(direct_rows, (operands, a, b, radiance)) for a, b in _DIRECT_CUTS[direct][key]]
-    gather = [(product, cut) for cut in surface.task_cuts[key]]
+    pulse_cuts, haar_cuts = _DIRECT_CUTS[direct][key]
+    rows = [(None, direct_rows, (operands, a, b, radiance, 0)) for a, b in pulse_cuts]
+    rows += [(haar_ready, direct_rows, (operands, a, b, radiance, 1)) for a, b in haar_cuts]
+    gather = [(ready, product, cut) for cut in surface.task_cuts[key]]
     queues = ((rows, itertools.count()), (gather, itertools.count()))
-    ready = threading.Event()
-    errors = []
 
     def drain(order):
         for tasks, claim in order:
             for i in iter(claim.__next__, None):
                 if i >= len(tasks):
                     break
-                if tasks is gather:
+                event, f, args = tasks[i]
+                if event is not None:
                     if next(claimed) == 0:
                         chain()
-                    ready.wait()
+                    event.wait()
                 if errors:
                     return
-                f, args = tasks[i]
                 f(*args)
 
     def first_worker():

@@ -432,8 +432,7 @@ def _two_numba_threads():
 
 def _frame_operands(seed: int, near: bool, n_vertices: int = 300, n_patches: int = 20, res: int = 4):
     """A direct and a source 8-bit transfer (pulse and Haar rows, runs of texels, some black texels), a surface
-    transfer with its near reads, and a light (both bases' coefficients)."""
-    from prtlab.portals._shade import shell_coefficients
+    transfer with its near reads, and a shell light."""
     from prtlab.wavelet import encode_transfer
     from scipy.sparse import csr_matrix
 
@@ -457,7 +456,7 @@ def _frame_operands(seed: int, near: bool, n_vertices: int = 300, n_patches: int
                               {b: power_sum(operator, b) for b in range(1, 5)}, near=near_data)
     cube = rng.random((6, res, res, 3)) * 10
     cube[:, : res // 2] = 0.0  # black texels: their runs are skipped
-    return direct, albedo, shell_coefficients(cube), surface.source_operator(source), surface
+    return direct, albedo, cube, surface.source_operator(source), surface
 
 
 @pytest.mark.parametrize("bounces, near, chunks", [(1, True, 8), (2, True, 1), (3, True, 8), (2, False, 3),
@@ -470,12 +469,13 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks):
     from prtlab.portals import _surface
 
     _two_numba_threads()
-    direct, albedo, light, source_operator, surface = _frame_operands(bounces + 10 * chunks, near)
+    direct, albedo, cube, source_operator, surface = _frame_operands(bounces + 10 * chunks, near)
+    assert 0 < np.count_nonzero(direct.basis) < direct.n_vertices  # pulse and Haar rows
     monkeypatch.setattr(_surface, "TASK_CHUNKS", chunks)
     out = {}
     for tasks in (False, True):
         monkeypatch.setattr(_surface, "TASKS", tasks)
-        out[tasks] = _surface.shade_surface(direct, albedo, light, source_operator, surface, bounces)
+        out[tasks] = _surface.shade_surface(direct, albedo, cube, source_operator, surface, bounces)
     for serial, task in zip(out[False], out[True]):
         assert serial.shape == task.shape == (direct.n_vertices, 3)
         np.testing.assert_array_equal(serial.view(np.uint64), task.view(np.uint64))
@@ -487,19 +487,19 @@ def test_task_frame_raises_a_tasks_error_once_every_thread_ended(monkeypatch):
     from prtlab.portals import _surface
 
     _two_numba_threads()
-    direct, albedo, light, source_operator, surface = _frame_operands(0, True)
-    expected = _surface.shade_surface(direct, albedo, light, source_operator, surface, 2)
+    direct, albedo, cube, source_operator, surface = _frame_operands(0, True)
+    expected = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
 
     def fail(light):
         raise RuntimeError("source light failed")
 
     monkeypatch.setattr(source_operator, "apply", fail)
     with pytest.raises(RuntimeError, match="source light failed"):
-        _surface.shade_surface(direct, albedo, light, source_operator, surface, 2)
+        _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
     monkeypatch.undo()
     import numba
 
     assert numba.get_num_threads() == 2
-    again = _surface.shade_surface(direct, albedo, light, source_operator, surface, 2)
+    again = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
     for a, b in zip(expected, again):
         np.testing.assert_array_equal(a, b)
