@@ -600,12 +600,11 @@ def mass_matrix(caster: RayCaster):
 
 
 #: Whether :func:`shade_surface` runs the default frame's passes as tasks on as many Python threads as numba has
-#: threads, each kernel on one numba thread: one thread runs the chain source light ``G L`` -> bounce sums ``S_B s``
-#: (and ``S_(B-1) s``) -> row chunks of the gather product, the others row chunks of the direct pass, and each takes
-#: the other's chunks once its own are done. The small serial passes then overlap the direct pass, the product's
-#: memory traffic overlaps the direct pass's arithmetic, and no parallel region waits for a descheduled thread.
-#: Every row's sums are those of the passes run one after another, so the frame is the same bit for bit (test);
-#: False runs them one after another with every thread in each kernel.
+#: threads, each kernel on one numba thread (the docstring of :func:`shade_surface`): the small serial passes
+#: then overlap the direct pass, the gather's memory traffic overlaps the direct pass's arithmetic, and no parallel
+#: region waits for a descheduled thread; on one thread the same tasks one after another (the near partners' rows
+#: still read with their chunk of the gather). Every row's sums are those of the passes run one after another, so
+#: the frame is the same bit for bit (tests); False runs the passes one after another, every thread in each kernel.
 TASKS = True
 
 #: row chunks per thread of the direct pass and of the gather product under :data:`TASKS`
@@ -618,8 +617,8 @@ _TASK_POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor of threads
 
 
 def tasks_on() -> bool:
-    """Whether :func:`shade_surface` runs its passes as tasks: :data:`TASKS` and more than one numba thread."""
-    return TASKS and numba.get_num_threads() > 1
+    """Whether :func:`shade_surface` runs its passes as tasks (:data:`TASKS`)."""
+    return TASKS
 
 
 def _task_pool(threads: int) -> ThreadPoolExecutor:
@@ -646,12 +645,14 @@ def shade_surface(direct, albedo, cube, source_operator: SourceOperator, surface
     light ``cube (6, r, r, 3)`` and ``(V, 3)`` float64 ``albedo``: with ``L = shell_coefficients(cube)``, ``L_d =
     direct_from_light(direct, albedo, L)`` and ``surface.frame(source_operator.apply(L), bounces, direct=L_d)``.
 
-    With :func:`tasks_on`, as tasks on Python threads, each kernel on one numba thread (the same bits): one thread
-    runs the chain: the light's Haar coefficients, ``G L``, ``S_B s`` (and ``S_(B-1) s``), the near rays' patch
-    reads ``N_patch S_B s``, then row chunks of the gather product, each followed by the near partners among its
-    rows (their rows still in cache); the others row chunks of the direct pass's pulse rows (which need no Haar
-    coefficient), then its Haar rows; each thread takes the other queue's chunks once its own is done. Then the
-    near rays' point reads in one serial kernel."""
+    With :func:`tasks_on`, as tasks on Python threads, each kernel on one numba thread (the same bits; on one
+    thread, one after another): one thread runs the chain (the light's Haar coefficients, ``G L``, ``S_B s`` and
+    ``S_(B-1) s``, the near rays' patch reads ``N_patch S_B s``), then row chunks of the gather product, each
+    followed by the near partners among its rows (their rows still in cache: read apart, the scattered rows took
+    2.6x as long, 1.56 against 0.60 ms on one thread); the others row chunks of the direct pass's pulse rows (which
+    read no Haar coefficient), then its Haar rows; a thread takes the other queue's chunks once its own is done.
+    Then the near rays' point reads in one serial kernel (``L_ind += rho (N_point (L_d + rho F S_(B-1) s) -
+    N_patch S_B s)``)."""
     from prtlab.wavelet import SparseTransfer, haar2d
 
     from ._shade import direct_from_light, direct_operands, direct_rows, shell_coefficients
@@ -747,17 +748,20 @@ def shade_surface(direct, albedo, cube, source_operator: SourceOperator, surface
         except BaseException as error:
             errors.append(error)
 
-    pool = _task_pool(threads)
-    futures = [pool.submit(first_worker)] + [pool.submit(worker) for _ in range(threads - 2)]
-    numba.set_num_threads(1)
-    try:
-        worker()
-    finally:
-        numba.set_num_threads(threads)
-        futures_wait(futures)
+    if threads == 1:
+        first_worker()
+    else:
+        pool = _task_pool(threads)
+        futures = [pool.submit(first_worker)] + [pool.submit(worker) for _ in range(threads - 2)]
+        numba.set_num_threads(1)
+        try:
+            worker()
+        finally:
+            numba.set_num_threads(threads)
+            futures_wait(futures)
     if errors:
         raise errors[0]
-    if near is not None:  # the near rays' point reads: L_ind += rho (N_point (L_d + rho F S_(B-1) s) - N_patch S_B s)
+    if near is not None:  # the near rays' point reads
         m = near[1].tocsr()
         slot = surface.partner_slot if len(partners) else np.full(n, -1, dtype=np.int64)
         _kernels.near_point_kernel(m.indptr, m.indices, m.data, radiance, slot, partner_light, lights["patch"],

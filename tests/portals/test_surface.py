@@ -459,13 +459,16 @@ def _frame_operands(seed: int, near: bool, n_vertices: int = 300, n_patches: int
     return direct, albedo, cube, surface.source_operator(source), surface
 
 
-@pytest.mark.parametrize("bounces, near, chunks", [(1, True, 8), (2, True, 1), (3, True, 8), (2, False, 3),
-                                                   (4, True, 200), (0, True, 8)])
-def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks):
+@pytest.mark.parametrize("bounces, near, chunks, threads", [(1, True, 8, 2), (2, True, 1, 2), (3, True, 8, 2),
+                                                            (2, False, 3, 2), (4, True, 200, 2), (0, True, 8, 2),
+                                                            (2, True, 8, 1)])
+def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, threads):
     """:func:`shade_surface` with ``TASKS`` (the direct pass's row chunks and the chain ``G L`` -> ``S_B s`` ->
     gather chunks, the near rays' partners with each chunk, as tasks on Python threads with one numba thread each;
     the near reads in one kernel) equals the passes one after another (``TASKS`` off: ``direct_from_light`` and
-    :meth:`SurfaceTransfer.frame` with every thread), bit for bit, at any chunk count."""
+    :meth:`SurfaceTransfer.frame` with every thread), bit for bit, at any chunk count; on one thread too."""
+    import numba
+
     from prtlab.portals import _surface
 
     _two_numba_threads()
@@ -473,9 +476,13 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks):
     assert 0 < np.count_nonzero(direct.basis) < direct.n_vertices  # pulse and Haar rows
     monkeypatch.setattr(_surface, "TASK_CHUNKS", chunks)
     out = {}
-    for tasks in (False, True):
-        monkeypatch.setattr(_surface, "TASKS", tasks)
-        out[tasks] = _surface.shade_surface(direct, albedo, cube, source_operator, surface, bounces)
+    numba.set_num_threads(threads)
+    try:
+        for tasks in (False, True):
+            monkeypatch.setattr(_surface, "TASKS", tasks)
+            out[tasks] = _surface.shade_surface(direct, albedo, cube, source_operator, surface, bounces)
+    finally:
+        numba.set_num_threads(2)
     for serial, task in zip(out[False], out[True]):
         assert serial.shape == task.shape == (direct.n_vertices, 3)
         np.testing.assert_array_equal(serial.view(np.uint64), task.view(np.uint64))
