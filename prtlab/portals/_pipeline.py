@@ -67,6 +67,7 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_op
 from prtlab.scene import AreaLight, EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
+from . import _surface
 from ._direct import (PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, strip_frame, strip_weights,
                       view_interpolation)
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
@@ -74,7 +75,6 @@ from ._interior import INTERIOR_LIGHTS, interior_light_factor, leaving_transfer
 from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass, glossy_direct_pass,
                      glossy_indirect_pass, glossy_lobe_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
-from . import _surface
 from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
                        patch_gather, patch_operator, power_sum, quantize_rows, shade_surface, vertex_areas)
 

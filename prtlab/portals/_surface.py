@@ -40,6 +40,7 @@ import numba
 import numpy as np
 
 from prtlab.geometry import RayCaster, stratified_hemisphere
+from prtlab.wavelet import SparseTransfer, haar2d
 
 from . import _kernels
 from ._indirect import front_hit_corners
@@ -653,8 +654,6 @@ def shade_surface(direct, albedo, cube, source_operator: SourceOperator, surface
     read no Haar coefficient), then its Haar rows; a thread takes the other queue's chunks once its own is done.
     Then the near rays' point reads in one serial kernel (``L_ind += rho (N_point (L_d + rho F S_(B-1) s) -
     N_patch S_B s)``)."""
-    from prtlab.wavelet import SparseTransfer, haar2d
-
     from ._shade import direct_from_light, direct_operands, direct_rows, shell_coefficients
 
     if not tasks_on() or bounces <= 0 or not direct.n_vertices or direct.n_vertices != len(surface.patch):
