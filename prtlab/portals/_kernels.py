@@ -21,7 +21,7 @@ def indirect_pass_kernel(transfer, light_sh, out):
         out[v, 2] += a2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def shell_resample_kernel(image, taps, weights, out):
     """out[t, c] = sum_s weights[t, s] * image[taps[t, s], c]: equirect pixels to cubemap texel averages.
 
@@ -64,7 +64,7 @@ def _signed_row_dot(indptr, indices, codes, sign_bit, light, row, offset):
     return b0, b1, b2
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def direct_pass_kernel(indptr, indices, codes, scale, basis, sign_bit, light, albedo, out):
     """Sparse 8-bit direct transfer times the shell light, times the albedo (3 channels).
 
@@ -93,9 +93,9 @@ def _masked_term(codes, e, j, rest, f0, f1, f2, k):
     return w * f0[k + j], w * f1[k + j], w * f2[k + j]
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scale, basis, sign_bit, light_t, lit,
-                       light32_t, albedo, out):
+                       light32_t, albedo, out, part):
     """:func:`direct_pass_kernel` with the pulse rows read as runs of consecutive texels, skipping the runs whose
     texels the shell light leaves black (exactly zero: the ground below the horizon); same sums, float64.
 
@@ -117,6 +117,9 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
     Pulse rows sum in float32 from ``light32_t`` (forward error at most ``(n + 2) eps_32`` times the row's sum of
     absolute terms, ``n`` its entries; measured 5e-7 of the 45k frame's largest value, against the 8-bit codes'
     ``1/510``); Haar rows (signed, cancelling terms) in float64.
+
+    ``part``: 0 the pulse rows only, 1 the Haar rows only (the others' ``out`` rows left as they are; a pulse row
+    reads no Haar coefficient of ``light_t``), 2 every row.
     """
     n_vertices = indptr.shape[0] - 1
     n = np.uint64(light_t.shape[1] // 2)
@@ -133,6 +136,8 @@ def direct_runs_kernel(indptr, run_ptr, run_start, run_len, indices, codes, scal
     f1 = light32_t[1]
     f2 = light32_t[2]
     for v in numba.prange(n_vertices):
+        if part != 2 and basis[v] != part:
+            continue
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
@@ -295,7 +300,7 @@ def glossy_indirect_pass_kernel(matrix, light_sh, basis_out, out):
         out[v, 2] = a2
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def source_light_kernel(indptr, columns, values, light, out):
     """``out[c, ch] = sum_e values[e, ch] light[columns[e], ch]`` over the CSR rows ``c`` (the patches' mean direct
     radiance from the shell light's pulse and Haar coefficients, :class:`prtlab.portals._surface.SourceOperator`).
@@ -334,7 +339,7 @@ def source_light_kernel(indptr, columns, values, light, out):
         out[c, 2] = a2 + b2
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def bounce_light_kernel(sums_t, source, out):
     """``out[ch, c] = sum_d sums_t[ch, c, d] float32(source[d, ch])`` in float32 (``S_B s``): channel-major sums
     ``(3, C, C)`` and out ``(3, C)``, one contiguous row ``(ch, c)`` per iteration (the sum over ``d`` vectorises)."""
@@ -354,7 +359,7 @@ def bounce_light_kernel(sums_t, source, out):
         out[ch, c] = acc
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def light_layout_kernel(light, light_t, lit, light32_t):
     """The shell light's coefficients ``light (2 T, 3)`` in :func:`direct_runs_kernel`'s layouts: ``light_t (3, 2 T)``
     channel-major float64, ``lit (T + 1,)`` the running count of texels with a non-zero channel, ``light32_t (3, T +
@@ -380,7 +385,7 @@ def light_layout_kernel(light, light_t, lit, light32_t):
         light32_t[2, k] = 0.0
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=True, nogil=True)
 def gather_product_kernel(codes, scale, light_t, albedo, out, rows):
     """``out[i, ch] = albedo[v, ch] scale[v] sum_c codes[v, c] light_t[ch, c]`` for ``v = rows[i]`` (float32 sums
     over the 16-bit codes, channel-major ``light_t (3, C)`` so that the sum over ``c`` reads contiguous memory and
@@ -405,3 +410,35 @@ def gather_product_kernel(codes, scale, light_t, albedo, out, rows):
         out[i, 0] = albedo[i, 0] * s * a0
         out[i, 1] = albedo[i, 1] * s * a1
         out[i, 2] = albedo[i, 2] * s * a2
+
+
+@numba.njit(cache=True, nogil=True)
+def near_point_kernel(indptr, indices, data, radiance, slot, partner_light, patch_read, albedo, out):
+    """``out[i, ch] += albedo[i, ch] (sum_e data[e] point[indices[e], ch] - patch_read[i, ch])`` over the CSR rows
+    ``i`` (the near rays' point reads, :meth:`prtlab.portals._surface.SurfaceTransfer.near_correction`), ``point[v]
+    = radiance[v] + partner_light[slot[v]]`` where ``slot[v] >= 0``, else ``radiance[v]``.
+
+    Serial (a few 1e4 entries). No ``fastmath``: each row sums its entries in order from 0 with separate multiplies
+    and adds, as scipy's CSR product does, and the terms are those numpy forms, so the same bits (tested)."""
+    n_rows = indptr.shape[0] - 1
+    for i in range(n_rows):
+        y0 = 0.0
+        y1 = 0.0
+        y2 = 0.0
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            a = data[e]
+            p0 = radiance[j, 0]
+            p1 = radiance[j, 1]
+            p2 = radiance[j, 2]
+            s = slot[j]
+            if s >= 0:
+                p0 = p0 + partner_light[s, 0]
+                p1 = p1 + partner_light[s, 1]
+                p2 = p2 + partner_light[s, 2]
+            y0 += a * p0
+            y1 += a * p1
+            y2 += a * p2
+        out[i, 0] += albedo[i, 0] * (y0 - patch_read[i, 0])
+        out[i, 1] += albedo[i, 1] * (y1 - patch_read[i, 1])
+        out[i, 2] += albedo[i, 2] * (y2 - patch_read[i, 2])

@@ -67,6 +67,7 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_op
 from prtlab.scene import AreaLight, EnvironmentLight, Scene, ShadeResult
 from prtlab.wavelet import SparseTransfer, encode_transfer
 
+from . import _surface
 from ._direct import (PORTAL_SAMPLERS, direct_transfer, glossy_direct_transfer, strip_frame, strip_weights,
                       view_interpolation)
 from ._indirect import CHUNK_BYTES, final_gather, radiance_estimate, trace_photons
@@ -75,7 +76,7 @@ from ._shade import (_check_cube, _check_method, direct_from_light, direct_pass,
                      glossy_indirect_pass, glossy_lobe_pass, indirect_pass, shell_coefficients)
 from ._shell import find_portals, shell_light, shell_sh
 from ._surface import (SourceOperator, SurfaceTransfer, cluster_vertices, hat_points, hat_projection, mass_matrix,
-                       patch_gather, patch_operator, power_sum, quantize_rows, vertex_areas)
+                       patch_gather, patch_operator, power_sum, quantize_rows, shade_surface, vertex_areas)
 
 __all__ = ["PortalsOptions", "Portals", "shade_scene"]
 
@@ -1254,6 +1255,10 @@ class Portals(Precomputation):
         timings = {"direct": 0.0, "indirect": 0.0}
         surface = self.surface_transfer() if bounces > 0 else None
         source = np.zeros((surface.n_patches if surface is not None else 0, 3))
+        # one portal, the default frame: its direct pass and its surface indirect light overlapped (shade_surface)
+        overlap = (method == "numba" and surface is not None and self.n_portals == 1 and n_strips == 1
+                   and not len(g) and "lights" not in self.data and "leaving" not in self.data["portal0"]
+                   and _surface.tasks_on())
         for k, cube in enumerate(shells):
             t0 = time.perf_counter()
             cube = np.asarray(cube, dtype=np.float64)
@@ -1270,6 +1275,12 @@ class Portals(Precomputation):
                                                      method=method), len(w))
             else:  # the shell light's coefficients once, for the direct pass, the glossy rows and the source
                 _check_cube(cube, int(self.data[f"portal{k}"]["res"]))
+                if overlap:
+                    radiance, indirect = shade_surface(self.direct_transfer(k), albedo, cube, self.source_operator(k),
+                                                       surface, bounces)
+                    direct += radiance
+                    timings["direct_and_indirect"] = time.perf_counter() - t0
+                    break
                 light = shell_coefficients(cube)
                 if len(w):
                     direct += _block_sum(direct_from_light(self.direct_transfer(k, strips=block), rows_albedo, light),
@@ -1311,7 +1322,7 @@ class Portals(Precomputation):
                 source += surface.patch_source(albedo / np.pi * (np.asarray(e["source"], dtype=np.float64).T
                                                                  @ emission))
             timings["lights"] = time.perf_counter() - t0
-        if surface is not None:
+        if surface is not None and not overlap:
             t0 = time.perf_counter()
             indirect = surface.frame(source, bounces, method=method, direct=direct)
             timings["indirect"] += time.perf_counter() - t0

@@ -132,17 +132,32 @@ def direct_from_light(direct: SparseTransfer, albedo, light) -> np.ndarray:
     of a row's sum of absolute terms); Haar rows in float64."""
     out = np.empty((direct.n_vertices, 3))
     if direct.n_vertices:
-        run_ptr, run_start, run_len = texel_runs(direct)
-        light = np.ascontiguousarray(light, dtype=np.float64)
-        n = len(light) // 2
-        light_t, lit = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32)
-        light32_t = np.empty((3, n + 7), np.float32)  # 7 zero columns for the runs' masked lanes
-        _kernels.light_layout_kernel(light, light_t, lit, light32_t)
+        operands = direct_operands(direct, albedo, light)
         with _threads_for(3 * len(direct.codes)):
-            _kernels.direct_runs_kernel(direct.indptr, run_ptr, run_start, run_len, direct.indices, direct.codes,
-                                        direct.scale, direct.basis, np.int64(direct.sign_bit), light_t, lit,
-                                        light32_t, np.ascontiguousarray(albedo), out)
+            direct_rows(operands, 0, direct.n_vertices, out)
     return out
+
+
+def direct_operands(direct: SparseTransfer, albedo, light) -> tuple:
+    """The operands of :func:`prtlab.portals._kernels.direct_runs_kernel` for :func:`direct_rows`: the transfer's
+    texel runs and the light's layouts (one serial pass over the light)."""
+    run_ptr, run_start, run_len = texel_runs(direct)
+    light = np.ascontiguousarray(light, dtype=np.float64)
+    n = len(light) // 2
+    light_t, lit = np.empty((3, 2 * n)), np.empty(n + 1, dtype=np.int32)
+    light32_t = np.empty((3, n + 7), np.float32)  # 7 zero columns for the runs' masked lanes
+    _kernels.light_layout_kernel(light, light_t, lit, light32_t)
+    return (direct.indptr, run_ptr, run_start, run_len, direct.indices, direct.codes, direct.scale, direct.basis,
+            np.int64(direct.sign_bit), light_t, lit, light32_t, np.ascontiguousarray(albedo))
+
+
+def direct_rows(operands: tuple, a: int, b: int, out, part: int = 2) -> None:
+    """The direct radiance of vertices ``a .. b - 1`` into ``out[a:b]`` (each vertex's sums on its own: the same
+    bits whatever the split of the rows); ``part`` 0 their pulse rows only, 1 their Haar rows only, 2 all."""
+    indptr, run_ptr, run_start, run_len, indices, codes, scale, basis, sign_bit, light_t, lit, light32_t, albedo = \
+        operands
+    _kernels.direct_runs_kernel(indptr[a : b + 1], run_ptr[a : b + 1], run_start, run_len, indices, codes, scale[a:b],
+                                basis[a:b], sign_bit, light_t, lit, light32_t, albedo[a:b], out[a:b], np.int64(part))
 
 
 def indirect_pass(transfer, light_sh, method: str = "numba") -> np.ndarray:

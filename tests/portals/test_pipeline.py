@@ -366,3 +366,36 @@ def test_cube_resolution_resolved_per_glossy_direct():
            for name, scene in (("glossy", glossy), ("diffuse", diffuse)) for gd in ("lobe", "views")}
     assert res == {("glossy", "lobe"): 64, ("glossy", "views"): 32, ("diffuse", "lobe"): 64,
                    ("diffuse", "views"): 64}
+
+
+@pytest.mark.parametrize("clusters", [24, 4096])
+def test_task_frames_equal_serial_frames(monkeypatch, clusters):
+    """``shade_shells`` of the default frame (one portal, ``indirect="surface"``) with :data:`_surface.TASKS` (the
+    direct pass and the surface indirect light as tasks on Python threads, :func:`shade_surface`) equals the frame
+    with its passes one after another, bit for bit: clusters (near reads of patches) and the vertices as patches
+    (the limited projection of the direct term), 1 and 2 bounces, two skies."""
+    import numba
+
+    from prtlab.portals import _surface
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads (one core here)")
+    numba.set_num_threads(2)
+    scene = window_box(cell=0.5)
+    pre = Portals.precompute(scene, {**QUICK, "bounces": 2, "indirect": "surface", "clusters": clusters},
+                             cache=False, progress=False)
+    surface = pre.surface_transfer()
+    assert surface.near is not None and len(surface.partners)
+    assert surface.identity == (clusters > len(surface.patch))
+    cubes = [shell_light(scene.environment, 8), tint(shell_light(scene.environment, 8), [1.0, 0.5, 0.2])]
+    for bounces in (1, 2):
+        for cube in cubes:
+            frames = {}
+            for tasks in (False, True):
+                monkeypatch.setattr(_surface, "TASKS", tasks)
+                frames[tasks] = pre.shade_shells([cube], bounces)
+            assert ("direct_and_indirect" in frames[True].info["timings"]) and \
+                ("direct_and_indirect" not in frames[False].info["timings"])
+            for part in ("direct", "indirect", "total"):
+                a, b = getattr(frames[False], part)["room"], getattr(frames[True], part)["room"]
+                np.testing.assert_array_equal(a.view(np.uint64), b.view(np.uint64))

@@ -420,3 +420,93 @@ def test_near_correction_tiers(n_vertices, n_patches, bounces, seed):
     np.testing.assert_allclose(ref, expected, rtol=1e-5, atol=1e-9)  # S_{B-1}: float64 products of float32 K
     absolute = albedo * ((f + near_patch.toarray()) @ np.abs(s_b) + near_point @ (albedo * (f @ light(bounces))))
     assert np.all(np.abs(ours - ref) <= 2 * (n_patches + 2) * np.finfo(np.float32).eps * absolute + 1e-12)
+
+
+def _two_numba_threads():
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs 2 numba threads (one core here)")
+    numba.set_num_threads(2)
+
+
+def _frame_operands(seed: int, near: bool, n_vertices: int = 300, n_patches: int = 20, res: int = 4):
+    """A direct and a source 8-bit transfer (pulse and Haar rows, runs of texels, some black texels), a surface
+    transfer with its near reads, and a shell light."""
+    from prtlab.wavelet import encode_transfer
+    from scipy.sparse import csr_matrix
+
+    rng = np.random.default_rng(seed)
+
+    def transfer():  # non-negative (a pulse row's codes have no sign); smooth rows have fewer Haar codes
+        t = np.where(rng.random((n_vertices, 6, res, res)) < 0.5, rng.random((n_vertices, 6, res, res)), 0.0)
+        t[::5] = 1.0 + 0.1 * np.linspace(0.0, 1.0, res) + 1e-3 * rng.random(t[::5].shape)
+        return encode_transfer(t, "auto")
+
+    direct, source = transfer(), transfer()
+    gather = rng.random((n_vertices, n_patches)) * (rng.random((n_vertices, n_patches)) < 0.6)
+    patch = rng.permutation(np.arange(n_vertices) % n_patches)
+    albedo = rng.random((n_vertices, 3))
+    operator = rng.random((n_patches, n_patches, 3)) / n_patches
+    near_data = None
+    if near:
+        near_data = (csr_matrix(gather * (rng.random(gather.shape) < 0.3) * 0.5),
+                     csr_matrix(rng.random((n_vertices, n_vertices)) * (rng.random((n_vertices, n_vertices)) < 0.02)))
+    surface = SurfaceTransfer(gather, patch, rng.random(n_vertices) + 0.1, albedo, operator,
+                              {b: power_sum(operator, b) for b in range(1, 5)}, near=near_data)
+    cube = rng.random((6, res, res, 3)) * 10
+    cube[:, : res // 2] = 0.0  # black texels: their runs are skipped
+    return direct, albedo, cube, surface.source_operator(source), surface
+
+
+@pytest.mark.parametrize("bounces, near, chunks, threads", [(1, True, 8, 2), (2, True, 1, 2), (3, True, 8, 2),
+                                                            (2, False, 3, 2), (4, True, 200, 2), (0, True, 8, 2),
+                                                            (2, True, 8, 1)])
+def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, threads):
+    """:func:`shade_surface` with ``TASKS`` (the direct pass's row chunks and the chain ``G L`` -> ``S_B s`` ->
+    gather chunks, the near rays' partners with each chunk, as tasks on Python threads with one numba thread each;
+    the near reads in one kernel) equals the passes one after another (``TASKS`` off: ``direct_from_light`` and
+    :meth:`SurfaceTransfer.frame` with every thread), bit for bit, at any chunk count; on one thread too."""
+    import numba
+
+    from prtlab.portals import _surface
+
+    _two_numba_threads()
+    direct, albedo, cube, source_operator, surface = _frame_operands(bounces + 10 * chunks, near)
+    assert 0 < np.count_nonzero(direct.basis) < direct.n_vertices  # pulse and Haar rows
+    monkeypatch.setattr(_surface, "TASK_CHUNKS", chunks)
+    out = {}
+    numba.set_num_threads(threads)
+    try:
+        for tasks in (False, True):
+            monkeypatch.setattr(_surface, "TASKS", tasks)
+            out[tasks] = _surface.shade_surface(direct, albedo, cube, source_operator, surface, bounces)
+    finally:
+        numba.set_num_threads(2)
+    for serial, task in zip(out[False], out[True]):
+        assert serial.shape == task.shape == (direct.n_vertices, 3)
+        np.testing.assert_array_equal(serial.view(np.uint64), task.view(np.uint64))
+    assert np.any(out[True][1] != 0) == (bounces > 0)
+
+
+def test_task_frame_raises_a_tasks_error_once_every_thread_ended(monkeypatch):
+    """An error in the chain (here ``G L``) is raised by :func:`shade_surface` itself; the next frame runs."""
+    from prtlab.portals import _surface
+
+    _two_numba_threads()
+    direct, albedo, cube, source_operator, surface = _frame_operands(0, True)
+    expected = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
+
+    def fail(light):
+        raise RuntimeError("source light failed")
+
+    monkeypatch.setattr(source_operator, "apply", fail)
+    with pytest.raises(RuntimeError, match="source light failed"):
+        _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
+    monkeypatch.undo()
+    import numba
+
+    assert numba.get_num_threads() == 2
+    again = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
+    for a, b in zip(expected, again):
+        np.testing.assert_array_equal(a, b)
