@@ -24,8 +24,7 @@ import prtlab.data
 from prtlab.bench import case, check_same_work, floor, transfer_csr
 from prtlab.wavelet import haar2d
 from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
-from prtlab.portals._shade import direct_from_light, shell_coefficients
-from prtlab.portals._surface import SurfaceTransfer
+from prtlab.portals._surface import SurfaceTransfer, shade_surface
 from prtlab.scene import load_scene
 from prtlab.wavelet import SparseTransfer
 
@@ -188,12 +187,11 @@ def _tile_rows(m, reps: int, column_step: int):
 
 
 def surface_frame(env, direct, source_operator, surface, albedo, res: int, bounces: int) -> np.ndarray:
-    """One default frame as :meth:`Portals.shade_shells` runs it (numba tiers): the shell light, its pulse and Haar
-    coefficients once, the direct pass, the patches' source light ``G L``, then ``rho F S_B s`` with the near
-    rays' point reads; total radiance."""
-    light = shell_coefficients(shell_light(env, res))
-    radiance = direct_from_light(direct, albedo, light)
-    return radiance + surface.frame(source_operator.apply(light), bounces, direct=radiance)
+    """One default frame as :meth:`Portals.shade_shells` runs it (numba tiers, :func:`shade_surface`): the shell
+    light, its pulse and Haar coefficients once, the direct pass, the patches' source light ``G L``, then ``rho F
+    S_B s`` with the near rays' point reads; total radiance."""
+    radiance, indirect = shade_surface(direct, albedo, shell_light(env, res), source_operator, surface, bounces)
+    return radiance + indirect
 
 
 @lru_cache(maxsize=1)

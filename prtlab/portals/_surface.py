@@ -30,15 +30,14 @@ the sun patch's edge; with clusters, the sun's patch averaged over a cluster for
 from __future__ import annotations
 
 import itertools
-import os
 import threading
 import weakref
-from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 
 import numba
 import numpy as np
 
+from prtlab import _tasks
 from prtlab.geometry import RayCaster, stratified_hemisphere
 from prtlab.wavelet import SparseTransfer, haar2d
 
@@ -600,34 +599,22 @@ def mass_matrix(caster: RayCaster):
                       shape=(offset, offset)).tocsr()
 
 
-#: Whether :func:`shade_surface` runs the default frame's passes as tasks on as many Python threads as numba has
-#: threads, each kernel on one numba thread (the docstring of :func:`shade_surface`): the small serial passes
-#: then overlap the direct pass, the gather's memory traffic overlaps the direct pass's arithmetic, and no parallel
-#: region waits for a descheduled thread; on one thread the same tasks one after another (the near partners' rows
-#: still read with their chunk of the gather). Every row's sums are those of the passes run one after another, so
-#: the frame is the same bit for bit (tests); False runs the passes one after another, every thread in each kernel.
-TASKS = True
-
-#: row chunks per thread of the direct pass and of the gather product under :data:`TASKS`
+#: row chunks per thread of the direct pass and of the gather product under :func:`tasks_on`
 TASK_CHUNKS = 8
 
-#: the direct pass's row chunks of each transfer under :data:`TASKS`, by chunk count
+#: the direct pass's row chunks of each transfer under :func:`tasks_on`, by chunk count
 _DIRECT_CUTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-
-_TASK_POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor of threads - 1 workers (numba: 1 thread each)
 
 
 def tasks_on() -> bool:
-    """Whether :func:`shade_surface` runs its passes as tasks (:data:`TASKS`)."""
-    return TASKS
-
-
-def _task_pool(threads: int) -> ThreadPoolExecutor:
-    key = (os.getpid(), threads)
-    if key not in _TASK_POOLS:
-        _TASK_POOLS[key] = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="prtlab-portals",
-                                              initializer=numba.set_num_threads, initargs=(1,))
-    return _TASK_POOLS[key]
+    """Whether :func:`shade_surface` runs the default frame's passes as tasks (:data:`prtlab._tasks.TASKS`): on as
+    many Python threads as numba has threads, each kernel on one numba thread (its docstring), so that the small
+    serial passes overlap the direct pass, the gather's memory traffic overlaps the direct pass's arithmetic and no
+    parallel region waits for a descheduled thread; on one thread (or numba's ``workqueue`` layer, or a thread of
+    the tasks' pool) the same tasks one after another (the near partners' rows still read with their chunk of the
+    gather). Every row's sums are those of the passes run one after another, so the frame is the same bit for bit
+    (tests); off, the passes run one after another, every thread in each kernel."""
+    return _tasks.TASKS
 
 
 def _cuts(n: int, k: int, indptr=None) -> list:
@@ -747,10 +734,10 @@ def shade_surface(direct, albedo, cube, source_operator: SourceOperator, surface
         except BaseException as error:
             errors.append(error)
 
-    if threads == 1:
+    if threads == 1 or _tasks.on_pool() or not _tasks.concurrent_kernels():
         first_worker()
     else:
-        pool = _task_pool(threads)
+        pool = _tasks.pool(threads)
         futures = [pool.submit(first_worker)] + [pool.submit(worker) for _ in range(threads - 2)]
         numba.set_num_threads(1)
         try:

@@ -18,6 +18,8 @@ from prtlab.portals import (
 )
 from prtlab.scene import Scene
 
+from tests.conftest import two_numba_threads
+
 from .conftest import window_box
 
 QUICK = {"cube_resolution": 8, "direct_samples": 64, "n_photons": 20000, "gather_rays": 32, "order": 3, "bounces": 1}
@@ -370,17 +372,13 @@ def test_cube_resolution_resolved_per_glossy_direct():
 
 @pytest.mark.parametrize("clusters", [24, 4096])
 def test_task_frames_equal_serial_frames(monkeypatch, clusters):
-    """``shade_shells`` of the default frame (one portal, ``indirect="surface"``) with :data:`_surface.TASKS` (the
+    """``shade_shells`` of the default frame (one portal, ``indirect="surface"``) with :data:`prtlab._tasks.TASKS` (the
     direct pass and the surface indirect light as tasks on Python threads, :func:`shade_surface`) equals the frame
     with its passes one after another, bit for bit: clusters (near reads of patches) and the vertices as patches
     (the limited projection of the direct term), 1 and 2 bounces, two skies."""
-    import numba
+    from prtlab import _tasks
 
-    from prtlab.portals import _surface
-
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs 2 numba threads (one core here)")
-    numba.set_num_threads(2)
+    two_numba_threads()
     scene = window_box(cell=0.5)
     pre = Portals.precompute(scene, {**QUICK, "bounces": 2, "indirect": "surface", "clusters": clusters},
                              cache=False, progress=False)
@@ -392,7 +390,7 @@ def test_task_frames_equal_serial_frames(monkeypatch, clusters):
         for cube in cubes:
             frames = {}
             for tasks in (False, True):
-                monkeypatch.setattr(_surface, "TASKS", tasks)
+                monkeypatch.setattr(_tasks, "TASKS", tasks)
                 frames[tasks] = pre.shade_shells([cube], bounces)
             assert ("direct_and_indirect" in frames[True].info["timings"]) and \
                 ("direct_and_indirect" not in frames[False].info["timings"])

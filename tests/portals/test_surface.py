@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from prtlab import _tasks
 from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster
 from prtlab.portals import Portals
@@ -17,6 +18,8 @@ from prtlab.portals._surface import (SurfaceTransfer, cluster_vertices, hat_poin
                                      limited_projection, mass_matrix, patch_gather, patch_operator, power_sum,
                                      vertex_areas)
 from prtlab.scene import Scene
+
+from tests.conftest import two_numba_threads
 
 from .conftest import window_box
 
@@ -422,14 +425,6 @@ def test_near_correction_tiers(n_vertices, n_patches, bounces, seed):
     assert np.all(np.abs(ours - ref) <= 2 * (n_patches + 2) * np.finfo(np.float32).eps * absolute + 1e-12)
 
 
-def _two_numba_threads():
-    import numba
-
-    if numba.config.NUMBA_NUM_THREADS < 2:
-        pytest.skip("needs 2 numba threads (one core here)")
-    numba.set_num_threads(2)
-
-
 def _frame_operands(seed: int, near: bool, n_vertices: int = 300, n_patches: int = 20, res: int = 4):
     """A direct and a source 8-bit transfer (pulse and Haar rows, runs of texels, some black texels), a surface
     transfer with its near reads, and a shell light."""
@@ -471,7 +466,7 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, 
 
     from prtlab.portals import _surface
 
-    _two_numba_threads()
+    two_numba_threads()
     direct, albedo, cube, source_operator, surface = _frame_operands(bounces + 10 * chunks, near)
     assert 0 < np.count_nonzero(direct.basis) < direct.n_vertices  # pulse and Haar rows
     monkeypatch.setattr(_surface, "TASK_CHUNKS", chunks)
@@ -479,7 +474,7 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, 
     numba.set_num_threads(threads)
     try:
         for tasks in (False, True):
-            monkeypatch.setattr(_surface, "TASKS", tasks)
+            monkeypatch.setattr(_tasks, "TASKS", tasks)
             out[tasks] = _surface.shade_surface(direct, albedo, cube, source_operator, surface, bounces)
     finally:
         numba.set_num_threads(2)
@@ -493,7 +488,7 @@ def test_task_frame_raises_a_tasks_error_once_every_thread_ended(monkeypatch):
     """An error in the chain (here ``G L``) is raised by :func:`shade_surface` itself; the next frame runs."""
     from prtlab.portals import _surface
 
-    _two_numba_threads()
+    two_numba_threads()
     direct, albedo, cube, source_operator, surface = _frame_operands(0, True)
     expected = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
 

@@ -12,10 +12,10 @@ def test_task_frames_equal_serial_frames(monkeypatch):
     receivers, with ``TASKS`` (each chunk, occluder or block a task on one numba thread) and without: every
     object's direct and indirect light and the ground's equal bit for bit, and the frame ran tasks."""
     from prtlab import bench
-    from prtlab.benchmarks import bench_spherelights  # noqa: F401  (registers the cases)
     from prtlab.spherelights import _ground, _groundrays, _meshdirect, _passes
 
     two_numba_threads()
+    bench._discover()  # registers the cases, as prtlab bench does
     spec = bench._CASES["spherelights.frame.per_object_ground_near.21k"](True)
     calls = []
     run_tasks = _tasks.run_tasks
