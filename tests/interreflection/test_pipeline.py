@@ -285,77 +285,62 @@ class _Stalled:
         return future
 
 
-@pytest.mark.parametrize("worker", ["thread", "stalled"])
-def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
-    """Frames with ``OVERLAP`` (step 1 and the residual-gather entries on a second thread, or every entry taken
-    back by the frame's thread) equal frames without it bit for bit, ray counts included: the first frame, an
-    object moved twice, then an area light added and moved."""
-    from prtlab.interreflection import _pipeline
+def _moving_frames(pre):
+    """Frames of a fresh pipeline, two bounces: the first, the ball moved twice, an area light added and moved with
+    the ball (twice), then the light alone moved."""
     from prtlab.scene import AreaLight
 
-    def frames(overlap):
-        monkeypatch.setattr(_pipeline, "OVERLAP", overlap)
-        if overlap and worker == "stalled":
-            monkeypatch.setattr(_pipeline, "_frame_worker", lambda: _Stalled())
-        ir = Interreflection(pre.scene, pre.options, pre.data)
-        state = FrameState.from_scene(pre.scene)
-        out = [ir.shade(state, bounces=2)]
-        for translate in ([0.1, 0.65, 0.05], [-0.05, 0.6, 0.1]):
-            state.transforms["ball"] = Transform(translate=translate)
-            out.append(ir.shade(state, bounces=2))
-        for centre in ([0.2, 2.0, 0.1], [0.0, 2.2, 0.1]):
-            state.lights = [*pre.scene.lights, AreaLight(center=np.array(centre), u=np.array([0.3, 0, 0]),
-                                                         v=np.array([0, 0, 0.3]), radiance=np.full(3, 5.0))]
+    ir = Interreflection(pre.scene, pre.options, pre.data)
+    state = FrameState.from_scene(pre.scene)
+    out = [ir.shade(state, bounces=2)]
+    for translate in ([0.1, 0.65, 0.05], [-0.05, 0.6, 0.1]):
+        state.transforms["ball"] = Transform(translate=translate)
+        out.append(ir.shade(state, bounces=2))
+    for centre, ball in (([0.2, 2.0, 0.1], True), ([0.0, 2.2, 0.1], True), ([0.1, 2.1, 0.0], False)):
+        state.lights = [*pre.scene.lights, AreaLight(center=np.array(centre), u=np.array([0.3, 0, 0]),
+                                                     v=np.array([0, 0, 0.3]), radiance=np.full(3, 5.0))]
+        if ball:
             state.transforms["ball"] = Transform(translate=[0.05, 0.6 + centre[1] / 10, 0.0])
-            out.append(ir.shade(state, bounces=2))
-        monkeypatch.undo()
-        return out
-
-    sequential, overlapped = frames(False), frames(True)
-    for a, b in zip(sequential, overlapped):
-        for key in ("residual_rays_cast", "direct_rays_cast", "residual_near_hits", "computed_pairs",
-                    "updated_pairs"):
-            assert a.info[key] == b.info[key], key
-        for name in a.total:
-            for part in ("direct", "indirect", "total"):
-                assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name])
-    assert sequential[1].info["residual_rays_cast"] > 0
+        out.append(ir.shade(state, bounces=2))
+    return out
 
 
-def test_task_frames_equal_serial_frames(pre, monkeypatch):
-    """Frames with ``TASKS`` (each object's direct light, near-hit light and bounce as a task on one numba thread)
-    equal frames without it bit for bit, ray counts included: the first frame, an object moved twice, an area light
-    added and moved with the object, then the light alone moved."""
-    from prtlab import _tasks
-    from prtlab.scene import AreaLight
-
-    two_numba_threads()
-
-    def frames(tasks):
-        monkeypatch.setattr(_tasks, "TASKS", tasks)
-        ir = Interreflection(pre.scene, pre.options, pre.data)
-        state = FrameState.from_scene(pre.scene)
-        out = [ir.shade(state, bounces=2)]
-        for translate in ([0.1, 0.65, 0.05], [-0.05, 0.6, 0.1]):
-            state.transforms["ball"] = Transform(translate=translate)
-            out.append(ir.shade(state, bounces=2))
-        for centre, ball in (([0.2, 2.0, 0.1], True), ([0.0, 2.2, 0.1], True), ([0.1, 2.1, 0.0], False)):
-            state.lights = [*pre.scene.lights, AreaLight(center=np.array(centre), u=np.array([0.3, 0, 0]),
-                                                         v=np.array([0, 0, 0.3]), radiance=np.full(3, 5.0))]
-            if ball:
-                state.transforms["ball"] = Transform(translate=[0.05, 0.6 + centre[1] / 10, 0.0])
-            out.append(ir.shade(state, bounces=2))
-        monkeypatch.undo()
-        return out
-
-    serial, tasks = frames(False), frames(True)
-    for a, b in zip(serial, tasks):
+def _assert_same_frames(frames, others):
+    """Every object's direct, indirect and total light equal bit for bit, and the ray and pair counts."""
+    for a, b in zip(frames, others, strict=True):
         for key in ("residual_rays_cast", "direct_rays_cast", "residual_near_hits", "residual_near_rays_cast",
                     "computed_pairs", "updated_pairs"):
             assert a.info[key] == b.info[key], key
         for name in a.total:
             for part in ("direct", "indirect", "total"):
                 assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name])
+
+
+@pytest.mark.parametrize("worker", ["thread", "stalled"])
+def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
+    """Frames with ``OVERLAP`` (step 1 and the residual-gather entries on a second thread, or every entry taken
+    back by the frame's thread) equal frames without it bit for bit, ray counts included (``_moving_frames``)."""
+    from prtlab.interreflection import _pipeline
+
+    monkeypatch.setattr(_pipeline, "OVERLAP", False)
+    sequential = _moving_frames(pre)
+    monkeypatch.setattr(_pipeline, "OVERLAP", True)
+    if worker == "stalled":
+        monkeypatch.setattr(_pipeline, "_frame_worker", lambda: _Stalled())
+    _assert_same_frames(sequential, _moving_frames(pre))
+    assert sequential[1].info["residual_rays_cast"] > 0
+
+
+def test_task_frames_equal_serial_frames(pre, monkeypatch):
+    """Frames with ``TASKS`` (each object's direct light, near-hit light and bounce as a task on one numba thread)
+    equal frames without it bit for bit, ray counts included (``_moving_frames``)."""
+    from prtlab import _tasks
+
+    two_numba_threads()
+    monkeypatch.setattr(_tasks, "TASKS", False)
+    serial = _moving_frames(pre)
+    monkeypatch.setattr(_tasks, "TASKS", True)
+    _assert_same_frames(serial, _moving_frames(pre))
     assert serial[-1].info["residual_near_hits"] > 0 and serial[-1].info["direct_rays_cast"] > 0
 
 
