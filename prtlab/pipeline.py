@@ -122,6 +122,26 @@ def check_int_options(options, names, minimum: int = 1) -> None:
         check_int(value, f"option {name}", minimum)
 
 
+def check_vertex_normals(scene: Scene) -> None:
+    """Refuse a shaded (non-portal) object with a vertex whose normal is zero: a vertex on no face of non-zero
+    area (unreferenced, or only on degenerate faces) or whose faces' normals cancel. The PRT methods project
+    their transfer about every vertex's normal, so such a vertex has nothing to be shaded with; the Monte Carlo
+    references, which need no normal, give it zero light."""
+    for obj in scene.objects:
+        if obj.portal:
+            continue
+        bad = np.flatnonzero(~np.any(np.asarray(obj.mesh.vertex_normals) != 0.0, axis=1))
+        if len(bad):
+            shown = ", ".join(str(i) for i in bad[:5]) + (", ..." if len(bad) > 5 else "")
+            verb = "has" if len(bad) == 1 else "have"
+            raise ValueError(
+                f"object {obj.name!r}: {len(bad)} of its {obj.n_vertices} vertices {verb} no normal (vertex {shown}: "
+                "on no face of non-zero area, or its faces' normals cancel), and this method shades every vertex "
+                "about its normal; remove them first (trimesh: mesh.update_faces(mesh.nondegenerate_faces()), then "
+                "mesh.remove_unreferenced_vertices())"
+            )
+
+
 def scene_geometry_key_parts(scene: Scene, dynamic_transforms: bool = False) -> list:
     """What a precomputation over ``scene`` depends on by default: meshes and materials
     of every object, and the transforms of static objects (of all objects if
@@ -222,8 +242,10 @@ class Precomputation:
 
     @classmethod
     def check_scene(cls, scene: Scene, options) -> None:
-        """Refuse, before ``compute``, a scene the method cannot precompute and options whose memory does
-        not fit (:func:`check_memory`); subclasses add their own needs and call this."""
+        """Refuse, before ``compute``, a scene the method cannot precompute (a shaded vertex without a normal,
+        :func:`check_vertex_normals`) and options whose memory does not fit (:func:`check_memory`); subclasses
+        add their own needs and call this."""
+        check_vertex_normals(scene)
         needs, context = cls.memory_needs(scene, options)
         check_memory(cls.method, options, needs, context)
 

@@ -203,6 +203,38 @@ def test_portals_refuse_a_scene_without_portal_before_precomputing(no_compute):
         prtlab.precompute(scene, "portals", progress=False)
 
 
+def _with_vertex_without_normal(scene: Scene, name: str, kind: str) -> Scene:
+    """``scene`` with one vertex appended to object ``name``'s mesh: unreferenced, or the corner of one
+    zero-area face (its only face), so that its vertex normal is zero."""
+    obj = scene.object(name)
+    v, f = np.asarray(obj.mesh.vertices), np.asarray(obj.mesh.faces)
+    v = np.vstack([v, v.mean(axis=0)])
+    if kind == "degenerate":  # a sliver: the new vertex and a face's edge, all on one line
+        a, b = v[f[0, 0]], v[f[0, 1]]
+        v[-1] = 0.5 * (a + b)
+        f = np.vstack([f, [f[0, 0], f[0, 1], len(v) - 1]])
+    obj.mesh = trimesh.Trimesh(v, f, process=False)
+    assert not np.any(obj.mesh.vertex_normals[-1])
+    return scene
+
+
+@pytest.mark.parametrize("kind", ["unreferenced", "degenerate"])
+@pytest.mark.parametrize("method", ["interreflection", "spherelights", "portals"])
+def test_a_vertex_without_a_normal_is_refused_before_precomputing(no_compute, method, kind):
+    """Every PRT method shades a vertex about its normal; one without a normal stopped the frame, after the
+    precomputation (e.g. ``normals contains a zero vector``, a singular matrix)."""
+    scene, name = (window_box(cell=1.0), "room") if method == "portals" else (_spheres_scene(), "box")
+    n = scene.object(name).n_vertices
+    with pytest.raises(ValueError, match=rf"object '{name}': 1 of its {n + 1} vertices has no normal \(vertex {n}: "):
+        prtlab.shade(_with_vertex_without_normal(scene, name, kind), method=method, cache=False, progress=False)
+
+
+def test_the_reference_gives_a_vertex_without_a_normal_no_light():
+    scene = _with_vertex_without_normal(_spheres_scene(plane_resolution=2), "box", "unreferenced")
+    result = prtlab.shade(scene, method="reference", n_samples=16)
+    assert np.all(result.total["box"][-1] == 0.0) and np.all(result.total["box"][:-1].max(axis=1) > 0.0)
+
+
 @pytest.mark.parametrize("method", list(prtlab.api.METHODS))
 @pytest.mark.parametrize("bounces, error", [(-1, ValueError), (1.5, TypeError), (True, TypeError),
                                             (np.float64(1.0), TypeError)])
