@@ -397,10 +397,12 @@ def light_terms_reference(points, normals, wo, f, sep, caster, light, index: int
         d = y - xp[:, None]
         dist = np.linalg.norm(d, axis=-1)
         w = d / np.maximum(dist, 1e-300)[..., None]
+        w[dist == 0.0] = (0.0, 0.0, 1.0)  # a sample at the point: dead (below), a placeholder direction for g and f
         cos_x = np.einsum("vmi,vi->vm", w, np_)
         cos_l = -w @ normal if area else np.ones_like(cos_x)
         live = (cos_x > 0.0) & (cos_l > 0.0) & (dist > 0.0) & ~barep[:, None]
-        weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
+        with np.errstate(divide="ignore", invalid="ignore"):  # dist == 0 (not live): inf or NaN, discarded
+            weight = np.where(live, cos_x * cos_l / np.maximum(dist, 1e-300) ** 2, 0.0) * scale
         meets = _segments_meet(xp, y, moved) if visibility is not None else None
         given = np.zeros(len(xp), np.int8) if decided is None else decided[part]
         if meets is not None and decided_before is not None:  # the previous bits given, not cast: cast them

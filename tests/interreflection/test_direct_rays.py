@@ -368,6 +368,32 @@ def test_a_point_without_a_normal_gets_no_light_in_both_tiers(material):
             np.testing.assert_array_equal(tiers[0][2], tiers[1][2])
 
 
+@pytest.mark.parametrize("material", MATERIALS, ids=["lambert", "phong"])
+def test_a_point_at_the_point_light_gets_no_light_from_it_in_both_tiers(material):
+    """A point exactly at a point light's position (distance 0: no direction to it) gets zero terms and an
+    all-False mask in both tiers, as a dead sample; the other points' rows are those of a call without it."""
+    f = brdf.from_material(material)
+    sep = brdf.separable(f, K=4 if material.type == "phong" else 1)
+    points, normals, wo, meshes, poses, lights = _tier_scene()
+    caster = RayCaster(meshes, transforms=poses)
+    wo = mirror_wo(wo, normals)
+    light = next(x for x in lights if isinstance(x, PointLight))
+    at = np.arange(len(points)) % 5 == 2
+    given = points.copy()
+    given[at] = light.position
+    tiers = []
+    for terms in (light_terms, light_terms_reference):
+        ours = terms(given, normals, wo, f, sep, caster, light, 2, 1, seed=1)
+        whole = terms(points, normals, wo, f, sep, caster, light, 2, 1, seed=1)
+        for a, b in zip(ours, whole):
+            assert not np.any(a[at])
+            np.testing.assert_array_equal(a[~at], b[~at])
+        assert np.any(ours[0][~at])  # lit elsewhere: not a check of zeros
+        tiers.append(ours)
+    np.testing.assert_array_equal(tiers[0][2], tiers[1][2])
+    np.testing.assert_allclose(tiers[0][0], tiers[1][0], rtol=1e-12, atol=0.0)
+
+
 @pytest.mark.parametrize("terms", [light_terms, light_terms_reference], ids=["kernel", "reference"])
 def test_both_tiers_refuse_a_nan_normal_and_a_zero_wo_at_a_normal(terms):
     """A NaN or inf normal (either tier: ``_check``) and a zero or underflowing ``wo`` at a point with a normal (the
