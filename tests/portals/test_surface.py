@@ -5,6 +5,7 @@ white-furnace-like room (closed, no window, every vertex sending radiance 1): ev
 ``sum_{b=1}^{B} rho^b`` (a closed room's gather rows sum to one, and the hat projection keeps constants).
 """
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import given
@@ -13,7 +14,7 @@ from hypothesis import strategies as st
 from prtlab import _tasks
 from prtlab.cache import cache_key
 from prtlab.geometry import RayCaster
-from prtlab.portals import Portals
+from prtlab.portals import Portals, _surface
 from prtlab.portals._surface import (SurfaceTransfer, cluster_vertices, hat_points, hat_projection,
                                      limited_projection, mass_matrix, patch_gather, patch_operator, power_sum,
                                      vertex_areas)
@@ -235,11 +236,9 @@ def test_kmeans_seeding_is_scipys(n, k, seed):
     """The incremental k-means++ seeding gives scipy's ``kmeans2(minit="++", seed=seed)`` clusters exactly."""
     from scipy.cluster.vq import kmeans2
 
-    from prtlab.portals._surface import _kmeans_pp
-
     data = np.random.default_rng(seed).normal(size=(n, 7))
     want = kmeans2(data, k, iter=10, minit="++", seed=seed)
-    got = kmeans2(data, _kmeans_pp(data, k, seed), iter=10, minit="matrix")
+    got = kmeans2(data, _surface._kmeans_pp(data, k, seed), iter=10, minit="matrix")
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
 
@@ -462,10 +461,6 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, 
     gather chunks, the near rays' partners with each chunk, as tasks on Python threads with one numba thread each;
     the near reads in one kernel) equals the passes one after another (``TASKS`` off: ``direct_from_light`` and
     :meth:`SurfaceTransfer.frame` with every thread), bit for bit, at any chunk count; on one thread too."""
-    import numba
-
-    from prtlab.portals import _surface
-
     two_numba_threads()
     direct, albedo, cube, source_operator, surface = _frame_operands(bounces + 10 * chunks, near)
     assert 0 < np.count_nonzero(direct.basis) < direct.n_vertices  # pulse and Haar rows
@@ -486,8 +481,6 @@ def test_task_frame_equals_the_serial_frame(monkeypatch, bounces, near, chunks, 
 
 def test_task_frame_raises_a_tasks_error_once_every_thread_ended(monkeypatch):
     """An error in the chain (here ``G L``) is raised by :func:`shade_surface` itself; the next frame runs."""
-    from prtlab.portals import _surface
-
     two_numba_threads()
     direct, albedo, cube, source_operator, surface = _frame_operands(0, True)
     expected = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
@@ -499,8 +492,6 @@ def test_task_frame_raises_a_tasks_error_once_every_thread_ended(monkeypatch):
     with pytest.raises(RuntimeError, match="source light failed"):
         _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
     monkeypatch.undo()
-    import numba
-
     assert numba.get_num_threads() == 2
     again = _surface.shade_surface(direct, albedo, cube, source_operator, surface, 2)
     for a, b in zip(expected, again):
