@@ -19,7 +19,7 @@ import numba
 #: Whether :func:`run_tasks` runs its jobs as tasks (False: one after another on the caller's thread).
 TASKS = True
 
-_POOLS: dict = {}  # (process id, threads) -> ThreadPoolExecutor
+_POOLS: dict = {}  # (process id, threads or "side") -> ThreadPoolExecutor
 _WORKER = threading.local()  # .task: this thread is a pool's
 
 
@@ -44,6 +44,16 @@ def pool(threads: int) -> ThreadPoolExecutor:
     if key not in _POOLS:
         _POOLS[key] = ThreadPoolExecutor(max_workers=key[1], thread_name_prefix="prtlab-task",
                                          initializer=_start_worker)
+    return _POOLS[key]
+
+
+def side_worker() -> ThreadPoolExecutor:
+    """The kept single thread of this process for one part of a frame that overlaps the caller's (made on first
+    use; a forked child makes its own). Unlike a :func:`pool`'s threads it keeps numba's thread count as it is: a job
+    sets the count it needs. Kept so that its OpenMP team is too."""
+    key = (os.getpid(), "side")
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-side")
     return _POOLS[key]
 
 

@@ -60,8 +60,6 @@ import time
 import dataclasses
 import functools
 import itertools
-import os
-from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as futures_wait
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -69,7 +67,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from prtlab import brdf, pca, sh
+from prtlab import _tasks, brdf, pca, sh
 from prtlab._tasks import concurrent_kernels, run_tasks
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import RayCaster, offset_origins, shading_points
@@ -126,15 +124,6 @@ STACKED_IRRADIANCE = np.float32
 #: frame is the same, bit for bit (test); False runs them one after another, as does numba's ``workqueue`` threading
 #: layer (it cannot run kernels from two threads at once: :func:`prtlab._tasks.concurrent_kernels`).
 OVERLAP = True
-
-_WORKER: list = []  # [(process id, ThreadPoolExecutor)]: OVERLAP's second thread, kept so its OpenMP team is too
-
-
-def _frame_worker() -> ThreadPoolExecutor:
-    """The one worker thread of :data:`OVERLAP`, made on first use in each process (a forked child makes its own)."""
-    if not _WORKER or _WORKER[0][0] != os.getpid():
-        _WORKER[:] = [(os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="prtlab-frame"))]
-    return _WORKER[0][1]
 
 
 @dataclass
@@ -1846,7 +1835,7 @@ class Interreflection(Precomputation):
             self._residual_entry(geo, r, phi_r, stats)
 
         tasks = []  # (future, receiver, Phi[r], ray counts)
-        worker = _frame_worker()
+        worker = _tasks.side_worker()
         step1 = worker.submit(direct)
 
         def done(r, phi_r):

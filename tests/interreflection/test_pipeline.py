@@ -320,13 +320,14 @@ def _assert_same_frames(frames, others):
 def test_overlapped_frames_equal_sequential_frames(pre, monkeypatch, worker):
     """Frames with ``OVERLAP`` (step 1 and the residual-gather entries on a second thread, or every entry taken
     back by the frame's thread) equal frames without it bit for bit, ray counts included (``_moving_frames``)."""
+    from prtlab import _tasks
     from prtlab.interreflection import _pipeline
 
     monkeypatch.setattr(_pipeline, "OVERLAP", False)
     sequential = _moving_frames(pre)
     monkeypatch.setattr(_pipeline, "OVERLAP", True)
     if worker == "stalled":
-        monkeypatch.setattr(_pipeline, "_frame_worker", lambda: _Stalled())
+        monkeypatch.setattr(_tasks, "side_worker", lambda: _Stalled())
     _assert_same_frames(sequential, _moving_frames(pre))
     assert sequential[1].info["residual_rays_cast"] > 0
 
