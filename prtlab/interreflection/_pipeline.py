@@ -75,6 +75,7 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_op
 from prtlab.scene import AreaLight, EnvironmentLight, PointLight, ShadeResult, environment_sh
 from prtlab.sh._gaunt import _gaunt_block
 from prtlab.shadowfields import (
+    LOG_FLOOR,
     OcclusionField,
     area_light_sh,
     log_occlusion_field,
@@ -97,6 +98,7 @@ from ._fields import (
     self_basis_irradiance,
     store_basis_radiance,
 )
+from ._flat import FlatOccluder, halfspace_visibility
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, VISIBILITY_BLOCK, masked_product_kernel, masked_product_serial,
@@ -241,6 +243,11 @@ class InterreflectionOptions:
         pipeline is built from one made without; otherwise a run-time choice.
     exp_method : {"hyb", "ol", "exact"}
         The SH exponential of ``occlusion="exp"`` (:func:`prtlab.sh.exp`; a run-time choice).
+    flat_visibility : {"plane", "field"}
+        A flat occluder's visibility at points close to its plane (``|h|`` under 0.05 times the distance to its
+        footprint's boundary, inside the footprint): the SH of the half-space it hides there
+        (``"plane"``, :mod:`prtlab.interreflection._flat`), or its occlusion field's interpolation, which mixes
+        the samples of both sides of the plane (``"field"``, the paper). A run-time choice.
     storage : {"int16", "float32", "float64"}
         Format of the basis radiance fields, at rest and in memory
         (:func:`prtlab.interreflection._fields.store_basis_radiance`; sample points
@@ -280,6 +287,7 @@ class InterreflectionOptions:
     residual_whole: bool = False
     occlusion: str = "product"
     exp_method: str = "hyb"
+    flat_visibility: str = "plane"
     storage: str = "int16"
 
     def __post_init__(self):
@@ -310,6 +318,7 @@ class InterreflectionOptions:
         check_bool(self.self_interreflection, "option self_interreflection")
         check_choice(self.shadows, "option shadows", ("sh", "haar", "rays"))
         check_choice(self.irradiance, "option irradiance", ("sh", "haar"))
+        check_choice(self.flat_visibility, "option flat_visibility", ("plane", "field"))
         if self.irradiance == "haar" and self.shadows != "haar":
             raise ValueError("option irradiance='haar' needs the Haar visibility of shadows='haar'; pass "
                              "shadows='haar' as well (or irradiance='sh')")
@@ -545,7 +554,7 @@ class Interreflection(Precomputation):
         # per-frame options: not part of the precomputed data
         run_time = ("threshold", "near_field", "area_lights", "residual_rays", "residual_cone", "light_samples",
                     "light_probe", "light_exact_lit", "residual_near", "residual_near_samples", "residual_near_probe",
-                    "residual_whole", "occlusion", "exp_method")
+                    "residual_whole", "occlusion", "exp_method", "flat_visibility")
         if options.irradiance == "sh":  # keys of the SH-irradiance caches made before the option existed
             run_time += ("irradiance", "haar_radiance_keep")
         opts = {k: v for k, v in dataclasses.asdict(options).items() if k not in run_time}
@@ -697,6 +706,9 @@ class Interreflection(Precomputation):
                                              lambda d: HaarBasisRadianceField.from_arrays(d["haar_radiance"]))
                               for o in self.objects} if options.irradiance == "haar" else {}
         self.flat = {o.name: _is_flat(o.mesh) for o in self.objects}
+        #: the flat occluders' planes and footprints (``flat_visibility="plane"``)
+        self.flat_occluders = {o.name: FlatOccluder(o.mesh.vertices, o.mesh.faces, o.mesh.vertex_normals)
+                               for o in self.objects if self.flat[o.name] and options.flat_visibility == "plane"}
         #: a convex mesh's rays leave it (or meet its back): no residual gather from itself
         self.convex = {o.name: bool(getattr(o.mesh, "is_convex", False)) for o in self.objects}
         self.reuse = FrameReuse()
@@ -792,7 +804,8 @@ class Interreflection(Precomputation):
 
     def _occlusion(self, geo):
         """occ[r] (:class:`OcclusionFields`): occ[r][o] is the occlusion field of object o (its log with
-        ``occlusion="exp"``) looked up at the vertices of r (world frame). Only the fields whose receiver or
+        ``occlusion="exp"``) looked up at the vertices of r (world frame), a flat occluder's half-space near its
+        plane (``flat_visibility="plane"``). Only the fields whose receiver or
         occluder moved are looked up again, into the receiver's array (the last frame's ``occ`` changes with it)."""
         occ = {}
         for r in self.objects:
@@ -803,6 +816,11 @@ class Interreflection(Precomputation):
                 if stack is not None and stack.poses[i] == key:
                     continue
                 field = self.occluders[name].lookup(geo[r.name]["x"], geo[name]["T"])
+                if name in self.flat_occluders:  # near its plane: the half-space it hides
+                    rows, axes = self.flat_occluders[name].near(geo[r.name]["x"], geo[name]["T"])
+                    if len(rows):
+                        field[rows] = halfspace_visibility(axes, self.options.order, LOG_FLOOR
+                                                           if self.options.occlusion == "exp" else None)
                 if stack is None:
                     stack = self.reuse.occlusion[r.name] = OcclusionFields(names, np.empty((len(names),) + field.shape))
                 stack.fields[i] = field
