@@ -789,9 +789,10 @@ class SphereLights(Precomputation):
 
     @property
     def frame_reuse(self) -> FrameReuse:
-        """The geometry-only results of the last frame (the grounds' rays and the meshes' blocked rays), each reused
-        by the next frame only while every input it was computed from is exactly the same (``_reuse``); a frame's
-        ``info["geometry"]`` names the results it computed and those it reused."""
+        """The geometry-only results of the last frame (the grounds' ray hits, the objects' visible rays and
+        ``ground_light``'s samples), each reused by the next frame only while every input it was computed from is
+        exactly the same (``_reuse``); a frame's ``info["geometry"]`` names the results it computed and those it
+        reused. ``frame_reuse.clear()`` frees them."""
         return self.__dict__.setdefault("_frame_reuse", FrameReuse())
 
     def _mesh_blocker_inputs(self, state: FrameState, lights: _FrameLights, sources, rects) -> tuple:
