@@ -4,15 +4,14 @@ The squirrel scene: about 21k receiver vertices, 14 leaf spherical lights,
 order 4. Here: a squirrel-like object of 8 lights plus 6 balls of one
 light each (7 objects), 92 surface samples per light, receivers on a
 ground grid and around the objects (synthetic arrays, no precomputation).
-Cases: a whole frame (first pass + second pass) with per-object and
-per-sphere blocking, shadows only, the per-object frame with the ground's
-terms (issue 16), the frame of the pipeline's default options with the ground
+Cases: a whole frame (first pass + second pass) with per-object and per-sphere blocking, shadows only, the
+per-object frame with the ground's terms (issue 16), the frame of the pipeline's default options with the ground
 (``per_object_ground_near``: the ground's rays against meshes through the objects' receivers, near blockers,
-emission order 6; every ray cast each frame, as when the geometry changes), the same frame when only the
-environment changes (``per_object_ground_near_relit``: the geometry-only results reused), a frame of a real scene with the objects' direct light against the meshes (``mesh_blockers``),
-and the precomputation of a real scene
-(``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
-precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
+emission order 6; every ray cast each frame, as when the geometry changes), the same frame when only the environment
+changes (``per_object_ground_near_relit``: the geometry-only results reused), a frame of a real scene with the
+objects' direct light against the meshes (``mesh_blockers``), and the precomputation of a real scene
+(``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its precomputed memory per object in ``info``
+(the paper: 32-150 KB per object).
 """
 
 from __future__ import annotations
@@ -325,14 +324,15 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     ``emission_coverage`` the first pass also gives the emission weighted by ``coverage_weights`` (here of a
     coverage of 1: the same work as the meshes' coverage) for the other objects' receivers, the paper's for a
     light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
-    visible rays, ``ground_light``'s samples) go through ``reuse`` (a :class:`prtlab.spherelights._reuse.FrameReuse`,
-    as ``SphereLights`` keeps them; None: a fresh one, every ray cast); the objects' occluders are ``mesh_parts``',
-    fixed here."""
+    visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
+    (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
+    cast); the objects' occluders are ``mesh_parts``', fixed here."""
     from prtlab.spherelights._ground import ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers)
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible
-    from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
+    from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
+                                               near_blocker_visibility)
     from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS
     from prtlab.spherelights._reuse import FrameReuse
 
@@ -368,8 +368,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             sel = has_near_blocker(p, n, c, r, e)
             if sel.any():
                 corr = np.zeros((len(p), 3))
-                corr[sel] = (near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
-                             - near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, 0, eligible=e))
+                args = (p[sel], n[sel], c, r, ORDER)
+                near_vis, far_vis = reuse.get(("near_samples", int(own)), args + (near_blockers, e), lambda: tuple(
+                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)))
+                corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
     weight = None
     if emission_coverage:  # SphereLights._emission
@@ -446,12 +448,12 @@ def frame_per_object_ground_near(quick: bool) -> dict:
 
 @case("spherelights.frame.per_object_ground_near_relit.21k")
 def frame_per_object_ground_near_relit(quick: bool) -> dict:
-    """The frame of ``per_object_ground_near`` when only the lighting changes: nothing moves and the environment
-    turns each frame by a rotation it has not had before (about a tilted axis, 0.1 rad a frame more), so the
-    geometry-only results of the frame before (the blockers, the texels' and the ground's ray hits, the objects'
-    visible rays, ``ground_light``'s samples) are reused through one kept ``FrameReuse``, as ``SphereLights`` keeps
-    them, and everything lighting-dependent is computed; peer: the same frames with nothing reused (every ray
-    cast)."""
+    """The frame of ``per_object_ground_near`` when only the lighting changes: nothing moves and the environment turns
+    each frame by a rotation it has not had before (about a tilted axis, 0.1 rad a frame more), so the geometry-only
+    results of the frame before (the blockers, the texels' and the ground's ray hits, the objects' visible rays,
+    ``ground_light``'s samples, the near blockers' caps) are reused through one kept ``FrameReuse``, as
+    ``SphereLights`` keeps them, and everything lighting-dependent is computed; peer: the same frames with nothing
+    reused (every ray cast)."""
     from prtlab import sh
     from prtlab.spherelights._reuse import FrameReuse
 

@@ -79,7 +79,7 @@ from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_l
                          reflection_ratio, select_cut)
 from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
                           mesh_occluder, self_blocked)
-from ._nearcaps import has_near_blocker, near_blocker_direct
+from ._nearcaps import has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility
 from ._passes import first_pass, second_pass
 from ._reuse import FrameReuse
 from ._samples import coverage_weights, segment_coverage, surface_albedo_sh, surface_samples
@@ -656,10 +656,13 @@ class SphereLights(Precomputation):
             sel = has_near_blocker(p, n, lights.centres, lights.radii, elig)
             if not sel.any():
                 continue
-            args = (p[sel], n[sel], lights.centres, lights.radii, lights.env, self.options.order)
+            args = (p[sel], n[sel], lights.centres, lights.radii, self.options.order)
+            exp_method = self.options.exp_method
+            near, far = self.frame_reuse.get(  # the caps and the visibility: geometry, kept while it stays
+                ("near_samples", int(own)), args + (k, elig, exp_method),
+                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)))
             corr = np.zeros((len(p), 3))
-            corr[sel] = (near_blocker_direct(*args, k, eligible=elig, exp_method=self.options.exp_method)
-                         - near_blocker_direct(*args, 0, eligible=elig, exp_method=self.options.exp_method))
+            corr[sel] = near_blocker_sums(near, lights.env) - near_blocker_sums(far, lights.env)
             out[mask] = corr
         return out
 

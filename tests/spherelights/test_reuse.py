@@ -19,6 +19,7 @@ from prtlab.spherelights._groundrays import (ground_direct_hits, ground_direct_r
                                              mesh_blockers)
 from prtlab.spherelights._meshdirect import (fibonacci_directions, mesh_direct, mesh_direct_sums, mesh_direct_visible,
                                              mesh_occluder)
+from prtlab.spherelights._nearcaps import near_blocker_direct, near_blocker_sums, near_blocker_visibility
 from prtlab.spherelights._reuse import FrameReuse
 
 
@@ -160,6 +161,25 @@ def test_ground_samples_evaluate_any_lighting_as_ground_light(rng):
         ground_sample_sums(samples, tex[:1], env, loc)
 
 
+@pytest.mark.parametrize("method", ["numba", "reference"])
+def test_near_blocker_visibility_evaluates_any_lighting(rng, method):
+    """``near_blocker_sums`` of one ``near_blocker_visibility`` is ``near_blocker_direct`` under other
+    environments, bit for bit (each tier), with caps taken and without (``n_near = 0``), some lights not
+    eligible."""
+    c = np.array([[0.0, 0.6, 0.0], [0.8, 0.3, 0.2], [-0.7, 0.4, -0.3], [0.2, 0.5, 0.9]])
+    r = np.array([0.35, 0.3, 0.25, 0.2])
+    p = np.stack([rng.uniform(-1.2, 1.2, 60), np.zeros(60), rng.uniform(-1.2, 1.2, 60)], axis=1)
+    n = np.tile([0.1, 1.0, 0.0], (60, 1))  # not unit: normalised once, in the visibility
+    elig = np.array([True, True, False, True])
+    for k in (2, 0):
+        vis = near_blocker_visibility(p, n, c, r, 4, k, eligible=elig, method=method)
+        for _ in range(2):
+            env = rng.normal(size=(100, 3))
+            env[0] += 5.0
+            np.testing.assert_array_equal(near_blocker_sums(vis, env, method=method),
+                                          near_blocker_direct(p, n, c, r, env, 4, k, eligible=elig, method=method))
+
+
 # ------------------------------------------------------------------ the pipeline: reuse only when nothing moved
 
 
@@ -206,7 +226,7 @@ def test_frames_after_any_change_are_a_fresh_pipelines(bunny_scene):
     assert isinstance(rest.lights[0], EnvironmentLight) and rest.lights[0].image is not None
     first = pre.shade(rest)
     kinds = {k if isinstance(k, str) else k[0] for k in first.info["geometry"]["computed"]}
-    assert kinds == {"mesh_blockers", "texel_rays", "ground_rays", "mesh_direct", "ground_light"}
+    assert kinds == {"mesh_blockers", "texel_rays", "ground_rays", "mesh_direct", "ground_light", "near_samples"}
     assert first.info["geometry"]["reused"] == []
     _same(first, _fresh(pre).shade(rest))
 
