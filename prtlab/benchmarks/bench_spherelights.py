@@ -4,14 +4,14 @@ The squirrel scene: about 21k receiver vertices, 14 leaf spherical lights,
 order 4. Here: a squirrel-like object of 8 lights plus 6 balls of one
 light each (7 objects), 92 surface samples per light, receivers on a
 ground grid and around the objects (synthetic arrays, no precomputation).
-Cases: a whole frame (first pass + second pass) with per-object and
-per-sphere blocking, shadows only, the per-object frame with the ground's
-terms (issue 16), the frame of the pipeline's default options with the ground
+Cases: a whole frame (first pass + second pass) with per-object and per-sphere blocking, shadows only, the
+per-object frame with the ground's terms (issue 16), the frame of the pipeline's default options with the ground
 (``per_object_ground_near``: the ground's rays against meshes through the objects' receivers, near blockers,
-emission order 6), a frame of a real scene with the objects' direct light against the meshes (``mesh_blockers``),
-and the precomputation of a real scene
-(``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its
-precomputed memory per object in ``info`` (the paper: 32-150 KB per object).
+emission order 6; every ray cast each frame, as when the geometry changes), the same frame when only the environment
+changes (``per_object_ground_near_relit``: the geometry-only results reused), a frame of a real scene with the
+objects' direct light against the meshes (``mesh_blockers``), and the precomputation of a real scene
+(``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its precomputed memory per object in ``info``
+(the paper: 32-150 KB per object).
 """
 
 from __future__ import annotations
@@ -309,7 +309,7 @@ def _mesh_direct_parts(a, meshes) -> list:
 
 def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays",
                    mesh_parts=None, ground_ray_spacing: float = SphereLightOptions().ground_ray_spacing,
-                   emission_coverage: bool = SphereLightOptions().emission_coverage):
+                   emission_coverage: bool = SphereLightOptions().emission_coverage, reuse=None):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
@@ -323,13 +323,20 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     meshes and the ground instead of the second pass's, near blockers' and hidden ground light. With
     ``emission_coverage`` the first pass also gives the emission weighted by ``coverage_weights`` (here of a
     coverage of 1: the same work as the meshes' coverage) for the other objects' receivers, the paper's for a
-    light's own object."""
-    from prtlab.spherelights import ground_light
-    from prtlab.spherelights._meshdirect import mesh_direct
-    from prtlab.spherelights._groundrays import contact_radiance, ground_direct_rays, ground_light_rays, mesh_blockers
-    from prtlab.spherelights._nearcaps import has_near_blocker, near_blocker_direct
+    light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
+    visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
+    (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
+    cast); the objects' occluders are ``mesh_parts``', fixed here."""
+    from prtlab.spherelights._ground import ground_sample_sums, ground_samples
+    from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
+                                                 ground_light_hits, ground_light_sums, mesh_blockers)
+    from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible
+    from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
+                                               near_blocker_visibility)
     from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS
+    from prtlab.spherelights._reuse import FrameReuse
 
+    reuse = FrameReuse() if reuse is None else reuse
     c, r, obj, env = a["centres"], a["radii"], a["sl_object"], a["env"]
     counts = np.bincount(obj)
     albedo = 0.7 / np.pi
@@ -344,9 +351,11 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             direct[sel] = near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
 
     rays = ground_shading == "rays"
-    if rays:  # SphereLights._mesh_blockers: in the ground's frame
-        blockers = mesh_blockers(meshes, np.concatenate([c, r[:, None]], axis=1), origin=[rect[0, 1], rect[0, 0],
-                                 rect[0, 2]], azimuth=np.arctan2(rect[0, 4], rect[0, 3]), scale=np.hypot(*rect[0, 3:5]))
+    if rays:  # SphereLights._mesh_blocker_inputs: in the ground's frame
+        inputs = (meshes, np.concatenate([c, r[:, None]], axis=1), np.zeros((0, 4)),
+                  np.array([rect[0, 1], rect[0, 0], rect[0, 2]]), float(np.arctan2(rect[0, 4], rect[0, 3])),
+                  float(np.hypot(*rect[0, 3:5])))
+        blockers = reuse.get("mesh_blockers", inputs, lambda: mesh_blockers(*inputs))
     extra = None
     if near_blockers:  # SphereLights._near_samples (every sample valid here)
         extra = np.zeros(a["valid"].shape + (3,))
@@ -359,8 +368,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             sel = has_near_blocker(p, n, c, r, e)
             if sel.any():
                 corr = np.zeros((len(p), 3))
-                corr[sel] = (near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, near_blockers, eligible=e)
-                             - near_blocker_direct(p[sel], n[sel], c, r, env, ORDER, 0, eligible=e))
+                args = (p[sel], n[sel], c, r, ORDER)
+                near_vis, far_vis = reuse.get(("near_samples", int(own)), args + (near_blockers, e), lambda: tuple(
+                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)))
+                corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
     weight = None
     if emission_coverage:  # SphereLights._emission
@@ -373,7 +384,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                           sample_weight=weight)
     own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
     if rays:
-        e = ground_direct_rays(texels, env, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing)
+        hits = reuse.get(("texel_rays", "ground"), (inputs, texels, ground_ray_spacing),
+                         lambda: ground_direct_hits(texels, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing))
+        e = ground_direct_sums(hits, env, blockers)
     else:
         e = _ground_direct(a, texels, up)
         near(texels, up, e, -1)
@@ -388,11 +401,16 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
         exact = mesh_parts is not None and own >= 0
         if exact:
             bits, occluders = mesh_parts[own]
-            direct = mesh_direct(p, n, env, np.eye(3), bits, occluders, rect)
+            visible = reuse.get(("mesh_direct", own), (p, n, bits, rect),
+                                lambda: mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect))
+            direct = mesh_direct_sums(visible, n, env, np.eye(3))
         else:
             near(p, n, direct, own)
         if own >= 0:
-            hidden, reflected = ground_light(p, n, rect, tex, env, c, r, unadjusted=eligible(own) & (near_blockers > 0))
+            unadjusted = eligible(own) & (near_blockers > 0)
+            samples = reuse.get(("ground_light", own), (p, n, rect, c, r, unadjusted),
+                                lambda: ground_samples(p, n, rect, c, r, unadjusted=unadjusted))
+            hidden, reflected = ground_sample_sums(samples, tex, env)
             direct, indirect = (direct if exact else direct - hidden), indirect + reflected
         out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
         if rays:  # the objects' exit radiance as the ground sees it (one bounce: their direct light)
@@ -400,8 +418,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                                             blockers.caster.epsilon * blockers.scale))
     if rays:
         rows = a["recv_object"] == -1
-        direct, indirect = ground_light_rays(a["points"][rows], env, blockers, radiance, _GROUND_RAYS,
-                                             spacing=ground_ray_spacing)
+        pts = a["points"][rows]
+        hits = reuse.get(("ground_rays", "ground"), (inputs, pts, ground_ray_spacing),
+                         lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=ground_ray_spacing))
+        direct, indirect = ground_light_sums(hits, env, blockers, radiance)
         out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
     return out
 
@@ -411,8 +431,9 @@ def frame_per_object_ground_near(quick: bool) -> dict:
     """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"`` with
     ``ground_ray_spacing=0.5``, ``mesh_blockers=True``, ``near_blockers=2``, ``emission_order=6``, HYB, per-object
     blocking, ``ground="reflects"``), the receivers shaded per object as the pipeline does (the own meshes' bits
-    cast once, not timed, as the pipeline keeps them); peer: the ground and the objects' direct light through the
-    spherical lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
+    cast once, not timed, as the pipeline keeps them), as a frame where the geometry changes: nothing is reused
+    from the frame before (a fresh ``FrameReuse`` each frame: every ray cast); peer: the ground and the objects'
+    direct light through the spherical lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
     a = _scene_arrays(_n(quick))
     texels, up, _, rect = _ground_texels(a)
     meshes = _object_meshes(a)
@@ -422,6 +443,39 @@ def frame_per_object_ground_near(quick: bool) -> dict:
             "peer": ("the ground and the objects' direct light through the lights (ground_shading='lights', "
                      "mesh_blockers=False)",
                      lambda: _default_frame(a, texels, up, rect, meshes, ground_shading="lights")),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
+
+
+@case("spherelights.frame.per_object_ground_near_relit.21k")
+def frame_per_object_ground_near_relit(quick: bool) -> dict:
+    """The frame of ``per_object_ground_near`` when only the lighting changes: nothing moves and the environment turns
+    each frame by a rotation it has not had before (about a tilted axis, 0.1 rad a frame more), so the geometry-only
+    results of the frame before (the blockers, the texels' and the ground's ray hits, the objects' visible rays,
+    ``ground_light``'s samples, the near blockers' caps) are reused through one kept ``FrameReuse``, as
+    ``SphereLights`` keeps them, and everything lighting-dependent is computed; peer: the same frames with nothing
+    reused (every ray cast)."""
+    from prtlab import sh
+    from prtlab.spherelights._reuse import FrameReuse
+
+    a = _scene_arrays(_n(quick))
+    texels, up, _, rect = _ground_texels(a)
+    meshes = _object_meshes(a)
+    parts = _mesh_direct_parts(a, meshes)
+    reuse = FrameReuse()
+    turns = [0]
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+
+    def relit():  # the next environment: turned 0.1 rad further about ``axis``
+        turns[0] += 1
+        angle = 0.1 * turns[0]
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+        return {**a, "env": sh.rotate(a["env"], rot, channels=True)}
+
+    return {"run": lambda: _default_frame(relit(), texels, up, rect, meshes, mesh_parts=parts, reuse=reuse),
+            "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("every ray cast (nothing reused)",
+                     lambda: _default_frame(relit(), texels, up, rect, meshes, mesh_parts=parts)),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 

@@ -46,8 +46,8 @@ from prtlab._tasks import run_tasks, task_threads
 
 from ._shadows import _adjust
 
-__all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "ground_raster",
-           "ground_texture"]
+__all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "GroundSamples",
+           "ground_samples", "ground_sample_sums", "ground_raster", "ground_texture"]
 
 
 def ground_rectangles(objects, transforms=None) -> np.ndarray:
@@ -345,17 +345,17 @@ def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand
 
 
 @numba.njit(cache=True, parallel=True)
-def _ground_light(points, normals, quad, scene, out_env, out_ground, unadjusted):
-    """Per receiver ``q`` (``out_env``, ``out_ground`` (B, 3)): over the directions ``w`` that meet a ground rectangle
-    before any (adjusted) spherical light, weighted by ``max(0, n . w) dw``, the radiance the second pass gave them
-    (the environment's, or a local light's seen beyond the ground) and the ground's radiance at the hit point.
-    Over 80 lines: one loop nest (receivers, grounds, azimuths, elevation nodes) whose accumulators stay in
-    registers; the interval and ray tests are inline helpers."""
+def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, count, reals, ints):
+    """Per receiver ``q``, into its rows ``q * capacity + m`` (``count[q]`` of them), the directions ``w`` that meet a
+    ground rectangle before any (adjusted) spherical light, in the order :func:`_ground_sample_sums` adds them
+    (:class:`GroundSamples`' columns): ``reals`` the weight ``max(0, n . w) dw``, the environment table's fraction
+    (``n_tab`` elevation steps) and the hit point's edge coordinates; ``ints`` the azimuth, the table's cell
+    (``-1 - s`` for the local light ``s`` seen beyond the ground) and the ground. Over 80 lines: one loop nest
+    (receivers, grounds, azimuths, elevation nodes); the interval and ray tests are inline helpers."""
     n_recv = points.shape[0]
     n_az = quad.cos_az.shape[0]
     n_el = quad.nodes.shape[0]
     n_sph = scene.radii.shape[0]
-    n_tab = scene.env_table.shape[1] - 1
     d_phi = 2.0 * np.pi / n_az
     for q in numba.prange(n_recv):
         px, py, pz = points[q, 0], points[q, 1], points[q, 2]
@@ -376,8 +376,7 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground, unadjusted)
                 live[n_live, 0], live[n_live, 1], live[n_live, 2], live[n_live, 3] = cx, cy, cz, r
                 live_id[n_live] = s
                 n_live += 1
-        e0 = e1 = e2 = 0.0
-        g0 = g1 = g2 = 0.0
+        m = q * capacity
         for g in range(scene.rects.shape[0]):
             h = py - scene.rects[g, 0]
             if h <= 0.0:
@@ -414,25 +413,57 @@ def _ground_light(points, normals, quad, scene, out_env, out_ground, unadjusted)
                                                      scene.is_local)
                     if blocked:
                         continue
+                    reals[m, 0], ints[m, 0], ints[m, 2] = wgt, k, g
                     if beyond >= 0:
-                        s_id = beyond
-                        e0 += wgt * scene.local_radiance[s_id, 0]
-                        e1 += wgt * scene.local_radiance[s_id, 1]
-                        e2 += wgt * scene.local_radiance[s_id, 2]
+                        ints[m, 1], reals[m, 1] = -1 - beyond, 0.0
                     else:
                         u = e * (2.0 * n_tab / np.pi)
                         t = min(int(u), n_tab - 1)
-                        f = u - t
-                        e0 += wgt * ((1.0 - f) * scene.env_table[k, t, 0] + f * scene.env_table[k, t + 1, 0])
-                        e1 += wgt * ((1.0 - f) * scene.env_table[k, t, 1] + f * scene.env_table[k, t + 1, 1])
-                        e2 += wgt * ((1.0 - f) * scene.env_table[k, t, 2] + f * scene.env_table[k, t + 1, 2])
+                        ints[m, 1], reals[m, 1] = t, u - t
                     ax, az = px + t_ground * wx - scene.rects[g, 1], pz + t_ground * wz - scene.rects[g, 2]
-                    ea = (ax * scene.rects[g, 3] + az * scene.rects[g, 4]) * inv_u
-                    eb = (ax * scene.rects[g, 5] + az * scene.rects[g, 6]) * inv_v
-                    t0, t1, t2 = _texture_at(scene.texture, g, ea, eb)
-                    g0 += wgt * t0
-                    g1 += wgt * t1
-                    g2 += wgt * t2
+                    reals[m, 2] = (ax * scene.rects[g, 3] + az * scene.rects[g, 4]) * inv_u
+                    reals[m, 3] = (ax * scene.rects[g, 5] + az * scene.rects[g, 6]) * inv_v
+                    m += 1
+        count[q] = m - q * capacity
+
+
+@numba.njit(cache=True, parallel=True)
+def _compact_samples(count, capacity, offset, reals, ints, out_reals, out_ints):
+    """Receiver ``q``'s ``count[q]`` rows from ``q * capacity`` to ``offset[q]`` (the samples without the gaps)."""
+    for q in numba.prange(count.shape[0]):
+        for m in range(count[q]):
+            for j in range(reals.shape[1]):
+                out_reals[offset[q] + m, j] = reals[q * capacity + m, j]
+            for j in range(ints.shape[1]):
+                out_ints[offset[q] + m, j] = ints[q * capacity + m, j]
+
+
+@numba.njit(cache=True, parallel=True)
+def _ground_sample_sums(ptr, reals, ints, env_table, local_radiance, texture, out_env, out_ground):
+    """Per receiver ``q`` (``out_env``, ``out_ground`` (B, 3)), over its samples ``ptr[q]:ptr[q + 1]`` in order
+    (:class:`GroundSamples`): the weighted radiance the second pass gave them (the environment table's, linear in
+    elevation, or a local light's) and the ground's texture at the hit point."""
+    for q in numba.prange(ptr.shape[0] - 1):
+        e0 = e1 = e2 = 0.0
+        g0 = g1 = g2 = 0.0
+        for m in range(ptr[q], ptr[q + 1]):
+            wgt = reals[m, 0]
+            t = np.int64(ints[m, 1])
+            if t < 0:
+                s_id = -1 - t
+                e0 += wgt * local_radiance[s_id, 0]
+                e1 += wgt * local_radiance[s_id, 1]
+                e2 += wgt * local_radiance[s_id, 2]
+            else:
+                k = np.int64(ints[m, 0])
+                f = reals[m, 1]
+                e0 += wgt * ((1.0 - f) * env_table[k, t, 0] + f * env_table[k, t + 1, 0])
+                e1 += wgt * ((1.0 - f) * env_table[k, t, 1] + f * env_table[k, t + 1, 1])
+                e2 += wgt * ((1.0 - f) * env_table[k, t, 2] + f * env_table[k, t + 1, 2])
+            t0, t1, t2 = _texture_at(texture, np.int64(ints[m, 2]), reals[m, 2], reals[m, 3])
+            g0 += wgt * t0
+            g1 += wgt * t1
+            g2 += wgt * t2
         out_env[q, 0], out_env[q, 1], out_env[q, 2] = e0, e1, e2
         out_ground[q, 0], out_ground[q, 1], out_ground[q, 2] = g0, g1, g2
 
@@ -547,25 +578,100 @@ def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radi
     check_int(n_azimuth, "n_azimuth", 1)
     check_int(n_elevation, "n_elevation", 1)
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
+    _check_textures(textures, len(rects))
+    if p.shape[0] == 0 or rects.shape[0] == 0:
+        return np.zeros((p.shape[0], 3)), np.zeros((p.shape[0], 3))
+    samples = ground_samples(p, normals, rects, centres, radii, local_radiance, n_azimuth=n_azimuth,
+                             n_elevation=n_elevation, unadjusted=unadjusted)
+    return ground_sample_sums(samples, textures, env_sh, local_radiance)
+
+
+def _check_textures(textures, n_rects: int) -> None:
+    tex_shape = np.shape(textures)
+    if len(tex_shape) != 4 or tex_shape[0] != n_rects or tex_shape[1] != tex_shape[2] or tex_shape[3] != 3 \
+            or tex_shape[1] < 1:
+        raise ValueError(f"textures must have shape (G, R, R, 3) with G = {n_rects} rectangles, got {tex_shape}")
+
+
+#: Elevation steps of the environment table the ground's samples read (:func:`environment_table`).
+_ENV_TABLE = 64
+#: Bytes of the scratch of :func:`ground_samples` (its receivers' samples at most, before they are compacted): under
+#: 4 MiB, as ``_WEIGHT_BLOCK_BYTES`` (a larger fresh array is backed by huge pages, whose faults cost more).
+_SAMPLE_BLOCK_BYTES = 4 << 20
+
+
+class GroundSamples(NamedTuple):
+    """The quadrature directions of :func:`ground_light` that meet a ground before any light (the geometry, from
+    :func:`ground_samples`; the lighting is :func:`ground_sample_sums`'): receiver ``q``'s samples ``ptr[q]:ptr[q +
+    1]`` in the order they are summed, each with ``reals``: its weight ``max(0, n . w) dw``, the environment table's
+    fraction between elevation cells, the hit point's edge coordinates ``a, b`` in ``[-1, 1]^2``; and ``ints``: the
+    quadrature's azimuth, the table's elevation cell (``-1 - s``: the local light ``s`` seen beyond the ground), the
+    ground hit."""
+
+    quad: GroundQuadrature
+    n_grounds: int
+    ptr: np.ndarray  # (B + 1,) int64
+    reals: np.ndarray  # (N, 4) float64
+    ints: np.ndarray  # (N, 3) int32
+
+
+def ground_samples(points, normals, rectangles, centres=(), radii=(), local_radiance=None, *, n_azimuth: int = 24,
+                   n_elevation: int = 6, unadjusted=None) -> GroundSamples:
+    """:class:`GroundSamples` of :func:`ground_light` (arguments as there; ``local_radiance``: only which lights
+    are local, its NaN rows, matters here)."""
+    from prtlab._validate import check_int
+
+    check_int(n_azimuth, "n_azimuth", 1)
+    check_int(n_elevation, "n_elevation", 1)
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True)) if len(n) else n
     rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
-    tex_shape = np.shape(textures)
-    if len(tex_shape) != 4 or tex_shape[0] != len(rects) or tex_shape[1] != tex_shape[2] or tex_shape[3] != 3 \
-            or tex_shape[1] < 1:
-        raise ValueError(f"textures must have shape (G, R, R, 3) with G = {len(rects)} rectangles, got {tex_shape}")
-    hidden, reflected = np.zeros((p.shape[0], 3)), np.zeros((p.shape[0], 3))
-    if p.shape[0] == 0 or rects.shape[0] == 0:
-        return hidden, reflected
     c = np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3)
     r = np.ascontiguousarray(radii, dtype=np.float64).reshape(-1)
     loc = np.full((len(r), 3), np.nan) if local_radiance is None else np.asarray(local_radiance, np.float64)
     is_local = np.ascontiguousarray(~np.isnan(loc).any(axis=1))
-    quad = ground_quadrature(int(n_azimuth), int(n_elevation), math.atan2(rects[0, 4], rects[0, 3]))
-    scene = GroundScene(rects, np.ascontiguousarray(textures, dtype=np.float64), c, r,
-                        np.ascontiguousarray(np.nan_to_num(loc)), is_local, environment_table(env_sh, quad))
     exact = np.zeros(len(r), dtype=bool) if unadjusted is None else np.asarray(unadjusted, dtype=bool).reshape(-1)
     if exact.shape != (len(r),):
         raise ValueError(f"unadjusted must be a bool array of shape ({len(r)},), got {np.shape(unadjusted)}")
-    _ground_light(p, n, quad, scene, hidden, reflected, np.ascontiguousarray(exact))
+    phi0 = math.atan2(rects[0, 4], rects[0, 3]) if len(rects) else 0.0
+    quad = ground_quadrature(int(n_azimuth), int(n_elevation), phi0)
+    capacity = len(rects) * int(n_azimuth) * int(n_elevation)  # a receiver's samples at most
+    count = np.zeros(len(p), dtype=np.int64)
+    scene = GroundScene(rects, np.zeros((len(rects), 1, 1, 3)), c, r, np.zeros((len(r), 3)), is_local,
+                        np.zeros((int(n_azimuth), _ENV_TABLE + 1, 3)))
+    block = max(1, min(len(p), _SAMPLE_BLOCK_BYTES // (44 * max(capacity, 1))))  # receivers per call
+    reals, ints = np.empty((block * capacity, 4)), np.empty((block * capacity, 3), dtype=np.int32)  # one scratch
+    parts = []
+    for start in range(0, len(p) if len(rects) else 0, block):
+        stop = min(len(p), start + block)
+        _ground_samples(p[start:stop], n[start:stop], quad, scene, _ENV_TABLE, np.ascontiguousarray(exact), capacity,
+                        count[start:stop], reals, ints)
+        offset = np.zeros(stop - start + 1, dtype=np.int64)
+        np.cumsum(count[start:stop], out=offset[1:])
+        part = np.empty((offset[-1], 4)), np.empty((offset[-1], 3), dtype=np.int32)
+        _compact_samples(count[start:stop], capacity, offset, reals, ints, *part)
+        parts.append(part)
+    ptr = np.zeros(len(p) + 1, dtype=np.int64)
+    np.cumsum(count, out=ptr[1:])
+    if len(parts) == 1:
+        return GroundSamples(quad, len(rects), ptr, *parts[0])
+    return GroundSamples(quad, len(rects), ptr, np.concatenate([x for x, _ in parts] or [np.zeros((0, 4))]),
+                         np.concatenate([x for _, x in parts] or [np.zeros((0, 3), dtype=np.int32)]))
+
+
+def ground_sample_sums(samples: GroundSamples, textures, env_sh, local_radiance=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(hidden, reflected)`` of :func:`ground_light` from its geometry ``samples`` (:func:`ground_samples`) under
+    the grounds' exit radiance ``textures (G, R, R, 3)``, the environment ``env_sh (N*N, 3)`` and the local lights'
+    radiance ``local_radiance (S, 3)`` (NaN rows: an object's light)."""
+    _check_textures(textures, samples.n_grounds)
+    n_recv = len(samples.ptr) - 1
+    hidden, reflected = np.zeros((n_recv, 3)), np.zeros((n_recv, 3))
+    if n_recv == 0 or samples.n_grounds == 0:
+        return hidden, reflected
+    loc = np.zeros((0, 3)) if local_radiance is None else np.asarray(local_radiance, np.float64).reshape(-1, 3)
+    _ground_sample_sums(samples.ptr, samples.reals, samples.ints, environment_table(env_sh, samples.quad, _ENV_TABLE),
+                        np.ascontiguousarray(np.nan_to_num(loc)), np.ascontiguousarray(textures, dtype=np.float64),
+                        hidden, reflected)
     return hidden, reflected

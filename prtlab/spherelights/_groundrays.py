@@ -22,6 +22,11 @@ between interpolated bilinearly (:func:`ground_ray_nodes`; the ground's light is
 The points are cast in chunks of :data:`_CHUNK`, the chunks as tasks on numba's threads (:mod:`prtlab._tasks`;
 each chunk writes its own rows, so the results are the same bit for bit).
 
+The geometry (which ray meets which face where, which rays are blocked: :class:`GroundHits`, from
+:func:`ground_light_hits` and :func:`ground_direct_hits`) does not depend on the lighting; :func:`ground_light_sums`
+and :func:`ground_direct_sums` evaluate it for an environment and the objects' radiance, so a caller may keep it
+while the blockers and points stay the same (``SphereLights``' :class:`~prtlab.spherelights._reuse.FrameReuse`).
+
 Measured figures: ``docs/notes/spherelights.md``.
 """
 
@@ -38,7 +43,8 @@ from prtlab import sh
 from prtlab._tasks import run_tasks
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
-           "ground_gather_rays", "ground_light_rays", "contact_radiance",
+           "ground_gather_rays", "ground_light_rays", "GroundHits", "ground_direct_hits", "ground_direct_sums",
+           "ground_light_hits", "ground_light_sums", "contact_radiance",
            "candidate_rays", "sphere_hits", "ground_ray_nodes", "MAX_SPACING"]
 
 _UP = np.array([0.0, 1.0, 0.0])
@@ -439,12 +445,6 @@ def _chunk_rays(rule, blockers):
     return chunk
 
 
-def _per_chunk(points, job) -> None:
-    """``job(s)`` for each chunk of ``points`` (from ``s``, :data:`_CHUNK` points), as tasks
-    (:func:`prtlab._tasks.run_tasks`, in order): each chunk writes only its own rows of the outputs."""
-    run_tasks([functools.partial(job, s) for s in range(0, len(points), _CHUNK)])
-
-
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _list_rays(points, cand, dirs, ptr, epsilon, ip, ik, origins, ray_dirs):
     """The candidate rays as lists, point by point (``ptr[q]:ptr[q + 1]``) in the order of ``np.nonzero(cand)``:
@@ -466,7 +466,8 @@ def _list_rays(points, cand, dirs, ptr, epsilon, ip, ik, origins, ray_dirs):
 def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
                        method: str = "embree", spacing: float = 0.0) -> np.ndarray:
     """Direct irradiance ``(P, 3)`` from the environment at ground points (normal ``+Y``), the objects' meshes
-    and the opaque spheres blocking (see the module docstring).
+    and the opaque spheres blocking (see the module docstring): :func:`ground_direct_sums` of
+    :func:`ground_direct_hits`.
 
     Parameters
     ----------
@@ -484,37 +485,89 @@ def ground_direct_rays(points, env_sh, blockers: MeshBlockers, rule: GroundRayRu
         0 (default): cast at every point; else cast only where :func:`ground_ray_nodes` says and interpolate
         (``points`` of one ground).
     """
+    return ground_direct_sums(ground_direct_hits(points, blockers, rule, method=method, spacing=spacing), env_sh,
+                              blockers)
+
+
+class GroundHits(NamedTuple):
+    """What the rays of ground points met, the geometry only (:func:`ground_direct_hits`,
+    :func:`ground_light_hits`): valid for the blockers and points it was cast with, whatever the lighting.
+
+    ``rule``: the rays' :class:`GroundRayRule`; ``n_points``: the points; ``rows, weights``: the interpolation of
+    :func:`ground_ray_nodes` (None: every point cast); ``chunks``: per chunk of :data:`_CHUNK` cast points a
+    :class:`_ChunkHits`."""
+
+    rule: GroundRayRule
+    n_points: int
+    rows: np.ndarray | None
+    weights: np.ndarray | None
+    chunks: tuple
+
+
+class _ChunkHits(NamedTuple):
+    """The hit rays of the cast points ``start:stop``: ``ptr (P + 1,)``, point ``q``'s hit rays ``ptr[q]:ptr[q +
+    1]`` in ray order; their rule directions ``ray_k``; with closest hits (:func:`ground_light_hits`) the stacked
+    face (``MeshBlockers.faces`` in order) of a front-face hit nearer than the opaque spheres, else -1, and its
+    barycentrics ``u, v`` (None: blocked rays only); ``sphere_blocked (P, K)`` bool, the rays meeting an opaque
+    sphere (None: no opaque sphere)."""
+
+    start: int
+    stop: int
+    ptr: np.ndarray
+    ray_k: np.ndarray
+    face: np.ndarray | None
+    u: np.ndarray | None
+    v: np.ndarray | None
+    sphere_blocked: np.ndarray | None
+
+
+def ground_direct_hits(points, blockers: MeshBlockers, rule: GroundRayRule | None = None, *,
+                       method: str = "embree", spacing: float = 0.0) -> GroundHits:
+    """The rays of :func:`ground_direct_rays` that a mesh or an opaque sphere blocks (:class:`GroundHits`, any-hit
+    casts; arguments as there): the geometry, evaluated for a lighting by :func:`ground_direct_sums`."""
     rule = rule or ground_ray_rule()
     p = _local_points(points, blockers)
     cast, rows, weights = _cast_points(p, blockers, spacing)
-    out = _direct(cast, np.asarray(env_sh, dtype=np.float64), blockers, rule, method)
-    return _interpolated(out, rows, weights) if len(cast) < len(p) else out
-
-
-def _direct(p, env, blockers, rule, method) -> np.ndarray:
-    """:func:`ground_direct_rays` at local points ``p``."""
-    order = math.isqrt(env.shape[0])
-    e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
-    radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
-    out = np.empty((len(p), 3))
     rays = _chunk_rays(rule, blockers)
+    starts = range(0, len(cast), _CHUNK)
+    chunks = [None] * len(starts)
 
-    def chunk(s):  # a task of _per_chunk: the rows of one chunk
-        sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ = rays(p, s)
+    def chunk(i, s):  # a task of run_tasks: the rays of one chunk
+        sl, cand, ip, ik, t_sphere, origins, ray_dirs, _ = rays(cast, s)
         hit = np.zeros(len(ip), dtype=bool)
         if len(ip):
             hit = blockers.caster.occluded(origins, ray_dirs, method=method)  # origins offset by _chunk_rays
-        out[sl] = e_open - _blocked_sum(len(cand), ip[hit], ik[hit], t_sphere, radiance)
+        ptr = np.zeros(len(cand) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(ip[hit], minlength=len(cand)), out=ptr[1:])
+        chunks[i] = _ChunkHits(s, s + len(cand), ptr, ik[hit], None, None, None,
+                               None if t_sphere is None else np.isfinite(t_sphere))
 
-    _per_chunk(p, chunk)
-    return out
+    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
+    interpolate = len(cast) < len(p)
+    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks))
 
 
-def _blocked_sum(n_points, ip, ik, t_sphere, radiance) -> np.ndarray:
+def ground_direct_sums(hits: GroundHits, env_sh, blockers: MeshBlockers) -> np.ndarray:
+    """:func:`ground_direct_rays` from its geometry ``hits`` (:func:`ground_direct_hits` with these ``blockers``)
+    under the environment ``env_sh (N*N, 3)``: the closed-form open sky less the blocked rays' radiance."""
+    env = np.asarray(env_sh, dtype=np.float64)
+    rule = hits.rule
+    order = math.isqrt(env.shape[0])
+    e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)  # (1, 3): nothing blocked
+    radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]  # (K, 3), world
+    n_cast = hits.chunks[-1].stop if hits.chunks else 0
+    out = np.empty((n_cast, 3))
+    for c in hits.chunks:
+        ip = np.repeat(np.arange(c.stop - c.start), np.diff(c.ptr))
+        out[c.start:c.stop] = e_open - _blocked_sum(c.stop - c.start, ip, c.ray_k, c.sphere_blocked, radiance)
+    return _interpolated(out, hits.rows, hits.weights) if hits.rows is not None else out
+
+
+def _blocked_sum(n_points, ip, ik, sphere_blocked, radiance) -> np.ndarray:
     """``(P, 3)`` sum of ``radiance[k]`` over the blocked rays: ``(ip, ik)`` (by a mesh) and those meeting an opaque
-    sphere (finite ``t_sphere``, None: none)."""
-    if t_sphere is not None:
-        blocked = np.isfinite(t_sphere)
+    sphere (``sphere_blocked (P, K)`` bool, None: none)."""
+    if sphere_blocked is not None:
+        blocked = sphere_blocked.copy()
         blocked[ip, ik] = True
         return blocked.astype(np.float64) @ radiance
     return np.stack([np.bincount(ip, weights=radiance[ik, c], minlength=n_points) for c in range(3)], axis=1)
@@ -547,7 +600,10 @@ def ground_gather_rays(points, blockers: MeshBlockers, radiance, rule: GroundRay
     p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
-    return _gather(p, blockers, radiance, rule, method, None, tier)[1]
+    if tier == "numba":
+        return ground_light_sums(ground_light_hits(points, blockers, rule, method=method), None, blockers,
+                                 radiance)[1]
+    return _gather_reference(p, blockers, radiance, rule, method, None)[1]
 
 
 def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: GroundRayRule | None = None, *,
@@ -555,20 +611,105 @@ def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: Gr
                       spacing: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``(direct, gathered)``, each ``(P, 3)``: :func:`ground_direct_rays` and :func:`ground_gather_rays` at the
     same points from one closest-hit cast per ray (the same values as the two apart). ``tier``: the sums over the
-    hits in a numba kernel (``"numba"``) or numpy (``"reference"``, the specification; the same sums in the same
-    order). ``spacing``: 0 (default) casts at every point; else only where :func:`ground_ray_nodes` says, the
-    rest interpolated (``points`` of one ground)."""
+    hits in a numba kernel (``"numba"``: :func:`ground_light_sums` of :func:`ground_light_hits`) or numpy
+    (``"reference"``, the specification; the same sums in the same order). ``spacing``: 0 (default) casts at every
+    point; else only where :func:`ground_ray_nodes` says, the rest interpolated (``points`` of one ground)."""
     from prtlab._validate import check_choice
 
     check_choice(tier, "tier", ("numba", "reference"))
     rule = rule or ground_ray_rule()
-    p = _local_points(points, blockers)
     if len(radiance) != len(blockers.faces):
         raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(radiance)}")
+    if tier == "numba":
+        return ground_light_sums(ground_light_hits(points, blockers, rule, method=method, spacing=spacing), env_sh,
+                                 blockers, radiance)
+    p = _local_points(points, blockers)
     cast, rows, weights = _cast_points(p, blockers, spacing)
-    direct, gathered = _gather(cast, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64), tier)
+    direct, gathered = _gather_reference(cast, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
     if len(cast) < len(p):
         return _interpolated(direct, rows, weights), _interpolated(gathered, rows, weights)
+    return direct, gathered
+
+
+def ground_light_hits(points, blockers: MeshBlockers, rule: GroundRayRule | None = None, *, method: str = "embree",
+                      spacing: float = 0.0) -> GroundHits:
+    """The closest hits of the rays of :func:`ground_light_rays` (:class:`GroundHits`; arguments as there): the
+    geometry, evaluated for a lighting by :func:`ground_light_sums`."""
+    rule = rule or ground_ray_rule()
+    p = _local_points(points, blockers)
+    cast, rows, weights = _cast_points(p, blockers, spacing)
+    dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
+    face_start = np.zeros(len(blockers.faces) + 1, dtype=np.int64)
+    face_start[1:] = np.cumsum([len(f) for f in blockers.faces])
+    k_type = np.int16 if len(dirs) <= np.iinfo(np.int16).max else np.int64
+    f_type = np.int32 if face_start[-1] <= np.iinfo(np.int32).max else np.int64
+    rays = _chunk_rays(rule, blockers)
+    starts = range(0, len(cast), _CHUNK)
+    chunks = [None] * len(starts)
+
+    def chunk(i, s):  # a task of run_tasks: the rays of one chunk
+        sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr = rays(cast, s)
+        hit = np.zeros(len(ip), dtype=bool)
+        if len(ip):
+            hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _chunk_rays
+            hit = hits.hit
+        hit_ptr = np.zeros(len(cand) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(ip[hit], minlength=len(cand)), out=hit_ptr[1:])
+        n = int(hit_ptr[-1])
+        ray_k, face = np.empty(n, dtype=k_type), np.empty(n, dtype=f_type)
+        u, v = np.empty(n), np.empty(n)
+        if n:
+            _compact_hits(ptr, ik, hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance,
+                          dirs, t_sphere if t_sphere is not None else np.zeros((0, 0)), face_start, hit_ptr, ray_k,
+                          face, u, v)
+        chunks[i] = _ChunkHits(s, s + len(cand), hit_ptr, ray_k, face, u, v,
+                               None if t_sphere is None else np.isfinite(t_sphere))
+
+    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
+    interpolate = len(cast) < len(p)
+    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks))
+
+
+def ground_light_sums(hits: GroundHits, env_sh, blockers: MeshBlockers, radiance):
+    """:func:`ground_light_rays` from its geometry ``hits`` (:func:`ground_light_hits` with these ``blockers``):
+    ``(direct, gathered)``, each ``(P, 3)``, under the environment ``env_sh (N*N, 3)`` (None: ``direct`` is None)
+    and the objects' exit radiance ``radiance`` (one ``(V_g, 3)`` per mesh). Per point the sums run over its hit
+    rays in ray order (the numba kernel; the reference tier of :func:`ground_light_rays` is its specification)."""
+    rule = hits.rule
+    rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
+    if len(rad) != len(blockers.faces):
+        raise ValueError(f"radiance must give one (V, 3) array per mesh ({len(blockers.faces)}), got {len(rad)}")
+    n_cast = hits.chunks[-1].stop if hits.chunks else 0
+    gathered = np.zeros((n_cast, 3))
+    direct = None
+    no_env = np.zeros((0, 3))
+    if env_sh is not None:
+        env = np.asarray(env_sh, dtype=np.float64)
+        order = math.isqrt(env.shape[0])
+        e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
+        blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
+        direct = np.empty((n_cast, 3))
+    faces, _, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
+    rad_all = np.ascontiguousarray(np.concatenate(rad)) if rad else np.zeros((0, 3))
+    weights = np.ascontiguousarray(rule.weights, dtype=np.float64)
+
+    def chunk(c):  # a task of run_tasks: the rows of one chunk
+        blocked = np.zeros((c.stop - c.start, 3))
+        with_env = env_sh is not None and c.sphere_blocked is None
+        _hit_list_sums(c.ptr, c.ray_k, c.face, c.u, c.v, weights, blocked_radiance if with_env else no_env, faces,
+                       rad_all, blocked, gathered[c.start:c.stop])
+        if env_sh is not None:
+            if with_env:
+                direct[c.start:c.stop] = e_open - blocked
+            else:
+                ip = np.repeat(np.arange(c.stop - c.start), np.diff(c.ptr))
+                direct[c.start:c.stop] = e_open - _blocked_sum(c.stop - c.start, ip, c.ray_k, c.sphere_blocked,
+                                                               blocked_radiance)
+
+    run_tasks([functools.partial(chunk, c) for c in hits.chunks])
+    if hits.rows is not None:
+        return (None if direct is None else _interpolated(direct, hits.rows, hits.weights),
+                _interpolated(gathered, hits.rows, hits.weights))
     return direct, gathered
 
 
@@ -578,8 +719,9 @@ def _cast_points(p, blockers: MeshBlockers, spacing: float):
                             spacing)
 
 
-def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
-    """The gathered light at local points ``p`` and, given ``env``, the direct light (else None)."""
+def _gather_reference(p, blockers, radiance, rule, method, env):
+    """The gathered light at local points ``p`` and, given ``env``, the direct light (else None): the numpy
+    specification of :func:`ground_light_sums`, chunk after chunk."""
     rad = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in radiance]
     out = np.zeros((len(p), 3))
     direct = None
@@ -588,32 +730,18 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
         e_open = sh.basis(_UP[None], order) @ sh.irradiance(env)
         blocked_radiance = (sh.basis(rule.dirs @ blockers.turn.T, order) @ env) * rule.weights[:, None]
         direct = np.empty((len(p), 3))
-    if tier == "numba" and len(rad):
-        faces, face_start, _ = _stacked_faces(blockers.faces, [len(r) for r in rad])
-        rad_all = np.ascontiguousarray(np.concatenate(rad))
     rays = _chunk_rays(rule, blockers)
-
-    def chunk(s):  # a task of _per_chunk: the rows of one chunk (the reference tier: one after another)
+    for s in range(0, len(p), _CHUNK):
         sl, cand, ip, ik, t_sphere, origins, ray_dirs, ptr = rays(p, s)
+        sphere_blocked = None if t_sphere is None else np.isfinite(t_sphere)
         if not len(ip):
             if env is not None:
-                direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, t_sphere, blocked_radiance)
-            return
+                direct[sl] = e_open - _blocked_sum(len(cand), ip, ik, sphere_blocked, blocked_radiance)
+            continue
         hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)  # origins offset by _chunk_rays
-        if tier == "numba":
-            # per point its rays in order (``ptr``): the sums of the reference below, term by term
-            blocked = np.zeros((len(cand), 3))
-            with_env = env is not None and t_sphere is None
-            _hit_sums(ptr, ik, hits.hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance,
-                      rule.dirs, rule.weights, blocked_radiance if with_env else np.zeros((0, 3)),
-                      t_sphere if t_sphere is not None else np.zeros((0, 0)), faces, face_start, rad_all,
-                      blocked, out[sl])
-            if env is not None:
-                direct[sl] = e_open - blocked if with_env else e_open - _blocked_sum(
-                    len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
-            return
         if env is not None:
-            direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], t_sphere, blocked_radiance)
+            direct[sl] = e_open - _blocked_sum(len(cand), ip[hits.hit], ik[hits.hit], sphere_blocked,
+                                               blocked_radiance)
         d = rule.dirs[ik]
         live = hits.hit & (np.einsum("ij,ij->i", hits.normal, d) < 0.0)
         if t_sphere is not None:
@@ -627,11 +755,6 @@ def _gather(p, blockers, radiance, rule, method, env, tier="numba"):
             u, v = hits.barycentric[m, :1], hits.barycentric[m, 1:]
             value[m] = (1.0 - u - v) * rad[g][f[:, 0]] + u * rad[g][f[:, 1]] + v * rad[g][f[:, 2]]
         np.add.at(out[sl], ip, value * rule.weights[ik, None])
-    if tier == "numba":
-        _per_chunk(p, chunk)
-    else:
-        for s in range(0, len(p), _CHUNK):
-            chunk(s)
     return direct, out
 
 
@@ -648,30 +771,45 @@ def _stacked_faces(faces, n_verts):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _hit_sums(ptr, ik, hit, obj, tri, bary, normal, dist, dirs, weights, blocked_radiance, t_sphere, faces,
-              face_start, radiance, blocked, gathered):
-    """Per point ``q`` (its rays ``ptr[q]:ptr[q + 1]``, rule directions ``ik``), in ray order: ``blocked[q] +=
-    blocked_radiance[k]`` over the rays that hit (skipped if ``blocked_radiance`` is empty) and ``gathered[q] +=
-    w_k L_o`` over the front-face hits closer than the opaque spheres (``t_sphere (P, K)``, empty: none), ``L_o``
-    interpolated from ``radiance`` at the hit face's vertices."""
-    with_env = blocked_radiance.shape[0] > 0
+def _compact_hits(ptr, ik, hit, obj, tri, bary, normal, dist, dirs, t_sphere, face_start, hit_ptr, ray_k, face, u,
+                  v):
+    """Per point ``q`` (its rays ``ptr[q]:ptr[q + 1]``, rule directions ``ik``) its hit rays, in ray order, into
+    ``hit_ptr[q]:hit_ptr[q + 1]``: the rule direction, the stacked face (``face_start[object] + triangle``) of a
+    front-face hit closer than the opaque spheres (``t_sphere (P, K)``, empty: none), else -1, and the
+    barycentrics."""
     with_spheres = t_sphere.shape[0] > 0
     for q in numba.prange(ptr.shape[0] - 1):
+        j = hit_ptr[q]
         for i in range(ptr[q], ptr[q + 1]):
             if not hit[i]:
                 continue
             k = ik[i]
+            ray_k[j] = k
+            live = not (normal[i, 0] * dirs[k, 0] + normal[i, 1] * dirs[k, 1] + normal[i, 2] * dirs[k, 2] >= 0.0)
+            if live and with_spheres and not dist[i] < t_sphere[q, k]:
+                live = False  # a back face (from inside a closed object) or a hit beyond an opaque sphere
+            face[j] = face_start[obj[i]] + tri[i] if live else -1
+            u[j], v[j] = bary[i, 0], bary[i, 1]
+            j += 1
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _hit_list_sums(ptr, ray_k, face, u_hit, v_hit, weights, blocked_radiance, faces, radiance, blocked, gathered):
+    """Per point ``q`` (its hit rays ``ptr[q]:ptr[q + 1]``, :class:`_ChunkHits`), in ray order: ``blocked[q] +=
+    blocked_radiance[k]`` (skipped if ``blocked_radiance`` is empty) and, for a face ``f >= 0``, ``gathered[q] +=
+    w_k L_o``, ``L_o`` interpolated from ``radiance`` at the face's vertices."""
+    with_env = blocked_radiance.shape[0] > 0
+    for q in numba.prange(ptr.shape[0] - 1):
+        for i in range(ptr[q], ptr[q + 1]):
+            k = np.int64(ray_k[i])
             if with_env:
                 for c in range(3):
                     blocked[q, c] += blocked_radiance[k, c]
-            if normal[i, 0] * dirs[k, 0] + normal[i, 1] * dirs[k, 1] + normal[i, 2] * dirs[k, 2] >= 0.0:
-                continue  # a back face: from inside a closed object
-            if with_spheres and not dist[i] < t_sphere[q, k]:
+            f = np.int64(face[i])
+            if f < 0:
                 continue
-            g = obj[i]
-            f = face_start[g] + tri[i]
             a, b, d = faces[f, 0], faces[f, 1], faces[f, 2]
-            u, v = bary[i, 0], bary[i, 1]
+            u, v = u_hit[i], v_hit[i]
             for c in range(3):
                 value = (1.0 - u - v) * radiance[a, c] + u * radiance[b, c] + v * radiance[d, c]
                 gathered[q, c] += value * weights[k]

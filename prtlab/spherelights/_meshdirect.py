@@ -35,7 +35,7 @@ from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
 __all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "inner_spheres",
-           "mesh_direct"]
+           "mesh_direct", "mesh_direct_visible", "mesh_direct_sums"]
 
 _CHUNK = 1024  # receivers per batch (bounds the (P, M) masks)
 
@@ -147,7 +147,7 @@ def inner_spheres(vertices, faces, centres) -> np.ndarray:
 def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), rectangles=None, spheres=None,
                 dirs=None, *, method: str = "numba", cast: str = "embree") -> np.ndarray:
     """Direct irradiance ``(P, 3)`` from the environment at receivers of one object, every mesh blocking (see the
-    module docstring).
+    module docstring): :func:`mesh_direct_sums` of :func:`mesh_direct_visible`.
 
     Parameters
     ----------
@@ -172,36 +172,57 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
     cast : {"embree", "numpy"}
         The ray caster's engine for the other objects' meshes.
 
-    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier shades interleaved
-    parts of the receivers as tasks (every receiver's rays and sums are its own: the same result bit for bit).
+    With more than one numba thread (:func:`prtlab._tasks.task_threads`) the ``"numba"`` tier finds the visible
+    rays of interleaved parts of the receivers as tasks (every receiver's rays and sums are its own: the same result
+    bit for bit).
     """
-    from prtlab._validate import check_choice
+    env = _checked_env(env_sh)
+    visible = mesh_direct_visible(points, normals, rotation, blocked_self, occluders, rectangles, spheres, dirs,
+                                  method=method, cast=cast)
+    return mesh_direct_sums(visible, normals, env, rotation, dirs, method=method)
 
-    check_choice(method, "method", ("numba", "reference"))
-    check_choice(cast, "cast", ("embree", "numpy"))
+
+def _checked_env(env_sh) -> np.ndarray:
+    env = np.asarray(env_sh, dtype=np.float64)
+    order = math.isqrt(env.shape[0])
+    if order * order != env.shape[0]:
+        raise ValueError(f"env_sh must have n*n rows, got {env.shape[0]}")
+    return env
+
+
+def _checked(points, normals, dirs):
     d = fibonacci_directions(1024) if dirs is None else np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
     p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
     if p.shape != n.shape:
         raise ValueError(f"points and normals must have the same shape (P, 3), got {p.shape} and {n.shape}")
+    return p, n, d
+
+
+def mesh_direct_visible(points, normals, rotation, blocked_self, occluders=(), rectangles=None, spheres=None,
+                        dirs=None, *, method: str = "numba", cast: str = "embree") -> np.ndarray:
+    """``(P, ceil(M / 8))`` uint8, bits packed along the directions (``np.packbits`` order): whether the ray from
+    each receiver along ``w_j = R d_j`` lies above its tangent plane and meets nothing (its own mesh, another
+    object's mesh, a ground rectangle, an opaque sphere). The geometry of :func:`mesh_direct` (arguments as there),
+    evaluated for an environment by :func:`mesh_direct_sums`."""
+    from prtlab._validate import check_choice
+
+    check_choice(method, "method", ("numba", "reference"))
+    check_choice(cast, "cast", ("embree", "numpy"))
+    p, n, d = _checked(points, normals, dirs)
     bits = np.ascontiguousarray(blocked_self, dtype=np.uint8)
     if bits.shape != (len(p), (len(d) + 7) // 8):
         raise ValueError(f"blocked_self must be (P, ceil(M / 8)) = {(len(p), (len(d) + 7) // 8)} packed bits "
                          f"(self_blocked of these receivers along these directions), got {bits.shape}")
-    env = np.asarray(env_sh, dtype=np.float64)
-    order = math.isqrt(env.shape[0])
-    if order * order != env.shape[0]:
-        raise ValueError(f"env_sh must have n*n rows, got {env.shape[0]}")
     rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
     rects = np.ascontiguousarray(np.zeros((0, 7)) if rectangles is None else rectangles, dtype=np.float64)
     balls = np.ascontiguousarray(np.zeros((0, 4)) if spheres is None else spheres, dtype=np.float64).reshape(-1, 4)
     w = np.ascontiguousarray(d @ rot.T)  # world directions
-    radiance = np.ascontiguousarray((sh.basis(w, order) @ env) * (4.0 * math.pi / len(d)))  # (M, 3), weighted
-    out = sh.basis(n, order) @ sh.irradiance(env) if len(p) else np.zeros((0, 3))
     # a Fibonacci set's directions descend in height (``d_y``, object frame): the rays in a cone are a run of them
     heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
-    def blocked(p, n, bits):  # (P, 3) the light the meshes block at these receivers, chunk after chunk
-        lost = np.empty((len(p), 3))
+
+    def visible_bits(p, n, bits):  # (P, ceil(M / 8)) the visible rays at these receivers, chunk after chunk
+        out = np.empty((len(p), (len(w) + 7) // 8), dtype=np.uint8)
         for s in range(0, len(p), _CHUNK):
             ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
             if method == "reference":
@@ -220,22 +241,47 @@ def mesh_direct(points, normals, env_sh, rotation, blocked_self, occluders=(), r
                         visible[ip[hit], ij[hit]] = False
                 else:
                     _occluder_visible(ps, ns, w, occ, visible, heights, cast)
-            if method == "reference":
-                lost[s:s + _CHUNK] = _blocked_reference(ns, w, visible, radiance)
-            else:
-                _blocked_kernel(ns, w, visible, radiance, lost[s:s + _CHUNK])
-        return lost
+            out[s:s + _CHUNK] = np.packbits(visible, axis=1)
+        return out
 
     threads = task_threads() if method == "numba" else 1
     if threads > 1 and len(p) > _CHUNK // 4:
-        # every receiver's rays and sums are its own: interleaved parts of the receivers as tasks
+        # every receiver's rays are its own: interleaved parts of the receivers as tasks
+        out = np.empty((len(p), (len(w) + 7) // 8), dtype=np.uint8)
         parts = [np.arange(k, len(p), threads) for k in range(threads)]
-        for rows, lost in zip(parts, run_tasks([functools.partial(blocked, p[rows], n[rows], bits[rows])
+        for rows, part in zip(parts, run_tasks([functools.partial(visible_bits, p[rows], n[rows], bits[rows])
                                                 for rows in parts])):
-            out[rows] -= lost
-    else:
-        out -= blocked(p, n, bits)
-    return out
+            out[rows] = part
+        return out
+    return visible_bits(p, n, bits)
+
+
+def mesh_direct_sums(visible, normals, env_sh, rotation, dirs=None, *, method: str = "numba") -> np.ndarray:
+    """Direct irradiance ``(P, 3)`` at receivers of normals ``normals (P, 3)`` whose visible rays are ``visible``
+    (:func:`mesh_direct_visible` along ``dirs`` turned by ``rotation``) under ``env_sh (N*N, 3)``: the closed-form
+    unshadowed irradiance less ``4 pi / M sum_j max(0, n . w_j) L(w_j)`` over the front rays that are not visible.
+    ``method``: the numba kernel or the float64 numpy specification (per receiver the same sum)."""
+    from prtlab._validate import check_choice
+
+    check_choice(method, "method", ("numba", "reference"))
+    _, n, d = _checked(normals, normals, dirs)
+    env = _checked_env(env_sh)
+    order = math.isqrt(env.shape[0])
+    rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    vis = np.ascontiguousarray(visible, dtype=np.uint8)
+    if vis.shape != (len(n), (len(d) + 7) // 8):
+        raise ValueError(f"visible must be (P, ceil(M / 8)) = {(len(n), (len(d) + 7) // 8)} packed bits "
+                         f"(mesh_direct_visible of these receivers), got {vis.shape}")
+    w = np.ascontiguousarray(d @ rot.T)  # world directions
+    radiance = np.ascontiguousarray((sh.basis(w, order) @ env) * (4.0 * math.pi / len(d)))  # (M, 3), weighted
+    out = sh.basis(n, order) @ sh.irradiance(env) if len(n) else np.zeros((0, 3))
+    lost = np.empty((len(n), 3))
+    for s in range(0, len(n), _CHUNK):
+        if method == "reference":
+            lost[s:s + _CHUNK] = _blocked_reference(n[s:s + _CHUNK], w, _unpack(vis[s:s + _CHUNK], len(w)), radiance)
+    if method != "reference":
+        _blocked_kernel(n, w, vis, radiance, lost)
+    return out - lost
 
 
 def _occluder_visible(points, normals, dirs, occ, visible, heights, cast):
@@ -427,12 +473,12 @@ def _meets_kernel(points, dirs, bounds, inner, heights, fibonacci, visible, ip, 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _blocked_kernel(normals, dirs, visible, radiance, out):
-    """``_blocked_reference``."""
+    """``_blocked_reference`` (``visible``: packed bits, ``np.packbits`` order)."""
     for q in numba.prange(normals.shape[0]):
         r, g, b = 0.0, 0.0, 0.0
         for j in range(dirs.shape[0]):
             c = normals[q, 0] * dirs[j, 0] + normals[q, 1] * dirs[j, 1] + normals[q, 2] * dirs[j, 2]
-            if c > 0.0 and not visible[q, j]:
+            if c > 0.0 and not (visible[q, j >> 3] >> (7 - (j & 7))) & 1:
                 r += c * radiance[j, 0]
                 g += c * radiance[j, 1]
                 b += c * radiance[j, 2]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -33,7 +34,8 @@ from prtlab.sh._kernels import _A, _B, _PMM, LOW_BANDS, _high_bands, _low_bands
 from ._shadows import BlockerLanes, LaneScratch, _as_spheres, _blocker_log_knots, _blocker_lanes, _check_order, \
     _receivers, blocker_log_table, environment_transfer, one_thread_below
 
-__all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct"]
+__all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct", "NearVisibility",
+           "near_blocker_visibility", "near_blocker_sums"]
 
 #: Cube-map face resolution of the environment table (an order-10 SH environment varies over ~18 degrees; a texel
 #: of 32 per face spans under 3 degrees).
@@ -392,6 +394,27 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
     -------
     (B, C) float64 irradiance (not clamped; the ground's hidden light not subtracted).
     """
+    vis = near_blocker_visibility(points, normals, centres, radii, order, n_near, eligible=eligible,
+                                  exp_method=exp_method, method=method)
+    return near_blocker_sums(vis, env_sh, method=method)
+
+
+class NearVisibility(NamedTuple):
+    """The geometry of :func:`near_blocker_direct` at ``B`` receivers (:func:`near_blocker_visibility`): their unit
+    normals ``(B, 3)``, the exponentiated SH visibility of the blockers left in the log sum ``(B, n*n)``, and per
+    receiver the axes ``(B, k, 3)`` and half-angle cosines ``(B, k)`` of the caps taken exactly (2: none)."""
+
+    normals: np.ndarray
+    visibility: np.ndarray
+    axis: np.ndarray
+    cos_half: np.ndarray
+    order: int
+
+
+def near_blocker_visibility(points, normals, centres, radii, order: int, n_near: int = 2, *, eligible=None,
+                            exp_method: str = "hyb", method: str = "numba") -> NearVisibility:
+    """:class:`NearVisibility` of :func:`near_blocker_direct` (arguments as there): what does not depend on the
+    environment, evaluated for one by :func:`near_blocker_sums`."""
     from prtlab._validate import check_int
 
     p, n, _ = _receivers(points, normals)
@@ -401,7 +424,6 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
     n_near = check_int(n_near, "n_near", 0)
     if method not in ("numba", "reference"):
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-    env = np.asarray(env_sh, dtype=np.float64)
     B = len(p)
     k = min(n_near, len(r))
     elig = np.ones(len(r), dtype=bool) if eligible is None else np.asarray(eligible, dtype=bool).reshape(-1)
@@ -418,16 +440,28 @@ def near_blocker_direct(points, normals, centres, radii, env_sh, order: int, n_n
                             g_rest, axis, cosq)
             else:
                 g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
+        v = sh.exp(g_rest, method=exp_method, channels=False)
+    return NearVisibility(n, v, axis, cosq, order)
+
+
+def near_blocker_sums(vis: NearVisibility, env_sh, *, method: str = "numba") -> np.ndarray:
+    """Direct irradiance ``(B, C)`` of :func:`near_blocker_direct` from its geometry ``vis``
+    (:func:`near_blocker_visibility`) under the environment ``env_sh (N*N, C)``: ``V_rest . (T_n - Q)``."""
+    if method not in ("numba", "reference"):
+        raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
+    env = np.asarray(env_sh, dtype=np.float64)
+    n, order = vis.normals, vis.order
+    B, k = vis.axis.shape[:2]
+    with one_thread_below(B, _SERIAL_BELOW):
         t = environment_transfer(n, env, order) if method == "reference" else _environment_transfer(n, env, order)
         q = np.zeros_like(t)
         if B and k:
             if method == "numba":
                 x, w = np.polynomial.legendre.leggauss(N_RADIAL)
-                _cap_integrals(n, axis, cosq, environment_cube(env), order, x, w, N_AZIMUTH, q)
+                _cap_integrals(n, vis.axis, vis.cos_half, environment_cube(env), order, x, w, N_AZIMUTH, q)
             else:
-                q = _cap_integrals_reference(n, axis, cosq, env, order)
-        v = sh.exp(g_rest, method=exp_method, channels=False)
-    return np.einsum("bk,bkc->bc", v, t - q)
+                q = _cap_integrals_reference(n, vis.axis, vis.cos_half, env, order)
+    return np.einsum("bk,bkc->bc", vis.visibility, t - q)
 
 
 def _environment_transfer(normals, env, order):

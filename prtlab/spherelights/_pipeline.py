@@ -57,6 +57,7 @@ reflection ratio.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -71,14 +72,16 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import ground_light, ground_objects, ground_raster, ground_texture
-from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_rays, ground_light_rays, ground_ray_rule,
-                          mesh_blockers)
+from ._ground import ground_light, ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture
+from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_light_hits,
+                          ground_light_sums, ground_ray_rule, mesh_blockers)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
-from ._meshdirect import MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct, mesh_occluder, self_blocked
-from ._nearcaps import has_near_blocker, near_blocker_direct
+from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
+                          mesh_occluder, self_blocked)
+from ._nearcaps import has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility
 from ._passes import first_pass, second_pass
+from ._reuse import FrameReuse
 from ._samples import coverage_weights, segment_coverage, surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
 
@@ -615,7 +618,7 @@ class SphereLights(Precomputation):
             if lights.n_loc:  # the second pass's computation at the surface samples, local lights only
                 extra[svalid] += self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
             if ground_below:  # ground -> object: the ground's direct light reaches the samples
-                tex = self._ground_textures(ground_below, lambda p, n: self._irradiance(
+                tex = self._ground_textures(ground_below, lambda p, n, _: self._irradiance(
                     lights, p, n, lights.local_only, False, near=False)[0], transforms)
                 extra[svalid] += ground_light(spts[svalid], snrm[svalid], rects, tex, lights.env, lights.centres,
                                               lights.radii, lights.local_radiance)[1]
@@ -653,17 +656,22 @@ class SphereLights(Precomputation):
             sel = has_near_blocker(p, n, lights.centres, lights.radii, elig)
             if not sel.any():
                 continue
-            args = (p[sel], n[sel], lights.centres, lights.radii, lights.env, self.options.order)
+            args = (p[sel], n[sel], lights.centres, lights.radii, self.options.order)
+            exp_method = self.options.exp_method
+            near, far = self.frame_reuse.get(  # the caps and the visibility: geometry, kept while it stays
+                ("near_samples", int(own)), args + (k, elig, exp_method),
+                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)))
             corr = np.zeros((len(p), 3))
-            corr[sel] = (near_blocker_direct(*args, k, eligible=elig, exp_method=self.options.exp_method)
-                         - near_blocker_direct(*args, 0, eligible=elig, exp_method=self.options.exp_method))
+            corr[sel] = near_blocker_sums(near, lights.env) - near_blocker_sums(far, lights.env)
             out[mask] = corr
         return out
 
     def shade_frame(self, state: FrameState, bounces: int) -> ShadeResult:
         """The first pass (the lights' emission, Secs. 5-6) and the second pass per receiving object (Sec. 6), the
         grounds first; at the other receivers the ground's terms (``_ground``). With ``bounces=2`` the ground's
-        light also reaches the surface samples and the objects receive the ground's total light."""
+        light also reaches the surface samples and the objects receive the ground's total light. The geometry-only
+        results (the grounds' ray hits, the objects' visible rays, ``ground_light``'s samples) are those of the frame
+        before when every input they depend on is exactly the same (:attr:`frame_reuse`)."""
         t_start = time.perf_counter()
         opts = self.options
         lights, world = self._frame_lights(state)
@@ -673,12 +681,18 @@ class SphereLights(Precomputation):
         rects = np.array([row for _, row in grounds]).reshape(-1, 7)
         reflects = opts.ground == "reflects" and bounces > 0 and len(grounds) > 0
         sources = sorted(self.data["objects"])
+        reuse = self.frame_reuse
+        reuse.start_frame()
         blockers = ground_direct = None
         if opts.ground_shading == "rays" and len(grounds):  # the grounds against the objects' meshes
-            blockers = self._mesh_blockers(state, lights, sources, rects)
+            blocker_inputs = self._mesh_blocker_inputs(state, lights, sources, rects)
+            blockers = reuse.get("mesh_blockers", blocker_inputs, lambda: mesh_blockers(*blocker_inputs))
 
-            def ground_direct(p, n, rule=_TEXEL_RAYS):  # the texels' rule unless given
-                e = ground_direct_rays(p, lights.env, blockers, rule, spacing=opts.ground_ray_spacing)
+            def ground_direct(p, n, name):  # the texels' rule
+                hits = reuse.get(("texel_rays", name), (blocker_inputs, p, _TEXEL_RAYS.dirs, _TEXEL_RAYS.weights,
+                                                        opts.ground_ray_spacing),
+                                 lambda: ground_direct_hits(p, blockers, _TEXEL_RAYS, spacing=opts.ground_ray_spacing))
+                e = ground_direct_sums(hits, lights.env, blockers)
                 return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
         emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
         own_emission = None  # with ``emission_coverage``: the paper's emission, for the lights' own object
@@ -699,10 +713,10 @@ class SphereLights(Precomputation):
                        key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
         textures = np.zeros((len(grounds), 1, 1, 3))
         if reflects and ground_direct is not None:  # its indirect light (two bounces) stays the second pass's
-            textures = self._ground_textures(grounds, lambda p, n: ground_direct(p, n) + (
+            textures = self._ground_textures(grounds, lambda p, n, name: ground_direct(p, n, name) + (
                 self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state.transforms)
         elif reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
-            textures = self._ground_textures(grounds, lambda p, n: sum(
+            textures = self._ground_textures(grounds, lambda p, n, _: sum(
                 self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
         nodes = None
         receivers = {}  # world points and normals per object, for the grounds' gathered light
@@ -743,9 +757,11 @@ class SphereLights(Precomputation):
                     direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
             if obj.name not in ground_names and len(grounds):
                 # the ground hides what lies beyond it and reflects its own light (see ``_ground``)
-                hidden, reflected = ground_light(pts, nrm, rects, textures, lights.env, lights.centres, lights.radii,
-                                                 lights.local_radiance,
-                                                 unadjusted=self._near_eligible(lights, own) & near_used)
+                unadjusted = self._near_eligible(lights, own) & near_used
+                args = (pts, nrm, rects, lights.centres, lights.radii, lights.local_radiance)
+                samples = reuse.get(("ground_light", obj.name), args + (unadjusted,),
+                                    lambda: ground_samples(*args, unadjusted=unadjusted))
+                hidden, reflected = ground_sample_sums(samples, textures, lights.env, lights.local_radiance)
                 direct = direct if exact else direct - hidden  # the rays of ``exact`` meet the grounds
                 indirect = indirect + reflected if reflects else indirect
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
@@ -759,19 +775,32 @@ class SphereLights(Precomputation):
                                          rects[:, 0], tol) for name in sources]
             for obj, _ in grounds:
                 albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
-                e_dir, e_ind = ground_light_rays(receivers[obj.name][0], lights.env, blockers, radiance, _GROUND_RAYS,
-                                                 spacing=opts.ground_ray_spacing)
+                pts = receivers[obj.name][0]
+                spacing = opts.ground_ray_spacing
+                hits = reuse.get(("ground_rays", obj.name), (blocker_inputs, pts, _GROUND_RAYS.dirs,
+                                                             _GROUND_RAYS.weights, spacing),
+                                 lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=spacing))
+                e_dir, e_ind = ground_light_sums(hits, lights.env, blockers, radiance)
                 if not (bounces > 0 and n_sl):
                     e_ind = np.zeros_like(e_ind)
                 result.direct[obj.name] = np.maximum(local_direct[obj.name] + e_dir, 0.0) * albedo
                 result.indirect[obj.name] = np.maximum(e_ind, 0.0) * albedo
                 result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
+        result.info["geometry"] = reuse.end_frame()
         return result
 
-    def _mesh_blockers(self, state: FrameState, lights: _FrameLights, sources, rects):
-        """The objects' meshes at the frame's pose (``sources``: their names, in this order; in the frame of the first
-        ground of ``rects``), their lights as
+    @property
+    def frame_reuse(self) -> FrameReuse:
+        """The geometry-only results of the last frame (the grounds' ray hits, the objects' visible rays and
+        ``ground_light``'s samples), each reused by the next frame only while every input it was computed from is
+        exactly the same (``_reuse``); a frame's ``info["geometry"]`` names the results it computed and those it
+        reused. ``frame_reuse.clear()`` frees them."""
+        return self.__dict__.setdefault("_frame_reuse", FrameReuse())
+
+    def _mesh_blocker_inputs(self, state: FrameState, lights: _FrameLights, sources, rects) -> tuple:
+        """The arguments of :func:`mesh_blockers` for the frame: the objects' meshes at the frame's pose (``sources``:
+        their names, in this order; in the frame of the first ground of ``rects``), their lights as
         bounding spheres (a deformed object, which may leave its lights: one ball around its vertices) and the
         local lights as opaque spheres (``_groundrays.MeshBlockers``)."""
         meshes, bounds = [], []
@@ -786,31 +815,34 @@ class SphereLights(Precomputation):
             else:
                 verts = obj.world_vertices(tr)
                 bounds.append(spheres[: lights.n_sl][lights.object_index[: lights.n_sl] == g])
-            meshes.append((verts, obj.mesh.faces))
+            meshes.append((np.asarray(verts, dtype=np.float64), np.asarray(obj.mesh.faces)))
         ground = rects[0]  # the rays in the first ground's frame (its centre, edge u and half length)
-        return mesh_blockers(meshes, np.concatenate(bounds or [np.zeros((0, 4))]), spheres[lights.n_sl:],
-                             origin=[ground[1], ground[0], ground[2]], azimuth=math.atan2(ground[4], ground[3]),
-                             scale=math.hypot(ground[3], ground[4]))
+        return (meshes, np.concatenate(bounds or [np.zeros((0, 4))]), spheres[lights.n_sl:],
+                np.array([ground[1], ground[0], ground[2]]), math.atan2(ground[4], ground[3]),
+                math.hypot(ground[3], ground[4]))
 
     #: Directions of the rays of ``mesh_blockers`` (``_meshdirect``; docs/notes/spherelights.md).
     _MESH_DIRECTIONS = 1024
 
     def _mesh_direct(self, state: FrameState, lights: _FrameLights, obj, pts, nrm, rects) -> np.ndarray:
         """The environment's direct light (P, 3) at the receivers ``pts, nrm`` of the source object ``obj``, every
-        object's mesh, the grounds ``rects`` and the local lights blocking (``mesh_blockers``, ``_meshdirect``)."""
+        object's mesh, the grounds ``rects`` and the local lights blocking (``mesh_blockers``, ``_meshdirect``); the
+        visible rays reused from the last frame (:attr:`frame_reuse`) while all their inputs are the same."""
         dirs = fibonacci_directions(self._MESH_DIRECTIONS)
         sources = sorted(self.data["objects"])
         tr = state.transforms.get(obj.name) or obj.transform
         rot = np.asarray(tr.rotation, dtype=np.float64)
         faces = np.asarray(obj.mesh.faces)
         cache = self.__dict__.setdefault("_mesh_direct_cache", {})
+        reuse = self.frame_reuse
         if obj.name in state.deformations:  # its own rays at the deformed mesh, every frame, in the frame turned
             # by the best-fit rotation of its vertices (Sec. 7.1): a rigid motion given as a deformation casts the rays
             # of the moved object
             verts = np.asarray(state.deformations[obj.name], dtype=np.float64)
             turn, m0, m1 = light_motions(verts, obj.mesh.vertices, np.zeros(len(verts), dtype=np.int64), 1)
             local = ((pts - tr.translate) @ rot / float(tr.scale) - m1[0]) @ turn[0] + m0[0]
-            bits = self_blocked(local, nrm @ rot @ turn[0], (verts - m1[0]) @ turn[0] + m0[0], faces, dirs)
+            args = (local, nrm @ rot @ turn[0], (verts - m1[0]) @ turn[0] + m0[0], faces, dirs)
+            bits = reuse.get(("self_blocked", obj.name), args, lambda: self_blocked(*args))
             rot = rot @ turn[0]
         else:  # rigid: its own rays in object space, once
             key = ("self", obj.name, len(dirs))
@@ -820,16 +852,18 @@ class SphereLights(Precomputation):
                 cache[key] = (obj.mesh, self_blocked(obj.world_shading_points(Transform()), obj.mesh.vertex_normals,
                                                      obj.mesh.vertices, faces, dirs))
             bits = cache[key][1]
-        occluders = []
+        occluders = []  # per other object: the inputs of its MeshOccluder and how to make it
         for g, name in enumerate(sources):
             if name == obj.name:
                 continue
             other = self.scene.object(name)
             tr_o = state.transforms.get(name) or other.transform
             rot_o = np.asarray(tr_o.rotation, dtype=np.float64)
+            s_o, t_o = float(tr_o.scale), np.asarray(tr_o.translate, dtype=np.float64)
             if name in state.deformations:  # its deformed mesh, in a ball around its vertices
-                occluders.append(mesh_occluder(state.deformations[name], other.mesh.faces, rot_o, float(tr_o.scale),
-                                               tr_o.translate))
+                args = (np.asarray(state.deformations[name], dtype=np.float64), np.asarray(other.mesh.faces), rot_o,
+                        s_o, t_o)
+                occluders.append((args, functools.partial(mesh_occluder, *args)))
                 continue
             key = ("caster", name)
             if key not in cache or cache[key][0] is not other.mesh:  # object space, once: the mesh, inner balls
@@ -838,17 +872,23 @@ class SphereLights(Precomputation):
                 cache[key] = (other.mesh, mesh_occluder(other.mesh.vertices, other.mesh.faces, inner=inner))
             mine = lights.object_index[: lights.n_sl] == g
             base = cache[key][1]
-            s_o, t_o = float(tr_o.scale), np.asarray(tr_o.translate, dtype=np.float64)
-            occluders.append(MeshOccluder(base.caster, rot_o, s_o, t_o,
-                                          np.concatenate([lights.centres[: lights.n_sl][mine],
-                                                          lights.radii[: lights.n_sl][mine, None]], axis=1),
-                                          np.concatenate([base.inner[:, :3] @ (s_o * rot_o).T + t_o,
-                                                          s_o * base.inner[:, 3:]], axis=1)))
+            args = (base.caster, rot_o, s_o, t_o,
+                    np.concatenate([lights.centres[: lights.n_sl][mine], lights.radii[: lights.n_sl][mine, None]],
+                                   axis=1),
+                    np.concatenate([base.inner[:, :3] @ (s_o * rot_o).T + t_o, s_o * base.inner[:, 3:]], axis=1))
+            # the caster is this object's mesh in object space: its vertices and faces stand for it
+            occluders.append(((np.asarray(other.mesh.vertices, dtype=np.float64), np.asarray(other.mesh.faces),
+                               base.inner) + args[1:], functools.partial(MeshOccluder, *args)))
         balls = np.concatenate([lights.centres[lights.n_sl:], lights.radii[lights.n_sl:, None]], axis=1)
-        return mesh_direct(pts, nrm, lights.env, rot, bits, occluders, rects, balls, dirs)
+        visible = reuse.get(("mesh_direct", obj.name), (pts, nrm, rot, bits, [o[0] for o in occluders], rects, balls,
+                                                        dirs),
+                            lambda: mesh_direct_visible(pts, nrm, rot, bits, [make() for _, make in occluders], rects,
+                                                        balls, dirs))
+        return mesh_direct_sums(visible, nrm, lights.env, rot, dirs)
 
     def _ground_textures(self, grounds, irradiance, transforms) -> np.ndarray:
-        """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals) (P, 3)``:
+        """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals, ground's
+        name) (P, 3)``:
         with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), else at
         the ground's vertices, interpolated over its mesh (rasters cached per ground mesh)."""
         k = self.options.ground_texels
@@ -857,11 +897,11 @@ class SphereLights(Precomputation):
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             if k:
                 pts = _rectangle_grid(row, k).reshape(-1, 3)
-                e = irradiance(pts, np.broadcast_to([0.0, 1.0, 0.0], pts.shape))
+                e = irradiance(pts, np.broadcast_to([0.0, 1.0, 0.0], pts.shape), obj.name)
                 out.append(np.maximum(e, 0.0).reshape(k, k, 3) * albedo)
                 continue
             tr = transforms.get(obj.name) or obj.transform
-            e = irradiance(obj.world_shading_points(tr), obj.world_normals(tr))
+            e = irradiance(obj.world_shading_points(tr), obj.world_normals(tr), obj.name)
             cache = self.__dict__.setdefault("_raster_cache", {})
             if obj.name not in cache or cache[obj.name][0] is not obj.mesh:
                 cache[obj.name] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))

@@ -68,6 +68,7 @@ def test_task_pipeline_frames_equal_serial_frames(monkeypatch):
     frames = {}
     for tasks in (False, True):
         monkeypatch.setattr(_tasks, "TASKS", tasks)
+        pre.frame_reuse.clear()  # every ray cast again under this setting (not the other setting's kept results)
         state = FrameState.from_scene(scene)
         out = [pre.shade(state, bounces=1), pre.shade(state, bounces=2)]
         state.transforms["ball"] = Transform(translate=[0.1, 0.5, 0.0])

@@ -1,0 +1,81 @@
+"""The geometry-only results of a frame kept for the next one while their inputs stay the same.
+
+Much of a spherical-lights frame with the ground's rays (``ground_shading="rays"``) and the meshes' direct light
+(``mesh_blockers``) is geometry: which ray from a ground point meets which face where, which rays of an object's
+receivers are blocked. It does not change when only the lighting (the environment) does. A :class:`FrameReuse`
+keeps each such result with a copy of every input it was computed from and hands it back only when the new inputs
+equal the kept ones exactly (same type, shape, dtype and bytes: never a digest), so a moved, turned, scaled or
+deformed object, a moved ground or light, or another option computes afresh.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FrameReuse"]
+
+
+class FrameReuse:
+    """One result per name, kept with the inputs it was computed from.
+
+    ``get(name, inputs, compute)`` returns the kept result when ``inputs`` equal the kept inputs exactly, else
+    ``compute()`` (then kept, with a copy of ``inputs``). ``inputs``: nested tuples and lists of arrays, numbers,
+    strings and None; arrays are compared by dtype, shape and bytes (so ``-0.0`` differs from ``0.0``, as it may
+    change a result; a NaN equals the same NaN); other objects by ``==``. Between :meth:`start_frame` and
+    :meth:`end_frame` the names asked for are counted, and ``end_frame`` forgets the results no call asked for
+    (a frame keeps only what the frame before it computed or reused)."""
+
+    def __init__(self):
+        self._kept: dict = {}
+        self._computed: list = []
+        self._reused: list = []
+
+    def get(self, name, inputs, compute):
+        kept = self._kept.get(name)
+        if kept is not None and _same(kept[0], inputs):
+            self._reused.append(name)
+            return kept[1]
+        self._kept.pop(name, None)  # the old result goes before the new one is computed (peak memory)
+        value = compute()
+        self._kept[name] = (_copy(inputs), value)
+        self._computed.append(name)
+        return value
+
+    def clear(self) -> None:
+        """Forget every kept result (the next frame computes everything)."""
+        self._kept.clear()
+
+    def start_frame(self) -> None:
+        """Start counting the names asked for."""
+        self._computed.clear()
+        self._reused.clear()
+
+    def end_frame(self) -> dict:
+        """Forget the results not asked for since :meth:`start_frame`; returns ``{"computed": [...], "reused":
+        [...]}``, the names asked for."""
+        used = set(self._computed) | set(self._reused)
+        for name in [k for k in self._kept if k not in used]:
+            del self._kept[name]
+        return {"computed": list(self._computed), "reused": list(self._reused)}
+
+
+def _copy(x):
+    """``x`` with every array copied (a caller changing its array in place must not change the kept inputs)."""
+    if isinstance(x, (tuple, list)):
+        return type(x)(_copy(v) for v in x)
+    if isinstance(x, np.ndarray):
+        return x.copy()
+    return x
+
+
+def _same(a, b) -> bool:
+    """Exact equality of nested inputs: arrays by dtype, shape and bytes, other values by type and ``==``
+    (floats by their bits)."""
+    if isinstance(a, (tuple, list)):
+        return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, np.ndarray):
+        return (isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape
+                and np.ascontiguousarray(a).tobytes() == np.ascontiguousarray(b).tobytes())
+    if isinstance(a, float) or isinstance(b, float):
+        return type(a) is type(b) and np.float64(a).tobytes() == np.float64(b).tobytes()
+    return type(a) is type(b) and a == b
