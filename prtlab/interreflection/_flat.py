@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import trimesh
 from scipy.special import eval_legendre
@@ -56,24 +57,34 @@ class FlatOccluder:
         boundary = edges[trimesh.grouping.group_rows(edges, require_count=1)]  # edges of one face
         flat = (v - self.centre) @ self.axes.T
         self.a, self.b = flat[boundary[:, 0]], flat[boundary[:, 1]]
-        self.radius = float(np.linalg.norm(flat, axis=1).max()) if len(flat) else 0.0
+        self.lo, self.hi = flat.min(axis=0), flat.max(axis=0)
+        self.radius = float(np.linalg.norm(flat, axis=1).max())  # (for the in-plane tolerance)
 
-    def near(self, points, transform) -> tuple[np.ndarray, np.ndarray]:
+    def near(self, points, transform, method: str = "numba") -> tuple[np.ndarray, np.ndarray]:
         """``(rows, axes)``: the world ``points`` where the occluder, placed by ``transform``, takes its half-space
         (``|h| < NEAR_RATIO d``, inside its footprint) and each one's visible side (world unit vectors; within a
         rounding of the plane, ``1e-9`` of its size, the side its normals face)."""
         rot, scale = np.asarray(transform.rotation, dtype=np.float64), float(transform.scale)
         local = (np.asarray(points, dtype=np.float64) - np.asarray(transform.translate, dtype=np.float64)) @ rot / scale
         h = (local - self.centre) @ self.normal
-        rows = np.flatnonzero(np.abs(h) < NEAR_RATIO * self.radius)  # d <= radius
-        if len(rows) and len(self.a):
-            p = (local[rows] - self.centre) @ self.axes.T
-            keep = self._inside(p) & (np.abs(h[rows]) < NEAR_RATIO * self._boundary_distance(p))
-            rows = rows[keep]
-        else:
-            rows = rows[:0]
+        p = (local - self.centre) @ self.axes.T
+        # inside the footprint, d is at most the distance to its bounding box's sides: a first cut
+        box = np.minimum(p - self.lo, self.hi - p).min(axis=1)
+        rows = np.flatnonzero(np.abs(h) < NEAR_RATIO * box)
+        if len(rows):
+            rows = rows[self.taken(p[rows], h[rows], method)]
         side = np.where(h[rows, None] >= -1e-9 * self.radius, self.normal, -self.normal)  # in the plane: in front
         return rows, side @ rot.T
+
+    def taken(self, p, h, method: str = "numba") -> np.ndarray:
+        """(P,) bool: the points at footprint coordinates ``p`` (P, 2) and heights ``h`` (P,) inside the footprint
+        with ``|h| < NEAR_RATIO d``. ``method``: a serial kernel (``"numba"``) or numpy (``"reference"``)."""
+        if method == "reference":
+            return self._inside(p) & (np.abs(h) < NEAR_RATIO * self._boundary_distance(p))
+        out = np.empty(len(p), dtype=np.bool_)
+        _taken_kernel(np.ascontiguousarray(p, dtype=np.float64), np.ascontiguousarray(h, dtype=np.float64),
+                      self.a, self.b, NEAR_RATIO, out)
+        return out
 
     def _boundary_distance(self, p) -> np.ndarray:
         ab = self.b - self.a
@@ -103,3 +114,22 @@ def halfspace_visibility(axes, order: int, log_floor: float | None = None) -> np
         log = sh.log((1.0 - log_floor) * up + log_floor * one, channels=False, tol=1e-6, degree=8 * order - 1)
         zh = log[[sh.index(band, 0) for band in range(order)]]  # about z: c_l0 = z_l
     return sh.zh_rotate(zh, np.asarray(axes, dtype=np.float64).reshape(-1, 3))
+
+
+@numba.njit(cache=True, nogil=True)
+def _taken_kernel(p, h, a, b, ratio, out):
+    """:meth:`FlatOccluder.taken` point by point: the even-odd crossings and the nearest boundary edge."""
+    for i in range(len(p)):
+        px, py = p[i, 0], p[i, 1]
+        crossings = 0
+        best = np.inf
+        for e in range(len(a)):
+            ax, ay, bx, by = a[e, 0], a[e, 1], b[e, 0], b[e, 1]
+            if (ay > py) != (by > py) and px < ax + (py - ay) * (bx - ax) / (by - ay):
+                crossings += 1
+            dx, dy = bx - ax, by - ay
+            t = ((px - ax) * dx + (py - ay) * dy) / max(dx * dx + dy * dy, 1e-300)
+            t = min(max(t, 0.0), 1.0)
+            gx, gy = px - (ax + t * dx), py - (ay + t * dy)
+            best = min(best, gx * gx + gy * gy)
+        out[i] = crossings % 2 == 1 and abs(h[i]) < ratio * np.sqrt(best)

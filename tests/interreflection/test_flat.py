@@ -15,6 +15,8 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from prtlab import sh
 from prtlab.geometry import builtin_mesh
@@ -166,3 +168,20 @@ def test_a_face_standing_on_the_floor_gets_the_order_n_light_of_the_halfspace(bo
     np.testing.assert_allclose(result.direct["box"][rows], want, rtol=1e-9)
     field = _with(box_on_floor, flat_visibility="field").shade(state, bounces=0).direct["box"][rows]
     assert field.sum() < 0.8 * want.sum()  # the field, interpolated across the plane, hides more
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), ring=st.booleans())
+def test_the_kernel_takes_the_points_the_reference_tier_takes(seed, ring):
+    """:meth:`FlatOccluder.taken`'s kernel against its numpy tier: random points over and around a plane (with a
+    hole or not), heights from 0 to beyond the band, some on the grid's lines and vertices."""
+    mesh = _ring() if ring else builtin_mesh("plane", size=[4.0, 4.0], resolution=[3, 3])
+    flat = FlatOccluder(mesh.vertices, mesh.faces, np.tile([0.0, 1.0, 0.0], (len(mesh.vertices), 1)))
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-2.5, 2.5, (400, 2))
+    p[::7] = np.round(p[::7] * 3 / 4) * 4 / 3  # on the grid's vertices and lines
+    h = rng.choice([0.0, 1e-9, 1e-4, 1e-2, 0.1]) * rng.uniform(-1.0, 1.0, 400)
+    h[:50] = 0.0  # in the plane: taken wherever inside and off the boundary
+    got = flat.taken(p, h)
+    np.testing.assert_array_equal(got, flat.taken(p, h, method="reference"))
+    assert np.any(got[:50])
