@@ -17,7 +17,16 @@ Rules every module here follows:
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
+
+
+def on_the_floor(scene, name: str, height: float = 0.01) -> np.ndarray:
+    """(V,) bool: the vertices of object ``name`` that rest on the floor (``y < height``) with their normal into it:
+    the bottom of an object standing on the floor, which has no meaningful radiance (``docs/DECISIONS.md``). Whole-scene
+    tests leave out these and no others."""
+    obj = scene.object(name)
+    return (obj.world_vertices()[:, 1] < height) & (obj.world_normals()[:, 1] < -0.5)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -47,6 +47,7 @@ from prtlab.interreflection import Interreflection
 from prtlab.pipeline import FrameState
 from prtlab.scene import AreaLight, Scene, Transform
 from tests.conftest import MC_SIGMAS
+from tests.fidelity.conftest import on_the_floor
 
 pytestmark = [pytest.mark.mitsuba, pytest.mark.xdist_group("fidelity-interreflection")]
 
@@ -145,13 +146,6 @@ def _shades(scene: Scene, cases: dict, moved_scene: Scene, name: str):
 def shaded(reference):
     """``shaded(case)``: the case's shade at pose B, computed once per module."""
     return _shades(reference[0], CASES, fig9_scene(POSE_A), "bunny")
-
-
-def on_the_floor(scene: Scene, name: str) -> np.ndarray:
-    """(V,) bool: the vertices of object ``name`` that rest on the floor (``y < 0.01``) with their normal into it:
-    the bottom of an object standing on the floor, which has no meaningful radiance (``docs/DECISIONS.md``)."""
-    obj = scene.object(name)
-    return (obj.world_vertices()[:, 1] < 0.01) & (obj.world_normals()[:, 1] < -0.5)
 
 
 def scored_vertices(scene: Scene) -> dict:
