@@ -79,6 +79,33 @@ def _precomputed(quick: bool):
     return _PRE[quick]
 
 
+#: The paper's form of a frame, at run time on the same precomputation: basis radiance interpolated everywhere
+#: (``near_field=0``), the SH direct light with area lights from their source radiance fields, no residual
+#: gather, the flat occluders' fields as stored. The peer of every frame case: its ratio is what the accuracy
+#: defaults cost (their accuracy: ``docs/FIDELITY.md``, the ``moved_paper`` and "paper's method" rows).
+PAPER_FORM = {"near_field": 0.0, "shadows": "sh", "area_lights": "field", "residual_rays": 0,
+              "flat_visibility": "field"}
+PAPER_FORM_LABEL = "the paper's form (" + ", ".join(f"{k}={v!r}" for k, v in PAPER_FORM.items()) + ")"
+
+
+def _paper_form(pre):
+    """``pre``'s precomputation shaded in the paper's form (:data:`PAPER_FORM`), with its own frame caches."""
+    import dataclasses
+
+    from prtlab.interreflection import Interreflection
+
+    return Interreflection(pre.scene, dataclasses.replace(pre.options, **PAPER_FORM), pre.data)
+
+
+def _both(*setups):
+    """One ``setup`` that calls each of ``setups`` (ours and the peer's next frame)."""
+    def setup():
+        for s in setups:
+            s()
+
+    return setup
+
+
 def _vertices(pre) -> int:
     return sum(o.n_vertices for o in pre.objects)
 
@@ -280,8 +307,9 @@ def _stored_bytes(pre) -> int:
 def _relight_case(quick: bool, env_only: bool) -> dict:
     pre = _precomputed(quick)
     setup, run, info = _relight(pre, env_only)
-    return {"run": run, "setup": setup, "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
-            "items": _vertices(pre), "peer": None, "info": info,
+    setup_paper, run_paper, _ = _relight(_paper_form(pre), env_only)
+    return {"run": run, "setup": _both(setup, setup_paper), "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
+            "items": _vertices(pre), "peer": (PAPER_FORM_LABEL, run_paper), "info": info,
             "floor": floor(*frame_floor(pre, 3, 1 if env_only else 2), FRAME_FORMULA),
             "stored_bytes": _stored_bytes(pre)}
 
@@ -329,66 +357,43 @@ def _moving(pre):
 def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
     source's surface by ray casting, ``near_field``), the others reused, then 3 bounces. Every frame is a new
-    pose."""
-    setup, run, gflop, info, work = _moving(_precomputed(quick))
-    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(_precomputed(quick)), "peer": None,
-            "info": info, "floor": work, "stored_bytes": _stored_bytes(_precomputed(quick))}
-
-
-@case("interreflection.frame.move_one.paper")
-def move_frame_paper(quick: bool) -> dict:
-    """As ``frame.move_one`` with ``near_field=0`` (every basis radiance interpolated, as the paper)."""
-    import dataclasses
-
-    from prtlab.interreflection import Interreflection
-
-    base = _precomputed(quick)
-    pre = Interreflection(base.scene, dataclasses.replace(base.options, near_field=0.0), base.data)
+    pose; peer: the same frames in the paper's form (:data:`PAPER_FORM`)."""
+    pre = _precomputed(quick)
     setup, run, gflop, info, work = _moving(pre)
-    return {"run": run, "setup": setup, "gflop": gflop, "items": _vertices(pre), "peer": None, "info": info,
-            "floor": work, "stored_bytes": _stored_bytes(pre)}
+    setup_paper, run_paper, *_ = _moving(_paper_form(pre))
+    return {"run": run, "setup": _both(setup, setup_paper), "gflop": gflop, "items": _vertices(pre),
+            "peer": (PAPER_FORM_LABEL, run_paper), "info": info, "floor": work, "stored_bytes": _stored_bytes(pre)}
 
 
 @case("interreflection.frame.move_light")
 def move_light_frame(quick: bool) -> dict:
     """The area light moves (poses do not) at the defaults: its direct light by shadow rays at every vertex
-    (``shadows="rays"``), then 3 bounces; peer: the paper's SH direct light with the light's source radiance
-    field (``shadows="sh", area_lights="field"``, its fastest form). Each frame a new light position and a
-    new ``FrameState``."""
-    import dataclasses
-
-    from prtlab.interreflection import Interreflection
-
+    (``shadows="rays"``), then 3 bounces; peer: the same frames in the paper's form (:data:`PAPER_FORM`: the SH
+    direct light with the light's source radiance field). Each frame a new light position and a new
+    ``FrameState``."""
     base = _precomputed(quick)
-    frames = {}
 
-    def mover(name, **options):
-        pre = Interreflection(base.scene, dataclasses.replace(base.options, **options), base.data)
+    def mover(pre):
         light = base.scene.lights[1]
         centres = iter([light.center + [dx, 0.0, 0.0] for dx in np.linspace(0.0, 0.5, 10_000)])
+        frame = {}
 
         def setup():
             state = FrameState.from_scene(pre.scene)
             state.lights[1] = type(light)(center=next(centres), u=light.u, v=light.v, radiance=light.radiance)
-            frames[name] = state
+            frame["state"] = state
 
         def run():
-            return pre.shade(frames[name], bounces=3)
+            return pre.shade(frame["state"], bounces=3)
 
-        return setup, run, pre
+        return setup, run
 
-    setup_rays, run_rays, pre_rays = mover("rays")
-    setup_sh, run_sh, _ = mover("sh", shadows="sh", area_lights="field")
-
-    def setup():
-        setup_rays()
-        setup_sh()
-
-    setup_rays()
-    run_rays()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
-    return {"run": run_rays, "setup": setup, "gflop": None, "items": _vertices(base),
-            "peer": ("shadows='sh', area_lights='field'", run_sh),
-            "floor": floor(*frame_floor(pre_rays, 3, 2), FRAME_FORMULA),
+    setup, run = mover(base)
+    setup_paper, run_paper = mover(_paper_form(base))
+    setup()
+    run()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
+    return {"run": run, "setup": _both(setup, setup_paper), "gflop": None, "items": _vertices(base),
+            "peer": (PAPER_FORM_LABEL, run_paper), "floor": floor(*frame_floor(base, 3, 2), FRAME_FORMULA),
             "stored_bytes": _stored_bytes(base)}
 
 
