@@ -79,22 +79,21 @@ def _precomputed(quick: bool):
     return _PRE[quick]
 
 
-#: The paper's form of a frame, at run time on the same precomputation: basis radiance interpolated everywhere
-#: (``near_field=0``), the SH direct light with area lights from their source radiance fields, no residual
-#: gather, the flat occluders' fields as stored. The peer of every frame case: its ratio is what the accuracy
-#: defaults cost (their accuracy: ``docs/FIDELITY.md``, the ``moved_paper`` and "paper's method" rows).
-PAPER_FORM = {"near_field": 0.0, "shadows": "sh", "area_lights": "field", "residual_rays": 0,
-              "flat_visibility": "field"}
-PAPER_FORM_LABEL = "the paper's form (" + ", ".join(f"{k}={v!r}" for k, v in PAPER_FORM.items()) + ")"
+#: The peer of every frame case: the same frames shaded by the paper's method (``PAPER_OPTIONS``: no self
+#: interreflection, basis radiance interpolated everywhere, the SH direct light with the area light's source
+#: radiance field, no residual gather, the flat occluders' fields), on a precomputation of its own. Its ratio is
+#: what the accuracy defaults cost; what they buy is in ``docs/FIDELITY.md`` (the rows of the paper's method).
+PAPER_LABEL = "the paper's method (prtlab.interreflection.PAPER_OPTIONS)"
 
 
-def _paper_form(pre):
-    """``pre``'s precomputation shaded in the paper's form (:data:`PAPER_FORM`), with its own frame caches."""
-    import dataclasses
+def _paper_form(quick: bool):
+    """The scene precomputed and shaded with ``PAPER_OPTIONS`` (cached like ``_precomputed``)."""
+    from prtlab.interreflection import PAPER_OPTIONS, Interreflection
 
-    from prtlab.interreflection import Interreflection
-
-    return Interreflection(pre.scene, dataclasses.replace(pre.options, **PAPER_FORM), pre.data)
+    if ("paper", quick) not in _PRE:
+        _PRE["paper", quick] = Interreflection.precompute(_scene(quick), {**_options(quick), **PAPER_OPTIONS},
+                                                          progress=False)
+    return _PRE["paper", quick]
 
 
 def _both(*setups):
@@ -307,9 +306,9 @@ def _stored_bytes(pre) -> int:
 def _relight_case(quick: bool, env_only: bool) -> dict:
     pre = _precomputed(quick)
     setup, run, info = _relight(pre, env_only)
-    setup_paper, run_paper, _ = _relight(_paper_form(pre), env_only)
+    setup_paper, run_paper, _ = _relight(_paper_form(quick), env_only)
     return {"run": run, "setup": _both(setup, setup_paper), "gflop": _direct_gflop(pre) + _bounce_gflop(pre, 3),
-            "items": _vertices(pre), "peer": (PAPER_FORM_LABEL, run_paper), "info": info,
+            "items": _vertices(pre), "peer": (PAPER_LABEL, run_paper), "info": info,
             "floor": floor(*frame_floor(pre, 3, 1 if env_only else 2), FRAME_FORMULA),
             "stored_bytes": _stored_bytes(pre)}
 
@@ -357,18 +356,18 @@ def _moving(pre):
 def move_frame(quick: bool) -> dict:
     """One object moves: the pairs it touches are recomputed (visibility, transfer, Eq. 13; receivers near a
     source's surface by ray casting, ``near_field``), the others reused, then 3 bounces. Every frame is a new
-    pose; peer: the same frames in the paper's form (:data:`PAPER_FORM`)."""
+    pose; peer: the same frames by the paper's method (:data:`PAPER_LABEL`)."""
     pre = _precomputed(quick)
     setup, run, gflop, info, work = _moving(pre)
-    setup_paper, run_paper, *_ = _moving(_paper_form(pre))
+    setup_paper, run_paper, *_ = _moving(_paper_form(quick))
     return {"run": run, "setup": _both(setup, setup_paper), "gflop": gflop, "items": _vertices(pre),
-            "peer": (PAPER_FORM_LABEL, run_paper), "info": info, "floor": work, "stored_bytes": _stored_bytes(pre)}
+            "peer": (PAPER_LABEL, run_paper), "info": info, "floor": work, "stored_bytes": _stored_bytes(pre)}
 
 
 @case("interreflection.frame.move_light")
 def move_light_frame(quick: bool) -> dict:
     """The area light moves (poses do not) at the defaults: its direct light by shadow rays at every vertex
-    (``shadows="rays"``), then 3 bounces; peer: the same frames in the paper's form (:data:`PAPER_FORM`: the SH
+    (``shadows="rays"``), then 3 bounces; peer: the same frames by the paper's method (:data:`PAPER_LABEL`: the SH
     direct light with the light's source radiance field). Each frame a new light position and a new
     ``FrameState``."""
     base = _precomputed(quick)
@@ -389,11 +388,11 @@ def move_light_frame(quick: bool) -> dict:
         return setup, run
 
     setup, run = mover(base)
-    setup_paper, run_paper = mover(_paper_form(base))
+    setup_paper, run_paper = mover(_paper_form(quick))
     setup()
     run()  # the pairs at the scene's poses and the stacked irradiance: computed once, then reused
     return {"run": run, "setup": _both(setup, setup_paper), "gflop": None, "items": _vertices(base),
-            "peer": (PAPER_FORM_LABEL, run_paper), "floor": floor(*frame_floor(base, 3, 2), FRAME_FORMULA),
+            "peer": (PAPER_LABEL, run_paper), "floor": floor(*frame_floor(base, 3, 2), FRAME_FORMULA),
             "stored_bytes": _stored_bytes(base)}
 
 

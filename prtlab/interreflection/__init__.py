@@ -23,7 +23,7 @@ from ._haar_passes import (
     near_basis_irradiance,
     texel_basis_irradiance,
 )
-from ._pipeline import Interreflection, InterreflectionOptions, precompute, shade_scene
+from ._pipeline import PAPER_OPTIONS, Interreflection, InterreflectionOptions, precompute, shade_scene
 
 __all__ = [
     # precomputation (Sec. 4.3)
@@ -49,6 +49,7 @@ __all__ = [
     # the pipeline
     "Interreflection",
     "InterreflectionOptions",
+    "PAPER_OPTIONS",
     "precompute",
     "shade_scene",
 ]

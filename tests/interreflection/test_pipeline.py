@@ -17,6 +17,7 @@ fidelity tier repeats the whole scene with 16,384 paths, ``tests/fidelity/test_i
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -25,10 +26,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import prtlab
-from prtlab.interreflection import Interreflection, InterreflectionOptions, shade_scene
+from prtlab.interreflection import PAPER_OPTIONS, Interreflection, InterreflectionOptions, shade_scene
 from prtlab.pipeline import FrameState
 from prtlab.reference import path_trace
-from prtlab.scene import PointLight, Transform
+from prtlab.scene import AreaLight, PointLight, Transform
 from tests.conftest import MC_SIGMAS, two_numba_threads
 from tests.scenes import ball_over_floor
 
@@ -409,8 +410,6 @@ def test_api_entry_point(pre, cache_root, monkeypatch):
 
 
 def test_errors(pre):
-    import dataclasses
-
     with pytest.raises(ValueError, match="option order must be an int >= 1"):
         InterreflectionOptions(order=0)
     with pytest.raises(ValueError, match="option threshold must be"):
@@ -427,6 +426,27 @@ def test_errors(pre):
     with pytest.raises(ValueError, match="option cube_resolution must be a power of two"):
         InterreflectionOptions(cube_resolution=12)
 
+
+def test_the_papers_options_turn_every_extension_off(pre, cache_root):
+    """``PAPER_OPTIONS`` are options of the pipeline, and a frame with the ball moved and an area light shaded with
+    them casts no ray (no residual gather, no shadow rays, no near-field rays: the basis radiance interpolated
+    everywhere). Each of ``near_field=0.5``, ``residual_rays=64`` and ``shadows="rays"`` added casts rays here."""
+    from prtlab.cache import Cache
+
+    assert set(PAPER_OPTIONS) <= {f.name for f in dataclasses.fields(InterreflectionOptions)}
+    paper = Interreflection.precompute(pre.scene, {**QUICK, **PAPER_OPTIONS}, cache=Cache(cache_root, progress=False),
+                                       progress=False)
+    assert all(getattr(paper.options, k) == v for k, v in PAPER_OPTIONS.items())
+    state = FrameState.from_scene(paper.scene)
+    state.transforms["ball"] = Transform(translate=paper.scene.object("ball").transform.translate + [0.05, 0.0, 0.0])
+    state.lights = [*state.lights, AreaLight(center=np.array([0.0, 2.0, 0.0]), u=np.array([0.3, 0.0, 0.0]),
+                                             v=np.array([0.0, 0.0, 0.3]), radiance=np.full(3, 5.0))]
+    res = paper.shade(state, bounces=2)
+    assert res.info["computed_pairs"] > 0
+    assert {k: res.info[k] for k in ("residual_rays_cast", "direct_rays_cast", "residual_near_rays_cast")} == \
+        {"residual_rays_cast": 0, "direct_rays_cast": 0, "residual_near_rays_cast": 0}
+    assert not paper.reuse.near_field
+    assert all(np.all(np.isfinite(v)) and np.all(v >= 0) for v in res.total.values())
 
 def test_module_level_precompute(pre, cache_root):
     from prtlab.cache import Cache
