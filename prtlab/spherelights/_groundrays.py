@@ -518,7 +518,8 @@ class _CastFrame(NamedTuple):
     """Where the rays of a :class:`GroundHits` were cast from (``points (C, 3)``, the rays' frame) and what they
     were cast against: the bounding spheres ``bounds``, the opaque ``spheres``, each mesh's ``mesh_balls`` and its
     number of faces ``n_faces`` (:class:`MeshBlockers`), the origins' offset ``epsilon``; ``closest``: closest hits
-    (:func:`ground_light_hits`) or blocked rays (:func:`ground_direct_hits`)."""
+    (:func:`ground_light_hits`) or blocked rays (:func:`ground_direct_hits`); ``flat``: None, or the chunks' hit
+    lists as one (``ptr (C + 1,)``, ``ray_k``, ``face``, ``u``, ``v``; the chunks are views of them)."""
 
     points: np.ndarray
     bounds: np.ndarray
@@ -527,6 +528,7 @@ class _CastFrame(NamedTuple):
     n_faces: np.ndarray
     epsilon: float
     closest: bool
+    flat: tuple | None = None
 
 
 def _cast_frame(cast, blockers: MeshBlockers, closest: bool) -> _CastFrame | None:
@@ -838,14 +840,20 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
     new_count = np.zeros(len(cast), dtype=np.int64)
     new_count[todo] = np.diff(sub_ptr)
     np.cumsum(new_count, out=new_ptr[1:])
-    old_ptr = np.concatenate([[0], np.cumsum(np.concatenate([np.diff(c.ptr) for c in kept.chunks] or [[]]))])
-    old_ptr = old_ptr.astype(np.int64)
+    if frame.flat is not None:  # the hit lists of every cast point, as the last update left them
+        old_ptr, old_k, old_face, old_u, old_v = frame.flat
+    else:
+        old_ptr = np.zeros(len(frame.points) + 1, dtype=np.int64)
+        np.cumsum(np.concatenate([np.diff(c.ptr) for c in kept.chunks] or [np.zeros(0, dtype=np.int64)]),
+                  out=old_ptr[1:])
 
-    def flat(name, dtype):
-        parts = [getattr(c, name) for c in kept.chunks]
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+        def flat(name, dtype):
+            parts = [getattr(c, name) for c in kept.chunks]
+            return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
 
-    old_k = flat("ray_k", new_k.dtype)
+        old_k = flat("ray_k", new_k.dtype)
+        old_face, old_u, old_v = ((flat("face", new_face.dtype), flat("u", np.float64), flat("v", np.float64))
+                                  if closest else (None, None, None))
     count = np.empty(len(cast), dtype=np.int64)
     _merge_counts(match, old_ptr, old_k, zone, new_ptr, count)
     out_ptr = np.zeros(len(cast) + 1, dtype=np.int64)
@@ -854,9 +862,8 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
     out_k = np.empty(total, dtype=new_k.dtype)
     if closest:
         out_face, out_u, out_v = np.empty(total, dtype=new_face.dtype), np.empty(total), np.empty(total)
-        _merge_hits(match, old_ptr, old_k, flat("face", new_face.dtype), flat("u", np.float64),
-                    flat("v", np.float64), zone, new_ptr, new_k, new_face, new_u, new_v, out_ptr, out_k, out_face,
-                    out_u, out_v)
+        _merge_hits(match, old_ptr, old_k, old_face, old_u, old_v, zone, new_ptr, new_k, new_face, new_u, new_v,
+                    out_ptr, out_k, out_face, out_u, out_v)
     else:
         empty_i, empty_f = np.zeros(0, dtype=np.int64), np.zeros(0)
         _merge_hits(match, old_ptr, old_k, empty_i, empty_f, empty_f, zone, new_ptr, new_k, empty_i, empty_f, empty_f,
@@ -870,8 +877,10 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
         chunks.append(_ChunkHits(s, e, out_ptr[s:e + 1] - a, out_k[a:b], out_face[a:b] if closest else None,
                                  out_u[a:b] if closest else None, out_v[a:b] if closest else None, sphere_blocked))
     interpolate = len(cast) < len(p)
+    frame = _cast_frame(cast, blockers, closest)._replace(
+        flat=(out_ptr, out_k, out_face, out_u, out_v) if closest else (out_ptr, out_k, None, None, None))
     result = GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
-                        _cast_frame(cast, blockers, closest))
+                        frame)
     return result, {"points": len(cast), "points_cast": len(todo), "rays_cast": len(ip),
                     "hits_kept": total - int(new_ptr[-1])}
 
