@@ -8,7 +8,8 @@ Cases: a whole frame (first pass + second pass) with per-object and per-sphere b
 per-object frame with the ground's terms (issue 16), the frame of the pipeline's default options with the ground
 (``per_object_ground_near``: the ground's rays against meshes through the objects' receivers, near blockers,
 emission order 6; every ray cast each frame, as when the geometry changes), the same frame when only the environment
-changes (``per_object_ground_near_relit``: the geometry-only results reused), a frame of a real scene with the
+changes (``per_object_ground_near_relit``: the geometry-only results reused), the same frame when one object moves
+(``per_object_ground_near_move_one``: the ground's rays that cannot meet it kept), a frame of a real scene with the
 objects' direct light against the meshes (``mesh_blockers``), and the precomputation of a real scene
 (``data/scenes/bunny_spheres_env.yaml``, 16 lights on the bunny) with its precomputed memory per object in ``info``
 (the paper: 32-150 KB per object).
@@ -309,7 +310,7 @@ def _mesh_direct_parts(a, meshes) -> list:
 
 def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_shading: str = "rays",
                    mesh_parts=None, ground_ray_spacing: float = SphereLightOptions().ground_ray_spacing,
-                   emission_coverage: bool = SphereLightOptions().emission_coverage, reuse=None):
+                   emission_coverage: bool = SphereLightOptions().emission_coverage, reuse=None, moved=None):
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
@@ -326,17 +327,20 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
     visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
     (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
-    cast); the objects' occluders are ``mesh_parts``', fixed here."""
+    cast); the objects' occluders are ``mesh_parts``'. ``moved``: ``(object, translation (3,))``, that object (its
+    lights, receivers, surface samples, mesh and occluder) translated (:func:`_translated`)."""
     from prtlab.spherelights._ground import ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers)
-    from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible
+    from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
     from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
                                                near_blocker_visibility)
-    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS
-    from prtlab.spherelights._reuse import FrameReuse
+    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse
+    from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
+    if moved is not None:
+        a, meshes, mesh_parts = _translated(a, meshes, mesh_parts, *moved)
     c, r, obj, env = a["centres"], a["radii"], a["sl_object"], a["env"]
     counts = np.bincount(obj)
     albedo = 0.7 / np.pi
@@ -384,8 +388,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                           sample_weight=weight)
     own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
     if rays:
-        hits = reuse.get(("texel_rays", "ground"), (inputs, texels, ground_ray_spacing),
-                         lambda: ground_direct_hits(texels, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing))
+        key = (inputs, texels, ground_ray_spacing)
+        hits = reuse.get(("texel_rays", "ground"), key,
+                         lambda: ground_direct_hits(texels, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing),
+                         ground_hits_reuse(key, blockers, texels, _TEXEL_RAYS, ground_ray_spacing))
         e = ground_direct_sums(hits, env, blockers)
     else:
         e = _ground_direct(a, texels, up)
@@ -401,8 +407,19 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
         exact = mesh_parts is not None and own >= 0
         if exact:
             bits, occluders = mesh_parts[own]
-            visible = reuse.get(("mesh_direct", own), (p, n, bits, rect),
-                                lambda: mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect))
+            key = (p, n, bits, rect, [o.translate for o in occluders])
+
+            def update(kept_key, kept, key=key, p=p, n=n, bits=bits, occluders=occluders):  # as SphereLights'
+                if not same_inputs(kept_key[:4], key[:4]) or len(kept_key[4]) != len(key[4]):
+                    return None
+                moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
+                visible, counts = mesh_direct_visible_update(kept[0], kept[1], p, n, np.eye(3), bits, occluders, moved,
+                                                             rect)
+                return (visible, occluders), counts
+
+            visible, _ = reuse.get(("mesh_direct", own), key,
+                                   lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders),
+                                   update)
             direct = mesh_direct_sums(visible, n, env, np.eye(3))
         else:
             near(p, n, direct, own)
@@ -419,11 +436,36 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     if rays:
         rows = a["recv_object"] == -1
         pts = a["points"][rows]
-        hits = reuse.get(("ground_rays", "ground"), (inputs, pts, ground_ray_spacing),
-                         lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=ground_ray_spacing))
+        key = (inputs, pts, ground_ray_spacing)
+        hits = reuse.get(("ground_rays", "ground"), key,
+                         lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=ground_ray_spacing),
+                         ground_hits_reuse(key, blockers, pts, _GROUND_RAYS, ground_ray_spacing))
         direct, indirect = ground_light_sums(hits, env, blockers, radiance)
         out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
     return out
+
+
+def _translated(a, meshes, mesh_parts, own: int, shift):
+    """``a``, ``meshes`` and ``mesh_parts`` with object ``own`` translated by ``shift``: its lights, its receivers,
+    its lights' surface samples, its mesh and its occluder in the other objects' parts (its own-mesh bits are
+    object-space: unchanged)."""
+    shift = np.asarray(shift, dtype=np.float64)
+    mine = a["sl_object"] == own
+    rows = a["recv_object"] == own
+    centres, points, spts = a["centres"].copy(), a["points"].copy(), a["spts"].copy()
+    centres[mine] += shift
+    points[rows] += shift
+    spts[mine] += shift
+    a = {**a, "centres": centres, "points": points, "spts": spts}
+    meshes = [(v + shift, f) if g == own else (v, f) for g, (v, f) in enumerate(meshes)]
+    if mesh_parts is not None:
+        def move(o):
+            return o._replace(translate=o.translate + shift, bounds=o.bounds + np.append(shift, 0.0),
+                              inner=o.inner + np.append(shift, 0.0))
+
+        mesh_parts = [(bits, [move(o) if (k if k < g else k + 1) == own else o for k, o in enumerate(occluders)])
+                      for g, (bits, occluders) in enumerate(mesh_parts)]
+    return a, meshes, mesh_parts
 
 
 @case("spherelights.frame.per_object_ground_near.21k")
@@ -476,6 +518,43 @@ def frame_per_object_ground_near_relit(quick: bool) -> dict:
             "gflop": _frame_flops(a, "object", True), "items": _n(quick),
             "peer": ("every ray cast (nothing reused)",
                      lambda: _default_frame(relit(), texels, up, rect, meshes, mesh_parts=parts)),
+            "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
+
+
+#: The object of ``per_object_ground_near_move_one`` (a ball beside the squirrel, setting none of the meshes' bounding
+#: box's extremes, so the rays' offset stays the same) and its translations: ``x`` by ``0.05 sin(0.7 n)`` at frame n.
+MOVING_OBJECT = 2
+
+
+def moving_translation(frame: int) -> np.ndarray:
+    return np.array([0.05 * np.sin(0.7 * frame), 0.0, 0.0])
+
+
+@case("spherelights.frame.per_object_ground_near_move_one.21k")
+def frame_per_object_ground_near_move_one(quick: bool) -> dict:
+    """The frame of ``per_object_ground_near`` when one object moves: a ball (:data:`MOVING_OBJECT`) translated each
+    frame to a place it has not had before (:func:`moving_translation`), through one kept ``FrameReuse`` as
+    ``SphereLights`` keeps it: the ground's and the texels' rays that cannot meet the ball in either place are kept
+    (``_groundrays.ground_hits_update``), the rest (the objects' visible rays, ``ground_light``'s samples, the near
+    blockers' caps: their inputs all changed) computed; peer: the same frames with nothing reused (every ray
+    cast)."""
+    from prtlab.spherelights._reuse import FrameReuse
+
+    a = _scene_arrays(_n(quick))
+    texels, up, _, rect = _ground_texels(a)
+    meshes = _object_meshes(a)
+    parts = _mesh_direct_parts(a, meshes)
+    reuse = FrameReuse()
+    frames = [0]
+
+    def moved():
+        frames[0] += 1
+        return MOVING_OBJECT, moving_translation(frames[0])
+
+    return {"run": lambda: _default_frame(a, texels, up, rect, meshes, mesh_parts=parts, reuse=reuse, moved=moved()),
+            "gflop": _frame_flops(a, "object", True), "items": _n(quick),
+            "peer": ("every ray cast (nothing reused)",
+                     lambda: _default_frame(a, texels, up, rect, meshes, mesh_parts=parts, moved=moved())),
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 

@@ -44,7 +44,7 @@ from prtlab._tasks import run_tasks
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
            "ground_gather_rays", "ground_light_rays", "GroundHits", "ground_direct_hits", "ground_direct_sums",
-           "ground_light_hits", "ground_light_sums", "contact_radiance",
+           "ground_light_hits", "ground_light_sums", "ground_hits_update", "contact_radiance",
            "candidate_rays", "sphere_hits", "ground_ray_nodes", "MAX_SPACING"]
 
 _UP = np.array([0.0, 1.0, 0.0])
@@ -88,7 +88,8 @@ class MeshBlockers(NamedTuple):
     :class:`prtlab.geometry.RayCaster`, object ``g``'s faces ``faces[g]``), their bounding spheres (``bounds``:
     ``(S, 4)`` centre and radius; a ray missing them all misses the meshes), opaque spheres (``spheres``: ``(L,
     4)``, the local lights) and the frame (``origin (3,)``, ``turn``: the world directions of its axes as columns,
-    a turn about ``+Y``; ``scale``)."""
+    a turn about ``+Y``; ``scale``); ``mesh_balls (G, 4)``: per mesh a ball around its vertices in the rays' frame
+    (what :func:`ground_hits_update` recasts near)."""
 
     caster: object
     faces: tuple
@@ -97,6 +98,7 @@ class MeshBlockers(NamedTuple):
     origin: np.ndarray
     turn: np.ndarray
     scale: float
+    mesh_balls: np.ndarray | None = None
 
 
 def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: float = 0.0,
@@ -123,7 +125,13 @@ def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: f
 
     meshes = [(local(v), np.asarray(f, dtype=np.int64)) for v, f in meshes]
     caster = RayCaster(meshes) if meshes else None
-    return MeshBlockers(caster, tuple(f for _, f in meshes), balls(bounds), balls(spheres), o, turn, scale)
+    mesh_balls = np.zeros((len(meshes), 4))
+    for g, (v, _) in enumerate(meshes):
+        if len(v):
+            mesh_balls[g, :3] = 0.5 * (v.min(axis=0) + v.max(axis=0))
+            mesh_balls[g, 3] = np.linalg.norm(v - mesh_balls[g, :3], axis=1).max()
+    return MeshBlockers(caster, tuple(f for _, f in meshes), balls(bounds), balls(spheres), o, turn, scale,
+                        mesh_balls)
 
 
 def _local_points(points, blockers: MeshBlockers) -> np.ndarray:
@@ -495,13 +503,46 @@ class GroundHits(NamedTuple):
 
     ``rule``: the rays' :class:`GroundRayRule`; ``n_points``: the points; ``rows, weights``: the interpolation of
     :func:`ground_ray_nodes` (None: every point cast); ``chunks``: per chunk of :data:`_CHUNK` cast points a
-    :class:`_ChunkHits`."""
+    :class:`_ChunkHits`; ``cast``: what :func:`ground_hits_update` needs to keep some of them (:class:`_CastFrame`).
+    """
 
     rule: GroundRayRule
     n_points: int
     rows: np.ndarray | None
     weights: np.ndarray | None
     chunks: tuple
+    cast: "_CastFrame | None" = None
+
+
+class _CastFrame(NamedTuple):
+    """Where the rays of a :class:`GroundHits` were cast from (``points (C, 3)``, the rays' frame) and what they
+    were cast against: the bounding spheres ``bounds``, the opaque ``spheres``, each mesh's ``mesh_balls`` and its
+    number of faces ``n_faces`` (:class:`MeshBlockers`), the origins' offset ``epsilon``; ``closest``: closest hits
+    (:func:`ground_light_hits`) or blocked rays (:func:`ground_direct_hits`); ``flat``: None, or the chunks' hit
+    lists as one (``ptr (C + 1,)``, ``ray_k``, ``face``, ``u``, ``v``; the chunks are views of them)."""
+
+    points: np.ndarray
+    bounds: np.ndarray
+    spheres: np.ndarray
+    mesh_balls: np.ndarray
+    n_faces: np.ndarray
+    epsilon: float
+    closest: bool
+    flat: tuple | None = None
+
+
+def _cast_frame(cast, blockers: MeshBlockers, closest: bool) -> _CastFrame | None:
+    """The :class:`_CastFrame` of a cast (None: blockers without ``mesh_balls``, not made by :func:`mesh_blockers`;
+    then nothing can be kept)."""
+    if blockers.mesh_balls is None:
+        return None
+    return _CastFrame(np.ascontiguousarray(cast, dtype=np.float64), blockers.bounds.copy(), blockers.spheres.copy(),
+                      np.asarray(blockers.mesh_balls, dtype=np.float64).copy(),
+                      np.array([len(f) for f in blockers.faces], dtype=np.int64), _epsilon(blockers), closest)
+
+
+def _epsilon(blockers: MeshBlockers) -> float:
+    return float(blockers.caster.epsilon) if blockers.caster is not None else 0.0
 
 
 class _ChunkHits(NamedTuple):
@@ -544,7 +585,8 @@ def ground_direct_hits(points, blockers: MeshBlockers, rule: GroundRayRule | Non
 
     run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
     interpolate = len(cast) < len(p)
-    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks))
+    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
+                      _cast_frame(cast, blockers, False))
 
 
 def ground_direct_sums(hits: GroundHits, env_sh, blockers: MeshBlockers) -> np.ndarray:
@@ -667,7 +709,8 @@ def ground_light_hits(points, blockers: MeshBlockers, rule: GroundRayRule | None
 
     run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
     interpolate = len(cast) < len(p)
-    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks))
+    return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
+                      _cast_frame(cast, blockers, True))
 
 
 def ground_light_sums(hits: GroundHits, env_sh, blockers: MeshBlockers, radiance):
@@ -711,6 +754,230 @@ def ground_light_sums(hits: GroundHits, env_sh, blockers: MeshBlockers, radiance
         return (None if direct is None else _interpolated(direct, hits.rows, hits.weights),
                 _interpolated(gathered, hits.rows, hits.weights))
     return direct, gathered
+
+
+#: The widening of the spheres near which :func:`ground_hits_update` casts again, relative to ``r + |c|`` (beside
+#: twice the origins' offset): the caster's float32 vertices may lie a rounding outside a float64 ball.
+_UPDATE_MARGIN = 1e-5
+
+
+def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, rule: GroundRayRule | None = None,
+                       *, method: str = "embree", spacing: float = 0.0):
+    """:func:`ground_light_hits` or :func:`ground_direct_hits` (as ``kept`` was made) of ``points`` against
+    ``blockers``, the rays that cannot have changed taken from ``kept``: ``(hits, counts)``, ``hits`` equal to a
+    fresh cast's, or None when ``kept`` cannot serve (no meshes; another rule, number of meshes or of their faces,
+    opaque spheres or rays' offset; blockers not made by :func:`mesh_blockers`: cast afresh).
+
+    ``moved (G,) bool``: the meshes whose vertices differ from ``kept``'s; the others, the points, the rays' frame
+    and ``spacing`` must be those of ``kept`` (the caller compares them). A ray from a point cast in both frames
+    (the same position, bit for bit) is kept when its direction lies outside the cones of the changed spheres: the
+    bounding spheres in one frame and not the other and the balls around the moved meshes in both, each widened by
+    :data:`_UPDATE_MARGIN` and twice the rays' offset. Outside them the ray's candidacy (the cone tests of the
+    unchanged bounding spheres) and what it meets (no moved face; the unchanged faces keep their stacked numbers,
+    the faces' counts being the same) are the same. The other candidate rays of those points and every ray of the
+    new points are cast; each point's hit rays are merged in ray order, so the sums see the same inputs in the same
+    order. ``counts``: ``{"points", "points_cast", "rays_cast", "hits_kept"}``."""
+    rule = rule or ground_ray_rule()
+    frame = kept.cast
+    dirs = np.ascontiguousarray(rule.dirs, dtype=np.float64)
+    n_faces = np.array([len(f) for f in blockers.faces], dtype=np.int64)
+    moved = np.asarray(moved, dtype=bool).reshape(-1)
+    if len(moved) != len(blockers.faces):
+        raise ValueError(f"moved must give one flag per mesh ({len(blockers.faces)}), got {len(moved)}")
+    if (frame is None or blockers.caster is None or blockers.mesh_balls is None
+            or not _same_array(kept.rule.dirs, rule.dirs)
+            or not _same_array(kept.rule.weights, rule.weights) or not _same_array(frame.n_faces, n_faces)
+            or not _same_array(frame.spheres, blockers.spheres) or frame.epsilon != _epsilon(blockers)):
+        return None
+    closest = frame.closest
+    p = _local_points(points, blockers)
+    cast, rows, weights = _cast_points(p, blockers, spacing)
+    cast = np.ascontiguousarray(cast)
+    match = _match_rows(cast, frame.points)
+    bounds = np.ascontiguousarray(blockers.bounds, dtype=np.float64).reshape(-1, 4)
+    changed = np.concatenate([frame.bounds[_match_rows(frame.bounds, bounds) < 0],
+                              bounds[_match_rows(bounds, frame.bounds) < 0], frame.mesh_balls[moved],
+                              np.asarray(blockers.mesh_balls, dtype=np.float64)[moved]])
+    changed[:, 3] += _UPDATE_MARGIN * (changed[:, 3] + np.linalg.norm(changed[:, :3], axis=1)) + 2.0 * frame.epsilon
+    n_azimuth = _rings(dirs)
+    zone = (_candidates(cast, dirs, np.ascontiguousarray(changed), n_azimuth) if len(changed)
+            else np.zeros((len(cast), len(dirs)), dtype=bool))
+    zone[match < 0] = True  # a new point: every ray
+    todo = np.nonzero(zone.any(axis=1))[0]
+    sub = np.ascontiguousarray(cast[todo])
+    cand = np.empty((len(todo), len(dirs)), dtype=np.bool_)
+    _candidates_within(sub, dirs, bounds, np.ascontiguousarray(zone[todo]), cand)
+    ptr = np.zeros(len(todo) + 1, dtype=np.int64)
+    np.cumsum(cand.sum(axis=1), out=ptr[1:])
+    ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
+    origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
+    _list_rays(sub, cand, dirs, ptr, frame.epsilon, ip, ik, origins, ray_dirs)
+    hit = np.zeros(len(ip), dtype=bool)
+    if closest:
+        if len(ip):
+            hits = blockers.caster.closest_hit(origins, ray_dirs, method=method)
+            hit = hits.hit
+        sub_ptr = np.zeros(len(todo) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(ip[hit], minlength=len(todo)), out=sub_ptr[1:])
+        n = int(sub_ptr[-1])
+        face_start = np.zeros(len(n_faces) + 1, dtype=np.int64)
+        face_start[1:] = np.cumsum(n_faces)
+        k_type = np.int16 if len(dirs) <= np.iinfo(np.int16).max else np.int64  # as ground_light_hits
+        f_type = np.int32 if face_start[-1] <= np.iinfo(np.int32).max else np.int64
+        new_k, new_face, new_u, new_v = np.empty(n, dtype=k_type), np.empty(n, dtype=f_type), np.empty(n), np.empty(n)
+        if n:
+            t_sphere = sphere_hits(sub, rule.dirs, blockers.spheres) if len(blockers.spheres) else np.zeros((0, 0))
+            _compact_hits(ptr, ik, hit, hits.object, hits.triangle, hits.barycentric, hits.normal, hits.distance, dirs,
+                          t_sphere, face_start, sub_ptr, new_k, new_face, new_u, new_v)
+    else:
+        if len(ip):
+            hit = blockers.caster.occluded(origins, ray_dirs, method=method)
+        sub_ptr = np.zeros(len(todo) + 1, dtype=np.int64)
+        np.cumsum(np.bincount(ip[hit], minlength=len(todo)), out=sub_ptr[1:])
+        new_k = ik[hit]
+        new_face = new_u = new_v = None
+    new_ptr = np.zeros(len(cast) + 1, dtype=np.int64)  # the cast hits' lists per point of ``cast``
+    new_count = np.zeros(len(cast), dtype=np.int64)
+    new_count[todo] = np.diff(sub_ptr)
+    np.cumsum(new_count, out=new_ptr[1:])
+    if frame.flat is not None:  # the hit lists of every cast point, as the last update left them
+        old_ptr, old_k, old_face, old_u, old_v = frame.flat
+    else:
+        old_ptr = np.zeros(len(frame.points) + 1, dtype=np.int64)
+        np.cumsum(np.concatenate([np.diff(c.ptr) for c in kept.chunks] or [np.zeros(0, dtype=np.int64)]),
+                  out=old_ptr[1:])
+
+        def flat(name, dtype):
+            parts = [getattr(c, name) for c in kept.chunks]
+            return np.concatenate(parts) if parts else np.zeros(0, dtype=dtype)
+
+        old_k = flat("ray_k", new_k.dtype)
+        old_face, old_u, old_v = ((flat("face", new_face.dtype), flat("u", np.float64), flat("v", np.float64))
+                                  if closest else (None, None, None))
+    count = np.empty(len(cast), dtype=np.int64)
+    _merge_counts(match, old_ptr, old_k, zone, new_ptr, count)
+    out_ptr = np.zeros(len(cast) + 1, dtype=np.int64)
+    np.cumsum(count, out=out_ptr[1:])
+    total = int(out_ptr[-1])
+    out_k = np.empty(total, dtype=new_k.dtype)
+    if closest:
+        out_face, out_u, out_v = np.empty(total, dtype=new_face.dtype), np.empty(total), np.empty(total)
+        _merge_hits(match, old_ptr, old_k, old_face, old_u, old_v, zone, new_ptr, new_k, new_face, new_u, new_v,
+                    out_ptr, out_k, out_face, out_u, out_v)
+    else:
+        empty_i, empty_f = np.zeros(0, dtype=np.int64), np.zeros(0)
+        _merge_hits(match, old_ptr, old_k, empty_i, empty_f, empty_f, zone, new_ptr, new_k, empty_i, empty_f, empty_f,
+                    out_ptr, out_k, empty_i, empty_f, empty_f)
+    chunks = []
+    for s in range(0, len(cast), _CHUNK):
+        e = min(s + _CHUNK, len(cast))
+        a, b = out_ptr[s], out_ptr[e]
+        sphere_blocked = (np.isfinite(sphere_hits(cast[s:e], rule.dirs, blockers.spheres)) if len(blockers.spheres)
+                          else None)
+        chunks.append(_ChunkHits(s, e, out_ptr[s:e + 1] - a, out_k[a:b], out_face[a:b] if closest else None,
+                                 out_u[a:b] if closest else None, out_v[a:b] if closest else None, sphere_blocked))
+    interpolate = len(cast) < len(p)
+    frame = _cast_frame(cast, blockers, closest)._replace(
+        flat=(out_ptr, out_k, out_face, out_u, out_v) if closest else (out_ptr, out_k, None, None, None))
+    result = GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
+                        frame)
+    return result, {"points": len(cast), "points_cast": len(todo), "rays_cast": len(ip),
+                    "hits_kept": total - int(new_ptr[-1])}
+
+
+def _same_array(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def _match_rows(rows, among) -> np.ndarray:
+    """Per row of ``rows (N, D)`` float64 the index of a row of ``among (M, D)`` with the same bytes, else -1."""
+    rows = np.ascontiguousarray(rows, dtype=np.float64)
+    among = np.ascontiguousarray(among, dtype=np.float64)
+    out = np.full(len(rows), -1, dtype=np.int64)
+    if not len(rows) or not len(among):
+        return out
+    key = np.dtype((np.void, 8 * rows.shape[1]))
+    a, b = among.view(key).ravel(), rows.view(key).ravel()
+    order = np.argsort(a, kind="stable")
+    ranked = a[order]
+    pos = np.minimum(np.searchsorted(ranked, b), len(ranked) - 1)
+    found = ranked[pos] == b
+    out[found] = order[pos[found]]
+    return out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _candidates_within(points, dirs, spheres, zone, out):
+    """``out[q, k]``: ``zone[q, k]`` and the ray a candidate (``_candidates_kernel``'s test, so the rings kernel's
+    result too), testing only the rays of ``zone``."""
+    n_s = spheres.shape[0]
+    for q in numba.prange(points.shape[0]):
+        axis = np.empty((n_s, 3))
+        cos_half = np.empty(n_s)
+        inside = False
+        for j in range(n_s):
+            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+            d2 = ox * ox + oy * oy + oz * oz
+            r2 = spheres[j, 3] * spheres[j, 3]
+            if d2 <= r2:
+                inside = True
+                break
+            inv = 1.0 / math.sqrt(d2)
+            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        for k in range(dirs.shape[0]):
+            hit = False
+            if zone[q, k]:
+                hit = inside
+                j = 0
+                while not hit and j < n_s:
+                    hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
+                    j += 1
+            out[q, k] = hit
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _merge_counts(match, old_ptr, old_k, zone, new_ptr, count):
+    """Per point ``q``: its cast hits (``new_ptr``) and the hits of its kept point ``match[q]`` (-1: none) whose
+    direction lies outside ``zone[q]``."""
+    for q in numba.prange(match.shape[0]):
+        c = new_ptr[q + 1] - new_ptr[q]
+        m = match[q]
+        if m >= 0:
+            for i in range(old_ptr[m], old_ptr[m + 1]):
+                if not zone[q, np.int64(old_k[i])]:
+                    c += 1
+        count[q] = c
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _merge_hits(match, old_ptr, old_k, old_face, old_u, old_v, zone, new_ptr, new_k, new_face, new_u, new_v,
+                out_ptr, out_k, out_face, out_u, out_v):
+    """Per point ``q`` into ``out_ptr[q]:out_ptr[q + 1]``, in ray order: the kept hits of ``_merge_counts`` and the
+    cast ones (with faces and barycentrics unless ``out_face`` is empty)."""
+    with_face = out_face.shape[0] > 0
+    for q in numba.prange(match.shape[0]):
+        j = out_ptr[q]
+        m = match[q]
+        a, a_end = (old_ptr[m], old_ptr[m + 1]) if m >= 0 else (0, 0)
+        b, b_end = new_ptr[q], new_ptr[q + 1]
+        while True:
+            while a < a_end and zone[q, np.int64(old_k[a])]:
+                a += 1
+            if a >= a_end and b >= b_end:
+                break
+            if b >= b_end or (a < a_end and old_k[a] < new_k[b]):
+                out_k[j] = old_k[a]
+                if with_face:
+                    out_face[j], out_u[j], out_v[j] = old_face[a], old_u[a], old_v[a]
+                a += 1
+            else:
+                out_k[j] = new_k[b]
+                if with_face:
+                    out_face[j], out_u[j], out_v[j] = new_face[b], new_u[b], new_v[b]
+                b += 1
+            j += 1
 
 
 def _cast_points(p, blockers: MeshBlockers, spacing: float):

@@ -35,7 +35,7 @@ from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
 __all__ = ["fibonacci_directions", "self_blocked", "MeshOccluder", "mesh_occluder", "inner_spheres",
-           "mesh_direct", "mesh_direct_visible", "mesh_direct_sums"]
+           "mesh_direct", "mesh_direct_visible", "mesh_direct_visible_update", "mesh_direct_sums"]
 
 _CHUNK = 1024  # receivers per batch (bounds the (P, M) masks)
 
@@ -254,6 +254,70 @@ def mesh_direct_visible(points, normals, rotation, blocked_self, occluders=(), r
             out[rows] = part
         return out
     return visible_bits(p, n, bits)
+
+
+def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, rotation, blocked_self, occluders,
+                               moved, rectangles=None, spheres=None, dirs=None, *, cast: str = "embree"):
+    """:func:`mesh_direct_visible` (numba tier) when only the occluders flagged ``moved (O,) bool`` changed since
+    ``kept_visible`` was computed with ``kept_occluders`` (the receivers, their own bits, the rotation, the
+    rectangles, the spheres and the other occluders the same: the caller compares them): ``(visible, counts)``.
+
+    A ray outside the cones of the moved occluders' bounding and inner spheres, in both frames, is never tested
+    against them (``_meets``' cone tests, the same arithmetic), so its bit is kept; the rays inside are computed
+    afresh against every occluder in order, as :func:`mesh_direct_visible` does. ``counts``: ``{"rays",
+    "rays_recomputed"}``."""
+    p, n, d = _checked(points, normals, dirs)
+    moved = np.asarray(moved, dtype=bool).reshape(-1)
+    if len(moved) != len(occluders) or len(kept_occluders) != len(occluders):
+        raise ValueError(f"moved must give one flag per occluder ({len(occluders)}), got {len(moved)} (kept "
+                         f"{len(kept_occluders)})")
+    bits = np.ascontiguousarray(blocked_self, dtype=np.uint8)
+    rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    rects = np.ascontiguousarray(np.zeros((0, 7)) if rectangles is None else rectangles, dtype=np.float64)
+    balls = np.ascontiguousarray(np.zeros((0, 4)) if spheres is None else spheres, dtype=np.float64).reshape(-1, 4)
+    w = np.ascontiguousarray(d @ rot.T)
+    heights = np.ascontiguousarray(rot[:, 1]) if np.array_equal(d, fibonacci_directions(len(d))) else None
+    changed = []
+    for g in np.nonzero(moved)[0]:
+        changed += [np.asarray(x, dtype=np.float64).reshape(-1, 4) for x in (occluders[g].bounds, occluders[g].inner,
+                                                                            kept_occluders[g].bounds,
+                                                                            kept_occluders[g].inner)]
+    changed = np.ascontiguousarray(np.concatenate(changed or [np.zeros((0, 4))]))
+    out = np.array(kept_visible, dtype=np.uint8)
+    recomputed = 0
+    for s in range(0, len(p), _CHUNK):
+        ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
+        zone = np.empty((len(ps), len(w)), dtype=np.bool_)
+        _zone_kernel(ps, w, changed, zone)
+        rows = np.nonzero(zone.any(axis=1))[0]
+        if not len(rows):
+            continue
+        ps, ns, zone = ps[rows], ns[rows], zone[rows]
+        visible = np.empty((len(ps), len(w)), dtype=np.bool_)
+        _visible_kernel(ps, ns, w, bits[s:s + _CHUNK][rows], rects, balls, visible)
+        visible &= zone
+        for occ in occluders:
+            _occluder_visible(ps, ns, w, occ, visible, heights, cast)
+        old = _unpack(out[s + rows], len(w))
+        out[s + rows] = np.packbits(np.where(zone, visible, old), axis=1)
+        recomputed += int(np.count_nonzero(zone))
+    return out, {"rays": len(p) * len(w), "rays_recomputed": recomputed}
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _zone_kernel(points, dirs, spheres, zone):
+    """``zone[q, j]``: the ray from ``points[q]`` along ``dirs[j]`` lies in the cone of one of ``spheres`` (the
+    point inside one: every ray), by ``_cones``' arithmetic."""
+    for q in numba.prange(points.shape[0]):
+        axis, cos_half = np.empty((spheres.shape[0], 3)), np.empty(spheres.shape[0])
+        inside = _cones(points[q], spheres, axis, cos_half)
+        for j in range(dirs.shape[0]):
+            hit = inside
+            s = 0
+            while not hit and s < spheres.shape[0]:
+                hit = axis[s, 0] * dirs[j, 0] + axis[s, 1] * dirs[j, 1] + axis[s, 2] * dirs[j, 2] > cos_half[s]
+                s += 1
+            zone[q, j] = hit
 
 
 def mesh_direct_sums(visible, normals, env_sh, rotation, dirs=None, *, method: str = "numba") -> np.ndarray:

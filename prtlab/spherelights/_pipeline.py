@@ -73,15 +73,15 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import ground_light, ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture
-from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_light_hits,
-                          ground_light_sums, ground_ray_rule, mesh_blockers)
+from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
+                          ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
-                          mesh_occluder, self_blocked)
+                          mesh_direct_visible_update, mesh_occluder, self_blocked)
 from ._nearcaps import has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility
 from ._passes import first_pass, second_pass
-from ._reuse import FrameReuse
+from ._reuse import FrameReuse, same_inputs
 from ._samples import coverage_weights, segment_coverage, surface_albedo_sh, surface_samples
 from ._tables import voronoi_cell_sums
 
@@ -689,9 +689,10 @@ class SphereLights(Precomputation):
             blockers = reuse.get("mesh_blockers", blocker_inputs, lambda: mesh_blockers(*blocker_inputs))
 
             def ground_direct(p, n, name):  # the texels' rule
-                hits = reuse.get(("texel_rays", name), (blocker_inputs, p, _TEXEL_RAYS.dirs, _TEXEL_RAYS.weights,
-                                                        opts.ground_ray_spacing),
-                                 lambda: ground_direct_hits(p, blockers, _TEXEL_RAYS, spacing=opts.ground_ray_spacing))
+                inputs = (blocker_inputs, p, _TEXEL_RAYS.dirs, _TEXEL_RAYS.weights, opts.ground_ray_spacing)
+                hits = reuse.get(("texel_rays", name), inputs,
+                                 lambda: ground_direct_hits(p, blockers, _TEXEL_RAYS, spacing=opts.ground_ray_spacing),
+                                 ground_hits_reuse(inputs, blockers, p, _TEXEL_RAYS, opts.ground_ray_spacing))
                 e = ground_direct_sums(hits, lights.env, blockers)
                 return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
         emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
@@ -777,9 +778,10 @@ class SphereLights(Precomputation):
                 albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
                 pts = receivers[obj.name][0]
                 spacing = opts.ground_ray_spacing
-                hits = reuse.get(("ground_rays", obj.name), (blocker_inputs, pts, _GROUND_RAYS.dirs,
-                                                             _GROUND_RAYS.weights, spacing),
-                                 lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=spacing))
+                inputs = (blocker_inputs, pts, _GROUND_RAYS.dirs, _GROUND_RAYS.weights, spacing)
+                hits = reuse.get(("ground_rays", obj.name), inputs,
+                                 lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=spacing),
+                                 ground_hits_reuse(inputs, blockers, pts, _GROUND_RAYS, spacing))
                 e_dir, e_ind = ground_light_sums(hits, lights.env, blockers, radiance)
                 if not (bounces > 0 and n_sl):
                     e_ind = np.zeros_like(e_ind)
@@ -880,10 +882,22 @@ class SphereLights(Precomputation):
             occluders.append(((np.asarray(other.mesh.vertices, dtype=np.float64), np.asarray(other.mesh.faces),
                                base.inner) + args[1:], functools.partial(MeshOccluder, *args)))
         balls = np.concatenate([lights.centres[lights.n_sl:], lights.radii[lights.n_sl:, None]], axis=1)
-        visible = reuse.get(("mesh_direct", obj.name), (pts, nrm, rot, bits, [o[0] for o in occluders], rects, balls,
-                                                        dirs),
-                            lambda: mesh_direct_visible(pts, nrm, rot, bits, [make() for _, make in occluders], rects,
-                                                        balls, dirs))
+        key = (pts, nrm, rot, bits, [o[0] for o in occluders], rects, balls, dirs)
+
+        def compute():
+            made = [make() for _, make in occluders]
+            return mesh_direct_visible(pts, nrm, rot, bits, made, rects, balls, dirs), made
+
+        def update(kept_key, kept):  # only some occluders moved: the rays that cannot meet them keep their bits
+            if len(kept_key[4]) != len(key[4]) or not same_inputs(kept_key[:4] + kept_key[5:], key[:4] + key[5:]):
+                return None
+            made = [make() for _, make in occluders]
+            moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
+            visible, counts = mesh_direct_visible_update(kept[0], kept[1], pts, nrm, rot, bits, made, moved, rects,
+                                                         balls, dirs)
+            return (visible, made), counts
+
+        visible, _ = reuse.get(("mesh_direct", obj.name), key, compute, update)
         return mesh_direct_sums(visible, nrm, lights.env, rot, dirs)
 
     def _ground_textures(self, grounds, irradiance, transforms) -> np.ndarray:
@@ -1054,6 +1068,25 @@ class SphereLights(Precomputation):
                 _, ind[sel] = second_pass(pts[sel], nrm[sel], cc, cr, co, inter, crot, em * tk[:, None, :], env,
                                           indirect=True, **kw)
         return direct, ind
+
+
+def ground_hits_reuse(inputs, blockers, points, rule, spacing: float):
+    """The ``update`` of :meth:`FrameReuse.get` for a ground's ray hits (``_groundrays.GroundHits``) keyed by
+    ``inputs = (mesh_blockers' arguments, *rest)``: when only the meshes' vertices and the bounding spheres differ
+    from the kept inputs (the faces, the opaque spheres, the rays' frame and ``rest`` the same), the kept hits of the
+    meshes that did not move are kept (``_groundrays.ground_hits_update`` against ``blockers``, made from the new
+    arguments); else None (cast afresh)."""
+
+    def update(kept_inputs, kept):
+        (old, *old_rest), (new, *new_rest) = kept_inputs, inputs
+        if not same_inputs(old_rest, new_rest) or not same_inputs(list(old[2:]), list(new[2:])):
+            return None
+        if len(old[0]) != len(new[0]) or not all(same_inputs(a[1], b[1]) for a, b in zip(old[0], new[0])):
+            return None
+        moved = [not same_inputs(a[0], b[0]) for a, b in zip(old[0], new[0])]
+        return ground_hits_update(kept, points, blockers, moved, rule, spacing=spacing)
+
+    return update
 
 
 def _rectangle_grid(row, k: int) -> np.ndarray:

@@ -5,36 +5,48 @@ Much of a spherical-lights frame with the ground's rays (``ground_shading="rays"
 receivers are blocked. It does not change when only the lighting (the environment) does. A :class:`FrameReuse`
 keeps each such result with a copy of every input it was computed from and hands it back only when the new inputs
 equal the kept ones exactly (same type, shape, dtype and bytes: never a digest), so a moved, turned, scaled or
-deformed object, a moved ground or light, or another option computes afresh.
+deformed object, a moved ground or light, or another option computes afresh, unless the caller gives an update: a
+function of the kept inputs and result that computes the new result from the kept one (the ground's rays of the
+objects that did not move kept, ``_groundrays.ground_hits_update``), exactly as a fresh computation would.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FrameReuse"]
+__all__ = ["FrameReuse", "same_inputs"]
 
 
 class FrameReuse:
     """One result per name, kept with the inputs it was computed from.
 
-    ``get(name, inputs, compute)`` returns the kept result when ``inputs`` equal the kept inputs exactly, else
-    ``compute()`` (then kept, with a copy of ``inputs``). ``inputs``: nested tuples and lists of arrays, numbers,
-    strings and None; arrays are compared by dtype, shape and bytes (so ``-0.0`` differs from ``0.0``, as it may
-    change a result; a NaN equals the same NaN); other objects by ``==``. Between :meth:`start_frame` and
-    :meth:`end_frame` the names asked for are counted, and ``end_frame`` forgets the results no call asked for
-    (a frame keeps only what the frame before it computed or reused)."""
+    ``get(name, inputs, compute, update=None)`` returns the kept result when ``inputs`` equal the kept inputs
+    exactly; else ``update(kept_inputs, kept_result)`` if given and a result is kept: ``(result, counts)`` (then
+    kept, with a copy of ``inputs``; ``counts`` a dict of what it kept and redid) or None; else ``compute()`` (then
+    kept likewise). An update must give what ``compute()`` would, bit for bit. ``inputs``: nested tuples and lists
+    of arrays, numbers, strings and None; arrays are compared by dtype, shape and bytes (so ``-0.0`` differs from
+    ``0.0``, as it may change a result; a NaN equals the same NaN); other objects by ``==``. Between
+    :meth:`start_frame` and :meth:`end_frame` the names asked for are counted, and ``end_frame`` forgets the results
+    no call asked for (a frame keeps only what the frame before it computed, updated or reused)."""
 
     def __init__(self):
         self._kept: dict = {}
         self._computed: list = []
         self._reused: list = []
+        self._updated: list = []
 
-    def get(self, name, inputs, compute):
+    def get(self, name, inputs, compute, update=None):
         kept = self._kept.get(name)
         if kept is not None and _same(kept[0], inputs):
             self._reused.append(name)
             return kept[1]
+        if kept is not None and update is not None:
+            updated = update(kept[0], kept[1])
+            if updated is not None:
+                value, counts = updated
+                self._kept[name] = (_copy(inputs), value)
+                self._updated.append((name, counts))
+                return value
         self._kept.pop(name, None)  # the old result goes before the new one is computed (peak memory)
         value = compute()
         self._kept[name] = (_copy(inputs), value)
@@ -49,14 +61,20 @@ class FrameReuse:
         """Start counting the names asked for."""
         self._computed.clear()
         self._reused.clear()
+        self._updated.clear()
 
     def end_frame(self) -> dict:
         """Forget the results not asked for since :meth:`start_frame`; returns ``{"computed": [...], "reused":
-        [...]}``, the names asked for."""
-        used = set(self._computed) | set(self._reused)
+        [...], "updated": [(name, counts), ...]}``, the names asked for (``updated``: partly reused)."""
+        used = set(self._computed) | set(self._reused) | {name for name, _ in self._updated}
         for name in [k for k in self._kept if k not in used]:
             del self._kept[name]
-        return {"computed": list(self._computed), "reused": list(self._reused)}
+        return {"computed": list(self._computed), "reused": list(self._reused), "updated": list(self._updated)}
+
+
+def same_inputs(a, b) -> bool:
+    """Whether ``a`` and ``b`` are equal as :class:`FrameReuse` compares inputs (exactly)."""
+    return _same(a, b)
 
 
 def _copy(x):

@@ -67,10 +67,10 @@ def test_end_frame_forgets_what_the_frame_did_not_ask_for():
     reuse.start_frame()
     reuse.get("a", (1,), lambda: "A")
     reuse.get("b", (1,), lambda: "B")
-    assert reuse.end_frame() == {"computed": ["a", "b"], "reused": []}
+    assert reuse.end_frame() == {"computed": ["a", "b"], "reused": [], "updated": []}
     reuse.start_frame()
     assert reuse.get("a", (1,), lambda: "A2") == "A"
-    assert reuse.end_frame() == {"computed": [], "reused": ["a"]}
+    assert reuse.end_frame() == {"computed": [], "reused": ["a"], "updated": []}
     reuse.start_frame()
     assert reuse.get("b", (1,), lambda: "B2") == "B2"  # "b" was forgotten at the end of the frame before
     reuse.clear()
@@ -274,3 +274,19 @@ def test_a_translation_array_changed_in_place_is_seen(bunny_scene):
     ours = pre.shade(state)
     assert "mesh_blockers" in ours.info["geometry"]["computed"]
     _same(ours, _fresh(pre).shade(state))
+
+
+def test_update_gives_a_kept_result_from_the_last():
+    """With ``update``, changed inputs give ``update(kept inputs, kept result)``'s result (named in ``updated``
+    with its counts) unless it returns None (then ``compute()``); equal inputs still reuse."""
+    reuse = FrameReuse()
+    reuse.start_frame()
+    assert reuse.get("a", (1,), lambda: 10) == 10
+    reuse.end_frame()
+    reuse.start_frame()
+    assert reuse.get("a", (2,), lambda: -1, lambda inputs, value: (value + inputs[0], {"kept": 1})) == 11
+    assert reuse.end_frame() == {"computed": [], "reused": [], "updated": [("a", {"kept": 1})]}
+    reuse.start_frame()
+    assert reuse.get("a", (2,), lambda: -1, lambda inputs, value: None) == 11  # the same inputs: reused
+    assert reuse.get("a", (3,), lambda: -1, lambda inputs, value: None) == -1  # no update: computed
+    assert reuse.end_frame() == {"computed": ["a"], "reused": ["a"], "updated": []}

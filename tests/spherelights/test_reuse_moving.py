@@ -1,0 +1,266 @@
+"""Tests of the ground's ray hits kept per object when some objects move (``_groundrays.ground_hits_update``,
+``SphereLights.frame_reuse``): every frame equal to a fresh cast's or a fresh pipeline's, bit for bit, and rays in
+fact kept."""
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+
+import prtlab
+import prtlab.data
+from prtlab.geometry import builtin_mesh
+from prtlab.pipeline import FrameState
+from prtlab.spherelights import SphereLights
+from prtlab.spherelights._groundrays import (ground_direct_hits, ground_direct_sums, ground_hits_update,
+                                             ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers)
+from prtlab.spherelights._meshdirect import (fibonacci_directions, inner_spheres, mesh_direct_visible,
+                                             mesh_direct_visible_update, mesh_occluder, self_blocked)
+from prtlab.spherelights._reuse import FrameReuse
+
+RULE = ground_ray_rule(32, 8)
+# balls on a 6 x 6 ground: the four outer ones set the meshes' bounding box (so the rays' offset stays the same
+# while the inner two move, turn, shrink or deform within it)
+CENTRES = np.array([[-2.0, 0.5, 0.0], [2.0, 0.5, 0.0], [0.0, 0.5, -2.0], [0.0, 1.6, 2.0], [0.0, 0.6, 0.0],
+                    [0.9, 0.6, 0.8]])
+RADII = np.array([0.5, 0.5, 0.5, 0.5, 0.45, 0.4])
+
+
+def _ball_meshes():
+    m = builtin_mesh(name="icosphere", radius=1.0, subdivisions=2)
+    v, f = np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces)
+    return [(c + r * v, f) for c, r in zip(CENTRES, RADII)]
+
+
+def _blocker_args(meshes, spheres=np.zeros((0, 4))):
+    """``mesh_blockers``' arguments: each mesh in a ball around its vertices (as a deformed object's)."""
+    bounds = []
+    for v, _ in meshes:
+        centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        bounds.append(np.append(centre, 1.000001 * np.linalg.norm(v - centre, axis=1).max()))
+    return meshes, np.array(bounds), spheres, np.array([0.0, 0.0, 0.0]), 0.0, 3.0
+
+
+def _ground_points(n=24):
+    g = np.linspace(-2.9, 2.9, n)
+    return np.stack(np.broadcast_arrays(g[:, None], 0.0, g[None, :]), -1).reshape(-1, 3)
+
+
+def _assert_same_hits(ours, fresh):
+    assert ours.n_points == fresh.n_points and len(ours.chunks) == len(fresh.chunks)
+    for name in ("rows", "weights"):
+        a, b = getattr(ours, name), getattr(fresh, name)
+        assert (a is None) == (b is None) and (a is None or np.array_equal(a, b)), name
+    for x, y in zip(ours.chunks, fresh.chunks):
+        assert (x.start, x.stop) == (y.start, y.stop)
+        for name in ("ptr", "ray_k", "face", "u", "v", "sphere_blocked"):
+            a, b = getattr(x, name), getattr(y, name)
+            assert (a is None) == (b is None), name
+            if a is not None:
+                assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+def _turned(v, degrees):
+    t = np.radians(degrees)
+    rot = np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]])
+    centre = v.mean(axis=0)
+    return (v - centre) @ rot.T + centre
+
+
+def _changes(meshes, rng):
+    """Named frames: ``(meshes, moved flags)`` in sequence, each against the frame before."""
+    inner, other = 4, 5
+    v, f = meshes[inner]
+    noise = 0.01 * rng.normal(size=v.shape)
+
+    def only(k, new_v, base):
+        return [(new_v, m[1]) if g == k else m for g, m in enumerate(base)]
+
+    moved = only(inner, v + [0.02, 0.0, -0.01], meshes)
+    turned = only(inner, _turned(v, 7.0), meshes)
+    scaled = only(inner, 0.97 * (v - CENTRES[inner]) + CENTRES[inner], meshes)
+    deformed = only(inner, v + noise, meshes)
+    two = only(other, meshes[other][0] + [0.0, 0.03, 0.02], only(inner, v + [-0.03, 0.0, 0.02], meshes))
+    return [("moved", moved), ("back", meshes), ("turned", turned), ("scaled", scaled), ("deformed", deformed),
+            ("two moved", two), ("back again", meshes)]
+
+
+@pytest.mark.parametrize("kind", ["closest", "blocked"])
+@pytest.mark.parametrize("spacing", [0.0, 0.5])
+@pytest.mark.parametrize("opaque", [False, True])
+def test_kept_hits_equal_a_fresh_cast(rng, kind, spacing, opaque):
+    """After moving, turning, scaling or deforming one ball of several, moving two and moving back, the hits of
+    ``ground_hits_update`` from the frame before equal a fresh cast's bit for bit (the hit lists, faces,
+    barycentrics, interpolation, opaque spheres' rays), rays were kept and some cast, and the sums agree."""
+    cast = ground_light_hits if kind == "closest" else ground_direct_hits
+    points = _ground_points()
+    spheres = np.array([[1.5, 2.5, -1.0, 0.3]]) if opaque else np.zeros((0, 4))
+    meshes = _ball_meshes()
+    blockers = mesh_blockers(*_blocker_args(meshes, spheres))
+    kept = cast(points, blockers, RULE, spacing=spacing)
+    env = rng.normal(size=(16, 3))
+    env[0] += 3.0
+    previous = meshes
+    for label, frame in _changes(meshes, rng):
+        before = blockers
+        blockers = mesh_blockers(*_blocker_args(frame, spheres))
+        assert blockers.caster.epsilon == before.caster.epsilon, label  # the same rays' offset
+        moved = [not np.array_equal(v, w) for (v, _), (w, _) in zip(frame, previous)]
+        ours, counts = ground_hits_update(kept, points, blockers, moved, RULE, spacing=spacing)
+        fresh = cast(points, blockers, RULE, spacing=spacing)
+        _assert_same_hits(ours, fresh)
+        if any(moved):
+            assert counts["hits_kept"] > 0 and counts["rays_cast"] > 0, (label, counts)
+        if kind == "closest":
+            radiance = [rng.uniform(0, 1, (len(v), 3)) for v, _ in frame]
+            for a, b in zip(ground_light_sums(ours, env, blockers, radiance),
+                            ground_light_sums(fresh, env, blockers, radiance)):
+                np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_array_equal(ground_direct_sums(ours, env, blockers),
+                                          ground_direct_sums(fresh, env, blockers))
+        kept, previous = ours, frame
+
+
+def test_kept_hits_not_used_when_they_cannot_serve():
+    """``ground_hits_update`` gives None (cast afresh) when the rays' offset changed (an outer ball moved out, the
+    meshes' bounding box with it), another rule, or another number of faces; ``moved`` of the wrong length fails."""
+    points = _ground_points(12)
+    meshes = _ball_meshes()
+    blockers = mesh_blockers(*_blocker_args(meshes))
+    kept = ground_light_hits(points, blockers, RULE, spacing=0.5)
+    out = [(v + [0.1, 0.0, 0.0], f) if g == 1 else (v, f) for g, (v, f) in enumerate(meshes)]
+    moved = [g == 1 for g in range(len(meshes))]
+    assert ground_hits_update(kept, points, mesh_blockers(*_blocker_args(out)), moved, RULE, spacing=0.5) is None
+    assert ground_hits_update(kept, points, blockers, [False] * len(meshes), ground_ray_rule(16, 8),
+                              spacing=0.5) is None
+    fewer = [(v, f[:-1]) if g == 4 else (v, f) for g, (v, f) in enumerate(meshes)]
+    assert ground_hits_update(kept, points, mesh_blockers(*_blocker_args(fewer)), [False] * len(meshes), RULE,
+                              spacing=0.5) is None
+    with pytest.raises(ValueError, match="moved must give one flag per mesh"):
+        ground_hits_update(kept, points, blockers, [False], RULE, spacing=0.5)
+    same, counts = ground_hits_update(kept, points, blockers, [False] * len(meshes), RULE, spacing=0.5)
+    _assert_same_hits(same, kept)
+    assert counts["rays_cast"] == 0 and counts["points_cast"] == 0
+
+
+def test_kept_visible_rays_equal_a_fresh_computation(rng):
+    """An unmoved receiver object's visible rays (``mesh_direct_visible_update``) after one occluder of several
+    moves, turns, is deformed (a new occluder), two move, and all come back: equal to ``mesh_direct_visible``'s
+    bit for bit, some rays recomputed and most kept; the ground and an opaque sphere blocking too."""
+    meshes = _ball_meshes()
+    dirs = fibonacci_directions(256)
+    v, f = meshes[0]
+    normals = (v - CENTRES[0]) / RADII[0]
+    points = v + 1e-3 * normals
+    bits = self_blocked(points, normals, v, f, dirs)
+    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+    balls = np.array([[-1.0, 2.2, 1.0, 0.3]])
+
+    def occluder(g, shift=(0.0, 0.0, 0.0), turn=0.0, noise=None):
+        w, faces = meshes[g]
+        local = w - CENTRES[g]
+        inner = np.append(np.zeros(3), 0.8 * RADII[g])[None]
+        if noise is not None:  # a deformed object: its own caster, one ball around its vertices
+            return mesh_occluder(w + noise, faces)
+        t = np.radians(turn)
+        rot = np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]])
+        centre = CENTRES[g] + shift
+        return mesh_occluder(local, faces, rotation=rot, translate=centre, bounds=np.append(centre, RADII[g])[None],
+                             inner=inner)
+
+    rest = [occluder(g) for g in range(1, len(meshes))]
+    frames = [("moved", {3: occluder(4, shift=(0.05, 0.0, 0.02))}), ("turned", {3: occluder(4, turn=20.0)}),
+              ("deformed", {3: occluder(4, noise=0.01 * rng.normal(size=meshes[4][0].shape))}),
+              ("two moved", {3: occluder(4, shift=(-0.05, 0.0, 0.0)), 4: occluder(5, shift=(0.0, 0.1, 0.0))}),
+              ("back", {})]
+    kept_occ = rest
+    kept = mesh_direct_visible(points, normals, np.eye(3), bits, rest, rect, balls, dirs)
+    for label, change in frames:
+        occ = [change.get(i, o) for i, o in enumerate(rest)]
+        moved = [a is not b for a, b in zip(occ, kept_occ)]
+        ours, counts = mesh_direct_visible_update(kept, kept_occ, points, normals, np.eye(3), bits, occ, moved, rect,
+                                                  balls, dirs)
+        np.testing.assert_array_equal(ours, mesh_direct_visible(points, normals, np.eye(3), bits, occ, rect, balls,
+                                                                dirs), err_msg=label)
+        assert 0 < counts["rays_recomputed"] < counts["rays"] // 4, (label, counts)
+        kept, kept_occ = ours, occ
+    with pytest.raises(ValueError, match="moved must give one flag per occluder"):
+        mesh_direct_visible_update(kept, kept_occ, points, normals, np.eye(3), bits, kept_occ, [True], rect, balls,
+                                   dirs)
+
+
+# ------------------------------------------------------------------ the pipeline: one object of several moving
+
+
+@pytest.fixture(scope="module")
+def bunny_scene():
+    scene = prtlab.load_scene(prtlab.data.scene_path("bunny_spheres_env"))
+    pre = SphereLights.precompute(scene, {"n_spheres": {"bunny": 4, "sphere_green": 1, "sphere_orange": 1},
+                                          "fit_resolution": 12}, cache=False, progress=False)
+    return scene, pre
+
+
+def _fresh(pre):
+    """A pipeline with the same precomputation and nothing kept from any frame."""
+    other = copy.copy(pre)
+    other.__dict__["_frame_reuse"] = FrameReuse()
+    return other
+
+
+def _same(a, b):
+    for part in ("direct", "indirect", "total"):
+        assert sorted(getattr(a, part)) == sorted(getattr(b, part))
+        for name in getattr(b, part):
+            assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name]), f"{part} {name}"
+
+
+def _moved(state, name, **change):
+    tr = state.transforms.get(name)
+    return dataclasses.replace(state, transforms={**state.transforms, name: dataclasses.replace(tr, **change)})
+
+
+def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
+    """Frames through one pipeline, one object or two moving (translated, turned, scaled, deformed), the ground
+    moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
+    total array), and where the meshes' bounding box (so the rays' offset) stays the same the grounds' rays are
+    partly kept (``info["geometry"]["updated"]``, rays kept and cast)."""
+    scene, pre = bunny_scene
+    pre.frame_reuse.clear()
+    rest = FrameState.from_scene(scene)
+    green, orange = rest.transforms["sphere_green"], rest.transforms["sphere_orange"]
+    bunny = np.asarray(scene.object("bunny").mesh.vertices)
+    up = dataclasses.replace(rest, transforms={**rest.transforms, "sphere_green": dataclasses.replace(
+        green, translate=np.asarray(green.translate) + [0.0, 2e-3, 0.0])})
+    # (label, state, the grounds' rays partly kept (None: the rays' offset may change), the objects' visible rays)
+    frames = [
+        ("rest", rest, False, False),
+        ("one moved", up, True, True),
+        ("two moved", _moved(up, "sphere_orange", translate=np.asarray(orange.translate) + [0.0, 1e-3, 0.0]), True,
+         True),
+        ("turned", _moved(rest, "sphere_green", rotate_deg=np.asarray(green.rotate_deg) + [0.0, 0.5, 0.0]), None,
+         True),
+        ("scaled", _moved(rest, "sphere_green", scale=green.scale * 0.99), None, True),
+        ("deformed", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.99, 1.0]}), None, True),
+        ("deformed again", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.985, 1.0]}), None, True),
+        ("ground moved", _moved(rest, "plane", translate=np.asarray(rest.transforms["plane"].translate)
+                                + [0.05, 0.0, 0.0]), False, False),
+        ("back", rest, False, False),
+    ]
+    kept_any = 0
+    for label, state, rays, visible in frames:
+        ours = pre.shade(state)
+        _same(ours, _fresh(pre).shade(state))
+        updated = {}
+        for name, counts in ours.info["geometry"]["updated"]:
+            updated.setdefault(name[0], []).append(counts)
+        if rays is not None:
+            assert ({"ground_rays", "texel_rays"} <= set(updated)) == rays, (label, updated)
+        assert ("mesh_direct" in updated) == visible, (label, updated)
+        for counts in updated.get("ground_rays", []) + updated.get("texel_rays", []):
+            assert counts["hits_kept"] > 0 and counts["rays_cast"] > 0, (label, counts)
+            kept_any += 1
+        for counts in updated.get("mesh_direct", []):
+            assert 0 < counts["rays_recomputed"] < counts["rays"], (label, counts)
+    assert kept_any >= 4
