@@ -237,8 +237,8 @@ def accumulate_blockers(points, normals, centres, radii, sl_object, intersect, o
 #: descheduled worker (a scheduler time slice), measured at the squirrel scale (1288 samples, load ~4 on
 #: 2 cores): 10 ms on one thread against 37 ms on two.
 _SERIAL_BELOW = 8192
-#: Receivers below which :func:`second_pass`'s fused kernel runs on one thread (``one_thread_below``): under four
-#: tasks of ``_BLOCKS_PER_TASK`` blocks, a few ms of work.
+#: Receivers below which :func:`second_pass`'s fused kernel runs on one thread (``one_thread_below``): under 32
+#: blocks of ``_LANES`` receivers, a few ms of work.
 _FUSED_SERIAL_BELOW = 1024
 
 
@@ -373,7 +373,6 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
     env = np.asarray(env_sh, dtype=np.float64)
     m = math.isqrt(np.asarray(emission).shape[-2])
     order = m if order is None else int(order)
@@ -386,9 +385,10 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         raise ValueError(f"method must be 'fused', 'numba' or 'reference', got {method!r}")
     if average not in ("cosine", "paper"):
         raise ValueError(f"average must be 'cosine' or 'paper', got {average!r}")
-    if method == "fused" and exp_method in ("hyb", "ol"):
+    if method == "fused" and exp_method in ("hyb", "ol"):  # the kernel normalises the normals
         return _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env,
                                        blocking, exp_method, indirect, average == "cosine", order)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
     method = "numba" if method == "fused" else method
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
                                                          blocking=blocking, method=method)
@@ -534,8 +534,6 @@ def _light_arrays(centres, radii, sl_object, intersect):
 _LANES = 32
 #: Most squarings of a HYB exponential (a bound: ``|f^| <= threshold 2^1100`` for every finite ``|f^|``).
 _MAX_SQUARINGS = 1100
-#: Blocks per parallel task (the scratch arrays are allocated once per task).
-_BLOCKS_PER_TASK = 8
 
 
 @functools.lru_cache(maxsize=None)
@@ -616,10 +614,18 @@ _BlockScratch = collections.namedtuple("_BlockScratch", [
     "object_rank", "chain", "chain_exp", "transfer_rows", "transfer_index"])
 
 
-def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
-                            exp_method, indirect, cosine, order):
-    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``;
-    ``order``: the visibility's SH order (the emission's may be higher)."""
+def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking, exp_method,
+                  indirect, cosine, order):
+    """The structured inputs ``(lights, tables, exp_tables, mode)`` of :func:`_second_pass_fused`. The last ones
+    are kept, keyed by the bytes of every input: a frame makes the same call for each receiving object, and
+    packing them (the transfer matrix, the lights' arrays, the tables) took about 0.4 ms a call. The kernel only
+    reads them."""
+    arrays = [np.asarray(x) for x in (centres, radii, sl_object, intersect, sl_rotation, emission, env)]
+    key = (tuple((x.dtype.str, x.shape, x.tobytes()) for x in arrays), blocking, exp_method, bool(indirect),
+           bool(cosine), int(order))
+    kept = _FUSED_INPUTS[0]
+    if kept is not None and kept[0] == key:
+        return kept[1]
     m = math.isqrt(np.asarray(emission).shape[-2])
     c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
     n_sph, hi = c.shape[0], 2 * order - 1
@@ -646,9 +652,25 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
     mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
                  bool(cosine), int(_LANES), bool(blocking == "object" and exp_method == "hyb" and
                                                  2 * int(alone.sum()) > n_obj + 1), int(m))
+    packed = (lights, tables, exp_tables, mode)
+    _FUSED_INPUTS[0] = (key, packed)
+    return packed
+
+
+_FUSED_INPUTS: list = [None]
+
+
+def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
+                            exp_method, indirect, cosine, order):
+    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``;
+    ``n``: the normals as given (the kernel normalises them); ``order``: the visibility's SH order (the
+    emission's may be higher)."""
+    lights, tables, exp_tables, mode = _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission,
+                                                     env, blocking, exp_method, indirect, cosine, order)
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
-    p, n = np.array(p, order="C"), np.array(n, order="C")
+    # writeable C arrays (one compiled signature), not copied when they are already: the kernel only reads them
+    p, n = (x if x.flags.c_contiguous and x.flags.writeable else np.array(x, order="C") for x in (p, n))
     n_blocks = -(-p.shape[0] // _LANES)
     threads = min(task_threads(), n_blocks)
     if p.shape[0] < _FUSED_SERIAL_BELOW and threads > 1:
@@ -656,20 +678,26 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
         # receivers and results are the same whichever run it is in)
         step = _LANES * -(-n_blocks // threads)
         run_tasks([functools.partial(_second_pass_fused, p[s:s + step], n[s:s + step], lights, tables, exp_tables,
-                                     mode, direct[s:s + step], ind[s:s + step]) for s in range(0, p.shape[0], step)])
+                                     mode, direct[s:s + step], ind[s:s + step], 1)
+                   for s in range(0, p.shape[0], step)])
         return direct, ind
     with one_thread_below(p.shape[0], _FUSED_SERIAL_BELOW):  # a receiving object of a few blocks
-        _second_pass_fused(p, n, lights, tables, exp_tables, mode, direct, ind)
+        _second_pass_fused(p, n, lights, tables, exp_tables, mode, direct, ind, numba.get_num_threads())
     return direct, ind
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy", nogil=True)
-def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out):
+def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out, threads):
     """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``mode.n_lanes`` receivers, the receivers of a block
     as the SIMD lanes of the inner loops: blocker logs, direct light, then per light the front sums,
     exponentials, average visibility and average radiance. Same quantities, to rounding, as the composed tier
-    (``method="numba"``). ``n_lanes`` is a run-time value, not a compile-time constant: LLVM fully unrolls
-    constant 16-trip loops into scalar code instead of vectorising them.
+    (``method="numba"``). ``normals`` need not be unit: each is divided by its norm as ``second_pass``'s
+    numpy tiers do. ``n_lanes`` is a run-time value, not a compile-time constant: LLVM fully unrolls constant
+    16-trip loops into scalar code instead of vectorising them.
+
+    ``threads`` tasks (numba's thread count), each with its scratch, task ``t`` taking the blocks ``t, t + T, t +
+    2T, ...``: the threads' shares of the receivers interleave, so a run of costlier receivers (the objects' after
+    the ground's) is split between them. The results do not depend on ``threads``.
 
     Structure (measured, see the commits that split it): the per-block steps take the namedtuples and unpack
     them into locals once per block (a namedtuple passed to a compiled call is flattened into hundreds of
@@ -679,11 +707,11 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
     n_recv = points.shape[0]
     n_lanes = mode.n_lanes
     n_blocks = (n_recv + n_lanes - 1) // n_lanes
-    n_tasks = (n_blocks + _BLOCKS_PER_TASK - 1) // _BLOCKS_PER_TASK
+    n_tasks = max(1, min(threads, n_blocks))
     for task in numba.prange(n_tasks):
         scratch = _block_scratch(lights.centres.shape[0], lights.object_centres.shape[0], mode.order,
                                  mode.emission_order, n_lanes)
-        for block in range(task * _BLOCKS_PER_TASK, min(n_blocks, (task + 1) * _BLOCKS_PER_TASK)):
+        for block in range(task, n_blocks, n_tasks):
             first = block * n_lanes
             _second_pass_block(points, normals, first, min(n_lanes, n_recv - first), lights, tables, exp_tables,
                                mode, scratch, direct_out, indirect_out)
@@ -724,17 +752,26 @@ def _block_scratch(n_sph, n_obj, order, emission_order, n_lanes):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
+def _unit_normal(nx, ny, nz):
+    """``n / |n|`` as ``n / np.linalg.norm(n, axis=1, keepdims=True)`` gives it, bit for bit: numpy sums the
+    squares in order, ``(x^2 + y^2) + z^2`` (checked by ``tests/spherelights/test_shadows_speed_paths.py``)."""
+    norm = math.sqrt((nx * nx + ny * ny) + nz * nz)
+    return nx / norm, ny / norm, nz / norm
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _second_pass_block(points, normals, first, n_valid, lights, tables, exp_tables, mode, scratch, direct_out,
                        indirect_out):
     """The second pass of the receivers ``first .. first + n_valid - 1`` (one block; a partial block repeats
-    its last receiver in the remaining lanes)."""
+    its last receiver in the remaining lanes); the normals divided by their norms as they are read."""
     recv, direct, indirect = scratch.recv, scratch.direct, scratch.indirect
     for q in range(recv.shape[1]):
         b = first + min(q, n_valid - 1)
         for t in range(3):
             recv[t, q] = points[b, t]
-            recv[3 + t, q] = normals[b, t]
-    _blocker_lanes(recv, lights.centres, lights.radii, tables, mode.order, scratch.blockers, scratch.lane)
+        recv[3, q], recv[4, q], recv[5, q] = _unit_normal(normals[b, 0], normals[b, 1], normals[b, 2])
+    _blocker_lanes(recv, lights.centres, lights.radii, tables, mode.order, scratch.blockers, scratch.lane,
+                   mode.indirect)  # shadows only: the logs' sum alone
     _direct_lanes(tables, exp_tables, mode.hyb, mode.order, scratch)
     if mode.indirect:
         _indirect_lanes(lights, tables, exp_tables, mode, scratch)

@@ -299,16 +299,18 @@ def _asin_unit(x):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _blocker_lanes(recv, centres, radii, tables, order, out, work):
+def _blocker_lanes(recv, centres, radii, tables, order, out, work, keep_logs=True):
     """Rotated blocker log of every light at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
 
     recv : (6, L) receiver points and unit normals (x, y, z, nx, ny, nz); centres (S, 3), radii (S,) the lights;
     ``tables`` any namedtuple with ``blocker_log`` (:func:`blocker_log_table`) and ``blocker_knots``
-    (:func:`_blocker_log_knots`). Writes every array of ``out`` (a :class:`BlockerLanes`). The same quantities,
-    to rounding, as :func:`_adjust`, :func:`_lookup_log` and :func:`_add_rotated_zh` per receiver (``cos theta
-    = sqrt(1 - sin^2 theta)``). ``work`` (:class:`LaneScratch`; ``tmp`` rows 4-6: the axis for the basis) is
-    scratch. Namedtuples are unpacked once per call, outside the loops (each unpacked array costs a reference
-    count), so the loop over the lights is in here.
+    (:func:`_blocker_log_knots`). Writes every array of ``out`` (a :class:`BlockerLanes`); with ``keep_logs``
+    False only ``theta``, ``sin_theta``, ``cos_theta`` and ``total_log``, the logs summed as they are formed (the
+    same sum, bit for bit). The same quantities, to rounding, as :func:`_adjust`, :func:`_lookup_log` and
+    :func:`_add_rotated_zh` per receiver (``cos theta = sqrt(1 - sin^2 theta)``). ``work`` (:class:`LaneScratch`;
+    ``tmp`` rows 0-1 and 4-6: the distance, ``sin theta`` and the axis for the basis) is scratch. Namedtuples are
+    unpacked once per call, outside the loops (each unpacked array costs a reference count), so the loop over the
+    lights is in here.
     """
     n_lanes = recv.shape[1]
     log, total, dist, theta, axis = out.log, out.total_log, out.dist, out.theta, out.axis
@@ -321,7 +323,9 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work):
     for s in range(centres.shape[0]):
         cx, cy, cz, radius = centres[s, 0], centres[s, 1], centres[s, 2], radii[s]
         r2 = radius * radius
-        for q in range(n_lanes):  # adjustment (see _adjust), distance, axis: branch-free, vectorised
+        # adjustment (see _adjust), distance, axis: branch-free, vectorised; into rows of ``tmp``, then copied
+        # (the distance and axis only with ``keep_logs``: the shadows-only pass does not read them)
+        for q in range(n_lanes):
             px, py, pz = recv[0, q], recv[1, q], recv[2, q]
             nx, ny, nz = recv[3, q], recv[4, q], recv[5, q]
             ex, ey, ez = cx - px, cy - py, cz - pz
@@ -333,18 +337,23 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work):
             dy = (cy + shift * ny) - py
             dz = (cz + shift * nz) - pz
             d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            dist[s, q] = d
             live = rn > 0.0 and d > 0.0
             inv = 1.0 / d if d > 0.0 else 0.0
-            axis[s, 0, q] = dx * inv
-            axis[s, 1, q] = dy * inv
-            axis[s, 2, q] = dz * inv
+            tmp[0, q] = d
+            tmp[1, q] = min(rn * inv, 1.0) if live else -1.0  # sin theta: -1 culled, else >= 0
             tmp[4, q] = dx * inv
             tmp[5, q] = dy * inv
             tmp[6, q] = dz * inv
-            st = min(rn * inv, 1.0) if live else -1.0
+        for q in range(n_lanes):
+            st = tmp[1, q]
             sin_t[s, q] = st
-            cos_t[s, q] = math.sqrt(1.0 - st * st) if live else 0.0
+            cos_t[s, q] = math.sqrt(1.0 - st * st) if st >= 0.0 else 0.0
+        if keep_logs:
+            for q in range(n_lanes):
+                dist[s, q] = tmp[0, q]
+            for t in range(3):
+                for q in range(n_lanes):
+                    axis[s, t, q] = tmp[4 + t, q]
         for q in range(n_lanes):  # angular radius (vectorised)
             st = sin_t[s, q]
             theta[s, q] = -1.0 if st < 0.0 else _asin_unit(st)
@@ -360,10 +369,18 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work):
             w = min(max(w, 0.0), 1.0)
             for l in range(order):
                 zh[l, q] = (1.0 - w) * table[j, l] + w * table[j + 1, l]
-        _rotated_zh_lanes(tmp, 4, zh, order, basis, tmp, log, s)
-        for k in range(order * order):
-            for q in range(n_lanes):
-                total[k, q] += log[s, k, q]
+        if keep_logs:
+            _rotated_zh_lanes(tmp, 4, zh, order, basis, tmp, log, s)
+            for k in range(order * order):
+                for q in range(n_lanes):
+                    total[k, q] += log[s, k, q]
+            continue
+        _basis_lanes(tmp, 4, order, basis, tmp)  # the sum alone: each log's terms added as they are formed
+        for l in range(order):
+            zs = _ZH_SCALE[l]
+            for k in range(l * l, (l + 1) * (l + 1)):
+                for q in range(n_lanes):
+                    total[k, q] += zs * zh[l, q] * basis[k, q]
 
 
 def _blocker_log_knots() -> np.ndarray:
