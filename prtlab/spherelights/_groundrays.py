@@ -101,15 +101,27 @@ class MeshBlockers(NamedTuple):
     mesh_balls: np.ndarray | None = None
 
 
+def object_size(local_vertices, scale: float = 1.0) -> float:
+    """The diagonal of the bounding box of an object's vertices in its own frame, times its scale: the length
+    :func:`mesh_blockers` scales its rays' offset by (the largest over the objects), the same at every rigid pose."""
+    v = np.asarray(local_vertices, dtype=np.float64).reshape(-1, 3)
+    return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))) * float(scale) if len(v) else 0.0
+
+
 def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: float = 0.0,
-                  scale: float = 1.0) -> MeshBlockers:
+                  scale: float = 1.0, size: float | None = None) -> MeshBlockers:
     """:class:`MeshBlockers` from world meshes ``[(vertices (V, 3), faces (F, 3))]``, bounding spheres ``(S, 4)``
     (rows ``[x, y, z, r]``; every mesh must lie inside their union) and opaque spheres ``(L, 4)``.
 
     The rays are cast in the frame at ``origin`` turned by ``azimuth`` about ``+Y`` (its ``x`` axis the world's
     ``(cos a, 0, sin a)``) and shrunk by ``scale``: given a ground's own frame, a similarity of the whole scene
-    casts the same rays (the caster computes in float32), and the rule's azimuths turn with the ground."""
+    casts the same rays (the caster computes in float32), and the rule's azimuths turn with the ground.
+    ``size`` (world units): the length the rays' offset off the ground is ``RAY_EPSILON_SCALE`` of
+    (:func:`object_size`: it does not change when an object moves or turns, so a move keeps the other rays'
+    origins and :func:`ground_hits_update` can keep their hits); None: the meshes' bounding-box diagonal at this
+    pose, the caster's own offset."""
     from prtlab.geometry import RayCaster
+    from prtlab.geometry._raycast import RAY_EPSILON_SCALE
 
     o = np.asarray(origin, dtype=np.float64).reshape(3)
     c, s = math.cos(azimuth), math.sin(azimuth)
@@ -124,7 +136,8 @@ def mesh_blockers(meshes, bounds, spheres=(), origin=(0.0, 0.0, 0.0), azimuth: f
         return np.concatenate([local(b[:, :3]), b[:, 3:] / scale], axis=1)
 
     meshes = [(local(v), np.asarray(f, dtype=np.int64)) for v, f in meshes]
-    caster = RayCaster(meshes) if meshes else None
+    epsilon = None if size is None else RAY_EPSILON_SCALE * float(size) / scale
+    caster = RayCaster(meshes, epsilon=epsilon) if meshes else None
     mesh_balls = np.zeros((len(meshes), 4))
     for g, (v, _) in enumerate(meshes):
         if len(v):

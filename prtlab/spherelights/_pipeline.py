@@ -74,7 +74,7 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 from ._fit import fit_spheres
 from ._ground import ground_light, ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
-                          ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers)
+                          ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
@@ -805,11 +805,13 @@ class SphereLights(Precomputation):
         their names, in this order; in the frame of the first ground of ``rects``), their lights as
         bounding spheres (a deformed object, which may leave its lights: one ball around its vertices) and the
         local lights as opaque spheres (``_groundrays.MeshBlockers``)."""
-        meshes, bounds = [], []
+        meshes, bounds, size = [], [], 0.0
         spheres = np.concatenate([lights.centres, lights.radii[:, None]], axis=1)
         for g, name in enumerate(sources):
             obj = self.scene.object(name)
             tr = state.transforms.get(name) or obj.transform
+            local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
+            size = max(size, object_size(local, tr.scale))
             if name in state.deformations:
                 verts = tr.apply_points(np.asarray(state.deformations[name], dtype=np.float64))
                 centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
@@ -821,7 +823,7 @@ class SphereLights(Precomputation):
         ground = rects[0]  # the rays in the first ground's frame (its centre, edge u and half length)
         return (meshes, np.concatenate(bounds or [np.zeros((0, 4))]), spheres[lights.n_sl:],
                 np.array([ground[1], ground[0], ground[2]]), math.atan2(ground[4], ground[3]),
-                math.hypot(ground[3], ground[4]))
+                math.hypot(ground[3], ground[4]), size)
 
     #: Directions of the rays of ``mesh_blockers`` (``_meshdirect``; docs/notes/spherelights.md).
     _MESH_DIRECTIONS = 1024

@@ -224,8 +224,9 @@ def _moved(state, name, **change):
 def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
     """Frames through one pipeline, one object or two moving (translated, turned, scaled, deformed), the ground
     moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
-    total array), and where the meshes' bounding box (so the rays' offset) stays the same the grounds' rays are
-    partly kept (``info["geometry"]["updated"]``, rays kept and cast)."""
+    total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
+    a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
+    cast)."""
     scene, pre = bunny_scene
     pre.frame_reuse.clear()
     rest = FrameState.from_scene(scene)
@@ -239,8 +240,13 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         ("one moved", up, True, True),
         ("two moved", _moved(up, "sphere_orange", translate=np.asarray(orange.translate) + [0.0, 1e-3, 0.0]), True,
          True),
-        ("turned", _moved(rest, "sphere_green", rotate_deg=np.asarray(green.rotate_deg) + [0.0, 0.5, 0.0]), None,
+        ("turned", _moved(rest, "sphere_green", rotate_deg=np.asarray(green.rotate_deg) + [0.0, 0.5, 0.0]), True,
          True),
+        # 5 cm sideways: the meshes' bounding box changes, the rays' offset (the objects' own sizes) does not
+        ("moved far", _moved(rest, "sphere_green", translate=np.asarray(green.translate) + [0.05, 0.0, -0.03]), True,
+         True),
+        ("moved far again", _moved(rest, "sphere_green", translate=np.asarray(green.translate) + [0.08, 0.0, -0.05]),
+         True, True),
         ("scaled", _moved(rest, "sphere_green", scale=green.scale * 0.99), None, True),
         ("deformed", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.99, 1.0]}), None, True),
         ("deformed again", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.985, 1.0]}), None, True),
