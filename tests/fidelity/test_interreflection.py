@@ -22,8 +22,9 @@ precomputed with the bunny at pose A (moved and turned away) and moved to B by a
 :class:`prtlab.pipeline.FrameState`: at the defaults (the paper's basis plus the residual gather, the direct light
 by shadow rays), with the paper's method (``prtlab.interreflection.PAPER_OPTIONS``) and with the
 basis trained with the other objects' shadows and no gather (the former defaults). The reference is Mitsuba at
-B for every case. Bunny vertices on the floor facing into it (its bottom) are left out (``docs/DECISIONS.md``). The open room corner
-(``interreflection_corner``, issue 18: a torus 3 cm above the floor of a corner of two walls, a box, a near
+B for every case. Bunny vertices on the floor facing into it (its bottom) are left out (``docs/DECISIONS.md``).
+The open room corner (``interreflection_corner``, issue 18: a torus 3 cm above the floor of a corner of two
+walls, a box, a near
 1 x 1 area light) precomputed in place and with the torus 1.16 m away then moved back by a FrameState,
 scored per object against the module's goals and the issue's binding bounds (total 10 %, indirect 20 %); and
 the corner precomputed as it ships, then its area light moved and turned, or its torus moved beside the box, by a
