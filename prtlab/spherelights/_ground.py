@@ -47,7 +47,8 @@ from prtlab._tasks import run_tasks, task_threads
 from ._shadows import _adjust
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "GroundSamples",
-           "ground_samples", "ground_sample_sums", "ground_raster", "ground_texture"]
+           "ground_samples", "ground_sample_sums", "ground_raster", "ground_texture", "covered_texels",
+           "fill_covered"]
 
 
 def ground_rectangles(objects, transforms=None) -> np.ndarray:
@@ -675,3 +676,87 @@ def ground_sample_sums(samples: GroundSamples, textures, env_sh, local_radiance=
                         np.ascontiguousarray(np.nan_to_num(loc)), np.ascontiguousarray(textures, dtype=np.float64),
                         hidden, reflected)
     return hidden, reflected
+
+
+def _winding_numbers(points, vertices, faces) -> np.ndarray:
+    """``(P,)`` generalised winding numbers of a triangle mesh at ``points (P, 3)`` (1 inside a closed, outward
+    oriented mesh, 0 outside; Van Oosterom and Strackee's solid angle per triangle, summed over ``4 pi``)."""
+    tri = vertices[faces]  # (F, 3, 3)
+    out = np.zeros(len(points))
+    block = max(1, (1 << 21) // max(len(faces), 1))
+    for s in range(0, len(points), block):
+        d = tri[None] - points[s:s + block, None, None, :]  # (B, F, 3, 3)
+        a, b, c = d[:, :, 0], d[:, :, 1], d[:, :, 2]
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", a, c) * lb
+               + np.einsum("pfi,pfi->pf", b, c) * la)
+        out[s:s + block] = np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
+    return out
+
+
+def covered_texels(rectangle, resolution: int, meshes) -> np.ndarray:
+    """``(R, R)`` bool: the texel centres of a ground rectangle (a :func:`ground_rectangles` row; ``R =
+    resolution`` cells per edge, centres at ``c + a u + b v`` with ``a, b = -1 + (i + 1/2) 2 / R``, the layout
+    :func:`ground_sample_sums` reads) that an object covers: inside a closed mesh resting on or sunk into the ground
+    (tested just above the ground, at ``1e-6`` of the rectangle's size).
+
+    Parameters
+    ----------
+    rectangle : (7,) float
+    resolution : int
+    meshes : iterable of ((V, 3) float, (F, 3) int)
+        World vertices and faces of closed, outward-oriented meshes (other meshes give meaningless answers).
+    """
+    y0, cx, cz, ux, uz, vx, vz = (float(x) for x in np.asarray(rectangle, dtype=np.float64).reshape(7))
+    k = int(resolution)
+    a = -1.0 + (np.arange(k) + 0.5) * (2.0 / k)
+    aa, bb = np.meshgrid(a, a, indexing="ij")
+    size = 2.0 * max(math.hypot(ux, uz), math.hypot(vx, vz), 1e-300)
+    lift = 1e-6 * size
+    pts = np.stack([cx + aa * ux + bb * vx, np.full_like(aa, y0 + lift), cz + aa * uz + bb * vz], -1).reshape(-1, 3)
+    covered = np.zeros(len(pts), dtype=bool)
+    for verts, faces in meshes:
+        verts = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+        if len(faces) == 0 or verts[:, 1].min() > y0 + lift:
+            continue  # above the ground: it covers nothing
+        lo, hi = verts.min(axis=0), verts.max(axis=0)
+        near = ~covered & (pts[:, 0] >= lo[0]) & (pts[:, 0] <= hi[0]) & (pts[:, 2] >= lo[2]) & (pts[:, 2] <= hi[2])
+        idx = np.nonzero(near)[0]
+        if len(idx):
+            covered[idx] = _winding_numbers(pts[idx], verts, faces) > 0.5
+    return covered.reshape(k, k)
+
+
+def fill_covered(texture, covered) -> np.ndarray:
+    """A ground texture ``(R, R, C)`` whose ``covered (R, R)`` texels (:func:`covered_texels`) take their uncovered
+    neighbours' values: ring by ring from the footprint's edge inward, each texel the mean of its already known
+    8-neighbours (the others unchanged, bit for bit).
+
+    The covered ground is never seen; what a receiver beside the object sees is the ground at the footprint's
+    edge, and the bilinear lookup there reads the texels on both sides of the edge, so a covered texel must hold the
+    light just outside it, not its own darkness. A texture covered everywhere is returned unchanged.
+    """
+    tex = np.array(texture, dtype=np.float64)
+    cov = np.asarray(covered, dtype=bool)
+    if cov.shape != tex.shape[:2]:
+        raise ValueError(f"covered must have shape {tex.shape[:2]} (the texture's first two axes), got {cov.shape}")
+    known = ~cov
+    if known.all() or not known.any():
+        return tex
+    r0, r1 = tex.shape[:2]
+    while not known.all():
+        pad_k = np.pad(known, 1)
+        pad_v = np.pad(np.where(known[..., None], tex, 0.0), ((1, 1), (1, 1), (0, 0)))
+        count = np.zeros((r0, r1))
+        total = np.zeros(tex.shape)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di or dj:
+                    count += pad_k[1 + di:1 + di + r0, 1 + dj:1 + dj + r1]
+                    total += pad_v[1 + di:1 + di + r0, 1 + dj:1 + dj + r1]
+        ring = ~known & (count > 0)
+        tex[ring] = total[ring] / count[ring][:, None]
+        known = known | ring
+    return tex

@@ -1,6 +1,7 @@
 """The spherical-lights pipeline (Guerrero et al. 2008) against Mitsuba 3 on its paper's Fig. 8 scenes at
-reduced size, plus three touching spheres (``three_spheres_env``) and the tiny ball with two bounces (through the
-ground, ``bounces=2``), every object scored (the ground and each
+reduced size, plus three touching spheres (``three_spheres_env``), the tiny ball with two bounces (through the
+ground, ``bounces=2``) and a box resting on the ground (its indirect light read from the ground's texture at the
+foot of its walls; ``docs/notes/spherelights.md``, "A box on the ground"), every object scored (the ground and each
 object; direct, indirect and total), with the default options (the ground hides and reflects, ``ground="reflects"``;
 each receiver's two largest one-sphere neighbours block exactly, ``near_blockers=2``; the ground shaded against the
 objects' meshes, ``ground_shading="rays"``; the objects' direct light against the meshes, ``mesh_blockers=True``; the lights'
@@ -44,7 +45,7 @@ SPP_FOR = {"moved sphere": 16384}
 GRID = 24  # the sphere fit's voxel grid (the slow tier uses 40)
 DIRECT_GOAL = 0.05
 INDIRECT_GOAL = {"tiny ball, 2 bounces": 0.15, "spheres": 0.15, "three touching spheres": 0.15, "tiny ball": 0.15, "moved sphere": 0.15, "cube (8 spheres)": 0.15,
-                 "bunny (16 spheres)": 0.20}
+                 "box on the ground": 0.15, "bunny (16 spheres)": 0.20}
 MOVED = Transform(translate=np.array([-0.6, 0.5, 0.5]), rotate_deg=np.array([30.0, 0.0, 20.0]))
 
 
@@ -92,6 +93,19 @@ def _cube():
     return sc
 
 
+def _box_on_ground():
+    """A box of 486 vertices resting on the ground, its faces along the axes (no plane vertex on its walls): its
+    indirect light is the ground's, read at the foot of its walls beside the footprint."""
+    sc = _small(prtlab.load_scene("spheres_on_plane_env"))
+    box = prtlab.scene.Scene.from_dict({
+        "objects": [{"name": "box", "mesh": {"builtin": "box", "size": [0.6, 0.6, 0.6], "subdivisions": 3},
+                     "transform": {"translate": [0.35, 0.3, 0.05]},
+                     "material": {"type": "diffuse", "albedo": [0.8, 0.5, 0.2]}, "dynamic": True}],
+        "lights": [{"type": "environment", "constant": [1, 1, 1]}]}).objects[0]
+    sc.objects = [o for o in sc.objects if o.name == "plane"] + [box]
+    return sc
+
+
 # name: (scene precomputed, options, scene Mitsuba renders, frame transforms applied before shading)
 CASES = {
     "tiny ball": (lambda: prtlab.load_scene("tiny_ball_env"), {"n_spheres": 1}, None, {}),
@@ -100,6 +114,7 @@ CASES = {
     "three touching spheres": (_three, {"n_spheres": 1}, None, {}),
     "moved sphere": (_spheres, {"n_spheres": 1}, _moved_spheres, {"sphere_red": MOVED}),
     "cube (8 spheres)": (_cube, {"n_spheres": 8}, None, {}),
+    "box on the ground": (_box_on_ground, {"n_spheres": 8}, None, {}),
     "bunny (16 spheres)": (_bunny, {"n_spheres": {"bunny": 16, "sphere_green": 1, "sphere_orange": 1}}, None, {}),
 }
 #: cases shaded (and rendered by Mitsuba) with two bounces: ball -> ground -> ball and ground -> ball -> ground
@@ -111,6 +126,7 @@ OBJECTS = {
     "three touching spheres": ("plane", "sphere_left", "sphere_middle", "sphere_right"),
     "moved sphere": ("plane", "sphere_red", "sphere_white", "sphere_blue"),
     "cube (8 spheres)": ("plane", "cube"),
+    "box on the ground": ("plane", "box"),
     "bunny (16 spheres)": ("plane", "bunny", "sphere_green", "sphere_orange"),
 }
 
