@@ -333,7 +333,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
-    with the ground hiding the environment from the samples, the ground's texture (``"rays"``: its direct light
+    with the ground hiding the environment from the samples, the ground's texture (the texels under an object filled; ``"rays"``: its direct light
     against the objects' meshes, ``_object_meshes``; ``"lights"``: a shadows-only pass and the near blockers at its
     texels), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
     and, above the ground, ``ground_light`` testing the eligible lights unadjusted; the ground's receivers last from
@@ -348,7 +348,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
     cast); the objects' occluders are ``mesh_parts``'. ``moved``: ``(object, translation (3,))``, that object (its
     lights, receivers, surface samples, mesh and occluder) translated (:func:`_translated`)."""
-    from prtlab.spherelights._ground import ground_sample_sums, ground_samples
+    from prtlab.spherelights._ground import covered_texels, fill_covered, ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers, object_size)
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
@@ -416,7 +416,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     else:
         e = _ground_direct(a, texels, up)
         near(texels, up, e, -1)
-    tex = (np.maximum(e, 0.0) * albedo).reshape(1, 64, 64, 3)
+    covered = reuse.get(("covered_texels", "ground"), (rect[0], 64, meshes),
+                        lambda: covered_texels(rect[0], 64, meshes))  # SphereLights._covered
+    tex = fill_covered((np.maximum(e, 0.0) * albedo).reshape(64, 64, 3), covered)[None]
     out, radiance = [], []
     for own in range(0 if rays else -1, int(obj.max()) + 1):
         rows = a["recv_object"] == own

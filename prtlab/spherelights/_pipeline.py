@@ -72,7 +72,8 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import ground_light, ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture
+from ._ground import (covered_texels, fill_covered, ground_light, ground_objects, ground_raster, ground_sample_sums,
+                      ground_samples, ground_texture)
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
                           ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
@@ -604,7 +605,7 @@ class SphereLights(Precomputation):
             direct = direct + self._pass(lights, p, n, lights.local_only, True)[1]
         return direct, ind
 
-    def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, transforms) -> np.ndarray:
+    def _emission(self, lights: _FrameLights, world: WorldLights, rects, ground_below, state) -> np.ndarray:
         """The first pass (Eqs. 3-11): emission ``(S, n*n, 3)`` of the spherical lights, or with
         ``emission_coverage`` ``(2, S, n*n, 3)``: the paper's, then the one weighted by the segments' projected
         coverage (:func:`coverage_weights`). The surface samples also
@@ -619,7 +620,7 @@ class SphereLights(Precomputation):
                 extra[svalid] += self._pass(lights, spts[svalid], snrm[svalid], lights.local_only, True)[1]
             if ground_below:  # ground -> object: the ground's direct light reaches the samples
                 tex = self._ground_textures(ground_below, lambda p, n, _: self._irradiance(
-                    lights, p, n, lights.local_only, False, near=False)[0], transforms)
+                    lights, p, n, lights.local_only, False, near=False)[0], state)
                 extra[svalid] += ground_light(spts[svalid], snrm[svalid], rects, tex, lights.env, lights.centres,
                                               lights.radii, lights.local_radiance)[1]
         m = opts.light_order
@@ -698,7 +699,7 @@ class SphereLights(Precomputation):
         emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
         own_emission = None  # with ``emission_coverage``: the paper's emission, for the lights' own object
         if bounces > 0 and n_sl:
-            first = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [], state.transforms)
+            first = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [], state)
             if opts.emission_coverage:
                 own_emission = emission.copy()
                 own_emission[:n_sl], emission[:n_sl] = first
@@ -715,10 +716,10 @@ class SphereLights(Precomputation):
         textures = np.zeros((len(grounds), 1, 1, 3))
         if reflects and ground_direct is not None:  # its indirect light (two bounces) stays the second pass's
             textures = self._ground_textures(grounds, lambda p, n, name: ground_direct(p, n, name) + (
-                self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state.transforms)
+                self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state)
         elif reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
             textures = self._ground_textures(grounds, lambda p, n, _: sum(
-                self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state.transforms)
+                self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state)
         nodes = None
         receivers = {}  # world points and normals per object, for the grounds' gathered light
         local_direct = {}  # the local lights' direct light at the grounds (with rays, the rest is added below)
@@ -902,19 +903,23 @@ class SphereLights(Precomputation):
         visible, _ = reuse.get(("mesh_direct", obj.name), key, compute, update)
         return mesh_direct_sums(visible, nrm, lights.env, rot, dirs)
 
-    def _ground_textures(self, grounds, irradiance, transforms) -> np.ndarray:
+    def _ground_textures(self, grounds, irradiance, state: FrameState) -> np.ndarray:
         """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals, ground's
         name) (P, 3)``:
-        with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), else at
+        with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), the
+        texels under a closed object resting on or sunk into the ground given their uncovered neighbours' light
+        (:meth:`_covered`, ``fill_covered``: what a receiver at the object's foot reads across its wall); else at
         the ground's vertices, interpolated over its mesh (rasters cached per ground mesh)."""
         k = self.options.ground_texels
+        transforms = state.transforms
         out = []
         for obj, row in grounds:
             albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
             if k:
                 pts = _rectangle_grid(row, k).reshape(-1, 3)
                 e = irradiance(pts, np.broadcast_to([0.0, 1.0, 0.0], pts.shape), obj.name)
-                out.append(np.maximum(e, 0.0).reshape(k, k, 3) * albedo)
+                lit = np.maximum(e, 0.0).reshape(k, k, 3) * albedo
+                out.append(fill_covered(lit, self._covered(obj, row, k, state)))
                 continue
             tr = transforms.get(obj.name) or obj.transform
             e = irradiance(obj.world_shading_points(tr), obj.world_normals(tr), obj.name)
@@ -923,6 +928,20 @@ class SphereLights(Precomputation):
                 cache[obj.name] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
             out.append(ground_texture(cache[obj.name][1], np.maximum(e, 0.0) * albedo))
         return np.ascontiguousarray(np.stack(out))
+
+    def _covered(self, ground, row, k: int, state: FrameState) -> np.ndarray:
+        """``(k, k)`` bool: the texels of ``ground``'s texture under a source object at the frame's pose (deformed
+        as the frame says) resting on or sunk into it (``covered_texels``: inside by the generalised winding number,
+        so a closed surface with split vertices counts; an open one covers where it encloses more than half the
+        sphere); kept in :attr:`frame_reuse` while the rectangle and the objects' world vertices stay."""
+        meshes = []
+        for name in sorted(self.data["objects"]):
+            obj = self.scene.object(name)
+            tr = state.transforms.get(name) or obj.transform
+            local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
+            meshes.append((tr.apply_points(np.asarray(local, dtype=np.float64)), np.asarray(obj.mesh.faces)))
+        inputs = (np.asarray(row, dtype=np.float64), int(k), meshes)
+        return self.frame_reuse.get(("covered_texels", ground.name), inputs, lambda: covered_texels(row, k, meshes))
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
 
