@@ -333,9 +333,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     """One frame as ``SphereLights.shade_frame`` runs it with the default options and the ground (``bounces=1``,
     ``ground="reflects"``, ``ground_texels=64``, ``ground_shading``, ``near_blockers``, ``emission_order``, HYB,
     per-object blocking): the near blockers' correction at the surface samples (``_near_samples``), the first pass
-    with the ground hiding the environment from the samples, the ground's texture (the texels under an object filled; ``"rays"``: its direct light
+    with the ground hiding the environment from the samples, the ground's texture (``"rays"``: its direct light
     against the objects' meshes, ``_object_meshes``; ``"lights"``: a shadows-only pass and the near blockers at its
-    texels), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
+    texels; the texels under an object filled), then per receiving object the second pass, the near blockers (the object's own lights not eligible)
     and, above the ground, ``ground_light`` testing the eligible lights unadjusted; the ground's receivers last from
     the rays (their direct light and the light gathered from the objects' radiance; ``"lights"``: first, as any
     receiver, less ``ground_light``), cast where ``ground_ray_spacing`` (the option) says. With ``mesh_parts``
