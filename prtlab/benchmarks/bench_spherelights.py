@@ -416,8 +416,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     else:
         e = _ground_direct(a, texels, up)
         near(texels, up, e, -1)
-    covered = reuse.get(("covered_texels", "ground"), (rect[0], 64, meshes),
-                        lambda: covered_texels(rect[0], 64, meshes))  # SphereLights._covered
+    covered = np.zeros((64, 64), dtype=bool)  # SphereLights._covered: per object, kept while it stays
+    for g, mesh in enumerate(meshes):
+        covered |= reuse.get(("covered_texels", "ground", g), (rect[0], 64, mesh),
+                             lambda: covered_texels(rect[0], 64, [mesh]))
     tex = fill_covered((np.maximum(e, 0.0) * albedo).reshape(64, 64, 3), covered)[None]
     out, radiance = [], []
     for own in range(0 if rays else -1, int(obj.max()) + 1):

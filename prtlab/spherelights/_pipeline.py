@@ -933,15 +933,16 @@ class SphereLights(Precomputation):
         """``(k, k)`` bool: the texels of ``ground``'s texture under a source object at the frame's pose (deformed
         as the frame says) resting on or sunk into it (``covered_texels``: inside by the generalised winding number,
         so a closed surface with split vertices counts; an open one covers where it encloses more than half the
-        sphere); kept in :attr:`frame_reuse` while the rectangle and the objects' world vertices stay."""
-        meshes = []
+        sphere); each object's texels kept in :attr:`frame_reuse` while the rectangle and its world vertices stay."""
+        covered = np.zeros((k, k), dtype=bool)
         for name in sorted(self.data["objects"]):
             obj = self.scene.object(name)
             tr = state.transforms.get(name) or obj.transform
             local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
-            meshes.append((tr.apply_points(np.asarray(local, dtype=np.float64)), np.asarray(obj.mesh.faces)))
-        inputs = (np.asarray(row, dtype=np.float64), int(k), meshes)
-        return self.frame_reuse.get(("covered_texels", ground.name), inputs, lambda: covered_texels(row, k, meshes))
+            mesh = (tr.apply_points(np.asarray(local, dtype=np.float64)), np.asarray(obj.mesh.faces))
+            covered |= self.frame_reuse.get(("covered_texels", ground.name, name), (np.asarray(row), int(k), mesh),
+                                            lambda: covered_texels(row, k, [mesh]))
+        return covered
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
 
