@@ -359,25 +359,35 @@ def _candidates_kernel(points, dirs, spheres, out, counts):
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
-        inside = False
-        for j in range(n_s):
-            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
-            d2 = ox * ox + oy * oy + oz * oz
-            r2 = spheres[j, 3] * spheres[j, 3]
-            if d2 <= r2:
-                inside = True
-                break
-            inv = 1.0 / math.sqrt(d2)
-            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
-            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        inside = _point_cones(points, q, spheres, axis, cos_half)
         for k in range(dirs.shape[0]):
-            hit = inside
-            j = 0
-            while not hit and j < n_s:
-                hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
-                j += 1
-            out[q, k] = hit
+            out[q, k] = inside or _in_a_cone(dirs, k, axis, cos_half)
         _count_row(out, q, counts)
+
+
+@numba.njit(cache=True, inline="always")
+def _point_cones(points, q, spheres, axis, cos_half) -> bool:
+    """Each sphere's cone seen from point ``q`` into ``axis`` (unit, toward its centre) and ``cos_half`` (the
+    cosine of its half angle); True (the rest left unset) when the point lies inside a sphere."""
+    for j in range(spheres.shape[0]):
+        ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+        d2 = ox * ox + oy * oy + oz * oz
+        r2 = spheres[j, 3] * spheres[j, 3]
+        if d2 <= r2:
+            return True
+        inv = 1.0 / math.sqrt(d2)
+        axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+        cos_half[j] = math.sqrt(1.0 - r2 / d2)
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _in_a_cone(dirs, k, axis, cos_half) -> bool:
+    """Whether direction ``k`` lies in one of the cones of :func:`_point_cones` (tested in order, first found)."""
+    for j in range(axis.shape[0]):
+        if axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]:
+            return True
+    return False
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -928,26 +938,9 @@ def _candidates_within(points, dirs, spheres, zone, out):
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
-        inside = False
-        for j in range(n_s):
-            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
-            d2 = ox * ox + oy * oy + oz * oz
-            r2 = spheres[j, 3] * spheres[j, 3]
-            if d2 <= r2:
-                inside = True
-                break
-            inv = 1.0 / math.sqrt(d2)
-            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
-            cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        inside = _point_cones(points, q, spheres, axis, cos_half)
         for k in range(dirs.shape[0]):
-            hit = False
-            if zone[q, k]:
-                hit = inside
-                j = 0
-                while not hit and j < n_s:
-                    hit = axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]
-                    j += 1
-            out[q, k] = hit
+            out[q, k] = zone[q, k] and (inside or _in_a_cone(dirs, k, axis, cos_half))
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
