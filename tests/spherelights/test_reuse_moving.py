@@ -2,22 +2,18 @@
 ``SphereLights.frame_reuse``): every frame equal to a fresh cast's or a fresh pipeline's, bit for bit, and rays in
 fact kept."""
 
-import copy
 import dataclasses
 
 import numpy as np
 import pytest
 
-import prtlab
-import prtlab.data
 from prtlab.geometry import builtin_mesh
 from prtlab.pipeline import FrameState
-from prtlab.spherelights import SphereLights
 from prtlab.spherelights._groundrays import (ground_direct_hits, ground_direct_sums, ground_hits_update,
                                              ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers)
-from prtlab.spherelights._meshdirect import (fibonacci_directions, inner_spheres, mesh_direct_visible,
+from prtlab.spherelights._meshdirect import (fibonacci_directions, mesh_direct_visible,
                                              mesh_direct_visible_update, mesh_occluder, self_blocked)
-from prtlab.spherelights._reuse import FrameReuse
+from tests.spherelights.test_reuse import _fresh, _moved, bunny_scene  # noqa: F401 (a fixture)
 
 RULE = ground_ray_rule(32, 8)
 # balls on a 6 x 6 ground: the four outer ones set the meshes' bounding box (so the rays' offset stays the same
@@ -194,31 +190,11 @@ def test_kept_visible_rays_equal_a_fresh_computation(rng):
 # ------------------------------------------------------------------ the pipeline: one object of several moving
 
 
-@pytest.fixture(scope="module")
-def bunny_scene():
-    scene = prtlab.load_scene(prtlab.data.scene_path("bunny_spheres_env"))
-    pre = SphereLights.precompute(scene, {"n_spheres": {"bunny": 4, "sphere_green": 1, "sphere_orange": 1},
-                                          "fit_resolution": 12}, cache=False, progress=False)
-    return scene, pre
-
-
-def _fresh(pre):
-    """A pipeline with the same precomputation and nothing kept from any frame."""
-    other = copy.copy(pre)
-    other.__dict__["_frame_reuse"] = FrameReuse()
-    return other
-
-
 def _same(a, b):
     for part in ("direct", "indirect", "total"):
         assert sorted(getattr(a, part)) == sorted(getattr(b, part))
         for name in getattr(b, part):
             assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name]), f"{part} {name}"
-
-
-def _moved(state, name, **change):
-    tr = state.transforms.get(name)
-    return dataclasses.replace(state, transforms={**state.transforms, name: dataclasses.replace(tr, **change)})
 
 
 def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
