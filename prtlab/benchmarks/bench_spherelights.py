@@ -492,6 +492,15 @@ def _translated(a, meshes, mesh_parts, own: int, shift):
     return a, meshes, mesh_parts
 
 
+def _ground_frame_arrays(quick: bool):
+    """The arrays of the frames with the ground's rays: the scene, the texels, their normal, the ground's
+    rectangle, the objects' meshes and their own-mesh bits and occluders (``_mesh_direct_parts``)."""
+    a = _scene_arrays(_n(quick))
+    texels, up, _, rect = _ground_texels(a)
+    meshes = _object_meshes(a)
+    return a, texels, up, rect, meshes, _mesh_direct_parts(a, meshes)
+
+
 @case("spherelights.frame.per_object_ground_near.21k")
 def frame_per_object_ground_near(quick: bool) -> dict:
     """The frame of the pipeline's defaults with the ground (``_default_frame``: ``ground_shading="rays"`` with
@@ -500,10 +509,7 @@ def frame_per_object_ground_near(quick: bool) -> dict:
     cast once, not timed, as the pipeline keeps them), as a frame where the geometry changes: nothing is reused
     from the frame before (a fresh ``FrameReuse`` each frame: every ray cast); peer: the ground and the objects'
     direct light through the spherical lights (``ground_shading="lights"``, ``mesh_blockers=False``)."""
-    a = _scene_arrays(_n(quick))
-    texels, up, _, rect = _ground_texels(a)
-    meshes = _object_meshes(a)
-    parts = _mesh_direct_parts(a, meshes)
+    a, texels, up, rect, meshes, parts = _ground_frame_arrays(quick)
     return {"run": lambda: _default_frame(a, texels, up, rect, meshes, mesh_parts=parts),
             "gflop": _frame_flops(a, "object", True), "items": _n(quick),
             "peer": ("the ground and the objects' direct light through the lights (ground_shading='lights', "
@@ -523,10 +529,7 @@ def frame_per_object_ground_near_relit(quick: bool) -> dict:
     from prtlab import sh
     from prtlab.spherelights._reuse import FrameReuse
 
-    a = _scene_arrays(_n(quick))
-    texels, up, _, rect = _ground_texels(a)
-    meshes = _object_meshes(a)
-    parts = _mesh_direct_parts(a, meshes)
+    a, texels, up, rect, meshes, parts = _ground_frame_arrays(quick)
     reuse = FrameReuse()
     turns = [0]
     axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
@@ -545,8 +548,8 @@ def frame_per_object_ground_near_relit(quick: bool) -> dict:
             "floor": floor(*frame_floor(a, "object", True), FLOOR_FORMULA)}
 
 
-#: The object of ``per_object_ground_near_move_one`` (a ball beside the squirrel, setting none of the meshes' bounding
-#: box's extremes, so the rays' offset stays the same) and its translations: ``x`` by ``0.05 sin(0.7 n)`` at frame n.
+#: The object of ``per_object_ground_near_move_one`` (a ball beside the squirrel) and its translations: ``x`` by
+#: ``0.05 sin(0.7 n)`` at frame n.
 MOVING_OBJECT = 2
 
 
@@ -559,15 +562,13 @@ def frame_per_object_ground_near_move_one(quick: bool) -> dict:
     """The frame of ``per_object_ground_near`` when one object moves: a ball (:data:`MOVING_OBJECT`) translated each
     frame to a place it has not had before (:func:`moving_translation`), through one kept ``FrameReuse`` as
     ``SphereLights`` keeps it: the ground's and the texels' rays that cannot meet the ball in either place are kept
-    (``_groundrays.ground_hits_update``), the rest (the objects' visible rays, ``ground_light``'s samples, the near
-    blockers' caps: their inputs all changed) computed; peer: the same frames with nothing reused (every ray
-    cast)."""
+    (``_groundrays.ground_hits_update``), and the other objects' visible rays that cannot meet it
+    (``_meshdirect.mesh_direct_visible_update``); the rest (the ball's own receivers, ``ground_light``'s samples,
+    the near blockers' caps: their inputs all changed) computed; peer: the same frames with nothing reused (every
+    ray cast)."""
     from prtlab.spherelights._reuse import FrameReuse
 
-    a = _scene_arrays(_n(quick))
-    texels, up, _, rect = _ground_texels(a)
-    meshes = _object_meshes(a)
-    parts = _mesh_direct_parts(a, meshes)
+    a, texels, up, rect, meshes, parts = _ground_frame_arrays(quick)
     reuse = FrameReuse()
     frames = [0]
 
