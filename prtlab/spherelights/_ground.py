@@ -678,9 +678,18 @@ def ground_sample_sums(samples: GroundSamples, textures, env_sh, local_radiance=
     return hidden, reflected
 
 
-def _winding_numbers(points, vertices, faces) -> np.ndarray:
+def _winding_numbers(points, vertices, faces, method: str = "numba") -> np.ndarray:
     """``(P,)`` generalised winding numbers of a triangle mesh at ``points (P, 3)`` (1 inside a closed, outward
-    oriented mesh, 0 outside; Van Oosterom and Strackee's solid angle per triangle, summed over ``4 pi``)."""
+    oriented mesh, 0 outside; Van Oosterom and Strackee's solid angle per triangle, summed over ``4 pi``). A point
+    in a face's plane inside the face (``num = 0``, whose sign would pick ``+pi`` or ``-pi``) takes ``+pi``, so a
+    point on a closed surface gets 1 (covered), not 0 or 1 by the sign of a rounded zero.
+    ``method="numba"``: :func:`_winding_kernel` (parallel over the points, the faces summed in order);
+    ``"reference"``: numpy, the specification (its sums pairwise: the two agree to rounding)."""
+    if method == "numba":
+        out = np.empty(len(points))
+        _winding_kernel(np.ascontiguousarray(points, dtype=np.float64),
+                        np.ascontiguousarray(np.asarray(vertices, dtype=np.float64)[faces]), out)
+        return out
     tri = vertices[faces]  # (F, 3, 3)
     out = np.zeros(len(points))
     block = max(1, (1 << 21) // max(len(faces), 1))
@@ -691,15 +700,39 @@ def _winding_numbers(points, vertices, faces) -> np.ndarray:
         num = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
         den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", a, c) * lb
                + np.einsum("pfi,pfi->pf", b, c) * la)
-        out[s:s + block] = np.arctan2(num, den).sum(axis=1) / (2.0 * np.pi)
+        angle = np.arctan2(num, den)
+        angle = np.where(num == 0.0, np.abs(angle), angle)  # a point in a face's plane: +pi inside it, not -0.0's -pi
+        out[s:s + block] = angle.sum(axis=1) / (2.0 * np.pi)
     return out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _winding_kernel(points, tri, out):
+    """:func:`_winding_numbers` at each point of ``points (P, 3)`` over the triangles ``tri (F, 3, 3)``."""
+    for q in numba.prange(points.shape[0]):
+        px, py, pz = points[q, 0], points[q, 1], points[q, 2]
+        total = 0.0
+        for f in range(tri.shape[0]):
+            ax, ay, az = tri[f, 0, 0] - px, tri[f, 0, 1] - py, tri[f, 0, 2] - pz
+            bx, by, bz = tri[f, 1, 0] - px, tri[f, 1, 1] - py, tri[f, 1, 2] - pz
+            cx, cy, cz = tri[f, 2, 0] - px, tri[f, 2, 1] - py, tri[f, 2, 2] - pz
+            la = math.sqrt(ax * ax + ay * ay + az * az)
+            lb = math.sqrt(bx * bx + by * by + bz * bz)
+            lc = math.sqrt(cx * cx + cy * cy + cz * cz)
+            num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+            den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc + (ax * cx + ay * cy + az * cz) * lb
+                   + (bx * cx + by * cy + bz * cz) * la)
+            angle = math.atan2(num, den)
+            total += abs(angle) if num == 0.0 else angle  # in the face's plane: the +0.0 side (see the tier)
+        out[q] = total / (2.0 * np.pi)
 
 
 def covered_texels(rectangle, resolution: int, meshes) -> np.ndarray:
     """``(R, R)`` bool: the texel centres of a ground rectangle (a :func:`ground_rectangles` row; ``R =
     resolution`` cells per edge, centres at ``c + a u + b v`` with ``a, b = -1 + (i + 1/2) 2 / R``, the layout
     :func:`ground_sample_sums` reads) that an object covers: inside a closed mesh resting on or sunk into the ground
-    (tested just above the ground, at ``1e-6`` of the rectangle's size).
+    or on its surface (a winding number above ``1/2 - 1e-6``; tested just above the ground, at ``1e-6`` of the
+    rectangle's size).
 
     Parameters
     ----------
@@ -721,11 +754,16 @@ def covered_texels(rectangle, resolution: int, meshes) -> np.ndarray:
         faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
         if len(faces) == 0 or verts[:, 1].min() > y0 + lift:
             continue  # above the ground: it covers nothing
-        lo, hi = verts.min(axis=0), verts.max(axis=0)
+        fy = verts[faces, 1]  # a point inside a closed mesh lies between faces that span its height, in x and z
+        crossing = faces[(fy.min(axis=1) <= y0 + lift) & (fy.max(axis=1) >= y0 + lift)]
+        if len(crossing) == 0:
+            continue
+        lo, hi = verts[crossing].reshape(-1, 3).min(axis=0), verts[crossing].reshape(-1, 3).max(axis=0)
         near = ~covered & (pts[:, 0] >= lo[0]) & (pts[:, 0] <= hi[0]) & (pts[:, 2] >= lo[2]) & (pts[:, 2] <= hi[2])
         idx = np.nonzero(near)[0]
         if len(idx):
-            covered[idx] = _winding_numbers(pts[idx], verts, faces) > 0.5
+            # on the surface the winding number is 1/2 up to rounding: a texel centre there counts as covered
+            covered[idx] = _winding_numbers(pts[idx], verts, faces) > 0.5 - 1e-6
     return covered.reshape(k, k)
 
 

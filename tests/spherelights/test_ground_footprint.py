@@ -114,3 +114,28 @@ def test_contact_light_does_not_depend_on_the_texel_grid():
         values.append(r.indirect["box"][foot, 0])
     values = np.concatenate(values)
     assert np.abs(values / values.mean() - 1).max() < 0.10, values
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_winding_kernel_matches_the_numpy_tier(seed):
+    """``_winding_numbers``' kernel against its numpy tier (the specification) at random points around a turned,
+    shifted icosphere and a box, and at points on the box's faces (in a face's plane: +pi, so 1 on the surface):
+    within rounding, and 1 / 0 well inside / outside."""
+    import trimesh
+
+    from prtlab.spherelights._ground import _winding_numbers
+
+    rng = np.random.default_rng(seed)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.7)
+    meshes = [(np.asarray(ball.vertices) @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + rng.normal(size=3) * 0.1,
+               np.asarray(ball.faces)), _box_mesh([-0.3, 0.0, -0.2], [0.4, 0.5, 0.6])]
+    for v, f in meshes:
+        pts = rng.uniform(-1.2, 1.2, size=(300, 3))
+        fast, ref = _winding_numbers(pts, v, f), _winding_numbers(pts, v, f, method="reference")
+        np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-12)
+        assert np.all((np.abs(fast) < 1e-9) | (np.abs(fast - 1.0) < 1e-9))  # closed: 0 or 1 off the surface
+        assert 0 < np.count_nonzero(fast > 0.5) < len(pts)
+    v, f = meshes[1]
+    on_face = np.column_stack([rng.uniform(-0.29, 0.39, 50), rng.uniform(0.01, 0.49, 50), np.full(50, 0.6)])
+    for method in ("numba", "reference"):
+        np.testing.assert_allclose(_winding_numbers(on_face, v, f, method=method), 1.0, atol=1e-9)
