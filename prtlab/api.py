@@ -285,6 +285,11 @@ def options_reference() -> str:
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
             kind, doc = docs[f.name]
             out.append(f"| `{f.name}` | {_markdown(kind)} | `{default!r}` | {_markdown(doc)} |")
+        paper = getattr(importlib.import_module(module), "PAPER_OPTIONS", None)
+        if paper:
+            out += ["", f"The paper's method: `{module}.PAPER_OPTIONS`, "
+                    + ", ".join(f"`{k}={v!r}`" for k, v in paper.items())
+                    + " (every extension that changes the result off; the benchmark's frames compare against it)."]
         renamed = getattr(cls, "renamed_options", {})
         if renamed:
             out += ["", "Renamed: " + ", ".join(f"`{old}` is now `{new}`" for old, new in sorted(renamed.items()))
