@@ -767,6 +767,35 @@ def covered_texels(rectangle, resolution: int, meshes) -> np.ndarray:
     return covered.reshape(k, k)
 
 
+def covered_points(points, vertices, faces) -> np.ndarray:
+    """``(P,)`` bool: which ``points`` lie inside (or on) the closed mesh ``(vertices, faces)``: a winding number
+    above ``1/2 - 1e-6``, as :func:`covered_texels` decides for its texel centres."""
+    return _winding_numbers(np.asarray(points, dtype=np.float64).reshape(-1, 3),
+                            np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)) > 0.5 - 1e-6
+
+
+def fill_covered_vertices(values, edges, covered) -> np.ndarray:
+    """Per-vertex ``values (V, C)`` whose ``covered (V,)`` vertices take the mean of their already known neighbours
+    along ``edges (E, 2)``, ring by ring from the uncovered ones inward (:func:`fill_covered` on a mesh); the others
+    unchanged, and a vertex with no known neighbour at all left as it is."""
+    out = np.array(values, dtype=np.float64)
+    known = ~np.asarray(covered, dtype=bool)
+    if known.all() or not known.any():
+        return out
+    a, b = np.asarray(edges, dtype=np.int64).T
+    while True:
+        count = np.bincount(a, weights=known[b], minlength=len(out)) + np.bincount(b, weights=known[a],
+                                                                                    minlength=len(out))
+        ready = ~known & (count > 0)
+        if not ready.any():
+            return out
+        total = np.zeros_like(out)
+        np.add.at(total, a, np.where(known[b, None], out[b], 0.0))
+        np.add.at(total, b, np.where(known[a, None], out[a], 0.0))
+        out[ready] = total[ready] / count[ready, None]
+        known = known | ready
+
+
 def fill_covered(texture, covered) -> np.ndarray:
     """A ground texture ``(R, R, C)`` whose ``covered (R, R)`` texels (:func:`covered_texels`) take their uncovered
     neighbours' values: ring by ring from the footprint's edge inward, each texel the mean of its already known

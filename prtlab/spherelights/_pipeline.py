@@ -72,8 +72,8 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import (covered_texels, fill_covered, ground_light, ground_objects, ground_raster, ground_sample_sums,
-                      ground_samples, ground_texture)
+from ._ground import (covered_points, covered_texels, fill_covered, fill_covered_vertices, ground_light,
+                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture)
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
                           ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
@@ -906,10 +906,10 @@ class SphereLights(Precomputation):
     def _ground_textures(self, grounds, irradiance, state: FrameState) -> np.ndarray:
         """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals, ground's
         name) (P, 3)``:
-        with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), the
-        texels under a closed object resting on or sunk into the ground given their uncovered neighbours' light
-        (:meth:`_covered`, ``fill_covered``: what a receiver at the object's foot reads across its wall); else at
-        the ground's vertices, interpolated over its mesh (rasters cached per ground mesh)."""
+        with ``ground_texels = k > 0`` at a ``k x k`` grid of points over the rectangle (its texel centres), else at
+        the ground's vertices, interpolated over its mesh (rasters cached per ground mesh); then the texels under a
+        closed object resting on or sunk into the ground take their uncovered neighbours' light (:meth:`_covered`,
+        ``fill_covered``: what a receiver at the object's foot reads across its wall)."""
         k = self.options.ground_texels
         transforms = state.transforms
         out = []
@@ -926,8 +926,28 @@ class SphereLights(Precomputation):
             cache = self.__dict__.setdefault("_raster_cache", {})
             if obj.name not in cache or cache[obj.name][0] is not obj.mesh:
                 cache[obj.name] = (obj.mesh, ground_raster(obj.mesh, self._RASTER))
-            out.append(ground_texture(cache[obj.name][1], np.maximum(e, 0.0) * albedo))
+            # the vertices under an object first (their darkness would spread past its wall by the interpolation)
+            radiance = fill_covered_vertices(np.maximum(e, 0.0) * albedo, obj.mesh.edges_unique,
+                                             self._covered_points(obj.world_vertices(tr), row, state))
+            out.append(fill_covered(ground_texture(cache[obj.name][1], radiance),
+                                    self._covered(obj, row, self._RASTER, state)))
         return np.ascontiguousarray(np.stack(out))
+
+    def _covered_points(self, points, row, state: FrameState) -> np.ndarray:
+        """``(P,)`` bool: the ground ``points`` (on the rectangle ``row``) under a source object at the frame's pose,
+        tested as :func:`covered_texels` tests its texel centres."""
+        size = 2.0 * max(math.hypot(row[3], row[4]), math.hypot(row[5], row[6]), 1e-300)
+        p = np.array(points, dtype=np.float64).reshape(-1, 3)
+        p[:, 1] = row[0] + 1e-6 * size
+        covered = np.zeros(len(p), dtype=bool)
+        for name in sorted(self.data["objects"]):
+            obj = self.scene.object(name)
+            tr = state.transforms.get(name) or obj.transform
+            local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
+            verts = tr.apply_points(np.asarray(local, dtype=np.float64))
+            if len(p) and verts[:, 1].min() <= p[0, 1]:  # else above the ground: it covers nothing
+                covered |= covered_points(p, verts, np.asarray(obj.mesh.faces))
+        return covered
 
     def _covered(self, ground, row, k: int, state: FrameState) -> np.ndarray:
         """``(k, k)`` bool: the texels of ``ground``'s texture under a source object at the frame's pose (deformed

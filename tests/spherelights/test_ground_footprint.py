@@ -139,3 +139,20 @@ def test_winding_kernel_matches_the_numpy_tier(seed):
     on_face = np.column_stack([rng.uniform(-0.29, 0.39, 50), rng.uniform(0.01, 0.49, 50), np.full(50, 0.6)])
     for method in ("numba", "reference"):
         np.testing.assert_allclose(_winding_numbers(on_face, v, f, method=method), 1.0, atol=1e-9)
+
+
+def test_covered_vertices_take_their_known_neighbours_light():
+    """``covered_points`` marks the points inside (and on) a box; ``fill_covered_vertices`` gives a covered vertex
+    the mean of its known neighbours, ring by ring (a chain 0-1-2-3 with 2 and 3 covered: 2 takes 1's value, then 3
+    takes 2's), leaves the others bit for bit, and a vertex with no known neighbour as it is."""
+    from prtlab.spherelights._ground import covered_points, fill_covered_vertices
+
+    v, f = _box_mesh([0.0, 0.0, 0.0], [1.0, 1.0, 1.0])
+    pts = np.array([[0.5, 1e-6, 0.5], [1.5, 1e-6, 0.5], [1.0, 1e-6, 0.5], [-0.2, 1e-6, 0.3]])
+    np.testing.assert_array_equal(covered_points(pts, v, f), [True, False, True, False])
+    values = np.array([[1.0, 2.0], [3.0, 4.0], [0.0, 0.0], [0.0, 0.0], [7.0, 7.0]])
+    edges = np.array([[0, 1], [1, 2], [2, 3]])
+    out = fill_covered_vertices(values, edges, np.array([False, False, True, True, True]))
+    np.testing.assert_array_equal(out, [[1.0, 2.0], [3.0, 4.0], [3.0, 4.0], [3.0, 4.0], [7.0, 7.0]])
+    two = fill_covered_vertices(values, np.array([[0, 2], [1, 2]]), np.array([False, False, True, False, False]))
+    np.testing.assert_array_equal(two[2], [2.0, 3.0])
