@@ -41,6 +41,7 @@ import numpy as np
 
 from prtlab import sh
 from prtlab._tasks import run_tasks
+from ._meshdirect import _cones
 
 __all__ = ["GroundRayRule", "ground_ray_rule", "MeshBlockers", "mesh_blockers", "ground_direct_rays",
            "ground_gather_rays", "ground_light_rays", "GroundHits", "ground_direct_hits", "ground_direct_sums",
@@ -359,31 +360,15 @@ def _candidates_kernel(points, dirs, spheres, out, counts):
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
-        inside = _point_cones(points, q, spheres, axis, cos_half)
+        inside = _cones(points[q], spheres, axis, cos_half)
         for k in range(dirs.shape[0]):
             out[q, k] = inside or _in_a_cone(dirs, k, axis, cos_half)
         _count_row(out, q, counts)
 
 
 @numba.njit(cache=True, inline="always")
-def _point_cones(points, q, spheres, axis, cos_half) -> bool:
-    """Each sphere's cone seen from point ``q`` into ``axis`` (unit, toward its centre) and ``cos_half`` (the
-    cosine of its half angle); True (the rest left unset) when the point lies inside a sphere."""
-    for j in range(spheres.shape[0]):
-        ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
-        d2 = ox * ox + oy * oy + oz * oz
-        r2 = spheres[j, 3] * spheres[j, 3]
-        if d2 <= r2:
-            return True
-        inv = 1.0 / math.sqrt(d2)
-        axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
-        cos_half[j] = math.sqrt(1.0 - r2 / d2)
-    return False
-
-
-@numba.njit(cache=True, inline="always")
 def _in_a_cone(dirs, k, axis, cos_half) -> bool:
-    """Whether direction ``k`` lies in one of the cones of :func:`_point_cones` (tested in order, first found)."""
+    """Whether direction ``k`` lies in one of the cones of ``_meshdirect._cones`` (tested in order, first found)."""
     for j in range(axis.shape[0]):
         if axis[j, 0] * dirs[k, 0] + axis[j, 1] * dirs[k, 1] + axis[j, 2] * dirs[k, 2] > cos_half[j]:
             return True
@@ -938,7 +923,7 @@ def _candidates_within(points, dirs, spheres, zone, out):
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
-        inside = _point_cones(points, q, spheres, axis, cos_half)
+        inside = _cones(points[q], spheres, axis, cos_half)
         for k in range(dirs.shape[0]):
             out[q, k] = zone[q, k] and (inside or _in_a_cone(dirs, k, axis, cos_half))
 
