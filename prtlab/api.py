@@ -289,7 +289,8 @@ def options_reference() -> str:
         if paper:
             out += ["", f"The paper's method: `{module}.PAPER_OPTIONS`, "
                     + ", ".join(f"`{k}={v!r}`" for k, v in paper.items())
-                    + " (every extension that changes the result off; the benchmark's frames compare against it)."]
+                    + " (every extension of the package that changes the result off; "
+                    + f"`{module}.precompute(scene, {{**options, **PAPER_OPTIONS}})`)."]
         renamed = getattr(cls, "renamed_options", {})
         if renamed:
             out += ["", "Renamed: " + ", ".join(f"`{old}` is now `{new}`" for old, new in sorted(renamed.items()))

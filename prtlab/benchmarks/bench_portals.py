@@ -3,7 +3,7 @@ vertices, Table 1: 70 fps), per pass and whole, and the memory of the 8-bit dire
 
 Two frames: ``portals.frame.default_surface.45k`` is the default (``indirect="auto"``, which is ``"surface"`` for
 this diffuse box: ``cube_resolution`` 64, 1,024 clusters; issue 17's goal: 14 ms on 2 cores); ``portals.frame.45k``
-is the paper's mode (``indirect="paper"``, ``cube_resolution`` 32, order-4 SH; issue 20: at most 5 ms).
+is the paper's mode (``PAPER_OPTIONS``, ``cube_resolution`` 32, order-4 SH; issue 20: at most 5 ms).
 
 The transfer of the box scene (``data/scenes/box_window_sky.yaml``, 2,058 vertices) is precomputed with small
 sample counts and its vertices are repeated to the paper's 44,763 (the per-frame cost depends on the vertex
@@ -23,7 +23,7 @@ import numpy as np
 import prtlab.data
 from prtlab.bench import case, check_same_work, floor, transfer_csr
 from prtlab.wavelet import haar2d
-from prtlab.portals import Portals, direct_pass, indirect_pass, shell_light, shell_sh
+from prtlab.portals import PAPER_OPTIONS, Portals, direct_pass, indirect_pass, shell_light, shell_sh
 from prtlab.portals._surface import SurfaceTransfer, shade_surface
 from prtlab.scene import load_scene
 from prtlab.wavelet import SparseTransfer
@@ -45,7 +45,7 @@ def _tile(sparse: SparseTransfer, n: int) -> SparseTransfer:
 def _frame_data():
     scene = load_scene(SCENE)
     pre = Portals.precompute(scene, {"direct_samples": 256, "n_photons": 50_000, "gather_rays": 32, "order": 4,
-                                     "cube_resolution": 32, "indirect": "paper"}, progress=False)
+                                     "cube_resolution": 32, **PAPER_OPTIONS}, progress=False)
     reps = -(-PAPER_VERTICES // len(pre.data["albedo"]))
     sparse = _tile(pre.direct_transfer(0), PAPER_VERTICES)
     transfer = np.ascontiguousarray(np.tile(pre.indirect_transfer(0), (reps, 1, 1))[:PAPER_VERTICES])
@@ -93,7 +93,7 @@ INDIRECT_FORMULA = "6 n^2 V flops; V n^2 3 itemsize + 24 V bytes"
 
 @case("portals.frame.45k")
 def frame(quick: bool) -> dict:
-    """The paper's mode (``indirect="paper"``, ``cube_resolution=32``, order 4): not the default frame."""
+    """The paper's mode (``prtlab.portals.PAPER_OPTIONS``, ``cube_resolution=32``, order 4): not the default frame."""
     scene, sparse, transfer, albedo = _frame_data()
     env = scene.environment
     csr = _direct_csr()

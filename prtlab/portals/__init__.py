@@ -27,7 +27,7 @@ from ._exterior import exterior_shell
 from ._interior import interior_light_factor, leaving_radiance, leaving_transfer
 from ._indirect import (PhotonMap, disc_coverage, final_gather, phong_lobe_sample, phong_lobe_zh, radiance_estimate,
                         trace_photons)
-from ._pipeline import Portals, PortalsOptions, precompute, shade_scene
+from ._pipeline import PAPER_OPTIONS, Portals, PortalsOptions, precompute, shade_scene
 from ._shade import direct_pass, glossy_direct_pass, glossy_indirect_pass, glossy_lobe_pass, indirect_pass
 from ._shell import Portal, find_portals, frosted, shell_light, shell_sh, tint
 from ._validity import PortalValidityWarning, check_interior_solid_angle, check_shell_distance
@@ -66,6 +66,7 @@ __all__ = [
     "glossy_lobe_pass",
     "glossy_indirect_pass",
     # pipeline
+    "PAPER_OPTIONS",
     "Portals",
     "PortalsOptions",
     "precompute",

@@ -11,7 +11,7 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 """
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
-from ._pipeline import SphereLightOptions, SphereLights, WorldLights, light_motions, precompute, shade_scene
+from ._pipeline import PAPER_OPTIONS, SphereLightOptions, SphereLights, WorldLights, light_motions, precompute, shade_scene
 from ._ground import ground_blocked_transfer, ground_light, ground_raster, ground_rectangles, ground_texture
 from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
                          receiver_clusters, reflection_ratio, select_cut)
@@ -63,6 +63,7 @@ __all__ = [
     "first_pass",
     "second_pass",
     # the pipeline (prtlab.shade(scene, method="spherelights"))
+    "PAPER_OPTIONS",
     "SphereLightOptions",
     "SphereLights",
     "WorldLights",

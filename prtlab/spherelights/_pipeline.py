@@ -61,6 +61,7 @@ import functools
 import math
 import time
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -270,6 +271,17 @@ class SphereLightOptions:
     def light_order(self) -> int:
         """The SH order of the lights' emission: ``max(order, emission_order)``."""
         return max(self.order, self.emission_order)
+
+
+#: The paper's method as options: every extension of this package that changes the result turned off. The
+#: lights' emission at the visibility's order with the paper's average radiance (Eqs. 15-18), grounds that neither
+#: hide nor reflect (Sec. 8: large flat surfaces only receive), every blocker in the SH product ``V_n . T_n``
+#: (Sec. 5.1), the spheres (not the meshes) for the objects' direct light, a light's emission over its whole
+#: sphere, and a hierarchy's reflection ratio fitted at the cluster centre alone (Eq. 25). ``emission_order`` is
+#: fixed by the precomputation; the others are run-time choices. ``SphereLights.precompute(scene, {**options,
+#: **PAPER_OPTIONS})`` shades as the paper does; the fidelity tier's "paper's method" cases use it.
+PAPER_OPTIONS = MappingProxyType({"emission_order": 0, "average": "paper", "ground": "paper", "near_blockers": 0,
+                                  "mesh_blockers": False, "emission_coverage": False, "ratio_samples": 1})
 
 
 def _check_n_spheres(n_spheres) -> None:

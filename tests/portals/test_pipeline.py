@@ -106,6 +106,28 @@ def test_indirect_pass_tiers(rng):
         indirect_pass(t, c, "gpu")
 
 
+def test_the_papers_options_turn_every_extension_off():
+    """``PAPER_OPTIONS`` are options of the pipeline and select the paper's indirect transfer (photons and final
+    gathers, no surface transfer) where the default takes the surface transfer (a diffuse interior), and the
+    paper's view cubemaps for a glossy object (24 per glossy vertex at ``view_res=2``, none by default)."""
+    import dataclasses
+
+    from prtlab.portals import PAPER_OPTIONS, PortalsOptions
+
+    assert set(PAPER_OPTIONS) <= {f.name for f in dataclasses.fields(PortalsOptions)}
+    scene = window_box(cell=0.5)
+    assert Portals.indirect_mode(scene, Portals.make_options(QUICK)) == "surface"
+    paper = Portals.precompute(scene, {**QUICK, **PAPER_OPTIONS}, cache=False, progress=False)
+    assert all(getattr(paper.options, k) == v for k, v in PAPER_OPTIONS.items())
+    assert Portals.indirect_mode(scene, paper.options) == "paper" and "surface" not in paper.data
+    assert np.all(np.isfinite(paper.shade(bounces=1).total["room"]))
+    glossy = _glossy_box_scene()
+    n_block = glossy.object("block").n_vertices
+    for options, views in ((dict(QUICK, view_res=2), 0), (dict(QUICK, view_res=2, **PAPER_OPTIONS), 24)):
+        pre = Portals.precompute(glossy, options, cache=False, progress=False)
+        assert pre.direct_transfer(0, glossy=True).n_vertices == n_block * views
+
+
 def test_validity_criteria():
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -151,6 +151,31 @@ def test_emission_coverage(pre):
         SphereLights.make_options({"emission_coverage": 1})
 
 
+def test_the_papers_options_turn_every_extension_off(pre):
+    """``PAPER_OPTIONS`` are options of the pipeline, and a frame of a scene with a ground shaded with them
+    computes none of the extensions' geometry (no ray against the meshes, no ground term, no near blocker's cap:
+    ``info["geometry"]`` names nothing); each of ``ground="reflects"``, ``mesh_blockers=True`` and
+    ``near_blockers=2`` turned back on computes some. The paper's ground neither hides nor reflects, so the ball's
+    lowest vertex gets more direct light (the environment below the horizon) and no light from the ground."""
+    import dataclasses
+
+    from prtlab.spherelights import PAPER_OPTIONS, SphereLightOptions
+
+    assert set(PAPER_OPTIONS) <= {f.name for f in dataclasses.fields(SphereLightOptions)}
+    opts = {"n_spheres": {"ball": 1, "box": 2}, "fit_resolution": 16}  # the ball's light may block exactly
+    paper = SphereLights.precompute(pre.scene, {**opts, **PAPER_OPTIONS}, cache=False, progress=False)
+    assert all(getattr(paper.options, k) == v for k, v in PAPER_OPTIONS.items())
+    res = paper.shade(bounces=1)
+    assert res.info["geometry"] == {"computed": [], "reused": [], "updated": []}
+    for change in ({"ground": "reflects"}, {"mesh_blockers": True}, {"near_blockers": 2}):
+        again = SphereLights(paper.scene, dataclasses.replace(paper.options, **change), paper.data)
+        assert again.shade(bounces=1).info["geometry"]["computed"], change
+    full = SphereLights(paper.scene, dataclasses.replace(paper.options, ground="reflects"), paper.data).shade(bounces=1)
+    low = int(np.argmin(paper.scene.object("ball").mesh.vertices[:, 1]))
+    assert np.all(res.direct["ball"][low] > full.direct["ball"][low])
+    assert np.all(res.total["ball"] >= 0) and np.all(np.isfinite(res.total["plane"]))
+
+
 def test_objects_with_different_sphere_counts():
     pre = SphereLights.precompute(_scene(), {"n_spheres": {"ball": 1, "box": 3}, "fit_resolution": 12},
                                   cache=False, progress=False)
