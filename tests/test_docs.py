@@ -105,6 +105,16 @@ def test_nothing_refers_outside_the_repository():
     assert not found, "references to files outside the repository:\n" + "\n".join(found)
 
 
+def test_no_document_names_a_scratch_path():
+    """The documents (README, docs/ and its notes) name no file outside the repository by an absolute scratch path
+    (a script a session left in ``/tmp`` is gone for every reader)."""
+    found = []
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"(?<![\w.])/(tmp|work|root|home)/", line):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:100]}")
+    assert not found, "scratch paths in the documents:\n" + "\n".join(found)
+
 @pytest.mark.parametrize("name", prtlab.data.scenes())
 def test_every_shipped_scene_loads(name):
     scene = load_scene(prtlab.data.scene_path(name))
