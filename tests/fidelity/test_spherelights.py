@@ -7,7 +7,8 @@ each receiver's two largest one-sphere neighbours block exactly, ``near_blockers
 objects' meshes, ``ground_shading="rays"``; the objects' direct light against the meshes, ``mesh_blockers=True``; the lights'
 emission toward other objects weighted by their segments' projected coverage, ``emission_coverage=True``), and
 the paper's direct light
-(``near_blockers=0``) on the scenes of one-sphere objects.
+(``near_blockers=0``) on the scenes of one-sphere objects, and the paper's method (``PAPER_OPTIONS``, every
+extension off) on every case.
 
 Goals (issue 16, binding for objects on a ground under a low-frequency sky, one bounce): direct within 5 %
 and indirect within 15 % relative RMS on every object (20 % indirect for the bunny with 16 spheres). The
@@ -34,7 +35,7 @@ import prtlab
 from prtlab.geometry import builtin_mesh
 from prtlab.pipeline import FrameState
 from prtlab.scene import Transform
-from prtlab.spherelights import SphereLights
+from prtlab.spherelights import PAPER_OPTIONS, SphereLights
 
 pytestmark = [pytest.mark.mitsuba, pytest.mark.xdist_group("fidelity-spherelights")]
 
@@ -203,20 +204,25 @@ _PAPER_DIRECT_XFAIL: dict[tuple[str, str, str], str] = {
 }
 
 
-@pytest.fixture(scope="module")
-def paper_direct_comparisons(comparisons):
+def _with_options(comparisons, names, options, label):
+    """``{name: (comparison, reference)}`` of the cases ``names`` precomputed and shaded with ``options`` added,
+    scored against the references of ``comparisons``."""
     out = {}
-    for name in PAPER_DIRECT_CASES:
+    for name in names:
         make, opts, _, moves = CASES[name]
         sc = make()
-        pre = SphereLights.precompute(sc, dict(opts, fit_resolution=GRID, **PAPER_DIRECT), cache=False,
-                                      progress=False)
+        pre = SphereLights.precompute(sc, dict(opts, fit_resolution=GRID, **options), cache=False, progress=False)
         state = FrameState.from_scene(sc)
         state.transforms.update({k: copy.deepcopy(v) for k, v in moves.items()})
         ref = comparisons[name][1]
         out[name] = (prtlab.compare(pre.shade(state, bounces=BOUNCES.get(name, 1)), ref, objects=OBJECTS[name]), ref)
-        print(f"\n{name}, near_blockers=0\n{out[name][0].table()}")
+        print(f"\n{name}, {label}\n{out[name][0].table()}")
     return out
+
+
+@pytest.fixture(scope="module")
+def paper_direct_comparisons(comparisons):
+    return _with_options(comparisons, PAPER_DIRECT_CASES, PAPER_DIRECT, "near_blockers=0")
 
 
 # On the bound: met in one run (0.0780) and missed in another (0.0782) against hypot(goal, noise) = 0.0775, with the
@@ -251,6 +257,126 @@ def test_against_mitsuba(comparisons, name, obj, part):
     cmp, ref = comparisons[name]
     goal = _goal(name, obj, part, ref)
     failures = cmp.check(goal, parts=[part], objects=[obj])  # raises if the reference is too noisy
+    assert not failures, failures
+
+
+#: The paper's method (``PAPER_OPTIONS``: the ground neither hides nor reflects, every blocker in the SH visibility,
+#: the spheres' direct light, the lights' emission at order 4 over their whole spheres, the paper's average radiance)
+#: on every case, against the same references and goals: what the defaults' extensions buy. Its misses are strict
+#: xfails with the measured figures.
+_PAPER_DIRECT_CAUSE = ("too bright (mean ratio above 1): the paper's ground does not hide the sky below the "
+                       "objects' horizon (Sec. 8: it only receives; the defaults' ground='reflects' hides it), with "
+                       "the spheres' order-4 SH shadows in place of the meshes' (mesh_blockers); not isolated per "
+                       "option")
+_PAPER_INDIRECT_CAUSE = ("the paper's ground reflects nothing onto the objects: what is left (mean ratio 0-0.21) is "
+                         "the other objects' light")
+_PAPER_GROUND_INDIRECT_CAUSE = ("the objects, lit from below by the sky the paper's ground does not hide, send the "
+                                "ground too much light (mean ratio above 1; with two bounces the paper has no "
+                                "ground -> object -> ground light either), with the paper's average radiance and "
+                                "emission; not isolated per option")
+_PAPER_GROUND_DIRECT_CAUSE = ("the ground shaded through the spherical lights' order-4 SH shadows (the paper's), not "
+                              "against the objects' meshes (ground_shading='rays'; for the cube and the box, an "
+                              "8-sphere set's shadow is not the mesh's)")
+_PAPER_XFAIL: dict[tuple[str, str, str], str] = {
+    ("tiny ball", "ground", "indirect"): _fig(0.667, 0.047, 0.666, 1.25) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("tiny ball", "ground", "total"): _fig(0.062, 0.013, 0.061, 1.02) + _BOTH,
+    ("tiny ball", "ball", "direct"): _fig(0.193, 0.011, 0.192, 1.13) + _PAPER_DIRECT_CAUSE,
+    ("tiny ball", "ball", "indirect"): _fig(1.000, 0.018, 1.000, 0.00) + _PAPER_INDIRECT_CAUSE,
+    ("tiny ball", "ball", "total"): _fig(0.095, 0.011, 0.095, 0.97) + _BOTH,
+    ("tiny ball, 2 bounces", "ground", "indirect"): _fig(0.401, 0.037, 0.399, 0.94) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("tiny ball, 2 bounces", "ball", "direct"): _fig(0.193, 0.011, 0.192, 1.13) + _PAPER_DIRECT_CAUSE,
+    ("tiny ball, 2 bounces", "ball", "indirect"): _fig(1.000, 0.017, 1.000, 0.00) + _PAPER_INDIRECT_CAUSE,
+    ("tiny ball, 2 bounces", "ball", "total"): _fig(0.083, 0.011, 0.083, 0.95) + _BOTH,
+    ("spheres", "plane", "indirect"): _fig(0.822, 0.048, 0.820, 1.41) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("spheres", "plane", "total"): _fig(0.063, 0.013, 0.062, 1.01) + _BOTH,
+    ("spheres", "sphere_red", "direct"): _fig(0.307, 0.013, 0.307, 1.24) + _PAPER_DIRECT_CAUSE,
+    ("spheres", "sphere_red", "indirect"): _fig(0.903, 0.018, 0.903, 0.15) + _PAPER_INDIRECT_CAUSE,
+    ("spheres", "sphere_red", "total"): _fig(0.147, 0.011, 0.147, 1.04) + _BOTH,
+    ("spheres", "sphere_white", "direct"): _fig(0.281, 0.013, 0.280, 1.26) + _PAPER_DIRECT_CAUSE,
+    ("spheres", "sphere_white", "indirect"): _fig(0.894, 0.022, 0.893, 0.16) + _PAPER_INDIRECT_CAUSE,
+    ("spheres", "sphere_white", "total"): _fig(0.178, 0.012, 0.178, 1.03) + _BOTH,
+    ("spheres", "sphere_blue", "direct"): _fig(0.123, 0.012, 0.123, 1.15) + _PAPER_DIRECT_CAUSE,
+    ("spheres", "sphere_blue", "indirect"): _fig(0.944, 0.022, 0.944, 0.11) + _PAPER_INDIRECT_CAUSE,
+    ("spheres", "sphere_blue", "total"): _fig(0.163, 0.011, 0.162, 0.92) + _BOTH,
+    ("three touching spheres", "plane", "direct"): _fig(0.054, 0.013, 0.053, 1.00) + _PAPER_GROUND_DIRECT_CAUSE,
+    ("three touching spheres", "plane", "indirect"): _fig(0.839, 0.047, 0.838, 1.41) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("three touching spheres", "plane", "total"): _fig(0.071, 0.013, 0.070, 1.01) + _BOTH,
+    ("three touching spheres", "sphere_left", "direct"): _fig(0.340, 0.013, 0.339, 1.28) + _PAPER_DIRECT_CAUSE,
+    ("three touching spheres", "sphere_left", "indirect"): _fig(0.933, 0.019, 0.933, 0.16) + _PAPER_INDIRECT_CAUSE,
+    ("three touching spheres", "sphere_left", "total"): _fig(0.196, 0.011, 0.196, 1.06) + _BOTH,
+    ("three touching spheres", "sphere_middle", "direct"): _fig(0.263, 0.012, 0.263, 1.26) + _PAPER_DIRECT_CAUSE,
+    ("three touching spheres", "sphere_middle", "indirect"): _fig(0.920, 0.021, 0.919, 0.18) + _PAPER_INDIRECT_CAUSE,
+    ("three touching spheres", "sphere_middle", "total"): _fig(0.178, 0.011, 0.178, 1.05) + _BOTH,
+    ("three touching spheres", "sphere_right", "direct"): _fig(0.142, 0.012, 0.142, 1.17) + _PAPER_DIRECT_CAUSE,
+    ("three touching spheres", "sphere_right", "indirect"): _fig(0.962, 0.022, 0.962, 0.12) + _PAPER_INDIRECT_CAUSE,
+    ("three touching spheres", "sphere_right", "total"): _fig(0.152, 0.011, 0.152, 0.96) + _BOTH,
+    ("moved sphere", "plane", "indirect"): _fig(0.966, 0.035, 0.966, 1.50) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("moved sphere", "plane", "total"): _fig(0.064, 0.009, 0.063, 1.01) + _BOTH,
+    ("moved sphere", "sphere_red", "direct"): _fig(0.314, 0.009, 0.314, 1.26) + _PAPER_DIRECT_CAUSE,
+    ("moved sphere", "sphere_red", "indirect"): _fig(0.899, 0.013, 0.899, 0.18) + _PAPER_INDIRECT_CAUSE,
+    ("moved sphere", "sphere_red", "total"): _fig(0.154, 0.008, 0.154, 1.05) + _BOTH,
+    ("moved sphere", "sphere_white", "direct"): _fig(0.329, 0.009, 0.329, 1.32) + _PAPER_DIRECT_CAUSE,
+    ("moved sphere", "sphere_white", "indirect"): _fig(0.886, 0.018, 0.886, 0.15) + _PAPER_INDIRECT_CAUSE,
+    ("moved sphere", "sphere_white", "total"): _fig(0.192, 0.009, 0.192, 1.08) + _BOTH,
+    ("moved sphere", "sphere_blue", "direct"): _fig(0.119, 0.009, 0.119, 1.14) + _PAPER_DIRECT_CAUSE,
+    ("moved sphere", "sphere_blue", "indirect"): _fig(0.947, 0.016, 0.947, 0.12) + _PAPER_INDIRECT_CAUSE,
+    ("moved sphere", "sphere_blue", "total"): _fig(0.163, 0.008, 0.163, 0.92) + _BOTH,
+    ('cube (8 spheres)', 'plane', 'direct'): _fig(0.157, 0.012, 0.156, 0.95) + _PAPER_GROUND_DIRECT_CAUSE,
+    ('cube (8 spheres)', 'plane', 'indirect'): _fig(0.740, 0.049, 0.738, 1.84) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ('cube (8 spheres)', 'plane', 'total'): _fig(0.154, 0.012, 0.154, 0.96) + _BOTH,
+    ('cube (8 spheres)', 'cube', 'direct'): _fig(0.287, 0.012, 0.286, 1.18) + _PAPER_DIRECT_CAUSE,
+    ('cube (8 spheres)', 'cube', 'indirect'): _fig(0.996, 0.022, 0.995, 0.01) + _PAPER_INDIRECT_CAUSE,
+    ('cube (8 spheres)', 'cube', 'total'): _fig(0.181, 0.011, 0.181, 1.03) + _BOTH,
+    ("box on the ground", "plane", "direct"): _fig(0.080, 0.012, 0.079, 0.96) + _PAPER_GROUND_DIRECT_CAUSE,
+    ("box on the ground", "plane", "indirect"): _fig(0.782, 0.045, 0.781, 1.93) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ("box on the ground", "plane", "total"): _fig(0.079, 0.012, 0.079, 0.97) + _BOTH,
+    ("box on the ground", "box", "direct"): _fig(0.311, 0.013, 0.311, 1.22) + _PAPER_DIRECT_CAUSE,
+    ("box on the ground", "box", "indirect"): _fig(0.995, 0.021, 0.995, 0.01) + _PAPER_INDIRECT_CAUSE,
+    ("box on the ground", "box", "total"): _fig(0.172, 0.011, 0.172, 1.05) + _BOTH,
+    ('bunny (16 spheres)', 'plane', 'indirect'): _fig(0.458, 0.041, 0.456, 1.43) + _PAPER_GROUND_INDIRECT_CAUSE,
+    ('bunny (16 spheres)', 'bunny', 'direct'): _fig(0.187, 0.009, 0.187, 1.13) + _PAPER_DIRECT_CAUSE,
+    ('bunny (16 spheres)', 'bunny', 'indirect'): _fig(0.921, 0.016, 0.921, 0.11) + _PAPER_INDIRECT_CAUSE,
+    ('bunny (16 spheres)', 'bunny', 'total'): _fig(0.188, 0.008, 0.187, 0.87) + _BOTH,
+    ('bunny (16 spheres)', 'sphere_green', 'direct'): _fig(0.163, 0.008, 0.163, 1.11) + _PAPER_DIRECT_CAUSE,
+    ('bunny (16 spheres)', 'sphere_green', 'indirect'): _fig(0.933, 0.014, 0.933, 0.21) + _PAPER_INDIRECT_CAUSE,
+    ('bunny (16 spheres)', 'sphere_green', 'total'): _fig(0.171, 0.006, 0.170, 0.86) + _BOTH,
+    ('bunny (16 spheres)', 'sphere_orange', 'direct'): _fig(0.192, 0.011, 0.191, 1.16) + _PAPER_DIRECT_CAUSE,
+    ('bunny (16 spheres)', 'sphere_orange', 'indirect'): _fig(0.922, 0.014, 0.922, 0.12) + _PAPER_INDIRECT_CAUSE,
+    ('bunny (16 spheres)', 'sphere_orange', 'total'): _fig(0.120, 0.009, 0.120, 0.91) + _BOTH,
+}
+#: rows within 3 % of their bound (``hypot(goal, noise)``) in the measurement: xfail, not strict (Mitsuba's LLVM
+#: variant sums in a thread-dependent order)
+_PAPER_BORDERLINE: dict[tuple[str, str, str], str] = {
+    ("spheres", "plane", "direct"): ("met at rel_rms 0.0513 against 0.0516 (noise 0.0127), on the bound: "
+                                     + _PAPER_GROUND_DIRECT_CAUSE),
+    ("moved sphere", "plane", "direct"): ("met at rel_rms 0.0502 against 0.0508 (noise 0.0090), on the bound: "
+                                          + _PAPER_GROUND_DIRECT_CAUSE),
+}
+
+
+@pytest.fixture(scope="module")
+def paper_comparisons(comparisons):
+    return _with_options(comparisons, CASES, PAPER_OPTIONS, "the paper's method (PAPER_OPTIONS)")
+
+
+def _paper_params():
+    for name, objects in OBJECTS.items():
+        for obj in objects:
+            for part in ("direct", "indirect", "total"):
+                marks = []
+                if (name, obj, part) in _PAPER_XFAIL:
+                    marks = [pytest.mark.xfail(strict=True, raises=AssertionError,
+                                               reason=_PAPER_XFAIL[name, obj, part])]
+                elif (name, obj, part) in _PAPER_BORDERLINE:
+                    marks = [pytest.mark.xfail(strict=False, raises=AssertionError,
+                                               reason=_PAPER_BORDERLINE[name, obj, part])]
+                yield pytest.param(name, obj, part, marks=marks, id=f"paper-{name}-{obj}-{part}")
+
+
+@pytest.mark.parametrize("name,obj,part", list(_paper_params()))
+def test_papers_method_against_mitsuba(paper_comparisons, name, obj, part):
+    cmp, ref = paper_comparisons[name]
+    failures = cmp.check(_goal(name, obj, part, ref), parts=[part], objects=[obj])
     assert not failures, failures
 
 
