@@ -607,6 +607,36 @@ def frame_mesh_blockers(quick: bool) -> dict:
             "peer": ("the spheres' direct light (mesh_blockers=False)", lambda: spheres.shade(state))}
 
 
+#: Frames of the shipped animation the ``animation`` case steps through (each timed frame at poses no frame before it
+#: had: three objects moving).
+ANIMATION_FRAMES = 10_000
+
+
+@case("spherelights.scene_frame.animation.bunny16")
+def frame_animation(quick: bool) -> dict:
+    """The shipped animation of ``data/scenes/bunny_spheres_env.yaml`` (the bunny turns and slides back, both balls
+    roll: every object but the ground moves each frame, as in the paper's squirrel scene) shaded frame after frame at
+    the defaults (16 lights on the bunny; one ``SphereLights`` keeping what a frame may reuse); each timed frame a
+    time no frame before it had. Peer: the same frames by the paper's method (``prtlab.spherelights.PAPER_OPTIONS``,
+    its own precomputation). Items: receivers."""
+    import prtlab
+    from prtlab.pipeline import FrameState
+    from prtlab.spherelights import PAPER_OPTIONS, SphereLights
+
+    scene = prtlab.load_scene(SCENE)
+    options = {"n_spheres": {"bunny": 16, "sphere_green": 1, "sphere_orange": 1}, "fit_resolution": 24}
+    ours = SphereLights.precompute(scene, options, cache=False, progress=False)
+    paper = SphereLights.precompute(scene, {**options, **PAPER_OPTIONS}, cache=False, progress=False)
+
+    def frames(pre):
+        steps = iter(range(1, ANIMATION_FRAMES))
+        pre.shade(FrameState.from_scene(scene.at_frame(0, ANIMATION_FRAMES)))  # the own meshes' rays, once
+        return lambda: pre.shade(FrameState.from_scene(scene.at_frame(next(steps), ANIMATION_FRAMES)))
+
+    return {"run": frames(ours), "gflop": None, "items": sum(o.n_vertices for o in scene.objects),
+            "peer": ("the paper's method (prtlab.spherelights.PAPER_OPTIONS)", frames(paper))}
+
+
 def memory_per_object(objects: dict, arrays=None) -> dict:
     """Bytes of each object's precomputed arrays (``SphereLights.data["objects"]``): all of them, or the names in
     ``arrays`` (``FRAME_ARRAYS``, ``SHADOW_ARRAYS``)."""
