@@ -587,24 +587,35 @@ def frame_per_object_ground_near_move_one(quick: bool) -> dict:
 def frame_mesh_blockers(quick: bool) -> dict:
     """A frame of ``data/scenes/bunny_spheres_env.yaml`` (16 lights on the bunny, one per ball; 4,804 receivers of
     which the ground's 1,681) with the pipeline's defaults: the objects' direct light against the meshes
-    (``mesh_blockers=True``, ``_meshdirect``; the own meshes' rays cast at the first frame, not timed); peer: the
-    spheres' direct light (``mesh_blockers=False``: ``near_blockers`` and the paper's SH visibility). Items:
-    receivers."""
-    import copy
+    (``mesh_blockers=True``, ``_meshdirect``; the rays cast at the first frame, not timed, as the poses stand), each
+    frame under a sky it has not had before (the scene's, scaled by ``1 + 1e-9 k`` at call ``k``: its SH projected
+    and every lighting pass run again, as when a user changes the sky); peer: the spheres' direct light
+    (``mesh_blockers=False``: ``near_blockers`` and the paper's SH visibility), its own pipeline object and frames.
+    Items: receivers."""
     import dataclasses
 
     import prtlab
     from prtlab.pipeline import FrameState
+    from prtlab.spherelights import SphereLights
 
     scene = prtlab.load_scene(SCENE)
     pre = precompute_bunny(16, 24, scene)
-    spheres = copy.copy(pre)
-    spheres.__dict__ = dict(pre.__dict__)
-    spheres.options = dataclasses.replace(pre.options, mesh_blockers=False)
-    state = FrameState.from_scene(scene)
-    pre.shade(state)  # the own meshes' rays, once per object
-    return {"run": lambda: pre.shade(state), "gflop": None, "items": sum(o.n_vertices for o in scene.objects),
-            "peer": ("the spheres' direct light (mesh_blockers=False)", lambda: spheres.shade(state))}
+    spheres = SphereLights(pre.scene, dataclasses.replace(pre.options, mesh_blockers=False), pre.data)
+
+    def frames(p):
+        calls = iter(range(1, 1 << 62))
+        sky = scene.lights[0]
+
+        def frame():
+            state = FrameState.from_scene(scene)
+            state.lights = [dataclasses.replace(sky, image=sky.image * (1.0 + 1e-9 * next(calls)))]
+            return p.shade(state)
+
+        frame()  # the geometry at the scene's poses (the own meshes' rays, the ground's), once
+        return frame
+
+    return {"run": frames(pre), "gflop": None, "items": sum(o.n_vertices for o in scene.objects),
+            "peer": ("the spheres' direct light (mesh_blockers=False)", frames(spheres))}
 
 
 #: Frames of the shipped animation the ``animation`` case steps through (each timed frame at poses no frame before it
