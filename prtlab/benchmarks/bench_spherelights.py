@@ -354,7 +354,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
     from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
                                                near_blocker_visibility)
-    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse
+    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse
     from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
@@ -449,8 +449,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             near(p, n, direct, own)
         if own >= 0:
             unadjusted = eligible(own) & (near_blockers > 0)
-            samples = reuse.get(("ground_light", own), (p, n, rect, c, r, unadjusted),
-                                lambda: ground_samples(p, n, rect, c, r, unadjusted=unadjusted))
+            key = (p, n, rect, c, r, None, unadjusted)
+            samples = reuse.get(("ground_light", own), key, lambda: ground_samples(*key[:6], unadjusted=unadjusted),
+                                ground_samples_reuse(key))
             hidden, reflected = ground_sample_sums(samples, tex, env)
             direct, indirect = (direct if exact else direct - hidden), indirect + reflected
         out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))

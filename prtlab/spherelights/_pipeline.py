@@ -73,7 +73,8 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import (covered_points, covered_texels, fill_covered, fill_covered_vertices, ground_light,
-                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture)
+                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_samples_update,
+                      ground_texture)
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
                           ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
@@ -762,7 +763,8 @@ class SphereLights(Precomputation):
                 unadjusted = self._near_eligible(lights, own) & near_used
                 args = (pts, nrm, rects, lights.centres, lights.radii, lights.local_radiance)
                 samples = reuse.get(("ground_light", obj.name), args + (unadjusted,),
-                                    lambda: ground_samples(*args, unadjusted=unadjusted))
+                                    lambda: ground_samples(*args, unadjusted=unadjusted),
+                                    ground_samples_reuse(args + (unadjusted,)))
                 hidden, reflected = ground_sample_sums(samples, textures, lights.env, lights.local_radiance)
                 direct = direct if exact else direct - hidden  # the rays of ``exact`` meet the grounds
                 indirect = indirect + reflected if reflects else indirect
@@ -1127,6 +1129,20 @@ def ground_hits_reuse(inputs, blockers, points, rule, spacing: float):
             return None
         moved = [not same_inputs(a[0], b[0]) for a, b in zip(old[0], new[0])]
         return ground_hits_update(kept, points, blockers, moved, rule, spacing=spacing)
+
+    return update
+
+
+def ground_samples_reuse(inputs):
+    """The ``update`` of :meth:`FrameReuse.get` for ``ground_light``'s samples keyed by ``inputs = (points, normals,
+    rectangles, centres, radii, local_radiance, unadjusted)`` (:func:`ground_samples`' arguments): when the
+    receivers and the rectangles are the kept ones, the receivers that no changed light can reach keep their samples
+    (``_ground.ground_samples_update``); else None (computed afresh)."""
+
+    def update(kept_inputs, kept):
+        if not same_inputs(kept_inputs[:3], inputs[:3]):
+            return None
+        return ground_samples_update(kept, kept_inputs[3:], *inputs[:6], unadjusted=inputs[6])
 
     return update
 
