@@ -354,7 +354,8 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
     from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
                                                near_blocker_visibility)
-    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse
+    from prtlab.spherelights._pipeline import (_GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse,
+                                               near_samples_reuse)
     from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
@@ -393,8 +394,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             if sel.any():
                 corr = np.zeros((len(p), 3))
                 args = (p[sel], n[sel], c, r, ORDER)
-                near_vis, far_vis = reuse.get(("near_samples", int(own)), args + (near_blockers, e), lambda: tuple(
-                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)))
+                key = (p, n, sel, c, r, ORDER, near_blockers, e, "hyb")
+                near_vis, far_vis = reuse.get(("near_samples", int(own)), key, lambda: tuple(
+                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)), near_samples_reuse(key))
                 corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
     weight = None

@@ -737,18 +737,31 @@ def ground_samples_update(kept: GroundSamples, kept_lights, points, normals, rec
 @numba.njit(cache=True, parallel=True)
 def _merge_samples(source, kept_ptr, kept_reals, kept_ints, sub_ptr, sub_reals, sub_ints, ptr, reals, ints):
     """Receiver ``q``'s rows into ``ptr[q]:ptr[q + 1]``: the kept ones, or (``source[q] >= 0``) those of the
-    recomputed receiver ``source[q]``."""
-    for q in numba.prange(source.shape[0]):
-        s = source[q]
-        if s < 0:
-            start, from_reals, from_ints = kept_ptr[q], kept_reals, kept_ints
-        else:
-            start, from_reals, from_ints = sub_ptr[s], sub_reals, sub_ints
-        for m in range(ptr[q + 1] - ptr[q]):
-            for j in range(reals.shape[1]):
-                reals[ptr[q] + m, j] = from_reals[start + m, j]
-            for j in range(ints.shape[1]):
-                ints[ptr[q] + m, j] = from_ints[start + m, j]
+    recomputed receiver ``source[q]``; runs of kept receivers copied as one block each (rows are contiguous)."""
+    n_recv = source.shape[0]
+    n_r, n_i = reals.shape[1], ints.shape[1]
+    out_r, out_i = reals.reshape(-1), ints.reshape(-1)
+    kept_r, kept_i = kept_reals.reshape(-1), kept_ints.reshape(-1)
+    sub_r, sub_i = sub_reals.reshape(-1), sub_ints.reshape(-1)
+    n_blocks = min(n_recv, 64)
+    for block in numba.prange(n_blocks):
+        q = block * n_recv // n_blocks
+        stop = (block + 1) * n_recv // n_blocks
+        while q < stop:
+            a = ptr[q]
+            if source[q] >= 0:
+                b, s = ptr[q + 1], sub_ptr[source[q]]
+                out_r[n_r * a:n_r * b] = sub_r[n_r * s:n_r * (s + b - a)]
+                out_i[n_i * a:n_i * b] = sub_i[n_i * s:n_i * (s + b - a)]
+                q += 1
+                continue
+            e = q + 1  # a run of kept receivers: their rows follow one another in kept as here
+            while e < stop and source[e] < 0:
+                e += 1
+            b, s = ptr[e], kept_ptr[q]
+            out_r[n_r * a:n_r * b] = kept_r[n_r * s:n_r * (s + b - a)]
+            out_i[n_i * a:n_i * b] = kept_i[n_i * s:n_i * (s + b - a)]
+            q = e
 
 
 @numba.njit(cache=True, inline="always")

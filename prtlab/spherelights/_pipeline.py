@@ -81,7 +81,8 @@ from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_l
                          reflection_ratio, select_cut)
 from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
                           mesh_direct_visible_update, mesh_occluder, self_blocked)
-from ._nearcaps import has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility
+from ._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility,
+                        near_blocker_visibility_update)
 from ._passes import first_pass, second_pass
 from ._reuse import FrameReuse, same_inputs
 from ._samples import coverage_weights, segment_coverage, surface_albedo_sh, surface_samples
@@ -660,9 +661,11 @@ class SphereLights(Precomputation):
                 continue
             args = (p[sel], n[sel], lights.centres, lights.radii, self.options.order)
             exp_method = self.options.exp_method
+            key = (p, n, sel, lights.centres, lights.radii, self.options.order, k, elig, exp_method)
             near, far = self.frame_reuse.get(  # the caps and the visibility: geometry, kept while it stays
-                ("near_samples", int(own)), args + (k, elig, exp_method),
-                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)))
+                ("near_samples", int(own)), key,
+                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)),
+                near_samples_reuse(key))
             corr = np.zeros((len(p), 3))
             corr[sel] = near_blocker_sums(near, lights.env) - near_blocker_sums(far, lights.env)
             out[mask] = corr
@@ -1143,6 +1146,37 @@ def ground_samples_reuse(inputs):
         if not same_inputs(kept_inputs[:3], inputs[:3]):
             return None
         return ground_samples_update(kept, kept_inputs[3:], *inputs[:6], unadjusted=inputs[6])
+
+    return update
+
+
+def near_samples_reuse(inputs):
+    """The ``update`` of :meth:`FrameReuse.get` for the near blockers' caps at receivers (the pair of
+    :func:`near_blocker_visibility` with ``n_near`` and 0 blockers at the ``selected`` ones) keyed by ``inputs =
+    (points, normals, selected, centres, radii, order, n_near, eligible, exp_method)``: when the receivers, the order,
+    ``n_near`` and ``exp_method`` are the kept ones, the selected receivers selected before whose tangent plane every
+    changed light lies below keep their rows (``_nearcaps.near_blocker_visibility_update``); else None (computed
+    afresh)."""
+    points, normals, sel, centres, radii, order, n_near, elig, exp_method = inputs
+
+    def update(kept_inputs, kept):
+        k_points, k_normals, k_sel, k_centres, k_radii, *k_rest = kept_inputs
+        k_elig = k_rest[2]
+        if not same_inputs((k_points, k_normals, k_rest[0], k_rest[1], k_rest[3]),
+                           (points, normals, order, n_near, exp_method)):
+            return None
+        rows = np.full(len(k_sel), -1, dtype=np.int64)
+        rows[k_sel] = np.arange(int(k_sel.sum()))
+        out, counts = [], None
+        for vis, m in zip(kept, (n_near, 0)):
+            made = near_blocker_visibility_update(vis, (k_centres, k_radii, k_elig), points[sel], normals[sel], centres,
+                                                  radii, order, m, eligible=elig, kept_from=rows[sel],
+                                                  exp_method=exp_method)
+            if made is None:
+                return None
+            out.append(made[0])
+            counts = made[1]
+        return tuple(out), counts
 
     return update
 

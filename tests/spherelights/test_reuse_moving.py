@@ -202,7 +202,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
     moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
-    cast)."""
+    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept."""
     scene, pre = bunny_scene
     pre.frame_reuse.clear()
     rest = FrameState.from_scene(scene)
@@ -231,6 +231,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         ("back", rest, False, False),
     ]
     kept_any = 0
+    partly = [0, 0]  # updates of ground_light's samples or the near caps that kept some receivers; of ground_light
     for label, state, rays, visible in frames:
         ours = pre.shade(state)
         _same(ours, _fresh(pre).shade(state))
@@ -245,7 +246,12 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
             kept_any += 1
         for counts in updated.get("mesh_direct", []):
             assert 0 < counts["rays_recomputed"] < counts["rays"], (label, counts)
+        for counts in updated.get("ground_light", []) + updated.get("near_samples", []):
+            assert counts["receivers_recomputed"] <= counts["receivers"], (label, counts)
+            partly[0] += 0 < counts["receivers_recomputed"] < counts["receivers"]
+        partly[1] += len(updated.get("ground_light", []))
     assert kept_any >= 4
+    assert partly[0] >= 4 and partly[1] >= 4, partly  # ground_light's samples and the near caps partly kept
 
 
 # ------------------------------------------------------------------ ground_light's samples when lights move
@@ -351,3 +357,82 @@ def test_ground_samples_update_recomputes_every_receiver_a_light_reaches(monkeyp
     assert _ground.ground_samples_update(kept, (np.zeros((2, 3)), np.ones(2), None, None), points, normals, rect,
                                          c1, r0) is None
     assert _ground.ground_samples_update(kept, (c0, r0, None, None), points[:1], normals[:1], rect, c1, r0) is None
+
+
+# ------------------------------------------------------------------ the near blockers' caps when lights move
+
+
+def _near_equal(ours, fresh):
+    assert ours.order == fresh.order
+    for name in ("normals", "visibility", "axis", "cos_half"):
+        a, b = getattr(ours, name), getattr(fresh, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8)), name
+
+
+@pytest.mark.parametrize("n_near", [0, 2])
+def test_kept_near_caps_equal_a_fresh_computation(n_near):
+    """``near_blocker_visibility_update`` after one light moves, two move, one grows, one turns ineligible, and all
+    come back, with receivers joining and leaving the kept rows: equal to ``near_blocker_visibility`` bit for bit,
+    rows kept and recomputed, and in each changed frame some row differs from the kept one."""
+    from prtlab.spherelights._nearcaps import near_blocker_visibility, near_blocker_visibility_update
+
+    centres, radii = CENTRES.copy(), RADII.copy()
+    points, normals, _ = _receivers_on_balls(centres, radii, n=400, seed=11)
+    eligible = np.ones(len(radii), dtype=bool)
+    eligible[2] = False
+
+    def lights(label):
+        c, r, e = centres.copy(), radii.copy(), eligible.copy()
+        if label == "one moved":
+            c[4] += [0.15, -0.05, 0.1]
+        elif label == "two moved":
+            c[4] += [-0.1, 0.0, 0.05]
+            c[1] += [0.0, 0.2, -0.3]
+        elif label == "grown":
+            r[5] *= 1.3
+        elif label == "ineligible":
+            e[5] = False
+        return c, r, e
+
+    rng = np.random.default_rng(3)
+    kept_lights, kept_sel = lights("rest"), rng.uniform(size=len(points)) < 0.8
+    kept = near_blocker_visibility(points[kept_sel], normals[kept_sel], *kept_lights[:2], 4, n_near,
+                                   eligible=kept_lights[2])
+    for label in ["one moved", "back", "two moved", "grown", "ineligible", "back again", "rest"]:
+        new = lights("rest" if label.startswith("back") else label)
+        sel = rng.uniform(size=len(points)) < 0.8  # receivers in and out of the selection
+        if label == "rest":
+            sel = kept_sel
+        rows = np.full(len(points), -1, dtype=np.int64)
+        rows[kept_sel] = np.arange(kept_sel.sum())
+        ours, counts = near_blocker_visibility_update(kept, kept_lights, points[sel], normals[sel], *new[:2], 4,
+                                                      n_near, eligible=new[2], kept_from=rows[sel])
+        fresh = near_blocker_visibility(points[sel], normals[sel], *new[:2], 4, n_near, eligible=new[2])
+        _near_equal(ours, fresh)
+        both = kept_sel[sel]  # rows of fresh whose receiver has a kept row
+        differ = ~np.all(fresh.visibility[both] == kept.visibility[rows[sel][both]], axis=1)
+        if label == "rest":
+            assert counts["receivers_recomputed"] == 0, counts
+        else:
+            # (eligibility alone, ineligible and back, changes nothing without caps)
+            assert differ.any() or label in ("ineligible", "back again") and n_near == 0, label
+            assert (rows[sel] < 0).sum() < counts["receivers_recomputed"] < counts["receivers"], (label, counts)
+        kept, kept_lights, kept_sel = ours, new, sel
+
+
+def test_near_caps_update_recomputes_a_receiver_a_light_rises_above(monkeypatch):
+    """A light moved from below a receiver's tangent plane to above it changes its row; with the reach test made to
+    reach nothing the update keeps the old row and differs from a fresh call."""
+    from prtlab.spherelights import _nearcaps
+
+    points = np.array([[0.0, 1.0, 0.0], [3.0, 1.0, 0.0]])
+    normals = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    c0, c1, r = np.array([[0.0, -1.0, 0.0]]), np.array([[0.0, 2.0, 0.0]]), np.array([0.5])
+    kept = _nearcaps.near_blocker_visibility(points, normals, c0, r, 4, 2)
+    fresh = _nearcaps.near_blocker_visibility(points, normals, c1, r, 4, 2)
+    ours, counts = _nearcaps.near_blocker_visibility_update(kept, (c0, r, None), points, normals, c1, r, 4, 2)
+    _near_equal(ours, fresh)
+    assert counts["receivers_recomputed"] == 1 and not np.array_equal(kept.cos_half[0], fresh.cos_half[0])
+    monkeypatch.setattr(_nearcaps, "_reached", lambda points, normals, spheres, margin: np.zeros(len(points), bool))
+    skipped, _ = _nearcaps.near_blocker_visibility_update(kept, (c0, r, None), points, normals, c1, r, 4, 2)
+    assert not np.array_equal(skipped.cos_half, fresh.cos_half)
