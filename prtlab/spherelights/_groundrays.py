@@ -215,7 +215,7 @@ def ground_ray_nodes(points, spheres, spacing: float):
     width = int(math.ceil(extent / h0)) + 2 * (1 << max(top, 0)) + 2
     keys = np.stack([ix * width + iz, (ix + step) * width + iz, ix * width + iz + step,
                      (ix + step) * width + iz + step], axis=1)  # the corners in the order of the weights below
-    nodes, inverse = np.unique(keys, return_inverse=True)
+    nodes, inverse = _unique_keys(keys)
     exact = np.nonzero(near)[0]
     if len(exact) + len(nodes) >= n:
         return p, rows, weights
@@ -228,6 +228,19 @@ def ground_ray_nodes(points, spheres, spacing: float):
     rows[far] = len(exact) + inverse.reshape(-1, 4)
     weights[far] = np.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=1)
     return cast, rows, weights
+
+
+def _unique_keys(keys):
+    """``np.unique(keys, return_inverse=True)`` of non-negative int64 ``keys``: by marking a dense table when the
+    largest key is at most 16 times their number (no sort), else by ``np.unique``."""
+    top = int(keys.max(initial=-1)) + 1
+    if keys.size == 0 or keys.min() < 0 or top > 16 * keys.size:
+        return np.unique(keys, return_inverse=True)
+    seen = np.zeros(top, dtype=bool)
+    seen[keys.ravel()] = True
+    nodes = np.flatnonzero(seen)
+    rank = np.cumsum(seen) - 1
+    return nodes, rank[keys]
 
 
 @numba.njit(cache=True)
@@ -808,15 +821,19 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
                               np.asarray(blockers.mesh_balls, dtype=np.float64)[moved]])
     changed[:, 3] += _UPDATE_MARGIN * (changed[:, 3] + np.linalg.norm(changed[:, :3], axis=1)) + 2.0 * frame.epsilon
     n_azimuth = _rings(dirs)
-    zone = (_candidates(cast, dirs, np.ascontiguousarray(changed), n_azimuth) if len(changed)
+    in_zone = np.zeros(len(cast), dtype=np.int64)  # each point's rays in the zone
+    zone = (_candidates(cast, dirs, np.ascontiguousarray(changed), n_azimuth, in_zone) if len(changed)
             else np.zeros((len(cast), len(dirs)), dtype=bool))
     zone[match < 0] = True  # a new point: every ray
-    todo = np.nonzero(zone.any(axis=1))[0]
-    sub = np.ascontiguousarray(cast[todo])
+    in_zone[match < 0] = len(dirs)
+    todo = np.nonzero(in_zone)[0]
+    whole = len(todo) == len(cast)  # every point has rays in the zone: no copies
+    sub = cast if whole else np.ascontiguousarray(cast[todo])
     cand = np.empty((len(todo), len(dirs)), dtype=np.bool_)
-    _candidates_within(sub, dirs, bounds, np.ascontiguousarray(zone[todo]), cand)
+    n_cand = np.empty(len(todo), dtype=np.int64)
+    _candidates_within(sub, dirs, bounds, zone if whole else np.ascontiguousarray(zone[todo]), cand, n_cand)
     ptr = np.zeros(len(todo) + 1, dtype=np.int64)
-    np.cumsum(cand.sum(axis=1), out=ptr[1:])
+    np.cumsum(n_cand, out=ptr[1:])
     ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
     origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
     _list_rays(sub, cand, dirs, ptr, frame.epsilon, ip, ik, origins, ray_dirs)
@@ -918,16 +935,19 @@ def _match_rows(rows, among) -> np.ndarray:
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _candidates_within(points, dirs, spheres, zone, out):
+def _candidates_within(points, dirs, spheres, zone, out, counts):
     """``out[q, k]``: ``zone[q, k]`` and the ray a candidate (``_candidates_kernel``'s test, so the rings kernel's
-    result too), testing only the rays of ``zone``."""
+    result too), testing only the rays of ``zone``; ``counts[q]``: row ``q``'s candidates."""
     n_s = spheres.shape[0]
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
         inside = _cones(points[q], spheres, axis, cos_half)
+        c = 0
         for k in range(dirs.shape[0]):
             out[q, k] = zone[q, k] and (inside or _in_a_cone(dirs, k, axis, cos_half))
+            c += out[q, k]
+        counts[q] = c
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)

@@ -264,8 +264,9 @@ def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, ro
 
     A ray outside the cones of the moved occluders' bounding and inner spheres, in both frames, is never tested
     against them (``_meets``' cone tests, the same arithmetic, and with a Fibonacci set only within the same runs of
-    directions), so its bit is kept; the rays inside are computed afresh against every occluder in order, as
-    :func:`mesh_direct_visible` does, and merged into the kept bits as packed bytes. ``counts``: ``{"rays",
+    directions), so its bit is kept; the rays inside are computed afresh against every occluder, as
+    :func:`mesh_direct_visible` does (each occluder clears the rays it blocks whatever the others do: the moved ones
+    first, then the others at the receivers with a ray left), and merged into the kept bits as packed bytes. ``counts``: ``{"rays",
     "rays_recomputed"}``."""
     p, n, d = _checked(points, normals, dirs)
     moved = np.asarray(moved, dtype=bool).reshape(-1)
@@ -296,8 +297,16 @@ def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, ro
         ps, ns, zone = ps[rows], ns[rows], zone[rows]
         visible = np.empty((len(ps), len(w)), dtype=np.bool_)
         _visible_kernel(ps, ns, w, bits[s:s + _CHUNK][rows], rects, balls, zone, visible)  # False off the zone
-        for occ in occluders:
-            _occluder_visible(ps, ns, w, occ, visible, heights, cast)
+        # each occluder clears the rays it blocks, whatever the others do: the moved ones first (the zone lies in
+        # their cones), each at the receivers with a ray still visible
+        live = np.arange(len(ps))
+        for g in sorted(range(len(occluders)), key=lambda g: not moved[g]):
+            live = live[visible[live].any(axis=1)]
+            if not len(live):
+                break
+            part = visible[live]
+            _occluder_visible(ps[live], ns[live], w, occluders[g], part, heights, cast)
+            visible[live] = part
         out[s + rows] = (out[s + rows] & ~np.packbits(zone, axis=1)) | np.packbits(visible, axis=1)
         recomputed += int(np.count_nonzero(zone))
     return out, {"rays": len(p) * len(w), "rays_recomputed": recomputed}

@@ -436,3 +436,16 @@ def test_near_caps_update_recomputes_a_receiver_a_light_rises_above(monkeypatch)
     monkeypatch.setattr(_nearcaps, "_reached", lambda points, normals, spheres, margin: np.zeros(len(points), bool))
     skipped, _ = _nearcaps.near_blocker_visibility_update(kept, (c0, r, None), points, normals, c1, r, 4, 2)
     assert not np.array_equal(skipped.cos_half, fresh.cos_half)
+
+
+def test_unique_keys_is_numpys(rng):
+    """``_groundrays._unique_keys`` (the grid nodes of ``ground_ray_nodes``) gives ``np.unique``'s nodes and inverse,
+    dense (a table) or sparse (a sort), empty included."""
+    from prtlab.spherelights._groundrays import _unique_keys
+
+    for high, shape in [(50, (300, 4)), (10**9, (300, 4)), (5, (0, 4)), (3000, (2000, 4))]:
+        keys = rng.integers(0, high, size=shape)
+        nodes, inverse = _unique_keys(keys)
+        want_nodes, want_inverse = np.unique(keys, return_inverse=True)
+        assert nodes.dtype == want_nodes.dtype and np.array_equal(nodes, want_nodes)
+        assert np.array_equal(inverse.reshape(-1), want_inverse.reshape(-1))
