@@ -394,57 +394,95 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
     ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
     and the others are tested only at the azimuths of their window (widened by one azimuth each side); the test of
     a direction against a sphere is ``_candidates_kernel``'s, so the result is the same."""
-    n_s = spheres.shape[0]
     n_ring = dirs.shape[0] // n_azimuth
-    step = 2.0 * math.pi / n_azimuth
+    ring_sin = np.empty(n_ring)
+    for e in range(n_ring):
+        ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
+    no_cones, no_cos, no_cand = np.empty((0, 3)), np.empty(0), np.empty((0, 0), dtype=np.bool_)
+    for q in numba.prange(points.shape[0]):
+        c, _ = _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, False, no_cones, no_cos, False,
+                         no_cand)
+        if counts.shape[0]:
+            counts[q] = c
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _zone_candidates_kernel(points, dirs, n_azimuth, spheres, bounds, zone, cand, zone_counts, cand_counts):
+    """``_candidates_rings_kernel``'s rays in the cones of ``spheres`` (``zone``, ``zone_counts``) and, of those,
+    the candidates against ``bounds`` (``cand``, ``cand_counts``: ``_candidates_within``'s test), in one pass."""
+    n_ring = dirs.shape[0] // n_azimuth
     ring_sin = np.empty(n_ring)
     for e in range(n_ring):
         ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
     for q in numba.prange(points.shape[0]):
-        axis = np.empty((n_s, 3))
-        cos_half = np.empty(n_s)
-        rho = np.empty(n_s)  # |axis| in the horizontal plane
-        centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
-        inside = False
+        b_axis = np.empty((bounds.shape[0], 3))
+        b_cos = np.empty(bounds.shape[0])
+        b_in = _cones(points[q], bounds, b_axis, b_cos)
+        zone_counts[q], cand_counts[q] = _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, zone, True, b_axis,
+                                                   b_cos, b_in, cand)
+
+
+@numba.njit(cache=True, inline="always")
+def _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, with_cand, b_axis, b_cos, b_in, cand):
+    """Row ``q`` of ``_candidates_rings_kernel`` into ``out``; with ``with_cand`` also ``cand[q, k]`` for its rays:
+    the ray in a cone ``(b_axis, b_cos)`` (``b_in``: every ray), ``cand`` False elsewhere. Returns the counts of
+    both."""
+    n_s = spheres.shape[0]
+    step = 2.0 * math.pi / n_azimuth
+    n_ring = dirs.shape[0] // n_azimuth
+    axis = np.empty((n_s, 3))
+    cos_half = np.empty(n_s)
+    rho = np.empty(n_s)  # |axis| in the horizontal plane
+    centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
+    inside = False
+    for j in range(n_s):
+        ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+        d2 = ox * ox + oy * oy + oz * oz
+        r2 = spheres[j, 3] * spheres[j, 3]
+        if d2 <= r2:
+            inside = True
+            break
+        inv = 1.0 / math.sqrt(d2)
+        axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+        cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
+        centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
+    count, n_cand = 0, 0
+    out[q, :] = inside
+    if with_cand:
+        cand[q, :] = False
+    if inside:
+        if with_cand:
+            for k in range(dirs.shape[0]):
+                cand[q, k] = b_in or _in_a_cone(dirs, k, b_axis, b_cos)
+                n_cand += cand[q, k]
+        return dirs.shape[0], n_cand
+    for e in range(n_ring):
+        base = e * n_azimuth
+        mu = dirs[base, 1]
         for j in range(n_s):
-            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
-            d2 = ox * ox + oy * oy + oz * oz
-            r2 = spheres[j, 3] * spheres[j, 3]
-            if d2 <= r2:
-                inside = True
-                break
-            inv = 1.0 / math.sqrt(d2)
-            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
-            cos_half[j] = math.sqrt(1.0 - r2 / d2)
-            rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
-            centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
-        for k in range(dirs.shape[0]):
-            out[q, k] = inside
-        if inside:
-            _count_row(out, q, counts)
-            continue
-        for e in range(n_ring):
-            base = e * n_azimuth
-            mu = dirs[base, 1]
-            for j in range(n_s):
-                ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
-                rho_s = rho[j] * ring_sin[e]
-                if ay * mu + rho_s < cos_half[j] - 1e-9:
-                    continue  # no direction of the ring enters the cone
-                lo, hi = 0, n_azimuth - 1
-                if rho_s > 1e-9:
-                    x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
-                    if x > -1.0:
-                        half = math.acos(min(x, 1.0)) / step
-                        lo = int(math.floor(centre[j] - half)) - 1
-                        hi = int(math.ceil(centre[j] + half)) + 1
-                        if hi - lo + 1 >= n_azimuth:
-                            lo, hi = 0, n_azimuth - 1
-                for t in range(lo, hi + 1):
-                    k = base + t % n_azimuth
-                    if not out[q, k]:
-                        out[q, k] = ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]
-        _count_row(out, q, counts)
+            ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
+            rho_s = rho[j] * ring_sin[e]
+            if ay * mu + rho_s < cos_half[j] - 1e-9:
+                continue  # no direction of the ring enters the cone
+            lo, hi = 0, n_azimuth - 1
+            if rho_s > 1e-9:
+                x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
+                if x > -1.0:
+                    half = math.acos(min(x, 1.0)) / step
+                    lo = int(math.floor(centre[j] - half)) - 1
+                    hi = int(math.ceil(centre[j] + half)) + 1
+                    if hi - lo + 1 >= n_azimuth:
+                        lo, hi = 0, n_azimuth - 1
+            for t in range(lo, hi + 1):
+                k = base + t % n_azimuth
+                if not out[q, k] and ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]:
+                    out[q, k] = True
+                    count += 1
+                    if with_cand and (b_in or _in_a_cone(dirs, k, b_axis, b_cos)):
+                        cand[q, k] = True
+                        n_cand += 1
+    return count, n_cand
 
 
 def _chunk_rays(rule, blockers):
@@ -821,17 +859,27 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
                               np.asarray(blockers.mesh_balls, dtype=np.float64)[moved]])
     changed[:, 3] += _UPDATE_MARGIN * (changed[:, 3] + np.linalg.norm(changed[:, :3], axis=1)) + 2.0 * frame.epsilon
     n_azimuth = _rings(dirs)
-    in_zone = np.zeros(len(cast), dtype=np.int64)  # each point's rays in the zone
-    zone = (_candidates(cast, dirs, np.ascontiguousarray(changed), n_azimuth, in_zone) if len(changed)
-            else np.zeros((len(cast), len(dirs)), dtype=bool))
-    zone[match < 0] = True  # a new point: every ray
-    in_zone[match < 0] = len(dirs)
+    changed = np.ascontiguousarray(changed)
+    in_zone, n_cand = np.zeros(len(cast), dtype=np.int64), np.zeros(len(cast), dtype=np.int64)  # rays per point
+    zone, cand = np.empty((len(cast), len(dirs)), dtype=np.bool_), np.empty((len(cast), len(dirs)), dtype=np.bool_)
+    if n_azimuth and len(changed):  # the zone and its candidates in one pass
+        _zone_candidates_kernel(cast, dirs, n_azimuth, changed, bounds, zone, cand, in_zone, n_cand)
+    else:
+        zone = _candidates(cast, dirs, changed, n_azimuth, in_zone) if len(changed) else np.zeros_like(zone)
+        _candidates_within(cast, dirs, bounds, zone, cand, n_cand)
+    new = np.nonzero(match < 0)[0]
+    if len(new):  # a new point: every ray
+        zone[new] = True
+        in_zone[new] = len(dirs)
+        part, part_n = np.empty((len(new), len(dirs)), dtype=np.bool_), np.empty(len(new), dtype=np.int64)
+        _candidates_within(np.ascontiguousarray(cast[new]), dirs, bounds, np.ascontiguousarray(zone[new]), part,
+                           part_n)
+        cand[new], n_cand[new] = part, part_n
     todo = np.nonzero(in_zone)[0]
     whole = len(todo) == len(cast)  # every point has rays in the zone: no copies
     sub = cast if whole else np.ascontiguousarray(cast[todo])
-    cand = np.empty((len(todo), len(dirs)), dtype=np.bool_)
-    n_cand = np.empty(len(todo), dtype=np.int64)
-    _candidates_within(sub, dirs, bounds, zone if whole else np.ascontiguousarray(zone[todo]), cand, n_cand)
+    if not whole:
+        cand, n_cand = np.ascontiguousarray(cand[todo]), n_cand[todo]
     ptr = np.zeros(len(todo) + 1, dtype=np.int64)
     np.cumsum(n_cand, out=ptr[1:])
     ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
