@@ -474,14 +474,16 @@ def _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, with_cand, b_a
                     hi = int(math.ceil(centre[j] + half)) + 1
                     if hi - lo + 1 >= n_azimuth:
                         lo, hi = 0, n_azimuth - 1
-            for t in range(lo, hi + 1):
-                k = base + t % n_azimuth
+            t = lo % n_azimuth  # the azimuths lo..hi, wrapped (one division per window, not per ray)
+            for _ in range(hi - lo + 1):
+                k = base + t
                 if not out[q, k] and ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]:
                     out[q, k] = True
                     count += 1
                     if with_cand and (b_in or _in_a_cone(dirs, k, b_axis, b_cos)):
                         cand[q, k] = True
                         n_cand += 1
+                t = t + 1 if t + 1 < n_azimuth else 0
     return count, n_cand
 
 
