@@ -565,10 +565,11 @@ def frame_per_object_ground_near_move_one(quick: bool) -> dict:
     """The frame of ``per_object_ground_near`` when one object moves: a ball (:data:`MOVING_OBJECT`) translated each
     frame to a place it has not had before (:func:`moving_translation`), through one kept ``FrameReuse`` as
     ``SphereLights`` keeps it: the ground's and the texels' rays that cannot meet the ball in either place are kept
-    (``_groundrays.ground_hits_update``), and the other objects' visible rays that cannot meet it
-    (``_meshdirect.mesh_direct_visible_update``); the rest (the ball's own receivers, ``ground_light``'s samples,
-    the near blockers' caps: their inputs all changed) computed; peer: the same frames with nothing reused (every
-    ray cast)."""
+    (``_groundrays.ground_hits_update``), the other objects' visible rays that cannot meet it
+    (``_meshdirect.mesh_direct_visible_update``), their ``ground_light`` samples whose rays it cannot change
+    (``_ground.ground_samples_update``) and their near blockers' caps at the surface samples it lies below
+    (``_nearcaps.near_blocker_visibility_update``); the rest (the ball's own receivers and samples, the blockers)
+    computed; peer: the same frames with nothing reused (every ray cast)."""
     from prtlab.spherelights._reuse import FrameReuse
 
     a, texels, up, rect, meshes, parts = _ground_frame_arrays(quick)

@@ -47,8 +47,8 @@ from prtlab._tasks import run_tasks, task_threads
 from ._shadows import _adjust
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "GroundSamples",
-           "ground_samples", "ground_samples_update", "ground_sample_sums", "ground_raster", "ground_texture", "covered_texels",
-           "fill_covered"]
+           "ground_samples", "ground_samples_update", "ground_sample_sums", "ground_raster", "ground_texture",
+           "covered_texels", "fill_covered"]
 
 
 def ground_rectangles(objects, transforms=None) -> np.ndarray:

@@ -266,8 +266,8 @@ def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, ro
     against them (``_meets``' cone tests, the same arithmetic, and with a Fibonacci set only within the same runs of
     directions), so its bit is kept; the rays inside are computed afresh against every occluder, as
     :func:`mesh_direct_visible` does (each occluder clears the rays it blocks whatever the others do: the moved ones
-    first, then the others at the receivers with a ray left), and merged into the kept bits as packed bytes. ``counts``: ``{"rays",
-    "rays_recomputed"}``."""
+    first, then the others at the receivers with a ray left), and merged into the kept bits as packed bytes.
+    ``counts``: ``{"rays", "rays_recomputed"}``."""
     p, n, d = _checked(points, normals, dirs)
     moved = np.asarray(moved, dtype=bool).reshape(-1)
     if len(moved) != len(occluders) or len(kept_occluders) != len(occluders):
