@@ -354,7 +354,8 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
     from prtlab.spherelights._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums,
                                                near_blocker_visibility)
-    from prtlab.spherelights._pipeline import _GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse
+    from prtlab.spherelights._pipeline import (_GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse,
+                                               near_samples_reuse)
     from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
@@ -393,8 +394,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             if sel.any():
                 corr = np.zeros((len(p), 3))
                 args = (p[sel], n[sel], c, r, ORDER)
-                near_vis, far_vis = reuse.get(("near_samples", int(own)), args + (near_blockers, e), lambda: tuple(
-                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)))
+                key = (p, n, sel, c, r, ORDER, near_blockers, e, "hyb")
+                near_vis, far_vis = reuse.get(("near_samples", int(own)), key, lambda: tuple(
+                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)), near_samples_reuse(key))
                 corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
                 extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
     weight = None
@@ -449,8 +451,9 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             near(p, n, direct, own)
         if own >= 0:
             unadjusted = eligible(own) & (near_blockers > 0)
-            samples = reuse.get(("ground_light", own), (p, n, rect, c, r, unadjusted),
-                                lambda: ground_samples(p, n, rect, c, r, unadjusted=unadjusted))
+            key = (p, n, rect, c, r, None, unadjusted)
+            samples = reuse.get(("ground_light", own), key, lambda: ground_samples(*key[:6], unadjusted=unadjusted),
+                                ground_samples_reuse(key))
             hidden, reflected = ground_sample_sums(samples, tex, env)
             direct, indirect = (direct if exact else direct - hidden), indirect + reflected
         out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
@@ -562,10 +565,11 @@ def frame_per_object_ground_near_move_one(quick: bool) -> dict:
     """The frame of ``per_object_ground_near`` when one object moves: a ball (:data:`MOVING_OBJECT`) translated each
     frame to a place it has not had before (:func:`moving_translation`), through one kept ``FrameReuse`` as
     ``SphereLights`` keeps it: the ground's and the texels' rays that cannot meet the ball in either place are kept
-    (``_groundrays.ground_hits_update``), and the other objects' visible rays that cannot meet it
-    (``_meshdirect.mesh_direct_visible_update``); the rest (the ball's own receivers, ``ground_light``'s samples,
-    the near blockers' caps: their inputs all changed) computed; peer: the same frames with nothing reused (every
-    ray cast)."""
+    (``_groundrays.ground_hits_update``), the other objects' visible rays that cannot meet it
+    (``_meshdirect.mesh_direct_visible_update``), their ``ground_light`` samples whose rays it cannot change
+    (``_ground.ground_samples_update``) and their near blockers' caps at the surface samples it lies below
+    (``_nearcaps.near_blocker_visibility_update``); the rest (the ball's own receivers and samples, the blockers)
+    computed; peer: the same frames with nothing reused (every ray cast)."""
     from prtlab.spherelights._reuse import FrameReuse
 
     a, texels, up, rect, meshes, parts = _ground_frame_arrays(quick)

@@ -47,8 +47,8 @@ from prtlab._tasks import run_tasks, task_threads
 from ._shadows import _adjust
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "GroundSamples",
-           "ground_samples", "ground_sample_sums", "ground_raster", "ground_texture", "covered_texels",
-           "fill_covered"]
+           "ground_samples", "ground_samples_update", "ground_sample_sums", "ground_raster", "ground_texture",
+           "covered_texels", "fill_covered"]
 
 
 def ground_rectangles(objects, transforms=None) -> np.ndarray:
@@ -621,6 +621,35 @@ def ground_samples(points, normals, rectangles, centres=(), radii=(), local_radi
                    n_elevation: int = 6, unadjusted=None) -> GroundSamples:
     """:class:`GroundSamples` of :func:`ground_light` (arguments as there; ``local_radiance``: only which lights
     are local, its NaN rows, matters here)."""
+    p, n, rects, c, r, is_local, exact, quad = _sample_inputs(points, normals, rectangles, centres, radii,
+                                                              local_radiance, n_azimuth, n_elevation, unadjusted)
+    capacity = len(rects) * int(n_azimuth) * int(n_elevation)  # a receiver's samples at most
+    count = np.zeros(len(p), dtype=np.int64)
+    scene = GroundScene(rects, np.zeros((len(rects), 1, 1, 3)), c, r, np.zeros((len(r), 3)), is_local,
+                        np.zeros((int(n_azimuth), _ENV_TABLE + 1, 3)))
+    block = max(1, min(len(p), _SAMPLE_BLOCK_BYTES // (44 * max(capacity, 1))))  # receivers per call
+    reals, ints = np.empty((block * capacity, 4)), np.empty((block * capacity, 3), dtype=np.int32)  # one scratch
+    parts = []
+    for start in range(0, len(p) if len(rects) else 0, block):
+        stop = min(len(p), start + block)
+        _ground_samples(p[start:stop], n[start:stop], quad, scene, _ENV_TABLE, exact, capacity, count[start:stop],
+                        reals, ints)
+        offset = np.zeros(stop - start + 1, dtype=np.int64)
+        np.cumsum(count[start:stop], out=offset[1:])
+        part = np.empty((offset[-1], 4)), np.empty((offset[-1], 3), dtype=np.int32)
+        _compact_samples(count[start:stop], capacity, offset, reals, ints, *part)
+        parts.append(part)
+    ptr = np.zeros(len(p) + 1, dtype=np.int64)
+    np.cumsum(count, out=ptr[1:])
+    if len(parts) == 1:
+        return GroundSamples(quad, len(rects), ptr, *parts[0])
+    return GroundSamples(quad, len(rects), ptr, np.concatenate([x for x, _ in parts] or [np.zeros((0, 4))]),
+                         np.concatenate([x for _, x in parts] or [np.zeros((0, 3), dtype=np.int32)]))
+
+
+def _sample_inputs(points, normals, rectangles, centres, radii, local_radiance, n_azimuth, n_elevation, unadjusted):
+    """The arguments of :func:`ground_samples` checked and coerced: points, unit normals, rectangles, centres, radii,
+    which lights are local, which unadjusted, and the quadrature."""
     from prtlab._validate import check_int
 
     check_int(n_azimuth, "n_azimuth", 1)
@@ -638,28 +667,216 @@ def ground_samples(points, normals, rectangles, centres=(), radii=(), local_radi
         raise ValueError(f"unadjusted must be a bool array of shape ({len(r)},), got {np.shape(unadjusted)}")
     phi0 = math.atan2(rects[0, 4], rects[0, 3]) if len(rects) else 0.0
     quad = ground_quadrature(int(n_azimuth), int(n_elevation), phi0)
-    capacity = len(rects) * int(n_azimuth) * int(n_elevation)  # a receiver's samples at most
-    count = np.zeros(len(p), dtype=np.int64)
-    scene = GroundScene(rects, np.zeros((len(rects), 1, 1, 3)), c, r, np.zeros((len(r), 3)), is_local,
-                        np.zeros((int(n_azimuth), _ENV_TABLE + 1, 3)))
-    block = max(1, min(len(p), _SAMPLE_BLOCK_BYTES // (44 * max(capacity, 1))))  # receivers per call
-    reals, ints = np.empty((block * capacity, 4)), np.empty((block * capacity, 3), dtype=np.int32)  # one scratch
-    parts = []
-    for start in range(0, len(p) if len(rects) else 0, block):
-        stop = min(len(p), start + block)
-        _ground_samples(p[start:stop], n[start:stop], quad, scene, _ENV_TABLE, np.ascontiguousarray(exact), capacity,
-                        count[start:stop], reals, ints)
-        offset = np.zeros(stop - start + 1, dtype=np.int64)
-        np.cumsum(count[start:stop], out=offset[1:])
-        part = np.empty((offset[-1], 4)), np.empty((offset[-1], 3), dtype=np.int32)
-        _compact_samples(count[start:stop], capacity, offset, reals, ints, *part)
-        parts.append(part)
+    return p, n, rects, c, r, is_local, np.ascontiguousarray(exact), quad
+
+
+#: Relative margin of :func:`ground_samples_update`'s ray tests, of the quantities compared: far above the rounding
+#: in which its tests could differ from the kernel's (none: they are the same expressions), far below what matters.
+_UPDATE_MARGIN = 1e-9
+
+
+def ground_samples_update(kept: GroundSamples, kept_lights, points, normals, rectangles, centres=(), radii=(),
+                          local_radiance=None, *, n_azimuth: int = 24, n_elevation: int = 6, unadjusted=None):
+    """:func:`ground_samples` (arguments as there) from ``kept``, the samples of the same receivers and rectangles
+    under other lights ``kept_lights = (centres, radii, local_radiance, unadjusted)`` (the same number of them):
+    ``(samples, counts)``, ``samples`` equal to a fresh call's bit for bit, or None when ``kept`` cannot serve
+    (another number of lights, receivers or grounds, another quadrature). The caller vouches that ``points``,
+    ``normals`` and ``rectangles`` are ``kept``'s (it compares them).
+
+    A receiver's samples depend on a light only through the sample rays it meets: per ray, whether a light is met
+    before the ground (then no sample) and else the nearest local light met beyond it (a light met by no ray is
+    skipped by every test; neither answer depends on the lights' order). So a receiver keeps its samples when every
+    changed light (centre, radius, local or unadjusted differing) gives each of its sample rays the same answer in
+    its old and its new form: met before the ground by both, or by neither (an object's light), or met by neither
+    (a local light). :func:`_reached` tests that with the kernel's own expressions (the adjusted spheres, the
+    azimuths' candidates, the elevation nodes and the ray tests) and counts any answer within
+    :data:`_UPDATE_MARGIN` of changing as a change; the other receivers are recomputed (:func:`ground_samples` on
+    them alone: a receiver's samples depend on nothing but its own point and normal) and the rows merged in receiver
+    order. ``counts``: ``{"receivers", "receivers_recomputed", "lights_changed"}``."""
+    p, n, rects, c, r, is_local, exact, quad = _sample_inputs(points, normals, rectangles, centres, radii,
+                                                              local_radiance, n_azimuth, n_elevation, unadjusted)
+    old_c, old_r, old_local, old_exact = kept_lights
+    old_c = np.asarray(old_c, dtype=np.float64).reshape(-1, 3)
+    old_r = np.asarray(old_r, dtype=np.float64).reshape(-1)
+    if (len(old_r) != len(r) or len(kept.ptr) != len(p) + 1 or kept.n_grounds != len(rects)
+            or kept.quad is not quad):
+        return None
+    old_loc = (np.zeros(len(r), dtype=bool) if old_local is None
+               else ~np.isnan(np.asarray(old_local, np.float64).reshape(-1, 3)).any(axis=1))
+    old_exact = (np.zeros(len(r), dtype=bool) if old_exact is None
+                 else np.asarray(old_exact, dtype=bool).reshape(-1))
+    same = ((old_c.view(np.uint64) == c.view(np.uint64)).all(axis=1) & (old_r.view(np.uint64) == r.view(np.uint64))
+            & (old_loc == is_local) & (old_exact == exact))
+    changed = np.nonzero(~same)[0]
+    counts = {"receivers": len(p), "receivers_recomputed": 0, "lights_changed": len(changed)}
+    if not len(changed):
+        return kept, counts
+    spheres = np.ascontiguousarray(np.stack([np.concatenate([old_c[changed], old_r[changed, None]], axis=1),
+                                             np.concatenate([c[changed], r[changed, None]], axis=1)]))
+    flags = np.ascontiguousarray(np.stack([np.stack([old_exact[changed], old_loc[changed]], axis=1),
+                                           np.stack([exact[changed], is_local[changed]], axis=1)]))
+    todo = np.zeros(len(p), dtype=bool)
+    if len(p) and len(rects):
+        _reached(p, n, quad, rects, spheres, flags, _UPDATE_MARGIN, todo)
+    idx = np.nonzero(todo)[0]
+    counts["receivers_recomputed"] = len(idx)
+    raw = np.asarray(normals, dtype=np.float64).reshape(-1, 3)  # the subset normalised as a whole call does
+    sub = ground_samples(p[idx], raw[idx], rects, c, r, local_radiance, n_azimuth=n_azimuth, n_elevation=n_elevation,
+                         unadjusted=unadjusted)
+    count = np.diff(kept.ptr)
+    count[idx] = np.diff(sub.ptr)
     ptr = np.zeros(len(p) + 1, dtype=np.int64)
     np.cumsum(count, out=ptr[1:])
-    if len(parts) == 1:
-        return GroundSamples(quad, len(rects), ptr, *parts[0])
-    return GroundSamples(quad, len(rects), ptr, np.concatenate([x for x, _ in parts] or [np.zeros((0, 4))]),
-                         np.concatenate([x for _, x in parts] or [np.zeros((0, 3), dtype=np.int32)]))
+    source = np.full(len(p), -1, dtype=np.int64)
+    source[idx] = np.arange(len(idx))
+    reals, ints = np.empty((ptr[-1], 4)), np.empty((ptr[-1], 3), dtype=np.int32)
+    _merge_samples(source, kept.ptr, kept.reals, kept.ints, sub.ptr, sub.reals, sub.ints, ptr, reals, ints)
+    return GroundSamples(quad, len(rects), ptr, reals, ints), counts
+
+
+@numba.njit(cache=True, parallel=True)
+def _merge_samples(source, kept_ptr, kept_reals, kept_ints, sub_ptr, sub_reals, sub_ints, ptr, reals, ints):
+    """Receiver ``q``'s rows into ``ptr[q]:ptr[q + 1]``: the kept ones, or (``source[q] >= 0``) those of the
+    recomputed receiver ``source[q]``; runs of kept receivers copied as one block each (rows are contiguous)."""
+    n_recv = source.shape[0]
+    n_r, n_i = reals.shape[1], ints.shape[1]
+    out_r, out_i = reals.reshape(-1), ints.reshape(-1)
+    kept_r, kept_i = kept_reals.reshape(-1), kept_ints.reshape(-1)
+    sub_r, sub_i = sub_reals.reshape(-1), sub_ints.reshape(-1)
+    n_blocks = min(n_recv, 64)
+    for block in numba.prange(n_blocks):
+        q = block * n_recv // n_blocks
+        stop = (block + 1) * n_recv // n_blocks
+        while q < stop:
+            a = ptr[q]
+            if source[q] >= 0:
+                b, s = ptr[q + 1], sub_ptr[source[q]]
+                out_r[n_r * a:n_r * b] = sub_r[n_r * s:n_r * (s + b - a)]
+                out_i[n_i * a:n_i * b] = sub_i[n_i * s:n_i * (s + b - a)]
+                q += 1
+                continue
+            e = q + 1  # a run of kept receivers: their rows follow one another in kept as here
+            while e < stop and source[e] < 0:
+                e += 1
+            b, s = ptr[e], kept_ptr[q]
+            out_r[n_r * a:n_r * b] = kept_r[n_r * s:n_r * (s + b - a)]
+            out_i[n_i * a:n_i * b] = kept_i[n_i * s:n_i * (s + b - a)]
+            q = e
+
+
+@numba.njit(cache=True, inline="always")
+def _live_sphere(px, py, pz, nx, ny, nz, cx, cy, cz, r, unadjusted):
+    """The sphere :func:`_ground_samples` tests at the receiver ``p, n`` (adjusted, or culled when it holds the
+    receiver); radius 0: not live (culled, or wholly above the receiver)."""
+    if not unadjusted:
+        cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, cx, cy, cz, r)
+    elif (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2 < r * r:
+        r = 0.0
+    if not (r > 0.0 and cy - r < py):
+        r = 0.0
+    return cx, cy, cz, r
+
+
+@numba.njit(cache=True, inline="always")
+def _ray_answer(px, py, pz, wx, wy, wz, t_ground, cx, cy, cz, r, margin):
+    """What the ray ``p + t w`` meets of the sphere in :func:`_lights_on_ray`'s test: 0 nothing, 1 the sphere
+    before ``t_ground``, 2 beyond it; -1 when a quantity it compares lies within ``margin`` (relative) of its
+    bound."""
+    if r <= 0.0:
+        return 0
+    ox, oy, oz = cx - px, cy - py, cz - pz
+    bb = ox * wx + oy * wy + oz * wz
+    oo = ox * ox + oy * oy + oz * oz
+    disc = bb * bb - (oo - r * r)
+    tol_b = margin * (math.sqrt(oo) + r)
+    tol_d = margin * (oo + r * r + bb * bb)
+    if bb < -tol_b or disc < -tol_d:
+        return 0
+    if bb <= tol_b or disc <= tol_d:
+        return -1
+    t_hit = bb - math.sqrt(disc)
+    tol_t = margin * (abs(t_ground) + abs(bb) + math.sqrt(oo) + r)
+    if t_hit < t_ground - tol_t:
+        return 1
+    if t_hit > t_ground + tol_t:
+        return 2
+    return -1
+
+
+@numba.njit(cache=True, parallel=True)
+def _reached(points, normals, quad, rects, spheres, flags, margin, out):
+    """``out[q]``: a changed light may give receiver ``q``'s samples another answer (the test of
+    :func:`ground_samples_update`): ``spheres (2, M, 4)`` the changed lights' old and new centre and radius,
+    ``flags (2, M, 2)`` whether unadjusted and local; the azimuths, elevation nodes and rays as
+    :func:`_ground_samples` makes them (the same expressions), the rays below the tangent plane included."""
+    n_az = quad.cos_az.shape[0]
+    n_el = quad.nodes.shape[0]
+    n_ch = spheres.shape[1]
+    for q in numba.prange(points.shape[0]):
+        px, py, pz = points[q, 0], points[q, 1], points[q, 2]
+        nx, ny, nz = normals[q, 0], normals[q, 1], normals[q, 2]
+        live = np.empty((2, n_ch, 4))
+        any_live = False
+        for f in range(2):
+            for j in range(n_ch):
+                cx, cy, cz, r = _live_sphere(px, py, pz, nx, ny, nz, spheres[f, j, 0], spheres[f, j, 1],
+                                             spheres[f, j, 2], spheres[f, j, 3], flags[f, j, 0])
+                live[f, j, 0], live[f, j, 1], live[f, j, 2], live[f, j, 3] = cx, cy, cz, r
+                any_live = any_live or r > 0.0
+        reached = False
+        if not any_live:
+            out[q] = False
+            continue
+        for g in range(rects.shape[0]):
+            h = py - rects[g, 0]
+            if h <= 0.0:
+                continue
+            for k in range(n_az):
+                ux, uz = quad.cos_az[k], quad.sin_az[k]
+                near = False  # a live sphere (widened by the margin) meets this azimuth's vertical half-plane
+                for f in range(2):
+                    for j in range(n_ch):
+                        r = live[f, j, 3] * (1.0 + margin)
+                        ox, oz = live[f, j, 0] - px, live[f, j, 2] - pz
+                        if live[f, j, 3] > 0.0 and ox * ux + oz * uz > -r and abs(ox * uz - oz * ux) < r:
+                            near = True
+                if not near:
+                    continue
+                d_in, d_out = _rect_span(px, pz, ux, uz, rects[g])
+                if d_in >= d_out:
+                    continue
+                lo = math.atan2(h, d_out)
+                hi = math.atan2(h, d_in) if d_in > 0.0 else 0.5 * np.pi
+                c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
+                lo, hi = max(lo, c_lo), min(hi, c_hi)
+                if lo >= hi:
+                    continue
+                half = 0.5 * (hi - lo)
+                for i in range(n_el):
+                    e = lo + half * (quad.nodes[i] + 1.0)
+                    ce, se = math.cos(e), math.sin(e)
+                    wx, wy, wz = ce * ux, -se, ce * uz
+                    t_ground = h / se
+                    for j in range(n_ch):
+                        a0 = _ray_answer(px, py, pz, wx, wy, wz, t_ground, live[0, j, 0], live[0, j, 1],
+                                         live[0, j, 2], live[0, j, 3], margin)
+                        a1 = _ray_answer(px, py, pz, wx, wy, wz, t_ground, live[1, j, 0], live[1, j, 1],
+                                         live[1, j, 2], live[1, j, 3], margin)
+                        if flags[0, j, 1] or flags[1, j, 1]:  # a local light: met at all, in either form
+                            changes = a0 != 0 or a1 != 0
+                            changes = changes and not (a0 == 1 and a1 == 1)
+                        else:  # an object's light: met before the ground or not
+                            changes = a0 < 0 or a1 < 0 or (a0 == 1) != (a1 == 1)
+                        if changes:
+                            reached = True
+                            break
+                    if reached:
+                        break
+                if reached:
+                    break
+            if reached:
+                break
+        out[q] = reached
 
 
 def ground_sample_sums(samples: GroundSamples, textures, env_sh, local_radiance=None) -> tuple[np.ndarray, np.ndarray]:

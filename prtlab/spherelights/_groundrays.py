@@ -215,7 +215,7 @@ def ground_ray_nodes(points, spheres, spacing: float):
     width = int(math.ceil(extent / h0)) + 2 * (1 << max(top, 0)) + 2
     keys = np.stack([ix * width + iz, (ix + step) * width + iz, ix * width + iz + step,
                      (ix + step) * width + iz + step], axis=1)  # the corners in the order of the weights below
-    nodes, inverse = np.unique(keys, return_inverse=True)
+    nodes, inverse = _unique_keys(keys)
     exact = np.nonzero(near)[0]
     if len(exact) + len(nodes) >= n:
         return p, rows, weights
@@ -228,6 +228,19 @@ def ground_ray_nodes(points, spheres, spacing: float):
     rows[far] = len(exact) + inverse.reshape(-1, 4)
     weights[far] = np.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=1)
     return cast, rows, weights
+
+
+def _unique_keys(keys):
+    """``np.unique(keys, return_inverse=True)`` of non-negative int64 ``keys``: by marking a dense table when the
+    largest key is at most 16 times their number (no sort), else by ``np.unique``."""
+    top = int(keys.max(initial=-1)) + 1
+    if keys.size == 0 or keys.min() < 0 or top > 16 * keys.size:
+        return np.unique(keys, return_inverse=True)
+    seen = np.zeros(top, dtype=bool)
+    seen[keys.ravel()] = True
+    nodes = np.flatnonzero(seen)
+    rank = np.cumsum(seen) - 1
+    return nodes, rank[keys]
 
 
 @numba.njit(cache=True)
@@ -381,57 +394,97 @@ def _candidates_rings_kernel(points, dirs, n_azimuth, spheres, out, counts):
     ring can enter (the largest cosine over the ring's azimuths below its half angle's, with a margin) is skipped,
     and the others are tested only at the azimuths of their window (widened by one azimuth each side); the test of
     a direction against a sphere is ``_candidates_kernel``'s, so the result is the same."""
-    n_s = spheres.shape[0]
     n_ring = dirs.shape[0] // n_azimuth
-    step = 2.0 * math.pi / n_azimuth
+    ring_sin = np.empty(n_ring)
+    for e in range(n_ring):
+        ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
+    no_cones, no_cos, no_cand = np.empty((0, 3)), np.empty(0), np.empty((0, 0), dtype=np.bool_)
+    for q in numba.prange(points.shape[0]):
+        c, _ = _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, False, no_cones, no_cos, False,
+                         no_cand)
+        if counts.shape[0]:
+            counts[q] = c
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _zone_candidates_kernel(points, dirs, n_azimuth, spheres, bounds, zone, cand, zone_counts, cand_counts):
+    """``_candidates_rings_kernel``'s rays in the cones of ``spheres`` (``zone``, ``zone_counts``) and, of those,
+    the candidates against ``bounds`` (``cand``, ``cand_counts``: ``_candidates_within``'s test), in one pass."""
+    n_ring = dirs.shape[0] // n_azimuth
     ring_sin = np.empty(n_ring)
     for e in range(n_ring):
         ring_sin[e] = math.sqrt(max(0.0, 1.0 - dirs[e * n_azimuth, 1] ** 2))
     for q in numba.prange(points.shape[0]):
-        axis = np.empty((n_s, 3))
-        cos_half = np.empty(n_s)
-        rho = np.empty(n_s)  # |axis| in the horizontal plane
-        centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
-        inside = False
+        b_axis = np.empty((bounds.shape[0], 3))
+        b_cos = np.empty(bounds.shape[0])
+        b_in = _cones(points[q], bounds, b_axis, b_cos)
+        zone_counts[q], cand_counts[q] = _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, zone, True, b_axis,
+                                                   b_cos, b_in, cand)
+
+
+@numba.njit(cache=True, inline="always")
+def _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, with_cand, b_axis, b_cos, b_in, cand):
+    """Row ``q`` of ``_candidates_rings_kernel`` into ``out``; with ``with_cand`` also ``cand[q, k]`` for its rays:
+    the ray in a cone ``(b_axis, b_cos)`` (``b_in``: every ray), ``cand`` False elsewhere. Returns the counts of
+    both."""
+    n_s = spheres.shape[0]
+    step = 2.0 * math.pi / n_azimuth
+    n_ring = dirs.shape[0] // n_azimuth
+    axis = np.empty((n_s, 3))
+    cos_half = np.empty(n_s)
+    rho = np.empty(n_s)  # |axis| in the horizontal plane
+    centre = np.empty(n_s)  # the axis's azimuth in units of the azimuth step, less 1/2
+    inside = False
+    for j in range(n_s):
+        ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
+        d2 = ox * ox + oy * oy + oz * oz
+        r2 = spheres[j, 3] * spheres[j, 3]
+        if d2 <= r2:
+            inside = True
+            break
+        inv = 1.0 / math.sqrt(d2)
+        axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
+        cos_half[j] = math.sqrt(1.0 - r2 / d2)
+        rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
+        centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
+    count, n_cand = 0, 0
+    out[q, :] = inside
+    if with_cand:
+        cand[q, :] = False
+    if inside:
+        if with_cand:
+            for k in range(dirs.shape[0]):
+                cand[q, k] = b_in or _in_a_cone(dirs, k, b_axis, b_cos)
+                n_cand += cand[q, k]
+        return dirs.shape[0], n_cand
+    for e in range(n_ring):
+        base = e * n_azimuth
+        mu = dirs[base, 1]
         for j in range(n_s):
-            ox, oy, oz = spheres[j, 0] - points[q, 0], spheres[j, 1] - points[q, 1], spheres[j, 2] - points[q, 2]
-            d2 = ox * ox + oy * oy + oz * oz
-            r2 = spheres[j, 3] * spheres[j, 3]
-            if d2 <= r2:
-                inside = True
-                break
-            inv = 1.0 / math.sqrt(d2)
-            axis[j, 0], axis[j, 1], axis[j, 2] = ox * inv, oy * inv, oz * inv
-            cos_half[j] = math.sqrt(1.0 - r2 / d2)
-            rho[j] = math.sqrt(axis[j, 0] ** 2 + axis[j, 2] ** 2)
-            centre[j] = math.atan2(axis[j, 2], axis[j, 0]) / step - 0.5
-        for k in range(dirs.shape[0]):
-            out[q, k] = inside
-        if inside:
-            _count_row(out, q, counts)
-            continue
-        for e in range(n_ring):
-            base = e * n_azimuth
-            mu = dirs[base, 1]
-            for j in range(n_s):
-                ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
-                rho_s = rho[j] * ring_sin[e]
-                if ay * mu + rho_s < cos_half[j] - 1e-9:
-                    continue  # no direction of the ring enters the cone
-                lo, hi = 0, n_azimuth - 1
-                if rho_s > 1e-9:
-                    x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
-                    if x > -1.0:
-                        half = math.acos(min(x, 1.0)) / step
-                        lo = int(math.floor(centre[j] - half)) - 1
-                        hi = int(math.ceil(centre[j] + half)) + 1
-                        if hi - lo + 1 >= n_azimuth:
-                            lo, hi = 0, n_azimuth - 1
-                for t in range(lo, hi + 1):
-                    k = base + t % n_azimuth
-                    if not out[q, k]:
-                        out[q, k] = ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]
-        _count_row(out, q, counts)
+            ax, ay, az = axis[j, 0], axis[j, 1], axis[j, 2]
+            rho_s = rho[j] * ring_sin[e]
+            if ay * mu + rho_s < cos_half[j] - 1e-9:
+                continue  # no direction of the ring enters the cone
+            lo, hi = 0, n_azimuth - 1
+            if rho_s > 1e-9:
+                x = (cos_half[j] - ay * mu) / rho_s  # cos(phi - phi_axis) > x inside the cone
+                if x > -1.0:
+                    half = math.acos(min(x, 1.0)) / step
+                    lo = int(math.floor(centre[j] - half)) - 1
+                    hi = int(math.ceil(centre[j] + half)) + 1
+                    if hi - lo + 1 >= n_azimuth:
+                        lo, hi = 0, n_azimuth - 1
+            t = lo % n_azimuth  # the azimuths lo..hi, wrapped (one division per window, not per ray)
+            for _ in range(hi - lo + 1):
+                k = base + t
+                if not out[q, k] and ax * dirs[k, 0] + ay * dirs[k, 1] + az * dirs[k, 2] > cos_half[j]:
+                    out[q, k] = True
+                    count += 1
+                    if with_cand and (b_in or _in_a_cone(dirs, k, b_axis, b_cos)):
+                        cand[q, k] = True
+                        n_cand += 1
+                t = t + 1 if t + 1 < n_azimuth else 0
+    return count, n_cand
 
 
 def _chunk_rays(rule, blockers):
@@ -808,15 +861,29 @@ def ground_hits_update(kept: GroundHits, points, blockers: MeshBlockers, moved, 
                               np.asarray(blockers.mesh_balls, dtype=np.float64)[moved]])
     changed[:, 3] += _UPDATE_MARGIN * (changed[:, 3] + np.linalg.norm(changed[:, :3], axis=1)) + 2.0 * frame.epsilon
     n_azimuth = _rings(dirs)
-    zone = (_candidates(cast, dirs, np.ascontiguousarray(changed), n_azimuth) if len(changed)
-            else np.zeros((len(cast), len(dirs)), dtype=bool))
-    zone[match < 0] = True  # a new point: every ray
-    todo = np.nonzero(zone.any(axis=1))[0]
-    sub = np.ascontiguousarray(cast[todo])
-    cand = np.empty((len(todo), len(dirs)), dtype=np.bool_)
-    _candidates_within(sub, dirs, bounds, np.ascontiguousarray(zone[todo]), cand)
+    changed = np.ascontiguousarray(changed)
+    in_zone, n_cand = np.zeros(len(cast), dtype=np.int64), np.zeros(len(cast), dtype=np.int64)  # rays per point
+    zone, cand = np.empty((len(cast), len(dirs)), dtype=np.bool_), np.empty((len(cast), len(dirs)), dtype=np.bool_)
+    if n_azimuth and len(changed):  # the zone and its candidates in one pass
+        _zone_candidates_kernel(cast, dirs, n_azimuth, changed, bounds, zone, cand, in_zone, n_cand)
+    else:
+        zone = _candidates(cast, dirs, changed, n_azimuth, in_zone) if len(changed) else np.zeros_like(zone)
+        _candidates_within(cast, dirs, bounds, zone, cand, n_cand)
+    new = np.nonzero(match < 0)[0]
+    if len(new):  # a new point: every ray
+        zone[new] = True
+        in_zone[new] = len(dirs)
+        part, part_n = np.empty((len(new), len(dirs)), dtype=np.bool_), np.empty(len(new), dtype=np.int64)
+        _candidates_within(np.ascontiguousarray(cast[new]), dirs, bounds, np.ascontiguousarray(zone[new]), part,
+                           part_n)
+        cand[new], n_cand[new] = part, part_n
+    todo = np.nonzero(in_zone)[0]
+    whole = len(todo) == len(cast)  # every point has rays in the zone: no copies
+    sub = cast if whole else np.ascontiguousarray(cast[todo])
+    if not whole:
+        cand, n_cand = np.ascontiguousarray(cand[todo]), n_cand[todo]
     ptr = np.zeros(len(todo) + 1, dtype=np.int64)
-    np.cumsum(cand.sum(axis=1), out=ptr[1:])
+    np.cumsum(n_cand, out=ptr[1:])
     ip, ik = np.empty(ptr[-1], dtype=np.int64), np.empty(ptr[-1], dtype=np.int64)
     origins, ray_dirs = np.empty((ptr[-1], 3)), np.empty((ptr[-1], 3))
     _list_rays(sub, cand, dirs, ptr, frame.epsilon, ip, ik, origins, ray_dirs)
@@ -902,6 +969,8 @@ def _match_rows(rows, among) -> np.ndarray:
     """Per row of ``rows (N, D)`` float64 the index of a row of ``among (M, D)`` with the same bytes, else -1."""
     rows = np.ascontiguousarray(rows, dtype=np.float64)
     among = np.ascontiguousarray(among, dtype=np.float64)
+    if rows.shape == among.shape and np.array_equal(rows.view(np.uint64), among.view(np.uint64)):
+        return np.arange(len(rows), dtype=np.int64)  # the same rows in the same order (a ground that stays)
     out = np.full(len(rows), -1, dtype=np.int64)
     if not len(rows) or not len(among):
         return out
@@ -916,16 +985,19 @@ def _match_rows(rows, among) -> np.ndarray:
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _candidates_within(points, dirs, spheres, zone, out):
+def _candidates_within(points, dirs, spheres, zone, out, counts):
     """``out[q, k]``: ``zone[q, k]`` and the ray a candidate (``_candidates_kernel``'s test, so the rings kernel's
-    result too), testing only the rays of ``zone``."""
+    result too), testing only the rays of ``zone``; ``counts[q]``: row ``q``'s candidates."""
     n_s = spheres.shape[0]
     for q in numba.prange(points.shape[0]):
         axis = np.empty((n_s, 3))
         cos_half = np.empty(n_s)
         inside = _cones(points[q], spheres, axis, cos_half)
+        c = 0
         for k in range(dirs.shape[0]):
             out[q, k] = zone[q, k] and (inside or _in_a_cone(dirs, k, axis, cos_half))
+            c += out[q, k]
+        counts[q] = c
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)

@@ -229,7 +229,7 @@ def mesh_direct_visible(points, normals, rotation, blocked_self, occluders=(), r
                 visible = _visible_reference(ps, ns, w, bits[s:s + _CHUNK], rects, balls)
             else:
                 visible = np.empty((len(ps), len(w)), dtype=np.bool_)
-                _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, visible)
+                _visible_kernel(ps, ns, w, bits[s:s + _CHUNK], rects, balls, _ALL, visible)
             for occ in occluders:
                 if method == "reference":
                     cand = _meets_reference(ps, w, occ.bounds, visible)
@@ -263,9 +263,11 @@ def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, ro
     rectangles, the spheres and the other occluders the same: the caller compares them): ``(visible, counts)``.
 
     A ray outside the cones of the moved occluders' bounding and inner spheres, in both frames, is never tested
-    against them (``_meets``' cone tests, the same arithmetic), so its bit is kept; the rays inside are computed
-    afresh against every occluder in order, as :func:`mesh_direct_visible` does. ``counts``: ``{"rays",
-    "rays_recomputed"}``."""
+    against them (``_meets``' cone tests, the same arithmetic, and with a Fibonacci set only within the same runs of
+    directions), so its bit is kept; the rays inside are computed afresh against every occluder, as
+    :func:`mesh_direct_visible` does (each occluder clears the rays it blocks whatever the others do: the moved ones
+    first, then the others at the receivers with a ray left), and merged into the kept bits as packed bytes.
+    ``counts``: ``{"rays", "rays_recomputed"}``."""
     p, n, d = _checked(points, normals, dirs)
     moved = np.asarray(moved, dtype=bool).reshape(-1)
     if len(moved) != len(occluders) or len(kept_occluders) != len(occluders):
@@ -288,36 +290,56 @@ def mesh_direct_visible_update(kept_visible, kept_occluders, points, normals, ro
     for s in range(0, len(p), _CHUNK):
         ps, ns = p[s:s + _CHUNK], n[s:s + _CHUNK]
         zone = np.empty((len(ps), len(w)), dtype=np.bool_)
-        _zone_kernel(ps, w, changed, zone)
+        _zone_kernel(ps, w, changed, np.zeros(3) if heights is None else heights, heights is not None, zone)
         rows = np.nonzero(zone.any(axis=1))[0]
         if not len(rows):
             continue
         ps, ns, zone = ps[rows], ns[rows], zone[rows]
         visible = np.empty((len(ps), len(w)), dtype=np.bool_)
-        _visible_kernel(ps, ns, w, bits[s:s + _CHUNK][rows], rects, balls, visible)
-        visible &= zone
-        for occ in occluders:
-            _occluder_visible(ps, ns, w, occ, visible, heights, cast)
-        old = _unpack(out[s + rows], len(w))
-        out[s + rows] = np.packbits(np.where(zone, visible, old), axis=1)
+        _visible_kernel(ps, ns, w, bits[s:s + _CHUNK][rows], rects, balls, zone, visible)  # False off the zone
+        # each occluder clears the rays it blocks, whatever the others do: the moved ones first (the zone lies in
+        # their cones), each at the receivers with a ray still visible
+        live = np.arange(len(ps))
+        for g in sorted(range(len(occluders)), key=lambda g: not moved[g]):
+            live = live[visible[live].any(axis=1)]
+            if not len(live):
+                break
+            part = visible[live]
+            _occluder_visible(ps[live], ns[live], w, occluders[g], part, heights, cast)
+            visible[live] = part
+        out[s + rows] = (out[s + rows] & ~np.packbits(zone, axis=1)) | np.packbits(visible, axis=1)
         recomputed += int(np.count_nonzero(zone))
     return out, {"rays": len(p) * len(w), "rays_recomputed": recomputed}
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _zone_kernel(points, dirs, spheres, zone):
+def _zone_kernel(points, dirs, spheres, heights, fibonacci, zone):
     """``zone[q, j]``: the ray from ``points[q]`` along ``dirs[j]`` lies in the cone of one of ``spheres`` (the
-    point inside one: every ray), by ``_cones``' arithmetic."""
+    point inside one: every ray), by ``_cones``' arithmetic; with ``fibonacci`` (``dirs`` a Fibonacci set turned by a
+    rotation of second column ``heights``) each cone tested only in its run of directions (``_cone_run``, as
+    ``_meets_kernel`` tests them)."""
+    n_dirs = dirs.shape[0]
     for q in numba.prange(points.shape[0]):
         axis, cos_half = np.empty((spheres.shape[0], 3)), np.empty(spheres.shape[0])
         inside = _cones(points[q], spheres, axis, cos_half)
-        for j in range(dirs.shape[0]):
-            hit = inside
-            s = 0
-            while not hit and s < spheres.shape[0]:
-                hit = axis[s, 0] * dirs[j, 0] + axis[s, 1] * dirs[j, 1] + axis[s, 2] * dirs[j, 2] > cos_half[s]
-                s += 1
-            zone[q, j] = hit
+        for j in range(n_dirs):
+            zone[q, j] = inside
+        if inside:
+            continue
+        run = np.empty(2, dtype=np.int64)
+        for s in range(spheres.shape[0]):
+            run[0], run[1] = 0, n_dirs - 1
+            if fibonacci:
+                run[0], run[1] = n_dirs, -1
+                _cone_run(axis[s], cos_half[s], heights, n_dirs, run)
+            ax, ay, az, c = axis[s, 0], axis[s, 1], axis[s, 2], cos_half[s]
+            for j in range(run[0], run[1] + 1):
+                if ax * dirs[j, 0] + ay * dirs[j, 1] + az * dirs[j, 2] > c:
+                    zone[q, j] = True
+
+
+#: The zone of :func:`_visible_kernel` that holds every ray.
+_ALL = np.zeros((0, 0), dtype=np.bool_)
 
 
 def mesh_direct_sums(visible, normals, env_sh, rotation, dirs=None, *, method: str = "numba") -> np.ndarray:
@@ -427,9 +449,11 @@ def _blocked_reference(normals, dirs, visible, radiance):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _visible_kernel(points, normals, dirs, bits, rects, balls, out):
+def _visible_kernel(points, normals, dirs, bits, rects, balls, zone, out):
     """``_visible_reference``: per receiver and direction, the tangent plane, the own mesh's bit, the rectangles'
-    slab test and the opaque spheres (a point inside one sees nothing)."""
+    slab test and the opaque spheres (a point inside one sees nothing); only the rays of ``zone (P, M)`` (the others
+    False) unless it is empty (:data:`_ALL`)."""
+    every = zone.shape[0] == 0
     for q in numba.prange(points.shape[0]):
         px, py, pz = points[q, 0], points[q, 1], points[q, 2]
         inside = False
@@ -438,6 +462,9 @@ def _visible_kernel(points, normals, dirs, bits, rects, balls, out):
             if ox * ox + oy * oy + oz * oz <= balls[b, 3] * balls[b, 3]:
                 inside = True
         for j in range(dirs.shape[0]):
+            if not every and not zone[q, j]:
+                out[q, j] = False
+                continue
             dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
             vis = normals[q, 0] * dx + normals[q, 1] * dy + normals[q, 2] * dz > 0.0 and not inside
             if vis and (bits[q, j >> 3] >> (7 - (j & 7))) & 1:

@@ -35,7 +35,7 @@ from ._shadows import BlockerLanes, LaneScratch, _as_spheres, _blocker_log_knots
     _receivers, blocker_log_table, environment_transfer, one_thread_below
 
 __all__ = ["environment_cube", "has_near_blocker", "near_blocker_direct", "NearVisibility",
-           "near_blocker_visibility", "near_blocker_sums"]
+           "near_blocker_visibility", "near_blocker_visibility_update", "near_blocker_sums"]
 
 #: Cube-map face resolution of the environment table (an order-10 SH environment varies over ~18 degrees; a texel
 #: of 32 per face spans under 3 degrees).
@@ -442,6 +442,70 @@ def near_blocker_visibility(points, normals, centres, radii, order: int, n_near:
                 g_rest, axis, cosq = _near_split_reference(p, n, c, r, elig, order, k)
         v = sh.exp(g_rest, method=exp_method, channels=False)
     return NearVisibility(n, v, axis, cosq, order)
+
+
+#: Relative margin of :func:`near_blocker_visibility_update`'s test (of the lengths compared): far above the rounding
+#: of the kernel's own test, far below what matters.
+_UPDATE_MARGIN = 1e-9
+
+
+def near_blocker_visibility_update(kept: NearVisibility, kept_lights, points, normals, centres, radii, order: int,
+                                   n_near: int = 2, *, eligible=None, kept_from=None, exp_method: str = "hyb",
+                                   method: str = "numba"):
+    """:func:`near_blocker_visibility` (arguments as there) from ``kept``, made with the same ``order``, ``n_near``,
+    ``exp_method`` and ``method`` under other lights ``kept_lights = (centres, radii, eligible)`` (the same number of
+    them): ``(vis, counts)``, ``vis`` equal to a fresh call's bit for bit, or None when ``kept`` cannot serve.
+    ``kept_from (B,) int``: per receiver the row of ``kept`` made at the same point and normal (the caller compares
+    them; -1: none; default ``arange(B)``).
+
+    A light wholly below a receiver's tangent plane (or holding the receiver) is culled there: its log enters the
+    sum as zeros, which leave it as it is, and it is no cap. So a receiver keeps its row when every changed light
+    (centre, radius or eligibility differing) lies below its tangent plane by :data:`_UPDATE_MARGIN` of the lengths
+    involved in its old and its new form; the others, and those with no kept row, are computed
+    (:func:`near_blocker_visibility` on them alone: a receiver's row depends on nothing but its own point and
+    normal). ``counts``: ``{"receivers", "receivers_recomputed", "lights_changed"}``."""
+    from prtlab._validate import check_int
+
+    p, n, _ = _receivers(points, normals)
+    p, n = np.ascontiguousarray(p.reshape(-1, 3)), np.ascontiguousarray(n.reshape(-1, 3))
+    c, r = _as_spheres(centres, radii)
+    old_c, old_r, old_elig = kept_lights
+    old_c, old_r = _as_spheres(old_c, old_r)
+    k = min(check_int(n_near, "n_near", 0), len(r))
+    if len(old_r) != len(r) or kept.order != _check_order(order) or kept.axis.shape[1] != k:
+        return None
+    elig = np.ones(len(r), dtype=bool) if eligible is None else np.asarray(eligible, dtype=bool).reshape(-1)
+    old_elig = np.ones(len(r), dtype=bool) if old_elig is None else np.asarray(old_elig, dtype=bool).reshape(-1)
+    rows = np.arange(len(p)) if kept_from is None else np.asarray(kept_from, dtype=np.int64).reshape(-1)
+    if rows.shape != (len(p),) or rows.max(initial=-1) >= len(kept.cos_half):
+        raise ValueError(f"kept_from must give one row of kept (or -1) per receiver ({len(p)})")
+    changed = ~((old_c.view(np.uint64) == c.view(np.uint64)).all(axis=1)
+                & (old_r.view(np.uint64) == r.view(np.uint64)) & (old_elig == elig))
+    spheres = np.concatenate([np.concatenate([old_c[changed], old_r[changed, None]], axis=1),
+                              np.concatenate([c[changed], r[changed, None]], axis=1)])
+    todo = (rows < 0) | _reached(p, n, spheres, _UPDATE_MARGIN)
+    idx = np.nonzero(todo)[0]
+    counts = {"receivers": len(p), "receivers_recomputed": len(idx), "lights_changed": int(changed.sum())}
+    keep = np.nonzero(~todo)[0]
+    parts = [np.empty((len(p),) + old.shape[1:], dtype=old.dtype) for old in kept[1:4]]
+    for old, out in zip(kept[1:4], parts):
+        out[keep] = old[rows[keep]]
+    if len(idx):
+        sub = near_blocker_visibility(p[idx], np.asarray(normals, dtype=np.float64).reshape(-1, 3)[idx], c, r,
+                                      order, n_near, eligible=eligible, exp_method=exp_method, method=method)
+        for new, out in zip(sub[1:4], parts):
+            out[idx] = new
+    return NearVisibility(n, *parts, kept.order), counts
+
+
+def _reached(points, normals, spheres, margin) -> np.ndarray:
+    """``(B,) bool``: a sphere of ``spheres (M, 4)`` reaches above the receiver's tangent plane, or lies within
+    ``margin`` (relative, of the lengths involved) of it (the test of :func:`near_blocker_visibility_update`)."""
+    e = spheres[None, :, :3] - points[:, None]  # (B, M, 3)
+    h = np.einsum("bmk,bk->bm", e, normals)
+    size = (np.linalg.norm(e, axis=2) + np.abs(spheres[None, :, 3]) + np.abs(points).sum(axis=1)[:, None]
+            + np.abs(spheres[None, :, :3]).sum(axis=2))
+    return ~(h < -(spheres[None, :, 3] + margin * size)).all(axis=1)
 
 
 def near_blocker_sums(vis: NearVisibility, env_sh, *, method: str = "numba") -> np.ndarray:

@@ -74,14 +74,16 @@ from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
 from ._ground import (covered_points, covered_texels, fill_covered, fill_covered_vertices, ground_light,
-                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_texture)
+                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_samples_update,
+                      ground_texture)
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
                           ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
                          reflection_ratio, select_cut)
 from ._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct_sums, mesh_direct_visible,
                           mesh_direct_visible_update, mesh_occluder, self_blocked)
-from ._nearcaps import has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility
+from ._nearcaps import (has_near_blocker, near_blocker_direct, near_blocker_sums, near_blocker_visibility,
+                        near_blocker_visibility_update)
 from ._passes import first_pass, second_pass
 from ._reuse import FrameReuse, same_inputs
 from ._samples import coverage_weights, segment_coverage, surface_albedo_sh, surface_samples
@@ -671,9 +673,11 @@ class SphereLights(Precomputation):
                 continue
             args = (p[sel], n[sel], lights.centres, lights.radii, self.options.order)
             exp_method = self.options.exp_method
+            key = (p, n, sel, lights.centres, lights.radii, self.options.order, k, elig, exp_method)
             near, far = self.frame_reuse.get(  # the caps and the visibility: geometry, kept while it stays
-                ("near_samples", int(own)), args + (k, elig, exp_method),
-                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)))
+                ("near_samples", int(own)), key,
+                lambda: tuple(near_blocker_visibility(*args, m, eligible=elig, exp_method=exp_method) for m in (k, 0)),
+                near_samples_reuse(key))
             corr = np.zeros((len(p), 3))
             corr[sel] = near_blocker_sums(near, lights.env) - near_blocker_sums(far, lights.env)
             out[mask] = corr
@@ -774,7 +778,8 @@ class SphereLights(Precomputation):
                 unadjusted = self._near_eligible(lights, own) & near_used
                 args = (pts, nrm, rects, lights.centres, lights.radii, lights.local_radiance)
                 samples = reuse.get(("ground_light", obj.name), args + (unadjusted,),
-                                    lambda: ground_samples(*args, unadjusted=unadjusted))
+                                    lambda: ground_samples(*args, unadjusted=unadjusted),
+                                    ground_samples_reuse(args + (unadjusted,)))
                 hidden, reflected = ground_sample_sums(samples, textures, lights.env, lights.local_radiance)
                 direct = direct if exact else direct - hidden  # the rays of ``exact`` meet the grounds
                 indirect = indirect + reflected if reflects else indirect
@@ -1139,6 +1144,51 @@ def ground_hits_reuse(inputs, blockers, points, rule, spacing: float):
             return None
         moved = [not same_inputs(a[0], b[0]) for a, b in zip(old[0], new[0])]
         return ground_hits_update(kept, points, blockers, moved, rule, spacing=spacing)
+
+    return update
+
+
+def ground_samples_reuse(inputs):
+    """The ``update`` of :meth:`FrameReuse.get` for ``ground_light``'s samples keyed by ``inputs = (points, normals,
+    rectangles, centres, radii, local_radiance, unadjusted)`` (:func:`ground_samples`' arguments): when the
+    receivers and the rectangles are the kept ones, the receivers that no changed light can reach keep their samples
+    (``_ground.ground_samples_update``); else None (computed afresh)."""
+
+    def update(kept_inputs, kept):
+        if not same_inputs(kept_inputs[:3], inputs[:3]):
+            return None
+        return ground_samples_update(kept, kept_inputs[3:], *inputs[:6], unadjusted=inputs[6])
+
+    return update
+
+
+def near_samples_reuse(inputs):
+    """The ``update`` of :meth:`FrameReuse.get` for the near blockers' caps at receivers (the pair of
+    :func:`near_blocker_visibility` with ``n_near`` and 0 blockers at the ``selected`` ones) keyed by ``inputs =
+    (points, normals, selected, centres, radii, order, n_near, eligible, exp_method)``: when the receivers, the order,
+    ``n_near`` and ``exp_method`` are the kept ones, the selected receivers selected before whose tangent plane every
+    changed light lies below keep their rows (``_nearcaps.near_blocker_visibility_update``); else None (computed
+    afresh)."""
+    points, normals, sel, centres, radii, order, n_near, elig, exp_method = inputs
+
+    def update(kept_inputs, kept):
+        k_points, k_normals, k_sel, k_centres, k_radii, *k_rest = kept_inputs
+        k_elig = k_rest[2]
+        if not same_inputs((k_points, k_normals, k_rest[0], k_rest[1], k_rest[3]),
+                           (points, normals, order, n_near, exp_method)):
+            return None
+        rows = np.full(len(k_sel), -1, dtype=np.int64)
+        rows[k_sel] = np.arange(int(k_sel.sum()))
+        out, counts = [], None
+        for vis, m in zip(kept, (n_near, 0)):
+            made = near_blocker_visibility_update(vis, (k_centres, k_radii, k_elig), points[sel], normals[sel], centres,
+                                                  radii, order, m, eligible=elig, kept_from=rows[sel],
+                                                  exp_method=exp_method)
+            if made is None:
+                return None
+            out.append(made[0])
+            counts = made[1]
+        return tuple(out), counts
 
     return update
 

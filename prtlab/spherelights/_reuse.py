@@ -7,7 +7,10 @@ keeps each such result with a copy of every input it was computed from and hands
 equal the kept ones exactly (same type, shape, dtype and bytes: never a digest), so a moved, turned, scaled or
 deformed object, a moved ground or light, or another option computes afresh, unless the caller gives an update: a
 function of the kept inputs and result that computes the new result from the kept one (the ground's rays of the
-objects that did not move kept, ``_groundrays.ground_hits_update``), exactly as a fresh computation would.
+objects that did not move kept, ``_groundrays.ground_hits_update``; likewise the objects' visible rays,
+``ground_light``'s samples and the near blockers' caps: ``_meshdirect.mesh_direct_visible_update``,
+``_ground.ground_samples_update``, ``_nearcaps.near_blocker_visibility_update``), exactly as a fresh computation
+would.
 """
 
 from __future__ import annotations

@@ -202,7 +202,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
     moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
-    cast)."""
+    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept."""
     scene, pre = bunny_scene
     pre.frame_reuse.clear()
     rest = FrameState.from_scene(scene)
@@ -231,6 +231,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         ("back", rest, False, False),
     ]
     kept_any = 0
+    partly = [0, 0]  # updates of ground_light's samples or the near caps that kept some receivers; of ground_light
     for label, state, rays, visible in frames:
         ours = pre.shade(state)
         _same(ours, _fresh(pre).shade(state))
@@ -245,4 +246,206 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
             kept_any += 1
         for counts in updated.get("mesh_direct", []):
             assert 0 < counts["rays_recomputed"] < counts["rays"], (label, counts)
+        for counts in updated.get("ground_light", []) + updated.get("near_samples", []):
+            assert counts["receivers_recomputed"] <= counts["receivers"], (label, counts)
+            partly[0] += 0 < counts["receivers_recomputed"] < counts["receivers"]
+        partly[1] += len(updated.get("ground_light", []))
     assert kept_any >= 4
+    assert partly[0] >= 4 and partly[1] >= 4, partly  # ground_light's samples and the near caps partly kept
+
+
+# ------------------------------------------------------------------ ground_light's samples when lights move
+
+
+def _samples_equal(ours, fresh):
+    assert ours.quad is fresh.quad and ours.n_grounds == fresh.n_grounds
+    for name in ("ptr", "reals", "ints"):
+        a, b = getattr(ours, name), getattr(fresh, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8)), name
+
+
+def _receivers_on_balls(centres, radii, n=300, seed=5):
+    """Points just off the balls' surfaces with outward normals (unnormalised: the update must normalise as a fresh
+    call), the ball each lies on."""
+    rng = np.random.default_rng(seed)
+    k = rng.integers(0, len(radii), n)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return centres[k] + 1.01 * radii[k, None] * d, 1.7 * d, k
+
+
+def _per_receiver(samples):
+    return [(samples.reals[a:b].tobytes(), samples.ints[a:b].tobytes())
+            for a, b in zip(samples.ptr[:-1], samples.ptr[1:])]
+
+
+@pytest.mark.parametrize("grounds", [1, 2])
+@pytest.mark.parametrize("with_local", [False, True])
+def test_kept_ground_samples_equal_a_fresh_computation(grounds, with_local):
+    """``ground_samples_update`` after one light moves, two move, one grows, one turns unadjusted, a local light
+    moves, and all come back: equal to ``ground_samples`` bit for bit; receivers kept and recomputed; and in every
+    changed frame some receiver's samples differ from the kept ones (the update cannot pass by keeping everything):
+    each such receiver is among the recomputed."""
+    from prtlab.spherelights._ground import ground_samples, ground_samples_update
+
+    centres, radii = CENTRES.copy(), RADII.copy()
+    points, normals, _ = _receivers_on_balls(centres, radii)
+    rects = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0], [-0.3, 1.0, 0.5, 1.5, 1.5, -1.0, 1.0]])[:grounds]
+    local = np.full((len(radii), 3), np.nan)
+    if with_local:
+        local[3] = [2.0, 1.5, 1.0]
+    unadjusted = np.arange(len(radii)) % 2 == 0
+
+    def lights(label):
+        c, r, u, loc = centres.copy(), radii.copy(), unadjusted.copy(), local.copy()
+        if label == "one moved":
+            c[4] += [0.15, -0.05, 0.1]
+        elif label == "two moved":
+            c[4] += [-0.1, 0.0, 0.05]
+            c[1] += [0.0, 0.2, -0.3]
+        elif label == "grown":
+            r[5] *= 1.3
+        elif label == "unadjusted":
+            u[5] = not u[5]
+        elif label == "local moved":
+            c[3] += [0.4, -0.3, 0.0]
+        return c, r, loc if with_local else None, u
+
+    args = (points, normals, rects)
+    kept_lights = lights("rest")
+    kept = ground_samples(*args, *kept_lights[:3], unadjusted=kept_lights[3])
+    for label in ["one moved", "back", "two moved", "grown", "unadjusted", "local moved", "back again", "rest"]:
+        new = lights("rest" if label.startswith("back") else label)
+        ours, counts = ground_samples_update(kept, kept_lights, *args, *new[:3], unadjusted=new[3])
+        fresh = ground_samples(*args, *new[:3], unadjusted=new[3])
+        _samples_equal(ours, fresh)
+        differ = [q for q, (a, b) in enumerate(zip(_per_receiver(kept), _per_receiver(fresh))) if a != b]
+        if label == "rest":  # nothing changed: all kept
+            assert counts["lights_changed"] == 0 and counts["receivers_recomputed"] == 0, (label, counts)
+        else:
+            assert differ, label  # the change matters to some receivers
+            assert 0 < counts["receivers_recomputed"] < counts["receivers"], (label, counts)
+            assert len(differ) <= counts["receivers_recomputed"]
+        kept, kept_lights = ours, new
+
+
+def test_ground_samples_update_recomputes_every_receiver_a_light_reaches(monkeypatch):
+    """A light moved next to a receiver above the ground changes its samples; with the reach test made to reach
+    nothing the update keeps the old samples and differs from a fresh call (so the tests above would see a skipped
+    receiver), and the update refuses kept samples of another number of lights or receivers."""
+    from prtlab.spherelights import _ground
+
+    rect = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]])
+    points = np.array([[0.0, 1.0, 0.0], [2.0, 1.0, 2.0]])
+    normals = np.array([[0.0, -1.0, 0.2], [0.0, 1.0, 0.0]])
+    c0, r0 = np.array([[-2.5, 0.4, -2.5]]), np.array([0.3])
+    c1 = np.array([[0.0, 0.5, 0.0]])  # under the first receiver: hides its ground
+    kept = _ground.ground_samples(points, normals, rect, c0, r0)
+    fresh = _ground.ground_samples(points, normals, rect, c1, r0)
+    ours, counts = _ground.ground_samples_update(kept, (c0, r0, None, None), points, normals, rect, c1, r0)
+    _samples_equal(ours, fresh)
+    assert counts["receivers_recomputed"] >= 1
+    assert _per_receiver(kept)[0] != _per_receiver(fresh)[0]
+
+    def nothing(points, normals, quad, rects, spheres, flags, margin, out):
+        out[:] = False
+
+    monkeypatch.setattr(_ground, "_reached", nothing)
+    skipped, _ = _ground.ground_samples_update(kept, (c0, r0, None, None), points, normals, rect, c1, r0)
+    assert not np.array_equal(skipped.reals, fresh.reals) or not np.array_equal(skipped.ptr, fresh.ptr)
+    monkeypatch.undo()
+    assert _ground.ground_samples_update(kept, (np.zeros((2, 3)), np.ones(2), None, None), points, normals, rect,
+                                         c1, r0) is None
+    assert _ground.ground_samples_update(kept, (c0, r0, None, None), points[:1], normals[:1], rect, c1, r0) is None
+
+
+# ------------------------------------------------------------------ the near blockers' caps when lights move
+
+
+def _near_equal(ours, fresh):
+    assert ours.order == fresh.order
+    for name in ("normals", "visibility", "axis", "cos_half"):
+        a, b = getattr(ours, name), getattr(fresh, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8)), name
+
+
+@pytest.mark.parametrize("n_near", [0, 2])
+def test_kept_near_caps_equal_a_fresh_computation(n_near):
+    """``near_blocker_visibility_update`` after one light moves, two move, one grows, one turns ineligible, and all
+    come back, with receivers joining and leaving the kept rows: equal to ``near_blocker_visibility`` bit for bit,
+    rows kept and recomputed, and in each changed frame some row differs from the kept one."""
+    from prtlab.spherelights._nearcaps import near_blocker_visibility, near_blocker_visibility_update
+
+    centres, radii = CENTRES.copy(), RADII.copy()
+    points, normals, _ = _receivers_on_balls(centres, radii, n=400, seed=11)
+    eligible = np.ones(len(radii), dtype=bool)
+    eligible[2] = False
+
+    def lights(label):
+        c, r, e = centres.copy(), radii.copy(), eligible.copy()
+        if label == "one moved":
+            c[4] += [0.15, -0.05, 0.1]
+        elif label == "two moved":
+            c[4] += [-0.1, 0.0, 0.05]
+            c[1] += [0.0, 0.2, -0.3]
+        elif label == "grown":
+            r[5] *= 1.3
+        elif label == "ineligible":
+            e[5] = False
+        return c, r, e
+
+    rng = np.random.default_rng(3)
+    kept_lights, kept_sel = lights("rest"), rng.uniform(size=len(points)) < 0.8
+    kept = near_blocker_visibility(points[kept_sel], normals[kept_sel], *kept_lights[:2], 4, n_near,
+                                   eligible=kept_lights[2])
+    for label in ["one moved", "back", "two moved", "grown", "ineligible", "back again", "rest"]:
+        new = lights("rest" if label.startswith("back") else label)
+        sel = rng.uniform(size=len(points)) < 0.8  # receivers in and out of the selection
+        if label == "rest":
+            sel = kept_sel
+        rows = np.full(len(points), -1, dtype=np.int64)
+        rows[kept_sel] = np.arange(kept_sel.sum())
+        ours, counts = near_blocker_visibility_update(kept, kept_lights, points[sel], normals[sel], *new[:2], 4,
+                                                      n_near, eligible=new[2], kept_from=rows[sel])
+        fresh = near_blocker_visibility(points[sel], normals[sel], *new[:2], 4, n_near, eligible=new[2])
+        _near_equal(ours, fresh)
+        both = kept_sel[sel]  # rows of fresh whose receiver has a kept row
+        differ = ~np.all(fresh.visibility[both] == kept.visibility[rows[sel][both]], axis=1)
+        if label == "rest":
+            assert counts["receivers_recomputed"] == 0, counts
+        else:
+            # (eligibility alone, ineligible and back, changes nothing without caps)
+            assert differ.any() or label in ("ineligible", "back again") and n_near == 0, label
+            assert (rows[sel] < 0).sum() < counts["receivers_recomputed"] < counts["receivers"], (label, counts)
+        kept, kept_lights, kept_sel = ours, new, sel
+
+
+def test_near_caps_update_recomputes_a_receiver_a_light_rises_above(monkeypatch):
+    """A light moved from below a receiver's tangent plane to above it changes its row; with the reach test made to
+    reach nothing the update keeps the old row and differs from a fresh call."""
+    from prtlab.spherelights import _nearcaps
+
+    points = np.array([[0.0, 1.0, 0.0], [3.0, 1.0, 0.0]])
+    normals = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    c0, c1, r = np.array([[0.0, -1.0, 0.0]]), np.array([[0.0, 2.0, 0.0]]), np.array([0.5])
+    kept = _nearcaps.near_blocker_visibility(points, normals, c0, r, 4, 2)
+    fresh = _nearcaps.near_blocker_visibility(points, normals, c1, r, 4, 2)
+    ours, counts = _nearcaps.near_blocker_visibility_update(kept, (c0, r, None), points, normals, c1, r, 4, 2)
+    _near_equal(ours, fresh)
+    assert counts["receivers_recomputed"] == 1 and not np.array_equal(kept.cos_half[0], fresh.cos_half[0])
+    monkeypatch.setattr(_nearcaps, "_reached", lambda points, normals, spheres, margin: np.zeros(len(points), bool))
+    skipped, _ = _nearcaps.near_blocker_visibility_update(kept, (c0, r, None), points, normals, c1, r, 4, 2)
+    assert not np.array_equal(skipped.cos_half, fresh.cos_half)
+
+
+def test_unique_keys_is_numpys(rng):
+    """``_groundrays._unique_keys`` (the grid nodes of ``ground_ray_nodes``) gives ``np.unique``'s nodes and inverse,
+    dense (a table) or sparse (a sort), empty included."""
+    from prtlab.spherelights._groundrays import _unique_keys
+
+    for high, shape in [(50, (300, 4)), (10**9, (300, 4)), (5, (0, 4)), (3000, (2000, 4))]:
+        keys = rng.integers(0, high, size=shape)
+        nodes, inverse = _unique_keys(keys)
+        want_nodes, want_inverse = np.unique(keys, return_inverse=True)
+        assert nodes.dtype == want_nodes.dtype and np.array_equal(nodes, want_nodes)
+        assert np.array_equal(inverse.reshape(-1), want_inverse.reshape(-1))
