@@ -187,17 +187,54 @@ def project_equirect(image, order: int, method: str = "numba") -> np.ndarray:
     ``~3e-5 |c|`` at ``256 x 512``, ``~8e-6 |c|`` at ``512 x 1024`` (``|c|``
     the coefficient norm; ``tests/sh/test_project.py`` checks it against the
     leading term of its Euler-Maclaurin expansion).
+
+    ``method="numba"`` sums the same rule row by row (:func:`_equirect_rows`:
+    ``O(H W n + H n^3)`` instead of ``O(H W n^2)``); ``"reference"`` sums it
+    pixel by pixel with :func:`prtlab.sh.basis_reference`. They differ by
+    rounding only.
     """
     order = check_order(order)
+    method = _check_method(method)
     arr = _as_image(image, "image")
     if arr.ndim not in (2, 3) or arr.shape[0] < 2 or arr.shape[1] < 1:
         raise ValueError(f"image must be (H, W) or (H, W, C) with H >= 2, got shape {arr.shape}")
     h, w = arr.shape[:2]
-    dirs = equirect_directions(h, w).reshape(-1, 3)
-    weights = equirect_solid_angles(h, w).reshape(-1)
-    values = arr.reshape((h * w,) + (arr.shape[2:] or (1,)))
-    out = _project_core(values, dirs, weights, order, _check_method(method))
+    values = arr.reshape((h, w) + (arr.shape[2:] or (1,)))
+    if method == "reference":
+        dirs = equirect_directions(h, w).reshape(-1, 3)
+        weights = equirect_solid_angles(h, w).reshape(-1)
+        out = _project_core(values.reshape(h * w, -1), dirs, weights, order, method)
+    else:
+        out = _equirect_rows(values, order)
     return out[:, 0] if arr.ndim == 2 else out
+
+
+def _equirect_rows(values: np.ndarray, order: int) -> np.ndarray:
+    """:func:`project_equirect`'s rule ``sum_ij w_i L_ij Y(d_ij)`` summed row by row: ``values`` (H, W, C) ->
+    (n*n, C).
+
+    Along row ``i`` (polar angle ``t_i``) the pixel directions are ``d(phi) = (sin t sin phi, cos t, -sin t cos
+    phi)``, so each ``Y_l(d(phi))`` is a trigonometric polynomial of degree ``l <= n - 1`` in ``phi``:
+    ``a_0 + sum_k (a_k cos k phi + b_k sin k phi)``. Its coefficients come exactly from ``Y`` at ``2n``
+    equally spaced ``phi`` (a discrete Fourier transform, free of aliasing up to degree ``2n - 1``), and the
+    row's sum is ``w_i sum_k (a_ik . C_ik + b_ik . S_ik)`` with ``C_ik = sum_j L_ij cos(k phi_j)`` and ``S_ik``
+    likewise: the same rule, summed in another order (no per-pixel basis)."""
+    h, w = values.shape[:2]
+    theta = np.pi * np.arange(h) / (h - 1)
+    phi = 2.0 * np.pi * (np.arange(w) + 0.5) / w  # as equirect_directions
+    weights = equirect_solid_angles(h, w)[:, 0]  # one weight per row
+    n_s = 2 * order
+    phi_s = 2.0 * np.pi * np.arange(n_s) / n_s
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    dirs = np.stack(np.broadcast_arrays(st * np.sin(phi_s), ct, -st * np.cos(phi_s)), -1)
+    y = basis(dirs.reshape(-1, 3), order).reshape(h, n_s, order * order)
+    k = np.arange(order)
+    fourier = np.concatenate([np.cos(np.outer(phi_s, k)), np.sin(np.outer(phi_s, k))], axis=1) * (2.0 / n_s)
+    fourier[:, 0] *= 0.5  # a_0 is the mean
+    ab = np.matmul(np.swapaxes(y, 1, 2), fourier)  # (H, n*n, 2n): a_k then b_k of each Y_i along each row
+    trig = np.concatenate([np.cos(np.outer(phi, k)), np.sin(np.outer(phi, k))], axis=1)  # (W, 2n)
+    cs = np.matmul(np.ascontiguousarray(np.swapaxes(values, 1, 2)), trig)  # (H, C, 2n): C_k then S_k per row
+    return np.einsum("h,hik,hck->ic", weights, ab, cs)
 
 
 def project_cubemap(faces, order: int, method: str = "numba") -> np.ndarray:
