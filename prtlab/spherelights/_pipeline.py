@@ -958,12 +958,9 @@ class SphereLights(Precomputation):
         p[:, 1] = row[0] + 1e-6 * size
         covered = np.zeros(len(p), dtype=bool)
         for name in sorted(self.data["objects"]):
-            obj = self.scene.object(name)
-            tr = state.transforms.get(name) or obj.transform
-            local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
-            verts = tr.apply_points(np.asarray(local, dtype=np.float64))
+            verts, faces = self._world_mesh(name, state)
             if len(p) and verts[:, 1].min() <= p[0, 1]:  # else above the ground: it covers nothing
-                covered |= covered_points(p, verts, np.asarray(obj.mesh.faces))
+                covered |= covered_points(p, verts, faces)
         return covered
 
     def _covered(self, ground, row, k: int, state: FrameState) -> np.ndarray:
@@ -973,13 +970,18 @@ class SphereLights(Precomputation):
         sphere); each object's texels kept in :attr:`frame_reuse` while the rectangle and its world vertices stay."""
         covered = np.zeros((k, k), dtype=bool)
         for name in sorted(self.data["objects"]):
-            obj = self.scene.object(name)
-            tr = state.transforms.get(name) or obj.transform
-            local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
-            mesh = (tr.apply_points(np.asarray(local, dtype=np.float64)), np.asarray(obj.mesh.faces))
+            mesh = self._world_mesh(name, state)
             covered |= self.frame_reuse.get(("covered_texels", ground.name, name), (np.asarray(row), int(k), mesh),
                                             lambda: covered_texels(row, k, [mesh]))
         return covered
+
+    def _world_mesh(self, name: str, state: FrameState) -> tuple[np.ndarray, np.ndarray]:
+        """The source object ``name``'s world vertices at the frame's pose (deformed as the frame says) and its
+        faces."""
+        obj = self.scene.object(name)
+        tr = state.transforms.get(name) or obj.transform
+        local = state.deformations[name] if name in state.deformations else obj.mesh.vertices
+        return tr.apply_points(np.asarray(local, dtype=np.float64)), np.asarray(obj.mesh.faces)
 
     # ------------------------------------------------------------------ hierarchies (Sec. 7.3)
 
