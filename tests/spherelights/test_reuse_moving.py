@@ -198,8 +198,8 @@ def _same(a, b):
 
 
 def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
-    """Frames through one pipeline, one object or two moving (translated, turned, scaled, deformed), the ground
-    moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
+    """Frames through one pipeline, one object or two moving (translated, turned, scaled, deformed), all three, the
+    ground moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
     cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept."""
@@ -226,6 +226,11 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         ("scaled", _moved(rest, "sphere_green", scale=green.scale * 0.99), None, True),
         ("deformed", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.99, 1.0]}), None, True),
         ("deformed again", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.985, 1.0]}), None, True),
+        # every object moved: more than MOVED_FRACTION of the meshes, so the grounds' rays are all cast again
+        ("every object moved", _moved(_moved(up, "sphere_orange", translate=np.asarray(orange.translate)
+                                             + [0.0, 1e-3, 0.0]), "bunny", translate=np.asarray(
+                                                 rest.transforms["bunny"].translate) + [0.0, 0.0, 1e-3]), False,
+         False),
         ("ground moved", _moved(rest, "plane", translate=np.asarray(rest.transforms["plane"].translate)
                                 + [0.05, 0.0, 0.0]), False, False),
         ("back", rest, False, False),
