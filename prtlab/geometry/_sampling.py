@@ -15,6 +15,7 @@ frame of :func:`tangent_frame`.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -182,7 +183,13 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
     count of ``s`` four-way subdivisions (trimesh's ``icosphere(s)``), but the
     points differ for ``s >= 2`` (here the flat face is cut once, then projected).
     """
-    f = check_int(frequency, "frequency", 1)
+    vertices, faces = _geodesic_sphere(check_int(frequency, "frequency", 1))
+    return vertices.copy(), faces.copy()
+
+
+@lru_cache(maxsize=16)
+def _geodesic_sphere(f: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`geodesic_sphere`, kept per frequency (the spherical lights ask for their directions every frame)."""
     ico_v, ico_f = _icosahedron()
     points, tris = list(ico_v), []  # icosahedron vertices first, in their order
     offset = len(points)
@@ -210,6 +217,8 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
     rank[order] = np.arange(len(order))
     vertices = points[first[order]]
     faces = rank[inverse.reshape(-1)][np.asarray(tris)]
+    vertices.setflags(write=False)
+    faces.setflags(write=False)
     return vertices, faces
 
 
@@ -240,7 +249,7 @@ def geodesic_directions(n: int) -> np.ndarray:
             f"a geodesic sphere has 10*f**2 + 2 vertices (12, 42, 92, 162, 252, ...), got n={n}; "
             "use fibonacci_sphere(n) for arbitrary counts"
         )
-    return geodesic_sphere(f)[0]
+    return _geodesic_sphere(f)[0].copy()
 
 
 # ----------------------------------------------------------------- random samplers
