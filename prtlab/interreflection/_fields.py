@@ -274,14 +274,16 @@ def _flat_source_of(caster, vertex_normals) -> FlatSource | None:
     return plane
 
 
-def _trace_unsure(caster, origins, dirs, triangle, uv) -> None:
-    """Trace the rays :func:`flat_source_hits_kernel` left undecided (``triangle == -2``) with Embree
-    (``RayCaster.closest_hit``, the bits of :func:`source_hits_kernel`) and write their hits in place."""
-    point, direction = np.nonzero(triangle == -2)
-    if len(point):
-        hits = caster.closest_hit(origins[point], dirs[direction])
-        triangle[point, direction] = np.where(hits.hit, hits.triangle, -1)
-        uv[point, direction] = hits.barycentric
+def _ray_tracer(caster, n_tasks: int):
+    """A one-ray-at-a-time closest-hit query of a one-object caster's Embree scene (``_raycast._Tracer``), one slot
+    per task: what :func:`flat_source_hits_kernel` traces its undecided rays with."""
+    import numba
+
+    from prtlab.geometry import _embree, _raycast
+
+    slot_f32, slot_u32 = _embree.ray_slots(max(1, int(n_tasks)) * _embree.RAYS_PER_TASK)
+    return _raycast._Tracer(caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32,
+                            numba.get_num_threads(), False, False, _embree.packet_slots(1)[2])
 
 
 def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out, plane: FlatSource | None = None):
@@ -306,9 +308,8 @@ def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out,
             source_hits_kernel(_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre, float(radius) ** 2,
                                lo, hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
         else:
-            flat_source_hits_kernel(plane, origins, dirs, centre, float(radius) ** 2, lo, hi, float(caster.tnear),
-                                    triangle[:b - a], uv[:b - a])
-            _trace_unsure(caster, origins, dirs, triangle[:b - a], uv[:b - a])
+            flat_source_hits_kernel(plane, _ray_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre,
+                                    float(radius) ** 2, lo, hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
         project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis_t, h, dirs, wy, out[a:b])
 
 
