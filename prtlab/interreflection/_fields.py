@@ -42,6 +42,8 @@ Self-interreflection (an extension)
 
 from __future__ import annotations
 
+import math
+import weakref
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -52,8 +54,8 @@ from prtlab._validate import as_points
 from prtlab.geometry import RayCaster
 from prtlab.shadowfields import DEFAULT_DEGREE, SphereGrid
 
-from ._kernels import (hit_basis_kernel, project_hits_kernel, project_source_hits_kernel, source_hit_tasks,
-                       source_hits_kernel)
+from ._kernels import (flat_source_hits_kernel, hit_basis_kernel, project_hits_kernel, project_source_hits_kernel,
+                       source_hit_tasks, source_hits_kernel)
 
 __all__ = ["basis_radiance_field", "basis_radiance_at", "self_basis_irradiance", "StoredBasisRadiance",
            "store_basis_radiance", "STORAGES"]
@@ -167,10 +169,129 @@ def _projected_hits(caster, flat, dirs, wy, faces, normals, basis, sep, step, me
             project_hits_kernel(starts, np.ascontiguousarray(sel[1]), np.ascontiguousarray(value), wy, out[a:b])
 
 
-def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out):
+class FlatSource(NamedTuple):
+    """A flat source's plane and a grid of its faces, for :func:`flat_source_hits_kernel` (:func:`flat_source`).
+
+    ``normal`` (3,) unit normal of the plane through ``origin`` (3,); ``axes`` (2, 3) orthonormal in-plane axes;
+    ``shading`` (3,) the mean vertex normal and ``spread`` the largest distance of a vertex normal from it;
+    ``low``, ``high`` (2,) the faces' bounds in plane coordinates, split in ``cells`` x ``cells`` cells of
+    ``1 / inv_cell`` (2,); the faces whose bounds meet cell ``c`` are ``cell_faces[c]`` (slots, int32, -2 past
+    them) and ``cell_affine[c, :, m]`` maps plane coordinates ``(s, r)`` to the barycentrics of slot ``m``'s face
+    (of its vertices 1 and 2), ``(a0 s + a1 r + a2, a3 s + a4 r + a5)`` (``(-1, -1)`` in an empty slot);
+    ``inv_height`` one over the least face height; ``extent`` the largest vertex coordinate (absolute)."""
+
+    normal: np.ndarray
+    origin: np.ndarray
+    axes: np.ndarray
+    shading: np.ndarray
+    spread: float
+    low: np.ndarray
+    high: np.ndarray
+    inv_cell: np.ndarray
+    cells: int
+    cell_faces: np.ndarray
+    cell_affine: np.ndarray
+    inv_height: float
+    extent: float
+
+
+#: Largest spread of a flat source's vertex normals, and most faces in a cell (:class:`FlatSource`), for which
+#: its hits are located.
+_FLAT_SPREAD = 0.5
+_FLAT_SLOTS = 64
+_FLAT_SOURCES: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def flat_source(vertices, faces, vertex_normals) -> FlatSource | None:
+    """The :class:`FlatSource` of a mesh whose vertices lie on one plane (within ``1e-9`` of its diagonal), or
+    None (not flat, a face of zero area, no face, vertex normals spread over more than ``_FLAT_SPREAD``, more
+    than ``_FLAT_SLOTS`` faces in a cell)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) == 0:
+        return None
+    used = np.unique(faces)
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    cross = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(cross, axis=1)
+    if not np.all(area2 > 0.0):
+        return None
+    k = int(np.argmax(area2))
+    normal, origin = cross[k] / area2[k], a[k]
+    diagonal = float(np.linalg.norm(np.ptp(vertices[used], axis=0)))
+    if np.max(np.abs((vertices[used] - origin) @ normal)) > 1e-9 * diagonal:
+        return None
+    shading = np.asarray(vertex_normals, dtype=np.float64)[used].mean(axis=0)
+    spread = float(np.max(np.linalg.norm(np.asarray(vertex_normals, dtype=np.float64)[used] - shading, axis=1)))
+    if not spread <= _FLAT_SPREAD:
+        return None
+    e1 = (b[k] - a[k]) / np.linalg.norm(b[k] - a[k])
+    axes = np.stack([e1, np.cross(normal, e1)])
+    q = (vertices - origin) @ axes.T  # (V, 2) plane coordinates
+    qa, qb, qc = q[faces[:, 0]], q[faces[:, 1]], q[faces[:, 2]]
+    bx, by, cx, cy = qb[:, 0] - qa[:, 0], qb[:, 1] - qa[:, 1], qc[:, 0] - qa[:, 0], qc[:, 1] - qa[:, 1]
+    det = bx * cy - by * cx
+    if not np.all(det != 0.0):
+        return None
+    affine = np.stack([cy / det, -cx / det, (qa[:, 1] * cx - qa[:, 0] * cy) / det,
+                       -by / det, bx / det, (qa[:, 0] * by - qa[:, 1] * bx) / det], axis=1)
+    longest = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
+                               np.linalg.norm(a - c, axis=1)]), axis=0)
+    corners = q[faces]  # (F, 3, 2)
+    low, high = corners.min(axis=(0, 1)), corners.max(axis=(0, 1))
+    cells = int(min(1024, max(1, math.isqrt(len(faces)))))
+    inv_cell = cells / np.maximum(high - low, 1e-300)
+    c_lo = np.clip(np.floor((corners.min(axis=1) - low) * inv_cell), 0, cells - 1).astype(np.int64)
+    c_hi = np.clip(np.floor((corners.max(axis=1) - low) * inv_cell), 0, cells - 1).astype(np.int64)
+    n_s, n_r = c_hi[:, 0] - c_lo[:, 0] + 1, c_hi[:, 1] - c_lo[:, 1] + 1
+    count = n_s * n_r
+    face = np.repeat(np.arange(len(faces)), count)
+    step = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)
+    cell = (c_lo[face, 0] + step // n_r[face]) * cells + c_lo[face, 1] + step % n_r[face]
+    order = np.argsort(cell, kind="stable")
+    cell, face = cell[order], face[order]
+    per_cell = np.bincount(cell, minlength=cells * cells)
+    slots = int(per_cell.max())
+    if slots > _FLAT_SLOTS:
+        return None
+    slot = np.arange(len(cell)) - np.repeat(np.cumsum(per_cell) - per_cell, per_cell)
+    cell_faces = np.full((cells * cells, slots), -2, np.int32)
+    cell_faces[cell, slot] = face
+    cell_affine = np.zeros((cells * cells, 6, slots))
+    cell_affine[:, 2, :] = cell_affine[:, 5, :] = -1.0  # an empty slot: barycentrics (-1, -1), never inside
+    cell_affine[cell, :, slot] = affine[face]
+    return FlatSource(normal, origin, axes, shading, spread, low, high, inv_cell, cells, cell_faces, cell_affine,
+                      float(1.0 / np.min(area2 / longest)), float(np.max(np.abs(vertices[used]))))
+
+
+def _flat_source_of(caster, vertex_normals) -> FlatSource | None:
+    """:func:`flat_source` of a one-object caster's mesh, kept while the caster lives (for the same normals)."""
+    kept = _FLAT_SOURCES.get(caster)
+    if kept is not None and np.array_equal(kept[0], vertex_normals):
+        return kept[1]
+    plane = flat_source(caster.world_vertices(0), caster.faces(0), vertex_normals)
+    _FLAT_SOURCES[caster] = (np.array(vertex_normals, dtype=np.float64), plane)
+    return plane
+
+
+def _ray_tracer(caster, n_tasks: int):
+    """A one-ray-at-a-time closest-hit query of a one-object caster's Embree scene (``_raycast._Tracer``), one slot
+    per task: what :func:`flat_source_hits_kernel` traces its undecided rays with."""
+    import numba
+
+    from prtlab.geometry import _embree, _raycast
+
+    slot_f32, slot_u32 = _embree.ray_slots(max(1, int(n_tasks)) * _embree.RAYS_PER_TASK)
+    return _raycast._Tracer(caster._scene.intersect_fn, caster._scene.handle, slot_f32, slot_u32,
+                            numba.get_num_threads(), False, False, _embree.packet_slots(1)[2])
+
+
+def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out, plane: FlatSource | None = None):
     """:func:`_projected_hits` (``"numba"``) for a source of constant ``h`` (K,) and a one-object Embree caster:
     per batch :func:`source_hits_kernel` then :func:`project_source_hits_kernel` (the hit radiance and its
-    projection in one pass, no per-hit arrays); the same sums, term for term."""
+    projection in one pass, no per-hit arrays); the same sums, term for term. With ``plane`` (a flat source's
+    :class:`FlatSource`) the hits are located on it (:func:`flat_source_hits_kernel`, the undecided rays traced):
+    the same faces, barycentrics within float32 rounding of Embree's."""
     from ._residual import _tracer
 
     centre, radius, lo, hi = caster.may_hit_bounds()
@@ -183,8 +304,12 @@ def _projected_hits_fused(caster, flat, dirs, wy, faces, normals, basis, h, out)
     for a in range(0, len(flat), step):
         b = min(len(flat), a + step)
         origins = np.ascontiguousarray(flat[a:b], dtype=np.float64)
-        source_hits_kernel(_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre, float(radius) ** 2, lo,
-                           hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
+        if plane is None:
+            source_hits_kernel(_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre, float(radius) ** 2,
+                               lo, hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
+        else:
+            flat_source_hits_kernel(plane, _ray_tracer(caster, source_hit_tasks(b - a)), origins, dirs, centre,
+                                    float(radius) ** 2, lo, hi, float(caster.tnear), triangle[:b - a], uv[:b - a])
         project_source_hits_kernel(triangle[:b - a], uv[:b - a], faces, normals, basis_t, h, dirs, wy, out[a:b])
 
 
@@ -209,7 +334,9 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     method : {"numba", "reference"}
         Rays traced and projected by kernels (:func:`source_hits`'s fused trace, then a parallel sum over the
         hits only), or the float64 specification (``RayCaster.may_hit`` and ``closest_hit``, then a dense
-        ``(points, K N, directions) x (directions, n*n)`` product); the same hits.
+        ``(points, K N, directions) x (directions, n*n)`` product); the same hits, except that the numba tier
+        locates a flat source's hits on its plane (:func:`flat_source_hits_kernel`): the same faces, their
+        barycentrics within float32 rounding of Embree's.
 
     Returns
     -------
@@ -238,7 +365,8 @@ def basis_radiance_at(mesh, basis, sep, points, order: int, degree: int | None =
     if method == "numba" and _constant_h(sep) and _fusable(caster) and len(flat):
         _projected_hits_fused(caster, flat, dirs, wy, faces, np.ascontiguousarray(normals),
                               np.ascontiguousarray(basis),
-                              np.broadcast_to(sep.h(np.array([0.0, 0.0, 1.0])), (n_k,)), out)
+                              np.broadcast_to(sep.h(np.array([0.0, 0.0, 1.0])), (n_k,)), out,
+                              _flat_source_of(caster, normals))
     else:
         step = max(1, _RAYS_PER_BATCH // (len(dirs) * max(1, n_k * n_b // 4)))
         _projected_hits(caster, flat, dirs, wy, faces, normals, basis, sep, step, method, out)

@@ -448,6 +448,111 @@ def _source_hits_packet(tracer, f32, u32, valid, n_lanes, lane_point, lane_dir, 
             uv[p, j, 1] = f32[_embree.HIT_V * w + k]
 
 
+#: Bound of Embree's float32 error in a hit's position on a plane, relative to the largest magnitude in its
+#: arithmetic (origin, distance, vertices) over the cosine of the ray with the plane: 64 float32 roundings.
+FLAT_ROUNDING = 2.0 ** -18
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def flat_source_hits_kernel(plane, tracer, origins, dirs, centre, r2, lo, hi, tnear, triangle, uv):
+    """:func:`source_hits_kernel`'s front hits on a flat source, located on its plane, traced only where that
+    cannot tell. Returns the number of rays traced.
+
+    Each ray passing the same ``may_hit`` test is staged as there (unit direction ``u``, origin ``o + tnear u``)
+    and met with the plane; the face whose float64 barycentrics at that point all exceed ``eps`` (the hit
+    position's bound ``FLAT_ROUNDING (|o|_inf + t + extent) / |cos|`` over the least face height) is the face
+    Embree hits, its float32 barycentrics those within ``eps`` of Embree's. ``triangle[p, j]``: that face where
+    the ray certainly hits the front (every vertex normal, within ``plane.spread`` of ``plane.shading``, faces
+    the ray's origin); -1 where it certainly adds no term (a miss, a back face, behind the origin, outside the
+    mesh). A ray this cannot tell (within ``eps`` of an edge, a hole, a grazing ray, an origin on the plane) is
+    traced through ``tracer`` (``_raycast._Tracer``, one ray at a time, a slot per task of
+    :data:`SOURCE_HIT_POINTS` origins): :func:`source_hits_kernel`'s bits. ``plane``:
+    :class:`prtlab.interreflection._fields.FlatSource`; faces must not overlap.
+    """
+    n_points, n_dirs = origins.shape[0], dirs.shape[0]
+    group = SOURCE_HIT_POINTS
+    nx, ny, nz = plane.normal[0], plane.normal[1], plane.normal[2]
+    ax, ay, az = plane.origin[0], plane.origin[1], plane.origin[2]
+    sx, sy, sz = plane.shading[0], plane.shading[1], plane.shading[2]
+    e1x, e1y, e1z = plane.axes[0, 0], plane.axes[0, 1], plane.axes[0, 2]
+    e2x, e2y, e2z = plane.axes[1, 0], plane.axes[1, 1], plane.axes[1, 2]
+    low_s, low_r, high_s, high_r = plane.low[0], plane.low[1], plane.high[0], plane.high[1]
+    inv_s, inv_r, cells = plane.inv_cell[0], plane.inv_cell[1], plane.cells
+    faces, affine = plane.cell_faces, plane.cell_affine
+    slots = faces.shape[1]
+    tilt, extent, inv_height = plane.spread + 1e-12, plane.extent, plane.inv_height
+    n_tasks = (n_points + group - 1) // group
+    traced = np.zeros(n_tasks, np.int64)
+    for task in numba.prange(n_tasks):
+        f32, u32 = tracer.slot_f32[task], tracer.slot_u32[task]
+        origin = np.zeros((7, group))
+        may_hit = np.empty(group, np.bool_)
+        first = task * group
+        n_group = min(group, n_points - first)
+        n_traced = 0
+        for k in range(n_group):
+            ox, oy, oz = origins[first + k, 0], origins[first + k, 1], origins[first + k, 2]
+            cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+            origin[0, k], origin[1, k], origin[2, k] = ox, oy, oz
+            origin[3, k], origin[4, k], origin[5, k] = cx, cy, cz
+            origin[6, k] = cx * cx + cy * cy + cz * cz
+            triangle[first + k, :] = -1
+        for j in range(n_dirs):
+            dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+            length = np.sqrt(dx * dx + dy * dy + dz * dz)
+            ux, uy, uz = dx / length, dy / length, dz / length
+            _may_hit_group(origin, n_group, r2, dx, dy, dz, lo, hi, may_hit)
+            facing = sx * ux + sy * uy + sz * uz
+            cos = nx * ux + ny * uy + nz * uz
+            if facing > tilt:
+                continue  # a back face or no hit: no term
+            unsure_side = facing >= -tilt or abs(cos) < 1e-9  # grazing
+            inv_cos = 1.0 / cos if cos != 0.0 else 0.0
+            rel = FLAT_ROUNDING * abs(inv_cos)
+            for k in range(n_group):
+                if not may_hit[k]:
+                    continue
+                p = first + k
+                px, py, pz = origin[0, k] + tnear * ux, origin[1, k] + tnear * uy, origin[2, k] + tnear * uz
+                located, cell, slot, s, r = False, 0, 0, 0.0, 0.0
+                if not unsure_side:
+                    t = -(nx * (px - ax) + ny * (py - ay) + nz * (pz - az)) * inv_cos
+                    err = rel * (max(abs(px), abs(py), abs(pz)) + abs(t) + extent)
+                    if t < -err:
+                        continue  # the plane is behind the origin
+                    hx, hy, hz = px + t * ux - ax, py + t * uy - ay, pz + t * uz - az
+                    s = hx * e1x + hy * e1y + hz * e1z
+                    r = hx * e2x + hy * e2y + hz * e2z
+                    if s < low_s - err or s > high_s + err or r < low_r - err or r > high_r + err:
+                        continue  # outside the mesh's bounds
+                    ci = min(max(int(math.floor((s - low_s) * inv_s)), 0), cells - 1)
+                    cj = min(max(int(math.floor((r - low_r) * inv_r)), 0), cells - 1)
+                    eps = err * inv_height
+                    cell = ci * cells + cj
+                    inside = 0
+                    for m in range(slots):  # every slot, no branch: at most one face holds the point (no overlaps)
+                        b1 = affine[cell, 0, m] * s + affine[cell, 1, m] * r + affine[cell, 2, m]
+                        b2 = affine[cell, 3, m] * s + affine[cell, 4, m] * r + affine[cell, 5, m]
+                        within = min(1.0 - b1 - b2, b1, b2) >= eps
+                        inside += within
+                        slot += within * m
+                    located = inside == 1 and t > err
+                if located:
+                    triangle[p, j] = faces[cell, slot]
+                    uv[p, j, 0] = affine[cell, 0, slot] * s + affine[cell, 1, slot] * r + affine[cell, 2, slot]
+                    uv[p, j, 1] = affine[cell, 3, slot] * s + affine[cell, 4, slot] * r + affine[cell, 5, slot]
+                    continue
+                _embree.set_ray(f32, u32, px, py, pz, ux, uy, uz, np.inf)  # as source_hits_kernel stages it
+                _embree.rtc_call(tracer.function, tracer.scene, f32.ctypes.data)
+                n_traced += 1
+                if u32[_embree.HIT_GEOM] != _embree.INVALID_ID:
+                    triangle[p, j] = np.int32(u32[_embree.HIT_PRIM])
+                    uv[p, j, 0] = f32[_embree.HIT_U]
+                    uv[p, j, 1] = f32[_embree.HIT_V]
+        traced[task] = n_traced
+    return traced.sum()
+
+
 #: Front hits of one point gathered (their ``h_k Psi_i`` and direction) before they are added to its projection.
 HIT_BLOCK = 64
 #: Points a task of :func:`project_source_hits_kernel` takes (its scratch allocated once for them).

@@ -393,3 +393,147 @@ def test_projection_kernel_equals_its_reference_bit_for_bit(rng, n_b, n_k, n2):
     front = (triangle >= 0).sum(axis=1)
     assert front.max() > 2 * _kernels.HIT_BLOCK and np.any(ref != out.copy() * 0)  # many hits, some terms
     np.testing.assert_array_equal(out.view(np.int64), ref.view(np.int64))
+
+
+def _tilted_flat_mesh(rng):
+    """A flat mesh off the axes: a 6 x 5 plane grid with its inner vertices moved in the plane (faces of
+    different shapes), rotated and moved."""
+    import trimesh
+
+    from tests.conftest import random_rotation
+
+    grid = builtin_mesh("plane", size=[2.0, 1.6], resolution=[6, 5])
+    v = np.array(grid.vertices, float)
+    inner = (np.abs(v[:, 0]) < 0.99) & (np.abs(v[:, 2]) < 0.79)
+    v[inner, 0] += rng.uniform(-0.08, 0.08, inner.sum())
+    v[inner, 2] += rng.uniform(-0.06, 0.06, inner.sum())
+    v = v @ random_rotation(rng).T + [0.3, -0.2, 0.5]
+    return trimesh.Trimesh(v, np.asarray(grid.faces), process=False)
+
+
+def _flat_mesh(rng, mesh):
+    return PLANE if mesh == "plane" else _tilted_flat_mesh(rng)
+
+
+def _flat_points(rng, source, n):
+    """Points about a flat source in its own frame: above and below it, on its plane, near its edges, far."""
+    v = np.asarray(source.vertices, float)
+    a, b, c = v[source.faces[0]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal)
+    centre = v.mean(axis=0)
+    spread = np.ptp(v, axis=0)
+    points = centre + rng.uniform(-0.7, 0.7, size=(n, 3)) * spread  # in-plane positions, some beyond the edges
+    points -= np.outer((points - centre) @ normal, normal)  # on the plane
+    height = rng.choice([0.0, 1e-9, 0.02, 0.3, 1.0, -0.3], size=n)
+    return points + height[:, None] * normal
+
+
+def _flat_eps(source, origins, dirs, tnear):
+    """(P, D): the barycentric bound of ``flat_source_hits_kernel`` at each ray (its docstring), from the mesh."""
+    from prtlab.interreflection._kernels import FLAT_ROUNDING
+
+    v, f = np.asarray(source.vertices, float), np.asarray(source.faces)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    cross = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(cross, axis=1)
+    longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)],
+                     axis=0)
+    normal = cross[0] / area2[0]
+    u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    o = origins[:, None, :] + tnear * u[None]  # (P, D, 3)
+    cos = np.abs(u @ normal)[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.abs(((o - a[0]) @ normal) / (u @ normal)[None])
+        return FLAT_ROUNDING * (np.abs(o).max(axis=2) + t + np.abs(v).max()) / (cos * np.min(area2 / longest))
+
+
+def _front(source, triangle, uv, dirs):
+    """(P, D) bool: the rays whose hit adds a term (``project_source_hits_reference``'s front test)."""
+    faces, normals = np.asarray(source.faces), np.asarray(source.vertex_normals, float)
+    t = np.maximum(triangle, 0)
+    b1, b2 = uv[..., 0].astype(np.float64), uv[..., 1].astype(np.float64)
+    n = ((1.0 - b1 - b2)[..., None] * normals[faces[t, 0]] + b1[..., None] * normals[faces[t, 1]]
+         + b2[..., None] * normals[faces[t, 2]])
+    return (triangle >= 0) & (np.sum(n * dirs[None], axis=2) < 0.0)
+
+
+@pytest.mark.parametrize("mesh", ["plane", "tilted"])
+def test_flat_source_hits_are_embrees_faces(rng, mesh):
+    """``flat_source_hits_kernel`` (its undecided rays traced) gives Embree's face (``source_hits_kernel``) at every
+    ray whose hit adds a term (a front hit), a face only where Embree hits it, barycentrics within the kernel's
+    bound ``eps`` of Embree's (or Embree's bits) and Embree's bits at a face without a term (traced): points
+    above, below and on the plane, beyond its edges; a regular and an irregular tilted mesh."""
+    from prtlab import sh
+    from prtlab.geometry import RayCaster
+    from prtlab.interreflection import _fields, _kernels
+    from prtlab.interreflection._residual import _tracer
+
+    source = _flat_mesh(rng, mesh)
+    vertices, faces = np.asarray(source.vertices, float), np.asarray(source.faces)
+    caster = RayCaster([(vertices, faces)])
+    plane = _fields.flat_source(vertices, faces, source.vertex_normals)
+    assert plane is not None
+    origins = np.ascontiguousarray(_flat_points(rng, source, 157))
+    dirs = np.ascontiguousarray(sh.quadrature(ORDER, 31)[0], dtype=np.float64)
+    centre, radius, lo, hi = caster.may_hit_bounds()
+    bounds = (np.asarray(centre, np.float64), float(radius) ** 2, lo, hi, float(caster.tnear))
+    embree = np.empty((157, len(dirs)), np.int32), np.full((157, len(dirs), 2), np.nan, np.float32)
+    _kernels.source_hits_kernel(_tracer(caster, _kernels.source_hit_tasks(157)), origins, dirs, *bounds, *embree)
+    triangle, uv = np.full((157, len(dirs)), 7, np.int32), np.full((157, len(dirs), 2), np.nan, np.float32)
+    n_tasks = _kernels.source_hit_tasks(157)
+    traced = _kernels.flat_source_hits_kernel(plane, _fields._ray_tracer(caster, n_tasks), origins, dirs, *bounds,
+                                              triangle, uv)
+    assert 0 < traced and np.count_nonzero(triangle >= 0) > 1000
+    front = _front(source, *embree, dirs)
+    assert front.any() and (~front).any()
+    np.testing.assert_array_equal(triangle[front], embree[0][front])  # every term's face
+    faced = triangle >= 0
+    np.testing.assert_array_equal(triangle[faced], embree[0][faced])  # a face only where Embree hits it
+    same = np.all(uv[faced].view(np.uint32) == embree[1][faced].view(np.uint32), axis=1)
+    assert np.all(same[~front[faced]])  # a face without a term only where traced: Embree's bits
+    gap = np.abs(uv[faced].astype(np.float64) - embree[1][faced]).max(axis=1)
+    assert np.all(same | (gap <= _flat_eps(source, origins, dirs, caster.tnear)[faced]))
+
+
+@pytest.mark.parametrize("mesh", ["plane", "tilted"])
+def test_flat_source_radiance_is_the_reference_within_float32_barycentrics(rng, mesh):
+    """``basis_radiance_at``'s numba tier on a flat source (hits located on its plane) is the float64 reference
+    tier (Embree's hits) within the sum over each point's front hits of ``|h| |wy_j| 4 eps_j max|Psi|`` (a
+    barycentric off by ``eps`` moves ``Psi`` by at most ``2 eps`` times twice its largest value) plus the sums'
+    rounding."""
+    from prtlab import sh
+    from prtlab.geometry import RayCaster
+    from prtlab.interreflection import _fields
+
+    source = _flat_mesh(rng, mesh)
+    vertices, faces = np.asarray(source.vertices, float), np.asarray(source.faces)
+    assert _fields.flat_source(vertices, faces, source.vertex_normals) is not None
+    psi = rng.normal(size=(3, len(vertices)))
+    points = _flat_points(rng, source, 60)
+    fast = basis_radiance_at(source, psi, LAMBERT, points, ORDER, degree=31)
+    ref = basis_radiance_at(source, psi, LAMBERT, points, ORDER, degree=31, method="reference")
+    caster = RayCaster([(vertices, faces)])
+    dirs, weights = sh.quadrature(ORDER, 31)
+    wy = weights[:, None] * sh.basis(dirs, ORDER)
+    hits = caster.closest_hit(np.repeat(points, len(dirs), axis=0), np.tile(dirs, (len(points), 1)))
+    triangle = np.where(hits.hit & caster.may_hit(points, dirs).ravel(), hits.triangle, -1).reshape(len(points), -1)
+    front = _front(source, triangle, hits.barycentric.reshape(len(points), len(dirs), 2), dirs)
+    eps = np.where(front, _flat_eps(source, points, dirs, caster.tnear), 0.0)
+    h = float(np.abs(LAMBERT.h(np.array([0.0, 0.0, 1.0]))).max())
+    bound = (4.0 * h * np.abs(psi).max() * eps) @ np.abs(wy)  # (P, n2)
+    assert np.all(np.abs(fast - ref) <= bound[:, None, None, :] + 1e-12 * (1.0 + np.abs(ref)))
+    assert np.abs(ref).max() > 0.1
+
+
+def test_flat_source_of_a_mesh_that_is_not_flat_is_none(rng):
+    """``flat_source`` declines a curved mesh, a flat one whose vertex normals disagree, and no faces."""
+    from prtlab.interreflection._fields import flat_source
+
+    ball = builtin_mesh("icosphere")
+    assert flat_source(ball.vertices, ball.faces, ball.vertex_normals) is None
+    normals = np.array(PLANE.vertex_normals)
+    normals[::2] *= -1.0
+    assert flat_source(PLANE.vertices, PLANE.faces, normals) is None
+    assert flat_source(PLANE.vertices, np.zeros((0, 3), np.int64), PLANE.vertex_normals) is None
+    assert flat_source(PLANE.vertices, PLANE.faces, PLANE.vertex_normals) is not None
