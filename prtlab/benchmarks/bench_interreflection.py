@@ -421,31 +421,62 @@ def precompute_scene(quick: bool) -> dict:
             "warmup": False, "info": info, "stored_bytes": lambda: info.pop("stored_bytes")}
 
 
-@case("interreflection.basis_irradiance.kernel")
-def basis_irradiance_kernel(quick: bool) -> dict:
-    """Eq. 13 at receiver vertices: trilinear S (8 corners) dotted with P_n(V G) for K' x K N vectors."""
+def _eq13_inputs(quick: bool):
+    """The Eq. 13 cases' source field (16 spheres of 16 x 16 texels a face, K = 1, N = 16, n^2 = 16: 50 MB in
+    float64) and random receiver points around it (most between the outer spheres, some beyond) with K' = 1."""
     from prtlab.geometry import builtin_mesh
-    from prtlab.interreflection import basis_irradiance
     from prtlab.shadowfields import sphere_grid
 
     rng = np.random.default_rng(0)
     grid = sphere_grid(builtin_mesh("icosphere", subdivisions=2), n_radii=16, resolution=16)
-    n_k, n_b, n2 = 1, 16, 16
-    field = rng.normal(size=grid.shape + (n_k, n_b, n2))
+    field = rng.normal(size=grid.shape + (1, 16, 16))
     v = 20_000 if quick else 100_000
     pts = rng.normal(size=(v, 3)) * 3.0
-    transfer = rng.normal(size=(v, 1, n2))
-    flop = v * 8 * n_k * n_b * n2 * 2
-    # floor: Eq. 13 at each point in the cheaper order (``eq13_flop``); the field read once, points and transfer
-    # read, Phi written
-    n_kp = transfer.shape[1]
+    transfer = rng.normal(size=(v, 1, 16))
+    return grid, field, pts, transfer
+
+
+def _eq13_floor(field_bytes: int, v: int, n_kp: int, n_k: int, n_b: int, n2: int) -> dict:
+    """Eq. 13 at each point in the cheaper order (``eq13_flop``); the field read once, points and transfer
+    read, Phi written."""
+    return floor(v * n_k * n_b * eq13_flop(n_kp, n2), field_bytes + v * (24 + 8 * n_kp * n2 + 8 * n_kp * n_k * n_b),
+                 "V K N E(K') flops, E(K') = min(n^2 (16 + 2 K'), K' (16 n^2 + 16)); field bytes + "
+                 "V (24 + 8 K' n^2 + 8 K' K N) bytes")
+
+
+@case("interreflection.basis_irradiance.kernel")
+def basis_irradiance_kernel(quick: bool) -> dict:
+    """Eq. 13 at receiver vertices: trilinear S (8 corners) dotted with P_n(V G) for K' x K N vectors, the field
+    in float64 (larger than the caches: the vertices are taken sorted by cell)."""
+    from prtlab.interreflection import basis_irradiance
+
+    grid, field, pts, transfer = _eq13_inputs(quick)
+    (v, n_kp, n2), (n_k, n_b) = transfer.shape, field.shape[4:6]
     return {
         "run": lambda: basis_irradiance(field, grid, pts, transfer),
-        "gflop": flop / 1e9,
+        "gflop": v * 8 * n_k * n_b * n2 * 2 / 1e9,
         "items": v,
         "peer": ("numpy float64 tier", lambda: basis_irradiance(field, grid, pts, transfer, method="reference")),
-        "floor": floor(v * n_k * n_b * eq13_flop(n_kp, n2),
-                       field.nbytes + v * (24 + 8 * n_kp * n2 + 8 * n_kp * n_k * n_b),
-                       "V K N E(K') flops, E(K') = min(n^2 (16 + 2 K'), K' (16 n^2 + 16)); field bytes + "
-                       "V (24 + 8 K' n^2 + 8 K' K N) bytes"),
+        "floor": _eq13_floor(field.nbytes, v, n_kp, n_k, n_b, n2),
+    }
+
+
+@case("interreflection.basis_irradiance.stored_int16")
+def basis_irradiance_stored_int16(quick: bool) -> dict:
+    """Eq. 13 as the pipeline runs it every frame: the field of ``.kernel`` stored in the room's default format
+    (``storage="int16"``: int16 values, a float32 scale per sample point and column), the same points; peer: the
+    float64 field (``.kernel``'s run)."""
+    from prtlab.interreflection import basis_irradiance
+    from prtlab.interreflection._fields import store_basis_radiance
+
+    grid, field, pts, transfer = _eq13_inputs(quick)
+    stored = store_basis_radiance(field, "int16")
+    (v, n_kp, n2), (n_k, n_b) = transfer.shape, field.shape[4:6]
+    return {
+        "run": lambda: basis_irradiance(stored, grid, pts, transfer),
+        "gflop": v * 8 * n_k * n_b * n2 * 2 / 1e9,
+        "items": v,
+        "peer": ("the float64 field", lambda: basis_irradiance(field, grid, pts, transfer)),
+        "floor": _eq13_floor(stored.nbytes, v, n_kp, n_k, n_b, n2),
+        "stored_bytes": stored.nbytes,
     }

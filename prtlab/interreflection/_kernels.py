@@ -20,20 +20,57 @@ def _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj):
     return (r1 if c & 4 else r0), (i1 if c & 2 else i0), (j1 if c & 1 else j0), w
 
 
-@numba.njit(cache=True, parallel=True)
-def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
+@numba.njit(cache=True, fastmath=False)  # set: callees inherit a caller's fastmath unless set
+def _strict_corners(rpos, s, t, n_r, res):
+    """:func:`sample_corners` compiled without fastmath and not inlined by numba: the fastmath kernels that call it
+    get the cell and the weights' factors rounded as the float64 tier rounds them (contracted or reassociated, a
+    weight near 0 would err by ``~res 2**-53`` absolute, not relative)."""
+    return sample_corners(rpos, s, t, n_r, res)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_order(rpos, face, s, t, n_r, res):
+    """Vertex indices sorted (stably, by counting) by the sample point of each vertex's first trilinear corner
+    ``(r0, face, i0, j0)``: vertices taken in this order gather their 8 rows from a few neighbouring cells."""
+    n_v = rpos.shape[0]
+    key = np.empty(n_v, np.int64)
+    start = np.zeros(n_r * 6 * res * res + 1, np.int64)
+    for v in range(n_v):
+        r0, _, _, i0, _, _, j0, _, _ = _strict_corners(rpos[v], s[v], t[v], n_r, res)
+        key[v] = ((r0 * 6 + face[v]) * res + i0) * res + j0
+        start[key[v] + 1] += 1
+    for k in range(len(start) - 1):
+        start[k + 1] += start[k]
+    order = np.empty(n_v, np.int64)
+    for v in range(n_v):
+        order[start[key[v]]] = v
+        start[key[v]] += 1
+    return order
+
+
+@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, nogil=True)
+def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, in_cell_order, out):
     """Eq. 13 per receiver vertex: interpolate ``S`` (trilinear) and integrate against ``P_n(V G_k')``.
+
+    Each corner's ``n2``-term dot products are summed in any order (``reassoc``, ``contract``: the compiler
+    vectorises them), then blended with the corner's weight; every value is a sum of ``8 n2`` products with at
+    most ``n2 + 14`` roundings on any term's path (weight included), so it errs by at most ``(n2 + 14) 2**-53``
+    times the sum of its terms' magnitudes (``< 1e-14`` of it for ``n2 <= 64``), as does the float64 tier.
 
     field : (n_r, 6, res, res, M, n2) basis radiance field, M = K * N
     rpos, face, s, t : (V,) location of each vertex on the source's sample spheres
     transfer : (V, K', n2) ``P_n(V_j G_jk')`` in the source's object frame
     scale : (V,) factor per vertex (``(r_max / r)^2`` beyond the outermost sphere, else 1)
+    in_cell_order : bool, take the vertices sorted by cell (:func:`_cell_order`; the same values): for fields
+        larger than the caches, whose rows random vertices would gather from memory
     out : (V, K', M)
     """
     n_r, _, res, _, n_m, n2 = field.shape
     n_kp = transfer.shape[1]
-    for v in numba.prange(rpos.shape[0]):
-        r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[v], s[v], t[v], n_r, res)
+    order = _cell_order(rpos, face, s, t, n_r, res) if in_cell_order else np.arange(rpos.shape[0])
+    for q in numba.prange(rpos.shape[0]):
+        v = order[q]
+        r0, r1, fr, i0, i1, fi, j0, j1, fj = _strict_corners(rpos[v], s[v], t[v], n_r, res)
         f = face[v]
         for kp in range(n_kp):
             for m in range(n_m):
@@ -52,21 +89,24 @@ def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, out):
 
 
 @numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, nogil=True)
-def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale, out):
-    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), accumulating in float64 in any
-    order (``reassoc``, ``contract``: the compiler vectorises the ``n2``-term sums; each value's rounding stays
-    within a few ``2**-53`` of the sum of its terms' magnitudes).
+def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale,
+                                   in_cell_order, out):
+    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), read in its format and
+    accumulated in float64 in any order (the same bound; an int16 value times its float32 scale is exact in
+    float64, and the scale adds one rounding).
 
     rows : (n_r, 6, res, res) int32 row of each sample point in ``values``, -1 where the field is 0
     values : (n_rows, M, n2) float64, float32 or int16
     column_scale : (n_rows, M) float32, the factor of each row's block when ``scaled`` (int16 storage)
-    rpos, face, s, t, transfer, scale, out : as :func:`basis_irradiance_kernel`
+    rpos, face, s, t, transfer, scale, in_cell_order, out : as :func:`basis_irradiance_kernel`
     """
     n_r, _, res, _ = rows.shape
     n_m, n2 = values.shape[1], values.shape[2]
     n_kp = transfer.shape[1]
-    for v in numba.prange(rpos.shape[0]):
-        r0, r1, fr, i0, i1, fi, j0, j1, fj = sample_corners(rpos[v], s[v], t[v], n_r, res)
+    order = _cell_order(rpos, face, s, t, n_r, res) if in_cell_order else np.arange(rpos.shape[0])
+    for q in numba.prange(rpos.shape[0]):
+        v = order[q]
+        r0, r1, fr, i0, i1, fi, j0, j1, fj = _strict_corners(rpos[v], s[v], t[v], n_r, res)
         f = face[v]
         for kp in range(n_kp):
             for m in range(n_m):

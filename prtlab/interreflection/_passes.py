@@ -32,6 +32,10 @@ from ._kernels import basis_irradiance_kernel, bounce_kernel, stored_basis_irrad
 __all__ = ["basis_irradiance", "reflected_light", "fit_weights", "outgoing_radiance"]
 
 _METHODS = ("numba", "reference")
+#: Fields larger than this (bytes) are read with the receiver vertices sorted by cell (the kernels'
+#: ``in_cell_order``): beyond the last-level cache, 8 rows gathered per vertex in the callers' order cost more than
+#: reading the vertices' own data out of order; below it, less.
+_CELL_ORDER_BYTES = 16 << 20
 
 
 def _check_method(method):
@@ -101,10 +105,11 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
     out = np.empty((len(points), n_kp, n_k * n_b))
     if stored is not None:
         stored_basis_irradiance_kernel(stored.rows, stored.values, stored.scale, stored.storage == "int16", rpos,
-                                       face, s, t, np.ascontiguousarray(transfer), scale, out)
+                                       face, s, t, np.ascontiguousarray(transfer), scale,
+                                       stored.values.nbytes > _CELL_ORDER_BYTES, out)
     else:
         basis_irradiance_kernel(np.ascontiguousarray(field.reshape(grid.shape + (n_k * n_b, n2))), rpos, face, s,
-                                t, np.ascontiguousarray(transfer), scale, out)
+                                t, np.ascontiguousarray(transfer), scale, field.nbytes > _CELL_ORDER_BYTES, out)
     return out.reshape(len(points), n_kp, n_k, n_b)
 
 
