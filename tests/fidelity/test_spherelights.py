@@ -233,19 +233,22 @@ _PAPER_DIRECT_BORDERLINE = {
 }
 
 
-def _paper_direct_params():
-    for name in PAPER_DIRECT_CASES:
+def _variant_params(names, xfail, borderline, prefix):
+    """The rows of ``names``' objects and parts, marked by ``xfail`` (strict) and ``borderline`` (not strict)."""
+    for name in names:
         for obj in OBJECTS[name]:
             for part in ("direct", "indirect", "total"):
-                reason = _PAPER_DIRECT_XFAIL.get((name, obj, part))
-                marks = [pytest.mark.xfail(strict=True, raises=AssertionError, reason=reason)] if reason else []
-                if (name, obj, part) in _PAPER_DIRECT_BORDERLINE:
+                marks = []
+                if (name, obj, part) in xfail:
+                    marks = [pytest.mark.xfail(strict=True, raises=AssertionError, reason=xfail[name, obj, part])]
+                elif (name, obj, part) in borderline:
                     marks = [pytest.mark.xfail(strict=False, raises=AssertionError,
-                                               reason=_PAPER_DIRECT_BORDERLINE[name, obj, part])]
-                yield pytest.param(name, obj, part, marks=marks, id=f"paper_direct-{name}-{obj}-{part}")
+                                               reason=borderline[name, obj, part])]
+                yield pytest.param(name, obj, part, marks=marks, id=f"{prefix}-{name}-{obj}-{part}")
 
 
-@pytest.mark.parametrize("name,obj,part", list(_paper_direct_params()))
+@pytest.mark.parametrize("name,obj,part", list(_variant_params(PAPER_DIRECT_CASES, _PAPER_DIRECT_XFAIL,
+                                                               _PAPER_DIRECT_BORDERLINE, "paper_direct")))
 def test_papers_direct_light_against_mitsuba(paper_direct_comparisons, name, obj, part):
     cmp, ref = paper_direct_comparisons[name]
     failures = cmp.check(_goal(name, obj, part, ref), parts=[part], objects=[obj])
@@ -359,21 +362,7 @@ def paper_comparisons(comparisons):
     return _with_options(comparisons, CASES, PAPER_OPTIONS, "the paper's method (PAPER_OPTIONS)")
 
 
-def _paper_params():
-    for name, objects in OBJECTS.items():
-        for obj in objects:
-            for part in ("direct", "indirect", "total"):
-                marks = []
-                if (name, obj, part) in _PAPER_XFAIL:
-                    marks = [pytest.mark.xfail(strict=True, raises=AssertionError,
-                                               reason=_PAPER_XFAIL[name, obj, part])]
-                elif (name, obj, part) in _PAPER_BORDERLINE:
-                    marks = [pytest.mark.xfail(strict=False, raises=AssertionError,
-                                               reason=_PAPER_BORDERLINE[name, obj, part])]
-                yield pytest.param(name, obj, part, marks=marks, id=f"paper-{name}-{obj}-{part}")
-
-
-@pytest.mark.parametrize("name,obj,part", list(_paper_params()))
+@pytest.mark.parametrize("name,obj,part", list(_variant_params(OBJECTS, _PAPER_XFAIL, _PAPER_BORDERLINE, "paper")))
 def test_papers_method_against_mitsuba(paper_comparisons, name, obj, part):
     cmp, ref = paper_comparisons[name]
     failures = cmp.check(_goal(name, obj, part, ref), parts=[part], objects=[obj])
