@@ -402,13 +402,7 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
             valid = tracer.valid[block]
             first = block * group
             n_group = min(group, n_points - first)
-            for k in range(n_group):
-                ox, oy, oz = origins[first + k, 0], origins[first + k, 1], origins[first + k, 2]
-                cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
-                origin[0, k], origin[1, k], origin[2, k] = ox, oy, oz
-                origin[3, k], origin[4, k], origin[5, k] = cx, cy, cz
-                origin[6, k] = cx * cx + cy * cy + cz * cz
-                triangle[first + k, :] = -1
+            _stage_group(origins, first, n_group, centre, origin, triangle)
             n_lanes = 0
             for j in range(n_dirs + 1):
                 if j < n_dirs:
@@ -441,6 +435,19 @@ def source_hits_kernel(tracer, origins, dirs, centre, r2, lo, hi, tnear, triangl
                             n_lanes = 0
                 elif n_lanes > 0:
                     _source_hits_packet(tracer, f32, u32, valid, n_lanes, lane_point, lane_dir, triangle, uv)
+
+
+@numba.njit(cache=True, inline="always")
+def _stage_group(origins, first, n_group, centre, origin, triangle):
+    """``origin``'s rows for the ``n_group`` origins from ``first`` (the origins, ``centre`` minus them, its squared
+    length: what :func:`_may_hit_group` reads), and their rows of ``triangle`` set to -1 (no hit yet)."""
+    for k in range(n_group):
+        ox, oy, oz = origins[first + k, 0], origins[first + k, 1], origins[first + k, 2]
+        cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
+        origin[0, k], origin[1, k], origin[2, k] = ox, oy, oz
+        origin[3, k], origin[4, k], origin[5, k] = cx, cy, cz
+        origin[6, k] = cx * cx + cy * cy + cz * cz
+        triangle[first + k, :] = -1
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -530,13 +537,7 @@ def flat_source_hits_kernel(plane, tracer, origins, dirs, centre, r2, lo, hi, tn
         first = task * group
         n_group = min(group, n_points - first)
         n_traced = 0
-        for k in range(n_group):
-            ox, oy, oz = origins[first + k, 0], origins[first + k, 1], origins[first + k, 2]
-            cx, cy, cz = centre[0] - ox, centre[1] - oy, centre[2] - oz
-            origin[0, k], origin[1, k], origin[2, k] = ox, oy, oz
-            origin[3, k], origin[4, k], origin[5, k] = cx, cy, cz
-            origin[6, k] = cx * cx + cy * cy + cz * cz
-            triangle[first + k, :] = -1
+        _stage_group(origins, first, n_group, centre, origin, triangle)
         for j in range(n_dirs):
             dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
             length = np.sqrt(dx * dx + dy * dy + dz * dz)

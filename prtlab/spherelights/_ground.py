@@ -323,6 +323,20 @@ def _cosine_span(a, b):
 
 
 @numba.njit(cache=True, inline="always")
+def _elevation_span(px, pz, h, nx, ny, nz, ux, uz, rect):
+    """Elevations ``(lo, hi)`` below the horizon along the azimuth ``(ux, uz)`` whose rays from a receiver at
+    ``(px, pz)``, ``h`` above the rectangle ``rect`` (normal ``n``), meet the rectangle in front of the receiver's
+    tangent plane: one interval, empty when ``lo >= hi``."""
+    d_in, d_out = _rect_span(px, pz, ux, uz, rect)
+    if d_in >= d_out:
+        return 1.0, 0.0
+    lo = math.atan2(h, d_out)
+    hi = math.atan2(h, d_in) if d_in > 0.0 else 0.5 * np.pi
+    c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
+    return max(lo, c_lo), min(hi, c_hi)
+
+
+@numba.njit(cache=True, inline="always")
 def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand, is_local):
     """Along the ray ``p + t w`` (unit ``w``): whether a light (rows ``cand[:n_cand]`` of ``live``: centre, radius)
     is hit before ``t_ground``, and else the nearest local light hit beyond it (its index ``live_id[j]``, -1:
@@ -386,13 +400,7 @@ def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, c
             inv_v = 1.0 / (scene.rects[g, 5] * scene.rects[g, 5] + scene.rects[g, 6] * scene.rects[g, 6])
             for k in range(n_az):
                 ux, uz = quad.cos_az[k], quad.sin_az[k]
-                d_in, d_out = _rect_span(px, pz, ux, uz, scene.rects[g])
-                if d_in >= d_out:
-                    continue
-                lo = math.atan2(h, d_out)
-                hi = math.atan2(h, d_in) if d_in > 0.0 else 0.5 * np.pi
-                c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
-                lo, hi = max(lo, c_lo), min(hi, c_hi)
+                lo, hi = _elevation_span(px, pz, h, nx, ny, nz, ux, uz, scene.rects[g])
                 if lo >= hi:
                     continue
                 half = 0.5 * (hi - lo)
@@ -842,13 +850,7 @@ def _reached(points, normals, quad, rects, spheres, flags, margin, out):
                             near = True
                 if not near:
                     continue
-                d_in, d_out = _rect_span(px, pz, ux, uz, rects[g])
-                if d_in >= d_out:
-                    continue
-                lo = math.atan2(h, d_out)
-                hi = math.atan2(h, d_in) if d_in > 0.0 else 0.5 * np.pi
-                c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
-                lo, hi = max(lo, c_lo), min(hi, c_hi)
+                lo, hi = _elevation_span(px, pz, h, nx, ny, nz, ux, uz, rects[g])
                 if lo >= hi:
                     continue
                 half = 0.5 * (hi - lo)
