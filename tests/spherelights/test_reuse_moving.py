@@ -210,12 +210,19 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
     bunny = np.asarray(scene.object("bunny").mesh.vertices)
     up = dataclasses.replace(rest, transforms={**rest.transforms, "sphere_green": dataclasses.replace(
         green, translate=np.asarray(green.translate) + [0.0, 2e-3, 0.0])})
+    two = _moved(up, "sphere_orange", translate=np.asarray(orange.translate) + [0.0, 1e-3, 0.0])
+    every = _moved(_moved(_moved(two, "sphere_green", translate=np.asarray(green.translate) + [0.0, 3e-3, 0.0]),
+                          "sphere_orange", translate=np.asarray(orange.translate) + [0.0, 2e-3, 0.0]),
+                   "bunny", translate=np.asarray(rest.transforms["bunny"].translate) + [0.0, 0.0, 1e-3])
     # (label, state, the grounds' rays partly kept (None: the rays' offset may change), the objects' visible rays)
     frames = [
         ("rest", rest, False, False),
         ("one moved", up, True, True),
-        ("two moved", _moved(up, "sphere_orange", translate=np.asarray(orange.translate) + [0.0, 1e-3, 0.0]), True,
-         True),
+        ("two moved", two, True, True),
+        # every object moved from the frame before (the sizes as before): more than MOVED_FRACTION of the meshes,
+        # so the grounds' rays are all cast again; then the bunny back alone: updated again
+        ("every object moved", every, False, False),
+        ("bunny back", _moved(every, "bunny", translate=np.asarray(rest.transforms["bunny"].translate)), True, True),
         ("turned", _moved(rest, "sphere_green", rotate_deg=np.asarray(green.rotate_deg) + [0.0, 0.5, 0.0]), True,
          True),
         # 5 cm sideways: the meshes' bounding box changes, the rays' offset (the objects' own sizes) does not
@@ -226,11 +233,6 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         ("scaled", _moved(rest, "sphere_green", scale=green.scale * 0.99), None, True),
         ("deformed", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.99, 1.0]}), None, True),
         ("deformed again", dataclasses.replace(rest, deformations={"bunny": bunny * [1.0, 0.985, 1.0]}), None, True),
-        # every object moved: more than MOVED_FRACTION of the meshes, so the grounds' rays are all cast again
-        ("every object moved", _moved(_moved(up, "sphere_orange", translate=np.asarray(orange.translate)
-                                             + [0.0, 1e-3, 0.0]), "bunny", translate=np.asarray(
-                                                 rest.transforms["bunny"].translate) + [0.0, 0.0, 1e-3]), False,
-         False),
         ("ground moved", _moved(rest, "plane", translate=np.asarray(rest.transforms["plane"].translate)
                                 + [0.05, 0.0, 0.0]), False, False),
         ("back", rest, False, False),
