@@ -51,6 +51,18 @@ def _check_equirect_shape(height: int, width: int) -> None:
 # --------------------------------------------------------------------------- equirect
 
 
+def _equirect_angles(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The polar angle ``theta`` (height,) of each row and the azimuth ``phi`` (width,) of each column."""
+    return np.pi * np.arange(height) / (height - 1), 2.0 * np.pi * (np.arange(width) + 0.5) / width
+
+
+def _angles_to_directions(theta, phi) -> np.ndarray:
+    """Unit directions ``(sin t sin phi, cos t, -sin t cos phi)`` (..., 3) of the equirect convention at polar
+    angles ``theta`` and azimuths ``phi``, broadcast against each other."""
+    st = np.sin(theta)
+    return np.stack(np.broadcast_arrays(st * np.sin(phi), np.cos(theta), -st * np.cos(phi)), axis=-1)
+
+
 def equirect_directions(height: int, width: int) -> np.ndarray:
     """Directions of the pixel samples of an equirectangular map.
 
@@ -59,14 +71,8 @@ def equirect_directions(height: int, width: int) -> np.ndarray:
     dirs : (height, width, 3) float64
     """
     _check_equirect_shape(height, width)
-    theta = np.pi * np.arange(height) / (height - 1)
-    phi = 2.0 * np.pi * (np.arange(width) + 0.5) / width
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    dirs = np.empty((height, width, 3))
-    dirs[..., 0] = st * np.sin(phi)[None, :]
-    dirs[..., 1] = ct
-    dirs[..., 2] = -st * np.cos(phi)[None, :]
-    return dirs
+    theta, phi = _equirect_angles(height, width)
+    return _angles_to_directions(theta[:, None], phi[None, :])
 
 
 def equirect_solid_angles(height: int, width: int) -> np.ndarray:

@@ -26,6 +26,7 @@ from prtlab.geometry import (
     equirect_lookup,
     equirect_solid_angles,
 )
+from prtlab.geometry._spheremaps import _angles_to_directions
 
 __all__ = [
     "read_envmap",
@@ -729,16 +730,8 @@ def cubemap_to_equirect(faces, height: int, width: int, supersample: int | None 
     theta[0] = h * 0.5 * (offsets + 0.5)  # row 0: [0, h/2]
     theta[-1] = np.pi - h * 0.5 * (offsets + 0.5)  # row H-1: [pi - h/2, pi]
     phi = 2.0 * np.pi * (np.arange(width)[:, None] + 0.5 + offsets[None, :]) / width  # (W, s)
-    st = np.sin(theta)[:, :, None, None]
-    dirs = np.stack(
-        np.broadcast_arrays(
-            st * np.sin(phi)[None, None, :, :],
-            np.cos(theta)[:, :, None, None],
-            -st * np.cos(phi)[None, None, :, :],
-        ),
-        axis=-1,
-    )  # (H, s, W, s, 3)
-    weights = np.broadcast_to(st + 1e-300, dirs.shape[:-1])[..., None]
+    dirs = _angles_to_directions(theta[:, :, None, None], phi[None, None, :, :])  # (H, s, W, s, 3)
+    weights = np.broadcast_to(np.sin(theta)[:, :, None, None] + 1e-300, dirs.shape[:-1])[..., None]
     values = cubemap_lookup(faces, dirs) * weights
     return values.sum(axis=(1, 3)) / weights.sum(axis=(1, 3))
 

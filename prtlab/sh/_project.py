@@ -13,6 +13,7 @@ import numpy as np
 from prtlab._validate import as_directions, as_real_array, check_int, check_order
 
 from ..geometry import cubemap_directions, cubemap_solid_angles, equirect_directions, equirect_solid_angles
+from ..geometry._spheremaps import _angles_to_directions, _equirect_angles
 from ._eval import _CHUNK, _check_method, basis
 
 __all__ = ["project", "project_cubemap", "project_equirect", "project_function", "quadrature"]
@@ -220,13 +221,11 @@ def _equirect_rows(values: np.ndarray, order: int) -> np.ndarray:
     row's sum is ``w_i sum_k (a_ik . C_ik + b_ik . S_ik)`` with ``C_ik = sum_j L_ij cos(k phi_j)`` and ``S_ik``
     likewise: the same rule, summed in another order (no per-pixel basis)."""
     h, w = values.shape[:2]
-    theta = np.pi * np.arange(h) / (h - 1)
-    phi = 2.0 * np.pi * (np.arange(w) + 0.5) / w  # as equirect_directions
+    theta, phi = _equirect_angles(h, w)
     weights = equirect_solid_angles(h, w)[:, 0]  # one weight per row
     n_s = 2 * order
     phi_s = 2.0 * np.pi * np.arange(n_s) / n_s
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    dirs = np.stack(np.broadcast_arrays(st * np.sin(phi_s), ct, -st * np.cos(phi_s)), -1)
+    dirs = _angles_to_directions(theta[:, None], phi_s[None, :])
     y = basis(dirs.reshape(-1, 3), order).reshape(h, n_s, order * order)
     k = np.arange(order)
     fourier = np.concatenate([np.cos(np.outer(phi_s, k)), np.sin(np.outer(phi_s, k))], axis=1) * (2.0 / n_s)
