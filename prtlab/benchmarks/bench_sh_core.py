@@ -1,12 +1,14 @@
-"""Benchmarks of the SH core: basis evaluation (peer: sphericart) and batched rotation (peer: one BLAS matrix
-product with the block-diagonal rotation matrix)."""
+"""Benchmarks of the SH core: basis evaluation (peer: sphericart), batched rotation (peer: one BLAS matrix
+product with the block-diagonal rotation matrix) and the projection of an equirect sky (peer: the same rule summed
+pixel by pixel)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from prtlab.bench import case, check_same_work, floor
-from prtlab.sh import basis, rotate, rotation_matrix
+from prtlab.geometry import equirect_directions, equirect_solid_angles
+from prtlab.sh import basis, project, project_equirect, rotate, rotation_matrix
 
 
 def _directions(n: int) -> np.ndarray:
@@ -80,4 +82,22 @@ def rotate_order4(quick: bool) -> dict:
         # batch read and written once
         "floor": floor(2 * n * block_macs, 16 * n * order * order,
                        "2 B sum_l (2l+1)^2 flops; 16 n^2 B bytes"),
+    }
+
+
+@case("sh.project.equirect.256x512.order10")
+def project_equirect_order10(quick: bool) -> dict:
+    """A new sky's projection, as the spherical lights make it every frame the sky changes (order 10)."""
+    order, h, w = 10, 256, 512
+    image = np.random.default_rng(3).random((h, w, 3))
+    # the peer: the same rule summed pixel by pixel (prtlab.sh.basis at every pixel, one product per chunk), its
+    # directions and weights made once, as a user projecting many skies of one size would
+    dirs, weights = equirect_directions(h, w).reshape(-1, 3), equirect_solid_angles(h, w).reshape(-1)
+    values = image.reshape(-1, 3)
+    check_same_work(project_equirect(image, order), project(values, dirs, weights, order), "sh.project.equirect")
+    return {
+        "run": lambda: project_equirect(image, order),
+        "items": h * w,
+        "peer": ("the pixel sum, sh.project at every pixel", lambda: project(values, dirs, weights, order)),
+        "floor": floor(nbytes=8 * h * w * 3, formula="the map read once: 8 H W C B"),
     }
