@@ -480,6 +480,14 @@ def _transform_matrix(transform) -> np.ndarray:
     return m
 
 
+def _used_vertices(faces, n_vertices: int) -> np.ndarray:
+    """The vertices ``faces (F, 3)`` use, ascending: ``np.unique(faces)`` by a mask over the ``n_vertices`` (no
+    sort)."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[faces.ravel()] = True
+    return np.flatnonzero(used)
+
+
 def _mesh_arrays(mesh, index: int):
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
         vertices, faces = mesh.vertices, mesh.faces
@@ -592,7 +600,7 @@ class RayCaster:
         # arithmetic on the same arrays): a move of one object recomputes that object's arrays alone
         previous = self.__dict__.get("_posed") or []
         if len(self.__dict__.get("_used") or []) != len(self._faces):
-            self._used = [np.unique(f) for f in self._faces]  # the vertices the faces use
+            self._used = [_used_vertices(f, len(v)) for v, f in zip(self._object_vertices, self._faces)]
         self._world_vertices, self._face_normals, self._posed = [], [], []
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for i, (v, f, m) in enumerate(zip(self._object_vertices, self._faces, self._matrices)):

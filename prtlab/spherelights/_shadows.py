@@ -596,16 +596,27 @@ def environment_transfer(normals, env_sh, order: int | None = None) -> np.ndarra
 
 def transfer_matrix(env: np.ndarray, order: int | None = None) -> np.ndarray:
     """``M ((2n-1)^2, n*n*C)`` with ``T_n = cos_{2n-1}(n) @ M``: ``M[i, (k, c)] = sum_j G_ijk env_jc``
-    (``env`` of any order ``N``; ``j`` runs over it)."""
-    from prtlab.sh._gaunt import _gaunt_block
-
+    (``env`` of any order ``N``; ``j`` runs over it). A fresh array each call; the last few environments' matrices
+    are kept, keyed by their bytes (a frame asks for the same one from several passes)."""
+    env = np.asarray(env)
     n_env = math.isqrt(env.shape[0])
     order = n_env if order is None else int(order)
+    return _transfer_matrix(order, env.shape, env.dtype.str, np.ascontiguousarray(env).tobytes()).copy()
+
+
+@functools.lru_cache(maxsize=4)
+def _transfer_matrix(order: int, shape: tuple, dtype: str, env_bytes: bytes) -> np.ndarray:
+    """:func:`transfer_matrix` of the environment given by its ``shape``, ``dtype`` and bytes."""
+    from prtlab.sh._gaunt import _gaunt_block
+
+    env = np.frombuffer(env_bytes, dtype=np.dtype(dtype)).reshape(shape)
     hi = 2 * order - 1
-    gi, gj, gk, gv = _gaunt_block(hi, n_env, order)
-    a = np.zeros((hi * hi, order * order, env.shape[1]))
+    gi, gj, gk, gv = _gaunt_block(hi, math.isqrt(shape[0]), order)
+    a = np.zeros((hi * hi, order * order, shape[1]))
     np.add.at(a, (gi, gk), gv[:, None] * env[gj])
-    return a.reshape(hi * hi, -1)
+    out = a.reshape(hi * hi, -1)
+    out.setflags(write=False)
+    return out
 
 
 def direct_irradiance(points, normals, centres, radii, env_sh, *, exp_method: str = "hyb",

@@ -13,7 +13,7 @@ from prtlab.pipeline import FrameState
 from prtlab.scene import Scene
 from prtlab.spherelights import SphereLights
 from prtlab.spherelights._meshdirect import (MeshOccluder, fibonacci_directions, inner_spheres, mesh_direct,
-                                             mesh_occluder, self_blocked)
+                                             mesh_direct_visible, mesh_occluder, self_blocked)
 
 WHITE = np.zeros((16, 3))
 WHITE[0] = np.sqrt(4 * np.pi)  # constant radiance 1
@@ -129,6 +129,37 @@ def test_kernels_match_the_reference(rng):
     np.testing.assert_allclose(fast, ref, rtol=1e-10, atol=1e-10)
     blocked = mesh_direct(p, n, env, rot, _no_bits(p, len(d)), dirs=d) - ref
     assert np.abs(blocked).max() > 0.1  # the case blocks something
+
+
+def test_visible_kernel_matches_the_reference_at_the_ground_plane():
+    """The kernel's rectangle test against the reference's bit for bit where its sign shortcut decides: receivers on
+    the rectangle's plane (``+-0`` height), just above and below it, rays parallel to it (``d_y = +-0``), steep and
+    grazing rays, receivers over and off the rectangle, with and without an opaque ball."""
+    y0 = 0.25
+    xs = np.array([-2.5, -0.3, 0.0, 0.7, 2.5])
+    hs = np.array([0.0, -0.0, 1e-300, -1e-300, 1e-12, -1e-12, 0.3, -0.3])
+    p = np.array([[x, y0 + h, 0.2 * x] for x in xs for h in hs])
+    p[len(hs) * 2 + 1, 1] = y0  # exactly on the plane through the arithmetic too
+    n = np.array([[0.3 * np.sin(k), np.cos(k), 0.2] for k in range(len(p))])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[::3] = [0.0, 1.0, 0.0]
+    n[1::3] = [0.0, -1.0, 0.0]
+    d = list(fibonacci_directions(64))
+    for phi in np.linspace(0.0, 2.0 * np.pi, 9)[:-1]:
+        for dy in (0.0, -0.0, 1e-300, -1e-300, 1e-9, -1e-9, 0.5, -0.5):
+            s = np.sqrt(1.0 - dy * dy)
+            d.append([s * np.cos(phi), dy, s * np.sin(phi)])
+    d = np.array(d)
+    rect = np.array([[y0, 0.1, -0.2, 2.0, 0.5, -0.5, 2.0]])
+    none = np.zeros((len(p), (len(d) + 7) // 8), dtype=np.uint8)
+    for balls in (None, np.array([[0.3, 2.0, 1.0, 0.3]])):
+        fast = mesh_direct_visible(p, n, np.eye(3), none, rectangles=rect, spheres=balls, dirs=d)
+        with np.errstate(invalid="ignore"):  # the reference's 0 * inf along rays parallel to the plane
+            ref = mesh_direct_visible(p, n, np.eye(3), none, rectangles=rect, spheres=balls, dirs=d,
+                                      method="reference")
+        assert np.array_equal(fast, ref)
+    below = np.unpackbits(fast, axis=1, count=len(d)).astype(bool)
+    assert (~below).sum() > 0 and below.sum() > 0  # the rectangle hides some rays and not others
 
 
 def test_meets_on_a_fibonacci_run_matches_every_direction(rng):

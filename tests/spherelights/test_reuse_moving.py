@@ -281,6 +281,20 @@ def _receivers_on_balls(centres, radii, n=300, seed=5):
     return centres[k] + 1.01 * radii[k, None] * d, 1.7 * d, k
 
 
+def _moved_lights(centres, radii, label):
+    """Copies of the lights' ``centres, radii`` as the scenario ``label`` changes them: ``"one moved"`` (light 4),
+    ``"two moved"`` (lights 4 and 1), ``"grown"`` (light 5's radius); any other label leaves them as they are."""
+    c, r = centres.copy(), radii.copy()
+    if label == "one moved":
+        c[4] += [0.15, -0.05, 0.1]
+    elif label == "two moved":
+        c[4] += [-0.1, 0.0, 0.05]
+        c[1] += [0.0, 0.2, -0.3]
+    elif label == "grown":
+        r[5] *= 1.3
+    return c, r
+
+
 def _per_receiver(samples):
     return [(samples.reals[a:b].tobytes(), samples.ints[a:b].tobytes())
             for a, b in zip(samples.ptr[:-1], samples.ptr[1:])]
@@ -304,15 +318,9 @@ def test_kept_ground_samples_equal_a_fresh_computation(grounds, with_local):
     unadjusted = np.arange(len(radii)) % 2 == 0
 
     def lights(label):
-        c, r, u, loc = centres.copy(), radii.copy(), unadjusted.copy(), local.copy()
-        if label == "one moved":
-            c[4] += [0.15, -0.05, 0.1]
-        elif label == "two moved":
-            c[4] += [-0.1, 0.0, 0.05]
-            c[1] += [0.0, 0.2, -0.3]
-        elif label == "grown":
-            r[5] *= 1.3
-        elif label == "unadjusted":
+        c, r = _moved_lights(centres, radii, label)
+        u, loc = unadjusted.copy(), local.copy()
+        if label == "unadjusted":
             u[5] = not u[5]
         elif label == "local moved":
             c[3] += [0.4, -0.3, 0.0]
@@ -389,15 +397,9 @@ def test_kept_near_caps_equal_a_fresh_computation(n_near):
     eligible[2] = False
 
     def lights(label):
-        c, r, e = centres.copy(), radii.copy(), eligible.copy()
-        if label == "one moved":
-            c[4] += [0.15, -0.05, 0.1]
-        elif label == "two moved":
-            c[4] += [-0.1, 0.0, 0.05]
-            c[1] += [0.0, 0.2, -0.3]
-        elif label == "grown":
-            r[5] *= 1.3
-        elif label == "ineligible":
+        c, r = _moved_lights(centres, radii, label)
+        e = eligible.copy()
+        if label == "ineligible":
             e[5] = False
         return c, r, e
 

@@ -371,3 +371,35 @@ def test_asin_unit_is_within_two_units_in_the_last_place_of_libm():
     ours = run(x)
     assert np.all(np.abs(ours - exact) <= 2.0 * np.spacing(exact)), np.max(np.abs(ours - exact) / np.spacing(exact))
     assert run(np.array([0.0, 1.0])).tolist() == [0.0, np.pi / 2]
+
+
+def test_transfer_matrix_kept_is_the_computed_one(rng):
+    """``transfer_matrix`` keeps the last environments' matrices: each call equals the sum of Gaunt products computed
+    afresh, bit for bit, for environments of another order, channels, dtype or one signed zero apart, and a caller
+    writing into its array changes no later call's."""
+    from prtlab.sh._gaunt import _gaunt_block
+    from prtlab.spherelights._shadows import transfer_matrix
+
+    def fresh(env, order):
+        n_env = int(round(np.sqrt(env.shape[0])))
+        hi = 2 * order - 1
+        gi, gj, gk, gv = _gaunt_block(hi, n_env, order)
+        a = np.zeros((hi * hi, order * order, env.shape[1]))
+        np.add.at(a, (gi, gk), gv[:, None] * env[gj])
+        return a.reshape(hi * hi, -1)
+
+    env = rng.normal(size=(25, 3))
+    zero = env.copy()
+    zero[3] = [0.0, -0.0, 0.0]
+    signed = zero.copy()
+    signed[3, 1] = 0.0
+    cases = [(env, 4), (env, 3), (env[:16], 4), (env[:, :1], 4), (env.astype(np.float32), 4), (zero, 4),
+             (signed, 4), (env, 4)]
+    for e, order in cases * 2:
+        ours = transfer_matrix(e, order)
+        expect = fresh(e, order)
+        assert ours.dtype == expect.dtype and ours.shape == expect.shape
+        assert np.array_equal(ours.view(np.uint64), expect.view(np.uint64))
+        assert ours.flags.writeable and ours.flags.c_contiguous
+        ours[:] = np.nan  # the kept matrix is not the caller's
+    assert not np.isnan(transfer_matrix(env, 4)).any()
