@@ -150,8 +150,9 @@ def test_the_occlusion_rows_are_the_halfspace_on_the_plane_and_the_field_elsewhe
 def test_a_face_standing_on_the_floor_gets_the_order_n_light_of_the_halfspace(box_on_floor):
     """The direct light of the box's sides' bottom row (only the floor occludes them) is
     ``albedo sum_k h_k (P_n(P_n(V_self H) G_k) . L)`` with ``H`` the half-space above the floor
-    (:func:`halfspace_zh`) and ``L`` the environment's SH: the order-n SH light, no field between."""
-    pre = _with(box_on_floor, flat_visibility="plane")
+    (:func:`halfspace_zh`) and ``L`` the environment's SH: the order-n SH light, no field between (the bands
+    above it, ``horizon_sky``: ``test_horizon.py``)."""
+    pre = _with(box_on_floor, flat_visibility="plane", horizon_sky=False)
     state = FrameState.from_scene(pre.scene)
     result = pre.shade(state, bounces=0)
     geo = pre._frame_geometry(state)
