@@ -1586,7 +1586,9 @@ class Interreflection(Precomputation):
                     extra = corrections.get(r.name)
                     packed = None
                     if operators:  # their terms packed per source, kept (re-packed where an operator changed)
-                        packed = entry.setdefault("packed", PackedGather())
+                        packed = entry.get("packed")
+                        if packed is None:  # made once, then updated in place
+                            packed = entry["packed"] = PackedGather()
                         packed.update(list(operators.values()), list(operators), offsets)
                     lk = bounce_rgb(stacked.reshape(len(stacked), -1), w, list(operators.values()), list(operators),
                                     stacked_residual, offsets,

@@ -1556,8 +1556,14 @@ def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, a
 def _near_correction_kernel(rows, factor, triangles, uv, faces, index, exact, values, starts, out):
     """``near_hit_correction``'s sum, hit after hit in the order of ``index`` (as ``np.add.at``); the runs
     ``index[starts[c]:starts[c + 1]]`` in parallel (no two runs add to one row)."""
+    rgb = factor.shape[1] == 1 and factor.shape[2] == 1 and exact.shape[2] == 3
     for c in numba.prange(starts.shape[0] - 1):
-        _near_correction_run(rows, factor, triangles, uv, faces, index, exact, values, starts[c], starts[c + 1], out)
+        if rgb:
+            _near_correction_run_rgb(rows, factor, triangles, uv, faces, index, exact, values, starts[c],
+                                     starts[c + 1], out)
+        else:
+            _near_correction_run(rows, factor, triangles, uv, faces, index, exact, values, starts[c], starts[c + 1],
+                                 out)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1581,6 +1587,23 @@ def _near_correction_run(rows, factor, triangles, uv, faces, index, exact, value
                 for k in range(n_k):
                     total += factor[h, kp, k] * diff[k, c]
                 out[p, kp, c] += total
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_correction_run_rgb(rows, factor, triangles, uv, faces, index, exact, values, first, last, out):
+    """:func:`_near_correction_run` for ``K' = K = 1`` and 3 colours, unrolled: the same operations in the same
+    order (``0.0 +`` the one product, as the general sum starts from 0.0), so the same values bit for bit."""
+    for q in range(first, last):
+        h = index[q]
+        f = triangles[h]
+        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        u, v = uv[h, 0], uv[h, 1]
+        b0 = 1.0 - u - v
+        weight = factor[h, 0, 0]
+        p = rows[h]
+        for c in range(3):
+            diff = exact[q, 0, c] - (b0 * values[i0, 0, c] + u * values[i1, 0, c] + v * values[i2, 0, c])
+            out[p, 0, c] += 0.0 + weight * diff
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -1207,6 +1207,33 @@ def test_the_near_hit_correction_in_parallel_runs_equals_one_pass():
     np.testing.assert_array_equal(_residual._row_runs(rows[index][::-1]), [0, len(index)])
 
 
+def test_the_rgb_near_hit_correction_equals_the_general_run():
+    """With ``K' = K = 1`` and 3 colours :func:`near_hit_correction` takes the unrolled run
+    (``_near_correction_run_rgb``): bit for bit, zeros' signs included, the general run's sums over the same hits
+    in the same order (``_near_correction_run``), on hits whose corrections are exactly zero too."""
+    from prtlab.interreflection import _residual
+    from prtlab.interreflection._residual import ResidualHits, near_hit_correction
+
+    rng = np.random.default_rng(31)
+    n_hits, n_points, n_vertices = 20_000, 3_000, 60
+    faces = rng.integers(0, n_vertices, (50, 3))
+    rows = np.sort(rng.integers(0, n_points, n_hits))
+    uv = rng.uniform(0.0, 0.5, (n_hits, 2)).astype(np.float32).astype(np.float64)
+    factor = rng.normal(size=(n_hits, 1, 1))
+    factor[::7] = -0.0  # products -0.0 and 0.0: the sum's start 0.0 decides the zeros' signs
+    hits = ResidualHits(rows, factor, np.arange(n_hits), rng.integers(0, 50, n_hits), uv, faces)
+    index = np.sort(rng.choice(n_hits, 15_000, replace=False))
+    exact, values = rng.normal(size=(len(index), 1, 3)), rng.normal(size=(n_vertices, 1, 3))
+    ours = near_hit_correction(hits, index, exact, values, n_points)
+    general = np.zeros_like(ours)
+    _residual._near_correction_run(rows, factor, hits.triangles, uv, faces, index, exact, values, 0, len(index),
+                                   general)
+    assert len(_residual._row_runs(rows[index])) > 3
+    assert np.any(ours == 0.0)
+    np.testing.assert_array_equal(ours, general)
+    np.testing.assert_array_equal(np.signbit(ours), np.signbit(general))
+
+
 def test_light_outer_kernel_is_numpys_outer_and_sum():
     """``light_outer_kernel`` gives ``np.multiply.outer`` and then ``out + outer`` bit for bit."""
     from prtlab.interreflection._residual import light_outer_kernel
