@@ -487,6 +487,22 @@ def _ring_row(points, q, dirs, n_azimuth, ring_sin, spheres, out, with_cand, b_a
     return count, n_cand
 
 
+def _chunk_sizes(cast, blockers: MeshBlockers, n_rays: int) -> list:
+    """Per chunk of :data:`_CHUNK` points of ``cast`` (local) an estimate of its rays, for :func:`run_tasks`'
+    ``sizes`` (a chunk holding more than its share of the work runs first, on every thread): per point, ``n_rays``
+    times the fraction of the sphere of directions in the cones of the bounding and opaque spheres (capped at the
+    hemisphere, every ray inside a sphere), plus one ray. Scheduling only: the chunks' rays are the same."""
+    spheres = np.concatenate([blockers.bounds.reshape(-1, 4), blockers.spheres.reshape(-1, 4)])
+    if not len(cast) or not len(spheres):
+        return [1.0] * len(range(0, len(cast), _CHUNK))
+    d2 = np.sum((spheres[None, :, :3] - cast[:, None]) ** 2, axis=2)
+    r2 = spheres[None, :, 3] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cone = np.where(d2 > r2, 0.5 * (1.0 - np.sqrt(np.maximum(0.0, 1.0 - r2 / d2))), 1.0)
+    rays = 1.0 + n_rays * np.minimum(2.0 * cone.sum(axis=1), 1.0)
+    return [float(rays[s:s + _CHUNK].sum()) for s in range(0, len(cast), _CHUNK)]
+
+
 def _chunk_rays(rule, blockers):
     """``chunk(points, s)``, for the chunk of ``points`` from ``s`` (:data:`_CHUNK` points): its slice, the
     candidate rays ``(P, K)``, their point and rule direction indices (flat, as ``np.nonzero``), the distance to
@@ -644,7 +660,8 @@ def ground_direct_hits(points, blockers: MeshBlockers, rule: GroundRayRule | Non
         chunks[i] = _ChunkHits(s, s + len(cand), ptr, ik[hit], None, None, None,
                                None if t_sphere is None else np.isfinite(t_sphere))
 
-    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
+    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)],
+              sizes=_chunk_sizes(cast, blockers, len(rule.dirs)))
     interpolate = len(cast) < len(p)
     return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
                       _cast_frame(cast, blockers, False))
@@ -768,7 +785,8 @@ def ground_light_hits(points, blockers: MeshBlockers, rule: GroundRayRule | None
         chunks[i] = _ChunkHits(s, s + len(cand), hit_ptr, ray_k, face, u, v,
                                None if t_sphere is None else np.isfinite(t_sphere))
 
-    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)])
+    run_tasks([functools.partial(chunk, i, s) for i, s in enumerate(starts)],
+              sizes=_chunk_sizes(cast, blockers, len(rule.dirs)))
     interpolate = len(cast) < len(p)
     return GroundHits(rule, len(p), rows if interpolate else None, weights if interpolate else None, tuple(chunks),
                       _cast_frame(cast, blockers, True))
@@ -810,7 +828,7 @@ def ground_light_sums(hits: GroundHits, env_sh, blockers: MeshBlockers, radiance
                 direct[c.start:c.stop] = e_open - _blocked_sum(c.stop - c.start, ip, c.ray_k, c.sphere_blocked,
                                                                blocked_radiance)
 
-    run_tasks([functools.partial(chunk, c) for c in hits.chunks])
+    run_tasks([functools.partial(chunk, c) for c in hits.chunks], sizes=[int(c.ptr[-1]) + 1 for c in hits.chunks])
     if hits.rows is not None:
         return (None if direct is None else _interpolated(direct, hits.rows, hits.weights),
                 _interpolated(gathered, hits.rows, hits.weights))

@@ -156,6 +156,30 @@ def test_one_cast_gives_the_direct_and_gathered_light(rng):
     np.testing.assert_allclose(g2, gathered, rtol=1e-4, atol=1e-5)
 
 
+def test_chunks_scheduled_by_their_rays_give_the_same_light(rng, monkeypatch):
+    """Two numba threads, 1,200 points near a ball (5 chunks, most rays in the nearest): the direct and gathered
+    light (one closest-hit cast) and the direct light alone (any-hit rays), with the chunks' ``sizes`` given to
+    ``run_tasks`` (the largest first on every thread) and without, bit for bit."""
+    from prtlab import _tasks
+    from prtlab.spherelights import _groundrays
+    from tests.conftest import two_numba_threads
+
+    two_numba_threads()
+    v, f = _ball([0.3, 0.6, -0.2], 0.5, 3)
+    pts = np.stack([rng.uniform(-3, 3, 1200), np.zeros(1200), rng.uniform(-3, 3, 1200)], axis=1)
+    pts = pts[np.argsort(np.hypot(pts[:, 0] - 0.3, pts[:, 2] + 0.2))]  # the nearest first: one heavy chunk
+    rad = [rng.uniform(0, 1, size=(len(v), 3))]
+    blk = mesh_blockers([(v, f)], _bound(v), np.array([[-1.0, 0.8, 0.0, 0.3]]))
+    env = WHITE.copy()
+    env[3] = 0.4
+    sizes = _groundrays._chunk_sizes(pts, blk, len(ground_ray_rule().dirs))
+    assert len(sizes) == 5 and sizes[0] > sum(sizes) / 2
+    scheduled = (*ground_light_rays(pts, env, blk, rad), ground_direct_rays(pts, env, blk))
+    monkeypatch.setattr(_groundrays, "run_tasks", lambda jobs, sizes=None: _tasks.run_tasks(jobs))
+    for a, b in zip(scheduled, (*ground_light_rays(pts, env, blk, rad), ground_direct_rays(pts, env, blk))):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("opaque", [False, True])
 def test_hit_sums_kernel_matches_reference(seed, opaque):
