@@ -500,8 +500,7 @@ class FrameReuse:
     area_light_sh: dict = dataclasses.field(default_factory=dict)
     #: source radiance fields of the area light shapes seen so far (``area_lights="field"``)
     source_fields: list = dataclasses.field(default_factory=list)
-    #: (receiver, source) -> (poses of receiver, source and occluders, Phi, the occluders' geometry, None or the
-    #: blockers' masks and the transfer at every receiver point, of :meth:`Interreflection._pair_irradiance`)
+    #: (receiver, source) -> (poses of receiver, source and occluders, Phi, the occluders' geometry)
     pair_irradiance: dict = dataclasses.field(default_factory=dict)
     #: (receiver, source) -> how many times the pair's Phi was replaced (the stacked irradiance's key)
     revision: dict = dataclasses.field(default_factory=dict)
@@ -1388,35 +1387,17 @@ class Interreflection(Precomputation):
                     mask |= affects(x, go)
         return np.flatnonzero(mask)
 
-    def _pair_irradiance(self, geo, occ, r, s, blockers, rows, kept=None):
-        """Eq. 13 of source ``s`` at the ``rows`` of receiver ``r``: masked visibility, transfer, field, near field.
-
-        Returns ``Phi`` at the rows and ``(masks, transfer)`` there: each blocker's :meth:`_may_block` mask (F, R)
-        and ``P_n(V G_k')`` (R, K', n2). ``kept``: that pair made for every receiver point at the same receiver pose
-        and the same blockers at the same poses (only the source moved): the visibility and transfer are made again
-        only at the points where a mask changed, into ``kept``'s arrays (changed in place and returned); the same
-        values as made afresh (each point's are its own).
-        """
+    def _pair_irradiance(self, geo, occ, r, s, blockers, rows):
+        """Eq. 13 of source ``s`` at the ``rows`` of receiver ``r``: masked visibility, transfer, field, near field."""
         g, gs = geo[r.name], geo[s.name]
         x = g["x"][rows]
         factors = [(o, self._may_block(x, geo[o], gs)) for o in blockers]
-        masks = np.array([mask for _, mask in factors], dtype=np.bool_).reshape(len(factors), len(rows))
-        if kept is None:
-            vis = self._visibility(g, occ[r.name], factors, rows)
-            transfer = self._transfer(vis, g["g_cos"][rows])
-        else:
-            changed = np.flatnonzero(np.any(masks != kept[0], axis=0))
-            transfer = kept[1]
-            if len(changed):
-                at = rows[changed]
-                vis = self._visibility(g, occ[r.name], [(o, mask[changed]) for o, mask in factors], at)
-                transfer[changed] = self._transfer(vis, g["g_cos"][at])
-                kept[0][:, changed] = masks[:, changed]
-            masks = kept[0]
+        vis = self._visibility(g, occ[r.name], factors, rows)
+        transfer = self._transfer(vis, g["g_cos"][rows])
         value = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid, g["x"][rows],
                                  transfer, gs["T"])
         self._near_field(s, gs["T"], g["x"], rows, transfer, value)
-        return value, (masks, transfer)
+        return value
 
     def basis_irradiance_step(self, geo, occ, done=None):
         """Step 2: ``Phi[r][s]`` (V_r, K'_r, K_s, N_s) for every ordered pair, recomputing only what changed.
@@ -1451,31 +1432,24 @@ class Interreflection(Precomputation):
                 if rows is None and self._pair_skipped(geo, r, s):
                     counts["skipped_pairs"] += 1
                     continue
-                kept = None  # the pair's blocker masks and transfer at every point, while they stand
                 if rows is None:
                     if self.options.irradiance == "haar":
                         value = self._haar_pair(geo, r, s, blockers)
                     else:
-                        if cached is not None and cached[0][0] == depends[0] and cached[0][2] == depends[2]:
-                            kept = cached[3]  # only the source moved: its masks alone may change
-                        value, kept = self._pair_irradiance(geo, occ, r, s, blockers, np.arange(len(g["x"])), kept)
+                        value = self._pair_irradiance(geo, occ, r, s, blockers, np.arange(len(g["x"])))
                     counts["computed_pairs"] += 1
                 elif len(rows):
                     value = cached[1].copy()
-                    value[rows], part = self._pair_irradiance(geo, occ, r, s, blockers, rows)
-                    if cached[3] is not None and [o for o, _ in cached[0][2]] == blockers:
-                        # the same blockers, some moved: the other points keep their masks and transfer
-                        kept = cached[3]
-                        kept[0][:, rows], kept[1][rows] = part
+                    value[rows] = self._pair_irradiance(geo, occ, r, s, blockers, rows)
                     counts["updated_pairs"] += 1
                     counts["updated_rows"] += len(rows)
                 else:
-                    value, kept = cached[1], cached[3]
+                    value = cached[1]
                     counts["reused_pairs"] += 1
                 phi[r.name][s.name] = value
                 if cached is None or value is not cached[1]:  # a new value: the stacked irradiance is rebuilt
                     self.reuse.revision[key] = self.reuse.revision.get(key, 0) + 1
-                self.reuse.pair_irradiance[key] = (depends, value, now, kept)
+                self.reuse.pair_irradiance[key] = (depends, value, now)
             if done is not None:
                 done(r, phi[r.name])
         return phi, counts
