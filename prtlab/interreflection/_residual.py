@@ -531,19 +531,29 @@ def _meets(buf, spheres):
     return False
 
 
-#: Widening (radians) of the angular test of ``_rows_meeting``: far above the rounding of a ray's direction.
+#: Widening (radians) of the angular tests of ``_cells_meeting``: far above the rounding of a ray's direction.
 _ROW_MARGIN = 1e-6
+
+#: Least angle (radians) between a moved sphere's cone and the grid's axis (either way) for which
+#: ``_cells_meeting`` tests the columns (azimuths) too; nearer the axis every column is kept.
+_AXIS_GAP = 1e-3
 
 
 @numba.njit(cache=True, inline="always")
-def _rows_meeting(points, normals, p, centre, radius, rows, side, eps, full, spheres, need):
-    """The rows of point ``p``'s grid (``_ray``'s ``u1`` strata) that hold a ray which may meet one of ``spheres``:
-    ``need[i]`` for the point's ``rows'`` rows (``_point_grid``); returns ``(rows', side')``. Conservative: a ray
-    meets a sphere ``(c, R)`` only if its angle to the direction of ``c`` from the point is at most
-    ``asin((R + eps |n|) / |c - x|)`` (its origin lies ``eps |n|`` off the point), and a ray's angle to its axis
-    (the normal, or the source's centre) lies in its row's band, so by the triangle inequality a row whose band is
-    farther than that from the sphere's direction holds none (widened by ``_ROW_MARGIN``). Every row is needed
-    from inside a sphere or with a normal not of unit length."""
+def _cells_meeting(points, normals, p, centre, radius, rows, side, eps, full, spheres, need, band):
+    """The cells of point ``p``'s grid (``_ray``'s ``(u1, u2)`` strata, ray ``j`` in row ``j // side'`` and column
+    ``j % side'``) that hold a ray which may meet one of ``spheres``: ``need[j]`` for the point's ``rows' side'``
+    rays (``_point_grid``); returns ``(rows', side')``. ``band`` (at least ``rows side + 1``): scratch.
+
+    Conservative: a ray meets a sphere ``(c, R)`` only if its angle to the direction ``e`` of ``c`` from the point
+    is at most ``alpha = asin((R + eps |n|) / |c - x|)`` (its origin lies ``eps |n|`` off the point). A ray's angle
+    to its axis (the normal, or the source's centre) lies in its row's band, so by the triangle inequality a row
+    whose band is farther than ``alpha`` from ``e``'s angle ``theta`` holds none; and its azimuth about the axis
+    (``2 pi u2`` in ``_frame``'s tangents) lies in its column's, while the cap of radius ``alpha`` about ``e``
+    (when it holds neither end of the axis) spans the azimuths within ``asin(sin alpha / sin theta)`` of ``e``'s,
+    so a column farther than that holds none. Both tests are widened by ``_ROW_MARGIN``; the columns are tested
+    only where the cap is at least ``_AXIS_GAP`` from the axis and the normal is of unit length within ``1e-12``.
+    Every ray is needed from inside a sphere or with a normal not of unit length within ``1e-6``."""
     x0, x1, x2 = points[p, 0], points[p, 1], points[p, 2]
     n0, n1, n2 = normals[p, 0], normals[p, 1], normals[p, 2]
     d0, d1, d2 = centre[0] - x0, centre[1] - x1, centre[2] - x2
@@ -556,52 +566,73 @@ def _rows_meeting(points, normals, p, centre, radius, rows, side, eps, full, sph
         rp, sp = _point_grid(rows, side, (d0 * n0 + d1 * n1 + d2 * n2) / dist, cos_max, q, full)
     length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     every = not abs(length - 1.0) <= 1e-6
+    azimuths = abs(length - 1.0) <= 1e-12
     if inside:
         a0, a1, a2 = n0 / length, n1 / length, n2 / length
+        t0, t1, t2, b0, b1, b2 = _frame(n0, n1, n2)  # the tangents _ray samples about
     else:
         a0, a1, a2 = d0 / dist, d1 / dist, d2 / dist
+        t0, t1, t2, b0, b1, b2 = _frame(a0, a1, a2)
     offset = eps * length * (1.0 + 1e-9) + 1e-300
-    for i in range(rp):
-        need[i] = every
+    for j in range(rp * sp):
+        need[j] = every
     if every:
         return rp, sp
+    banded = False
     for k in range(spheres.shape[0]):
         e0, e1, e2 = spheres[k, 0] - x0, spheres[k, 1] - x1, spheres[k, 2] - x2
         de = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
         reach = spheres[k, 3] + offset
         if not de > reach * (1.0 + 1e-9):  # from inside (or NaN): any ray
-            for i in range(rp):
-                need[i] = True
+            for j in range(rp * sp):
+                need[j] = True
             return rp, sp
+        if not banded:  # row i's angles to the axis: [band[i], band[i + 1]]
+            for i in range(rp + 1):
+                u = i / rp
+                if inside:  # cos t = sqrt(1 - u1)
+                    band[i] = math.acos(min(math.sqrt(max(1.0 - u, 0.0)), 1.0))
+                else:  # cos t = 1 - u1 (1 - cos_max)
+                    band[i] = math.acos(min(max(1.0 - u * (1.0 - cos_max), -1.0), 1.0))
+            banded = True
         alpha = math.asin(reach / de) + _ROW_MARGIN
         theta = math.acos(min(max((a0 * e0 + a1 * e1 + a2 * e2) / de, -1.0), 1.0))
+        spread, azimuth = 4.0, 0.0  # the half-width of the azimuths the cap spans (beyond pi: every column)
+        if azimuths and theta - alpha >= _AXIS_GAP and theta + alpha <= math.pi - _AXIS_GAP:
+            spread = math.asin(min(math.sin(alpha) / math.sin(theta), 1.0)) + _ROW_MARGIN
+            azimuth = math.atan2(b0 * e0 + b1 * e1 + b2 * e2, t0 * e0 + t1 * e1 + t2 * e2)
         for i in range(rp):
-            if need[i]:
+            if not (band[i] - _ROW_MARGIN <= theta + alpha and band[i + 1] + _ROW_MARGIN >= theta - alpha):
                 continue
-            lo, hi = i / rp, (i + 1) / rp
-            if inside:  # cos t = sqrt(1 - u1)
-                t_lo = math.acos(min(math.sqrt(max(1.0 - lo, 0.0)), 1.0))
-                t_hi = math.acos(min(math.sqrt(max(1.0 - hi, 0.0)), 1.0))
-            else:  # cos t = 1 - u1 (1 - cos_max)
-                t_lo = math.acos(min(max(1.0 - lo * (1.0 - cos_max), -1.0), 1.0))
-                t_hi = math.acos(min(max(1.0 - hi * (1.0 - cos_max), -1.0), 1.0))
-            need[i] = t_lo - _ROW_MARGIN <= theta + alpha and t_hi + _ROW_MARGIN >= theta - alpha
+            for c in range(sp):
+                j = i * sp + c
+                if need[j]:
+                    continue
+                if spread < math.pi:
+                    lo, hi = 2.0 * math.pi * c / sp, 2.0 * math.pi * (c + 1) / sp
+                    gap = abs(azimuth - 0.5 * (lo + hi)) % (2.0 * math.pi)  # to the column's middle, in [0, 2 pi)
+                    gap = min(gap, 2.0 * math.pi - gap)
+                    if gap > 0.5 * (hi - lo) + spread:
+                        continue
+                need[j] = True
     return rp, sp
 
 
 @numba.njit(cache=True, parallel=True)
 def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box,
                       spheres, flags):
-    """``_flag_kernel`` by ``_recast_kernel``'s way: rays of the rows ``_rows_meeting`` leaves out are not made
+    """``_flag_kernel`` by ``_recast_kernel``'s way: rays of the cells ``_cells_meeting`` leaves out are not made
     (unflagged); the same flags."""
     m = rows * side
     for i in numba.prange(candidates.shape[0]):
         buf = np.empty(8)
         need = np.empty(m, np.bool_)
-        rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full, spheres, need)
+        band = np.empty(m + 1)
+        rp, sp = _cells_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full, spheres, need,
+                                band)
         for j in range(m):
             flags[i, j] = False
-            if j >= rp * sp or not need[j // sp]:  # not cast (tmax 0), or in a row no ray of which meets them
+            if j >= rp * sp or not need[j]:  # not cast (tmax 0), or in a cell no ray of which meets them
                 continue
             _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full, facing, box,
                  buf)
@@ -612,7 +643,7 @@ def _flag_rows_kernel(points, normals, candidates, centre, radius, bound, key, r
 def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows, side, eps, full, facing, box,
                    tnear, source, spheres, tracer, weighing, state, triangle, uv, factor):
     """``_flag_kernel`` and ``_cast_kernel`` in one pass: each ray ``j`` of point ``candidates[i]`` that
-    ``_flag_kernel`` flags is traced (rays are made only in the rows ``_rows_meeting`` keeps, as
+    ``_flag_kernel`` flags is traced (rays are made only in the cells ``_cells_meeting`` keeps, as
     ``_flag_rows_kernel``), one at a time or, with ``tracer.packet``, 16 flagged rays of a block of points at a
     time, and a hit on the source weighed (``_weigh_hit``); ``state[i, j]``: ``_UNFLAGGED``, ``_FLAGGED`` (not
     cast: ``tmax`` 0), ``_FLAGGED_CAST`` (cast, its first hit not the source's front) or ``_FLAGGED_HIT`` (its
@@ -625,6 +656,7 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
     for _ in numba.prange(tracer.threads):
         buf = np.empty(8)
         need = np.empty(m, np.bool_)
+        band = np.empty(m + 1)
         lane_i = np.empty(w, np.int64)
         lane_j = np.empty(w, np.int64)
         lane_rays = np.empty((w, 8))
@@ -642,12 +674,12 @@ def _recast_kernel(points, normals, candidates, centre, radius, bound, key, rows
             end = min(n, (block + 1) * _POINTS_PER_TASK)
             for i in range(block * _POINTS_PER_TASK, end + 1):
                 if i < end:
-                    rp, sp = _rows_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full,
-                                           spheres, need)
+                    rp, sp = _cells_meeting(points, normals, candidates[i], centre, radius, rows, side, eps, full,
+                                            spheres, need, band)
                 for j in range(m if i < end else 1):
                     if i < end:
                         state[i, j] = _UNFLAGGED
-                        if j >= rp * sp or not need[j // sp]:  # as _flag_rows_kernel: no ray of the row is flagged
+                        if j >= rp * sp or not need[j]:  # as _flag_rows_kernel: no ray of the cell is flagged
                             continue
                         _ray(points, normals, candidates[i], j, centre, radius, bound, key, rows, side, eps, full,
                              facing, box, buf)

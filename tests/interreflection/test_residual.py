@@ -1035,7 +1035,7 @@ def test_clip_to_box_is_the_slab_test():
 @pytest.mark.parametrize("full", [0.0, 0.5])
 @pytest.mark.parametrize("seed", range(6))
 def test_flagging_by_rows_equals_flagging_every_ray(seed, full):
-    """``_flag_rows_kernel`` (``_recast_kernel``'s flagging: rays made only in the rows whose band of angles may
+    """``_flag_rows_kernel`` (``_recast_kernel``'s flagging: rays made only in the cells whose bands of angles may
     reach a moved sphere) gives ``_flag_kernel``'s flags, every ray made: random points, normals (some inside the
     source's sphere, some inside a moved sphere), moved spheres small and large, near and far."""
     from prtlab.interreflection._residual import NO_BOX, _flag_kernel, _flag_rows_kernel, _grid, _key
@@ -1063,6 +1063,41 @@ def test_flagging_by_rows_equals_flagging_every_ray(seed, full):
     _flag_rows_kernel(*args, by_rows)
     assert every.any() and not every.all()
     np.testing.assert_array_equal(by_rows, every)
+
+
+@pytest.mark.parametrize("n_rays", [16, 64, 100])
+@pytest.mark.parametrize("seed", range(8))
+def test_flagging_by_cells_keeps_every_flagged_ray(seed, n_rays):
+    """``_cells_meeting`` leaves out whole columns (azimuths) of a row, yet ``_flag_rows_kernel`` still gives
+    ``_flag_kernel``'s flags: small and large moved spheres (5 to 30 cm), one to four of them, near and far,
+    points inside the source's sphere (cosine-weighted rays about the normal) and outside, per-point grids."""
+    from prtlab.interreflection._residual import NO_BOX, _cells_meeting, _flag_kernel, _flag_rows_kernel, _grid, _key
+
+    rng = np.random.default_rng(100 + seed)
+    n_points = 300
+    points = rng.uniform(-3.0, 3.0, size=(n_points, 3))
+    normals = rng.normal(size=(n_points, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    centre, radius = rng.uniform(-1.0, 1.0, 3), float(rng.uniform(0.2, 2.0))
+    n_spheres = 1 + seed % 4
+    spheres = np.concatenate([centre + rng.normal(scale=0.5 * radius, size=(n_spheres, 3)),  # about the source
+                              10.0 ** rng.uniform(-1.3, -0.5, size=(n_spheres, 1))], axis=1)
+    full = 0.5 if seed % 2 else 0.0
+    rows, side = _grid(n_rays)
+    args = (points, normals, np.arange(n_points), centre, radius, radius * 1.01, _key(seed, 2), rows, side, 1e-4,
+            full, np.zeros(3), NO_BOX, spheres)
+    every, by_cells = (np.empty((n_points, rows * side), np.bool_) for _ in range(2))
+    _flag_kernel(*args, every)
+    _flag_rows_kernel(*args, by_cells)
+    np.testing.assert_array_equal(by_cells, every)
+    assert every.any()
+    need, band = np.empty(rows * side, np.bool_), np.empty(rows * side + 1)
+    partial_rows = 0  # rows some of whose columns are needed and some not: the column test at work
+    for p in range(n_points):
+        rp, sp = _cells_meeting(points, normals, p, centre, radius, rows, side, 1e-4, full, spheres, need, band)
+        cells = need[:rp * sp].reshape(rp, sp)
+        partial_rows += int(np.count_nonzero(cells.any(axis=1) & ~cells.all(axis=1)))
+    assert partial_rows > 0
 
 
 @pytest.mark.parametrize("seps", [(LAMBERT, LAMBERT, LAMBERT), (LAMBERT, PHONG, PHONG)])
