@@ -378,6 +378,17 @@ def test_interreflection_floors_by_hand():
     flop_b = 2 * 6 * 2 * 4 * 3 * 2 + 3 * (2 * 6 * 2 * 8 * 3 + 2 * 3 * 5 * 2 * 3) + 4 * 2 * 6 * 2 * 3
     assert flop == flop_a + flop_b
     assert nbytes == (10 * 4 + 3 * 10 * 8) * 8 + 80 + 720 + (12 * 4 + 3 * 12 * 8) * 8 + 96 + 432
+    # with a's residual gather: 2 segments of starts over its 10 points, 5 + 2 terms used (of 9 stored: the rest
+    # room), uint16 rows and float32 weights, 4 residual rows named
+    from types import SimpleNamespace as NS
+
+    starts = np.zeros((2, 11), np.int64)
+    starts[0, 1:], starts[1] = 5, np.r_[6, np.full(10, 8)]
+    packed = NS(arrays=lambda: (starts, np.zeros((9, 3), np.uint16), np.zeros((9, 3), np.float32), np.arange(4)))
+    pre.reuse.residual_hits = {"a": {"packed": packed}}
+    flop_g, nbytes_g = module.frame_floor(pre, bounces=3, lights=2)
+    assert flop_g == flop + 3 * 18 * 7
+    assert nbytes_g == nbytes + 3 * (7 * 18 + 2 * 11 * 8 + 4 * 32)
     # b moves: a's 4 points in b's reach look b up and redo their transfer; b's 2 points in a's reach look a up,
     # all of b's transfers redone; pairs (a, b) and (b, a) recomputed at every vertex (no third occluder)
     p = module._product_flop(2)

@@ -118,7 +118,8 @@ def _product_flop(order: int) -> int:
 
 def _bounce_gflop(pre, bounces: int) -> float:
     """Weights (Eq. 14: ``A^-1 Psi`` at the samples) and bounces (Eq. 12: ``(V K', M) x (M, 3)`` per receiver,
-    radiance by ``h``) of ``bounces`` bounces, from the shapes of the stacked basis irradiance."""
+    radiance by ``h``, and the residual gather's terms) of ``bounces`` bounces, from the shapes of the stacked basis
+    irradiance and the packed terms."""
     flop = 0.0
     for o in pre.objects:
         n_k, n_b = pre.seps[o.name].K, pre.bases[o.name].n_basis
@@ -128,6 +129,7 @@ def _bounce_gflop(pre, bounces: int) -> float:
         if stacked is not None:
             v, kp, m = stacked[1].shape
             flop += 2 * v * kp * m * 3 + 2 * v * kp * 3  # Eq. 12, then sum_k' h_k' colour L_k'
+        flop += 18 * _gather(pre, o)[0]  # the residual gather
     return bounces * flop / 1e9
 
 
@@ -165,6 +167,9 @@ def _pose_gflop(pre, recomputed) -> float:
 #   bounces  2 V K M 3 per bounce (Eq. 12)                         bytes: the stacked V K M read once per bounce
 #   radiance 2 V K 3 per outgoing radiance (direct, each bounce)   bytes: h read (V K 8), direct / indirect /
 #            total written (72 V)
+#   gather   18 H per bounce (``residual_rays``: the residual gather's H packed terms, 3 multiply-adds a colour)
+#                                                                  bytes: the terms (3 rows and 3 weights each)
+#            and their starts read once per bounce, with the R residual rows they name (an index and 3 float64)
 # Each bounce's weights need the whole previous bounce, so a stacked matrix larger than the caches is read once
 # per bounce. Not counted: the area light's SH at the vertices (its exact projection or its field's lookup), the
 # environment's SH, the geometry of a pose. A pose change (one object m moves) adds, for the pairs (m, s) and
@@ -178,8 +183,8 @@ def _pose_gflop(pre, recomputed) -> float:
 # it up and multiply it in (R_r (16 n^2 + P)) and redo their direct transfer (R_r K_r P); the mover looks up each
 # other field at its points within that field's reach (R_m of them over all fields: R_m (16 n^2 + P)) and redoes
 # its direct transfer (V_m K_m P). Near-field rays (``near_field``) are not counted.
-FRAME_FORMULA = ("per object: (2 V K n^2 3 lights + B (2 V K M 3 + 2 N S K 3) + (B+1) 2 V K 3) flops; "
-                 "(V K n^2 + B V K M) x itemsize + 8 V K + 72 V bytes")
+FRAME_FORMULA = ("per object: (2 V K n^2 3 lights + B (2 V K M 3 + 2 N S K 3 + 18 H) + (B+1) 2 V K 3) flops; "
+                 "(V K n^2 + B V K M) x itemsize + 8 V K + 72 V + B (H term + starts + 32 R) bytes")
 POSE_FORMULA = (FRAME_FORMULA + "; plus per pair (m, s), (r, m): V_r K_s N_s E(K_r) + V_r (K_r + 1) P "
                 "flops, 8 V_r K_r K_s N_s bytes; lookups R_r (16 n^2 + P) + R_m (16 n^2 + P), transfers "
                 "R_r K_r P + V_m K_m P")
@@ -206,7 +211,21 @@ def frame_floor(pre, bounces: int, lights: int) -> tuple[float, float]:
         stacked = pre.reuse.stacked.get(r.name)
         itemsize = stacked[1].itemsize if stacked is not None else 8
         nbytes += (v * k * n2 + bounces * v * k * m) * itemsize + 8 * v * k + 72 * v
+        terms, gather_bytes = _gather(pre, r)
+        flop += bounces * 18 * terms
+        nbytes += bounces * gather_bytes
     return flop, nbytes
+
+
+def _gather(pre, r) -> tuple[int, int]:
+    """``(H, bytes)``: the residual gather's packed terms that a bounce of receiver ``r`` reads (the used ones, none
+    before a frame or without ``residual_rays``) and the bytes it reads with them (``FRAME_FORMULA``)."""
+    packed = getattr(pre.reuse, "residual_hits", {}).get(r.name, {}).get("packed")
+    if packed is None:
+        return 0, 0
+    starts, rows, weights, residual_rows = packed.arrays()
+    terms = int(np.sum(starts[:, -1] - starts[:, 0]))
+    return terms, terms * (rows.itemsize + weights.itemsize) * 3 + starts.nbytes + 32 * len(residual_rows)
 
 
 def eq13_flop(n_kp: int, n2: int) -> int:
