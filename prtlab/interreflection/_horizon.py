@@ -22,6 +22,7 @@ import functools
 import math
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from prtlab import sh
@@ -100,7 +101,8 @@ def horizon_weights(normals, rows, axes, sep, dirs) -> list[HorizonGroup]:
     takes and the unit side it sees (a point may take several); ``sep``: its :class:`prtlab.brdf.SeparableBRDF`
     (a Lambertian one's ``g`` is one constant, read once). Points with one normal and one set of half-spaces share
     a row of weights, and a row keeps only the cells the set lets through. The weights are float32 (relative
-    rounding ``2^-24`` of ``dL``'s terms, under the quadrature's error)."""
+    rounding ``2^-24`` of each of ``dL``'s terms, far under the quadrature's error; :func:`horizon_sums` sums them
+    in float64)."""
     rows = np.asarray(rows, dtype=np.int64)
     points, pair = np.unique(rows, return_inverse=True)
     if not len(points):
@@ -131,3 +133,29 @@ def horizon_weights(normals, rows, axes, sep, dirs) -> list[HorizonGroup]:
                                                   sep.g(np.einsum("pji,qj->pqi", local_frame(n), d)))
         groups.append(HorizonGroup(points[mine], which.reshape(-1), cells, weights))
     return groups
+
+
+def horizon_sums(group: HorizonGroup, residual, method: str = "numba") -> np.ndarray:
+    """``dL (P, K, 3)`` of ``group``'s points: its weights times :func:`sky_cells`' ``residual (Q, 3)`` at its cells,
+    each point's row. ``"numba"``: a kernel summing in float64 in any order (parallel over the rows, no BLAS: it
+    runs between a frame's tasks); ``"reference"``: numpy's float64 product, the specification."""
+    u, k, c = group.weights.shape
+    rows = group.weights.reshape(u * k, c)
+    if method == "reference":
+        out = rows.astype(np.float64) @ np.asarray(residual, dtype=np.float64)[group.cells]
+    else:
+        out = np.empty((u * k, 3))
+        _sums_kernel(rows, np.ascontiguousarray(np.asarray(residual, dtype=np.float64)[group.cells].T), out)
+    return out.reshape(u, k, 3)[group.which]
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
+def _sums_kernel(weights, residual_t, out):
+    """``out[u, c] = sum_q weights[u, q] residual_t[c, q]``: float32 weights read as float64, float64 sums (their
+    order free: SIMD lanes)."""
+    for u in numba.prange(weights.shape[0]):
+        for c in range(residual_t.shape[0]):
+            acc = 0.0
+            for q in range(weights.shape[1]):
+                acc += np.float64(weights[u, q]) * residual_t[c, q]
+            out[u, c] = acc

@@ -100,7 +100,7 @@ from ._fields import (
     store_basis_radiance,
 )
 from ._flat import FlatOccluder, halfspace_visibility
-from ._horizon import horizon_weights, sky_cells
+from ._horizon import horizon_sums, horizon_weights, sky_cells
 from ._haar_fields import HaarBasisRadianceField, haar_basis_radiance_field
 from ._haar_passes import haar_basis_irradiance, haar_transfer, near_basis_irradiance
 from ._kernels import (PRODUCT_TILE, SERIAL_ITEMS, VISIBILITY_BLOCK, masked_product_kernel, masked_product_serial,
@@ -561,8 +561,9 @@ class FrameReuse:
     environment_sh: tuple | None = None
     #: (the environment's SH coefficients, :func:`sky_cells` of it) of ``horizon_sky``
     sky_cells: tuple | None = None
-    #: receiver -> (the poses of its half-spaces and the cells' grid, their :func:`horizon_weights`)
-    horizon_weights: dict = dataclasses.field(default_factory=dict)
+    #: receiver -> {key: the poses of its half-spaces and the cells' grid, groups: their :func:`horizon_weights`,
+    #: light: (the environment's SH, the points, their dL)} of ``horizon_sky``
+    horizon: dict = dataclasses.field(default_factory=dict)
 
 
 class Interreflection(Precomputation):
@@ -1018,6 +1019,7 @@ class Interreflection(Precomputation):
         lights = state.lights  # no point lights (check_lights)
         env = [light for light in lights if isinstance(light, EnvironmentLight)]
         env_sh = self._environment_sh(env[0]) if env else None
+        horizon = self._horizon_light(geo, env[0], env_sh) if env else {}
         areas = [light for light in lights if isinstance(light, AreaLight)]
         light_k, radiance = {}, {}
         for r in self.objects:
@@ -1025,7 +1027,7 @@ class Interreflection(Precomputation):
             t = transfer[r.name]  # (V, K, n2)
             lk = np.zeros(t.shape[:2] + (3,))
             if env_sh is not None:
-                lk += self._environment_terms(geo, r, t, env[0], env_sh)
+                lk += self._environment_terms(r, t, env_sh, horizon.get(r.name))
             for i, light in enumerate(areas):
                 # the light's SH at the vertices stands while it and the receiver stand; its product with
                 # the transfer while the transfer does too
@@ -1068,6 +1070,7 @@ class Interreflection(Precomputation):
         env = [light for light in state.lights if isinstance(light, EnvironmentLight)]
         near = [light for light in state.lights if isinstance(light, (AreaLight, PointLight))]
         env_sh = self._environment_sh(env[0]) if env else None
+        horizon = self._horizon_light(geo, env[0], env_sh) if env else {}
         poses = tuple(geo[o.name]["pose"] for o in self.objects)
         caster, spheres = self._scene_caster(geo, poses) if near else (None, None)
         offsets = None if caster is None else (caster.epsilon, caster.tnear)
@@ -1110,7 +1113,8 @@ class Interreflection(Precomputation):
             environment = None if entry is None else entry.get("environment")
             if env_sh is not None and (environment is None or not (
                     environment[0] is env_sh and environment[1] is transfer[r.name] and environment[2] is g["h"])):
-                env_k = self._clamp_diffuse(r, self._environment_terms(geo, r, transfer[r.name], env[0], env_sh))
+                env_k = self._clamp_diffuse(r, self._environment_terms(r, transfer[r.name], env_sh,
+                                                                       horizon.get(r.name)))
                 environment = (env_sh, transfer[r.name], g["h"], env_k,
                                outgoing_radiance(env_k, g["h"], self.seps[r.name].colour))
             return lk, rad, terms, environment, counts
@@ -1129,33 +1133,42 @@ class Interreflection(Precomputation):
             light_k[r.name], radiance[r.name] = lk, rad
         return light_k, radiance
 
-    def _environment_terms(self, geo, r, transfer_r, env, env_sh) -> np.ndarray:
-        """``L_k`` (V, K, 3) of environment light ``env`` (its SH ``env_sh``) at receiver ``r``: through its SH
-        transfer ``transfer_r`` (V, K, n^2), and with ``horizon_sky`` the bands above the order through the
-        half-spaces that its points take (:mod:`._horizon`: the cells' weights kept while the poses and the map's
-        size stand, the sky's residual while the environment does)."""
+    def _environment_terms(self, r, transfer_r, env_sh, horizon) -> np.ndarray:
+        """``L_k`` (V, K, 3) of the environment (its SH ``env_sh``) at receiver ``r``: through its SH transfer
+        ``transfer_r`` (V, K, n^2), plus the bands above the order at the points that take a half-space
+        (:meth:`_horizon_light`'s ``(points, dL)``, or None)."""
         lk = np.einsum("vki,ic->vkc", transfer_r, env_sh)
-        taken = [(name, self.reuse.halfspaces[r.name, name]) for name in self.flat_occluders
-                 if self.options.horizon_sky and (r.name, name) in self.reuse.halfspaces]
-        taken = [(name, key, rows, axes) for name, (key, rows, axes) in taken  # those of this frame's poses
-                 if len(rows) and key == (geo[r.name]["pose"], geo[name]["pose"])]
-        if not taken:
-            return lk
-        cells = self.reuse.sky_cells
-        if cells is None or cells[0] is not env_sh:  # kept while the environment is
-            cells = self.reuse.sky_cells = (env_sh, sky_cells(env, env_sh))
-        grid, dirs, residual = cells[1]
-        key = (tuple((name, k) for name, k, _, _ in taken), grid)
-        kept = self.reuse.horizon_weights.get(r.name)
-        if kept is None or kept[0] != key:
-            kept = self.reuse.horizon_weights[r.name] = (key, horizon_weights(
-                geo[r.name]["n"], np.concatenate([t[2] for t in taken]), np.concatenate([t[3] for t in taken]),
-                self.seps[r.name], dirs))
-        for group in kept[1]:  # float32 products (the weights' precision)
-            u, k, c = group.weights.shape
-            added = group.weights.reshape(u * k, c) @ residual[group.cells].astype(np.float32)
-            lk[group.points] += added.reshape(u, k, 3)[group.which]
+        if horizon is not None:
+            lk[horizon[0]] += horizon[1]
         return lk
+
+    def _horizon_light(self, geo, env, env_sh) -> dict:
+        """``horizon_sky``: ``{receiver: (points, dL (P, K, 3))}``, the environment's bands above the order through
+        the half-spaces its points take (:mod:`._horizon`; receivers without any left out). The cells' weights are
+        kept while the half-spaces' poses and the map's size stand, ``dL`` while the environment does too."""
+        out = {}
+        for r in self.objects if self.options.horizon_sky else ():
+            taken = [(name, *self.reuse.halfspaces[r.name, name]) for name in self.flat_occluders
+                     if (r.name, name) in self.reuse.halfspaces]
+            taken = [(name, poses, rows, axes) for name, poses, rows, axes in taken  # those of this frame's poses
+                     if len(rows) and poses == (geo[r.name]["pose"], geo[name]["pose"])]
+            if not taken:
+                continue
+            cells = self.reuse.sky_cells
+            if cells is None or cells[0] is not env_sh:  # kept while the environment is
+                cells = self.reuse.sky_cells = (env_sh, sky_cells(env, env_sh))
+            grid, dirs, residual = cells[1]
+            key = (tuple((name, poses) for name, poses, _, _ in taken), grid)
+            kept = self.reuse.horizon.get(r.name)
+            if kept is None or kept["key"] != key:
+                kept = self.reuse.horizon[r.name] = {"key": key, "light": None, "groups": horizon_weights(
+                    geo[r.name]["n"], np.concatenate([t[2] for t in taken]), np.concatenate([t[3] for t in taken]),
+                    self.seps[r.name], dirs)}
+            if kept["light"] is None or kept["light"][0] is not env_sh:
+                kept["light"] = (env_sh, np.concatenate([g.points for g in kept["groups"]]),
+                                 np.concatenate([horizon_sums(g, residual) for g in kept["groups"]]))
+            out[r.name] = kept["light"][1:]
+        return out
 
     def _environment_sh(self, env) -> np.ndarray:
         """The SH coefficients (n^2, 3) of environment light ``env`` (:func:`environment_sh`), projected again only

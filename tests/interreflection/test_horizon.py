@@ -41,7 +41,7 @@ def _added(env, normal, axes, cell_rows: int = horizon.CELL_ROWS) -> np.ndarray:
     axes = np.atleast_2d(axes)
     (group,) = horizon.horizon_weights(np.atleast_2d(normal), np.zeros(len(axes), np.int64), axes, LAMBERT, dirs)
     assert group.points.tolist() == [0] and group.which.tolist() == [0]
-    return (group.weights @ residual[group.cells])[0, 0]
+    return horizon.horizon_sums(group, residual)[0, 0]
 
 
 def _fine(env, normals, axes, n: int = 2048) -> np.ndarray:
@@ -202,3 +202,20 @@ def _fibonacci_hemisphere(n: int = 500) -> np.ndarray:
     phi = math.pi * (1.0 + math.sqrt(5.0)) * i
     r = np.sqrt(1.0 - z * z)
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_sums_kernel_is_the_float64_product(seed):
+    """:func:`horizon_sums`' kernel against numpy's float64 product of the same float32 weights (random rows of
+    both signs, some cells left out, points sharing rows), within the float64 rounding of sums in another order:
+    ``2 C eps`` of the sum of the terms' magnitudes."""
+    rng = np.random.default_rng(seed)
+    u, k, q, c = 37, 2, 900, 700
+    cells = np.sort(rng.choice(q, c, replace=False))
+    group = horizon.HorizonGroup(np.arange(50), rng.integers(0, u, 50), cells,
+                                 rng.normal(size=(u, k, c)).astype(np.float32))
+    residual = rng.normal(size=(q, 3))
+    got, want = horizon.horizon_sums(group, residual), horizon.horizon_sums(group, residual, method="reference")
+    bound = 2 * c * np.finfo(float).eps * (np.abs(group.weights.astype(float)) @ np.abs(residual[cells]))[group.which]
+    assert got.shape == (50, k, 3)
+    assert np.all(np.abs(got - want) <= bound)
