@@ -219,3 +219,30 @@ def test_the_sums_kernel_is_the_float64_product(seed):
     bound = 2 * c * np.finfo(float).eps * (np.abs(group.weights.astype(float)) @ np.abs(residual[cells]))[group.which]
     assert got.shape == (50, k, 3)
     assert np.all(np.abs(got - want) <= bound)
+
+
+def test_a_frame_after_a_move_or_a_new_sky_is_a_fresh_pipelines(box_on_floor):
+    """One pipeline through frames (the box moved along the floor, lifted off it, back; the sky scaled; a
+    constant sky; the first sky again) against a fresh pipeline per frame: every object's direct and total light
+    the same bit for bit (the kept half-spaces, weights and sky residual follow the poses and the sky)."""
+    from prtlab.scene import Transform
+
+    scene = box_on_floor.scene
+    sky = scene.environment
+    box = scene.object("box").transform
+    moved = Transform(translate=box.translate + [0.4, 0.0, -0.3], rotate_deg=[0, 60, 0])
+    lifted = Transform(translate=box.translate + [0.0, 0.5, 0.0], rotate_deg=box.rotate_deg)
+    frames = [(box, sky), (moved, sky), (lifted, sky), (box, sky),
+              (box, EnvironmentLight(image=sky.image * 1.5)), (moved, EnvironmentLight(constant=np.ones(3))),
+              (moved, sky)]
+    kept = Interreflection(scene, box_on_floor.options, box_on_floor.data)
+    for transform, env in frames:
+        state = FrameState.from_scene(scene)
+        state.transforms["box"] = transform
+        state.lights = [env]
+        fresh = Interreflection(scene, box_on_floor.options, box_on_floor.data).shade(state, bounces=1)
+        got = kept.shade(state, bounces=1)
+        for name in ("floor", "box"):
+            np.testing.assert_array_equal(got.direct[name], fresh.direct[name])
+            np.testing.assert_array_equal(got.total[name], fresh.total[name])
+    assert kept.reuse.horizon  # the frames on the floor took the half-space
