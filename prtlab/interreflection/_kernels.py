@@ -10,14 +10,7 @@ import numpy as np
 from prtlab.geometry import _embree
 from prtlab.geometry._raycast import barycentric_normal
 from prtlab.sh._product_kernels import _tile_product
-from prtlab.shadowfields._kernels import sample_corners
-
-
-@numba.njit(cache=True, inline="always")
-def _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj):
-    """Corner ``c`` (0..7) of a trilinear cell from :func:`sample_corners`: ``(r, i, j, weight)``."""
-    w = (fr if c & 4 else 1.0 - fr) * (fi if c & 2 else 1.0 - fi) * (fj if c & 1 else 1.0 - fj)
-    return (r1 if c & 4 else r0), (i1 if c & 2 else i0), (j1 if c & 1 else j0), w
+from prtlab.shadowfields._kernels import locate_point, sample_corners
 
 
 @numba.njit(cache=True, fastmath=False)  # set: callees inherit a caller's fastmath unless set
@@ -28,16 +21,85 @@ def _strict_corners(rpos, s, t, n_r, res):
     return sample_corners(rpos, s, t, n_r, res)
 
 
-@numba.njit(cache=True, inline="always")
-def _cell_order(rpos, face, s, t, n_r, res):
+#: Columns of the per-vertex placement that :func:`eq13_kernel` makes first: the fractional sphere index, the cube
+#: face (an integer as a float), the face coordinates and the factor ``(r_max / max(r, r_max))^2``.
+_RPOS, _FACE, _S, _T, _SCALE = 0, 1, 2, 3, 4
+
+
+@numba.njit(cache=True, nogil=True)
+def eq13_kernel(flat_rows, values, column_scale, scaled, points, translate, rotation, size, center, radii, res,
+                sh_rotation, transfer, in_cell_order, out):
+    """Eq. 13 at receiver vertices: ``Phi[v, k', m] = sum_i S_m(x_v)[i] T[v, k', i]``, ``S`` the trilinear blend
+    of the 8 sample points around the vertex on the source's spheres (times ``(r_max / r)^2`` beyond the outermost).
+
+    Each vertex is placed in the source's object frame first (``((x - translate) @ rotation) / size``, located on
+    the spheres as ``SphereGrid.locate``) and its transfer turned into that frame (``sh_rotation @ T``, the
+    block-diagonal SH rotation, or as given when ``sh_rotation`` is empty). Per value, the 8 corners' rows are
+    blended term by term with their weights and the blend is dotted with the transfer, summed in any order
+    (``reassoc``, ``contract``): a value is a sum of ``8 n2`` products with at most ``n2 + 13`` roundings on any
+    term's path (the weight's 4, a stored row's scale, the row's product, the blend's 7, the transfer's product, the
+    dot's ``n2 - 1``), so it errs by at most ``(n2 + 14) 2**-53`` times the sum of its terms' magnitudes, as does
+    the float64 tier (given the same placement and transfer). A corner without a row (``flat_rows`` -1: the field is 0
+    there) adds nothing; a corner of weight 0 adds ``0 * row`` (the field must be finite).
+
+    flat_rows : (n_r * 6 * res * res,) int32, the row in ``values`` of each sample point ``(r, face, i, j)``, or -1
+    values : (n_rows, M, n2) float64, float32 or int16, M = K * N
+    column_scale : (n_rows, M) float32, each row block's factor when ``scaled`` (int16 storage; exact in float64)
+    points : (V, 3) receiver vertices, world space; translate (3,), rotation (3, 3), size: the source's pose
+    center (3,), radii (n_r,) >= 2 increasing, res: the spheres and their faces' texels
+    sh_rotation : (n2, n2) or (0, 0)
+    transfer : (V, K', n2) ``P_n(V_j G_jk')`` in the world frame
+    in_cell_order : bool, take the vertices sorted by cell (:func:`_cell_order`; the same values, bit for bit): for
+        fields larger than the caches, whose rows random vertices would gather from memory
+    out : (V, K', M)
+
+    Returns False, with ``out`` untouched, if a point or a transfer value is not finite.
+    """
+    n_v = points.shape[0]
+    place = np.empty((n_v, 5))
+    if not _place_vertices(points, translate, rotation, size, center, radii, transfer, place):
+        return False
+    n_r = radii.shape[0]
+    order = _cell_order(place, n_r, res) if in_cell_order else np.arange(n_v)
+    _eq13_blocks(flat_rows, values, column_scale, scaled, order, place, sh_rotation, transfer, n_r, res, out)
+    return True
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _place_vertices(points, translate, rotation, size, center, radii, transfer, place):
+    """The placement of :func:`eq13_kernel` (its steps those of the numpy path: the pose, ``locate``, the factor);
+    False if a point or a transfer value is not finite (``place`` then partly written)."""
+    n_v = points.shape[0]
+    finite = np.ones(n_v, np.bool_)
+    r_max = radii[radii.shape[0] - 1]
+    for v in numba.prange(n_v):
+        ok = np.isfinite(points[v, 0]) and np.isfinite(points[v, 1]) and np.isfinite(points[v, 2])
+        for kp in range(transfer.shape[1]):
+            for i in range(transfer.shape[2]):
+                ok = ok and np.isfinite(transfer[v, kp, i])
+        finite[v] = ok
+        if not ok:
+            continue
+        d = (points[v, 0] - translate[0], points[v, 1] - translate[1], points[v, 2] - translate[2])
+        x = (d[0] * rotation[0, 0] + d[1] * rotation[1, 0] + d[2] * rotation[2, 0]) / size
+        y = (d[0] * rotation[0, 1] + d[1] * rotation[1, 1] + d[2] * rotation[2, 1]) / size
+        z = (d[0] * rotation[0, 2] + d[1] * rotation[1, 2] + d[2] * rotation[2, 2]) / size
+        rpos, face, s, t, r = locate_point(x - center[0], y - center[1], z - center[2], radii)
+        f = r_max / max(r, r_max)
+        place[v, _RPOS], place[v, _FACE], place[v, _S], place[v, _T], place[v, _SCALE] = rpos, face, s, t, f * f
+    return finite.all()
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_order(place, n_r, res):
     """Vertex indices sorted (stably, by counting) by the sample point of each vertex's first trilinear corner
     ``(r0, face, i0, j0)``: vertices taken in this order gather their 8 rows from a few neighbouring cells."""
-    n_v = rpos.shape[0]
+    n_v = place.shape[0]
     key = np.empty(n_v, np.int64)
     start = np.zeros(n_r * 6 * res * res + 1, np.int64)
     for v in range(n_v):
-        r0, _, _, i0, _, _, j0, _, _ = _strict_corners(rpos[v], s[v], t[v], n_r, res)
-        key[v] = ((r0 * 6 + face[v]) * res + i0) * res + j0
+        r0, _, _, i0, _, _, j0, _, _ = _strict_corners(place[v, _RPOS], place[v, _S], place[v, _T], n_r, res)
+        key[v] = ((r0 * 6 + int(place[v, _FACE])) * res + i0) * res + j0
         start[key[v] + 1] += 1
     for k in range(len(start) - 1):
         start[k + 1] += start[k]
@@ -48,83 +110,105 @@ def _cell_order(rpos, face, s, t, n_r, res):
     return order
 
 
-@numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, nogil=True)
-def basis_irradiance_kernel(field, rpos, face, s, t, transfer, scale, in_cell_order, out):
-    """Eq. 13 per receiver vertex: interpolate ``S`` (trilinear) and integrate against ``P_n(V G_k')``.
+#: Vertices per block of :func:`_eq13_blocks`: their inputs gathered and their outputs scattered in short loops.
+EQ13_BLOCK = 64
 
-    Each corner's ``n2``-term dot products are summed in any order (``reassoc``, ``contract``: the compiler
-    vectorises them), then blended with the corner's weight; every value is a sum of ``8 n2`` products with at
-    most ``n2 + 14`` roundings on any term's path (weight included), so it errs by at most ``(n2 + 14) 2**-53``
-    times the sum of its terms' magnitudes (``< 1e-14`` of it for ``n2 <= 64``), as does the float64 tier.
 
-    field : (n_r, 6, res, res, M, n2) basis radiance field, M = K * N
-    rpos, face, s, t : (V,) location of each vertex on the source's sample spheres
-    transfer : (V, K', n2) ``P_n(V_j G_jk')`` in the source's object frame
-    scale : (V,) factor per vertex (``(r_max / r)^2`` beyond the outermost sphere, else 1)
-    in_cell_order : bool, take the vertices sorted by cell (:func:`_cell_order`; the same values): for fields
-        larger than the caches, whose rows random vertices would gather from memory
-    out : (V, K', M)
-    """
-    n_r, _, res, _, n_m, n2 = field.shape
-    n_kp = transfer.shape[1]
-    order = _cell_order(rpos, face, s, t, n_r, res) if in_cell_order else np.arange(rpos.shape[0])
-    for q in numba.prange(rpos.shape[0]):
-        v = order[q]
-        r0, r1, fr, i0, i1, fi, j0, j1, fj = _strict_corners(rpos[v], s[v], t[v], n_r, res)
-        f = face[v]
-        for kp in range(n_kp):
-            for m in range(n_m):
-                out[v, kp, m] = 0.0
-        for c in range(8):
-            rr, ii, jj, w = _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj)
-            if w == 0.0:
-                continue
-            w *= scale[v]
-            for kp in range(n_kp):
-                for m in range(n_m):
-                    acc = 0.0
-                    for i in range(n2):
-                        acc += field[rr, f, ii, jj, m, i] * transfer[v, kp, i]
-                    out[v, kp, m] += w * acc
+@numba.njit(cache=True, inline="always")
+def _blend_dot(values, k0, k1, k2, k3, k4, k5, k6, k7, w0, w1, w2, w3, w4, w5, w6, w7, tr, b, kp, m, n2):
+    """``sum_i (sum_c w_c values[k_c, m, i]) tr[b, kp, i]`` over ``i < n2``: the 8 rows blended term by term (8
+    loads and 8 multiply-adds a lane), then the dot product (one reduction a value)."""
+    x = 0.0
+    for i in range(n2):
+        x += (((w0 * values[k0, m, i] + w1 * values[k1, m, i]) + (w2 * values[k2, m, i] + w3 * values[k3, m, i]))
+              + ((w4 * values[k4, m, i] + w5 * values[k5, m, i]) + (w6 * values[k6, m, i] + w7 * values[k7, m, i]))
+              ) * tr[b, kp, i]
+    return x
 
 
 @numba.njit(cache=True, parallel=True, fastmath={"reassoc", "contract"}, nogil=True)
-def stored_basis_irradiance_kernel(rows, values, column_scale, scaled, rpos, face, s, t, transfer, scale,
-                                   in_cell_order, out):
-    """:func:`basis_irradiance_kernel` on a stored field (``StoredBasisRadiance``), read in its format and
-    accumulated in float64 in any order (the same bound; an int16 value times its float32 scale is exact in
-    float64, and the scale adds one rounding).
+def _eq13_blocks(flat_rows, values, column_scale, scaled, order, place, sh_rotation, transfer, n_r, res, out):
+    """The body of :func:`eq13_kernel`, vertices taken in ``order`` in blocks of :data:`EQ13_BLOCK`.
 
-    rows : (n_r, 6, res, res) int32 row of each sample point in ``values``, -1 where the field is 0
-    values : (n_rows, M, n2) float64, float32 or int16
-    column_scale : (n_rows, M) float32, the factor of each row's block when ``scaled`` (int16 storage)
-    rpos, face, s, t, transfer, scale, in_cell_order, out : as :func:`basis_irradiance_kernel`
+    A block's placements and transfers (turned by ``sh_rotation``) are gathered and its outputs scattered in loops
+    of short independent loads and stores (in cell order, a vertex's own data is a cache miss that the long Eq. 13
+    body cannot overlap); every vertex runs the same arithmetic in either order. A corner without a row takes
+    weight 0 and another corner's row; a vertex with none gets 0.
     """
-    n_r, _, res, _ = rows.shape
     n_m, n2 = values.shape[1], values.shape[2]
     n_kp = transfer.shape[1]
-    order = _cell_order(rpos, face, s, t, n_r, res) if in_cell_order else np.arange(rpos.shape[0])
-    for q in numba.prange(rpos.shape[0]):
-        v = order[q]
-        r0, r1, fr, i0, i1, fi, j0, j1, fj = _strict_corners(rpos[v], s[v], t[v], n_r, res)
-        f = face[v]
-        for kp in range(n_kp):
-            for m in range(n_m):
-                out[v, kp, m] = 0.0
-        for c in range(8):
-            rr, ii, jj, w = _corner(c, r0, r1, fr, i0, i1, fi, j0, j1, fj)
-            row = rows[rr, f, ii, jj]
-            if w == 0.0 or row < 0:
+    n_v = order.shape[0]
+    turn = sh_rotation.shape[0] > 0
+    for block in numba.prange((n_v + EQ13_BLOCK - 1) // EQ13_BLOCK):
+        lo = block * EQ13_BLOCK
+        n = min(EQ13_BLOCK, n_v - lo)
+        loc = np.empty((n, 5))
+        tr = np.empty((n, n_kp, n2))
+        phi = np.empty((n, n_kp, n_m))
+        for b in range(n):
+            v = order[lo + b]
+            for c in range(5):
+                loc[b, c] = place[v, c]
+            for kp in range(n_kp):
+                if turn:  # block-diagonal: band l holds the coefficients l^2 .. (l + 1)^2 - 1
+                    band = 0
+                    for a in range(n2):
+                        if a >= (band + 1) * (band + 1):
+                            band += 1
+                        x = 0.0
+                        for c in range(band * band, (band + 1) * (band + 1)):
+                            x += sh_rotation[a, c] * transfer[v, kp, c]
+                        tr[b, kp, a] = x
+                else:
+                    for i in range(n2):
+                        tr[b, kp, i] = transfer[v, kp, i]
+        for b in range(n):
+            r0, r1, fr, i0, i1, fi, j0, j1, fj = _strict_corners(loc[b, _RPOS], loc[b, _S], loc[b, _T], n_r, res)
+            face = int(loc[b, _FACE])
+            a0, a1 = (r0 * 6 + face) * res, (r1 * 6 + face) * res
+            k0, k1 = flat_rows[(a0 + i0) * res + j0], flat_rows[(a0 + i0) * res + j1]
+            k2, k3 = flat_rows[(a0 + i1) * res + j0], flat_rows[(a0 + i1) * res + j1]
+            k4, k5 = flat_rows[(a1 + i0) * res + j0], flat_rows[(a1 + i0) * res + j1]
+            k6, k7 = flat_rows[(a1 + i1) * res + j0], flat_rows[(a1 + i1) * res + j1]
+            some = max(max(max(k0, k1), max(k2, k3)), max(max(k4, k5), max(k6, k7)))
+            if some < 0:
+                for kp in range(n_kp):
+                    for m in range(n_m):
+                        phi[b, kp, m] = 0.0
                 continue
-            w *= scale[v]
+            sv = loc[b, _SCALE]
+            gr, gi, gj = 1.0 - fr, 1.0 - fi, 1.0 - fj
+            u0 = gr * gi * gj * sv if k0 >= 0 else 0.0
+            u1 = gr * gi * fj * sv if k1 >= 0 else 0.0
+            u2 = gr * fi * gj * sv if k2 >= 0 else 0.0
+            u3 = gr * fi * fj * sv if k3 >= 0 else 0.0
+            u4 = fr * gi * gj * sv if k4 >= 0 else 0.0
+            u5 = fr * gi * fj * sv if k5 >= 0 else 0.0
+            u6 = fr * fi * gj * sv if k6 >= 0 else 0.0
+            u7 = fr * fi * fj * sv if k7 >= 0 else 0.0
+            k0, k1, k2, k3 = (k0 if k0 >= 0 else some), (k1 if k1 >= 0 else some), (k2 if k2 >= 0 else some), \
+                (k3 if k3 >= 0 else some)
+            k4, k5, k6, k7 = (k4 if k4 >= 0 else some), (k5 if k5 >= 0 else some), (k6 if k6 >= 0 else some), \
+                (k7 if k7 >= 0 else some)
+            for m in range(n_m):
+                w0, w1, w2, w3, w4, w5, w6, w7 = u0, u1, u2, u3, u4, u5, u6, u7
+                if scaled:
+                    w0, w1 = w0 * np.float64(column_scale[k0, m]), w1 * np.float64(column_scale[k1, m])
+                    w2, w3 = w2 * np.float64(column_scale[k2, m]), w3 * np.float64(column_scale[k3, m])
+                    w4, w5 = w4 * np.float64(column_scale[k4, m]), w5 * np.float64(column_scale[k5, m])
+                    w6, w7 = w6 * np.float64(column_scale[k6, m]), w7 * np.float64(column_scale[k7, m])
+                for kp in range(n_kp):
+                    if n2 == 16:  # the paper's order 4: a constant trip count, fully vectorised
+                        phi[b, kp, m] = _blend_dot(values, k0, k1, k2, k3, k4, k5, k6, k7, w0, w1, w2, w3, w4, w5,
+                                                   w6, w7, tr, b, kp, m, 16)
+                    else:
+                        phi[b, kp, m] = _blend_dot(values, k0, k1, k2, k3, k4, k5, k6, k7, w0, w1, w2, w3, w4, w5,
+                                                   w6, w7, tr, b, kp, m, n2)
+        for b in range(n):
+            v = order[lo + b]
             for kp in range(n_kp):
                 for m in range(n_m):
-                    acc = 0.0
-                    for i in range(n2):
-                        acc += np.float64(values[row, m, i]) * transfer[v, kp, i]
-                    if scaled:
-                        acc *= np.float64(column_scale[row, m])
-                    out[v, kp, m] += w * acc
+                    out[v, kp, m] = phi[b, kp, m]
 
 
 @numba.njit(cache=True, parallel=True)

@@ -27,7 +27,7 @@ from prtlab import sh
 from prtlab.shadowfields import SphereGrid, interpolate_field
 
 from ._fields import StoredBasisRadiance
-from ._kernels import basis_irradiance_kernel, bounce_kernel, stored_basis_irradiance_kernel
+from ._kernels import bounce_kernel, eq13_kernel
 
 __all__ = ["basis_irradiance", "reflected_light", "fit_weights", "outgoing_radiance"]
 
@@ -36,6 +36,7 @@ _METHODS = ("numba", "reference")
 #: ``in_cell_order``): beyond the last-level cache, 8 rows gathered per vertex in the callers' order cost more than
 #: reading the vertices' own data out of order; below it, less.
 _CELL_ORDER_BYTES = 16 << 20
+_NOT_FINITE = "points or transfer contain NaN or inf"
 
 
 def _check_method(method):
@@ -85,31 +86,41 @@ def basis_irradiance(field, grid: SphereGrid, points, transfer, source_transform
     if transfer.ndim != 3 or transfer.shape[0] != len(points) or transfer.shape[2] != n2:
         raise ValueError(f"transfer must be (V, K', n*n) = ({len(points)}, K', {n2}), got shape {transfer.shape}")
     n_kp = transfer.shape[1]
-    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(transfer))):
-        raise ValueError("points or transfer contain NaN or inf")
     if len(points) == 0:
         return np.zeros((0, n_kp, n_k, n_b))
-    local = points
-    if source_transform is not None:
-        R = np.asarray(source_transform.rotation, dtype=np.float64)
-        local = ((points - source_transform.translate) @ R) / float(source_transform.scale)
-        transfer = sh.rotate(transfer, R.T, channels=False)  # <S_world, T> = <S_obj, R^T T>
-    r = np.linalg.norm(local - grid.center, axis=1)
-    scale = (grid.radii[-1] / np.maximum(r, grid.radii[-1])) ** 2  # 1 inside the outermost sphere
     if method == "reference":
+        if not (np.all(np.isfinite(points)) and np.all(np.isfinite(transfer))):
+            raise ValueError(_NOT_FINITE)
+        local = points
+        if source_transform is not None:
+            R = np.asarray(source_transform.rotation, dtype=np.float64)
+            local = ((points - source_transform.translate) @ R) / float(source_transform.scale)
+            transfer = sh.rotate(transfer, R.T, channels=False)  # <S_world, T> = <S_obj, R^T T>
+        r = np.linalg.norm(local - grid.center, axis=1)
+        scale = (grid.radii[-1] / np.maximum(r, grid.radii[-1])) ** 2  # 1 inside the outermost sphere
         field = stored.dense() if stored is not None else field
         s_at, _ = interpolate_field(grid, field.reshape(grid.shape + (n_k * n_b, n2)), local, method="reference")
         phi = np.einsum("vmi,vki->vkm", s_at, transfer) * scale[:, None, None]
         return phi.reshape(len(points), n_kp, n_k, n_b)
-    rpos, face, s, t, _ = grid.locate(local)
-    out = np.empty((len(points), n_kp, n_k * n_b))
-    if stored is not None:
-        stored_basis_irradiance_kernel(stored.rows, stored.values, stored.scale, stored.storage == "int16", rpos,
-                                       face, s, t, np.ascontiguousarray(transfer), scale,
-                                       stored.values.nbytes > _CELL_ORDER_BYTES, out)
+    if source_transform is None:
+        translate, rotation, size, turn = np.zeros(3), np.eye(3), 1.0, np.empty((0, 0))
     else:
-        basis_irradiance_kernel(np.ascontiguousarray(field.reshape(grid.shape + (n_k * n_b, n2))), rpos, face, s,
-                                t, np.ascontiguousarray(transfer), scale, field.nbytes > _CELL_ORDER_BYTES, out)
+        translate = np.asarray(source_transform.translate, dtype=np.float64)
+        rotation = np.asarray(source_transform.rotation, dtype=np.float64)
+        size = float(source_transform.scale)
+        turn = sh.rotation_matrix(rotation.T, int(round(np.sqrt(n2))))  # <S_world, T> = <S_obj, R^T T>
+    n_s = int(np.prod(grid.shape))
+    if stored is not None:
+        rows, values, column_scale, scaled = stored.rows.reshape(-1), stored.values, stored.scale, \
+            stored.storage == "int16"
+    else:
+        rows, values = np.arange(n_s, dtype=np.int32), np.ascontiguousarray(field.reshape(n_s, n_k * n_b, n2))
+        column_scale, scaled = np.empty((0, n_k * n_b), np.float32), False
+    out = np.empty((len(points), n_kp, n_k * n_b))
+    if not eq13_kernel(rows, values, column_scale, scaled, points, translate, np.ascontiguousarray(rotation), size,
+                       np.asarray(grid.center, np.float64), np.asarray(grid.radii, np.float64), grid.shape[2], turn,
+                       np.ascontiguousarray(transfer), values.nbytes > _CELL_ORDER_BYTES, out):
+        raise ValueError(_NOT_FINITE)
     return out.reshape(len(points), n_kp, n_k, n_b)
 
 

@@ -92,37 +92,42 @@ def _interp_index(x, xp):
     return value
 
 
+@numba.njit(cache=True, fastmath=False, nogil=True)  # set: callees inherit a caller's fastmath unless set
+def locate_point(x, y, z, radii):
+    """One point of :func:`locate_kernel`, given relative to the spheres' centre: ``(rpos, face, s, t, r)``."""
+    r = np.sqrt((x * x + y * y) + z * z)
+    if not r > 0.0:
+        x, y, z = 0.0, 0.0, 1.0
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax >= ay and ax >= az:
+        f, ma = (0 if x >= 0.0 else 1), ax
+    elif ay >= az:
+        f, ma = (2 if y >= 0.0 else 3), ay
+    else:
+        f, ma = (4 if z >= 0.0 else 5), az
+    if f == 0:
+        sc, tc = -z, -y
+    elif f == 1:
+        sc, tc = z, -y
+    elif f == 2:
+        sc, tc = x, z
+    elif f == 3:
+        sc, tc = x, -z
+    elif f == 4:
+        sc, tc = x, -y
+    else:
+        sc, tc = -x, -y
+    s = min(max(0.5 * (sc / ma + 1.0), 0.0), 1.0)
+    t = min(max(0.5 * (tc / ma + 1.0), 0.0), 1.0)
+    return _interp_index(r, radii), f, s, t, r
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def locate_kernel(points, center, radii, rpos, face, s, t, beyond):
     """``SphereGrid.locate`` of object-space ``points`` (Q, 3), the same floating-point steps as its numpy path: the
     radius ``sqrt((x^2 + y^2) + z^2)`` of ``points - center``, ``rpos`` by ``np.interp`` over ``radii`` (at least
     two), the cube face and face coordinates of the direction (``direction_to_cubemap``; ``+z`` at the centre)."""
     for q in numba.prange(points.shape[0]):
-        x, y, z = points[q, 0] - center[0], points[q, 1] - center[1], points[q, 2] - center[2]
-        r = np.sqrt((x * x + y * y) + z * z)
-        if not r > 0.0:
-            x, y, z = 0.0, 0.0, 1.0
-        ax, ay, az = abs(x), abs(y), abs(z)
-        if ax >= ay and ax >= az:
-            f, ma = (0 if x >= 0.0 else 1), ax
-        elif ay >= az:
-            f, ma = (2 if y >= 0.0 else 3), ay
-        else:
-            f, ma = (4 if z >= 0.0 else 5), az
-        if f == 0:
-            sc, tc = -z, -y
-        elif f == 1:
-            sc, tc = z, -y
-        elif f == 2:
-            sc, tc = x, z
-        elif f == 3:
-            sc, tc = x, -z
-        elif f == 4:
-            sc, tc = x, -y
-        else:
-            sc, tc = -x, -y
-        face[q] = f
-        s[q] = min(max(0.5 * (sc / ma + 1.0), 0.0), 1.0)
-        t[q] = min(max(0.5 * (tc / ma + 1.0), 0.0), 1.0)
-        rpos[q] = _interp_index(r, radii)
+        rpos[q], face[q], s[q], t[q], r = locate_point(points[q, 0] - center[0], points[q, 1] - center[1],
+                                                        points[q, 2] - center[2], radii)
         beyond[q] = r > radii[radii.shape[0] - 1]

@@ -1,15 +1,16 @@
-"""The Eq. 13 kernels (``basis_irradiance_kernel``, ``stored_basis_irradiance_kernel``) against the float64 tier.
+"""The Eq. 13 kernel (``eq13_kernel``) against the float64 tier.
 
-The kernels sum each corner's ``n2`` products in any order (fastmath ``reassoc``, ``contract``): a value of
-``8 n2`` terms has at most ``n2 + 14`` roundings on any term's path, so it differs from the exact sum by at most
-``(n2 + 14) 2^-53`` of the sum of its terms' magnitudes, and the float64 tier (``method="reference"``) by at most
-twice that. Taking the vertices in cell order (``in_cell_order``, for fields larger than the caches) changes
-nothing: each vertex's arithmetic is the same, bit for bit.
+The kernel blends the 8 corners' rows term by term and dots the blend with the transfer, in any order (fastmath
+``reassoc``, ``contract``): a value of ``8 n2`` terms has at most ``n2 + 13`` roundings on any term's path, so it
+differs from the exact sum by at most ``(n2 + 14) 2^-53`` of the sum of its terms' magnitudes, and the float64 tier
+(``method="reference"``) by at most twice that. Taking the vertices in cell order (``in_cell_order``, for fields
+larger than the caches) changes nothing: each vertex's arithmetic is the same, bit for bit.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -17,7 +18,7 @@ import prtlab.interreflection._passes as passes
 from prtlab.geometry import builtin_mesh
 from prtlab.interreflection import basis_irradiance
 from prtlab.interreflection._fields import store_basis_radiance
-from prtlab.interreflection._kernels import basis_irradiance_kernel, stored_basis_irradiance_kernel
+from prtlab.interreflection._kernels import eq13_kernel
 from prtlab.shadowfields import sphere_grid
 
 GRID = sphere_grid(builtin_mesh("icosphere", subdivisions=1), n_radii=4, resolution=3)
@@ -45,19 +46,24 @@ def test_kernels_within_the_arithmetic_bound_of_the_float64_tier_in_either_verte
     terms = basis_irradiance(np.abs(dense), GRID, points, np.abs(transfer), method="reference")
     assert np.all(np.abs(fast - ref) <= _bound(n2) * terms + 1e-300)
     # the same values, bit for bit, with the vertices taken in cell order
-    rpos, face, s, t, _ = GRID.locate(points)
-    scale = (GRID.radii[-1] / np.maximum(np.linalg.norm(points - GRID.center, axis=1), GRID.radii[-1])) ** 2
-    a, b = np.empty((40, n_kp, 6)), np.empty((40, n_kp, 6))
-    if storage is None:
-        flat = np.ascontiguousarray(field.reshape(GRID.shape + (6, n2)))
-        basis_irradiance_kernel(flat, rpos, face, s, t, transfer, scale, False, a)
-        basis_irradiance_kernel(flat, rpos, face, s, t, transfer, scale, True, b)
-    else:
-        args = (source.rows, source.values, source.scale, storage == "int16", rpos, face, s, t, transfer, scale)
-        stored_basis_irradiance_kernel(*args, False, a)
-        stored_basis_irradiance_kernel(*args, True, b)
+    a, b = (_kernel(source, points, transfer, in_cell_order) for in_cell_order in (False, True))
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a.reshape(fast.shape), fast)
+
+
+def _kernel(source, points, transfer, in_cell_order, pose=(np.zeros(3), np.eye(3), 1.0), turn=np.empty((0, 0))):
+    """``eq13_kernel`` on a dense field or a stored one, vertices in either order."""
+    n_s = int(np.prod(GRID.shape))
+    if isinstance(source, np.ndarray):
+        m = source.shape[4] * source.shape[5]
+        args = (np.arange(n_s, dtype=np.int32), np.ascontiguousarray(source.reshape(n_s, m, -1)),
+                np.empty((0, m), np.float32), False)
+    else:
+        m = source.values.shape[1]
+        args = (source.rows.reshape(-1), source.values, source.scale, source.storage == "int16")
+    out = np.empty((len(points), transfer.shape[1], m))
+    assert eq13_kernel(*args, points, *pose, GRID.center, GRID.radii, GRID.shape[2], turn, transfer, in_cell_order, out)
+    return out
 
 
 def test_large_fields_are_read_in_cell_order_with_the_same_values(monkeypatch, rng):
@@ -70,3 +76,24 @@ def test_large_fields_are_read_in_cell_order_with_the_same_values(monkeypatch, r
     after = basis_irradiance(field, GRID, points, transfer), basis_irradiance(stored, GRID, points, transfer)
     np.testing.assert_array_equal(before[0], after[0])
     np.testing.assert_array_equal(before[1], after[1])
+
+
+def test_vertices_whose_corners_hold_no_rows_get_zero_and_bad_input_is_refused(rng):
+    """A stored field that is 0 on the inner spheres keeps no rows there: vertices whose 8 corners all lie there get
+    exactly 0 (the kernel reads no row), those beside it the float64 tier's values; a NaN transfer is refused."""
+    field = rng.normal(size=GRID.shape + (1, 2, 4))
+    field[:2] = 0.0
+    stored = store_basis_radiance(field, "float64")
+    assert np.all(stored.rows[:2] < 0)
+    inner = GRID.center + rng.normal(size=(20, 3)) * 1e-3  # on the first sphere: corners on spheres 0 and 1
+    outer = GRID.center + rng.normal(size=(20, 3)) * GRID.radii[-1] * 0.6
+    points = np.concatenate([inner, outer])
+    transfer = rng.normal(size=(40, 1, 4))
+    got = basis_irradiance(stored, GRID, points, transfer)
+    assert np.all(got[:20] == 0.0)
+    ref = basis_irradiance(field, GRID, points, transfer, method="reference")
+    terms = basis_irradiance(np.abs(field), GRID, points, np.abs(transfer), method="reference")
+    assert np.all(np.abs(got - ref) <= _bound(4) * terms + 1e-300)
+    transfer[3, 0, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf"):
+        basis_irradiance(stored, GRID, points, transfer)
