@@ -26,7 +26,6 @@ def _strict_corners(rpos, s, t, n_r, res):
 _RPOS, _FACE, _S, _T, _SCALE = 0, 1, 2, 3, 4
 
 
-@numba.njit(cache=True, nogil=True)
 def eq13_kernel(flat_rows, values, column_scale, scaled, points, translate, rotation, size, center, radii, res,
                 sh_rotation, transfer, in_cell_order, out):
     """Eq. 13 at receiver vertices: ``Phi[v, k', m] = sum_i S_m(x_v)[i] T[v, k', i]``, ``S`` the trilinear blend
@@ -53,7 +52,9 @@ def eq13_kernel(flat_rows, values, column_scale, scaled, points, translate, rota
         fields larger than the caches, whose rows random vertices would gather from memory
     out : (V, K', M)
 
-    Returns False, with ``out`` untouched, if a point or a transfer value is not finite.
+    Returns False, with ``out`` untouched, if a point or a transfer value is not finite. A Python function calling
+    the parallel kernels in turn: a cached non-parallel numba function that calls a parallel one can crash when
+    loaded from numba's cache (numba issue 8578).
     """
     n_v = points.shape[0]
     place = np.empty((n_v, 5))
