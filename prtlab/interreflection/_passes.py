@@ -32,10 +32,11 @@ from ._kernels import bounce_kernel, eq13_kernel
 __all__ = ["basis_irradiance", "reflected_light", "fit_weights", "outgoing_radiance"]
 
 _METHODS = ("numba", "reference")
-#: Fields larger than this (bytes) are read with the receiver vertices sorted by cell (the kernels'
-#: ``in_cell_order``): beyond the last-level cache, 8 rows gathered per vertex in the callers' order cost more than
-#: reading the vertices' own data out of order; below it, less.
-_CELL_ORDER_BYTES = 16 << 20
+#: Fields larger than this (bytes) are read with the receiver vertices sorted by cell (the kernel's
+#: ``in_cell_order``): for larger fields, 8 rows gathered per vertex in the callers' order cost more than gathering
+#: the vertices' own data in blocks; for smaller, less (the crossover measured between 6 and 12.5 MB: see
+#: docs/notes/interreflection.md).
+_CELL_ORDER_BYTES = 8 << 20
 _NOT_FINITE = "points or transfer contain NaN or inf"
 
 

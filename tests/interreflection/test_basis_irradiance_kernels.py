@@ -51,8 +51,8 @@ def test_kernels_within_the_arithmetic_bound_of_the_float64_tier_in_either_verte
     np.testing.assert_array_equal(a.reshape(fast.shape), fast)
 
 
-def _kernel(source, points, transfer, in_cell_order, pose=(np.zeros(3), np.eye(3), 1.0), turn=np.empty((0, 0))):
-    """``eq13_kernel`` on a dense field or a stored one, vertices in either order."""
+def _kernel(source, points, transfer, in_cell_order):
+    """``eq13_kernel`` on a dense field or a stored one at the identity pose, vertices in either order."""
     n_s = int(np.prod(GRID.shape))
     if isinstance(source, np.ndarray):
         m = source.shape[4] * source.shape[5]
@@ -62,7 +62,8 @@ def _kernel(source, points, transfer, in_cell_order, pose=(np.zeros(3), np.eye(3
         m = source.values.shape[1]
         args = (source.rows.reshape(-1), source.values, source.scale, source.storage == "int16")
     out = np.empty((len(points), transfer.shape[1], m))
-    assert eq13_kernel(*args, points, *pose, GRID.center, GRID.radii, GRID.shape[2], turn, transfer, in_cell_order, out)
+    assert eq13_kernel(*args, points, np.zeros(3), np.eye(3), 1.0, GRID.center, GRID.radii, GRID.shape[2],
+                       np.empty((0, 0)), transfer, in_cell_order, out)
     return out
 
 
