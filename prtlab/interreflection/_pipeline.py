@@ -514,6 +514,10 @@ class FrameReuse:
     source_fields: list = dataclasses.field(default_factory=list)
     #: (receiver, source) -> (poses of receiver, source and occluders, Phi, the occluders' geometry)
     pair_irradiance: dict = dataclasses.field(default_factory=dict)
+    #: a place of :meth:`Interreflection._visibility` (("pair", receiver, source), ("direct", receiver)) -> {the
+    #: receiver's pose, the last call's factors (name, poses of its field), prefix: {its first factors, their
+    #: product at each receiver row, those rows' masks, where made}} of the kept partial visibility products
+    visibility_prefix: dict = dataclasses.field(default_factory=dict)
     #: (receiver, source) -> how many times the pair's Phi was replaced (the stacked irradiance's key)
     revision: dict = dataclasses.field(default_factory=dict)
     #: receiver -> (sources and their revisions, [Phi^s_1 | ... | Phi^self])
@@ -885,14 +889,19 @@ class Interreflection(Precomputation):
         return (np.einsum("vi,vi->v", gap, gap) <= (go["radius"] + gs["radius"]) ** 2) & Interreflection._within_reach(
             x, go)
 
-    def _visibility(self, g, occ_r, factors, rows, method: str = "numba"):
+    def _visibility(self, g, occ_r, factors, rows, method: str = "numba", keep=None):
         """``V_j`` at ``rows`` of receiver ``g``: its self-visibility times each ``(name, mask)`` factor's occlusion
         ``occ_r[name]`` (in the given order) where ``mask`` (aligned with ``rows``) is set; elsewhere the factor is
         1 and its product is skipped. ``method``: one kernel call for every factor (``"numba"``; ``occ_r`` an
         :class:`OcclusionFields`, else its fields are copied into one), one call per factor (``"per_factor"``,
         the same bits) or ``"reference"`` (``prtlab.sh.product``). With ``occlusion="exp"`` (``occ_r`` the logs)
         the self-visibility times ``exp*`` of the sum of the set factors' logs, the same in any order of
-        ``factors`` up to the rounding of the sum."""
+        ``factors`` up to the rounding of the sum.
+
+        ``keep`` (a key naming the call's place, with ``method="numba"`` and the products): the partial product
+        of the factors before the first one whose field changed since the last call with that key is kept per
+        receiver row (``FrameReuse.visibility_prefix``) and taken again at a row whose masks of those factors are
+        the same (each row's products are its own: the same bits as the whole product)."""
         order = self.options.order
         gaunt = _gaunt_block(order, order, order)
         vis = np.ascontiguousarray(g["self"][rows])
@@ -912,12 +921,12 @@ class Interreflection(Precomputation):
             if not len(factors) or not len(rows):
                 return vis
             if not isinstance(occ_r, OcclusionFields):
-                occ_r = OcclusionFields.stacked({name: occ_r[name] for name, _ in factors})
+                occ_r, keep = OcclusionFields.stacked({name: occ_r[name] for name, _ in factors}), None
             masks = np.array([mask for _, mask in factors], dtype=np.bool_).reshape(len(factors), len(rows))
             which = np.array([occ_r.index[name] for name, _ in factors], dtype=np.int64)
-            parallel = np.count_nonzero(masks) >= SERIAL_ITEMS and len(rows) > VISIBILITY_BLOCK
-            kernel = visibility_product_kernel if parallel else visibility_product_serial
-            kernel(vis, occ_r.fields, which, masks, rows, *_gaunt_runs(order))
+            if keep is not None:
+                return self._kept_visibility(g, occ_r, factors, rows, vis, masks, which, keep)
+            self._visibility_products(vis, occ_r, which, masks, rows)
             return vis
         for name, mask in factors:
             at = np.flatnonzero(mask)
@@ -928,6 +937,48 @@ class Interreflection(Precomputation):
             else:
                 kernel = masked_product_kernel if len(at) > PRODUCT_TILE else masked_product_serial  # one task
                 kernel(vis, np.ascontiguousarray(occ_r[name]), at, rows, *gaunt)
+        return vis
+
+    def _visibility_products(self, vis, occ_r, which, masks, rows):
+        """``visibility_product_kernel`` (its serial twin below ``SERIAL_ITEMS`` products) on ``vis`` in place."""
+        parallel = np.count_nonzero(masks) >= SERIAL_ITEMS and len(rows) > VISIBILITY_BLOCK
+        kernel = visibility_product_kernel if parallel else visibility_product_serial
+        kernel(vis, occ_r.fields, which, masks, rows, *_gaunt_runs(self.options.order))
+
+    def _kept_visibility(self, g, occ_r, factors, rows, vis, masks, which, keep):
+        """:meth:`_visibility`'s products with the partial product kept under ``keep``.
+
+        The kept entry holds the factors of the last call (names, and the poses their fields were looked up at),
+        and the product of the first ``k`` of them at the rows where it was made, with those rows' masks. ``k``
+        is the length of the run of factors that this call shares with the last one (the factors before the one
+        that moved; all of them when none did): a row whose masks of those ``k`` factors are the kept ones takes
+        the kept product, the others make it, and the factors from ``k`` on are applied to every row."""
+        fields = [(name, occ_r.poses[occ_r.index[name]]) for name, _ in factors]
+        entry = self.reuse.visibility_prefix.get(keep)
+        k = 0
+        if entry is not None and entry["self"] == g["pose"]:
+            while k < len(fields) and k < len(entry["last"]) and fields[k] == entry["last"][k]:
+                k += 1
+        if k == 0:
+            self._visibility_products(vis, occ_r, which, masks, rows)
+            self.reuse.visibility_prefix[keep] = {"self": g["pose"], "last": fields, "prefix": None}
+            return vis
+        kept = entry["prefix"]
+        if kept is None or kept["fields"] != fields[:k] or kept["vis"].shape[1] != vis.shape[1]:
+            n_v = len(g["x"])
+            kept = {"fields": fields[:k], "vis": np.empty((n_v, vis.shape[1])), "masks": np.zeros((k, n_v), np.bool_),
+                    "valid": np.zeros(n_v, np.bool_)}
+        same = kept["valid"][rows] & np.all(kept["masks"][:, rows] == masks[:k], axis=0)
+        at = np.flatnonzero(same)
+        vis[at] = kept["vis"][rows[at]]
+        if len(at) < len(rows):  # the rows without a kept product make it (a set mask skips none of their factors)
+            self._visibility_products(vis, occ_r, which[:k], masks[:k] & ~same, rows)
+            kept["vis"][rows] = vis
+            kept["masks"][:, rows] = masks[:k]
+            kept["valid"][rows] = True
+        if k < len(fields):
+            self._visibility_products(vis, occ_r, which[k:], masks[k:], rows)
+        self.reuse.visibility_prefix[keep] = {"self": g["pose"], "last": fields, "prefix": kept}
         return vis
 
     def _transfer(self, visibility, g_cos):
@@ -961,7 +1012,7 @@ class Interreflection(Precomputation):
                 x, n = g["x"][rows], g["n"][rows]
                 factors = [(others[i], self._within_reach(x, geo[others[i]])
                             & ~self._lit_past(geo, by_name[others[i]], x, light_points, n)) for i in idx]
-                visibility = self._visibility(g, occ[r.name], factors, rows)
+                visibility = self._visibility(g, occ[r.name], factors, rows, keep=("direct", r.name))
                 if len(rows) == len(g["x"]):
                     value = self._transfer(visibility, g["g_cos"])
                 else:
@@ -1450,7 +1501,7 @@ class Interreflection(Precomputation):
         g, gs = geo[r.name], geo[s.name]
         x = g["x"][rows]
         factors = [(o, self._may_block(x, geo[o], gs)) for o in blockers]
-        vis = self._visibility(g, occ[r.name], factors, rows)
+        vis = self._visibility(g, occ[r.name], factors, rows, keep=("pair", r.name, s.name))
         transfer = self._transfer(vis, g["g_cos"][rows])
         value = basis_irradiance(self.radiance[s.name], self.fields[s.name].grid, g["x"][rows],
                                  transfer, gs["T"])

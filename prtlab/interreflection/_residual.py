@@ -34,6 +34,7 @@ carry there, so that each such ray carries ``e``, counted once.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numba
@@ -916,15 +917,29 @@ def _cast(points, normals, receiver_sep, caster, s, source, point, ray, key, gri
     return ResidualHits(rows, factor, ids[live[sel]], triangles, uv, faces)
 
 
+_SCRATCH = threading.local()
+
+
+def _scratch(n: int, k_receiver: int, k_source: int) -> tuple:
+    """``(state (n,) int8, triangle (n,) int32, uv (n, 2) float32, factor (n, K', K))``: uninitialised output arrays
+    of the ray kernels, views of buffers kept per Python thread and grown as needed (the pages of a fresh array of
+    a full cast, tens of MB a frame, are otherwise faulted in and cleared on every call). A caller copies what it
+    keeps before its thread's next call."""
+    held = getattr(_SCRATCH, "arrays", None)
+    need = n * k_receiver * k_source
+    if held is None or len(held[0]) < n or len(held[3]) < need:
+        size = max(n, 1 if held is None else len(held[0]))
+        held = _SCRATCH.arrays = (np.empty(size, np.int8), np.empty(size, np.int32), np.empty((size, 2), np.float32),
+                                  np.empty(max(size * k_receiver * k_source, need), np.float64))
+    return held[0][:n], held[1][:n], held[2][:n], held[3][:need].reshape(n, k_receiver, k_source)
+
+
 def _cast_numba(points, normals, receiver_sep, caster, s, source, point, ray, key, grid, ids, stats, centre, bound,
                 box):
     """``_cast`` by :func:`_cast_kernel`, which weighs the hits as it finds them."""
     m = grid[0] * grid[1]
     n_rays = len(points) * m if point is None else len(point)
-    state = np.empty(n_rays, np.int8)
-    triangle = np.empty(n_rays, np.int32)
-    uv32 = np.empty((n_rays, 2), np.float32)
-    factor = np.empty((n_rays, receiver_sep.K, source[2].K))
+    state, triangle, uv32, factor = _scratch(n_rays, receiver_sep.K, source[2].K)
     empty = np.zeros(0, np.int64)
     _cast_kernel(points, normals, empty if point is None else point, empty if ray is None else ray, n_rays, centre,
                  float(source[4]), bound, key, grid[0], grid[1], float(caster.epsilon), grid[2], _source_facing(source),
@@ -1107,10 +1122,9 @@ def _recast(points, normals, receiver_sep, caster, s, source, key, grid, spheres
     if not len(candidates):
         return old
     if method == "numba" and getattr(caster, "_scene", None) is not None:
-        state = np.empty((len(candidates), m), np.int8)
-        triangle = np.empty((len(candidates), m), np.int32)
-        uv32 = np.empty((len(candidates), m, 2), np.float32)
-        factor = np.empty((len(candidates), m, receiver_sep.K, source[2].K))
+        state, triangle, uv32, factor = _scratch(len(candidates) * m, receiver_sep.K, source[2].K)
+        state, triangle = state.reshape(len(candidates), m), triangle.reshape(len(candidates), m)
+        uv32, factor = uv32.reshape(len(candidates), m, 2), factor.reshape(len(candidates), m, *factor.shape[1:])
         n_blocks = -(-len(candidates) // _POINTS_PER_TASK)
         _recast_kernel(points, normals, candidates, centre, radius, bound, key, grid[0], grid[1],
                        float(caster.epsilon), grid[2], _source_facing(source), box, float(caster.tnear), s, widened,

@@ -77,14 +77,32 @@ def _quadrature_blocks(rot_flat: np.ndarray, order: int) -> np.ndarray:
     return blocks
 
 
+#: The blocks of the last single rotations asked for (``_blocks``): (its float64 bytes, order, method) -> the
+#: packed blocks, never handed out to be written (``rotate`` reads them, ``rotation_matrices`` copies them).
+#: Callers that rotate by the same few poses again and again (an object's pose in every frame) skip the checks
+#: and the recurrence; the blocks are the values the computation gives.
+_KEPT_BLOCKS: dict = {}
+_KEPT_MAX = 256
+
+
 def _blocks(R, order: int, method: str):
     order = check_order(order)
     method = _check_method(method)
+    arr = np.asarray(R)
+    key = None
+    if arr.shape == (3, 3) and arr.dtype == np.float64:
+        key = (arr.tobytes(), order, method)
+        kept = _KEPT_BLOCKS.get(key)
+        if kept is not None:
+            return (), kept, order
     rot = _as_rotations(R)
     flat = rot.reshape(-1, 3, 3)
-    if method == "numba":
-        return rot.shape[:-2], _packed_blocks(flat, order), order
-    return rot.shape[:-2], _quadrature_blocks(flat, order), order
+    blocks = _packed_blocks(flat, order) if method == "numba" else _quadrature_blocks(flat, order)
+    if key is not None:
+        if len(_KEPT_BLOCKS) >= _KEPT_MAX:
+            _KEPT_BLOCKS.clear()
+        _KEPT_BLOCKS[key] = blocks
+    return rot.shape[:-2], blocks, order
 
 
 def rotation_matrices(R, order: int, method: str = "numba") -> list[np.ndarray]:
@@ -123,7 +141,7 @@ def rotation_matrices(R, order: int, method: str = "numba") -> list[np.ndarray]:
     out = []
     for l in range(order):
         d = 2 * l + 1
-        out.append(blocks[:, offsets[l] : offsets[l + 1]].reshape(batch + (d, d)))
+        out.append(blocks[:, offsets[l] : offsets[l + 1]].reshape(batch + (d, d)).copy())
     return out
 
 

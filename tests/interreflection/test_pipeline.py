@@ -1050,3 +1050,102 @@ def test_exp_occlusion_shades_close_to_the_products(pre):
     for name in ("floor", "ball"):
         a, b = base.total[name], ours.total[name]
         assert np.sqrt(np.mean((a - b) ** 2)) <= GOAL["total"] * np.sqrt(np.mean(a**2)), name
+
+
+def test_kept_visibility_prefix_equals_the_whole_product(pre):
+    """``_visibility(keep=)`` (the partial product of the factors before the first changed field, kept per row)
+    against the whole product, bit for bit, through calls where a field changes (its pose), rows come and go,
+    masks change at some rows, the factors' order or set changes and the receiver moves."""
+    from prtlab.interreflection._pipeline import OcclusionFields
+
+    rng = np.random.default_rng(3)
+    n_v, n2 = 700, pre.options.order ** 2
+    names = ["a", "b", "c", "d", "e"]
+    occ = OcclusionFields(names, rng.normal(size=(len(names), n_v, n2)))
+    occ.poses = [("r0", name, 0) for name in names]
+    g = {"self": rng.normal(size=(n_v, n2)), "pose": ("r0",), "x": np.zeros((n_v, 3))}
+    masks = {name: rng.random(n_v) < 0.8 for name in names}
+    ir = Interreflection(pre.scene, pre.options, pre.data)
+
+    def call(order, rows, expect_kept=None):
+        rows = np.asarray(rows, np.int64)
+        factors = [(name, masks[name][rows]) for name in order]
+        whole = ir._visibility(g, occ, factors, rows)
+        kept = ir._visibility(g, occ, factors, rows, keep=("test",))
+        assert np.array_equal(kept, whole)
+        if expect_kept is not None:
+            prefix = ir.reuse.visibility_prefix[("test",)]["prefix"]
+            assert (0 if prefix is None else len(prefix["fields"])) == expect_kept
+
+    def move(name, pose):
+        i = occ.index[name]
+        occ.fields[i] = rng.normal(size=(n_v, n2))
+        occ.poses[i] = ("r0", name, pose)
+
+    every = np.arange(n_v)
+    call(names, every, 0)
+    call(names, every, 5)  # nothing changed: the whole product kept
+    move("c", 1)
+    call(names, rng.choice(n_v, 300, replace=False), 2)  # "c" moved: "a" and "b" kept
+    move("c", 2)
+    call(names, rng.choice(n_v, 400, replace=False), 2)  # rows kept and rows new
+    masks["a"][::7] = ~masks["a"][::7]  # masks changed at some rows: those make the product again
+    move("c", 3)
+    call(names, every, 2)
+    move("a", 1)
+    call(names, every, 0)
+    call(["b", "a", "e"], every[::2], 0)  # another order
+    move("e", 1)
+    call(["b", "a", "e"], every[::3], 2)
+    call(["b", "a"], every[::3], 2)
+    g["pose"] = ("r1",)  # the receiver moved: its self-visibility is new
+    g["self"] = rng.normal(size=(n_v, n2))
+    call(["b", "a"], every, 0)
+
+
+@pytest.fixture(scope="module")
+def balls_in_a_row(cache_root):
+    """A floor and four small balls in a row over it (the quick settings): the pairs along the row have the
+    balls between them as occluders, several of them before the one that moves."""
+    from prtlab.cache import Cache
+    from prtlab.scene import Scene
+
+    objects = [{"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [8, 8]},
+                "material": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}}]
+    for i in range(4):
+        objects.append({"name": f"ball{i}", "mesh": {"builtin": "icosphere", "radius": 0.3, "subdivisions": 2},
+                        "transform": {"translate": [-1.2 + 0.8 * i, 0.5, 0.1 * i]}, "dynamic": True,
+                        "material": {"type": "diffuse", "albedo": [0.5 + 0.1 * i, 0.6, 0.7]}})
+    scene = Scene.from_dict({"objects": objects, "lights": [
+        {"type": "environment", "sky": {"sun_elevation_deg": 40, "sun_azimuth_deg": 30, "turbidity": 3},
+         "scale": 0.1}], "camera": {"position": [0, 3, 6], "look_at": [0, 0, 0]}})
+    return Interreflection.precompute(scene, QUICK, cache=Cache(cache_root, progress=False), progress=False)
+
+
+def test_frames_that_move_objects_equal_a_fresh_pipeline_per_frame(balls_in_a_row):
+    """One pipeline through frames that move balls (one a little at a time, as ``move_one`` does, then another,
+    then both, then back) against a fresh pipeline per frame: every object's direct, indirect and total light
+    equal bit for bit (the kept visibility products follow the fields, masks and rows that change); the kept
+    products are taken."""
+    pre = balls_in_a_row
+    base = {o.name: o.transform for o in pre.objects}
+
+    def at(name, dx, dy=0.0):
+        t = base[name]
+        return Transform(translate=t.translate + [dx, dy, 0.0], rotate_deg=t.rotate_deg, scale=t.scale)
+
+    frames = [{}, {"ball2": at("ball2", 0.02)}, {"ball2": at("ball2", 0.04)}, {"ball2": at("ball2", 0.3, 0.2)},
+              {"ball1": at("ball1", -0.05)}, {"ball1": at("ball1", -0.05), "ball2": at("ball2", 0.05)},
+              {"ball1": at("ball1", 0.1, 0.1), "ball2": at("ball2", 0.05)}, {}]
+    kept = Interreflection(pre.scene, pre.options, pre.data)
+    taken = 0
+    for moves in frames:
+        state = FrameState.from_scene(pre.scene)
+        state.transforms.update(moves)
+        fresh = Interreflection(pre.scene, pre.options, pre.data).shade(state, bounces=2)
+        got = kept.shade(state, bounces=2)
+        for name in got.total:
+            for part in ("direct", "indirect", "total"):
+                assert np.array_equal(getattr(got, part)[name], getattr(fresh, part)[name]), (moves, name, part)
+        taken += sum(e["prefix"] is not None for e in kept.reuse.visibility_prefix.values())
+    assert taken > 0

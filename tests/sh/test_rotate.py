@@ -207,3 +207,28 @@ def test_errors(rng):
     # within tolerance is accepted
     R = random_rotation(rng) + 1e-8
     rotate(c, R)
+
+
+def test_kept_blocks_give_the_computed_rotation():
+    """A rotation asked for again takes its kept blocks: the same results bit for bit as blocks computed afresh,
+    for either method, whatever a caller did to the blocks ``rotation_matrices`` handed out."""
+    from prtlab.sh import _rotate
+
+    rng = np.random.default_rng(7)
+    R = random_rotation(rng)
+    c = rng.normal(size=(5, 25, 3))
+    for method in ("numba", "reference"):
+        _rotate._KEPT_BLOCKS.clear()
+        first = rotate(c, R, method=method)
+        assert (R.tobytes(), 5, method) in _rotate._KEPT_BLOCKS
+        for block in rotation_matrices(R, 5, method=method):
+            block[...] = 0.0  # the caller's copy
+        again = rotate(c, R.T.T, method=method)  # the same values, another layout
+        other = rotate(c, R.T, method=method)  # another rotation (kept too), then the first's again
+        assert np.array_equal(rotate(c, R, method=method), first)
+        _rotate._KEPT_BLOCKS.clear()
+        assert np.array_equal(again, first) and np.array_equal(rotate(c, R, method=method), first)
+        assert np.array_equal(other, rotate(c, R.T, method=method)) and not np.array_equal(other, first)
+    with pytest.raises(ValueError):
+        rotate(c, 2.0 * R)  # a matrix that is not a rotation is checked, never kept
+    assert not any(k[0] == (2.0 * R).tobytes() for k in _rotate._KEPT_BLOCKS)
