@@ -68,8 +68,9 @@ def eq13_kernel(flat_rows, values, column_scale, scaled, points, translate, rota
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _place_vertices(points, translate, rotation, size, center, radii, transfer, place):
-    """The placement of :func:`eq13_kernel` (its steps those of the numpy path: the pose, ``locate``, the factor);
-    False if a point or a transfer value is not finite (``place`` then partly written)."""
+    """The placement of :func:`eq13_kernel`: the pose as explicit sums, then ``SphereGrid.locate``'s steps
+    (:func:`locate_point`) and the factor; False if a point or a transfer value is not finite (``place`` then
+    partly written)."""
     n_v = points.shape[0]
     finite = np.ones(n_v, np.bool_)
     r_max = radii[radii.shape[0] - 1]
