@@ -98,19 +98,25 @@ def test_near_leaves_a_hole_out():
     assert rows.tolist() == [2]  # the hole's centre and a point outside are not taken
 
 
-@pytest.fixture(scope="module")
-def box_on_floor():
-    scene = Scene.from_dict({
+def box_on_floor_scene(light: dict, transform: dict | None = None) -> Scene:
+    """A 0.6 box resting on a 4 x 4 floor (``transform`` its pose, default moved to ``(0.3, 0.3, 0)``) under
+    ``light``."""
+    return Scene.from_dict({
         "objects": [
             {"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [8, 8]},
              "material": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
             {"name": "box", "mesh": {"builtin": "box", "size": [0.6, 0.6, 0.6], "subdivisions": 1},
-             "transform": {"translate": [0.3, 0.3, 0.0]}, "dynamic": True,
+             "transform": transform or {"translate": [0.3, 0.3, 0.0]}, "dynamic": True,
              "material": {"type": "diffuse", "albedo": [0.8, 0.5, 0.3]}},
         ],
-        "lights": [{"type": "environment", "sky": {"sun_elevation_deg": 30, "sun_azimuth_deg": 40, "turbidity": 3,
-                                                   "height": 32, "width": 64}}],
+        "lights": [light],
     })
+
+
+@pytest.fixture(scope="module")
+def box_on_floor():
+    scene = box_on_floor_scene({"type": "environment", "sky": {"sun_elevation_deg": 30, "sun_azimuth_deg": 40,
+                                                               "turbidity": 3, "height": 32, "width": 64}})
     return Interreflection.precompute(scene, SMALL, cache=False, progress=False)
 
 

@@ -118,18 +118,9 @@ def test_a_large_map_summed_into_cells_and_two_halfspaces():
 
 @pytest.fixture(scope="module")
 def box_on_floor():
-    from tests.interreflection.test_flat import SMALL
+    from tests.interreflection.test_flat import SMALL, box_on_floor_scene
 
-    scene = Scene.from_dict({
-        "objects": [
-            {"name": "floor", "mesh": {"builtin": "plane", "size": [4, 4], "resolution": [8, 8]},
-             "material": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
-            {"name": "box", "mesh": {"builtin": "box", "size": [0.6, 0.6, 0.6], "subdivisions": 1},
-             "transform": {"translate": [0.3, 0.3, 0.0], "rotate_deg": [0, 25, 0]}, "dynamic": True,
-             "material": {"type": "diffuse", "albedo": [0.8, 0.5, 0.3]}},
-        ],
-        "lights": [SKY],
-    })
+    scene = box_on_floor_scene(SKY, {"translate": [0.3, 0.3, 0.0], "rotate_deg": [0, 25, 0]})
     return Interreflection.precompute(scene, SMALL, cache=False, progress=False)
 
 
