@@ -1581,15 +1581,20 @@ def _near_kernel(points, vertices, faces, rows, triangles, uv, near, flags):
         flags[h] = g0 ** 2 + g1 ** 2 + g2 ** 2 < near * near * edge2
 
 
+@numba.njit(cache=True, inline="always")
+def _hit_corners(h, triangles, uv, faces):
+    """Hit ``h``'s triangle's vertices and barycentric weights: ``(i0, i1, i2, 1 - u - v, u, v)``."""
+    f = triangles[h]
+    u, v = uv[h, 0], uv[h, 1]
+    return faces[f, 0], faces[f, 1], faces[f, 2], 1.0 - u - v, u, v
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _near_points_kernel(vertices, vertex_normals, faces, triangles, uv, index, at, normals):
     """The hit points ``at`` and unit interpolated normals of the hits ``index`` (``near_hits``)."""
     for q in numba.prange(index.shape[0]):
         h = index[q]
-        f = triangles[h]
-        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        u, v = uv[h, 0], uv[h, 1]
-        b0 = 1.0 - u - v
+        i0, i1, i2, b0, u, v = _hit_corners(h, triangles, uv, faces)
         for x in range(3):
             at[q, x] = _barycentric_point(vertices, i0, i1, i2, b0, u, v, x)
             normals[q, x] = _barycentric_point(vertex_normals, i0, i1, i2, b0, u, v, x)
@@ -1619,10 +1624,7 @@ def _near_correction_run(rows, factor, triangles, uv, faces, index, exact, value
     diff = np.empty((n_k, n_c))
     for q in range(first, last):
         h = index[q]
-        f = triangles[h]
-        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        u, v = uv[h, 0], uv[h, 1]
-        b0 = 1.0 - u - v
+        i0, i1, i2, b0, u, v = _hit_corners(h, triangles, uv, faces)
         for k in range(n_k):
             for c in range(n_c):
                 diff[k, c] = exact[q, k, c] - (b0 * values[i0, k, c] + u * values[i1, k, c] + v * values[i2, k, c])
@@ -1641,10 +1643,7 @@ def _near_correction_run_rgb(rows, factor, triangles, uv, faces, index, exact, v
     order (``0.0 +`` the one product, as the general sum starts from 0.0), so the same values bit for bit."""
     for q in range(first, last):
         h = index[q]
-        f = triangles[h]
-        i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        u, v = uv[h, 0], uv[h, 1]
-        b0 = 1.0 - u - v
+        i0, i1, i2, b0, u, v = _hit_corners(h, triangles, uv, faces)
         weight = factor[h, 0, 0]
         p = rows[h]
         for c in range(3):
