@@ -149,6 +149,13 @@ def horizon_sums(group: HorizonGroup, residual, method: str = "numba") -> np.nda
     return out.reshape(u, k, 3)[group.which]
 
 
+@numba.njit(cache=True, inline="always")
+def _add_row(w, r0, r1, r2, a0, a1, a2):
+    """``(a0, a1, a2) + w (r0, r1, r2)``, ``w`` read as float64."""
+    w = np.float64(w)
+    return a0 + w * r0, a1 + w * r1, a2 + w * r2
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
 def _sums_kernel(weights, residual_t, out):
     """``out[u, c] = sum_q weights[u, q] residual_t[c, q]``: float32 weights read as float64, float64 sums (their
@@ -162,22 +169,10 @@ def _sums_kernel(weights, residual_t, out):
             a00 = a01 = a02 = a10 = a11 = a12 = a20 = a21 = a22 = a30 = a31 = a32 = 0.0
             for q in range(weights.shape[1]):
                 r0, r1, r2 = residual_t[0, q], residual_t[1, q], residual_t[2, q]
-                w = np.float64(weights[u, q])
-                a00 += w * r0
-                a01 += w * r1
-                a02 += w * r2
-                w = np.float64(weights[u + 1, q])
-                a10 += w * r0
-                a11 += w * r1
-                a12 += w * r2
-                w = np.float64(weights[u + 2, q])
-                a20 += w * r0
-                a21 += w * r1
-                a22 += w * r2
-                w = np.float64(weights[u + 3, q])
-                a30 += w * r0
-                a31 += w * r1
-                a32 += w * r2
+                a00, a01, a02 = _add_row(weights[u, q], r0, r1, r2, a00, a01, a02)
+                a10, a11, a12 = _add_row(weights[u + 1, q], r0, r1, r2, a10, a11, a12)
+                a20, a21, a22 = _add_row(weights[u + 2, q], r0, r1, r2, a20, a21, a22)
+                a30, a31, a32 = _add_row(weights[u + 3, q], r0, r1, r2, a30, a31, a32)
             out[u, 0], out[u, 1], out[u, 2] = a00, a01, a02
             out[u + 1, 0], out[u + 1, 1], out[u + 1, 2] = a10, a11, a12
             out[u + 2, 0], out[u + 2, 1], out[u + 2, 2] = a20, a21, a22
@@ -186,8 +181,6 @@ def _sums_kernel(weights, residual_t, out):
             for v in range(u, n_rows):
                 a0 = a1 = a2 = 0.0
                 for q in range(weights.shape[1]):
-                    w = np.float64(weights[v, q])
-                    a0 += w * residual_t[0, q]
-                    a1 += w * residual_t[1, q]
-                    a2 += w * residual_t[2, q]
+                    a0, a1, a2 = _add_row(weights[v, q], residual_t[0, q], residual_t[1, q], residual_t[2, q],
+                                          a0, a1, a2)
                 out[v, 0], out[v, 1], out[v, 2] = a0, a1, a2
