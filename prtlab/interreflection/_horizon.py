@@ -158,10 +158,10 @@ def _add_row(w, r0, r1, r2, a0, a1, a2):
 
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath={"reassoc", "contract"})
 def _sums_kernel(weights, residual_t, out):
-    """``out[u, c] = sum_q weights[u, q] residual_t[c, q]``: float32 weights read as float64, float64 sums (their
-    order free: SIMD lanes). Rows go in blocks of 4, 12 sums held in registers, so each residual value loaded
-    serves 4 rows (the residual, 3 x 4,096 float64, is larger than a core's L1 cache); the last block's leftover
-    rows one at a time."""
+    """``out[u, c] = sum_q weights[u, q] residual_t[c, q]`` for the 3 channels of ``residual_t`` (3, Q): float32
+    weights read as float64, float64 sums (their order free: SIMD lanes). Rows go in blocks of 4, 12 sums held in
+    registers, so each residual value loaded serves 4 rows (the residual, 3 x 4,096 float64, is larger than a
+    core's L1 cache); the last block's leftover rows one at a time."""
     n_rows = weights.shape[0]
     for b in numba.prange((n_rows + 3) // 4):
         u = 4 * b
