@@ -405,7 +405,8 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
     training renders ``B_eta`` (unit point lights at :func:`prtlab.pca.pca_light_positions`)
     are shadowed by the object *and* the other objects at their poses in the scene, so the
     basis spans the shadows they cast on it (a floor under a bunny; measured in ``docs/NOTES.md``).
-    The mean, SVD and sign convention are those of :func:`prtlab.pca.fit_pca_basis`.
+    The mean, SVD, sign convention and cut are those of :func:`prtlab.pca.fit_pca_basis`
+    (:func:`prtlab.pca.principal_basis`).
     """
     v = np.asarray(mesh.vertices, float)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
@@ -435,15 +436,7 @@ def _pca_basis(mesh, n_basis: int, n_lights: int, plane: bool, occluders) -> pca
         r = np.linalg.norm(dd, axis=1)
         visible[lj, vj] = ~caster.occluded(o, dd, tmax=np.maximum(r - eps, 0.0))
     training = (unshadowed * visible).T  # (V, L)
-    mean = training.mean(axis=1)
-    u, sv, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
-    rank = int(np.sum(sv > 1e-12 * max(float(sv[0]) if len(sv) else 0.0, 1e-300)))
-    comps = u[:, : min(n_basis - 1, rank)].T.copy()  # a rank-deficient training set gives fewer functions
-    flip = np.sign(comps[np.arange(len(comps)), np.argmax(np.abs(comps), axis=1)])
-    comps *= np.where(flip == 0, 1.0, flip)[:, None]
-    basis = np.concatenate([mean[None], comps], axis=0)
-    total = float(np.sum(sv * sv))
-    energy = np.concatenate([[0.0], np.cumsum(sv[: len(comps)] ** 2)]) / (total if total > 0 else 1.0)
+    basis, sv, energy = pca.principal_basis(training, n_basis, rank_tol=1e-12)  # rank-deficient: fewer functions
     samples = np.arange(len(points))
     return pca.PCABasis(basis, sv, energy, samples, lights, pca.WeightSolver.from_basis(basis, samples))
 

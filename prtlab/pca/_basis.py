@@ -34,6 +34,16 @@ Reflected radiance
 Sign convention
     Each principal component is flipped so that its entry of largest magnitude
     is positive (SVD signs are otherwise arbitrary), so fits are reproducible.
+
+Equal singular values at the cut
+    When the last singular value kept equals the first one left out (within
+    :data:`EQUAL_SINGULAR` of the largest), their singular vectors span one
+    subspace in which no vector is preferred, and the SVD's rounding picks the
+    kept one: a square floor under the square grid of lights has such pairs, and
+    the vector kept changed with the number of BLAS threads, moving the light the
+    floor reflects onto objects by up to 2 %. The whole run of equal values is
+    left out instead (:func:`untied_count`): fewer functions than asked for, the
+    same on every machine.
 """
 
 from __future__ import annotations
@@ -53,6 +63,22 @@ _METHODS = ("fast", "reference")
 
 #: Shadow rays per RayCaster call when rendering the training lights (bounds memory).
 _SHADOW_RAYS_PER_CHUNK = 1 << 21
+
+#: Two singular values are equal when they differ by at most this fraction of the largest: far above the SVD's
+#: rounding (about ``1e-15`` of it), so the singular vectors of values further apart turn by at most about
+#: ``1e-7`` under rounding, below the int16 storage of the basis radiance fields.
+EQUAL_SINGULAR = 1e-8
+
+
+def untied_count(singular_values, n_comps: int) -> int:
+    """The largest ``k <= n_comps`` such that singular value ``k - 1`` (0-based) is not equal (within
+    :data:`EQUAL_SINGULAR` of the largest) to singular value ``k``: the first ``k`` singular vectors then span a
+    subspace that rounding does not choose. ``n_comps`` itself when no value is left out."""
+    s = np.asarray(singular_values, dtype=np.float64)
+    k = int(n_comps)
+    while 0 < k < len(s) and s[k - 1] - s[k] <= EQUAL_SINGULAR * s[0]:
+        k -= 1
+    return k
 
 
 @numba.njit(cache=True, parallel=True)
@@ -324,15 +350,16 @@ def principal_basis(training, n: int, rank_tol: float | None = None) -> tuple[np
 
     Returns ``basis (n', N_v)`` (row 0 the mean, then the unit principal vectors, each with its
     largest-magnitude entry positive), all singular values of the centred matrix, and ``energy (n',)``
-    as :attr:`PCABasis.energy`. ``n' = n`` unless ``rank_tol`` is given: then only the vectors whose
-    singular value exceeds ``rank_tol`` times the largest are kept (a rank-deficient training set gives
-    fewer functions).
+    as :attr:`PCABasis.energy`. ``n' <= n``: with ``rank_tol`` only the vectors whose singular value
+    exceeds ``rank_tol`` times the largest are kept (a rank-deficient training set gives fewer
+    functions), and a run of equal singular values at the cut is left out whole (:func:`untied_count`).
     """
     mean = training.mean(axis=1)
     u, s, _ = np.linalg.svd(training - mean[:, None], full_matrices=False)
-    n_comps = n - 1
+    n_comps = min(n - 1, len(s))
     if rank_tol is not None:
         n_comps = min(n_comps, int(np.sum(s > rank_tol * max(float(s[0]) if len(s) else 0.0, 1e-300))))
+    n_comps = untied_count(s, n_comps)
     comps = u[:, :n_comps].T.copy()
     flip = np.sign(comps[np.arange(n_comps), np.argmax(np.abs(comps), axis=1)])
     comps *= np.where(flip == 0, 1.0, flip)[:, None]

@@ -204,13 +204,55 @@ def test_principal_basis_is_the_mean_and_the_leading_singular_vectors():
     rng = np.random.default_rng(5)
     # rank 2 after centring: the mean plus two directions, 40 vertices, 30 lights
     training = rng.random(40)[:, None] + rng.random((40, 2)) @ rng.standard_normal((2, 30))
-    basis, s, energy = principal_basis(training, 4)
-    assert basis.shape == (4, 40) and s.shape == (30,)
+    basis, s, energy = principal_basis(training, 3)
+    assert basis.shape == (3, 40) and s.shape == (30,)
     np.testing.assert_allclose(basis[0], training.mean(axis=1), rtol=0, atol=1e-15)
-    np.testing.assert_allclose(basis[1:] @ basis[1:].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(basis[1:] @ basis[1:].T, np.eye(2), atol=1e-12)
     np.testing.assert_allclose(energy[2], 1.0, rtol=1e-12)  # two components carry all the variance
     assert np.all(np.abs(basis[1:]).argmax(axis=1) == np.argmax(basis[1:], axis=1))  # largest entry positive
-    capped, _, capped_energy = principal_basis(training, 4, rank_tol=1e-12)
-    assert capped.shape == (3, 40)  # the numerical rank caps the functions
-    np.testing.assert_array_equal(capped, basis[:3])
-    np.testing.assert_array_equal(capped_energy, energy[:3])
+    # a third component would be a vector of the null space, where every singular value is 0 (equal): left out,
+    # with or without the rank's cap
+    for rank_tol in (None, 1e-12):
+        capped, _, capped_energy = principal_basis(training, 4, rank_tol=rank_tol)
+        assert capped.shape == (3, 40)
+        np.testing.assert_array_equal(capped, basis)
+        np.testing.assert_array_equal(capped_energy, energy)
+
+
+def _with_singular_values(rng, values, n_v: int = 30, n_l: int = 20) -> np.ndarray:
+    """A training matrix whose centred form has exactly the singular ``values`` (orthonormal factors orthogonal
+    to the constant vector of the lights, so that centring leaves them)."""
+    u, _ = np.linalg.qr(rng.standard_normal((n_v, len(values))))
+    w = rng.standard_normal((n_l, len(values)))
+    w -= w.mean(axis=0)
+    v, _ = np.linalg.qr(w)
+    return rng.random(n_v)[:, None] + (u * values) @ v.T
+
+
+def test_principal_basis_leaves_equal_singular_values_at_the_cut_out_whole():
+    """A cut between equal singular values would keep a vector that rounding picks from their shared subspace (a
+    square floor under a square grid of lights: it changed with the BLAS threads): the whole run is left out,
+    ties within ``EQUAL_SINGULAR`` of the largest value; values further apart are cut where asked."""
+    from prtlab.pca._basis import EQUAL_SINGULAR, untied_count
+
+    rng = np.random.default_rng(8)
+    training = _with_singular_values(rng, np.array([4.0, 3.0, 2.0, 2.0, 2.0, 1.0]))
+    kept = [len(principal_basis(training, n)[0]) - 1 for n in range(1, 8)]
+    assert kept == [0, 1, 2, 2, 2, 5, 6]  # the run 2, 2, 2 (components 2-4) kept whole or not at all
+    assert untied_count([4.0, 2.0, 2.0 - 0.5 * EQUAL_SINGULAR * 4.0], 2) == 1  # within the tolerance: tied
+    assert untied_count([4.0, 2.0, 2.0 - 2.0 * EQUAL_SINGULAR * 4.0], 2) == 2  # beyond it: cut
+    assert untied_count([4.0, 2.0], 2) == 2  # nothing left out: no cut
+
+
+def test_a_square_plane_under_its_grid_of_lights_keeps_no_half_of_a_pair():
+    """The paper's floor: a square plane under a square grid of lights has pairs of equal singular values (its
+    symmetry). Asked for 15 functions (14 components), the cut would fall inside the pair of components 13 and 14:
+    both are left out, 14 functions remain; asked for 16, the cut falls between pairs."""
+    from prtlab.pca._basis import EQUAL_SINGULAR
+
+    plane = builtin_mesh("plane", size=(2.0, 2.0), resolution=(12, 12))
+    pca = fit_pca_basis(plane, n_basis=15, n_lights=64, plane=True)
+    s = pca.singular_values
+    assert s[13] - s[14] <= EQUAL_SINGULAR * s[0]  # the pair the cut would split
+    assert pca.n_basis == 14 and s[12] - s[13] > EQUAL_SINGULAR * s[0]
+    assert fit_pca_basis(plane, n_basis=16, n_lights=64, plane=True).n_basis == 16
