@@ -8,7 +8,14 @@ of SH, Haar, Fourier cosine and PCA bases over a (u, v) parameterisation
 (:func:`surface_uv`, :func:`uv_basis`, :func:`compare_bases`) lives here too.
 """
 
-from ._basis import PCABasis, fit_pca_basis, pca_light_positions, point_light_intensity, principal_basis
+from ._basis import (
+    PCABasis,
+    fit_pca_basis,
+    pca_light_positions,
+    point_light_intensity,
+    principal_basis,
+    untied_count,
+)
 from ._compare import (
     COMPARISON_BASES,
     BasisComparison,
@@ -24,6 +31,7 @@ __all__ = [
     "PCABasis",
     "fit_pca_basis",
     "principal_basis",
+    "untied_count",
     "pca_light_positions",
     "point_light_intensity",
     "WeightSolver",

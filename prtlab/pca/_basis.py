@@ -388,7 +388,8 @@ def fit_pca_basis(
     mesh_or_object : trimesh.Trimesh or SceneObject
         The object in object space (a SceneObject's transform is ignored).
     n_basis : int >= 1
-        ``N``: the mean plus ``N - 1`` principal components (paper: 16).
+        ``N``: the mean plus ``N - 1`` principal components (paper: 16); fewer when the cut would fall
+        between equal singular values (module docstring).
     n_lights : int >= 1
         ``N_light`` training point lights (paper: 256); ``N - 1 <= min(n_lights, n_vertices)``.
     light_distance : float, optional

@@ -47,6 +47,7 @@ import numpy as np
 
 from prtlab._validate import check_int
 from ..sh import basis as sh_basis
+from ._basis import untied_count
 from ._param import SurfaceParam
 from ._weights import WeightSolver
 
@@ -159,6 +160,9 @@ class BasisComparison:
         Condition number of ``A`` of each least-squares fit.
     scored : (n_vertices,) bool
         Vertices the RMS is taken over.
+    functions : dict (basis, n_terms) -> int
+        Functions each approximation used: ``n_terms``, but for PCA fewer when its cut at ``n_terms`` falls between
+        equal singular values (:func:`prtlab.pca.untied_count`).
     """
 
     intensity: np.ndarray
@@ -168,6 +172,7 @@ class BasisComparison:
     rms: np.ndarray = field(repr=False)
     condition: np.ndarray = field(repr=False)
     scored: np.ndarray = field(repr=False)
+    functions: dict = field(default_factory=dict, repr=False)
 
     @property
     def relative_rms(self) -> np.ndarray:
@@ -176,10 +181,17 @@ class BasisComparison:
         return self.rms / (ref if ref > 0 else 1.0)
 
     def table(self, relative: bool = False) -> str:
-        """A plain-text table: one row per basis, one column per term count."""
+        """A plain-text table: one row per basis, one column per term count; an entry that used fewer functions
+        than its column (:attr:`functions`) gives their number in parentheses."""
         vals = self.relative_rms if relative else self.rms
+
+        def cell(b, n, x):
+            used = self.functions.get((b, n), n)
+            return f"{x:12.4g}" if used == n else f"{f'{x:.4g} ({used})':>16s}"
+
         head = "basis   " + "".join(f"{n:>12d}" for n in self.terms)
-        rows = [f"{b:<8s}" + "".join(f"{x:12.4g}" for x in vals[i]) for i, b in enumerate(self.bases)]
+        rows = [f"{b:<8s}" + "".join(cell(b, n, x) for n, x in zip(self.terms, vals[i]))
+                for i, b in enumerate(self.bases)]
         return "\n".join([head, *rows])
 
 
@@ -201,7 +213,10 @@ def compare_bases(
     param : SurfaceParam
         (u, v) parameterisation of the mesh (:func:`prtlab.pca.surface_uv`).
     pca : PCABasis, optional
-        Needed when ``"pca"`` is among ``bases``; at least ``max(terms)`` functions.
+        Needed when ``"pca"`` is among ``bases``, with the functions each term count takes: ``n`` terms take its
+        first ``n``, or fewer when the cut at ``n`` falls between equal singular values (their vectors span one
+        subspace and no ``n``-th vector is preferred; :func:`prtlab.pca.untied_count`, the count in
+        :attr:`BasisComparison.functions`).
     terms : sequence of int
         Term counts (paper: 4, 8, 16).
     bases : sequence of str
@@ -236,20 +251,24 @@ def compare_bases(
             raise ValueError("pca is required when 'pca' is among bases: pass fit_pca_basis(mesh)")
         if pca.n_vertices != param.n_vertices:
             raise ValueError(f"pca has {pca.n_vertices} vertices, the mesh {param.n_vertices}; fit it on the same mesh")
-        if pca.n_basis < max(terms):
-            raise ValueError(f"pca has {pca.n_basis} basis functions, fewer than max(terms) = {max(terms)}")
+        need = max(_pca_functions(pca, n) for n in terms)
+        if pca.n_basis < need:
+            raise ValueError(f"pca has {pca.n_basis} basis functions, fewer than the {need} that max(terms) = "
+                             f"{max(terms)} terms take")
     mask = np.ones(param.n_vertices, bool) if scored is None else np.asarray(scored, dtype=bool)
     if mask.shape != (param.n_vertices,):
         raise ValueError(f"scored must be a boolean mask of shape ({param.n_vertices},), got {mask.shape}")
-    approximations = {}
+    approximations, functions = {}, {}
     rms = np.zeros((len(bases), len(terms)))
     cond = np.zeros_like(rms)
     L_param = param.to_param(L)
     for i, b in enumerate(bases):
         for k, n in enumerate(terms):
+            functions[(b, n)] = n
             if b == "pca":
-                solver = WeightSolver.from_basis(pca.basis[:n])
-                approx = solver.solve(L) @ pca.basis[:n]
+                m = functions[(b, n)] = _pca_functions(pca, n)
+                solver = WeightSolver.from_basis(pca.basis[:m])
+                approx = solver.solve(L) @ pca.basis[:m]
             else:
                 psi = uv_basis(b, param.uv, n).T  # (n, n_param)
                 solver = WeightSolver.from_basis(psi)
@@ -257,7 +276,13 @@ def compare_bases(
             approximations[(b, n)] = approx
             rms[i, k] = np.sqrt(np.mean((approx - L)[mask] ** 2))
             cond[i, k] = solver.condition_number
-    return BasisComparison(L, bases, terms, approximations, rms, cond, mask)
+    return BasisComparison(L, bases, terms, approximations, rms, cond, mask, functions)
+
+
+def _pca_functions(pca, n: int) -> int:
+    """PCA functions ``n`` terms take: the mean and the components up to the last cut at or before ``n - 1``
+    that falls between unequal singular values."""
+    return 1 + untied_count(pca.singular_values, n - 1)
 
 
 def area_light_intensity(meshes, light, receiver: int = 0, *, albedo: float = 1.0, n: int = 16,

@@ -219,7 +219,7 @@ def test_errors():
     with pytest.raises(ValueError, match="pca is required"):
         compare_bases(L, p)
     pca = fit_pca_basis(plane, n_basis=4, n_lights=8, plane=True)
-    with pytest.raises(ValueError, match="fewer than max"):
+    with pytest.raises(ValueError, match="fewer than the 8 that max"):
         compare_bases(L, p, pca, terms=(8,))
     with pytest.raises(ValueError, match="fit it on the same mesh"):
         compare_bases(np.zeros(4), surface_uv(builtin_mesh("plane"), plane=True), pca, terms=(1,))
@@ -268,3 +268,18 @@ def test_paper_ranking_reproduced_full_size():
     bunny = builtin_mesh("bunny", subdivisions=1)
     light = AreaLight(np.array([0.9, 2.2, 0.7]), np.array([0.25, 0, 0]), np.array([0, 0, 0.25]), np.full(3, 12.0))
     _ranking(Scene(objects=[SceneObject("floor", floor), SceneObject("bunny", bunny)], lights=[light]), 16, 256)
+
+
+def test_pca_terms_stop_before_equal_singular_values():
+    """A square plane under a square grid of lights has its PCA components 13 and 14 equal: 15 terms would keep one
+    of the pair, chosen by rounding, so they take the 14 functions before it (the count in ``functions`` and the
+    table); 16 terms take 16."""
+    plane = builtin_mesh("plane", size=(2.0, 2.0), resolution=(12, 12))
+    pca = fit_pca_basis(plane, n_basis=16, n_lights=64, plane=True)
+    L = np.linspace(0.2, 1.0, len(plane.vertices))
+    c = compare_bases(L, surface_uv(plane, plane=True), pca, terms=(14, 15, 16), bases=("pca", "fourier"))
+    assert [c.functions[("pca", n)] for n in (14, 15, 16)] == [14, 14, 16]
+    assert [c.functions[("fourier", n)] for n in (14, 15, 16)] == [14, 15, 16]
+    np.testing.assert_array_equal(c.approximations[("pca", 15)], c.approximations[("pca", 14)])
+    assert "(14)" in c.table().splitlines()[1] and "(" not in c.table().splitlines()[2]
+
