@@ -264,9 +264,8 @@ def compare_bases(
     L_param = param.to_param(L)
     for i, b in enumerate(bases):
         for k, n in enumerate(terms):
-            functions[(b, n)] = n
+            m = functions[(b, n)] = _pca_functions(pca, n) if b == "pca" else n
             if b == "pca":
-                m = functions[(b, n)] = _pca_functions(pca, n)
                 solver = WeightSolver.from_basis(pca.basis[:m])
                 approx = solver.solve(L) @ pca.basis[:m]
             else:
