@@ -76,7 +76,8 @@ def factor_at(nodes, values, freq, parity, x, y, z, out):
         j = np.searchsorted(nodes, theta) - 1
         t = (theta - nodes[j]) / (nodes[j + 1] - nodes[j])
     for k in range(values.shape[0]):
-        radial = (1.0 - t) * values[k, j] + t * values[k, j + 1]
+        a, b = values[k, j], values[k, j + 1]
+        radial = a if a == b else (1.0 - t) * a + t * b  # equal nodes: their value exactly, as np.interp gives it
         angle = freq[k] * phi
         if angle == 0.0:  # cos(+-0) = 1 and sin(+-0) = +-0 exactly: no libm call (most terms have freq 0)
             out[k] = radial if parity[k] == 0 else radial * angle

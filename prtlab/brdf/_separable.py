@@ -422,6 +422,8 @@ def separable(brdf, K: int, resolution=None, parameterisation: str = "plain") ->
     # h has unit mean square over its domain (solid angle 2 pi plain, 4 pi reflection)
     domain = 2.0 * np.pi if parameterisation == "plain" else 4.0 * np.pi
     terms = _radial_terms(fac, K, n_split, domain, kd + ks if grey else ks, kd)
+    if ws == 0.0:  # Lambert: its one term exactly (the SVD gives it to about 1e-13)
+        terms["g_radial"][0], terms["h_radial"][0] = 1.0 / np.pi, 1.0
     residual = fac.nyquist + fac.tail[K - n_split]
     if grey:
         norm2 = (kd + ks) ** 2 * fac.norm2

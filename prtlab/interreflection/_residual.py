@@ -478,7 +478,7 @@ def _weigh_hit(buf, normals, p, f, u, v, weighing, g, h, factor):
     barycentrics ``(u, v)``: whether it meets the front of the interpolated shading normal, and then ``factor[k', k]
     = weight g_k'(w) h_k(-w)`` in the receiver's and the source's local frames (``_cast``'s numpy weighing, by
     :func:`prtlab.brdf._kernels.factor_at`). ``weighing``: ``_weighing``'s tuple; ``g``, ``h``: scratch."""
-    faces, vertex_normals, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq, h_parity = weighing
+    faces, vertex_normals, g_nodes, g_values, g_freq, g_parity, h_nodes, h_values, h_freq, h_parity, level = weighing
     i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
     b0 = 1.0 - u - v
     s0 = b0 * vertex_normals[i0, 0] + u * vertex_normals[i1, 0] + v * vertex_normals[i2, 0]
@@ -489,6 +489,11 @@ def _weigh_hit(buf, normals, p, f, u, v, weighing, g, h, factor):
     w0, w1, w2 = buf[3], buf[4], buf[5]
     if not s0 * w0 + s1 * w1 + s2 * w2 < 0.0:  # the back of a surface emits nothing
         return False
+    if level:  # factor_at gives every direction the tables' one value: no local frames, no angles
+        for kp in range(g.shape[0]):
+            for k in range(h.shape[0]):
+                factor[kp, k] = buf[6] * g_values[kp, 0] * h_values[k, 0]
+        return True
     x, y, z = _local_unit(w0, w1, w2, normals[p, 0], normals[p, 1], normals[p, 2])
     factor_at(g_nodes, g_values, g_freq, g_parity, x, y, z, g)
     x, y, z = _local_unit(-w0, -w1, -w2, s0, s1, s2)
@@ -501,15 +506,25 @@ def _weigh_hit(buf, normals, p, f, u, v, weighing, g, h, factor):
 
 def _weighing(receiver_sep, source) -> tuple:
     """What ``_weigh_hit`` reads of a (receiver, source) pair: the source's faces (int64) and world vertex normals,
-    then the receiver's ``g`` and the source's ``h`` tables (nodes, values, frequencies, parities)."""
+    then the receiver's ``g`` and the source's ``h`` tables (nodes, values, frequencies, parities), and whether
+    both are level (:func:`_level_tables`: a Lambertian pair)."""
     faces, vertex_normals, sep = source[:3]
     g_nodes, g_values = receiver_sep._ext(receiver_sep.theta_in, receiver_sep.g_radial, 0.5 * np.pi)
     h_max = 0.5 * np.pi if sep.parameterisation == "plain" else np.pi
     h_nodes, h_values = sep._ext(sep.theta_out, sep.h_radial, h_max)
+    level = _level_tables(g_values, receiver_sep.freq, receiver_sep.parity) and _level_tables(h_values, sep.freq,
+                                                                                            sep.parity)
     return (np.ascontiguousarray(faces, np.int64), np.ascontiguousarray(vertex_normals, np.float64), g_nodes,
             g_values, np.ascontiguousarray(receiver_sep.freq, np.int64),
             np.ascontiguousarray(receiver_sep.parity, np.int64), h_nodes, h_values,
-            np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64))
+            np.ascontiguousarray(sep.freq, np.int64), np.ascontiguousarray(sep.parity, np.int64), level)
+
+
+def _level_tables(values, freq, parity) -> bool:
+    """Whether :func:`prtlab.brdf._kernels.factor_at` gives every direction the same factors, each row's one value:
+    every term a cosine of frequency 0 and each row of ``values`` one value at every node (then it returns that
+    value exactly)."""
+    return bool(np.all(np.asarray(freq) == 0) and np.all(np.asarray(parity) == 0) and np.all(values == values[:, :1]))
 
 
 #: ``_recast_kernel``'s per-ray state: not flagged, flagged and not cast (``tmax`` 0), cast, hit the source.

@@ -511,7 +511,14 @@ def _assert_same_casts(one, other):
 def test_fused_cast_equals_the_reference_cast(seps, r, full):
     """``residual_hits``'s kernels (rays made, traced and weighed in numba) give the arrays of the reference (rays
     traced through ``RayCaster.closest_hit``, weighed with numpy), bit for bit, and count the same rays: a full cast
-    (the ball a source of itself) and, after the box moves, the incremental cast."""
+    (the ball a source of itself) and, after the box moves, the incremental cast. A Lambertian receiver and source
+    take ``_weigh_hit``'s level path (no local frames or angles), the others the tables'."""
+    from prtlab.interreflection._residual import _weighing
+
+    meshes, poses, _ = _objects()
+    sources = _sources(meshes, poses, range(3), seps)
+    for s in range(3):
+        assert _weighing(seps[r], sources[s])[-1] == (seps[r] is LAMBERT and seps[s] is LAMBERT)
     _assert_same_casts(_casts_before_and_after_a_move(seps, r, full, method="reference"),
                        _casts_before_and_after_a_move(seps, r, full, method="numba"))
 
