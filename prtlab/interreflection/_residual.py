@@ -39,6 +39,10 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from prtlab import brdf
 from prtlab._validate import check_choice, check_float
@@ -1209,9 +1213,10 @@ def _rgb_ready(operators) -> bool:
     return all(op.factor.shape[1:] == (1, 1) and op.uv.dtype == np.float32 for op in operators)
 
 
-#: Type of the packed gather weights (:func:`pack_operators`): float32 halves the bytes a bounce reads and the
-#: rounding of each weight (relative ``2**-24``) bounds the change of a gather by ``2**-24`` times the sum of
-#: its terms' magnitudes (``test_packed_float32_gather_within_its_rounding_bound``).
+#: Type of the packed gather weights (:func:`pack_operators`) and of the residual rows :func:`bounce_rgb` reads
+#: with them: float32 halves the bytes a bounce reads, and rounding each weight and each residual value once
+#: (relative ``2**-24``) bounds the change of a gather by ``2 * 2**-24`` (and ``2**-48``) times the sum of its
+#: terms' magnitudes (``test_packed_float32_gather_within_its_rounding_bound``).
 PACKED_WEIGHTS = np.float32
 
 
@@ -1433,30 +1438,30 @@ def bounce_rgb(stacked, w, operators, sources, residual, offsets, extra=None, pa
     ``packed``: a :class:`PackedGather` updated to ``operators`` or their :func:`pack_operators` (one segment) if the
     caller keeps it (else it is made here). Per point the sum is ``dot + gather + extra``, in that order, the
     gather's terms in the order of the numpy path
-    (:func:`apply_gather` per source), which holds it to ``1e-12`` with float64 weights and to their rounding
+    (:func:`apply_gather` per source), which holds it to ``1e-12`` with float64 weights and to its rounding
     bound with float32 ones (``tests/interreflection/test_residual.py``); the dot product's summation order
-    differs from BLAS's. A :class:`PackedGather`'s compact residual rows are copied first, so each value read
-    is the same.
+    differs from BLAS's. The residual rows the terms read are copied first into a table of the weights' type:
+    with float32 weights each residual value is rounded once too.
     """
     stacked = np.ascontiguousarray(stacked, np.float32 if stacked.dtype == np.float32 else np.float64)
     out = np.empty((stacked.shape[0], 3))
     if not len(out):
         return out
     extra = np.zeros((0, 3)) if extra is None else np.ascontiguousarray(extra, np.float64)
-    residual_rows = np.zeros(0, np.int64)  # none: the terms' rows are the stacked residual's
     if operators:
         packed = PackedGather().update(operators, sources, offsets) if packed is None else packed
         if isinstance(packed, PackedGather):
             starts, rows, weights, residual_rows = packed.arrays()
-        else:
+        else:  # pack_operators' terms number the stacked residual's rows: the table holds them all
             starts, rows, weights = packed
+            residual_rows = np.arange(len(residual), dtype=np.int64)
         starts = starts.reshape(-1, len(out) + 1)  # pack_operators' list is one segment
         residual = np.ascontiguousarray(residual, np.float64)
     else:
         starts, rows, weights = np.zeros((0, len(out) + 1), np.int64), np.zeros((0, 3), np.int32), np.zeros((0, 3))
-        residual = np.zeros((0, 3))
+        residual, residual_rows = np.zeros((0, 3)), np.zeros(0, np.int64)
     _bounce_kernel(stacked, np.ascontiguousarray(np.transpose(w), np.float64), starts, rows, weights, residual,
-                   residual_rows, np.empty((len(residual_rows), 3)), extra, out)
+                   residual_rows, np.empty((len(residual_rows), 4), weights.dtype), extra, out)
     return out
 
 
@@ -1497,35 +1502,86 @@ def _dot_rgb(stacked, wt, v):
     return d0, d1, d2
 
 
+_LANES = ir.VectorType(ir.DoubleType(), 4)
+
+
+@intrinsic
+def _gather_terms(typingctx, acc, table, rows, weights, start, stop):
+    """``acc`` (3 float64) plus ``sum_t sum_j weights[t, j] table[rows[t, j], :3]`` over ``start <= t < stop``, the
+    terms in order: each row read as one 4-lane vector (``table`` (R, 4), lane 3 unused), multiplied and added
+    lane by lane, so each colour's sum is rounded exactly as the scalar ``a += c * table[i, colour]`` in float64.
+    ``table`` float32 or float64, ``rows`` (T, 3) uint16 or int32, ``weights`` (T, 3) float32 or float64, all
+    C-contiguous. (numba vectorises the three colours of a row only with its process-wide SLP option.)"""
+    arrays = (table, rows, weights)
+    if not (isinstance(acc, types.UniTuple) and acc.count == 3 and acc.dtype == types.float64
+            and all(isinstance(a, types.Array) and a.ndim == 2 and a.layout == "C" for a in arrays)
+            and table.dtype in (types.float32, types.float64) and rows.dtype in (types.uint16, types.int32)
+            and weights.dtype in (types.float32, types.float64)
+            and isinstance(start, types.Integer) and isinstance(stop, types.Integer)):
+        return None
+
+    def codegen(context, builder, sig, args):
+        i32, i64 = ir.IntType(32), ir.IntType(64)
+        table_t, rows_t, weights_t = sig.args[1:4]
+        row_type = ir.VectorType(context.get_value_type(table_t.dtype), 4)
+        tab, rws, wts = (context.make_array(t)(context, builder, a).data for t, a in zip(sig.args[1:4], args[1:4]))
+        tab = builder.bitcast(tab, row_type.as_pointer())
+        start, stop = (context.cast(builder, a, t, types.int64) for a, t in zip(args[4:], sig.args[4:]))
+        total = ir.Constant(_LANES, [0.0] * 4)
+        for lane in range(3):
+            total = builder.insert_element(total, builder.extract_value(args[0], lane), ir.Constant(i32, lane))
+        slot = cgutils.alloca_once(builder, _LANES)  # promoted to a register by LLVM
+        builder.store(total, slot)
+        broadcast = ir.Constant(ir.VectorType(i32, 4), [0] * 4)
+        with cgutils.for_range(builder, builder.sub(stop, start)) as loop:
+            first = builder.mul(builder.add(start, loop.index), ir.Constant(i64, 3))
+            total = builder.load(slot)
+            for j in range(3):
+                at = builder.add(first, ir.Constant(i64, j))
+                row = builder.load(builder.gep(rws, [at]))
+                row = builder.zext(row, i64) if rows_t.dtype == types.uint16 else builder.sext(row, i64)
+                c = builder.load(builder.gep(wts, [at]))
+                if weights_t.dtype == types.float32:
+                    c = builder.fpext(c, ir.DoubleType())
+                x = builder.load(builder.gep(tab, [row]), align=table_t.dtype.bitwidth // 8)
+                if table_t.dtype == types.float32:
+                    x = builder.fpext(x, _LANES)
+                c = builder.shuffle_vector(builder.insert_element(ir.Constant(_LANES, ir.Undefined), c,
+                                                                  ir.Constant(i32, 0)),
+                                           ir.Constant(_LANES, ir.Undefined), broadcast)
+                total = builder.fadd(total, builder.fmul(c, x))
+            builder.store(total, slot)
+        total = builder.load(slot)
+        out = cgutils.get_null_value(context.get_value_type(sig.return_type))
+        for lane in range(3):
+            out = builder.insert_value(out, builder.extract_element(total, ir.Constant(i32, lane)), lane)
+        return out
+
+    return types.UniTuple(types.float64, 3)(acc, table, rows, weights, start, stop), codegen
+
+
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _bounce_kernel(stacked, wt, starts, rows, weights, x, x_rows, compact, extra, out):
+def _bounce_kernel(stacked, wt, starts, rows, weights, x, x_rows, table, extra, out):
     """:func:`bounce_rgb` in one parallel pass over the points: the dot product with ``wt`` (3, M) (:func:`_dot_rgb`),
     the packed gather's terms (``starts`` (S, V + 1), :class:`PackedGather`; S = 0 for none) segment after
-    segment, each in order, and ``extra`` ((V, 3) or (0, 3)). The terms' ``rows`` number rows of ``compact``
-    (R, 3), filled first with the rows ``x_rows`` (R,) of ``x``, or if R = 0 rows of ``x`` itself."""
+    segment, each in order (:func:`_gather_terms`), and ``extra`` ((V, 3) or (0, 3)). The terms' ``rows`` number
+    rows of ``table`` (R, 4), filled first with the rows ``x_rows`` (R,) of ``x`` (V_all, 3), each rounded to the
+    table's type, lane 3 zero."""
     for k in numba.prange(x_rows.shape[0]):
         i = x_rows[k]
-        compact[k, 0] = x[i, 0]
-        compact[k, 1] = x[i, 1]
-        compact[k, 2] = x[i, 2]
-    table = compact if x_rows.shape[0] > 0 else x
+        table[k, 0] = x[i, 0]
+        table[k, 1] = x[i, 1]
+        table[k, 2] = x[i, 2]
+        table[k, 3] = 0.0
     add = extra.shape[0] > 0
     for v in numba.prange(stacked.shape[0]):
         d0, d1, d2 = _dot_rgb(stacked, wt, v)
-        g0 = 0.0
-        g1 = 0.0
-        g2 = 0.0
+        g = (0.0, 0.0, 0.0)
         for s in range(starts.shape[0]):
-            for t in range(starts[s, v], starts[s, v + 1]):
-                for j in range(3):
-                    i = rows[t, j]
-                    c = np.float64(weights[t, j])
-                    g0 += c * table[i, 0]
-                    g1 += c * table[i, 1]
-                    g2 += c * table[i, 2]
-        out[v, 0] = d0 + g0
-        out[v, 1] = d1 + g1
-        out[v, 2] = d2 + g2
+            g = _gather_terms(g, table, rows, weights, starts[s, v], starts[s, v + 1])
+        out[v, 0] = d0 + g[0]
+        out[v, 1] = d1 + g[1]
+        out[v, 2] = d2 + g[2]
         if add:
             out[v, 0] += extra[v, 0]
             out[v, 1] += extra[v, 1]

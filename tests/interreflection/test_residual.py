@@ -626,8 +626,8 @@ def _merged_bounce(stacked, wt, starts, rows, weights, x):
     from prtlab.interreflection._residual import _bounce_kernel
 
     out = np.empty((len(stacked), 3))
-    _bounce_kernel(stacked, np.ascontiguousarray(wt.T), starts.reshape(1, -1), rows, weights, x, np.zeros(0, np.int64),
-                   np.zeros((0, 3)), np.zeros((0, 3)), out)
+    _bounce_kernel(stacked, np.ascontiguousarray(wt.T), starts.reshape(1, -1), rows, weights, x,
+                   np.arange(len(x), dtype=np.int64), np.empty((len(x), 4), weights.dtype), np.zeros((0, 3)), out)
     return out
 
 
@@ -686,9 +686,10 @@ def test_packed_gather_segments_equal_one_merged_list():
 
 def _gather_in_order(starts, rows, weights, x):
     """The packed gather's specification, one Python float at a time: per point ``sum_t sum_j w[t, j] x[rows[t,
-    j]]`` over its terms of every segment in order (``starts`` (S, V + 1)), as the kernel read the stacked residual
-    before it read a compact copy."""
+    j]]`` over its terms of every segment in order (``starts`` (S, V + 1)), each residual value rounded to the
+    weights' type as the kernel's table holds it."""
     out = np.zeros((starts.shape[1] - 1, 3))
+    held = weights.dtype.type
     for v in range(len(out)):
         g = [0.0, 0.0, 0.0]
         for s in range(len(starts)):
@@ -696,7 +697,7 @@ def _gather_in_order(starts, rows, weights, x):
                 for j in range(3):
                     c = float(weights[t, j])
                     for k in range(3):
-                        g[k] += c * float(x[rows[t, j], k])
+                        g[k] += c * float(held(x[rows[t, j], k]))
         out[v] = g
     return out
 
@@ -706,7 +707,7 @@ def test_packed_gather_compact_residual_equals_the_stacked_rows(monkeypatch):
     numbers; int32 past ``SHORT_ROWS``), and :func:`bounce_rgb` over it equals, bit for bit, the gather in order
     over :func:`pack_operators`' stacked rows (``_gather_in_order``): packed whole, after operators change (the
     rows they read anew appended), and after growing past ``COMPACT_GROWTH`` (every operator packed again, over
-    the rows read only)."""
+    the rows read only); with float32 weights and with float64 ones."""
     import dataclasses
 
     from prtlab.interreflection import _residual
@@ -729,7 +730,7 @@ def test_packed_gather_compact_residual_equals_the_stacked_rows(monkeypatch):
         assert set(read_rows(ops)) <= set(residual_rows)
         if exact_set:
             np.testing.assert_array_equal(np.sort(residual_rows), read_rows(ops))
-        merged = pack_operators(ops, sources, offsets)
+        merged = pack_operators(ops, sources, offsets, dtype=packed.dtype)
         expected = _gather_in_order(merged[0].reshape(1, -1), merged[1], merged[2], residual)
         np.testing.assert_array_equal(bounce_rgb(stacked, w, ops, sources, residual, offsets, packed=packed), expected)
         terms = np.concatenate([np.arange(starts[s, v], starts[s, v + 1]) for v in range(n_r)
@@ -752,13 +753,14 @@ def test_packed_gather_compact_residual_equals_the_stacked_rows(monkeypatch):
     assert packed.starts.shape[0] == 1
     monkeypatch.setattr(_residual, "SHORT_ROWS", 16)
     check(PackedGather(), ops, np.int32, True)  # too many rows for uint16
+    check(PackedGather(np.float64), ops, np.int32, True)  # float64 weights: the residual read as it is
 
 
 def test_packed_float32_gather_within_its_rounding_bound():
-    """The default float32 weights (``PACKED_WEIGHTS``) move a point's gather by at most ``2**-24`` times the
-    sum of its terms' magnitudes ``sum_h |factor b_j r_j|`` (each weight rounded once, relative ``2**-24``),
-    plus the float64 sums' own rounding (at most 45 terms a point here: ``64 * 2**-53`` of it), against the
-    float64 weights of the same terms."""
+    """The default float32 weights (``PACKED_WEIGHTS``), with the residual rows read in float32 too, move a point's
+    gather by at most ``2 * 2**-24 + 2**-48`` times the sum of its terms' magnitudes ``sum_h |factor b_j r_j|``
+    (each weight and each residual value rounded once, relative ``2**-24``), plus the float64 sums' own rounding
+    (at most 45 terms a point here: ``64 * 2**-53`` of it), against float64 weights and rows of the same terms."""
     from prtlab.interreflection._residual import _gather_rows, bounce_rgb, pack_operators
 
     rng = np.random.default_rng(8)
@@ -773,7 +775,7 @@ def test_packed_float32_gather_within_its_rounding_bound():
         _gather_rows(op.starts, op.faces, op.triangles, op.uv, np.abs(op.factor.reshape(-1)), a, np.abs(residual),
                      magnitude)
     assert np.abs(rounded - exact).max() > 0  # the rounding is there to bound
-    assert np.all(np.abs(rounded - exact) <= (2.0**-24 + 64 * 2.0**-53) * magnitude)
+    assert np.all(np.abs(rounded - exact) <= (2.0 * 2.0**-24 + 2.0**-48 + 64 * 2.0**-53) * magnitude)
 
 
 def test_float32_stacked_irradiance_within_its_rounding_bound():
