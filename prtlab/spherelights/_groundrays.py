@@ -1148,19 +1148,26 @@ def _hit_list_sums(ptr, ray_k, face, u_hit, v_hit, weights, blocked_radiance, fa
     w_k L_o``, ``L_o`` interpolated from ``radiance`` at the face's vertices."""
     with_env = blocked_radiance.shape[0] > 0
     for q in numba.prange(ptr.shape[0] - 1):
+        # the point's six sums in registers (in memory, each add waited for the store before it)
+        b0, b1, b2 = blocked[q, 0], blocked[q, 1], blocked[q, 2]
+        g0, g1, g2 = gathered[q, 0], gathered[q, 1], gathered[q, 2]
         for i in range(ptr[q], ptr[q + 1]):
             k = np.int64(ray_k[i])
             if with_env:
-                for c in range(3):
-                    blocked[q, c] += blocked_radiance[k, c]
+                b0 += blocked_radiance[k, 0]
+                b1 += blocked_radiance[k, 1]
+                b2 += blocked_radiance[k, 2]
             f = np.int64(face[i])
             if f < 0:
                 continue
             a, b, d = faces[f, 0], faces[f, 1], faces[f, 2]
             u, v = u_hit[i], v_hit[i]
-            for c in range(3):
-                value = (1.0 - u - v) * radiance[a, c] + u * radiance[b, c] + v * radiance[d, c]
-                gathered[q, c] += value * weights[k]
+            t, w = 1.0 - u - v, weights[k]
+            g0 += (t * radiance[a, 0] + u * radiance[b, 0] + v * radiance[d, 0]) * w
+            g1 += (t * radiance[a, 1] + u * radiance[b, 1] + v * radiance[d, 1]) * w
+            g2 += (t * radiance[a, 2] + u * radiance[b, 2] + v * radiance[d, 2]) * w
+        blocked[q, 0], blocked[q, 1], blocked[q, 2] = b0, b1, b2
+        gathered[q, 0], gathered[q, 1], gathered[q, 2] = g0, g1, g2
 
 
 def contact_radiance(points, normals, radiance, heights, tol: float) -> np.ndarray:

@@ -91,10 +91,12 @@ def _blocker_log_table(order: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=1)
-def _blas_controller():
+def _blas_libraries() -> tuple:
+    """threadpoolctl's controllers of the BLAS libraries loaded (found once: a ``limit`` context queries every
+    library's full info, about 0.1 ms a call)."""
     from threadpoolctl import ThreadpoolController
 
-    return ThreadpoolController()
+    return tuple(ThreadpoolController().select(user_api="blas").lib_controllers)
 
 
 @contextlib.contextmanager
@@ -109,11 +111,16 @@ def one_thread_below(size: int, threshold: int):
         yield
         return
     threads = numba.get_num_threads()
+    blas = [(lib, lib.get_num_threads()) for lib in _blas_libraries()]
     numba.set_num_threads(1)
     try:
-        with _blas_controller().limit(limits=1, user_api="blas"):
-            yield
+        for lib, _ in blas:
+            lib.set_num_threads(1)
+        yield
     finally:
+        for lib, n in blas:
+            if n is not None:
+                lib.set_num_threads(n)
         numba.set_num_threads(threads)
 
 

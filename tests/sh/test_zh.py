@@ -94,6 +94,14 @@ def test_clamped_cosine_closed_form():
     np.testing.assert_allclose(factors[:5], [np.pi, 2 * np.pi / 3, np.pi / 4, 0.0, -np.pi / 24], atol=1e-15)
 
 
+def test_clamped_cosine_is_a_fresh_array_each_call():
+    """The coefficients are made once per order; each call returns its own writeable copy."""
+    a = clamped_cosine_zh(5)
+    a[0] = 0.0
+    b = clamped_cosine_zh(5)
+    assert b[0] == pytest.approx(math.sqrt(math.pi) / 2) and b.flags.writeable and b is not a
+
+
 def test_constant_radiance_gives_pi_L():
     L = np.zeros((9, 3))
     L[0] = np.array([1.0, 2.0, 0.5]) * np.sqrt(4 * np.pi)  # L(w) = (1, 2, 0.5)

@@ -62,6 +62,30 @@ def test_reuse_only_for_exactly_equal_inputs():
     assert get((kept,)) == n + 2
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int16, np.uint8, np.complex128])
+def test_large_arrays_compared_by_their_bytes(rng, dtype):
+    """Arrays above the in-place comparison's size (``_COMPARE_IN_PLACE``) are equal exactly when their bytes are:
+    one changed element, ``-0.0`` for ``0.0`` and a strided view of the same values are seen as they are for small
+    arrays; the same NaN bits are equal."""
+    from prtlab.spherelights._reuse import _COMPARE_IN_PLACE, same_inputs
+
+    n = 2 * _COMPARE_IN_PLACE // np.dtype(dtype).itemsize
+    x = (rng.normal(size=n) * 100).astype(dtype)
+    if np.dtype(dtype).kind in "fc":
+        x[3] = np.nan
+    assert x.nbytes >= _COMPARE_IN_PLACE
+    assert same_inputs((x,), (x.copy(),))
+    y = x.copy()
+    y[n - 1] += 1
+    assert not same_inputs((x,), (y,))
+    if np.dtype(dtype).kind == "f":
+        z, w = x.copy(), x.copy()
+        z[5], w[5] = 0.0, -0.0
+        assert not same_inputs((z,), (w,))
+    wide = np.repeat(x, 2)
+    assert same_inputs((wide[::2],), (x,))  # a strided view: compared by its values' bytes
+
+
 def test_end_frame_forgets_what_the_frame_did_not_ask_for():
     reuse = FrameReuse()
     reuse.start_frame()

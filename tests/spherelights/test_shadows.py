@@ -403,3 +403,25 @@ def test_transfer_matrix_kept_is_the_computed_one(rng):
         assert ours.flags.writeable and ours.flags.c_contiguous
         ours[:] = np.nan  # the kept matrix is not the caller's
     assert not np.isnan(transfer_matrix(env, 4)).any()
+
+
+def test_one_thread_below_restores_the_thread_counts():
+    """Below the threshold the block runs with numba and every BLAS library on one thread; the counts before are
+    restored after it, also when it raises; at or above the threshold nothing changes."""
+    import numba
+    from threadpoolctl import threadpool_info
+
+    from prtlab.spherelights._shadows import one_thread_below
+
+    def blas():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    numba_before, blas_before = numba.get_num_threads(), blas()
+    with one_thread_below(1, 2):
+        assert numba.get_num_threads() == 1 and all(n == 1 for n in blas())
+    assert (numba.get_num_threads(), blas()) == (numba_before, blas_before)
+    with pytest.raises(RuntimeError), one_thread_below(1, 2):
+        raise RuntimeError("inside")
+    assert (numba.get_num_threads(), blas()) == (numba_before, blas_before)
+    with one_thread_below(2, 2):
+        assert (numba.get_num_threads(), blas()) == (numba_before, blas_before)
