@@ -57,6 +57,26 @@ def side_worker() -> ThreadPoolExecutor:
     return _POOLS[key]
 
 
+def run_ahead(job, threads: int = 1) -> Future:
+    """``job()`` started on :func:`side_worker` with numba's thread count ``threads`` there, to overlap what the
+    caller does next (its Python and kernels); the future of its result. Without :data:`TASKS` or concurrent kernels
+    (:func:`concurrent_kernels`) the job runs here at once. The caller must wait for the future before it returns
+    (also when it raises), and the job must write nothing the caller reads or writes meanwhile."""
+    future = Future()
+    if not (TASKS and concurrent_kernels()):
+        try:
+            future.set_result(job())
+        except Exception as error:  # raised by future.result(), as from the side worker
+            future.set_exception(error)
+        return future
+
+    def run():
+        numba.set_num_threads(threads)
+        return job()
+
+    return side_worker().submit(run)
+
+
 def on_pool() -> bool:
     """Whether this thread is one of a :func:`pool`'s."""
     return getattr(_WORKER, "task", False)

@@ -48,3 +48,29 @@ def test_run_tasks_runs_large_jobs_here_and_the_others_on_one_numba_thread_each(
         assert _tasks.run_tasks([lambda k=k: job(k) for k in range(3)]) == [0, 1, 2]
         assert seen == [(0, True, 2), (1, True, 2), (2, True, 2)] and _tasks.task_threads() == 1
         monkeypatch.undo()
+
+
+def test_run_ahead_runs_the_job_on_the_side_worker_on_its_thread_count(monkeypatch):
+    """``run_ahead``: the job on the side worker with numba's thread count as asked, while the caller goes on; its
+    error raised by the future; without ``TASKS`` or on numba's workqueue layer it runs here at once."""
+    two_numba_threads()
+
+    def job():
+        return threading.current_thread() is threading.main_thread(), numba.get_num_threads()
+
+    assert _tasks.run_ahead(job).result() == (False, 1)
+    assert _tasks.run_ahead(job, threads=2).result() == (False, 2)
+    assert numba.get_num_threads() == 2  # the caller's count is its own
+
+    def fail():
+        raise ValueError("inside")
+
+    with pytest.raises(ValueError, match="inside"):
+        _tasks.run_ahead(fail).result()
+    for off in ((_tasks, "TASKS", False), (numba, "threading_layer", lambda: "workqueue")):
+        monkeypatch.setattr(*off)
+        future = _tasks.run_ahead(job)
+        assert future.done() and future.result() == (True, 2)
+        with pytest.raises(ValueError, match="inside"):
+            _tasks.run_ahead(fail).result()
+        monkeypatch.undo()

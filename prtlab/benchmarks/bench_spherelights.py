@@ -17,6 +17,8 @@ objects' direct light against the meshes (``mesh_blockers``), and the precomputa
 
 from __future__ import annotations
 
+from concurrent.futures import wait as futures_wait
+
 import numpy as np
 
 import prtlab.data
@@ -346,7 +348,8 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
     visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
     (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
-    cast); the objects' occluders are ``mesh_parts``'. ``moved``: ``(object, translation (3,))``, that object (its
+    cast); the objects' occluders are ``mesh_parts``'. A kept result of the ground's rays is updated on the second
+    thread while the objects are shaded (``prtlab._tasks.run_ahead``), as the pipeline does. ``moved``: ``(object, translation (3,))``, that object (its
     lights, receivers, surface samples, mesh and occluder) translated (:func:`_translated`)."""
     from prtlab.spherelights._ground import covered_texels, fill_covered, ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
@@ -356,6 +359,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                                                near_blocker_visibility)
     from prtlab.spherelights._pipeline import (_GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse,
                                                near_samples_reuse)
+    from prtlab._tasks import run_ahead
     from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
@@ -381,94 +385,106 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                   np.array([rect[0, 1], rect[0, 0], rect[0, 2]]), float(np.arctan2(rect[0, 4], rect[0, 3])),
                   float(np.hypot(*rect[0, 3:5])), size)
         blockers = reuse.get("mesh_blockers", inputs, lambda: mesh_blockers(*inputs))
-    extra = None
-    if near_blockers:  # SphereLights._near_samples (every sample valid here)
-        extra = np.zeros(a["valid"].shape + (3,))
-        for own in np.unique(obj):
-            rows = obj == own
-            e = eligible(own)
-            p = a["spts"][rows].reshape(-1, 3)
-            n = a["snrm"][rows].reshape(-1, 3)
-            n = n / np.linalg.norm(n, axis=1, keepdims=True)
-            sel = has_near_blocker(p, n, c, r, e)
-            if sel.any():
-                corr = np.zeros((len(p), 3))
-                args = (p[sel], n[sel], c, r, ORDER)
-                key = (p, n, sel, c, r, ORDER, near_blockers, e, "hyb")
-                near_vis, far_vis = reuse.get(("near_samples", int(own)), key, lambda: tuple(
-                    near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)), near_samples_reuse(key))
-                corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
-                extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
-    weight = None
-    if emission_coverage:  # SphereLights._emission
-        from prtlab.spherelights._samples import coverage_weights
-
-        weight = coverage_weights(np.ones(a["valid"].shape), a["valid"], geodesic_directions(a["valid"].shape[1]))
-        weight = np.stack([np.ones_like(weight), weight])
-    emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
-                          a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER,
-                          sample_weight=weight)
-    own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
+    ahead = None  # SphereLights.shade_frame: kept hits of the ground's rays updated on a second thread
     if rays:
-        key = (inputs, texels, ground_ray_spacing)
-        hits = reuse.get(("texel_rays", "ground"), key,
-                         lambda: ground_direct_hits(texels, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing),
-                         ground_hits_reuse(key, blockers, texels, _TEXEL_RAYS, ground_ray_spacing))
-        e = ground_direct_sums(hits, env, blockers)
-    else:
-        e = _ground_direct(a, texels, up)
-        near(texels, up, e, -1)
-    covered = np.zeros((64, 64), dtype=bool)  # SphereLights._covered: per object, kept while it stays
-    for g, mesh in enumerate(meshes):
-        covered |= reuse.get(("covered_texels", "ground", g), (rect[0], 64, mesh),
-                             lambda: covered_texels(rect[0], 64, [mesh]))
-    tex = fill_covered((np.maximum(e, 0.0) * albedo).reshape(64, 64, 3), covered)[None]
-    out, radiance = [], []
-    for own in range(0 if rays else -1, int(obj.max()) + 1):
-        rows = a["recv_object"] == own
-        p, n = a["points"][rows], a["normals"][rows]
-        emission_in = (np.where((obj == own)[:, None, None], own_emission, emission)  # own lights: the paper's
-                       if emission_coverage and own >= 0 else emission)
-        direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission_in, env, order=ORDER)
-        exact = mesh_parts is not None and own >= 0
-        if exact:
-            bits, occluders = mesh_parts[own]
-            key = (p, n, bits, rect, [o.translate for o in occluders])
+        ground_pts = a["points"][a["recv_object"] == -1]
+        ground_key = (inputs, ground_pts, ground_ray_spacing)
 
-            def update(kept_key, kept, key=key, p=p, n=n, bits=bits, occluders=occluders):  # as SphereLights'
-                if not same_inputs(kept_key[:4], key[:4]) or len(kept_key[4]) != len(key[4]):
-                    return None
-                moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
-                visible, counts = mesh_direct_visible_update(kept[0], kept[1], p, n, np.eye(3), bits, occluders, moved,
-                                                             rect)
-                return (visible, occluders), counts
+        def ground_hits():
+            return reuse.get(("ground_rays", "ground"), ground_key,
+                             lambda: ground_light_hits(ground_pts, blockers, _GROUND_RAYS, spacing=ground_ray_spacing),
+                             ground_hits_reuse(ground_key, blockers, ground_pts, _GROUND_RAYS, ground_ray_spacing))
 
-            visible, _ = reuse.get(("mesh_direct", own), key,
-                                   lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders),
-                                   update)
-            direct = mesh_direct_sums(visible, n, env, np.eye(3))
+        if reuse.holds(("ground_rays", "ground")):
+            ahead = run_ahead(ground_hits)
+    try:
+        extra = None
+        if near_blockers:  # SphereLights._near_samples (every sample valid here)
+            extra = np.zeros(a["valid"].shape + (3,))
+            for own in np.unique(obj):
+                rows = obj == own
+                e = eligible(own)
+                p = a["spts"][rows].reshape(-1, 3)
+                n = a["snrm"][rows].reshape(-1, 3)
+                n = n / np.linalg.norm(n, axis=1, keepdims=True)
+                sel = has_near_blocker(p, n, c, r, e)
+                if sel.any():
+                    corr = np.zeros((len(p), 3))
+                    args = (p[sel], n[sel], c, r, ORDER)
+                    key = (p, n, sel, c, r, ORDER, near_blockers, e, "hyb")
+                    near_vis, far_vis = reuse.get(("near_samples", int(own)), key, lambda: tuple(
+                        near_blocker_visibility(*args, m, eligible=e) for m in (near_blockers, 0)),
+                        near_samples_reuse(key))
+                    corr[sel] = near_blocker_sums(near_vis, env) - near_blocker_sums(far_vis, env)
+                    extra[rows] = corr.reshape(-1, a["valid"].shape[1], 3)
+        weight = None
+        if emission_coverage:  # SphereLights._emission
+            from prtlab.spherelights._samples import coverage_weights
+
+            weight = coverage_weights(np.ones(a["valid"].shape), a["valid"], geodesic_directions(a["valid"].shape[1]))
+            weight = np.stack([np.ones_like(weight), weight])
+        emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
+                              a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER,
+                              sample_weight=weight)
+        own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
+        if rays:
+            key = (inputs, texels, ground_ray_spacing)
+            hits = reuse.get(("texel_rays", "ground"), key,
+                             lambda: ground_direct_hits(texels, blockers, _TEXEL_RAYS, spacing=ground_ray_spacing),
+                             ground_hits_reuse(key, blockers, texels, _TEXEL_RAYS, ground_ray_spacing))
+            e = ground_direct_sums(hits, env, blockers)
         else:
-            near(p, n, direct, own)
-        if own >= 0:
-            unadjusted = eligible(own) & (near_blockers > 0)
-            key = (p, n, rect, c, r, None, unadjusted)
-            samples = reuse.get(("ground_light", own), key, lambda: ground_samples(*key[:6], unadjusted=unadjusted),
-                                ground_samples_reuse(key))
-            hidden, reflected = ground_sample_sums(samples, tex, env)
-            direct, indirect = (direct if exact else direct - hidden), indirect + reflected
-        out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
-        if rays:  # the objects' exit radiance as the ground sees it (one bounce: their direct light)
-            radiance.append(contact_radiance(p, n, out[-1][0] * albedo, rect[:, 0],
-                                            blockers.caster.epsilon * blockers.scale))
-    if rays:
-        rows = a["recv_object"] == -1
-        pts = a["points"][rows]
-        key = (inputs, pts, ground_ray_spacing)
-        hits = reuse.get(("ground_rays", "ground"), key,
-                         lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=ground_ray_spacing),
-                         ground_hits_reuse(key, blockers, pts, _GROUND_RAYS, ground_ray_spacing))
-        direct, indirect = ground_light_sums(hits, env, blockers, radiance)
-        out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
+            e = _ground_direct(a, texels, up)
+            near(texels, up, e, -1)
+        covered = np.zeros((64, 64), dtype=bool)  # SphereLights._covered: per object, kept while it stays
+        for g, mesh in enumerate(meshes):
+            covered |= reuse.get(("covered_texels", "ground", g), (rect[0], 64, mesh),
+                                 lambda: covered_texels(rect[0], 64, [mesh]))
+        tex = fill_covered((np.maximum(e, 0.0) * albedo).reshape(64, 64, 3), covered)[None]
+        out, radiance = [], []
+        for own in range(0 if rays else -1, int(obj.max()) + 1):
+            rows = a["recv_object"] == own
+            p, n = a["points"][rows], a["normals"][rows]
+            emission_in = (np.where((obj == own)[:, None, None], own_emission, emission)  # own lights: the paper's
+                           if emission_coverage and own >= 0 else emission)
+            direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission_in, env, order=ORDER)
+            exact = mesh_parts is not None and own >= 0
+            if exact:
+                bits, occluders = mesh_parts[own]
+                key = (p, n, bits, rect, [o.translate for o in occluders])
+
+                def update(kept_key, kept, key=key, p=p, n=n, bits=bits, occluders=occluders):  # as SphereLights'
+                    if not same_inputs(kept_key[:4], key[:4]) or len(kept_key[4]) != len(key[4]):
+                        return None
+                    moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
+                    visible, counts = mesh_direct_visible_update(kept[0], kept[1], p, n, np.eye(3), bits, occluders,
+                                                                 moved, rect)
+                    return (visible, occluders), counts
+
+                visible, _ = reuse.get(("mesh_direct", own), key,
+                                       lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders),
+                                       update)
+                direct = mesh_direct_sums(visible, n, env, np.eye(3))
+            else:
+                near(p, n, direct, own)
+            if own >= 0:
+                unadjusted = eligible(own) & (near_blockers > 0)
+                key = (p, n, rect, c, r, None, unadjusted)
+                samples = reuse.get(("ground_light", own), key, lambda: ground_samples(*key[:6], unadjusted=unadjusted),
+                                    ground_samples_reuse(key))
+                hidden, reflected = ground_sample_sums(samples, tex, env)
+                direct, indirect = (direct if exact else direct - hidden), indirect + reflected
+            out.append((np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
+            if rays:  # the objects' exit radiance as the ground sees it (one bounce: their direct light)
+                radiance.append(contact_radiance(p, n, out[-1][0] * albedo, rect[:, 0],
+                                                blockers.caster.epsilon * blockers.scale))
+        if rays:
+            hits = ahead.result() if ahead is not None else ground_hits()
+            direct, indirect = ground_light_sums(hits, env, blockers, radiance)
+            out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
+    finally:
+        if ahead is not None:
+            futures_wait([ahead])
     return out
 
 

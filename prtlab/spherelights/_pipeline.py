@@ -60,6 +60,7 @@ import dataclasses
 import functools
 import math
 import time
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import NamedTuple
@@ -67,6 +68,7 @@ from typing import NamedTuple
 import numpy as np
 
 from prtlab import sh
+from prtlab._tasks import run_ahead
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import geodesic_directions
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geometry_key_parts
@@ -688,7 +690,9 @@ class SphereLights(Precomputation):
         grounds first; at the other receivers the ground's terms (``_ground``). With ``bounces=2`` the ground's
         light also reaches the surface samples and the objects receive the ground's total light. The geometry-only
         results (the grounds' ray hits, the objects' visible rays, ``ground_light``'s samples) are those of the frame
-        before when every input they depend on is exactly the same (:attr:`frame_reuse`)."""
+        before when every input they depend on is exactly the same (:attr:`frame_reuse`); a ground's kept ray hits
+        are updated on a second thread (:func:`prtlab._tasks.run_ahead`, one numba thread) while the objects are
+        shaded: the same frame, bit for bit."""
         t_start = time.perf_counter()
         opts = self.options
         lights, world = self._frame_lights(state)
@@ -705,6 +709,13 @@ class SphereLights(Precomputation):
             blocker_inputs = self._mesh_blocker_inputs(state, lights, sources, rects)
             blockers = reuse.get("mesh_blockers", blocker_inputs, lambda: mesh_blockers(*blocker_inputs))
 
+            def ground_hits(name, pts):  # the closest hits of a ground's rays, kept while the geometry stays
+                spacing = opts.ground_ray_spacing
+                inputs = (blocker_inputs, pts, _GROUND_RAYS.dirs, _GROUND_RAYS.weights, spacing)
+                return reuse.get(("ground_rays", name), inputs,
+                                 lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=spacing),
+                                 ground_hits_reuse(inputs, blockers, pts, _GROUND_RAYS, spacing))
+
             def ground_direct(p, n, name):  # the texels' rule
                 inputs = (blocker_inputs, p, _TEXEL_RAYS.dirs, _TEXEL_RAYS.weights, opts.ground_ray_spacing)
                 hits = reuse.get(("texel_rays", name), inputs,
@@ -712,103 +723,116 @@ class SphereLights(Precomputation):
                                  ground_hits_reuse(inputs, blockers, p, _TEXEL_RAYS, opts.ground_ray_spacing))
                 e = ground_direct_sums(hits, lights.env, blockers)
                 return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
-        emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
-        own_emission = None  # with ``emission_coverage``: the paper's emission, for the lights' own object
-        if bounces > 0 and n_sl:
-            first = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [], state)
-            if opts.emission_coverage:
-                own_emission = emission.copy()
-                own_emission[:n_sl], emission[:n_sl] = first
-            else:
-                emission[:n_sl] = first
-        t_first = time.perf_counter()
-        result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
-                                   "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
-                                   "blocking": opts.blocking, "average": opts.average, "ground": opts.ground,
-                                   "ground_shading": opts.ground_shading, "mesh_blockers": opts.mesh_blockers})
-        ground_names = [obj.name for obj, _ in grounds]
-        order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
-                       key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
-        textures = np.zeros((len(grounds), 1, 1, 3))
-        if reflects and ground_direct is not None:  # its indirect light (two bounces) stays the second pass's
-            textures = self._ground_textures(grounds, lambda p, n, name: ground_direct(p, n, name) + (
-                self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state)
-        elif reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
-            textures = self._ground_textures(grounds, lambda p, n, _: sum(
-                self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state)
-        nodes = None
         receivers = {}  # world points and normals per object, for the grounds' gathered light
-        local_direct = {}  # the local lights' direct light at the grounds (with rays, the rest is added below)
-        for obj in order:
-            tr = state.transforms.get(obj.name) or obj.transform
-            if obj.name in state.deformations:
-                pts, nrm = _deformed_receivers(obj, state.deformations[obj.name], tr)
-            else:
-                pts, nrm = obj.world_shading_points(tr), obj.world_normals(tr)
-            receivers[obj.name] = (pts, nrm)
-            own = sorted(self.data["objects"]).index(obj.name) if obj.name in self.data["objects"] else -1
-            emission_in = emission
-            if own >= 0 and own_emission is not None:  # its own lights with the paper's emission (near field)
-                emission_in = np.where((lights.object_index == own)[:, None, None], own_emission, emission)
-            near_used = opts.near_blockers > 0  # the flat pass's direct light takes the nearest lights exactly
-            exact = opts.mesh_blockers and own >= 0  # the direct light against the meshes (``_meshdirect``)
-            if blockers is not None and obj.name in ground_names:  # the environment's light and the gathered: below
-                direct = self._pass(lights, pts, nrm, lights.local_only, True)[1] if lights.n_loc else 0.0
-                direct, indirect = direct + np.zeros((len(pts), 3)), np.zeros((len(pts), 3))
-                local_direct[obj.name] = direct
-            elif opts.hierarchy_children and bounces > 0 and n_sl:
-                near_used = False
-                if nodes is None:
-                    nodes = self._hierarchy_nodes(state, state.deformations, lights.centres, lights.radii,
-                                                  lights.object_index, lights.rotations)
-                direct, indirect = self._hierarchical_second_pass(obj, pts, nrm, nodes, *lights[:5], emission_in,
-                                                                  lights.env)
-                if lights.n_loc:
-                    direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
-            elif exact:  # the second pass for the indirect light; the direct light below
-                direct, indirect = self._pass(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0)
-            else:
-                direct, indirect = self._irradiance(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0, own)
-            if exact:
-                direct = self._mesh_direct(state, lights, obj, pts, nrm, rects)
-                if lights.n_loc:
-                    direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
-            if obj.name not in ground_names and len(grounds):
-                # the ground hides what lies beyond it and reflects its own light (see ``_ground``)
-                unadjusted = self._near_eligible(lights, own) & near_used
-                args = (pts, nrm, rects, lights.centres, lights.radii, lights.local_radiance)
-                samples = reuse.get(("ground_light", obj.name), args + (unadjusted,),
-                                    lambda: ground_samples(*args, unadjusted=unadjusted),
-                                    ground_samples_reuse(args + (unadjusted,)))
-                hidden, reflected = ground_sample_sums(samples, textures, lights.env, lights.local_radiance)
-                direct = direct if exact else direct - hidden  # the rays of ``exact`` meet the grounds
-                indirect = indirect + reflected if reflects else indirect
-            albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
-            # irradiance is never negative: clamp the order-n SH products' ringing (see the module docstring)
-            result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
-            result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
-            result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
-        if blockers is not None:  # the grounds' direct light and their indirect light from the objects' radiance
-            tol = blockers.caster.epsilon * blockers.scale if blockers.caster is not None else 0.0  # the rays' offset
-            radiance = [contact_radiance(*receivers[name], (result.total if bounces > 1 else result.direct)[name],
-                                         rects[:, 0], tol) for name in sources]
+        # a ground's kept ray hits updated on a second thread while the objects are shaded (the update casts the
+        # rays near the moved objects; a fresh cast, on every thread, waits for the end)
+        ahead = {}  # name -> the future of the ground's ray hits
+        if blockers is not None:
             for obj, _ in grounds:
+                if reuse.holds(("ground_rays", obj.name)):
+                    receivers[obj.name] = self._receivers(state, obj)
+                    ahead[obj.name] = run_ahead(functools.partial(ground_hits, obj.name, receivers[obj.name][0]))
+        try:
+            emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
+            own_emission = None  # with ``emission_coverage``: the paper's emission, for the lights' own object
+            if bounces > 0 and n_sl:
+                first = self._emission(lights, world, rects, grounds if reflects and bounces > 1 else [], state)
+                if opts.emission_coverage:
+                    own_emission = emission.copy()
+                    own_emission[:n_sl], emission[:n_sl] = first
+                else:
+                    emission[:n_sl] = first
+            t_first = time.perf_counter()
+            result = ShadeResult(info={"method": self.method, "bounces": bounces, "n_lights": int(n_sl),
+                                       "n_local_lights": int(lights.n_loc), "exp_method": opts.exp_method,
+                                       "blocking": opts.blocking, "average": opts.average, "ground": opts.ground,
+                                       "ground_shading": opts.ground_shading, "mesh_blockers": opts.mesh_blockers})
+            ground_names = [obj.name for obj, _ in grounds]
+            order = sorted((o for o in self.scene.objects if not o.portal),  # portals are openings, not surfaces
+                           key=lambda o: o.name not in ground_names)  # grounds first: their light reaches the others
+            textures = np.zeros((len(grounds), 1, 1, 3))
+            if reflects and ground_direct is not None:  # its indirect light (two bounces) stays the second pass's
+                textures = self._ground_textures(grounds, lambda p, n, name: ground_direct(p, n, name) + (
+                    self._pass(lights, p, n, emission, True)[1] if bounces > 1 and n_sl else 0.0), state)
+            elif reflects:  # the ground's exit radiance: its direct light (one bounce) or its total (two)
+                textures = self._ground_textures(grounds, lambda p, n, _: sum(
+                    self._irradiance(lights, p, n, emission, bounces > 1 and n_sl > 0)), state)
+            nodes = None
+            local_direct = {}  # the local lights' direct light at the grounds (with rays, the rest is added below)
+            for obj in order:
+                if obj.name not in receivers:
+                    receivers[obj.name] = self._receivers(state, obj)
+                pts, nrm = receivers[obj.name]
+                own = sorted(self.data["objects"]).index(obj.name) if obj.name in self.data["objects"] else -1
+                emission_in = emission
+                if own >= 0 and own_emission is not None:  # its own lights with the paper's emission (near field)
+                    emission_in = np.where((lights.object_index == own)[:, None, None], own_emission, emission)
+                near_used = opts.near_blockers > 0  # the flat pass's direct light takes the nearest lights exactly
+                exact = opts.mesh_blockers and own >= 0  # the direct light against the meshes (``_meshdirect``)
+                if blockers is not None and obj.name in ground_names:  # the environment's light and the gathered: below
+                    direct = self._pass(lights, pts, nrm, lights.local_only, True)[1] if lights.n_loc else 0.0
+                    direct, indirect = direct + np.zeros((len(pts), 3)), np.zeros((len(pts), 3))
+                    local_direct[obj.name] = direct
+                elif opts.hierarchy_children and bounces > 0 and n_sl:
+                    near_used = False
+                    if nodes is None:
+                        nodes = self._hierarchy_nodes(state, state.deformations, lights.centres, lights.radii,
+                                                      lights.object_index, lights.rotations)
+                    direct, indirect = self._hierarchical_second_pass(obj, pts, nrm, nodes, *lights[:5], emission_in,
+                                                                      lights.env)
+                    if lights.n_loc:
+                        direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
+                elif exact:  # the second pass for the indirect light; the direct light below
+                    direct, indirect = self._pass(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0)
+                else:
+                    direct, indirect = self._irradiance(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0, own)
+                if exact:
+                    direct = self._mesh_direct(state, lights, obj, pts, nrm, rects)
+                    if lights.n_loc:
+                        direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
+                if obj.name not in ground_names and len(grounds):
+                    # the ground hides what lies beyond it and reflects its own light (see ``_ground``)
+                    unadjusted = self._near_eligible(lights, own) & near_used
+                    args = (pts, nrm, rects, lights.centres, lights.radii, lights.local_radiance)
+                    samples = reuse.get(("ground_light", obj.name), args + (unadjusted,),
+                                        lambda: ground_samples(*args, unadjusted=unadjusted),
+                                        ground_samples_reuse(args + (unadjusted,)))
+                    hidden, reflected = ground_sample_sums(samples, textures, lights.env, lights.local_radiance)
+                    direct = direct if exact else direct - hidden  # the rays of ``exact`` meet the grounds
+                    indirect = indirect + reflected if reflects else indirect
                 albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
-                pts = receivers[obj.name][0]
-                spacing = opts.ground_ray_spacing
-                inputs = (blocker_inputs, pts, _GROUND_RAYS.dirs, _GROUND_RAYS.weights, spacing)
-                hits = reuse.get(("ground_rays", obj.name), inputs,
-                                 lambda: ground_light_hits(pts, blockers, _GROUND_RAYS, spacing=spacing),
-                                 ground_hits_reuse(inputs, blockers, pts, _GROUND_RAYS, spacing))
-                e_dir, e_ind = ground_light_sums(hits, lights.env, blockers, radiance)
-                if not (bounces > 0 and n_sl):
-                    e_ind = np.zeros_like(e_ind)
-                result.direct[obj.name] = np.maximum(local_direct[obj.name] + e_dir, 0.0) * albedo
-                result.indirect[obj.name] = np.maximum(e_ind, 0.0) * albedo
+                # irradiance is never negative: clamp the order-n SH products' ringing (see the module docstring)
+                result.direct[obj.name] = np.maximum(direct, 0.0) * albedo
+                result.indirect[obj.name] = np.maximum(indirect, 0.0) * albedo
                 result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
+            if blockers is not None:  # the grounds' direct light and their indirect light from the objects' radiance
+                # the rays' offset
+                tol = blockers.caster.epsilon * blockers.scale if blockers.caster is not None else 0.0
+                radiance = [contact_radiance(*receivers[name], (result.total if bounces > 1 else result.direct)[name],
+                                             rects[:, 0], tol) for name in sources]
+                for obj, _ in grounds:
+                    albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
+                    pts = receivers[obj.name][0]
+                    hits = ahead[obj.name].result() if obj.name in ahead else ground_hits(obj.name, pts)
+                    e_dir, e_ind = ground_light_sums(hits, lights.env, blockers, radiance)
+                    if not (bounces > 0 and n_sl):
+                        e_ind = np.zeros_like(e_ind)
+                    result.direct[obj.name] = np.maximum(local_direct[obj.name] + e_dir, 0.0) * albedo
+                    result.indirect[obj.name] = np.maximum(e_ind, 0.0) * albedo
+                    result.total[obj.name] = result.direct[obj.name] + result.indirect[obj.name]
+        finally:  # no task of this frame runs on after it
+            futures_wait(list(ahead.values()))
         result.info["timings"] = {"first_pass": t_first - t_start, "second_pass": time.perf_counter() - t_first}
         result.info["geometry"] = reuse.end_frame()
         return result
+
+    @staticmethod
+    def _receivers(state: FrameState, obj) -> tuple[np.ndarray, np.ndarray]:
+        """An object's receiver points and normals at the frame's pose (world space; deformed as the frame says)."""
+        tr = state.transforms.get(obj.name) or obj.transform
+        if obj.name in state.deformations:
+            return _deformed_receivers(obj, state.deformations[obj.name], tr)
+        return obj.world_shading_points(tr), obj.world_normals(tr)
 
     @property
     def frame_reuse(self) -> FrameReuse:

@@ -30,7 +30,8 @@ class FrameReuse:
     of arrays, numbers, strings and None; arrays are compared by dtype, shape and bytes (so ``-0.0`` differs from
     ``0.0``, as it may change a result; a NaN equals the same NaN); other objects by ``==``. Between
     :meth:`start_frame` and :meth:`end_frame` the names asked for are counted, and ``end_frame`` forgets the results
-    no call asked for (a frame keeps only what the frame before it computed, updated or reused)."""
+    no call asked for (a frame keeps only what the frame before it computed, updated or reused). Two threads may
+    call :meth:`get` at once for different names."""
 
     def __init__(self):
         self._kept: dict = {}
@@ -55,6 +56,10 @@ class FrameReuse:
         self._kept[name] = (_copy(inputs), value)
         self._computed.append(name)
         return value
+
+    def holds(self, name) -> bool:
+        """Whether a result is kept under ``name`` (the next :meth:`get` may reuse or update it)."""
+        return name in self._kept
 
     def clear(self) -> None:
         """Forget every kept result (the next frame computes everything)."""

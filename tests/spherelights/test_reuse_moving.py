@@ -197,12 +197,18 @@ def _same(a, b):
             assert np.array_equal(getattr(a, part)[name], getattr(b, part)[name]), f"{part} {name}"
 
 
-def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
+def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monkeypatch):
     """Frames through one pipeline, one object or two moving (translated, turned, scaled, deformed), all three, the
     ground moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
-    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept."""
+    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept. A kept frame's
+    ground rays are updated on the second thread (``run_ahead``) while a fresh pipeline's are cast in turn."""
+    import prtlab.spherelights._pipeline as pipeline
+    from prtlab._tasks import concurrent_kernels, run_ahead
+
+    ahead = []
+    monkeypatch.setattr(pipeline, "run_ahead", lambda job: ahead.append(1) or run_ahead(job))
     scene, pre = bunny_scene
     pre.frame_reuse.clear()
     rest = FrameState.from_scene(scene)
@@ -259,6 +265,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene):
         partly[1] += len(updated.get("ground_light", []))
     assert kept_any >= 4
     assert partly[0] >= 4 and partly[1] >= 4, partly  # ground_light's samples and the near caps partly kept
+    assert len(ahead) >= len(frames) - 1 and concurrent_kernels()  # the kept frames' rays on the side worker
 
 
 # ------------------------------------------------------------------ ground_light's samples when lights move
