@@ -17,6 +17,7 @@ objects' direct light against the meshes (``mesh_blockers``), and the precomputa
 
 from __future__ import annotations
 
+import functools
 from concurrent.futures import wait as futures_wait
 
 import numpy as np
@@ -348,9 +349,10 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
     visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
     (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
-    cast); the objects' occluders are ``mesh_parts``'. A kept result of the ground's rays is updated on the second
-    thread while the objects are shaded (``prtlab._tasks.run_ahead``), as the pipeline does. ``moved``: ``(object, translation (3,))``, that object (its
-    lights, receivers, surface samples, mesh and occluder) translated (:func:`_translated`)."""
+    cast); the objects' occluders are ``mesh_parts``'. Kept visible rays and ground rays are updated on the second
+    thread while the objects are shaded (``prtlab._tasks.run_ahead``), as the pipeline does. ``moved``: ``(object,
+    translation (3,))``, that object (its lights, receivers, surface samples, mesh and occluder) translated
+    (:func:`_translated`)."""
     from prtlab.spherelights._ground import covered_texels, fill_covered, ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers, object_size)
@@ -385,7 +387,30 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                   np.array([rect[0, 1], rect[0, 0], rect[0, 2]]), float(np.arctan2(rect[0, 4], rect[0, 3])),
                   float(np.hypot(*rect[0, 3:5])), size)
         blockers = reuse.get("mesh_blockers", inputs, lambda: mesh_blockers(*inputs))
-    ahead = None  # SphereLights.shade_frame: kept hits of the ground's rays updated on a second thread
+    def visible_rays(own):  # SphereLights._mesh_visible: an object's visible rays against the others' meshes
+        rows = a["recv_object"] == own
+        p, n = a["points"][rows], a["normals"][rows]
+        bits, occluders = mesh_parts[own]
+        key = (p, n, bits, rect, [o.translate for o in occluders])
+
+        def update(kept_key, kept):
+            if not same_inputs(kept_key[:4], key[:4]) or len(kept_key[4]) != len(key[4]):
+                return None
+            moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
+            visible, counts = mesh_direct_visible_update(kept[0], kept[1], p, n, np.eye(3), bits, occluders, moved,
+                                                         rect)
+            return (visible, occluders), counts
+
+        return reuse.get(("mesh_direct", own), key,
+                         lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders), update)[0]
+
+    # SphereLights.shade_frame: kept geometry (the objects' visible rays, then the ground's ray hits) updated on a
+    # second thread while the first pass and the objects are shaded
+    ahead = {}  # object (-1: the ground's rays) -> future
+    if mesh_parts is not None:
+        for own in range(len(mesh_parts)):
+            if reuse.holds(("mesh_direct", own)):
+                ahead[own] = run_ahead(functools.partial(visible_rays, own))
     if rays:
         ground_pts = a["points"][a["recv_object"] == -1]
         ground_key = (inputs, ground_pts, ground_ray_spacing)
@@ -396,7 +421,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                              ground_hits_reuse(ground_key, blockers, ground_pts, _GROUND_RAYS, ground_ray_spacing))
 
         if reuse.holds(("ground_rays", "ground")):
-            ahead = run_ahead(ground_hits)
+            ahead[-1] = run_ahead(ground_hits)
     try:
         extra = None
         if near_blockers:  # SphereLights._near_samples (every sample valid here)
@@ -450,20 +475,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission_in, env, order=ORDER)
             exact = mesh_parts is not None and own >= 0
             if exact:
-                bits, occluders = mesh_parts[own]
-                key = (p, n, bits, rect, [o.translate for o in occluders])
-
-                def update(kept_key, kept, key=key, p=p, n=n, bits=bits, occluders=occluders):  # as SphereLights'
-                    if not same_inputs(kept_key[:4], key[:4]) or len(kept_key[4]) != len(key[4]):
-                        return None
-                    moved = [not same_inputs(a, b) for a, b in zip(kept_key[4], key[4])]
-                    visible, counts = mesh_direct_visible_update(kept[0], kept[1], p, n, np.eye(3), bits, occluders,
-                                                                 moved, rect)
-                    return (visible, occluders), counts
-
-                visible, _ = reuse.get(("mesh_direct", own), key,
-                                       lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders),
-                                       update)
+                visible = ahead[own].result() if own in ahead else visible_rays(own)
                 direct = mesh_direct_sums(visible, n, env, np.eye(3))
             else:
                 near(p, n, direct, own)
@@ -479,12 +491,11 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                 radiance.append(contact_radiance(p, n, out[-1][0] * albedo, rect[:, 0],
                                                 blockers.caster.epsilon * blockers.scale))
         if rays:
-            hits = ahead.result() if ahead is not None else ground_hits()
+            hits = ahead[-1].result() if -1 in ahead else ground_hits()
             direct, indirect = ground_light_sums(hits, env, blockers, radiance)
             out.insert(0, (np.maximum(direct, 0.0), np.maximum(indirect, 0.0)))
     finally:
-        if ahead is not None:
-            futures_wait([ahead])
+        futures_wait(list(ahead.values()))
     return out
 
 

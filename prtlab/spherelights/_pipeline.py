@@ -690,9 +690,9 @@ class SphereLights(Precomputation):
         grounds first; at the other receivers the ground's terms (``_ground``). With ``bounces=2`` the ground's
         light also reaches the surface samples and the objects receive the ground's total light. The geometry-only
         results (the grounds' ray hits, the objects' visible rays, ``ground_light``'s samples) are those of the frame
-        before when every input they depend on is exactly the same (:attr:`frame_reuse`); a ground's kept ray hits
-        are updated on a second thread (:func:`prtlab._tasks.run_ahead`, one numba thread) while the objects are
-        shaded: the same frame, bit for bit."""
+        before when every input they depend on is exactly the same (:attr:`frame_reuse`); kept ones (the objects'
+        visible rays, the grounds' ray hits) are updated on a second thread (:func:`prtlab._tasks.run_ahead`, one
+        numba thread) while the objects are shaded: the same frame, bit for bit."""
         t_start = time.perf_counter()
         opts = self.options
         lights, world = self._frame_lights(state)
@@ -724,14 +724,23 @@ class SphereLights(Precomputation):
                 e = ground_direct_sums(hits, lights.env, blockers)
                 return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
         receivers = {}  # world points and normals per object, for the grounds' gathered light
-        # a ground's kept ray hits updated on a second thread while the objects are shaded (the update casts the
-        # rays near the moved objects; a fresh cast, on every thread, waits for the end)
-        ahead = {}  # name -> the future of the ground's ray hits
+        # geometry kept from the last frame (the objects' visible rays, then the grounds' ray hits) updated on a
+        # second thread while the first pass and the objects are shaded here, in the order they are needed; a
+        # result made afresh (nothing kept) is made here, on every thread
+        ahead = {}  # (kind, name) -> future
+        if opts.mesh_blockers:
+            for name in sources:
+                if reuse.holds(("mesh_direct", name)):
+                    obj = self.scene.object(name)
+                    receivers[name] = self._receivers(state, obj)
+                    ahead["mesh_direct", name] = run_ahead(functools.partial(self._mesh_visible, state, lights, obj,
+                                                                             *receivers[name], rects))
         if blockers is not None:
             for obj, _ in grounds:
                 if reuse.holds(("ground_rays", obj.name)):
                     receivers[obj.name] = self._receivers(state, obj)
-                    ahead[obj.name] = run_ahead(functools.partial(ground_hits, obj.name, receivers[obj.name][0]))
+                    ahead["ground_rays", obj.name] = run_ahead(functools.partial(ground_hits, obj.name,
+                                                                                 receivers[obj.name][0]))
         try:
             emission = np.zeros((n_sl + lights.n_loc, opts.light_order**2, 3))
             own_emission = None  # with ``emission_coverage``: the paper's emission, for the lights' own object
@@ -787,7 +796,9 @@ class SphereLights(Precomputation):
                 else:
                     direct, indirect = self._irradiance(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0, own)
                 if exact:
-                    direct = self._mesh_direct(state, lights, obj, pts, nrm, rects)
+                    visible, rot, dirs = (ahead["mesh_direct", obj.name].result() if ("mesh_direct", obj.name) in ahead
+                                          else self._mesh_visible(state, lights, obj, pts, nrm, rects))
+                    direct = mesh_direct_sums(visible, nrm, lights.env, rot, dirs)  # the environment's, blocked
                     if lights.n_loc:
                         direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
                 if obj.name not in ground_names and len(grounds):
@@ -813,7 +824,8 @@ class SphereLights(Precomputation):
                 for obj, _ in grounds:
                     albedo = np.asarray(obj.material.diffuse_albedo, dtype=np.float64) / math.pi
                     pts = receivers[obj.name][0]
-                    hits = ahead[obj.name].result() if obj.name in ahead else ground_hits(obj.name, pts)
+                    hits = (ahead["ground_rays", obj.name].result() if ("ground_rays", obj.name) in ahead
+                            else ground_hits(obj.name, pts))
                     e_dir, e_ind = ground_light_sums(hits, lights.env, blockers, radiance)
                     if not (bounces > 0 and n_sl):
                         e_ind = np.zeros_like(e_ind)
@@ -870,10 +882,11 @@ class SphereLights(Precomputation):
     #: Directions of the rays of ``mesh_blockers`` (``_meshdirect``; docs/notes/spherelights.md).
     _MESH_DIRECTIONS = 1024
 
-    def _mesh_direct(self, state: FrameState, lights: _FrameLights, obj, pts, nrm, rects) -> np.ndarray:
-        """The environment's direct light (P, 3) at the receivers ``pts, nrm`` of the source object ``obj``, every
-        object's mesh, the grounds ``rects`` and the local lights blocking (``mesh_blockers``, ``_meshdirect``); the
-        visible rays reused from the last frame (:attr:`frame_reuse`) while all their inputs are the same."""
+    def _mesh_visible(self, state: FrameState, lights: _FrameLights, obj, pts, nrm, rects) -> tuple:
+        """``(visible, rotation, directions)``: the visible rays (``_meshdirect.mesh_direct_visible``) of the
+        receivers ``pts, nrm`` of the source object ``obj``, every object's mesh, the grounds ``rects`` and the local
+        lights blocking (``mesh_blockers``), along ``directions`` turned by ``rotation``; reused from the last frame
+        (:attr:`frame_reuse`) while all their inputs are the same, updated where only other objects moved."""
         dirs = fibonacci_directions(self._MESH_DIRECTIONS)
         sources = sorted(self.data["objects"])
         tr = state.transforms.get(obj.name) or obj.transform
@@ -942,7 +955,7 @@ class SphereLights(Precomputation):
             return (visible, made), counts
 
         visible, _ = reuse.get(("mesh_direct", obj.name), key, compute, update)
-        return mesh_direct_sums(visible, nrm, lights.env, rot, dirs)
+        return visible, rot, dirs
 
     def _ground_textures(self, grounds, irradiance, state: FrameState) -> np.ndarray:
         """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals, ground's

@@ -203,12 +203,12 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monk
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
     cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept. A kept frame's
-    ground rays are updated on the second thread (``run_ahead``) while a fresh pipeline's are cast in turn."""
+    visible rays and ground rays are updated on the second thread (``run_ahead``), a fresh pipeline's made in turn."""
     import prtlab.spherelights._pipeline as pipeline
     from prtlab._tasks import concurrent_kernels, run_ahead
 
     ahead = []
-    monkeypatch.setattr(pipeline, "run_ahead", lambda job: ahead.append(1) or run_ahead(job))
+    monkeypatch.setattr(pipeline, "run_ahead", lambda job: ahead.append(job.func.__name__) or run_ahead(job))
     scene, pre = bunny_scene
     pre.frame_reuse.clear()
     rest = FrameState.from_scene(scene)
@@ -265,7 +265,9 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monk
         partly[1] += len(updated.get("ground_light", []))
     assert kept_any >= 4
     assert partly[0] >= 4 and partly[1] >= 4, partly  # ground_light's samples and the near caps partly kept
-    assert len(ahead) >= len(frames) - 1 and concurrent_kernels()  # the kept frames' rays on the side worker
+    # the kept frames' visible rays and ground rays on the side worker
+    assert ahead.count("ground_hits") >= len(frames) - 1 and ahead.count("_mesh_visible") >= 2 * (len(frames) - 1)
+    assert concurrent_kernels()
 
 
 # ------------------------------------------------------------------ ground_light's samples when lights move
