@@ -387,7 +387,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                   np.array([rect[0, 1], rect[0, 0], rect[0, 2]]), float(np.arctan2(rect[0, 4], rect[0, 3])),
                   float(np.hypot(*rect[0, 3:5])), size)
         blockers = reuse.get("mesh_blockers", inputs, lambda: mesh_blockers(*inputs))
-    def visible_rays(own):  # SphereLights._mesh_visible: an object's visible rays against the others' meshes
+    def mesh_direct(own):  # SphereLights._mesh_direct: an object's direct light through its visible rays
         rows = a["recv_object"] == own
         p, n = a["points"][rows], a["normals"][rows]
         bits, occluders = mesh_parts[own]
@@ -401,16 +401,17 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                                                          rect)
             return (visible, occluders), counts
 
-        return reuse.get(("mesh_direct", own), key,
-                         lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders), update)[0]
+        visible = reuse.get(("mesh_direct", own), key,
+                            lambda: (mesh_direct_visible(p, n, np.eye(3), bits, occluders, rect), occluders), update)[0]
+        return mesh_direct_sums(visible, n, env, np.eye(3))
 
-    # SphereLights.shade_frame: kept geometry (the objects' visible rays, then the ground's ray hits) updated on a
-    # second thread while the first pass and the objects are shaded
+    # SphereLights.shade_frame: kept geometry (the objects' visible rays with their sums, then the ground's ray hits)
+    # updated on a second thread while the first pass and the objects are shaded
     ahead = {}  # object (-1: the ground's rays) -> future
     if mesh_parts is not None:
         for own in range(len(mesh_parts)):
             if reuse.holds(("mesh_direct", own)):
-                ahead[own] = run_ahead(functools.partial(visible_rays, own))
+                ahead[own] = run_ahead(functools.partial(mesh_direct, own))
     if rays:
         ground_pts = a["points"][a["recv_object"] == -1]
         ground_key = (inputs, ground_pts, ground_ray_spacing)
@@ -475,8 +476,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
             direct, indirect = second_pass(p, n, c, r, obj, a["inter"], a["rot"], emission_in, env, order=ORDER)
             exact = mesh_parts is not None and own >= 0
             if exact:
-                visible = ahead[own].result() if own in ahead else visible_rays(own)
-                direct = mesh_direct_sums(visible, n, env, np.eye(3))
+                direct = ahead[own].result() if own in ahead else mesh_direct(own)
             else:
                 near(p, n, direct, own)
             if own >= 0:

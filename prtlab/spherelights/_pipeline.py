@@ -724,16 +724,16 @@ class SphereLights(Precomputation):
                 e = ground_direct_sums(hits, lights.env, blockers)
                 return e + self._pass(lights, p, n, lights.local_only, True)[1] if lights.n_loc else e
         receivers = {}  # world points and normals per object, for the grounds' gathered light
-        # geometry kept from the last frame (the objects' visible rays, then the grounds' ray hits) updated on a
-        # second thread while the first pass and the objects are shaded here, in the order they are needed; a
-        # result made afresh (nothing kept) is made here, on every thread
+        # geometry kept from the last frame updated on a second thread while the first pass and the objects are
+        # shaded here, in the order they are needed: the objects' visible rays (with their sums, the direct light),
+        # then the grounds' ray hits; a result made afresh (nothing kept) is made here, on every thread
         ahead = {}  # (kind, name) -> future
         if opts.mesh_blockers:
             for name in sources:
                 if reuse.holds(("mesh_direct", name)):
                     obj = self.scene.object(name)
                     receivers[name] = self._receivers(state, obj)
-                    ahead["mesh_direct", name] = run_ahead(functools.partial(self._mesh_visible, state, lights, obj,
+                    ahead["mesh_direct", name] = run_ahead(functools.partial(self._mesh_direct, state, lights, obj,
                                                                              *receivers[name], rects))
         if blockers is not None:
             for obj, _ in grounds:
@@ -796,9 +796,8 @@ class SphereLights(Precomputation):
                 else:
                     direct, indirect = self._irradiance(lights, pts, nrm, emission_in, bounces > 0 and n_sl > 0, own)
                 if exact:
-                    visible, rot, dirs = (ahead["mesh_direct", obj.name].result() if ("mesh_direct", obj.name) in ahead
-                                          else self._mesh_visible(state, lights, obj, pts, nrm, rects))
-                    direct = mesh_direct_sums(visible, nrm, lights.env, rot, dirs)  # the environment's, blocked
+                    direct = (ahead["mesh_direct", obj.name].result() if ("mesh_direct", obj.name) in ahead
+                              else self._mesh_direct(state, lights, obj, pts, nrm, rects))
                     if lights.n_loc:
                         direct = direct + self._pass(lights, pts, nrm, lights.local_only, True)[1]
                 if obj.name not in ground_names and len(grounds):
@@ -956,6 +955,12 @@ class SphereLights(Precomputation):
 
         visible, _ = reuse.get(("mesh_direct", obj.name), key, compute, update)
         return visible, rot, dirs
+
+    def _mesh_direct(self, state: FrameState, lights: _FrameLights, obj, pts, nrm, rects) -> np.ndarray:
+        """The environment's direct light (P, 3) at the receivers ``pts, nrm`` of the source object ``obj`` through
+        their visible rays (:meth:`_mesh_visible`)."""
+        visible, rot, dirs = self._mesh_visible(state, lights, obj, pts, nrm, rects)
+        return mesh_direct_sums(visible, nrm, lights.env, rot, dirs)
 
     def _ground_textures(self, grounds, irradiance, state: FrameState) -> np.ndarray:
         """``(G, R, R, 3)`` exit radiance over each ground's rectangle from ``irradiance(points, normals, ground's

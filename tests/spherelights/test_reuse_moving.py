@@ -266,7 +266,7 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monk
     assert kept_any >= 4
     assert partly[0] >= 4 and partly[1] >= 4, partly  # ground_light's samples and the near caps partly kept
     # the kept frames' visible rays and ground rays on the side worker
-    assert ahead.count("ground_hits") >= len(frames) - 1 and ahead.count("_mesh_visible") >= 2 * (len(frames) - 1)
+    assert ahead.count("ground_hits") >= len(frames) - 1 and ahead.count("_mesh_direct") >= 2 * (len(frames) - 1)
     assert concurrent_kernels()
 
 
