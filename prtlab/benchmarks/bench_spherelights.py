@@ -353,6 +353,7 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     thread while the objects are shaded (``prtlab._tasks.run_ahead``), as the pipeline does. ``moved``: ``(object,
     translation (3,))``, that object (its lights, receivers, surface samples, mesh and occluder) translated
     (:func:`_translated`)."""
+    from prtlab._tasks import run_ahead
     from prtlab.spherelights._ground import covered_texels, fill_covered, ground_sample_sums, ground_samples
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers, object_size)
@@ -361,7 +362,6 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
                                                near_blocker_visibility)
     from prtlab.spherelights._pipeline import (_GROUND_RAYS, _TEXEL_RAYS, ground_hits_reuse, ground_samples_reuse,
                                                near_samples_reuse)
-    from prtlab._tasks import run_ahead
     from prtlab.spherelights._reuse import FrameReuse, same_inputs
 
     reuse = FrameReuse() if reuse is None else reuse
