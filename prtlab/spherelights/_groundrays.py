@@ -255,9 +255,28 @@ def _gaps(points, spheres, out):
 
 
 def _interpolated(values, rows, weights) -> np.ndarray:
-    """``(P, 3)``: ``sum_c weights[:, c] values[rows[:, c]]`` (see :func:`ground_ray_nodes`)."""
+    """``(P, 3)``: ``sum_c weights[:, c] values[rows[:, c]]`` (see :func:`ground_ray_nodes`), summed over ``c`` in
+    order as :func:`_interpolated_reference` sums them (the same bits)."""
+    out = np.empty((rows.shape[0], values.shape[1]))
+    _interpolated_kernel(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(rows, dtype=np.int64),
+                         np.ascontiguousarray(weights, dtype=np.float64), out)
+    return out
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _interpolated_kernel(values, rows, weights, out):
+    for p in numba.prange(rows.shape[0]):
+        for j in range(values.shape[1]):
+            acc = values[rows[p, 0], j] * weights[p, 0]
+            for c in range(1, rows.shape[1]):
+                acc += values[rows[p, c], j] * weights[p, c]
+            out[p, j] = acc
+
+
+def _interpolated_reference(values, rows, weights) -> np.ndarray:
+    """numpy specification of :func:`_interpolated` (about 1 ms for the benchmark's 16,800 ground points)."""
     out = values[rows[:, 0]] * weights[:, :1]
-    for c in range(1, 4):
+    for c in range(1, rows.shape[1]):
         out += values[rows[:, c]] * weights[:, c:c + 1]
     return out
 
@@ -747,7 +766,7 @@ def ground_light_rays(points, env_sh, blockers: MeshBlockers, radiance, rule: Gr
     cast, rows, weights = _cast_points(p, blockers, spacing)
     direct, gathered = _gather_reference(cast, blockers, radiance, rule, method, np.asarray(env_sh, dtype=np.float64))
     if len(cast) < len(p):
-        return _interpolated(direct, rows, weights), _interpolated(gathered, rows, weights)
+        return _interpolated_reference(direct, rows, weights), _interpolated_reference(gathered, rows, weights)
     return direct, gathered
 
 

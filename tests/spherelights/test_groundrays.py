@@ -497,3 +497,15 @@ def test_gather_errors():
         ground_gather_rays(np.zeros((1, 3)), blk, [np.zeros((len(v), 3))], tier="fast")
     with pytest.raises(ValueError, match="method"):
         candidate_rays(np.zeros((1, 3)), np.ones((1, 3)), np.ones((1, 4)), method="fast")
+
+
+def test_interpolation_kernel_is_the_numpy_sum(rng):
+    """``_interpolated`` (the kernel) gives ``_interpolated_reference``'s bits: four weighted values per point,
+    summed in order."""
+    from prtlab.spherelights._groundrays import _interpolated, _interpolated_reference
+
+    values = rng.normal(size=(50, 3)) * 10.0 ** rng.integers(-3, 4, size=(50, 1))
+    rows = rng.integers(0, 50, size=(400, 4))
+    weights = rng.uniform(-0.2, 1.0, size=(400, 4))
+    ours, ref = _interpolated(values, rows, weights), _interpolated_reference(values, rows, weights)
+    assert ours.shape == (400, 3) and np.array_equal(ours.view(np.int64), ref.view(np.int64))
