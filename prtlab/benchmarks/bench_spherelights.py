@@ -18,6 +18,7 @@ objects' direct light against the meshes (``mesh_blockers``), and the precomputa
 from __future__ import annotations
 
 import functools
+import math
 from concurrent.futures import wait as futures_wait
 
 import numpy as np
@@ -347,14 +348,16 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
     ``emission_coverage`` the first pass also gives the emission weighted by ``coverage_weights`` (here of a
     coverage of 1: the same work as the meshes' coverage) for the other objects' receivers, the paper's for a
     light's own object. The geometry-only results (the blockers, the texels' and the ground's ray hits, the objects'
-    visible rays, ``ground_light``'s samples, the near blockers' caps at the surface samples) go through ``reuse``
+    visible rays, ``ground_light``'s samples, the near blockers' caps and the ground's hidden projection at the surface
+    samples) go through ``reuse``
     (a :class:`prtlab.spherelights._reuse.FrameReuse`, as ``SphereLights`` keeps them; None: a fresh one, every ray
     cast); the objects' occluders are ``mesh_parts``'. Kept visible rays and ground rays are updated on the second
     thread while the objects are shaded (``prtlab._tasks.run_ahead``), as the pipeline does. ``moved``: ``(object,
     translation (3,))``, that object (its lights, receivers, surface samples, mesh and occluder) translated
     (:func:`_translated`)."""
     from prtlab._tasks import run_ahead
-    from prtlab.spherelights._ground import covered_texels, fill_covered, ground_sample_sums, ground_samples
+    from prtlab.spherelights._ground import (covered_texels, fill_covered, ground_hidden_projection, ground_sample_sums,
+                                             ground_samples)
     from prtlab.spherelights._groundrays import (contact_radiance, ground_direct_hits, ground_direct_sums,
                                                  ground_light_hits, ground_light_sums, mesh_blockers, object_size)
     from prtlab.spherelights._meshdirect import mesh_direct_sums, mesh_direct_visible, mesh_direct_visible_update
@@ -449,9 +452,17 @@ def _default_frame(a, texels, up, rect, meshes, near_blockers: int = 2, ground_s
 
             weight = coverage_weights(np.ones(a["valid"].shape), a["valid"], geodesic_directions(a["valid"].shape[1]))
             weight = np.stack([np.ones_like(weight), weight])
+        n_proj = ORDER + math.isqrt(len(env)) - 1  # SphereLights._ground_projection: per object, kept
+        projection = np.zeros(a["valid"].shape + (n_proj * n_proj,))
+        for own in np.unique(obj):
+            p, n = a["spts"][obj == own].reshape(-1, 3), a["snrm"][obj == own].reshape(-1, 3)
+            n = n / np.linalg.norm(n, axis=1, keepdims=True)
+            projection[obj == own] = reuse.get(("ground_projection", int(own)), (p, n, rect, n_proj),
+                                               lambda: ground_hidden_projection(p, n, rect, n_proj)).reshape(
+                -1, a["valid"].shape[1], n_proj * n_proj)
         emission = first_pass(a["spts"], a["snrm"], a["valid"], c, r, env, voronoi_cell_sums(EMISSION_ORDER),
                               a["albedo"][:, : EMISSION_ORDER**2], ground=rect, extra_irradiance=extra, order=ORDER,
-                              sample_weight=weight)
+                              sample_weight=weight, ground_projection=projection.reshape(-1, n_proj * n_proj))
         own_emission, emission = (emission[0], emission[1]) if emission_coverage else (emission, emission)
         if rays:
             key = (inputs, texels, ground_ray_spacing)
@@ -522,10 +533,22 @@ def _translated(a, meshes, mesh_parts, own: int, shift):
     return a, meshes, mesh_parts
 
 
+def _pipeline_sky(env):
+    """``env`` (order ``ORDER``) extended to the order ``3 ORDER - 2`` of the pipeline's sky
+    (``SphereLights._environment``) by small bands of a fixed draw: the work of the terms whose cost grows with the
+    sky's order (the ground's hidden transfer at the surface samples) is the pipeline's."""
+    n = 3 * ORDER - 2
+    out = np.zeros((n * n, 3))
+    out[: len(env)] = env
+    out[len(env):] = 0.01 * np.random.default_rng(2009).normal(size=(n * n - len(env), 3))
+    return out
+
+
 def _ground_frame_arrays(quick: bool):
     """The arrays of the frames with the ground's rays: the scene, the texels, their normal, the ground's
     rectangle, the objects' meshes and their own-mesh bits and occluders (``_mesh_direct_parts``)."""
     a = _scene_arrays(_n(quick))
+    a["env"] = _pipeline_sky(a["env"])
     texels, up, _, rect = _ground_texels(a)
     meshes = _object_meshes(a)
     return a, texels, up, rect, meshes, _mesh_direct_parts(a, meshes)
@@ -553,7 +576,8 @@ def frame_per_object_ground_near_relit(quick: bool) -> dict:
     """The frame of ``per_object_ground_near`` when only the lighting changes: nothing moves and the environment turns
     each frame by a rotation it has not had before (about a tilted axis, 0.1 rad a frame more), so the geometry-only
     results of the frame before (the blockers, the texels' and the ground's ray hits, the objects' visible rays,
-    ``ground_light``'s samples, the near blockers' caps) are reused through one kept ``FrameReuse``, as
+    ``ground_light``'s samples, the near blockers' caps, the ground's hidden projection at the surface samples) are
+    reused through one kept ``FrameReuse``, as
     ``SphereLights`` keeps them, and everything lighting-dependent is computed; peer: the same frames with nothing
     reused (every ray cast)."""
     from prtlab import sh
@@ -594,8 +618,9 @@ def frame_per_object_ground_near_move_one(quick: bool) -> dict:
     ``SphereLights`` keeps it: the ground's and the texels' rays that cannot meet the ball in either place are kept
     (``_groundrays.ground_hits_update``), the other objects' visible rays that cannot meet it
     (``_meshdirect.mesh_direct_visible_update``), their ``ground_light`` samples whose rays it cannot change
-    (``_ground.ground_samples_update``) and their near blockers' caps at the surface samples it lies below
-    (``_nearcaps.near_blocker_visibility_update``); the rest (the ball's own receivers and samples, the blockers)
+    (``_ground.ground_samples_update``), their near blockers' caps at the surface samples it lies below
+    (``_nearcaps.near_blocker_visibility_update``) and the ground's hidden projection at their surface samples; the
+    rest (the ball's own receivers and samples, the blockers)
     computed; peer: the same frames with nothing reused (every ray cast)."""
     from prtlab.spherelights._reuse import FrameReuse
 

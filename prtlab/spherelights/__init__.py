@@ -12,7 +12,8 @@ pipeline ``SphereLights`` (``prtlab.shade(scene, method="spherelights")``).
 
 from ._fit import SphereFit, fit_spheres, sphere_set_coverage, sphere_set_figure
 from ._pipeline import PAPER_OPTIONS, SphereLightOptions, SphereLights, WorldLights, light_motions, precompute, shade_scene
-from ._ground import ground_blocked_transfer, ground_light, ground_raster, ground_rectangles, ground_texture
+from ._ground import (ground_blocked_transfer, ground_hidden_projection, ground_light, ground_raster, ground_rectangles,
+                      ground_texture, hidden_transfer)
 from ._hierarchy import (LightHierarchy, bounding_sphere, build_hierarchy, cluster_samples, per_light_indirect,
                          receiver_clusters, reflection_ratio, select_cut)
 from ._passes import accumulate_blockers, emission_times_direction, first_pass, second_pass
@@ -44,6 +45,8 @@ __all__ = [
     "segment_coverage",
     # the ground in light transport: it hides and reflects (an extension)
     "ground_blocked_transfer",
+    "ground_hidden_projection",
+    "hidden_transfer",
     "ground_light",
     "ground_raster",
     "ground_rectangles",

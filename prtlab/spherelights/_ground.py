@@ -12,8 +12,10 @@ ground lies,
           - P_n\\big(L\\, G_q\\, \\max(0, n_q\\cdot\\omega)\\big),
 
 ``G_q(w) = 1`` where the ray ``q + t w`` hits a ground rectangle, the second term a quadrature over a fixed
-product grid of the lower hemisphere written as one matrix product ``W @ A`` (``W[q, j] = w_j G_q(w_j) max(0,
-n_q . w_j)``, a numba kernel; ``A[j] = L(w_j) y(w_j)``), so the samples' visibility multiplies it in SH.
+product grid of the lower hemisphere (``W[q, j] = w_j G_q(w_j) max(0, n_q . w_j)``, a numba kernel), so the
+samples' visibility multiplies it in SH. It is computed as the projection of each sample's ``W[q]`` to SH
+(:func:`ground_hidden_projection`, geometry only, kept while the samples stay) times the sky's Gaunt coefficients
+(:func:`hidden_transfer`): the grid's sum ``W @ A`` (``A[j] = L(w_j) y(w_j)``) up to rounding.
 
 Second pass (:func:`ground_light`), at every receiver above a ground: over the directions ``H_q`` that meet the
 ground before any spherical light (binary ray tests against the lights adjusted as in the second pass),
@@ -46,7 +48,8 @@ from prtlab._tasks import run_tasks, task_threads
 
 from ._shadows import _adjust
 
-__all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_light", "GroundSamples",
+__all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_hidden_projection",
+           "hidden_transfer", "ground_light", "GroundSamples",
            "ground_samples", "ground_samples_update", "ground_sample_sums", "ground_raster", "ground_texture",
            "covered_texels", "fill_covered"]
 
@@ -158,6 +161,131 @@ def _ground_weights_reference(points, normals, dirs, weights, rects):
     return np.where(hit, weights[None, :] * cos, 0.0)
 
 
+def _grid_directions(phi0: float, n_azimuth: int, n_elevation: int) -> tuple[np.ndarray, np.ndarray]:
+    """The product grid of the lower hemisphere (:func:`_lower_hemisphere_grid`, elevation-major) turned about
+    ``+Y`` by ``phi0`` (the first ground's ``u`` edge, so that the result turns with the scene): directions
+    ``(K, 3)`` and weights ``(K,)``."""
+    dirs, weights = _lower_hemisphere_grid(int(n_azimuth), int(n_elevation))
+    c0, s0 = math.cos(phi0), math.sin(phi0)
+    dirs = np.stack([c0 * dirs[:, 0] - s0 * dirs[:, 2], dirs[:, 1], s0 * dirs[:, 0] + c0 * dirs[:, 2]], -1)
+    return np.ascontiguousarray(dirs), np.ascontiguousarray(weights)
+
+
+def _phi0(rectangles) -> float:
+    return math.atan2(rectangles[0, 4], rectangles[0, 3])
+
+
+def _checked_grid_inputs(points, normals, rectangles):
+    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
+    return p, n, np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
+
+
+#: The frame of :func:`ground_hidden_projection`'s coefficients: ``u = UP_FRAME @ w`` takes ``+Y`` (the ground's
+#: normal) to the SH's polar axis ``+Z``, so that the grid's elevations are polar angles and its azimuths azimuths.
+UP_FRAME = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+UP_FRAME.setflags(write=False)
+
+
+@functools.lru_cache(maxsize=16)
+def _grid_factors(order: int, n_azimuth: int, n_elevation: int, phi0: float) -> tuple:
+    """The SH basis at the grid's directions in :data:`UP_FRAME` as products of an azimuth and an elevation factor,
+    ``y_l(UP_FRAME w_ik) = E[i, l] T[k, t_l]``: ``T (n_azimuth, 2 order - 1)`` the columns ``1, cos phi, sin phi,
+    cos 2 phi, ...`` at the grid's azimuths, ``E (n_elevation, order**2)``, and per column ``t`` of ``T`` the
+    coefficients ``l`` with ``t_l = t`` (``m = 0``: ``t = 0``; ``m > 0``: ``cos m phi``; ``m < 0``: ``sin |m| phi``).
+    ``E`` is the grid's discrete Fourier coefficient, exact for ``order <= n_azimuth / 2``."""
+    dirs, _ = _grid_directions(phi0, n_azimuth, n_elevation)
+    u = dirs @ UP_FRAME.T
+    phi = np.arctan2(u[:n_azimuth, 1], u[:n_azimuth, 0])  # elevation-major: the first row's azimuths
+    cols = [np.ones_like(phi)]
+    for m in range(1, order):
+        cols += [np.cos(m * phi), np.sin(m * phi)]
+    t = np.stack(cols, -1)
+    y = sh.basis(u, order).reshape(n_elevation, n_azimuth, -1)
+    m_of = np.concatenate([np.arange(-l, l + 1) for l in range(order)])
+    col_of = np.where(m_of == 0, 0, np.where(m_of > 0, 2 * m_of - 1, -2 * m_of))
+    scale = np.where(m_of == 0, 1.0, 2.0) / n_azimuth
+    e = np.einsum("ikl,kl->il", y, t[:, col_of]) * scale
+    groups = tuple(np.flatnonzero(col_of == c) for c in range(t.shape[1]))
+    for x in (t, e, *groups):
+        x.setflags(write=False)
+    return t, e, groups
+
+
+def ground_hidden_projection(points, normals, rectangles, order: int, *, n_azimuth: int = 128, n_elevation: int = 32,
+                             threads: int | None = None) -> np.ndarray:
+    """The SH projection of each point's hidden clamped cosine over the product grid of
+    :func:`ground_blocked_transfer` (arguments as there): ``(B, order*order)`` rows
+    ``v_q[l] = sum_j w_j G_q(w_j) max(0, n_q . w_j) y_l(UP_FRAME w_j)``, coefficients in the frame
+    :data:`UP_FRAME`. Geometry only: :func:`hidden_transfer` turns it into that function's result for any sky of
+    order ``N <= order - n + 1`` (``n`` the transfer's order), so a caller whose points stay keeps it while the sky
+    changes. The grid's basis splits into azimuth and elevation factors (:func:`_grid_factors`), so a block of rows
+    costs one product with the ``2 order - 1`` azimuth columns, then one small product per column; blocks of rows as
+    tasks on ``threads`` (default numba's thread count here). The products' blocking depends on the number of points
+    and threads, so a point's values may differ in the last bits between calls with other points: a caller that
+    keeps rows makes them in the same calls as a fresh one. Needs ``order <= n_azimuth / 2``."""
+    p, n, rects = _checked_grid_inputs(points, normals, rectangles)
+    order = int(order)
+    if 2 * order > int(n_azimuth):
+        raise ValueError(f"order {order} needs n_azimuth >= {2 * order}, got {n_azimuth}")
+    out = np.zeros((p.shape[0], order * order))
+    if p.shape[0] == 0 or rects.shape[0] == 0:
+        return out
+    phi0 = _phi0(rects)
+    dirs, weights = _grid_directions(phi0, n_azimuth, n_elevation)
+    t, e, groups = _grid_factors(order, int(n_azimuth), int(n_elevation), phi0)
+    # the weights in blocks of rows under 4 MiB: a fresh larger array is backed by huge pages, whose faults
+    # (zeroing, compaction) cost more system time than the block's product on a busy machine
+    n_tasks = max(1, task_threads() if threads is None else threads)
+    rows = max(1, min(_WEIGHT_BLOCK_BYTES // (8 * dirs.shape[0]), -(-p.shape[0] // n_tasks)))  # a block per task
+    azimuthal = np.empty((p.shape[0], int(n_elevation), t.shape[1]))  # F[q, i, c] = sum_k W[q, (i, k)] T[k, c]
+
+    def blocks(starts):  # a task of run_tasks: blocks of rows, one scratch for them
+        w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
+        for s in starts:
+            stop = min(p.shape[0], s + rows)
+            _ground_weights(p[s:stop], n[s:stop], dirs, weights, rects, w[: stop - s])
+            np.matmul(w[: stop - s].reshape(-1, t.shape[0]), t, out=azimuthal[s:stop].reshape(-1, t.shape[1]))
+
+    starts = list(range(0, p.shape[0], rows))
+    k = min(len(starts), n_tasks)
+    run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=threads)
+    for c, ls in enumerate(groups):  # then per azimuth column
+        out[:, ls] = azimuthal[:, :, c] @ e[:, ls]
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _triple_rule(n_proj: int, order: int, n_env: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An exact rule for ``y_l(UP_FRAME w) y_k(w) y_m(w)`` (``l < n_proj**2``, ``k < order**2``, ``m < n_env**2``):
+    the weighted basis in :data:`UP_FRAME` ``(K, n_proj**2)``, and the bases ``(K, order**2)``, ``(K, n_env**2)`` at
+    its nodes (read-only)."""
+    dirs, w = sh.quadrature(1, degree=(n_proj - 1) + (order - 1) + (n_env - 1))
+    y = sh.basis(dirs, max(order, n_env))
+    out = (sh.basis(dirs @ UP_FRAME.T, n_proj) * w[:, None], y[:, : order * order].copy(),
+           y[:, : n_env * n_env].copy())
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def hidden_transfer(projection, env_sh, order: int) -> np.ndarray:
+    """:func:`ground_blocked_transfer` ``(B, order*order, C)`` from the points' :func:`ground_hidden_projection`
+    ``(B, P*P)`` under the sky ``env_sh (N*N, C)``, ``P >= order + N - 1``: ``t[q, k, c] = sum_l v_q[l] int
+    y_l(UP_FRAME w) y_k(w) L_c(w) dw``. ``y_k L_c`` is a spherical polynomial of degree ``order + N - 2 < P``, so it
+    is its own order-``P`` projection (in any frame) and the sum equals the grid's ``sum_j W_qj y_k(w_j) L_c(w_j)`` up
+    to rounding; the integrals are those of an exact rule (``sh.quadrature``)."""
+    v = np.asarray(projection, dtype=np.float64)
+    env = np.asarray(env_sh, dtype=np.float64)
+    n_proj, n_env, order = math.isqrt(v.shape[1]), math.isqrt(env.shape[0]), int(order)
+    if n_proj * n_proj != v.shape[1] or n_proj < order + n_env - 1:
+        raise ValueError(f"the projection has {v.shape[1]} coefficients; the transfer of order {order} under a sky "
+                         f"of order {n_env} needs order {order + n_env - 1} ({(order + n_env - 1) ** 2})")
+    yw, yk, ym = _triple_rule(n_proj, order, n_env)
+    g = yw.T @ (yk[:, :, None] * (ym @ env)[:, None, :]).reshape(len(yk), -1)  # (P*P, order*order*C)
+    return (v @ g).reshape(v.shape[0], order * order, env.shape[1])
+
+
 def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: int = 128, n_elevation: int = 32,
                             method: str = "numba", order: int | None = None, threads: int | None = None) -> np.ndarray:
     """The part of the environment transfer that the ground hides: ``P_n(L G_q max(0, n_q . w))``.
@@ -173,7 +301,9 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     n_azimuth, n_elevation : int
         Product grid of the lower hemisphere.
     method : {"numba", "reference"}
-        Tier of the weight matrix ``W``.
+        ``"numba"``: the points' :func:`ground_hidden_projection` at order ``n + N - 1``, then
+        :func:`hidden_transfer`; ``"reference"``: the grid's sum as one numpy matrix product ``W @ A``
+        (``A[j] = L(w_j) y(w_j)``), the specification. They agree up to rounding.
     order : int, optional
         Order ``n`` of the result (default: ``N``).
     threads : int, optional
@@ -187,48 +317,27 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
 
     Notes
     -----
-    ``t_q[k] = sum_j w_j G_q(w_j) max(0, n_q . w_j) L(w_j) y_k(w_j)`` with ``L`` the order-``n``
+    ``t_q[k] = sum_j w_j G_q(w_j) max(0, n_q . w_j) L(w_j) y_k(w_j)`` with ``L`` the order-``N``
     environment; the quadrature error comes from the step of ``G_q`` at the ground's edge and the
     kink of the clamped cosine (first order in the grid spacing).
     """
     if method not in ("numba", "reference"):
         raise ValueError(f"method must be 'numba' or 'reference', got {method!r}")
-    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 3)
+    p, n, rects = _checked_grid_inputs(points, normals, rectangles)
     env = np.asarray(env_sh, dtype=np.float64)
-    rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
     n_env = math.isqrt(env.shape[0])
     order = n_env if order is None else int(order)
-    out = np.zeros((p.shape[0], order * order, env.shape[1]))
     if p.shape[0] == 0 or rects.shape[0] == 0:
-        return out
-    dirs, weights = _lower_hemisphere_grid(int(n_azimuth), int(n_elevation))
-    # azimuths measured from the first ground's u edge: the result turns with the scene about +Y
-    phi0 = math.atan2(rects[0, 4], rects[0, 3])
-    c0, s0 = math.cos(phi0), math.sin(phi0)
-    dirs = np.stack([c0 * dirs[:, 0] - s0 * dirs[:, 2], dirs[:, 1], s0 * dirs[:, 0] + c0 * dirs[:, 2]], -1)
+        return np.zeros((p.shape[0], order * order, env.shape[1]))
+    if method == "numba":
+        v = ground_hidden_projection(p, n, rects, order + n_env - 1, n_azimuth=n_azimuth, n_elevation=n_elevation,
+                                     threads=threads)
+        return hidden_transfer(v, env, order)
+    dirs, weights = _grid_directions(_phi0(rects), n_azimuth, n_elevation)
     y = sh.basis(dirs, max(order, n_env))
     a = (y[:, : order * order, None] * (y[:, : n_env * n_env] @ env)[:, None, :]).reshape(dirs.shape[0], -1)
-    if method == "reference":
-        w = _ground_weights_reference(p, n, dirs, weights, rects)
-        return (w @ a).reshape(out.shape)
-    # the weights in blocks of rows under 4 MiB: a fresh larger array is backed by huge pages, whose faults
-    # (zeroing, compaction) cost more system time than the block's product on a busy machine
-    rows = max(1, _WEIGHT_BLOCK_BYTES // (8 * dirs.shape[0]))
-    dirs, weights = np.ascontiguousarray(dirs), np.ascontiguousarray(weights)
-    flat = out.reshape(p.shape[0], -1)
-
-    def blocks(starts):  # a task of run_tasks: blocks of rows, one scratch for them
-        w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
-        for s in starts:
-            e = min(p.shape[0], s + rows)
-            _ground_weights(p[s:e], n[s:e], dirs, weights, rects, w[: e - s])
-            np.matmul(w[: e - s], a, out=flat[s:e])
-
-    starts = list(range(0, p.shape[0], rows))
-    k = max(1, min(len(starts), task_threads() if threads is None else threads))
-    run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=threads)
-    return out
+    w = _ground_weights_reference(p, n, dirs, weights, rects)
+    return (w @ a).reshape(p.shape[0], order * order, env.shape[1])
 
 
 # --------------------------------------------------------------------------- the ground in the second pass

@@ -244,7 +244,7 @@ _FUSED_SERIAL_BELOW = 1024
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
                exp_method: str = "hyb", ground=None, extra_irradiance=None, order: int | None = None,
-               sample_weight=None) -> np.ndarray:
+               sample_weight=None, ground_projection=None) -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -267,6 +267,10 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     ground : (G, 7) float, optional
         Ground rectangles (:func:`prtlab.spherelights.ground_rectangles`) that hide
         the environment from the samples (an extension; see ``_ground``).
+    ground_projection : (V, P*P) float, optional
+        The valid samples' :func:`prtlab.spherelights.ground_hidden_projection` under ``ground`` (rows in the order of
+        ``sample_points[sample_valid]``, ``P >= order + N - 1``), kept by a caller whose samples stay; default: made
+        here. The ground's hidden transfer is then :func:`prtlab.spherelights.hidden_transfer` of it.
     extra_irradiance : (S, m, 3) float, optional
         Irradiance at the samples from other sources, added to the environment's
         (the local lights of Sec. 7.3, computed by :func:`second_pass` at the samples).
@@ -283,7 +287,7 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
         with ``L_p = E_p / pi`` the exit radiance of a white Lambertian surface
         (Eq. 8; the albedo enters through ``c_S``); own frame of each light.
     """
-    from ._ground import ground_blocked_transfer
+    from ._ground import ground_blocked_transfer, hidden_transfer
     from ._shadows import blocker_log_sum
 
     # a few thousand samples: the parallel kernels and matrix products of this pass run on one thread (the ground's
@@ -301,7 +305,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
             vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
             t = environment_transfer(nrm, env, order)  # Eq. 8
-            if ground is not None and len(ground):
+            if ground is not None and len(ground) and ground_projection is not None:
+                t = t - hidden_transfer(ground_projection, env, order)
+            elif ground is not None and len(ground):
                 t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order, threads=threads)
             radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
         if extra_irradiance is not None:

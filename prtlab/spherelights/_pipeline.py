@@ -75,9 +75,9 @@ from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, scene_geomet
 from prtlab.scene import EnvironmentLight, ShadeResult, environment_sh
 
 from ._fit import fit_spheres
-from ._ground import (covered_points, covered_texels, fill_covered, fill_covered_vertices, ground_light,
-                      ground_objects, ground_raster, ground_sample_sums, ground_samples, ground_samples_update,
-                      ground_texture)
+from ._ground import (covered_points, covered_texels, fill_covered, fill_covered_vertices, ground_hidden_projection,
+                      ground_light, ground_objects, ground_raster, ground_sample_sums, ground_samples,
+                      ground_samples_update, ground_texture)
 from ._groundrays import (MAX_SPACING, contact_radiance, ground_direct_hits, ground_direct_sums, ground_hits_update,
                           ground_light_hits, ground_light_sums, ground_ray_rule, mesh_blockers, object_size)
 from ._hierarchy import (LightHierarchy, build_hierarchy, cluster_samples, per_light_indirect, receiver_clusters,
@@ -652,7 +652,26 @@ class SphereLights(Precomputation):
         return first_pass(spts, snrm, svalid, lights.centres, lights.radii, lights.env,
                           voronoi_cell_sums(m, opts.n_directions), world.albedo_sh[:, : m * m],  # SH nest by order
                           exp_method=opts.exp_method, ground=rects if len(rects) else None, extra_irradiance=extra,
-                          order=opts.order, sample_weight=weight)
+                          order=opts.order, sample_weight=weight,
+                          ground_projection=self._ground_projection(lights, spts, snrm, svalid, rects))
+
+    def _ground_projection(self, lights: _FrameLights, spts, snrm, svalid, rects):
+        """``(V, P*P)`` :func:`ground_hidden_projection` of the valid surface samples (``P = n + N - 1``, the sky's
+        order ``N``), made per object and kept while the object's samples and the grounds stay
+        (:attr:`frame_reuse`); None without a ground."""
+        if not len(rects) or not svalid.any():
+            return None
+        n_proj = self.options.order + math.isqrt(lights.env.shape[0]) - 1
+        out = np.zeros(svalid.shape + (n_proj * n_proj,))
+        obj = lights.object_index[: svalid.shape[0]]
+        for own in np.unique(obj):
+            mask = np.zeros(svalid.shape, dtype=bool)
+            mask[obj == own] = svalid[obj == own]
+            p, n = spts[mask], snrm[mask]
+            n = n / np.linalg.norm(n, axis=1, keepdims=True)  # as first_pass takes them
+            out[mask] = self.frame_reuse.get(("ground_projection", int(own)), (p, n, rects, n_proj),
+                                             lambda: ground_hidden_projection(p, n, rects, n_proj))
+        return out[svalid]
 
     def _near_samples(self, lights: _FrameLights, spts, snrm, svalid):
         """``(S, m, 3)`` correction of the surface samples' direct irradiance for ``near_blockers`` (the nearest

@@ -14,12 +14,15 @@ from prtlab.spherelights import (
     environment_transfer,
     first_pass,
     ground_blocked_transfer,
+    ground_hidden_projection,
     ground_rectangles,
+    hidden_transfer,
     second_pass,
     voronoi_cell_sums,
 )
-from prtlab.spherelights._ground import (_ground_weights, _ground_weights_reference, _lower_hemisphere_grid,
-                                        ground_light, ground_raster, ground_texture)
+from prtlab.spherelights._ground import (UP_FRAME, _grid_directions, _grid_factors, _ground_weights,
+                                        _ground_weights_reference, _lower_hemisphere_grid, ground_light, ground_raster,
+                                        ground_texture)
 from tests.conftest import MC_SIGMAS, random_directions
 from tests.spherelights.test_tables import _sphere_irradiance_brute
 
@@ -49,6 +52,40 @@ def test_weight_kernel_matches_reference(rng):
     a = ground_blocked_transfer(pts, nrm, WHITE, rects)
     b = ground_blocked_transfer(pts, nrm, WHITE, rects, method="reference")
     np.testing.assert_allclose(a, b, atol=1e-13)
+
+
+def test_grid_factors_give_the_grid_basis():
+    """The azimuth and elevation factors of ``_grid_factors`` rebuild the SH basis at the grid's directions in the
+    ground's frame (``UP_FRAME``) to rounding."""
+    phi0 = 0.37
+    t, e, groups = _grid_factors(13, 32, 8, phi0)
+    dirs, _ = _grid_directions(phi0, 32, 8)
+    y = sh.basis(dirs @ UP_FRAME.T, 13).reshape(8, 32, -1)
+    col = np.empty(169, dtype=np.int64)
+    for c, ls in enumerate(groups):
+        col[ls] = c
+    np.testing.assert_allclose(e[:, None, :] * t[None, :, col], y, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("n_env", [1, 4, 10])
+def test_hidden_projection_gives_the_grids_sum(rng, n_env):
+    """The hidden transfer through the points' projection (``ground_hidden_projection``, then ``hidden_transfer``) is
+    the grid's sum ``W @ A`` of the numpy reference, for skies up to the pipeline's order (10 for order 4): within
+    ``1e-13`` of the largest coefficient, the rounding of sums of a few thousand terms of size one (a projection
+    too short for the sky is refused)."""
+    pts = rng.uniform(-2, 2, size=(40, 3))
+    nrm = random_directions(rng, 40)
+    rects = np.array([[-0.5, 0.2, -0.1, 1.5, 0.3, -0.2, 0.8], [0.3, -1.0, 0.5, 0.4, 0.0, 0.0, 0.6]])
+    env = rng.normal(size=(n_env * n_env, 3))
+    ref = ground_blocked_transfer(pts, nrm, env, rects, order=4, method="reference", n_azimuth=64, n_elevation=16)
+    v = ground_hidden_projection(pts, nrm, rects, 4 + n_env - 1, n_azimuth=64, n_elevation=16)
+    np.testing.assert_allclose(hidden_transfer(v, env, 4), ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_allclose(ground_blocked_transfer(pts, nrm, env, rects, order=4, n_azimuth=64, n_elevation=16),
+                               ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="needs order"):
+        hidden_transfer(v[:, : (3 + n_env - 1) ** 2], env, 4)
+    with pytest.raises(ValueError, match="n_azimuth"):
+        ground_hidden_projection(pts, nrm, rects, 33, n_azimuth=64)
 
 
 def test_blocked_transfer_in_blocks_of_rows(rng, monkeypatch):

@@ -251,7 +251,7 @@ def test_frames_after_any_change_are_a_fresh_pipelines(bunny_scene):
     first = pre.shade(rest)
     kinds = {k if isinstance(k, str) else k[0] for k in first.info["geometry"]["computed"]}
     assert kinds == {"mesh_blockers", "texel_rays", "ground_rays", "mesh_direct", "ground_light", "near_samples",
-                     "covered_texels"}
+                     "covered_texels", "ground_projection"}
     assert first.info["geometry"]["reused"] == []
     _same(first, _fresh(pre).shade(rest))
 

@@ -202,7 +202,8 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monk
     ground moving and everything coming back: each equals a fresh pipeline's frame bit for bit (every direct, indirect and
     total array), and where the objects' own sizes (so the rays' offset, ``_groundrays.object_size``) stay the same,
     a move or a turn included, the grounds' rays are partly kept (``info["geometry"]["updated"]``, rays kept and
-    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept. A kept frame's
+    cast); ``ground_light``'s samples and the near caps of the objects that stay are partly kept, their ground's hidden
+    projections at the surface samples kept whole. A kept frame's
     visible rays and ground rays are updated on the second thread (``run_ahead``), a fresh pipeline's made in turn."""
     import prtlab.spherelights._pipeline as pipeline
     from prtlab._tasks import concurrent_kernels, run_ahead
@@ -259,6 +260,10 @@ def test_frames_with_some_objects_moving_are_a_fresh_pipelines(bunny_scene, monk
             kept_any += 1
         for counts in updated.get("mesh_direct", []):
             assert 0 < counts["rays_recomputed"] < counts["rays"], (label, counts)
+        if label in ("one moved", "moved far", "moved far again", "scaled"):  # green alone changed: the others kept
+            made = [n for n in ours.info["geometry"]["computed"] if n[0] == "ground_projection"]
+            kept = [n for n in ours.info["geometry"]["reused"] if n[0] == "ground_projection"]
+            assert len(made) == 1 and len(kept) == 2, (label, made, kept)
         for counts in updated.get("ground_light", []) + updated.get("near_samples", []):
             assert counts["receivers_recomputed"] <= counts["receivers"], (label, counts)
             partly[0] += 0 < counts["receivers_recomputed"] < counts["receivers"]
