@@ -46,7 +46,7 @@ import numpy as np
 from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
-from ._shadows import _adjust
+from ._shadows import _adjust, one_thread_below
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_hidden_projection",
            "hidden_transfer", "ground_light", "GroundSamples",
@@ -249,9 +249,10 @@ def ground_hidden_projection(points, normals, rectangles, order: int, *, n_azimu
 
     starts = list(range(0, p.shape[0], rows))
     k = min(len(starts), n_tasks)
-    run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=threads)
-    for c, ls in enumerate(groups):  # then per azimuth column
-        out[:, ls] = azimuthal[:, :, c] @ e[:, ls]
+    with one_thread_below(0, 1):  # the tasks are the parallel work: small products on one BLAS thread
+        run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=k)
+        for c, ls in enumerate(groups):  # then per azimuth column
+            out[:, ls] = azimuthal[:, :, c] @ e[:, ls]
     return out
 
 
