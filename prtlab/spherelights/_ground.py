@@ -639,14 +639,28 @@ def ground_texture(raster, radiance) -> np.ndarray:
 
 def environment_table(env_sh, quad: GroundQuadrature, n_elevation: int = 64) -> np.ndarray:
     """``(K, T + 1, 3)`` environment radiance ``L(w)`` at the quadrature's azimuths and the elevations
-    ``pi/2 t / T`` below the horizon (``T = n_elevation``), from its SH ``(N*N, 3)``."""
-    env = np.asarray(env_sh, dtype=np.float64)
-    e = 0.5 * np.pi * np.arange(n_elevation + 1) / n_elevation
-    ce, se = np.cos(e), np.sin(e)
-    dirs = np.stack([quad.cos_az[:, None] * ce[None], np.broadcast_to(-se, (len(quad.cos_az), len(e))),
-                     quad.sin_az[:, None] * ce[None]], -1)
-    return np.ascontiguousarray(sh.basis(dirs.reshape(-1, 3), math.isqrt(env.shape[0])) @ env).reshape(
-        len(quad.cos_az), n_elevation + 1, -1)
+    ``pi/2 t / T`` below the horizon (``T = n_elevation``), from its SH ``(N*N, 3)``. The last few tables are kept
+    (keyed by the SH's and the azimuths' bytes: a frame asks once per receiving object); the returned array is
+    read-only."""
+    env = np.ascontiguousarray(env_sh, dtype=np.float64)
+    key = (env.shape, env.tobytes(), quad.cos_az.tobytes(), quad.sin_az.tobytes(), int(n_elevation))
+    table = _ENV_TABLES.get(key)
+    if table is None:
+        e = 0.5 * np.pi * np.arange(n_elevation + 1) / n_elevation
+        ce, se = np.cos(e), np.sin(e)
+        dirs = np.stack([quad.cos_az[:, None] * ce[None], np.broadcast_to(-se, (len(quad.cos_az), len(e))),
+                         quad.sin_az[:, None] * ce[None]], -1)
+        table = np.ascontiguousarray(sh.basis(dirs.reshape(-1, 3), math.isqrt(env.shape[0])) @ env).reshape(
+            len(quad.cos_az), n_elevation + 1, -1)
+        table.setflags(write=False)
+        if len(_ENV_TABLES) >= 4:
+            _ENV_TABLES.clear()
+        _ENV_TABLES[key] = table
+    return table
+
+
+#: The last environment tables (:func:`environment_table`).
+_ENV_TABLES: dict = {}
 
 
 def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radii=(), local_radiance=None, *,
