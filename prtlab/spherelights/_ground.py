@@ -219,11 +219,11 @@ def ground_hidden_projection(points, normals, rectangles, order: int, *, n_azimu
     ``v_q[l] = sum_j w_j G_q(w_j) max(0, n_q . w_j) y_l(UP_FRAME w_j)``, coefficients in the frame
     :data:`UP_FRAME`. Geometry only: :func:`hidden_transfer` turns it into that function's result for any sky of
     order ``N <= order - n + 1`` (``n`` the transfer's order), so a caller whose points stay keeps it while the sky
-    changes. The grid's basis splits into azimuth and elevation factors (:func:`_grid_factors`), so a block of rows
-    costs one product with the ``2 order - 1`` azimuth columns, then one small product per column; blocks of rows as
+    changes. The grid's basis splits into azimuth and elevation factors (:func:`_grid_factors`), so a chunk of rows
+    costs one product with the ``2 order - 1`` azimuth columns, then one small product per column; chunks of rows as
     tasks on ``threads`` (default numba's thread count here). The products' blocking depends on the number of points
-    and threads, so a point's values may differ in the last bits between calls with other points: a caller that
-    keeps rows makes them in the same calls as a fresh one. Needs ``order <= n_azimuth / 2``."""
+    (not on the threads), so a point's values may differ in the last bits between calls with other points: a caller
+    that keeps rows makes them in the same calls as a fresh one. Needs ``order <= n_azimuth / 2``."""
     p, n, rects = _checked_grid_inputs(points, normals, rectangles)
     order = int(order)
     if 2 * order > int(n_azimuth):
@@ -234,25 +234,30 @@ def ground_hidden_projection(points, normals, rectangles, order: int, *, n_azimu
     phi0 = _phi0(rects)
     dirs, weights = _grid_directions(phi0, n_azimuth, n_elevation)
     t, e, groups = _grid_factors(order, int(n_azimuth), int(n_elevation), phi0)
-    # the weights in blocks of rows under 4 MiB: a fresh larger array is backed by huge pages, whose faults
-    # (zeroing, compaction) cost more system time than the block's product on a busy machine
-    n_tasks = max(1, task_threads() if threads is None else threads)
-    rows = max(1, min(_WEIGHT_BLOCK_BYTES // (8 * dirs.shape[0]), -(-p.shape[0] // n_tasks)))  # a block per task
-    azimuthal = np.empty((p.shape[0], int(n_elevation), t.shape[1]))  # F[q, i, c] = sum_k W[q, (i, k)] T[k, c]
+    # the weights in blocks of rows, a task's azimuth sums in chunks of rows, each under 4 MiB: a fresh larger array
+    # is backed by huge pages, whose faults (zeroing, compaction) cost more system time than the products
+    # (an even number of chunks, for two threads, set by the number of points alone: the products' blocking, and
+    # so the result's rounding, does not depend on the threads)
+    n_dirs, n_el, n_t = dirs.shape[0], int(n_elevation), t.shape[1]
+    n_chunks = 2 * -(-p.shape[0] // (2 * max(1, _WEIGHT_BLOCK_BYTES // (8 * n_el * n_t))))
+    chunk = -(-p.shape[0] // n_chunks)
+    rows = max(1, min(_WEIGHT_BLOCK_BYTES // (8 * n_dirs), chunk))
 
-    def blocks(starts):  # a task of run_tasks: blocks of rows, one scratch for them
-        w = np.empty((min(rows, p.shape[0]), dirs.shape[0]))
+    def chunks(starts):  # a task of run_tasks: chunks of rows, one scratch for them
+        w, f = np.empty((rows, n_dirs)), np.empty((chunk, n_el, n_t))  # f[q, i, c] = sum_k W[q, (i, k)] T[k, c]
         for s in starts:
-            stop = min(p.shape[0], s + rows)
-            _ground_weights(p[s:stop], n[s:stop], dirs, weights, rects, w[: stop - s])
-            np.matmul(w[: stop - s].reshape(-1, t.shape[0]), t, out=azimuthal[s:stop].reshape(-1, t.shape[1]))
+            stop = min(p.shape[0], s + chunk)
+            for b in range(s, stop, rows):
+                e_b = min(stop, b + rows)
+                _ground_weights(p[b:e_b], n[b:e_b], dirs, weights, rects, w[: e_b - b])
+                np.matmul(w[: e_b - b].reshape(-1, t.shape[0]), t, out=f[b - s: e_b - s].reshape(-1, n_t))
+            for c, ls in enumerate(groups):  # then per azimuth column
+                out[s:stop, ls] = f[: stop - s, :, c] @ e[:, ls]
 
-    starts = list(range(0, p.shape[0], rows))
-    k = min(len(starts), n_tasks)
+    starts = list(range(0, p.shape[0], chunk))
+    k = min(len(starts), max(1, task_threads() if threads is None else threads))
     with one_thread_below(0, 1):  # the tasks are the parallel work: small products on one BLAS thread
-        run_tasks([functools.partial(blocks, starts[i::k]) for i in range(k)], threads=k)
-        for c, ls in enumerate(groups):  # then per azimuth column
-            out[:, ls] = azimuthal[:, :, c] @ e[:, ls]
+        run_tasks([functools.partial(chunks, starts[i::k]) for i in range(k)], threads=k)
     return out
 
 
