@@ -338,7 +338,8 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     if method == "numba":
         v = ground_hidden_projection(p, n, rects, order + n_env - 1, n_azimuth=n_azimuth, n_elevation=n_elevation,
                                      threads=threads)
-        return hidden_transfer(v, env, order)
+        with one_thread_below(0, 1):  # a small product: OpenBLAS's waiting workers would slow numba's after it
+            return hidden_transfer(v, env, order)
     dirs, weights = _grid_directions(_phi0(rects), n_azimuth, n_elevation)
     y = sh.basis(dirs, max(order, n_env))
     a = (y[:, : order * order, None] * (y[:, : n_env * n_env] @ env)[:, None, :]).reshape(dirs.shape[0], -1)
