@@ -306,6 +306,9 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
             vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
             t = environment_transfer(nrm, env, order)  # Eq. 8
             if ground is not None and len(ground) and ground_projection is not None:
+                if np.shape(ground_projection)[0] != len(pts):
+                    raise ValueError(f"ground_projection must have a row per valid sample ({len(pts)}), got "
+                                     f"{np.shape(ground_projection)}")
                 t = t - hidden_transfer(ground_projection, env, order)
             elif ground is not None and len(ground):
                 t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order, threads=threads)

@@ -168,6 +168,25 @@ def _l2_weight(centre, radius, p, n, n_alpha=300, n_phi=300):
     return np.sqrt(w @ (f * f))
 
 
+def test_first_pass_takes_a_kept_ground_projection(rng):
+    """``first_pass`` given the valid samples' ``ground_hidden_projection`` (as ``SphereLights`` keeps it) gives the
+    emission it makes itself, to rounding; a projection with another number of rows is refused."""
+    sc = _scene()
+    pre = SphereLights.precompute(sc, {"n_spheres": 1, "fit_resolution": 16}, cache=False, progress=False)
+    c, r, so, inter, rot, spts, snrm, sval, albsh = pre.world_lights(FrameState.from_scene(sc))
+    rect = ground_rectangles([sc.object("plane")])
+    env = rng.normal(size=(100, 3)) * 0.1
+    env[0] += 2.0
+    nrm = snrm[sval] / np.linalg.norm(snrm[sval], axis=1, keepdims=True)
+    v = ground_hidden_projection(spts[sval], nrm, rect, ORDER + 10 - 1)
+    args = (spts, snrm, sval, c, r, env, voronoi_cell_sums(ORDER), albsh[:, :16])
+    made = first_pass(*args, ground=rect, order=ORDER)
+    kept = first_pass(*args, ground=rect, order=ORDER, ground_projection=v)
+    np.testing.assert_allclose(kept, made, rtol=0, atol=1e-13 * np.abs(made).max())
+    with pytest.raises(ValueError, match="a row per valid sample"):
+        first_pass(*args, ground=rect, order=ORDER, ground_projection=v[1:])
+
+
 def test_one_sphere_on_an_infinite_ground_against_closed_form():
     """Stages (b)-(d) in one closed-form chain: a sphere resting on an infinite ground under a white sky has the exit
     radiance L*(u) = a (1 + u_y) / 2 (band-limited, order 2). The first pass must project it (Eq. 10) to the right
