@@ -46,7 +46,8 @@ import numpy as np
 from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
-from ._shadows import _adjust, one_thread_below
+from ._reuse import kept_by_key
+from ._shadows import _adjust, one_thread
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_hidden_projection",
            "hidden_transfer", "ground_light", "GroundSamples",
@@ -256,7 +257,7 @@ def ground_hidden_projection(points, normals, rectangles, order: int, *, n_azimu
 
     starts = list(range(0, p.shape[0], chunk))
     k = min(len(starts), max(1, task_threads() if threads is None else threads))
-    with one_thread_below(0, 1):  # the tasks are the parallel work: small products on one BLAS thread
+    with one_thread():  # the tasks are the parallel work: small products on one BLAS thread
         run_tasks([functools.partial(chunks, starts[i::k]) for i in range(k)], threads=k)
     return out
 
@@ -288,8 +289,9 @@ def hidden_transfer(projection, env_sh, order: int) -> np.ndarray:
         raise ValueError(f"the projection has {v.shape[1]} coefficients; the transfer of order {order} under a sky "
                          f"of order {n_env} needs order {order + n_env - 1} ({(order + n_env - 1) ** 2})")
     yw, yk, ym = _triple_rule(n_proj, order, n_env)
-    g = yw.T @ (yk[:, :, None] * (ym @ env)[:, None, :]).reshape(len(yk), -1)  # (P*P, order*order*C)
-    return (v @ g).reshape(v.shape[0], order * order, env.shape[1])
+    with one_thread():  # small products: OpenBLAS's waiting workers would slow the numba kernels after them
+        g = yw.T @ (yk[:, :, None] * (ym @ env)[:, None, :]).reshape(len(yk), -1)  # (P*P, order*order*C)
+        return (v @ g).reshape(v.shape[0], order * order, env.shape[1])
 
 
 def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: int = 128, n_elevation: int = 32,
@@ -338,8 +340,7 @@ def ground_blocked_transfer(points, normals, env_sh, rectangles, *, n_azimuth: i
     if method == "numba":
         v = ground_hidden_projection(p, n, rects, order + n_env - 1, n_azimuth=n_azimuth, n_elevation=n_elevation,
                                      threads=threads)
-        with one_thread_below(0, 1):  # a small product: OpenBLAS's waiting workers would slow numba's after it
-            return hidden_transfer(v, env, order)
+        return hidden_transfer(v, env, order)
     dirs, weights = _grid_directions(_phi0(rects), n_azimuth, n_elevation)
     y = sh.basis(dirs, max(order, n_env))
     a = (y[:, : order * order, None] * (y[:, : n_env * n_env] @ env)[:, None, :]).reshape(dirs.shape[0], -1)
@@ -649,20 +650,17 @@ def environment_table(env_sh, quad: GroundQuadrature, n_elevation: int = 64) -> 
     (keyed by the SH's and the azimuths' bytes: a frame asks once per receiving object); the returned array is
     read-only."""
     env = np.ascontiguousarray(env_sh, dtype=np.float64)
-    key = (env.shape, env.tobytes(), quad.cos_az.tobytes(), quad.sin_az.tobytes(), int(n_elevation))
-    table = _ENV_TABLES.get(key)
-    if table is None:
+
+    def make():
         e = 0.5 * np.pi * np.arange(n_elevation + 1) / n_elevation
         ce, se = np.cos(e), np.sin(e)
         dirs = np.stack([quad.cos_az[:, None] * ce[None], np.broadcast_to(-se, (len(quad.cos_az), len(e))),
                          quad.sin_az[:, None] * ce[None]], -1)
-        table = np.ascontiguousarray(sh.basis(dirs.reshape(-1, 3), math.isqrt(env.shape[0])) @ env).reshape(
+        return np.ascontiguousarray(sh.basis(dirs.reshape(-1, 3), math.isqrt(env.shape[0])) @ env).reshape(
             len(quad.cos_az), n_elevation + 1, -1)
-        table.setflags(write=False)
-        if len(_ENV_TABLES) >= 4:
-            _ENV_TABLES.clear()
-        _ENV_TABLES[key] = table
-    return table
+
+    key = (env.shape, env.tobytes(), quad.cos_az.tobytes(), quad.sin_az.tobytes(), int(n_elevation))
+    return kept_by_key(_ENV_TABLES, key, make)
 
 
 #: The last environment tables (:func:`environment_table`).

@@ -31,6 +31,7 @@ import numpy as np
 from prtlab import sh
 from prtlab.sh._kernels import _A, _B, _PMM, LOW_BANDS, _high_bands, _low_bands
 
+from ._reuse import kept_by_key
 from ._shadows import BlockerLanes, LaneScratch, _as_spheres, _blocker_log_knots, _blocker_lanes, _check_order, \
     _receivers, blocker_log_table, environment_transfer, one_thread_below
 
@@ -75,16 +76,9 @@ def environment_cube(env_sh, res: int = CUBE_RES) -> np.ndarray:
     (faces as :func:`_cube_dirs`), read back by :func:`_cube_lookup`. The last few maps are kept (keyed by the
     SH's bytes; a frame calls it once per receiver set); the returned array is read-only."""
     env = np.ascontiguousarray(env_sh, dtype=np.float64)
-    key = (env.shape, env.tobytes(), int(res))
-    cube = _CUBE_CACHE.get(key)
-    if cube is None:
-        d = _cube_dirs(res).reshape(-1, 3)
-        cube = np.ascontiguousarray((sh.basis(d, math.isqrt(env.shape[0])) @ env).reshape(6, res, res, -1))
-        cube.setflags(write=False)
-        if len(_CUBE_CACHE) >= _CUBE_CACHE_SIZE:
-            _CUBE_CACHE.pop(next(iter(_CUBE_CACHE)))
-        _CUBE_CACHE[key] = cube
-    return cube
+    return kept_by_key(_CUBE_CACHE, (env.shape, env.tobytes(), int(res)), lambda: np.ascontiguousarray(
+        (sh.basis(_cube_dirs(res).reshape(-1, 3), math.isqrt(env.shape[0])) @ env).reshape(6, res, res, -1)),
+        _CUBE_CACHE_SIZE)
 
 
 #: Cube maps of the last environments (:func:`environment_cube`).

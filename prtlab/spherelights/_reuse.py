@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FrameReuse", "same_inputs"]
+__all__ = ["FrameReuse", "kept_by_key", "same_inputs"]
 
 
 class FrameReuse:
@@ -78,6 +78,19 @@ class FrameReuse:
         for name in [k for k in self._kept if k not in used]:
             del self._kept[name]
         return {"computed": list(self._computed), "reused": list(self._reused), "updated": list(self._updated)}
+
+
+def kept_by_key(cache: dict, key, make, size: int = 4):
+    """``cache[key]``, else ``make()`` made read-only and kept under ``key``, the oldest entries dropped past
+    ``size``: the last few results of a function of small inputs, keyed by their bytes."""
+    value = cache.get(key)
+    if value is None:
+        value = make()
+        value.setflags(write=False)
+        for old in list(cache)[: max(0, len(cache) - size + 1)]:
+            cache.pop(old, None)
+        cache[key] = value
+    return value
 
 
 def same_inputs(a, b) -> bool:

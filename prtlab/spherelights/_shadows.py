@@ -124,6 +124,12 @@ def one_thread_below(size: int, threshold: int):
         numba.set_num_threads(threads)
 
 
+def one_thread():
+    """:func:`one_thread_below` whatever the size: the block's numba kernels and BLAS calls on one thread (a small
+    product, whose BLAS workers would wait spinning beside numba's after it, or tasks that are the parallel work)."""
+    return one_thread_below(0, 1)
+
+
 # --------------------------------------------------------------------------- kernels
 
 

@@ -315,3 +315,19 @@ def test_update_gives_a_kept_result_from_the_last():
     assert reuse.get("a", (2,), lambda: -1, lambda inputs, value: None) == 11  # the same inputs: reused
     assert reuse.get("a", (3,), lambda: -1, lambda inputs, value: None) == -1  # no update: computed
     assert reuse.end_frame() == {"computed": ["a"], "reused": ["a"], "updated": []}
+
+
+def test_kept_by_key_keeps_the_last_results_read_only():
+    """``kept_by_key`` makes a missing entry once, returns it read-only, and drops the oldest past its size."""
+    from prtlab.spherelights._reuse import kept_by_key
+
+    cache, made = {}, []
+
+    def make(k):
+        made.append(k)
+        return np.full(3, float(k))
+
+    for k in (1, 2, 1, 3, 4):
+        out = kept_by_key(cache, k, lambda: make(k), size=2)
+        assert out[0] == k and not out.flags.writeable
+    assert made == [1, 2, 3, 4] and list(cache) == [3, 4]
