@@ -47,6 +47,7 @@ from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
 from ._reuse import kept_by_key
+from ._libm import atan_nonneg, sincos_quarter
 from ._shadows import _adjust, one_thread
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_hidden_projection",
@@ -433,9 +434,9 @@ def _texture_at(tex, g, a, b):
 def _cosine_span(a, b):
     """Elevations ``e`` in ``[0, pi/2]`` (below the horizon) where ``a cos e - b sin e > 0`` (one interval)."""
     if a > 0.0:
-        return 0.0, (0.5 * np.pi if b <= 0.0 else math.atan(a / b))
+        return 0.0, (0.5 * np.pi if b <= 0.0 else atan_nonneg(a / b))
     if b < 0.0:
-        return math.atan(a / b), 0.5 * np.pi
+        return atan_nonneg(a / b), 0.5 * np.pi
     return 1.0, 0.0
 
 
@@ -447,10 +448,27 @@ def _elevation_span(px, pz, h, nx, ny, nz, ux, uz, rect):
     d_in, d_out = _rect_span(px, pz, ux, uz, rect)
     if d_in >= d_out:
         return 1.0, 0.0
-    lo = math.atan2(h, d_out)
-    hi = math.atan2(h, d_in) if d_in > 0.0 else 0.5 * np.pi
+    lo = atan_nonneg(h / d_out)
+    hi = atan_nonneg(h / d_in) if d_in > 0.0 else 0.5 * np.pi
     c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
     return max(lo, c_lo), min(hi, c_hi)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _node_directions(px, pz, h, nx, ny, nz, cos_az, sin_az, nodes, rect, half, el, ce, se):
+    """For a receiver (as :func:`_elevation_span`) and every azimuth ``k``: ``half[k]``, the half width of its
+    elevation interval (negative: none), and at its Gauss-Legendre nodes the elevation ``el[k * E + i] = lo + half
+    (x_i + 1)``, its cosine ``ce`` and sine ``se`` (``E`` nodes; unspecified for an azimuth without an interval).
+    The sines and cosines are a loop of their own, which vectorises."""
+    n_el = nodes.shape[0]
+    for k in range(cos_az.shape[0]):
+        lo, hi = _elevation_span(px, pz, h, nx, ny, nz, cos_az[k], sin_az[k], rect)
+        hw = 0.5 * (hi - lo)
+        half[k] = hw if lo < hi else -1.0
+        for i in range(n_el):
+            el[k * n_el + i] = lo + hw * (nodes[i] + 1.0)
+    for j in range(el.shape[0]):
+        se[j], ce[j] = sincos_quarter(el[j])
 
 
 @numba.njit(cache=True, inline="always")
@@ -495,6 +513,7 @@ def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, c
         live = np.empty((n_sph, 4))  # adjusted lights reaching below the receiver: centre, radius
         live_id = np.empty(n_sph, dtype=np.int64)
         cand = np.empty(n_sph, dtype=np.int64)
+        half, el, ce, se = np.empty(n_az), np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el)
         n_live = 0
         for s in range(n_sph):
             if not unadjusted[s]:
@@ -515,12 +534,12 @@ def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, c
                 continue
             inv_u = 1.0 / (scene.rects[g, 3] * scene.rects[g, 3] + scene.rects[g, 4] * scene.rects[g, 4])
             inv_v = 1.0 / (scene.rects[g, 5] * scene.rects[g, 5] + scene.rects[g, 6] * scene.rects[g, 6])
+            _node_directions(px, pz, h, nx, ny, nz, quad.cos_az, quad.sin_az, quad.nodes, scene.rects[g], half, el,
+                             ce, se)
             for k in range(n_az):
-                ux, uz = quad.cos_az[k], quad.sin_az[k]
-                lo, hi = _elevation_span(px, pz, h, nx, ny, nz, ux, uz, scene.rects[g])
-                if lo >= hi:
+                if half[k] < 0.0:
                     continue
-                half = 0.5 * (hi - lo)
+                ux, uz = quad.cos_az[k], quad.sin_az[k]
                 n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
                 for j in range(n_live):
                     ox, oz = live[j, 0] - px, live[j, 2] - pz
@@ -528,13 +547,12 @@ def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, c
                         cand[n_cand] = j
                         n_cand += 1
                 for i in range(n_el):
-                    e = lo + half * (quad.nodes[i] + 1.0)
-                    ce, se = math.cos(e), math.sin(e)
-                    wx, wy, wz = ce * ux, -se, ce * uz
-                    wgt = half * quad.weights[i] * d_phi * ce * (nx * wx + ny * wy + nz * wz)
+                    c_e, s_e = ce[k * n_el + i], se[k * n_el + i]
+                    wx, wy, wz = c_e * ux, -s_e, c_e * uz
+                    wgt = half[k] * quad.weights[i] * d_phi * c_e * (nx * wx + ny * wy + nz * wz)
                     if wgt <= 0.0:
                         continue
-                    t_ground = h / se
+                    t_ground = h / s_e
                     blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand,
                                                      scene.is_local)
                     if blocked:
@@ -543,7 +561,7 @@ def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, c
                     if beyond >= 0:
                         ints[m, 1], reals[m, 1] = -1 - beyond, 0.0
                     else:
-                        u = e * (2.0 * n_tab / np.pi)
+                        u = el[k * n_el + i] * (2.0 * n_tab / np.pi)
                         t = min(int(u), n_tab - 1)
                         ints[m, 1], reals[m, 1] = t, u - t
                     ax, az = px + t_ground * wx - scene.rects[g, 1], pz + t_ground * wz - scene.rects[g, 2]
@@ -963,30 +981,31 @@ def _reached(points, normals, quad, rects, spheres, flags, margin, out):
         if not any_live:
             out[q] = False
             continue
+        near = np.zeros(n_az, dtype=np.bool_)  # a live sphere (widened by the margin) meets the azimuth's half-plane
+        for k in range(n_az):
+            ux, uz = quad.cos_az[k], quad.sin_az[k]
+            for f in range(2):
+                for j in range(n_ch):
+                    r = live[f, j, 3] * (1.0 + margin)
+                    ox, oz = live[f, j, 0] - px, live[f, j, 2] - pz
+                    if live[f, j, 3] > 0.0 and ox * ux + oz * uz > -r and abs(ox * uz - oz * ux) < r:
+                        near[k] = True
+        if not near.any():
+            out[q] = False
+            continue
+        half, el, ce, se = np.empty(n_az), np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el)
         for g in range(rects.shape[0]):
             h = py - rects[g, 0]
             if h <= 0.0:
                 continue
+            _node_directions(px, pz, h, nx, ny, nz, quad.cos_az, quad.sin_az, quad.nodes, rects[g], half, el, ce, se)
             for k in range(n_az):
+                if not near[k] or half[k] < 0.0:
+                    continue
                 ux, uz = quad.cos_az[k], quad.sin_az[k]
-                near = False  # a live sphere (widened by the margin) meets this azimuth's vertical half-plane
-                for f in range(2):
-                    for j in range(n_ch):
-                        r = live[f, j, 3] * (1.0 + margin)
-                        ox, oz = live[f, j, 0] - px, live[f, j, 2] - pz
-                        if live[f, j, 3] > 0.0 and ox * ux + oz * uz > -r and abs(ox * uz - oz * ux) < r:
-                            near = True
-                if not near:
-                    continue
-                lo, hi = _elevation_span(px, pz, h, nx, ny, nz, ux, uz, rects[g])
-                if lo >= hi:
-                    continue
-                half = 0.5 * (hi - lo)
                 for i in range(n_el):
-                    e = lo + half * (quad.nodes[i] + 1.0)
-                    ce, se = math.cos(e), math.sin(e)
-                    wx, wy, wz = ce * ux, -se, ce * uz
-                    t_ground = h / se
+                    wx, wy, wz = ce[k * n_el + i] * ux, -se[k * n_el + i], ce[k * n_el + i] * uz
+                    t_ground = h / se[k * n_el + i]
                     for j in range(n_ch):
                         a0 = _ray_answer(px, py, pz, wx, wy, wz, t_ground, live[0, j, 0], live[0, j, 1],
                                          live[0, j, 2], live[0, j, 3], margin)

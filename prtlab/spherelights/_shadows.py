@@ -70,6 +70,8 @@ from prtlab.sh._kernels import (
     _low_bands,
 )
 
+from ._libm import asin_unit
+
 __all__ = ["adjust_blockers", "blocker_log_sum", "direct_irradiance", "environment_transfer"]
 
 #: Knots of the blocker-log table used by the kernels: ``j (pi/2) / 256``, as ``prtlab.sh``.
@@ -290,27 +292,6 @@ def _rotated_zh_lanes(dirs, row, zh, n_bands, basis, tmp, out, out_row):
                 out[out_row, k, q] = zs * zh[l, q] * basis[k, q]
 
 
-# fdlibm's (FreeBSD msun e_asin.c) rational approximation: asin(x) = x + x R(x^2) on [0, 0.5], |error| < 2^-58.75
-_AS_P = (1.66666666666666657415e-01, -3.25565818622400915405e-01, 2.01212532134862925881e-01,
-         -4.00555345006794114027e-02, 7.91534994289814532176e-04, 3.47933107596021167570e-05)
-_AS_Q = (-2.40339491173441421878e+00, 2.02094576023350569471e+00, -6.88283971605453293030e-01,
-         7.70381505559019352791e-02)
-_PIO2_HI, _PIO2_LO = 1.57079632679489655800e+00, 6.12323399573676603587e-17
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _asin_unit(x):
-    """``asin(x)`` for ``0 <= x <= 1`` without a libm call (so that loops over it vectorise): fdlibm's rational
-    ``R``, on ``[0, 0.5]`` as ``x + x R(x^2)``, above as ``pi/2 - 2 asin(sqrt((1 - x) / 2))`` (fdlibm's form for
-    ``x >= 0.975``, used down to 0.5: within a few units in the last place of libm's there)."""
-    big = x > 0.5
-    t = 0.5 * (1.0 - x) if big else x * x
-    s = math.sqrt(t)
-    r = (t * (_AS_P[0] + t * (_AS_P[1] + t * (_AS_P[2] + t * (_AS_P[3] + t * (_AS_P[4] + t * _AS_P[5])))))
-         / (1.0 + t * (_AS_Q[0] + t * (_AS_Q[1] + t * (_AS_Q[2] + t * _AS_Q[3])))))
-    return _PIO2_HI - (2.0 * (s + s * r) - _PIO2_LO) if big else x + x * r
-
-
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _blocker_lanes(recv, centres, radii, tables, order, out, work, keep_logs=True):
     """Rotated blocker log of every light at the lanes' receivers (Eqs. 6-7 with the adjustment rules).
@@ -369,7 +350,7 @@ def _blocker_lanes(recv, centres, radii, tables, order, out, work, keep_logs=Tru
                     axis[s, t, q] = tmp[4 + t, q]
         for q in range(n_lanes):  # angular radius (vectorised)
             st = sin_t[s, q]
-            theta[s, q] = -1.0 if st < 0.0 else _asin_unit(st)
+            theta[s, q] = -1.0 if st < 0.0 else asin_unit(st)
         for q in range(n_lanes):  # table lookup (gathers: scalar)
             th = theta[s, q]
             if th < 0.0:

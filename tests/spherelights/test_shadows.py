@@ -347,32 +347,6 @@ def test_environment_transfer_of_a_higher_order_environment_is_exact(rng):
         environment_transfer(nrm, env[:4], ORDER)
 
 
-def test_asin_unit_is_within_two_units_in_the_last_place_of_libm():
-    """The blockers' angular radius without a libm call (``_asin_unit``, fdlibm's rational form) against numpy's
-    ``arcsin`` on ``[0, 1]``: random points, both sides of the switch at 0.5, near 1, and the ends (0 and 1
-    exactly: 0 and ``pi / 2``)."""
-    import numba
-
-    from prtlab.spherelights._shadows import _asin_unit
-
-    @numba.njit
-    def run(x):
-        out = np.empty_like(x)
-        for i in range(x.shape[0]):
-            out[i] = _asin_unit(x[i])
-        return out
-
-    rng = np.random.default_rng(3)
-    half = np.nextafter(0.5, np.array([0.0, 1.0]))
-    x = np.concatenate([rng.random(200_000), 0.5 + 1e-3 * rng.standard_normal(20_000).clip(-0.5, 0.5),
-                        1.0 - 1e-9 * rng.random(1_000), [0.0, 5e-324, 1e-300, 0.5, *half, 1.0]])
-    x = x[(x >= 0.0) & (x <= 1.0)]
-    exact = np.arcsin(x)
-    ours = run(x)
-    assert np.all(np.abs(ours - exact) <= 2.0 * np.spacing(exact)), np.max(np.abs(ours - exact) / np.spacing(exact))
-    assert run(np.array([0.0, 1.0])).tolist() == [0.0, np.pi / 2]
-
-
 def test_transfer_matrix_kept_is_the_computed_one(rng):
     """``transfer_matrix`` keeps the last environments' matrices: each call equals the sum of Gaunt products computed
     afresh, bit for bit, for environments of another order, channels, dtype or one signed zero apart, and a caller
