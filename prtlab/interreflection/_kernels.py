@@ -230,6 +230,19 @@ def bounce_kernel(irradiance, weights, out):
                 out[v, kp, c] += acc
 
 
+@numba.njit(cache=True, nogil=True)
+def outgoing_kernel(light, h, colour, out):
+    """``out[v, c] = sum_k h[v, k] colour[k, c] light[v, k, c]`` (:func:`._passes.outgoing_radiance`; serial: a
+    frame calls it per receiver, inside its tasks)."""
+    n_v, n_k, n_c = light.shape
+    for v in range(n_v):
+        for c in range(n_c):
+            acc = 0.0
+            for k in range(n_k):
+                acc += h[v, k] * colour[k, c] * light[v, k, c]
+            out[v, c] = acc
+
+
 @numba.njit(cache=True, parallel=True)
 def project_hits_kernel(starts, d_idx, value, wy, out):
     """SH projection of a radiance known on the rays that hit: ``out[p, m, i] = sum_h value[h, m] wy[d_h, i]``.

@@ -27,7 +27,7 @@ from prtlab import sh
 from prtlab.shadowfields import SphereGrid, interpolate_field
 
 from ._fields import StoredBasisRadiance
-from ._kernels import bounce_kernel, eq13_kernel
+from ._kernels import bounce_kernel, eq13_kernel, outgoing_kernel
 
 __all__ = ["basis_irradiance", "reflected_light", "fit_weights", "outgoing_radiance"]
 
@@ -193,6 +193,16 @@ def fit_weights(pca_basis, light, colour, method: str = "fast") -> np.ndarray:
     return pca_basis.weights(values, colour=True, method=method)
 
 
-def outgoing_radiance(light, h, colour) -> np.ndarray:
-    """``B(x_j, w_o) = sum_k h_k(w_o) colour_k L_k(x_j)``: (V, K, C), (V, K), (K, C) -> (V, C)."""
-    return np.einsum("vk,kc,vkc->vc", np.asarray(h, float), np.asarray(colour, float), np.asarray(light, float))
+def outgoing_radiance(light, h, colour, method: str = "numba") -> np.ndarray:
+    """``B(x_j, w_o) = sum_k h_k(w_o) colour_k L_k(x_j)``: (V, K, C), (V, K), (K, C) -> (V, C); ``method``
+    ``"reference"``: numpy's einsum (its sum in another order, to rounding)."""
+    _check_method(method)
+    light, h, colour = (np.ascontiguousarray(a, dtype=np.float64) for a in (light, h, colour))
+    if method == "reference":
+        return np.einsum("vk,kc,vkc->vc", h, colour, light)
+    if light.ndim != 3 or h.shape != light.shape[:2] or colour.shape != light.shape[1:]:
+        raise ValueError(f"light (V, K, C) {light.shape}, h (V, K) {h.shape} and colour (K, C) {colour.shape} "
+                         "do not match")
+    out = np.empty((light.shape[0], light.shape[2]))
+    outgoing_kernel(light, h, colour, out)
+    return out

@@ -71,6 +71,19 @@ def test_reflected_light_tiers(seed):
                                       for p, w in zip(phis, ws)), atol=1e-12)
 
 
+@given(seed=st.integers(0, 2**31 - 1), n_k=st.integers(1, 3))
+def test_outgoing_radiance_tiers(seed, n_k):
+    """The kernel against numpy's einsum, and against the sum written out for one vertex."""
+    rng = np.random.default_rng(seed)
+    light, h, colour = rng.normal(size=(7, n_k, 3)), rng.normal(size=(7, n_k)), rng.random((n_k, 3))
+    a = outgoing_radiance(light, h, colour)
+    np.testing.assert_allclose(a, outgoing_radiance(light, h, colour, method="reference"), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(a[2], sum(h[2, k] * colour[k] * light[2, k] for k in range(n_k)), rtol=1e-13,
+                               atol=1e-13)
+    with pytest.raises(ValueError, match="do not match"):
+        outgoing_radiance(light, h[:, :1] if n_k > 1 else h[:, [0, 0]], colour)
+
+
 def test_weights_reproduce_a_function_in_the_span():
     mesh = builtin_mesh("icosphere", subdivisions=1)
     basis = pca.fit_pca_basis(mesh, 6, 32)
