@@ -507,6 +507,9 @@ class FrameReuse:
     source_fields: list = dataclasses.field(default_factory=list)
     #: (receiver, source) -> (poses of receiver, source and occluders, Phi, the occluders' geometry)
     pair_irradiance: dict = dataclasses.field(default_factory=dict)
+    #: (poses of every object, Phi of every pair, the counts of a step that reuses them all) of the last
+    #: :meth:`Interreflection.basis_irradiance_step`
+    irradiance_step: tuple | None = None
     #: a place of :meth:`Interreflection._visibility` (("pair", receiver, source), ("direct", receiver)) -> {the
     #: receiver's pose, the last call's factors (name, poses of its field), prefix: {its first factors, their
     #: product at each receiver row, those rows' masks, where made}} of the kept partial visibility products
@@ -1513,6 +1516,14 @@ class Interreflection(Precomputation):
         their old and new poses) are (``info["updated_pairs"]``, ``info["updated_rows"]``). ``done``: called with
         each receiver and its finished ``Phi[r]`` (a dict not changed afterwards) as soon as its pairs are made.
         """
+        poses = tuple(geo[o.name]["pose"] for o in self.objects)
+        last = self.reuse.irradiance_step
+        if last is not None and last[0] == poses:  # nothing moved: every pair as the last step left it
+            phi = {name: dict(pairs) for name, pairs in last[1].items()}
+            if done is not None:
+                for r in self.objects:
+                    done(r, phi[r.name])
+            return phi, dict(last[2])
         phi = {}
         counts = {"computed_pairs": 0, "updated_pairs": 0, "updated_rows": 0, "skipped_pairs": 0, "reused_pairs": 0}
         for r in self.objects:
@@ -1558,6 +1569,11 @@ class Interreflection(Precomputation):
                 self.reuse.pair_irradiance[key] = (depends, value, now)
             if done is not None:
                 done(r, phi[r.name])
+        # a step at these poses again reuses every pair kept, and skips the same pairs (a pair's answers depend on
+        # the poses alone, as the keys above)
+        self.reuse.irradiance_step = (poses, {name: dict(pairs) for name, pairs in phi.items()}, dict(
+            counts, computed_pairs=0, updated_pairs=0, updated_rows=0,
+            reused_pairs=sum(len(pairs) for pairs in phi.values())))
         return phi, counts
 
     def _stacked_irradiance(self, r, phi_r, dtype=np.float64):

@@ -148,6 +148,13 @@ def test_moving_an_object_equals_a_from_scratch_shade(pre):
     for name in ("floor", "ball"):
         np.testing.assert_array_equal(first.total[name], fresh.total[name])
         np.testing.assert_array_equal(again.total[name], fresh.total[name])
+    # the step that reuses every pair at once (nothing moved) against each pair's own key
+    pre.reuse.irradiance_step = None
+    per_pair = pre.shade(state, bounces=2)
+    counts = ("computed_pairs", "updated_pairs", "updated_rows", "skipped_pairs", "reused_pairs")
+    assert [per_pair.info[k] for k in counts] == [again.info[k] for k in counts]
+    for name in ("floor", "ball"):
+        np.testing.assert_array_equal(per_pair.total[name], again.total[name])
     # relighting only (same poses as the previous frame): every pair is reused
     state.lights = [type(pre.scene.lights[0])(image=pre.scene.lights[0].image * 2.0)]
     relit = pre.shade(state, bounces=2)
