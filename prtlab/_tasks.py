@@ -9,8 +9,6 @@ those of running them one after another, bit for bit.
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -117,43 +115,3 @@ def run_tasks(jobs, sizes=None, threads: int | None = None) -> list:
             futures[k] = pool(threads).submit(jobs[k])
     futures_wait(futures)
     return [future.result() for future in futures]
-
-
-@functools.lru_cache(maxsize=1)
-def _blas_libraries() -> tuple:
-    """threadpoolctl's controllers of the BLAS libraries loaded (found once: a ``limit`` context queries every
-    library's full info, about 0.1 ms a call)."""
-    from threadpoolctl import ThreadpoolController
-
-    return tuple(ThreadpoolController().select(user_api="blas").lib_controllers)
-
-
-@contextlib.contextmanager
-def one_thread_below(size: int, threshold: int):
-    """Run the numba kernels and the BLAS calls of the block on one thread when ``size < threshold`` (then
-    restore the counts).
-
-    A parallel region waits for its slowest worker; on a loaded machine a worker is descheduled for a scheduler
-    time slice, so a call with little work (a few ms) runs faster on one thread; a small matrix product split over
-    BLAS threads waits for them beside numba's spinning workers (docs/notes/spherelights.md)."""
-    if size >= threshold:
-        yield
-        return
-    threads = numba.get_num_threads()
-    blas = [(lib, lib.get_num_threads()) for lib in _blas_libraries()]
-    numba.set_num_threads(1)
-    try:
-        for lib, _ in blas:
-            lib.set_num_threads(1)
-        yield
-    finally:
-        for lib, n in blas:
-            if n is not None:
-                lib.set_num_threads(n)
-        numba.set_num_threads(threads)
-
-
-def one_thread():
-    """:func:`one_thread_below` whatever the size: the block's numba kernels and BLAS calls on one thread (a small
-    product, whose BLAS workers would wait spinning beside numba's after it, or tasks that are the parallel work)."""
-    return one_thread_below(0, 1)

@@ -69,7 +69,7 @@ import numba
 import numpy as np
 
 from prtlab import _tasks, brdf, pca, sh
-from prtlab._tasks import concurrent_kernels, one_thread, run_tasks, task_threads
+from prtlab._tasks import concurrent_kernels, run_tasks
 from prtlab._validate import check_bool, check_choice, check_float, check_int
 from prtlab.geometry import RayCaster, offset_origins, shading_points
 from prtlab.pipeline import FrameState, MemoryNeed, Precomputation, check_int_options, scene_geometry_key_parts
@@ -1634,7 +1634,9 @@ class Interreflection(Precomputation):
         t_weights = t_bounces = t_near = 0.0
         for bounce in range(bounces):
             t0 = time.perf_counter()
-            weights, residuals = self._weights(light_k, method)
+            weights = {o.name: fit_weights(self.bases[o.name], light_k[o.name], self.seps[o.name].colour)
+                       for o in self.objects}
+            residuals = self._residuals(light_k, weights) if self.options.residual_rays else {}
             t_weights += time.perf_counter() - t0
             t0 = time.perf_counter()
             corrections = self._near_corrections(geo, phi, lights) if residuals and bounce == 0 \
@@ -1700,28 +1702,10 @@ class Interreflection(Precomputation):
 
     # ------------------------------------------------------------------ residual gather (an extension)
 
-    def _weights(self, light_k, method: str) -> tuple[dict, dict]:
-        """Per source its weights (Eq. 14, :func:`fit_weights`) and, with ``residual_rays``, its residual
-        ``colour_k L_k - P(colour_k L_k)`` (V, K, C) at its vertices, what its basis misses. The sources are tasks
-        (each reads its projector and basis once, memory-bound), their products on one BLAS thread."""
-
-        def source(s):  # a task of run_tasks
-            w = fit_weights(self.bases[s.name], light_k[s.name], self.seps[s.name].colour)
-            if not self.options.residual_rays:
-                return w, None
-            return w, (light_k[s.name] * self.seps[s.name].colour[None]
-                       - np.matmul(self.bases[s.name].basis.T, w).transpose(1, 0, 2))
-
-        jobs = [functools.partial(source, s) for s in self.objects]
-        if method == "reference":
-            done = [job() for job in jobs]
-        else:
-            threads = task_threads()
-            with one_thread():
-                done = run_tasks(jobs, [o.n_vertices for o in self.objects], threads=threads)
-        weights = {s.name: w for s, (w, _) in zip(self.objects, done)}
-        residuals = {s.name: r for s, (_, r) in zip(self.objects, done)} if self.options.residual_rays else {}
-        return weights, residuals
+    def _residuals(self, light_k, weights) -> dict:
+        """Per source: ``colour_k L_k - P(colour_k L_k)`` (V, K, C) at its vertices, what its basis misses."""
+        return {s.name: light_k[s.name] * self.seps[s.name].colour[None]
+                - np.matmul(self.bases[s.name].basis.T, weights[s.name]).transpose(1, 0, 2) for s in self.objects}
 
     def _scene_caster(self, geo, key):
         """``(caster, spheres)``: a ray caster of every object at the poses ``key`` and their bounding spheres

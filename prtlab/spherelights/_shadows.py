@@ -42,6 +42,7 @@ spheres and see them culled.
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import math
 
@@ -49,7 +50,6 @@ import numba
 import numpy as np
 
 from prtlab import sh
-from prtlab._tasks import one_thread, one_thread_below  # also imported from here by this package
 from prtlab._validate import as_points
 from prtlab.sh._kernels import (
     _A,
@@ -90,6 +90,46 @@ def _blocker_log_table(order: int) -> np.ndarray:
     table = np.ascontiguousarray(sh.blocker_log_zh(radii, order))
     table.setflags(write=False)
     return table
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_libraries() -> tuple:
+    """threadpoolctl's controllers of the BLAS libraries loaded (found once: a ``limit`` context queries every
+    library's full info, about 0.1 ms a call)."""
+    from threadpoolctl import ThreadpoolController
+
+    return tuple(ThreadpoolController().select(user_api="blas").lib_controllers)
+
+
+@contextlib.contextmanager
+def one_thread_below(size: int, threshold: int):
+    """Run the numba kernels and the BLAS calls of the block on one thread when ``size < threshold`` (then
+    restore the counts).
+
+    A parallel region waits for its slowest worker; on a loaded machine a worker is descheduled for a scheduler
+    time slice, so a call with little work (a few ms) runs faster on one thread; a small matrix product split over
+    BLAS threads waits for them beside numba's spinning workers (docs/notes/spherelights.md)."""
+    if size >= threshold:
+        yield
+        return
+    threads = numba.get_num_threads()
+    blas = [(lib, lib.get_num_threads()) for lib in _blas_libraries()]
+    numba.set_num_threads(1)
+    try:
+        for lib, _ in blas:
+            lib.set_num_threads(1)
+        yield
+    finally:
+        for lib, n in blas:
+            if n is not None:
+                lib.set_num_threads(n)
+        numba.set_num_threads(threads)
+
+
+def one_thread():
+    """:func:`one_thread_below` whatever the size: the block's numba kernels and BLAS calls on one thread (a small
+    product, whose BLAS workers would wait spinning beside numba's after it, or tasks that are the parallel work)."""
+    return one_thread_below(0, 1)
 
 
 # --------------------------------------------------------------------------- kernels
