@@ -46,8 +46,8 @@ import numpy as np
 from prtlab import sh
 from prtlab._tasks import run_tasks, task_threads
 
-from ._reuse import kept_by_key
 from ._libm import atan_nonneg, sincos_quarter
+from ._reuse import kept_by_key
 from ._shadows import _adjust, one_thread
 
 __all__ = ["ground_rectangles", "ground_objects", "ground_blocked_transfer", "ground_hidden_projection",
