@@ -544,6 +544,8 @@ def _light_arrays(centres, radii, sl_object, intersect):
 _LANES = 32
 #: Most squarings of a HYB exponential (a bound: ``|f^| <= threshold 2^1100`` for every finite ``|f^|``).
 _MAX_SQUARINGS = 1100
+#: Halvings of a HYB exponential decided by selects (:func:`_exp_hyb_columns`); more take a loop.
+_SELECT_HALVINGS = 12
 
 
 @functools.lru_cache(maxsize=None)
@@ -601,7 +603,8 @@ _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "thr
 _Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
                                          "object_chain", "emission_order"])
 #: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
-#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (2, M)``, ``n_squarings (M,)`` and ``perm
+#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (4, M)`` (per column ``|f^|^2``, the
+#: scale ``2^-k``, then OL's ``a sqrt(4 pi)`` and ``b``), ``n_squarings (M,)`` and ``perm
 #: (M + _MAX_SQUARINGS + 2,)`` int.
 _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", "n_squarings", "perm",
                                                      "out"])
@@ -616,12 +619,13 @@ _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", 
 #: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
 #: the emission; ``direct, indirect (3, L)`` the block's results; ``exp_direct`` and ``exp_light`` the HYB scratch
 #: of ``L`` and ``2L`` columns; ``transfer_rows ((2n-1)**2, L)`` and ``transfer_index ((2n-1)**2,)`` int the
-#: scaled basis rows of the clamped cosine that do not vanish and their coefficients.
+#: scaled basis rows of the clamped cosine that do not vanish and their coefficients; ``transfer_normals (3, L)``
+#: the normals ``normal_basis`` and ``transfer`` were made for (NaN before the task's first block).
 _BlockScratch = collections.namedtuple("_BlockScratch", [
     "recv", "blockers", "lane", "normal_basis", "transfer", "cosine", "object_dist", "object_order",
     "object_log", "object_prefix", "running", "front", "pair_log", "sums", "visibility", "light_dir", "cos_na",
     "open_visibility", "kernel", "radiance_dir", "radiance", "direct", "indirect", "exp_direct", "exp_light",
-    "object_rank", "chain", "chain_exp", "transfer_rows", "transfer_index"])
+    "object_rank", "chain", "chain_exp", "transfer_rows", "transfer_index", "transfer_normals"])
 
 
 def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking, exp_method,
@@ -731,7 +735,7 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
 def _hyb_scratch(n2, m):
     """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients (``value``: at least ``SQUARE_COLUMNS``
     columns, the row stride of the generated squares)."""
-    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((2, m)),
+    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((4, m)),
                        np.empty(m, dtype=np.int64), np.empty(m + _MAX_SQUARINGS + 2, dtype=np.int64), np.empty((n2, m)))
 
 
@@ -758,7 +762,8 @@ def _block_scratch(n_sph, n_obj, order, emission_order, n_lanes):
         _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes),
         np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj + 1, n2, n_lanes)),  # object_rank, chain
         np.empty((n_obj + 1, n2, n_lanes)),  # chain_exp
-        np.empty((hi * hi, n_lanes)), np.empty(hi * hi, dtype=np.int64))  # transfer_rows, transfer_index
+        np.empty((hi * hi, n_lanes)), np.empty(hi * hi, dtype=np.int64),  # transfer_rows, transfer_index
+        np.full((3, n_lanes), np.nan))  # transfer_normals
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -795,10 +800,20 @@ def _second_pass_block(points, normals, first, n_valid, lights, tables, exp_tabl
 def _environment_transfer_lanes(cosine_hi, transfer, order, scratch):
     """``T_n = cos_{2n-1}(n) @ M`` per lane into ``scratch.transfer`` (rows ``(c, k)``): the exact projection of
     ``L cos`` (see :func:`environment_transfer`; the clamped cosine's odd bands > 1 vanish). Leaves the SH basis
-    at the normals in ``scratch.normal_basis``."""
+    at the normals in ``scratch.normal_basis``. Kept when every lane's normal is the one they were made for (a
+    task's blocks of a flat ground: the same normals, so the same values)."""
     basis, trans, rows, index = scratch.normal_basis, scratch.transfer, scratch.transfer_rows, scratch.transfer_index
+    recv, kept = scratch.recv, scratch.transfer_normals
     hi = 2 * order - 1
     n_lanes, n_out = trans.shape[1], trans.shape[0]
+    same = True
+    for q in range(n_lanes):
+        same &= recv[3, q] == kept[0, q] and recv[4, q] == kept[1, q] and recv[5, q] == kept[2, q]
+    if same:
+        return
+    for t in range(3):
+        for q in range(n_lanes):
+            kept[t, q] = recv[3 + t, q]
     _basis_lanes(scratch.recv, 3, hi, basis, scratch.lane.tmp)
     n_rows = 0  # the rows of the clamped cosine that do not vanish, scaled: rows[j] = f_l Y_k(n), k = index[j]
     for l in range(hi):
@@ -1238,23 +1253,39 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     for i in range(1, n2):
         for p in range(m):
             norm[0, p] += x[i, p] * x[i, p]
-    for p in range(m):
-        norm[1, p] = math.sqrt(norm[0, p])
     # k: the fewest halvings with |f^| / 2^k <= threshold, i.e. |f^| <= threshold 2^k (both sides exact: powers of
-    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; norm[1]: the scale 2^-k
+    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; norm[1]: the scale 2^-k. The first
+    # _SELECT_HALVINGS comparisons as selects (a loop over the columns without branches: k varies from column to
+    # column, and a while loop per column mispredicted its exit); a column beyond them takes the loop again.
     k_max = 0
+    beyond = False
     for p in range(m):
-        r = norm[1, p]
+        r = math.sqrt(norm[0, p])
         k = 0
         limit = threshold
         scale = 1.0
-        while r > limit:
+        for _ in range(_SELECT_HALVINGS):
+            over = r > limit
+            k += 1 if over else 0
+            scale *= 0.5 if over else 1.0
             limit *= 2.0
-            scale *= 0.5
-            k += 1
+        beyond |= r > limit
         ks[p] = k
         norm[1, p] = scale
         k_max = max(k_max, k)
+    if beyond:
+        for p in range(m):
+            r = math.sqrt(norm[0, p])
+            k = 0
+            limit = threshold
+            scale = 1.0
+            while r > limit:
+                limit *= 2.0
+                scale *= 0.5
+                k += 1
+            ks[p] = k
+            norm[1, p] = scale
+            k_max = max(k_max, k)
     # columns by k descending, stable (a counting sort; perm's tail is its scratch)
     for kk in range(k_max + 2):
         perm[m + kk] = 0
@@ -1266,12 +1297,18 @@ def _exp_hyb_columns(x, exp_tables, scratch):
         slot = m + k_max - ks[p]
         perm[perm[slot]] = p
         perm[slot] += 1
-    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly
-    for t in range(m):
-        p = perm[t]
+    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly. The
+    # coefficients first, in a loop of their own (their square roots and divisions overlap from column to column),
+    # then the columns copied in the sorted order
+    for p in range(m):
         scale = norm[1, p]
         a, b = _ol_coefficients(math.sqrt(norm[0, p] * (scale * scale)), r_max, ol_a, ol_b)
-        v[0, t] = a * sqrt4pi
+        norm[2, p] = a * sqrt4pi
+        norm[3, p] = b
+    for t in range(m):
+        p = perm[t]
+        scale, b = norm[1, p], norm[3, p]
+        v[0, t] = norm[2, p]
         for i in range(1, n2):
             v[i, t] = b * (x[i, p] * scale)
     n_act = m

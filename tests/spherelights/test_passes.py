@@ -210,6 +210,63 @@ def test_fused_second_pass_matches_composed_tier_property(seed, n_recv, n_sph, b
     np.testing.assert_allclose(i1, i2, atol=1e-11)
 
 
+@pytest.mark.parametrize("order", [2, 4, 7])
+def test_fused_hyb_columns_match_the_hyb_reference_tier(order, rng):
+    """The fused pass's HYB exponential of a block's columns (``_exp_hyb_columns``) against ``sh.exp``'s numpy
+    tier, columns of 0 to 14 halvings (beyond the halvings decided by selects, ``_SELECT_HALVINGS``, a column
+    takes the loop), in shuffled order, a DC term of either sign; order 7 has no generated square."""
+    from prtlab.spherelights._passes import (_SELECT_HALVINGS, _ExpTables, _exp_hyb_columns, _hyb_scratch,
+                                             _HYB_THRESHOLD, _ol_table, _symmetric_gaunt)
+
+    n2, m = order * order, 64
+    k = rng.permutation(np.arange(m) % (_SELECT_HALVINGS + 3))
+    norm = _HYB_THRESHOLD * 2.0 ** (k - rng.uniform(0.0, 1.0, m))  # k halvings bring it under the threshold
+    norm[k == 0] *= rng.uniform(0.0, 1.0, int((k == 0).sum()))
+    x = rng.normal(size=(n2, m))
+    x[1:] *= norm / np.linalg.norm(x[1:], axis=0)
+    x[0] = rng.uniform(-3.0, 3.0, m) - 2e-3 * norm  # keeps exp*(x) finite where |f^| is large
+    keep = norm < 60.0  # exp*(f) at larger norms is far outside float64's range: compared only where finite
+    r_max, tab_a, tab_b = _ol_table(order)
+    tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
+    scratch = _hyb_scratch(n2, m)
+    _exp_hyb_columns(np.ascontiguousarray(x), tables, scratch)
+    ref = sh.exp(np.ascontiguousarray(x[:, keep].T), method="hyb-reference", channels=False).T
+    np.testing.assert_array_equal(scratch.n_squarings, k)
+    # rounding: each squaring doubles the relative error and adds its sums' (n2^2 products at most)
+    bound = 2.0 ** (k[keep] + 1) * n2**2 * np.finfo(float).eps * np.abs(ref).max(axis=0)
+    assert np.all(np.abs(scratch.out[:, keep] - ref) <= bound)
+    assert (k[keep] > 3).any() and (k[~keep] > _SELECT_HALVINGS).any()
+
+
+@pytest.mark.parametrize("exp_method", ["ol", "hyb"])
+def test_fused_second_pass_on_runs_of_one_normal(exp_method, rng):
+    """Receivers in runs of one normal, as a flat ground gives (the fused tier keeps a block's environment
+    transfer for the next block when every lane's normal is the same): blocks of one normal, a block where one lane
+    differs, an unnormalised copy of the normal, a block of another normal, against the composed tier."""
+    from prtlab.spherelights._passes import _LANES
+
+    runs = [np.tile([0.0, 1.0, 0.0], (3 * _LANES, 1)), random_directions(rng, _LANES),
+            np.tile([0.0, 1.0, 0.0], (2 * _LANES, 1)), np.tile([0.0, 2.0, 0.0], (_LANES, 1)),
+            np.tile([0.6, 0.8, 0.0], (2 * _LANES + 5, 1))]
+    runs[2][_LANES + 7] = [0.0, 0.8, 0.6]
+    n = np.concatenate(runs)
+    p = rng.uniform(-2, 2, size=(n.shape[0], 3))
+    c = rng.normal(size=(5, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, 5)
+    obj = np.array([0, 0, 1, 2, 2])
+    inter = np.zeros((5, 5), dtype=bool)
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
+    em = rng.normal(size=(5, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    args = (p, n, c, r, obj, inter, rot, em, _env_sh())
+    for indirect in (False, True):
+        d1, i1 = second_pass(*args, blocking="object", exp_method=exp_method, method="fused", indirect=indirect)
+        d2, i2 = second_pass(*args, blocking="object", exp_method=exp_method, method="numba", indirect=indirect)
+        np.testing.assert_allclose(d1, d2, atol=1e-11)
+        np.testing.assert_allclose(i1, i2, atol=1e-11)
+        assert np.ptp(d1[:, 0]) > 0.1
+
+
 @given(seed=st.integers(0, 2**31), order=st.integers(1, 6), extra=st.integers(0, 2), indirect=st.booleans(),
        blocking=st.sampled_from(["object", "sphere"]), exp_method=st.sampled_from(["ol", "hyb"]),
        average=st.sampled_from(["cosine", "paper"]))
