@@ -1045,23 +1045,36 @@ def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, sc
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _chain_exponentials(exp_tables, n2, scratch):
-    """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB), two ranks per exponential of ``2L`` columns (an odd last
-    rank with itself)."""
+    """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB). Rank 0 has nothing in front, ``chain[0] = 0``: its
+    exponential is written as the HYB exponential of a zero column makes it (OL's ``a(0) sqrt(4 pi)``, then zeros
+    times ``b(0)``). The others two ranks per exponential of ``2L`` columns, an even number of them leaving the
+    last alone (``L`` columns, in ``exp_direct``'s scratch)."""
     chain, chain_exp, pair, hyb = scratch.chain, scratch.chain_exp, scratch.pair_log, scratch.exp_light
     e = hyb.out
     n_lanes = pair.shape[1] // 2
     n_rank = chain.shape[0]
-    for t in range(0, n_rank, 2):
-        u = min(t + 1, n_rank - 1)
+    a, b = _ol_coefficients(0.0, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b)
+    for q in range(n_lanes):
+        chain_exp[0, 0, q] = 1.0 * (a * math.sqrt(4.0 * math.pi))
+    for k in range(1, n2):
+        for q in range(n_lanes):
+            chain_exp[0, k, q] = 1.0 * (b * (0.0 * 1.0))
+    for t in range(1, n_rank - 1, 2):
         for k in range(n2):
             for q in range(n_lanes):
                 pair[k, q] = chain[t, k, q]
-                pair[k, n_lanes + q] = chain[u, k, q]
+                pair[k, n_lanes + q] = chain[t + 1, k, q]
         _exp_hyb_columns(pair, exp_tables, hyb)
         for k in range(n2):
             for q in range(n_lanes):
                 chain_exp[t, k, q] = e[k, q]
-                chain_exp[u, k, q] = e[k, n_lanes + q]
+                chain_exp[t + 1, k, q] = e[k, n_lanes + q]
+    if n_rank % 2 == 0:
+        last = n_rank - 1
+        _exp_hyb_columns(chain[last], exp_tables, scratch.exp_direct)
+        for k in range(n2):
+            for q in range(n_lanes):
+                chain_exp[last, k, q] = scratch.exp_direct.out[k, q]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
