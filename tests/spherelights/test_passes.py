@@ -210,6 +210,19 @@ def test_fused_second_pass_matches_composed_tier_property(seed, n_recv, n_sph, b
     np.testing.assert_allclose(i1, i2, atol=1e-11)
 
 
+def _five_lights(rng):
+    """Five spherical lights in three objects (two, one, two), none intersecting, turned at random, with an order-4
+    emission: ``(centres, radii, sl_object, intersect, rotations, emission)``."""
+    c = rng.normal(size=(5, 3)) * 1.5
+    r = rng.uniform(0.2, 0.6, 5)
+    obj = np.array([0, 0, 1, 2, 2])
+    inter = np.zeros((5, 5), dtype=bool)
+    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
+    em = rng.normal(size=(5, 16, 3)) * 0.1
+    em[:, 0] += 1.0
+    return c, r, obj, inter, rot, em
+
+
 @pytest.mark.parametrize("order", [2, 4, 7])
 def test_fused_hyb_columns_match_the_hyb_reference_tier(order, rng):
     """The fused pass's HYB exponential of a block's columns (``_exp_hyb_columns``) against ``sh.exp``'s numpy
@@ -251,13 +264,7 @@ def test_fused_second_pass_on_runs_of_one_normal(exp_method, rng):
     runs[2][_LANES + 7] = [0.0, 0.8, 0.6]
     n = np.concatenate(runs)
     p = rng.uniform(-2, 2, size=(n.shape[0], 3))
-    c = rng.normal(size=(5, 3)) * 1.5
-    r = rng.uniform(0.2, 0.6, 5)
-    obj = np.array([0, 0, 1, 2, 2])
-    inter = np.zeros((5, 5), dtype=bool)
-    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
-    em = rng.normal(size=(5, 16, 3)) * 0.1
-    em[:, 0] += 1.0
+    c, r, obj, inter, rot, em = _five_lights(rng)
     args = (p, n, c, r, obj, inter, rot, em, _env_sh())
     for indirect in (False, True):
         d1, i1 = second_pass(*args, blocking="object", exp_method=exp_method, method="fused", indirect=indirect)
@@ -309,13 +316,7 @@ def test_an_emission_padded_with_zeros_changes_nothing(average, method, rng):
     the higher-order kernel only meets the emission's own bands."""
     p = rng.uniform(-2, 2, size=(50, 3))
     n = random_directions(rng, 50)
-    c = rng.normal(size=(5, 3)) * 1.5
-    r = rng.uniform(0.2, 0.6, 5)
-    obj = np.array([0, 0, 1, 2, 2])
-    inter = np.zeros((5, 5), dtype=bool)
-    rot = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
-    em = rng.normal(size=(5, 16, 3)) * 0.1
-    em[:, 0] += 1.0
+    c, r, obj, inter, rot, em = _five_lights(rng)
     padded = np.concatenate([em, np.zeros((5, 20, 3))], axis=1)
     env = _env_sh()
     kw = dict(average=average, method=method)
