@@ -603,8 +603,9 @@ _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "thr
 _Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
                                          "object_chain", "emission_order"])
 #: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
-#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (4, M)`` (per column ``|f^|^2``, the
-#: scale ``2^-k``, then OL's ``a sqrt(4 pi)`` and ``b``), ``n_squarings (M,)`` and ``perm
+#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (10, M)`` (per column ``|f^|^2``, the
+#: scale ``2^-k``, OL's ``a sqrt(4 pi)`` and ``b``, then the halved norm, its table knot and the table's ``a`` and
+#: ``b`` at the knot and the next), ``n_squarings (M,)`` and ``perm
 #: (M + _MAX_SQUARINGS + 2,)`` int.
 _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", "n_squarings", "perm",
                                                      "out"])
@@ -735,7 +736,7 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
 def _hyb_scratch(n2, m):
     """:data:`_HybScratch` for ``m`` columns of ``n2`` coefficients (``value``: at least ``SQUARE_COLUMNS``
     columns, the row stride of the generated squares)."""
-    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((4, m)),
+    return _HybScratch(np.empty((n2, max(m, SQUARE_COLUMNS))), np.empty((n2, m)), np.empty((10, m)),
                        np.empty(m, dtype=np.int64), np.empty(m + _MAX_SQUARINGS + 2, dtype=np.int64), np.empty((n2, m)))
 
 
@@ -1310,14 +1311,28 @@ def _exp_hyb_columns(x, exp_tables, scratch):
         slot = m + k_max - ks[p]
         perm[perm[slot]] = p
         perm[slot] += 1
-    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly. The
-    # coefficients first, in a loop of their own (their square roots and divisions overlap from column to column),
-    # then the columns copied in the sorted order
+    # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly. Its
+    # coefficients are _ol_coefficients' arithmetic split into loops over the columns: the square roots, the knot
+    # and the interpolation vectorise, the table's reads between them do not. Then the columns are copied in the
+    # sorted order.
+    n_tab = ol_a.shape[0]
+    last_knot = float(n_tab - 2)
     for p in range(m):
         scale = norm[1, p]
-        a, b = _ol_coefficients(math.sqrt(norm[0, p] * (scale * scale)), r_max, ol_a, ol_b)
-        norm[2, p] = a * sqrt4pi
-        norm[3, p] = b
+        r = math.sqrt(norm[0, p] * (scale * scale))
+        norm[4, p] = r
+        norm[5, p] = min(math.floor(math.sqrt(r / r_max) * (n_tab - 1)), last_knot)
+    for p in range(m):
+        j = int(norm[5, p])
+        norm[6, p], norm[7, p], norm[8, p], norm[9, p] = ol_a[j], ol_a[j + 1], ol_b[j], ol_b[j + 1]
+    for p in range(m):
+        r, j = norm[4, p], norm[5, p]
+        r0 = r_max * (j / (n_tab - 1)) ** 2
+        r1 = r_max * ((j + 1.0) / (n_tab - 1)) ** 2
+        s = (r - r0) / (r1 - r0)
+        far = r >= r_max
+        norm[2, p] = (ol_a[n_tab - 1] if far else (1.0 - s) * norm[6, p] + s * norm[7, p]) * sqrt4pi
+        norm[3, p] = ol_b[n_tab - 1] if far else (1.0 - s) * norm[8, p] + s * norm[9, p]
     for t in range(m):
         p = perm[t]
         scale, b = norm[1, p], norm[3, p]
