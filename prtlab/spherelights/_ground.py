@@ -494,81 +494,98 @@ def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand
     return False, beyond
 
 
-@numba.njit(cache=True, parallel=True)
-def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, count, reals, ints):
-    """Per receiver ``q``, into its rows ``q * capacity + m`` (``count[q]`` of them), the directions ``w`` that meet a
-    ground rectangle before any (adjusted) spherical light, in the order :func:`_ground_sample_sums` adds them
+#: Receivers a task of the samples' kernels takes at a time (one scratch for them).
+_SAMPLE_CHUNK = 16
+
+
+@numba.njit(cache=True, inline="always")
+def _sample_scratch(n_sph, n_az, n_el):
+    """A task's scratch for :func:`_receiver_samples`: the live lights (centre, radius), their ids, the candidates
+    of an azimuth, and per azimuth and node the interval's half width, the elevation, its cosine and sine."""
+    return (np.empty((n_sph, 4)), np.empty(n_sph, dtype=np.int64), np.empty(n_sph, dtype=np.int64), np.empty(n_az),
+            np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el))
+
+
+@numba.njit(cache=True, inline="always")
+def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, scratch, reals, ints, m):
+    """The directions ``w`` from the receiver ``p, n`` that meet a ground rectangle before any (adjusted)
+    spherical light, written to ``reals``, ``ints`` from row ``m`` in the order :func:`_sample_sums` adds them
     (:class:`GroundSamples`' columns): ``reals`` the weight ``max(0, n . w) dw``, the environment table's fraction
     (``n_tab`` elevation steps) and the hit point's edge coordinates; ``ints`` the azimuth, the table's cell
-    (``-1 - s`` for the local light ``s`` seen beyond the ground) and the ground. Over 80 lines: one loop nest
-    (receivers, grounds, azimuths, elevation nodes); the interval and ray tests are inline helpers."""
-    n_recv = points.shape[0]
+    (``-1 - s`` for the local light ``s`` seen beyond the ground) and the ground. Returns the row after the last.
+    Over 60 lines: one loop nest (grounds, azimuths, elevation nodes); the interval and ray tests are inline
+    helpers."""
+    live, live_id, cand, half, el, ce, se = scratch
     n_az = quad.cos_az.shape[0]
     n_el = quad.nodes.shape[0]
-    n_sph = scene.radii.shape[0]
     d_phi = 2.0 * np.pi / n_az
-    for q in numba.prange(n_recv):
-        px, py, pz = points[q, 0], points[q, 1], points[q, 2]
-        nx, ny, nz = normals[q, 0], normals[q, 1], normals[q, 2]
-        live = np.empty((n_sph, 4))  # adjusted lights reaching below the receiver: centre, radius
-        live_id = np.empty(n_sph, dtype=np.int64)
-        cand = np.empty(n_sph, dtype=np.int64)
-        half, el, ce, se = np.empty(n_az), np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el)
-        n_live = 0
-        for s in range(n_sph):
-            if not unadjusted[s]:
-                cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, scene.centres[s, 0], scene.centres[s, 1],
-                                        scene.centres[s, 2], scene.radii[s])
-            else:  # the true sphere, culled when it holds the receiver
-                cx, cy, cz, r = scene.centres[s, 0], scene.centres[s, 1], scene.centres[s, 2], scene.radii[s]
-                if (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2 < r * r:
-                    r = 0.0
-            if r > 0.0 and cy - r < py:
-                live[n_live, 0], live[n_live, 1], live[n_live, 2], live[n_live, 3] = cx, cy, cz, r
-                live_id[n_live] = s
-                n_live += 1
-        m = q * capacity
-        for g in range(scene.rects.shape[0]):
-            h = py - scene.rects[g, 0]
-            if h <= 0.0:
+    n_live = 0  # adjusted lights reaching below the receiver
+    for s in range(scene.radii.shape[0]):
+        if not unadjusted[s]:
+            cx, cy, cz, r = _adjust(px, py, pz, nx, ny, nz, scene.centres[s, 0], scene.centres[s, 1],
+                                    scene.centres[s, 2], scene.radii[s])
+        else:  # the true sphere, culled when it holds the receiver
+            cx, cy, cz, r = scene.centres[s, 0], scene.centres[s, 1], scene.centres[s, 2], scene.radii[s]
+            if (cx - px) ** 2 + (cy - py) ** 2 + (cz - pz) ** 2 < r * r:
+                r = 0.0
+        if r > 0.0 and cy - r < py:
+            live[n_live, 0], live[n_live, 1], live[n_live, 2], live[n_live, 3] = cx, cy, cz, r
+            live_id[n_live] = s
+            n_live += 1
+    for g in range(scene.rects.shape[0]):
+        h = py - scene.rects[g, 0]
+        if h <= 0.0:
+            continue
+        inv_u = 1.0 / (scene.rects[g, 3] * scene.rects[g, 3] + scene.rects[g, 4] * scene.rects[g, 4])
+        inv_v = 1.0 / (scene.rects[g, 5] * scene.rects[g, 5] + scene.rects[g, 6] * scene.rects[g, 6])
+        _node_directions(px, pz, h, nx, ny, nz, quad.cos_az, quad.sin_az, quad.nodes, scene.rects[g], half, el,
+                         ce, se)
+        for k in range(n_az):
+            if half[k] < 0.0:
                 continue
-            inv_u = 1.0 / (scene.rects[g, 3] * scene.rects[g, 3] + scene.rects[g, 4] * scene.rects[g, 4])
-            inv_v = 1.0 / (scene.rects[g, 5] * scene.rects[g, 5] + scene.rects[g, 6] * scene.rects[g, 6])
-            _node_directions(px, pz, h, nx, ny, nz, quad.cos_az, quad.sin_az, quad.nodes, scene.rects[g], half, el,
-                             ce, se)
-            for k in range(n_az):
-                if half[k] < 0.0:
+            ux, uz = quad.cos_az[k], quad.sin_az[k]
+            n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
+            for j in range(n_live):
+                ox, oz = live[j, 0] - px, live[j, 2] - pz
+                if ox * ux + oz * uz > -live[j, 3] and abs(ox * uz - oz * ux) < live[j, 3]:
+                    cand[n_cand] = j
+                    n_cand += 1
+            for i in range(n_el):
+                c_e, s_e = ce[k * n_el + i], se[k * n_el + i]
+                wx, wy, wz = c_e * ux, -s_e, c_e * uz
+                wgt = half[k] * quad.weights[i] * d_phi * c_e * (nx * wx + ny * wy + nz * wz)
+                if wgt <= 0.0:
                     continue
-                ux, uz = quad.cos_az[k], quad.sin_az[k]
-                n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
-                for j in range(n_live):
-                    ox, oz = live[j, 0] - px, live[j, 2] - pz
-                    if ox * ux + oz * uz > -live[j, 3] and abs(ox * uz - oz * ux) < live[j, 3]:
-                        cand[n_cand] = j
-                        n_cand += 1
-                for i in range(n_el):
-                    c_e, s_e = ce[k * n_el + i], se[k * n_el + i]
-                    wx, wy, wz = c_e * ux, -s_e, c_e * uz
-                    wgt = half[k] * quad.weights[i] * d_phi * c_e * (nx * wx + ny * wy + nz * wz)
-                    if wgt <= 0.0:
-                        continue
-                    t_ground = h / s_e
-                    blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand,
-                                                     scene.is_local)
-                    if blocked:
-                        continue
-                    reals[m, 0], ints[m, 0], ints[m, 2] = wgt, k, g
-                    if beyond >= 0:
-                        ints[m, 1], reals[m, 1] = -1 - beyond, 0.0
-                    else:
-                        u = el[k * n_el + i] * (2.0 * n_tab / np.pi)
-                        t = min(int(u), n_tab - 1)
-                        ints[m, 1], reals[m, 1] = t, u - t
-                    ax, az = px + t_ground * wx - scene.rects[g, 1], pz + t_ground * wz - scene.rects[g, 2]
-                    reals[m, 2] = (ax * scene.rects[g, 3] + az * scene.rects[g, 4]) * inv_u
-                    reals[m, 3] = (ax * scene.rects[g, 5] + az * scene.rects[g, 6]) * inv_v
-                    m += 1
-        count[q] = m - q * capacity
+                t_ground = h / s_e
+                blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand,
+                                                 scene.is_local)
+                if blocked:
+                    continue
+                reals[m, 0], ints[m, 0], ints[m, 2] = wgt, k, g
+                if beyond >= 0:
+                    ints[m, 1], reals[m, 1] = -1 - beyond, 0.0
+                else:
+                    u = el[k * n_el + i] * (2.0 * n_tab / np.pi)
+                    t = min(int(u), n_tab - 1)
+                    ints[m, 1], reals[m, 1] = t, u - t
+                ax, az = px + t_ground * wx - scene.rects[g, 1], pz + t_ground * wz - scene.rects[g, 2]
+                reals[m, 2] = (ax * scene.rects[g, 3] + az * scene.rects[g, 4]) * inv_u
+                reals[m, 3] = (ax * scene.rects[g, 5] + az * scene.rects[g, 6]) * inv_v
+                m += 1
+    return m
+
+
+@numba.njit(cache=True, parallel=True)
+def _ground_samples(points, normals, quad, scene, n_tab, unadjusted, capacity, count, reals, ints):
+    """Per receiver ``q``, its samples (:func:`_receiver_samples`) into the rows ``q * capacity + m``, ``count[q]``
+    of them."""
+    n_recv = points.shape[0]
+    for c in numba.prange((n_recv + _SAMPLE_CHUNK - 1) // _SAMPLE_CHUNK):
+        scratch = _sample_scratch(scene.radii.shape[0], quad.cos_az.shape[0], quad.nodes.shape[0])
+        for q in range(c * _SAMPLE_CHUNK, min(n_recv, (c + 1) * _SAMPLE_CHUNK)):
+            m = _receiver_samples(points[q, 0], points[q, 1], points[q, 2], normals[q, 0], normals[q, 1],
+                                  normals[q, 2], quad, scene, n_tab, unadjusted, scratch, reals, ints, q * capacity)
+            count[q] = m - q * capacity
 
 
 @numba.njit(cache=True, parallel=True)
@@ -582,34 +599,60 @@ def _compact_samples(count, capacity, offset, reals, ints, out_reals, out_ints):
                 out_ints[offset[q] + m, j] = ints[q * capacity + m, j]
 
 
+@numba.njit(cache=True, inline="always")
+def _sample_sums(lo, hi, reals, ints, env_table, local_radiance, texture):
+    """Over the samples ``lo:hi`` in order (:class:`GroundSamples`): the weighted radiance the second pass gave them
+    (the environment table's, linear in elevation, or a local light's) and the ground's texture at the hit point;
+    six sums (environment, ground)."""
+    e0 = e1 = e2 = 0.0
+    g0 = g1 = g2 = 0.0
+    for m in range(lo, hi):
+        wgt = reals[m, 0]
+        t = np.int64(ints[m, 1])
+        if t < 0:
+            s_id = -1 - t
+            e0 += wgt * local_radiance[s_id, 0]
+            e1 += wgt * local_radiance[s_id, 1]
+            e2 += wgt * local_radiance[s_id, 2]
+        else:
+            k = np.int64(ints[m, 0])
+            f = reals[m, 1]
+            e0 += wgt * ((1.0 - f) * env_table[k, t, 0] + f * env_table[k, t + 1, 0])
+            e1 += wgt * ((1.0 - f) * env_table[k, t, 1] + f * env_table[k, t + 1, 1])
+            e2 += wgt * ((1.0 - f) * env_table[k, t, 2] + f * env_table[k, t + 1, 2])
+        t0, t1, t2 = _texture_at(texture, np.int64(ints[m, 2]), reals[m, 2], reals[m, 3])
+        g0 += wgt * t0
+        g1 += wgt * t1
+        g2 += wgt * t2
+    return e0, e1, e2, g0, g1, g2
+
+
 @numba.njit(cache=True, parallel=True)
 def _ground_sample_sums(ptr, reals, ints, env_table, local_radiance, texture, out_env, out_ground):
-    """Per receiver ``q`` (``out_env``, ``out_ground`` (B, 3)), over its samples ``ptr[q]:ptr[q + 1]`` in order
-    (:class:`GroundSamples`): the weighted radiance the second pass gave them (the environment table's, linear in
-    elevation, or a local light's) and the ground's texture at the hit point."""
+    """Per receiver ``q`` (``out_env``, ``out_ground`` (B, 3)): :func:`_sample_sums` over its samples
+    ``ptr[q]:ptr[q + 1]``."""
     for q in numba.prange(ptr.shape[0] - 1):
-        e0 = e1 = e2 = 0.0
-        g0 = g1 = g2 = 0.0
-        for m in range(ptr[q], ptr[q + 1]):
-            wgt = reals[m, 0]
-            t = np.int64(ints[m, 1])
-            if t < 0:
-                s_id = -1 - t
-                e0 += wgt * local_radiance[s_id, 0]
-                e1 += wgt * local_radiance[s_id, 1]
-                e2 += wgt * local_radiance[s_id, 2]
-            else:
-                k = np.int64(ints[m, 0])
-                f = reals[m, 1]
-                e0 += wgt * ((1.0 - f) * env_table[k, t, 0] + f * env_table[k, t + 1, 0])
-                e1 += wgt * ((1.0 - f) * env_table[k, t, 1] + f * env_table[k, t + 1, 1])
-                e2 += wgt * ((1.0 - f) * env_table[k, t, 2] + f * env_table[k, t + 1, 2])
-            t0, t1, t2 = _texture_at(texture, np.int64(ints[m, 2]), reals[m, 2], reals[m, 3])
-            g0 += wgt * t0
-            g1 += wgt * t1
-            g2 += wgt * t2
+        e0, e1, e2, g0, g1, g2 = _sample_sums(ptr[q], ptr[q + 1], reals, ints, env_table, local_radiance, texture)
         out_env[q, 0], out_env[q, 1], out_env[q, 2] = e0, e1, e2
         out_ground[q, 0], out_ground[q, 1], out_ground[q, 2] = g0, g1, g2
+
+
+@numba.njit(cache=True, parallel=True)
+def _ground_light_kernel(points, normals, quad, scene, n_tab, unadjusted, out_env, out_ground):
+    """:func:`_ground_samples` then :func:`_ground_sample_sums` under ``scene``'s lighting, each receiver's samples
+    summed as they are made (in a task's scratch, never stored): the same sums bit for bit."""
+    n_recv = points.shape[0]
+    capacity = scene.rects.shape[0] * quad.cos_az.shape[0] * quad.nodes.shape[0]
+    for c in numba.prange((n_recv + _SAMPLE_CHUNK - 1) // _SAMPLE_CHUNK):
+        scratch = _sample_scratch(scene.radii.shape[0], quad.cos_az.shape[0], quad.nodes.shape[0])
+        reals, ints = np.empty((capacity, 4)), np.empty((capacity, 3), dtype=np.int32)
+        for q in range(c * _SAMPLE_CHUNK, min(n_recv, (c + 1) * _SAMPLE_CHUNK)):
+            m = _receiver_samples(points[q, 0], points[q, 1], points[q, 2], normals[q, 0], normals[q, 1],
+                                  normals[q, 2], quad, scene, n_tab, unadjusted, scratch, reals, ints, 0)
+            e0, e1, e2, g0, g1, g2 = _sample_sums(0, m, reals, ints, scene.env_table, scene.local_radiance,
+                                                  scene.texture)
+            out_env[q, 0], out_env[q, 1], out_env[q, 2] = e0, e1, e2
+            out_ground[q, 0], out_ground[q, 1], out_ground[q, 2] = g0, g1, g2
 
 
 @numba.njit(cache=True)
@@ -728,18 +771,23 @@ def ground_light(points, normals, rectangles, textures, env_sh, centres=(), radi
     ground). The lights block by ray-sphere tests (binary), not by the SH visibility. A receiver at or below a
     ground's height gets nothing from it; grounds seen through one another are each counted.
     """
-    from prtlab._validate import check_int
-
-    check_int(n_azimuth, "n_azimuth", 1)
-    check_int(n_elevation, "n_elevation", 1)
-    p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    rects = np.ascontiguousarray(rectangles, dtype=np.float64).reshape(-1, 7)
+    p, n, rects, c, r, is_local, exact, quad = _sample_inputs(points, normals, rectangles, centres, radii,
+                                                              local_radiance, n_azimuth, n_elevation, unadjusted)
     _check_textures(textures, len(rects))
-    if p.shape[0] == 0 or rects.shape[0] == 0:
-        return np.zeros((p.shape[0], 3)), np.zeros((p.shape[0], 3))
-    samples = ground_samples(p, normals, rects, centres, radii, local_radiance, n_azimuth=n_azimuth,
-                             n_elevation=n_elevation, unadjusted=unadjusted)
-    return ground_sample_sums(samples, textures, env_sh, local_radiance)
+    hidden, reflected = np.zeros((len(p), 3)), np.zeros((len(p), 3))
+    if len(p) == 0 or len(rects) == 0:
+        return hidden, reflected
+    scene = GroundScene(rects, np.ascontiguousarray(textures, dtype=np.float64), c, r,
+                        _local_rows(local_radiance, len(r)), is_local, environment_table(env_sh, quad, _ENV_TABLE))
+    _ground_light_kernel(p, n, quad, scene, _ENV_TABLE, exact, hidden, reflected)
+    return hidden, reflected
+
+
+def _local_rows(local_radiance, n_lights: int) -> np.ndarray:
+    """The local lights' radiance ``(S, 3)`` the sums read (an object's light, a NaN row, reads as 0)."""
+    if local_radiance is None:
+        return np.zeros((n_lights, 3))
+    return np.ascontiguousarray(np.nan_to_num(np.asarray(local_radiance, np.float64).reshape(-1, 3)))
 
 
 def _check_textures(textures, n_rects: int) -> None:
@@ -1037,9 +1085,8 @@ def ground_sample_sums(samples: GroundSamples, textures, env_sh, local_radiance=
     hidden, reflected = np.zeros((n_recv, 3)), np.zeros((n_recv, 3))
     if n_recv == 0 or samples.n_grounds == 0:
         return hidden, reflected
-    loc = np.zeros((0, 3)) if local_radiance is None else np.asarray(local_radiance, np.float64).reshape(-1, 3)
     _ground_sample_sums(samples.ptr, samples.reals, samples.ints, environment_table(env_sh, samples.quad, _ENV_TABLE),
-                        np.ascontiguousarray(np.nan_to_num(loc)), np.ascontiguousarray(textures, dtype=np.float64),
+                        _local_rows(local_radiance, 0), np.ascontiguousarray(textures, dtype=np.float64),
                         hidden, reflected)
     return hidden, reflected
 
