@@ -603,11 +603,11 @@ _ExpTables = collections.namedtuple("_ExpTables", ["r_max", "ol_a", "ol_b", "thr
 _Mode = collections.namedtuple("_Mode", ["order", "per_object", "indirect", "hyb", "cosine", "n_lanes",
                                          "object_chain", "emission_order"])
 #: Scratch of a HYB exponential of ``M`` columns (:func:`_exp_hyb_columns`): ``value, square, out
-#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``norm (10, M)`` (per column ``|f^|^2``, the
+#: (n*n, M)`` (``value``: at least ``SQUARE_COLUMNS`` columns), ``columns (10, M)`` (per column ``|f^|^2``, the
 #: scale ``2^-k``, OL's ``a sqrt(4 pi)`` and ``b``, then the halved norm, its table knot and the table's ``a`` and
 #: ``b`` at the knot and the next), ``n_squarings (M,)`` and ``perm
 #: (M + _MAX_SQUARINGS + 2,)`` int.
-_HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "norm", "n_squarings", "perm",
+_HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "columns", "n_squarings", "perm",
                                                      "out"])
 #: Scratch of one parallel task, the lanes ``L`` last: ``recv (6, L)`` receiver points and normals,
 #: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
@@ -1056,10 +1056,10 @@ def _chain_exponentials(exp_tables, n2, scratch):
     n_rank = chain.shape[0]
     a, b = _ol_coefficients(0.0, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b)
     for q in range(n_lanes):
-        chain_exp[0, 0, q] = 1.0 * (a * math.sqrt(4.0 * math.pi))
+        chain_exp[0, 0, q] = a * math.sqrt(4.0 * math.pi)
     for k in range(1, n2):
         for q in range(n_lanes):
-            chain_exp[0, k, q] = 1.0 * (b * (0.0 * 1.0))
+            chain_exp[0, k, q] = b * 0.0
     for t in range(1, n_rank - 1, 2):
         for k in range(n2):
             for q in range(n_lanes):
@@ -1258,23 +1258,23 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     :mod:`._square_kernels` where ``scratch.value`` has their row stride and the order has one. ``scratch``: a
     :data:`_HybScratch` of ``M`` columns."""
     n2, m = x.shape
-    norm, ks, perm = scratch.norm, scratch.n_squarings, scratch.perm
+    col, ks, perm = scratch.columns, scratch.n_squarings, scratch.perm
     v, w, out = scratch.value, scratch.square, scratch.out
     sqrt4pi = math.sqrt(4.0 * math.pi)
     threshold, r_max, ol_a, ol_b = exp_tables.threshold, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b
     for p in range(m):
-        norm[0, p] = 0.0
+        col[0, p] = 0.0
     for i in range(1, n2):
         for p in range(m):
-            norm[0, p] += x[i, p] * x[i, p]
+            col[0, p] += x[i, p] * x[i, p]
     # k: the fewest halvings with |f^| / 2^k <= threshold, i.e. |f^| <= threshold 2^k (both sides exact: powers of
-    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; norm[1]: the scale 2^-k. The first
+    # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; col[1]: the scale 2^-k. The first
     # _SELECT_HALVINGS comparisons as selects (a loop over the columns without branches: k varies from column to
     # column, and a while loop per column mispredicted its exit); a column beyond them takes the loop again.
     k_max = 0
     beyond = False
     for p in range(m):
-        r = math.sqrt(norm[0, p])
+        r = math.sqrt(col[0, p])
         k = 0
         limit = threshold
         scale = 1.0
@@ -1285,21 +1285,17 @@ def _exp_hyb_columns(x, exp_tables, scratch):
             limit *= 2.0
         beyond |= r > limit
         ks[p] = k
-        norm[1, p] = scale
+        col[1, p] = scale
         k_max = max(k_max, k)
-    if beyond:
+    if beyond:  # those columns go on halving from where the selects left them (powers of two: exact)
         for p in range(m):
-            r = math.sqrt(norm[0, p])
-            k = 0
-            limit = threshold
-            scale = 1.0
+            r = math.sqrt(col[0, p])
+            limit = threshold * 2.0 ** _SELECT_HALVINGS
             while r > limit:
                 limit *= 2.0
-                scale *= 0.5
-                k += 1
-            ks[p] = k
-            norm[1, p] = scale
-            k_max = max(k_max, k)
+                col[1, p] *= 0.5
+                ks[p] += 1
+            k_max = max(k_max, ks[p])
     # columns by k descending, stable (a counting sort; perm's tail is its scratch)
     for kk in range(k_max + 2):
         perm[m + kk] = 0
@@ -1318,25 +1314,25 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     n_tab = ol_a.shape[0]
     last_knot = float(n_tab - 2)
     for p in range(m):
-        scale = norm[1, p]
-        r = math.sqrt(norm[0, p] * (scale * scale))
-        norm[4, p] = r
-        norm[5, p] = min(math.floor(math.sqrt(r / r_max) * (n_tab - 1)), last_knot)
+        scale = col[1, p]
+        r = math.sqrt(col[0, p] * (scale * scale))
+        col[4, p] = r
+        col[5, p] = min(math.floor(math.sqrt(r / r_max) * (n_tab - 1)), last_knot)
     for p in range(m):
-        j = int(norm[5, p])
-        norm[6, p], norm[7, p], norm[8, p], norm[9, p] = ol_a[j], ol_a[j + 1], ol_b[j], ol_b[j + 1]
+        j = int(col[5, p])
+        col[6, p], col[7, p], col[8, p], col[9, p] = ol_a[j], ol_a[j + 1], ol_b[j], ol_b[j + 1]
     for p in range(m):
-        r, j = norm[4, p], norm[5, p]
+        r, j = col[4, p], col[5, p]
         r0 = r_max * (j / (n_tab - 1)) ** 2
         r1 = r_max * ((j + 1.0) / (n_tab - 1)) ** 2
         s = (r - r0) / (r1 - r0)
         far = r >= r_max
-        norm[2, p] = (ol_a[n_tab - 1] if far else (1.0 - s) * norm[6, p] + s * norm[7, p]) * sqrt4pi
-        norm[3, p] = ol_b[n_tab - 1] if far else (1.0 - s) * norm[8, p] + s * norm[9, p]
+        col[2, p] = (ol_a[n_tab - 1] if far else (1.0 - s) * col[6, p] + s * col[7, p]) * sqrt4pi
+        col[3, p] = ol_b[n_tab - 1] if far else (1.0 - s) * col[8, p] + s * col[9, p]
     for t in range(m):
         p = perm[t]
-        scale, b = norm[1, p], norm[3, p]
-        v[0, t] = norm[2, p]
+        scale, b = col[1, p], col[3, p]
+        v[0, t] = col[2, p]
         for i in range(1, n2):
             v[i, t] = b * (x[i, p] * scale)
     n_act = m
