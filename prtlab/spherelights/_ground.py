@@ -377,8 +377,10 @@ class GroundScene(NamedTuple):
 
 
 @functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=16)
 def ground_quadrature(n_azimuth: int, n_elevation: int, phi0: float = 0.0) -> GroundQuadrature:
-    """:class:`GroundQuadrature` of ``n_azimuth`` azimuths from ``phi0`` and ``n_elevation`` Gauss-Legendre nodes."""
+    """:class:`GroundQuadrature` of ``n_azimuth`` azimuths from ``phi0`` and ``n_elevation`` Gauss-Legendre nodes
+    (read-only arrays; the last few are kept)."""
     x, w = np.polynomial.legendre.leggauss(n_elevation)
     phi = phi0 + (np.arange(n_azimuth) + 0.5) * (2.0 * np.pi / n_azimuth)
     out = GroundQuadrature(np.cos(phi), np.sin(phi), x, w)
@@ -388,16 +390,24 @@ def ground_quadrature(n_azimuth: int, n_elevation: int, phi0: float = 0.0) -> Gr
 
 
 @numba.njit(cache=True, inline="always")
-def _rect_span(px, pz, ux, uz, rect):
-    """Horizontal distances ``[d_in, d_out]`` (``d_in > d_out``: none) along ``(ux, uz)`` from ``(px, pz)`` inside
-    the rectangle ``rect = [y, c_x, c_z, u_x, u_z, v_x, v_z]`` (slab test in its edge coordinates)."""
-    d_in, d_out = 0.0, np.inf
+def _rect_coordinates(px, pz, rect):
+    """Edge coordinates ``(a, b)`` of ``(px, pz)`` in the rectangle ``rect = [y, c_x, c_z, u_x, u_z, v_x, v_z]``
+    (``[-1, 1]^2`` inside) and its edges' ``1 / |u|^2, 1 / |v|^2``."""
     dx, dz = px - rect[1], pz - rect[2]
+    inv_u = 1.0 / (rect[3] * rect[3] + rect[4] * rect[4])
+    inv_v = 1.0 / (rect[5] * rect[5] + rect[6] * rect[6])
+    return (dx * rect[3] + dz * rect[4]) * inv_u, (dx * rect[5] + dz * rect[6]) * inv_v, inv_u, inv_v
+
+
+@numba.njit(cache=True, inline="always")
+def _rect_span(a, b, inv_u, inv_v, ux, uz, rect):
+    """Horizontal distances ``[d_in, d_out]`` (``d_in > d_out``: none) along ``(ux, uz)`` inside the rectangle
+    ``rect`` from the point at its edge coordinates ``(a, b)`` (:func:`_rect_coordinates`; a slab test)."""
+    d_in, d_out = 0.0, np.inf
     for e in range(2):
         ex, ez = rect[3 + 2 * e], rect[4 + 2 * e]
-        inv = 1.0 / (ex * ex + ez * ez)
-        a0 = (dx * ex + dz * ez) * inv
-        da = (ux * ex + uz * ez) * inv
+        a0 = a if e == 0 else b
+        da = (ux * ex + uz * ez) * (inv_u if e == 0 else inv_v)
         if da == 0.0:
             if abs(a0) > 1.0:
                 return 1.0, 0.0
@@ -441,11 +451,12 @@ def _cosine_span(a, b):
 
 
 @numba.njit(cache=True, inline="always")
-def _elevation_span(px, pz, h, nx, ny, nz, ux, uz, rect):
-    """Elevations ``(lo, hi)`` below the horizon along the azimuth ``(ux, uz)`` whose rays from a receiver at
-    ``(px, pz)``, ``h`` above the rectangle ``rect`` (normal ``n``), meet the rectangle in front of the receiver's
-    tangent plane: one interval, empty when ``lo >= hi``."""
-    d_in, d_out = _rect_span(px, pz, ux, uz, rect)
+def _elevation_span(coords, h, nx, ny, nz, ux, uz, rect):
+    """Elevations ``(lo, hi)`` below the horizon along the azimuth ``(ux, uz)`` whose rays from a receiver at the
+    rectangle's edge coordinates ``coords`` (:func:`_rect_coordinates`), ``h`` above the rectangle ``rect``
+    (normal ``n``), meet the rectangle in front of the receiver's tangent plane: one interval, empty when ``lo >=
+    hi``."""
+    d_in, d_out = _rect_span(coords[0], coords[1], coords[2], coords[3], ux, uz, rect)
     if d_in >= d_out:
         return 1.0, 0.0
     lo = atan_nonneg(h / d_out)
@@ -461,8 +472,9 @@ def _node_directions(px, pz, h, nx, ny, nz, cos_az, sin_az, nodes, rect, half, e
     (x_i + 1)``, its cosine ``ce`` and sine ``se`` (``E`` nodes; unspecified for an azimuth without an interval).
     The sines and cosines are a loop of their own, which vectorises."""
     n_el = nodes.shape[0]
+    coords = _rect_coordinates(px, pz, rect)
     for k in range(cos_az.shape[0]):
-        lo, hi = _elevation_span(px, pz, h, nx, ny, nz, cos_az[k], sin_az[k], rect)
+        lo, hi = _elevation_span(coords, h, nx, ny, nz, cos_az[k], sin_az[k], rect)
         hw = 0.5 * (hi - lo)
         half[k] = hw if lo < hi else -1.0
         for i in range(n_el):
@@ -547,9 +559,8 @@ def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, sc
             n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
             for j in range(n_live):
                 ox, oz = live[j, 0] - px, live[j, 2] - pz
-                if ox * ux + oz * uz > -live[j, 3] and abs(ox * uz - oz * ux) < live[j, 3]:
-                    cand[n_cand] = j
-                    n_cand += 1
+                cand[n_cand] = j  # kept by the count (no branch)
+                n_cand += (ox * ux + oz * uz > -live[j, 3]) & (abs(ox * uz - oz * ux) < live[j, 3])
             for i in range(n_el):
                 c_e, s_e = ce[k * n_el + i], se[k * n_el + i]
                 wx, wy, wz = c_e * ux, -s_e, c_e * uz
