@@ -484,17 +484,16 @@ def _node_directions(px, pz, h, nx, ny, nz, cos_az, sin_az, nodes, rect, half, e
 
 
 @numba.njit(cache=True, inline="always")
-def _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand, is_local):
-    """Along the ray ``p + t w`` (unit ``w``): whether a light (rows ``cand[:n_cand]`` of ``live``: centre, radius)
-    is hit before ``t_ground``, and else the nearest local light hit beyond it (its index ``live_id[j]``, -1:
-    none)."""
+def _lights_on_ray(wx, wy, wz, t_ground, live, live_id, cand, n_cand, is_local):
+    """Along the ray ``p + t w`` (unit ``w``): whether a light (rows ``cand[:n_cand]`` of ``live``: centre, radius,
+    the centre less ``p`` and ``|c - p|^2 - r^2``) is hit before ``t_ground``, and else the nearest local light hit
+    beyond it (its index ``live_id[j]``, -1: none)."""
     t_beyond = np.inf
     beyond = -1
     for m in range(n_cand):
         j = cand[m]
-        ox, oy, oz = live[j, 0] - px, live[j, 1] - py, live[j, 2] - pz
-        bb = ox * wx + oy * wy + oz * wz
-        disc = bb * bb - (ox * ox + oy * oy + oz * oz - live[j, 3] * live[j, 3])
+        bb = live[j, 4] * wx + live[j, 5] * wy + live[j, 6] * wz
+        disc = bb * bb - live[j, 7]
         if bb <= 0.0 or disc <= 0.0:
             continue
         t_hit = bb - math.sqrt(disc)
@@ -512,9 +511,9 @@ _SAMPLE_CHUNK = 16
 
 @numba.njit(cache=True, inline="always")
 def _sample_scratch(n_sph, n_az, n_el):
-    """A task's scratch for :func:`_receiver_samples`: the live lights (centre, radius), their ids, the candidates
+    """A task's scratch for :func:`_receiver_samples`: the live lights (:func:`_lights_on_ray`'s rows), their ids, the candidates
     of an azimuth, and per azimuth and node the interval's half width, the elevation, its cosine and sine."""
-    return (np.empty((n_sph, 4)), np.empty(n_sph, dtype=np.int64), np.empty(n_sph, dtype=np.int64), np.empty(n_az),
+    return (np.empty((n_sph, 8)), np.empty(n_sph, dtype=np.int64), np.empty(n_sph, dtype=np.int64), np.empty(n_az),
             np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el))
 
 
@@ -542,6 +541,9 @@ def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, sc
                 r = 0.0
         if r > 0.0 and cy - r < py:
             live[n_live, 0], live[n_live, 1], live[n_live, 2], live[n_live, 3] = cx, cy, cz, r
+            ox, oy, oz = cx - px, cy - py, cz - pz
+            live[n_live, 4], live[n_live, 5], live[n_live, 6] = ox, oy, oz
+            live[n_live, 7] = ox * ox + oy * oy + oz * oz - r * r
             live_id[n_live] = s
             n_live += 1
     for g in range(scene.rects.shape[0]):
@@ -558,7 +560,7 @@ def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, sc
             ux, uz = quad.cos_az[k], quad.sin_az[k]
             n_cand = 0  # the lights that meet the vertical half-plane of this azimuth
             for j in range(n_live):
-                ox, oz = live[j, 0] - px, live[j, 2] - pz
+                ox, oz = live[j, 4], live[j, 6]
                 cand[n_cand] = j  # kept by the count (no branch)
                 n_cand += (ox * ux + oz * uz > -live[j, 3]) & (abs(ox * uz - oz * ux) < live[j, 3])
             for i in range(n_el):
@@ -568,8 +570,7 @@ def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, sc
                 if wgt <= 0.0:
                     continue
                 t_ground = h / s_e
-                blocked, beyond = _lights_on_ray(px, py, pz, wx, wy, wz, t_ground, live, live_id, cand, n_cand,
-                                                 scene.is_local)
+                blocked, beyond = _lights_on_ray(wx, wy, wz, t_ground, live, live_id, cand, n_cand, scene.is_local)
                 if blocked:
                     continue
                 reals[m, 0], ints[m, 0], ints[m, 2] = wgt, k, g
