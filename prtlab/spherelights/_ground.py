@@ -400,27 +400,6 @@ def _rect_coordinates(px, pz, rect):
 
 
 @numba.njit(cache=True, inline="always")
-def _rect_span(a, b, inv_u, inv_v, ux, uz, rect):
-    """Horizontal distances ``[d_in, d_out]`` (``d_in > d_out``: none) along ``(ux, uz)`` inside the rectangle
-    ``rect`` from the point at its edge coordinates ``(a, b)`` (:func:`_rect_coordinates`; a slab test)."""
-    d_in, d_out = 0.0, np.inf
-    for e in range(2):
-        ex, ez = rect[3 + 2 * e], rect[4 + 2 * e]
-        a0 = a if e == 0 else b
-        da = (ux * ex + uz * ez) * (inv_u if e == 0 else inv_v)
-        if da == 0.0:
-            if abs(a0) > 1.0:
-                return 1.0, 0.0
-            continue
-        t1, t2 = (-1.0 - a0) / da, (1.0 - a0) / da
-        if t1 > t2:
-            t1, t2 = t2, t1
-        d_in = max(d_in, t1)
-        d_out = min(d_out, t2)
-    return d_in, d_out
-
-
-@numba.njit(cache=True, inline="always")
 def _texture_at(tex, g, a, b):
     """Bilinear lookup of texture ``g`` at edge coordinates ``(a, b)`` in ``[-1, 1]^2`` (clamped to the texel
     centres); returns the three channels."""
@@ -440,29 +419,35 @@ def _texture_at(tex, g, a, b):
     return out0, out1, out2
 
 
-@numba.njit(cache=True, inline="always")
-def _cosine_span(a, b):
-    """Elevations ``e`` in ``[0, pi/2]`` (below the horizon) where ``a cos e - b sin e > 0`` (one interval)."""
-    if a > 0.0:
-        return 0.0, (0.5 * np.pi if b <= 0.0 else atan_nonneg(a / b))
-    if b < 0.0:
-        return atan_nonneg(a / b), 0.5 * np.pi
-    return 1.0, 0.0
-
-
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _elevation_span(coords, h, nx, ny, nz, ux, uz, rect):
     """Elevations ``(lo, hi)`` below the horizon along the azimuth ``(ux, uz)`` whose rays from a receiver at the
     rectangle's edge coordinates ``coords`` (:func:`_rect_coordinates`), ``h`` above the rectangle ``rect``
     (normal ``n``), meet the rectangle in front of the receiver's tangent plane: one interval, empty when ``lo >=
-    hi``."""
-    d_in, d_out = _rect_span(coords[0], coords[1], coords[2], coords[3], ux, uz, rect)
-    if d_in >= d_out:
-        return 1.0, 0.0
-    lo = atan_nonneg(h / d_out)
-    hi = atan_nonneg(h / d_in) if d_in > 0.0 else 0.5 * np.pi
-    c_lo, c_hi = _cosine_span(nx * ux + nz * uz, ny)
-    return max(lo, c_lo), min(hi, c_hi)
+    hi`` (then ``(1, 0)`` where the rays miss the rectangle). Selects, no branch, so a loop over azimuths
+    vectorises; a quotient whose select is not taken divides by 1 instead of a zero."""
+    # the horizontal distances [d_in, d_out] inside the rectangle (a slab test in its edge coordinates)
+    d_in, d_out = 0.0, np.inf
+    inside = True
+    for e in range(2):
+        a0 = coords[0] if e == 0 else coords[1]
+        da = (ux * rect[3 + 2 * e] + uz * rect[4 + 2 * e]) * (coords[2] if e == 0 else coords[3])
+        flat = da == 0.0  # parallel to the edge pair: inside it throughout, or never
+        d = 1.0 if flat else da
+        t1, t2 = (-1.0 - a0) / d, (1.0 - a0) / d
+        t_near, t_far = (t2, t1) if t1 > t2 else (t1, t2)
+        d_in = d_in if flat else max(d_in, t_near)
+        d_out = d_out if flat else min(d_out, t_far)
+        inside = inside and not (flat and abs(a0) > 1.0)
+    meets = inside and d_in < d_out
+    # where a cos e - b sin e > 0, e in [0, pi/2]: in front of the tangent plane
+    a, b = nx * ux + nz * uz, ny
+    t = atan_nonneg(a / (b if b != 0.0 else 1.0))
+    c_lo = 0.0 if a > 0.0 else (t if b < 0.0 else 1.0)
+    c_hi = (0.5 * np.pi if b <= 0.0 else t) if a > 0.0 else (0.5 * np.pi if b < 0.0 else 0.0)
+    lo = max(atan_nonneg(h / (d_out if meets else 1.0)), c_lo)
+    hi = min(atan_nonneg(h / (d_in if d_in > 0.0 else 1.0)) if d_in > 0.0 else 0.5 * np.pi, c_hi)
+    return (lo, hi) if meets else (1.0, 0.0)
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -470,15 +455,16 @@ def _node_directions(px, pz, h, nx, ny, nz, cos_az, sin_az, nodes, rect, half, e
     """For a receiver (as :func:`_elevation_span`) and every azimuth ``k``: ``half[k]``, the half width of its
     elevation interval (negative: none), and at its Gauss-Legendre nodes the elevation ``el[k * E + i] = lo + half
     (x_i + 1)``, its cosine ``ce`` and sine ``se`` (``E`` nodes; unspecified for an azimuth without an interval).
-    The sines and cosines are a loop of their own, which vectorises."""
+    The intervals, and the sines and cosines, are loops of their own, which vectorise."""
     n_el = nodes.shape[0]
     coords = _rect_coordinates(px, pz, rect)
-    for k in range(cos_az.shape[0]):
+    for k in range(cos_az.shape[0]):  # ce[k]: the interval's start, until the sines and cosines below
         lo, hi = _elevation_span(coords, h, nx, ny, nz, cos_az[k], sin_az[k], rect)
-        hw = 0.5 * (hi - lo)
-        half[k] = hw if lo < hi else -1.0
+        half[k] = 0.5 * (hi - lo) if lo < hi else -1.0
+        ce[k] = lo
+    for k in range(cos_az.shape[0]):
         for i in range(n_el):
-            el[k * n_el + i] = lo + hw * (nodes[i] + 1.0)
+            el[k * n_el + i] = ce[k] + half[k] * (nodes[i] + 1.0)
     for j in range(el.shape[0]):
         se[j], ce[j] = sincos_quarter(el[j])
 

@@ -351,6 +351,51 @@ def test_ground_light_with_blockers_and_a_local_light_against_a_brute_force_rule
     assert ours[0][0, 0] > 0 and np.any(ours[0] != ground_light(p, n, rects, tex, env, centres, radii)[0])
 
 
+def test_elevation_spans_are_the_rays_that_meet_the_rectangle_in_front(rng):
+    """``_elevation_span`` (selects, no branch) against the rays themselves: inside a non-empty interval every ray
+    meets the rectangle in front of the tangent plane; just outside it, or anywhere in an empty one, none does.
+    Normals horizontal (``n_y = 0``), straight down and up, receivers over edges and corners and beside the
+    rectangle, and azimuths parallel to an edge pair (the slab's divisor 0), called outside a parallel loop (no
+    division by zero under numba's Python error model)."""
+    from prtlab.spherelights._ground import _elevation_span, _rect_coordinates, ground_quadrature
+
+    quad = ground_quadrature(24, 6, 0.0)
+    c, s = quad.cos_az[0], quad.sin_az[0]
+    rects = np.array([[0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0], [-0.3, 1.0, 0.5, 2 * c, 2 * s, -2 * s, 2 * c]])
+    pts = np.concatenate([rng.uniform(-4.5, 4.5, (150, 3)) * [1, 0, 1] + [0, 0, 0],
+                          [[3.0, 0, 0.0], [-3.0, 0, 3.0], [1.0 + 2 * c, 0, 0.5 + 2 * s], [0.0, 0, 0.0]]])
+    heights = rng.uniform(0.05, 1.5, len(pts))
+    normals = random_directions(rng, len(pts))
+    normals[:30, 1] = 0.0
+    normals[:30] /= np.linalg.norm(normals[:30], axis=1, keepdims=True)
+    normals[30:40], normals[40:45] = [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]
+    flat = inside = empty = 0
+    for rect in rects:
+        for p, h, n in zip(pts, heights, normals):
+            coords = _rect_coordinates(p[0], p[2], rect)
+            for ux, uz in zip(quad.cos_az, quad.sin_az):
+                flat += (ux * rect[3] + uz * rect[4]) == 0.0 or (ux * rect[5] + uz * rect[6]) == 0.0
+                lo, hi = _elevation_span(coords, h, *n, ux, uz, rect)
+
+                def meets(e, tol):  # the ray at elevation e hits the rectangle in front of the tangent plane
+                    w = np.array([np.cos(e) * ux, -np.sin(e), np.cos(e) * uz])
+                    x = p[[0, 2]] + h / np.sin(e) * w[[0, 2]] - rect[1:3]
+                    a = x @ rect[3:5] / (rect[3:5] @ rect[3:5])
+                    b = x @ rect[5:7] / (rect[5:7] @ rect[5:7])
+                    return max(abs(a), abs(b)) < 1 + tol and n @ w > -tol
+
+                if lo < hi:
+                    inside += 1
+                    assert 0.0 <= lo and hi <= np.pi / 2
+                    assert all(meets(lo + f * (hi - lo), 1e-9) for f in (1e-6, 0.5, 1 - 1e-6))
+                    outside = [e for e in (lo - 1e-3, hi + 1e-3) if 1e-3 < e < np.pi / 2 - 1e-3]
+                    assert not any(meets(e, -1e-6) for e in outside)
+                else:
+                    empty += 1
+                    assert not any(meets(e, -1e-6) for e in np.linspace(1e-3, np.pi / 2 - 1e-3, 64))
+    assert flat > 0 and inside > 500 and empty > 500
+
+
 def test_ground_texture_interpolates_the_mesh_linearly():
     """A per-vertex value linear in position gives, at every texel centre, that linear function (barycentric
     interpolation is exact for it), whatever the triangulation."""
