@@ -377,10 +377,8 @@ class GroundScene(NamedTuple):
 
 
 @functools.lru_cache(maxsize=None)
-@functools.lru_cache(maxsize=16)
 def ground_quadrature(n_azimuth: int, n_elevation: int, phi0: float = 0.0) -> GroundQuadrature:
-    """:class:`GroundQuadrature` of ``n_azimuth`` azimuths from ``phi0`` and ``n_elevation`` Gauss-Legendre nodes
-    (read-only arrays; the last few are kept)."""
+    """:class:`GroundQuadrature` of ``n_azimuth`` azimuths from ``phi0`` and ``n_elevation`` Gauss-Legendre nodes."""
     x, w = np.polynomial.legendre.leggauss(n_elevation)
     phi = phi0 + (np.arange(n_azimuth) + 0.5) * (2.0 * np.pi / n_azimuth)
     out = GroundQuadrature(np.cos(phi), np.sin(phi), x, w)
@@ -497,8 +495,9 @@ _SAMPLE_CHUNK = 16
 
 @numba.njit(cache=True, inline="always")
 def _sample_scratch(n_sph, n_az, n_el):
-    """A task's scratch for :func:`_receiver_samples`: the live lights (:func:`_lights_on_ray`'s rows), their ids, the candidates
-    of an azimuth, and per azimuth and node the interval's half width, the elevation, its cosine and sine."""
+    """A task's scratch for :func:`_receiver_samples`: the live lights (:func:`_lights_on_ray`'s rows), their
+    ids, the candidates of an azimuth, and per azimuth and node the interval's half width, the elevation, its
+    cosine and sine."""
     return (np.empty((n_sph, 8)), np.empty(n_sph, dtype=np.int64), np.empty(n_sph, dtype=np.int64), np.empty(n_az),
             np.empty(n_az * n_el), np.empty(n_az * n_el), np.empty(n_az * n_el))
 
@@ -536,8 +535,7 @@ def _receiver_samples(px, py, pz, nx, ny, nz, quad, scene, n_tab, unadjusted, sc
         h = py - scene.rects[g, 0]
         if h <= 0.0:
             continue
-        inv_u = 1.0 / (scene.rects[g, 3] * scene.rects[g, 3] + scene.rects[g, 4] * scene.rects[g, 4])
-        inv_v = 1.0 / (scene.rects[g, 5] * scene.rects[g, 5] + scene.rects[g, 6] * scene.rects[g, 6])
+        _, _, inv_u, inv_v = _rect_coordinates(px, pz, scene.rects[g])
         _node_directions(px, pz, h, nx, ny, nz, quad.cos_az, quad.sin_az, quad.nodes, scene.rects[g], half, el,
                          ce, se)
         for k in range(n_az):
