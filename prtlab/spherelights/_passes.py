@@ -1236,17 +1236,31 @@ def _add_cosine_averages(lights, tables, order, emission_order, scratch):
                 ind[c, q] += e_n * frac if ok else 0.0
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _ol_knot(r, r_max, n_tab):
+    """The knot of OL's table (``n_tab`` knots uniform in ``sqrt(r)`` up to ``r_max``) at or below ``|f^| = r``, as
+    a float, the last but one at most."""
+    return min(math.floor(math.sqrt(r / r_max) * (n_tab - 1)), float(n_tab - 2))
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _ol_fraction(r, j, r_max, n_tab):
+    """Where ``r`` lies between the knots ``j`` and ``j + 1`` of OL's table (0 to 1)."""
+    r0 = r_max * (j / (n_tab - 1)) ** 2
+    r1 = r_max * ((j + 1.0) / (n_tab - 1)) ** 2
+    return (r - r0) / (r1 - r0)
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _ol_coefficients(r, r_max, tab_a, tab_b):
     """``(a, b)`` of the optimal-linear exponential at ``|f^| = r`` (as ``prtlab.sh``'s ``_ol_one``)."""
     n_tab = tab_a.shape[0]
     if r >= r_max:
         return tab_a[n_tab - 1], tab_b[n_tab - 1]
-    j = min(int(math.sqrt(r / r_max) * (n_tab - 1)), n_tab - 2)
-    r0 = r_max * (j / (n_tab - 1)) ** 2
-    r1 = r_max * ((j + 1) / (n_tab - 1)) ** 2
-    s = (r - r0) / (r1 - r0)
-    return (1.0 - s) * tab_a[j] + s * tab_a[j + 1], (1.0 - s) * tab_b[j] + s * tab_b[j + 1]
+    j = _ol_knot(r, r_max, n_tab)
+    s = _ol_fraction(r, j, r_max, n_tab)
+    i = int(j)
+    return (1.0 - s) * tab_a[i] + s * tab_a[i + 1], (1.0 - s) * tab_b[i] + s * tab_b[i + 1]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -1270,7 +1284,7 @@ def _exp_hyb_columns(x, exp_tables, scratch):
     # k: the fewest halvings with |f^| / 2^k <= threshold, i.e. |f^| <= threshold 2^k (both sides exact: powers of
     # two), the k of prtlab.sh's ceil(log2(|f^| / threshold)) and its guard; col[1]: the scale 2^-k. The first
     # _SELECT_HALVINGS comparisons as selects (a loop over the columns without branches: k varies from column to
-    # column, and a while loop per column mispredicted its exit); a column beyond them takes the loop again.
+    # column, and a while loop per column mispredicted its exit); a column beyond them goes on in a loop.
     k_max = 0
     beyond = False
     for p in range(m):
@@ -1308,24 +1322,21 @@ def _exp_hyb_columns(x, exp_tables, scratch):
         perm[perm[slot]] = p
         perm[slot] += 1
     # OL of the scaled columns h = 2^-k f^ (DC 0: its factor exp(0) = 1); |h|^2 = 2^-2k |f^|^2 exactly. Its
-    # coefficients are _ol_coefficients' arithmetic split into loops over the columns: the square roots, the knot
-    # and the interpolation vectorise, the table's reads between them do not. Then the columns are copied in the
-    # sorted order.
+    # coefficients are _ol_coefficients' in loops over the columns: the square roots, the knot and the
+    # interpolation vectorise, the table's reads between them do not. Then the columns are copied in the sorted
+    # order.
     n_tab = ol_a.shape[0]
-    last_knot = float(n_tab - 2)
     for p in range(m):
         scale = col[1, p]
         r = math.sqrt(col[0, p] * (scale * scale))
         col[4, p] = r
-        col[5, p] = min(math.floor(math.sqrt(r / r_max) * (n_tab - 1)), last_knot)
+        col[5, p] = _ol_knot(r, r_max, n_tab)
     for p in range(m):
         j = int(col[5, p])
         col[6, p], col[7, p], col[8, p], col[9, p] = ol_a[j], ol_a[j + 1], ol_b[j], ol_b[j + 1]
     for p in range(m):
-        r, j = col[4, p], col[5, p]
-        r0 = r_max * (j / (n_tab - 1)) ** 2
-        r1 = r_max * ((j + 1.0) / (n_tab - 1)) ** 2
-        s = (r - r0) / (r1 - r0)
+        r = col[4, p]
+        s = _ol_fraction(r, col[5, p], r_max, n_tab)
         far = r >= r_max
         col[2, p] = (ol_a[n_tab - 1] if far else (1.0 - s) * col[6, p] + s * col[7, p]) * sqrt4pi
         col[3, p] = ol_b[n_tab - 1] if far else (1.0 - s) * col[8, p] + s * col[9, p]
