@@ -1048,19 +1048,25 @@ def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, sc
 def _chain_exponentials(exp_tables, n2, scratch):
     """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB). Rank 0 has nothing in front, ``chain[0] = 0``: its
     exponential is written as the HYB exponential of a zero column makes it (OL's ``a(0) sqrt(4 pi)``, then zeros
-    times ``b(0)``). The others two ranks per exponential of ``2L`` columns, an even number of them leaving the
-    last alone (``L`` columns, in ``exp_direct``'s scratch)."""
+    times ``b(0)``). The last, ``chain[O]``, is the sum of every log, whose exponential the direct light has
+    formed (:func:`_direct_lanes`, from the logs summed in the lights' order: the same sum, to rounding): it is
+    read from ``exp_direct``, which must still hold it. The ranks between, two per exponential of ``2L``
+    columns, an odd number of them leaving the last alone (``L`` columns, in ``exp_direct``'s scratch after the
+    direct light's is copied)."""
     chain, chain_exp, pair, hyb = scratch.chain, scratch.chain_exp, scratch.pair_log, scratch.exp_light
-    e = hyb.out
+    e, direct = hyb.out, scratch.exp_direct.out
     n_lanes = pair.shape[1] // 2
-    n_rank = chain.shape[0]
+    n_obj = chain.shape[0] - 1
     a, b = _ol_coefficients(0.0, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b)
     for q in range(n_lanes):
         chain_exp[0, 0, q] = a * math.sqrt(4.0 * math.pi)
     for k in range(1, n2):
         for q in range(n_lanes):
             chain_exp[0, k, q] = b * 0.0
-    for t in range(1, n_rank - 1, 2):
+    for k in range(n2):
+        for q in range(n_lanes):
+            chain_exp[n_obj, k, q] = direct[k, q]
+    for t in range(1, n_obj - 1, 2):
         for k in range(n2):
             for q in range(n_lanes):
                 pair[k, q] = chain[t, k, q]
@@ -1070,12 +1076,12 @@ def _chain_exponentials(exp_tables, n2, scratch):
             for q in range(n_lanes):
                 chain_exp[t, k, q] = e[k, q]
                 chain_exp[t + 1, k, q] = e[k, n_lanes + q]
-    if n_rank % 2 == 0:
-        last = n_rank - 1
+    if n_obj % 2 == 0 and n_obj > 0:
+        last = n_obj - 1
         _exp_hyb_columns(chain[last], exp_tables, scratch.exp_direct)
         for k in range(n2):
             for q in range(n_lanes):
-                chain_exp[last, k, q] = scratch.exp_direct.out[k, q]
+                chain_exp[last, k, q] = direct[k, q]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
