@@ -582,9 +582,11 @@ def _front_lists(sl_object, intersect, per_object):
 #: ``light_object (S,)`` int, ``object_centres (O, 3)``, the candidate front lists of :func:`_front_lists`
 #: (``front_ptr (S+1,)``, ``front_idx``), ``rotation (S, 3, 3)`` world-from-light, ``emission (S, n*n, 3)``
 #: ``L^c`` in the light's frame and ``emission_dir (S, (n+1)**2, 9)`` the SH of ``L^c(u) u_j``
-#: (:func:`emission_times_direction`, columns ``(j, c)``), ``alone (S,)`` bool: the light is its object's only one.
+#: (:func:`emission_times_direction`, columns ``(j, c)``), ``alone (S,)`` bool: the light is its object's only one,
+#: ``single (O,)`` bool: the object has one light.
 _Lights = collections.namedtuple("_Lights", ["centres", "radii", "light_object", "object_centres", "front_ptr",
-                                             "front_idx", "rotation", "emission", "emission_dir", "alone"])
+                                             "front_idx", "rotation", "emission", "emission_dir", "alone",
+                                             "single"])
 #: Tables read per receiver: ``blocker_log`` (:func:`blocker_log_table`) and its knots ``blocker_knots``
 #: (:func:`_blocker_log_knots`), ``transfer ((2n-1)**2, 3 n*n)`` the environment transfer matrix
 #: (:func:`transfer_matrix`, columns ``(c, k)``), the clamped-cosine ZH of orders ``2n - 1`` (``cosine_hi``) and
@@ -655,9 +657,10 @@ def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, e
         em_dir = np.zeros((n_sph, (m + 1) ** 2, 9))
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
     n_obj = obj_centres.shape[0]
-    alone = np.bincount(obj, minlength=n_obj)[obj] == 1
+    single = np.bincount(obj, minlength=n_obj) == 1
+    alone = single[obj]
     lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir,
-                     np.ascontiguousarray(alone))
+                     np.ascontiguousarray(alone), single)
     tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
                      np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
                      np.ascontiguousarray(_w_theta_table(m)),
@@ -925,11 +928,12 @@ def _object_prefix_logs(lights, n2, object_chain, scratch):
     """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
     of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
     the other tiers); with ``object_chain`` also ``scratch.chain[t]``, the same sums by rank ``t``
-    (``object_rank``), ``chain[O]`` all the logs."""
+    (``object_rank``), ``chain[O]`` all the logs, and ``prefix`` only of the objects of several lights (a light
+    alone in its object reads the chain)."""
     recv, log = scratch.recv, scratch.blockers.log
     dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
     by_dist, running, rank, chain = scratch.object_order, scratch.running, scratch.object_rank, scratch.chain
-    centres, light_object = lights.object_centres, lights.light_object
+    centres, light_object, single = lights.object_centres, lights.light_object, lights.single
     n_obj, n_lanes = dist2.shape
     for o in range(n_obj):
         cx, cy, cz = centres[o, 0], centres[o, 1], centres[o, 2]
@@ -961,14 +965,15 @@ def _object_prefix_logs(lights, n2, object_chain, scratch):
         for t in range(n_obj):
             o = by_dist[t]
             rank[o, q] = t
+            if object_chain:
+                for k in range(n2):
+                    chain[t, k, q] = running[k]
+            if not (object_chain and single[o]):
+                for k in range(n2):
+                    prefix[o, k, q] = running[k]
             for k in range(n2):
-                prefix[o, k, q] = running[k]
                 running[k] += obj_log[o, k, q]
         if object_chain:
-            for t in range(n_obj):
-                o = by_dist[t]
-                for k in range(n2):
-                    chain[t, k, q] = prefix[o, k, q]
             for k in range(n2):
                 chain[n_obj, k, q] = running[k]
 
