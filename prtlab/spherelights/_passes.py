@@ -615,8 +615,9 @@ _HybScratch = collections.namedtuple("_HybScratch", ["value", "square", "columns
 #: ``blockers`` (:class:`BlockerLanes`), ``lane`` (:class:`LaneScratch`), ``normal_basis ((2n-1)**2, L)`` the
 #: SH basis at the normals, ``transfer (3 n*n, L)``, ``cosine (n*n, L)`` the rotated clamped cosine ``rho_n``;
 #: per object ``object_dist (O, L)``, ``object_order (O,)``, ``object_log, object_prefix (O, n*n, L)``,
-#: ``running (n*n,)``, ``object_rank (O, L)`` int (position in the lane's order), ``chain, chain_exp (O + 1, n*n,
-#: L)`` the prefix sums by rank (``chain[O]``: all the logs) and their HYB exponentials; ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
+#: ``running (n*n,)``, ``object_rank (O, L)`` int (position in the lane's order), ``chain (O, n*n, L)`` the prefix
+#: sums by rank and ``chain_exp (O + 1, n*n, L)`` their HYB exponentials (``chain_exp[O]``: of all the logs);
+#: ``front (n*n, L)`` and ``pair_log (n*n, 2L)`` (front, front + own) of the current light,
 #: ``sums (4, L)`` per-lane sums, ``visibility (S, L)`` the ``V~`` of every light, ``light_dir (3, L)`` the
 #: direction light -> receiver in the light's frame, ``cos_na, open_visibility (L,)``, ``kernel (1, (n+1)**2,
 #: L)`` the rotated average-radiance ZH kernel, ``radiance_dir (9, L)`` and ``radiance (3, L)`` its products with
@@ -764,7 +765,7 @@ def _block_scratch(n_sph, n_obj, order, emission_order, n_lanes):
         np.empty(n_lanes), np.empty(n_lanes), np.empty((1, n1, n_lanes)),  # cos_na, open_visibility, kernel
         np.empty((9, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)), np.empty((3, n_lanes)),
         _hyb_scratch(n2, n_lanes), _hyb_scratch(n2, 2 * n_lanes),
-        np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj + 1, n2, n_lanes)),  # object_rank, chain
+        np.empty((n_obj, n_lanes), dtype=np.int64), np.empty((n_obj, n2, n_lanes)),  # object_rank, chain
         np.empty((n_obj + 1, n2, n_lanes)),  # chain_exp
         np.empty((hi * hi, n_lanes)), np.empty(hi * hi, dtype=np.int64),  # transfer_rows, transfer_index
         np.full((3, n_lanes), np.nan))  # transfer_normals
@@ -928,8 +929,8 @@ def _object_prefix_logs(lights, n2, object_chain, scratch):
     """Per-object blocking (Sec. 7.2): ``scratch.object_prefix[o, :, q]`` the sum of the logs of every light
     of the objects closer to lane ``q`` than ``o`` (object-centre distance; ties by index, a stable order as
     the other tiers); with ``object_chain`` also ``scratch.chain[t]``, the same sums by rank ``t``
-    (``object_rank``), ``chain[O]`` all the logs, and ``prefix`` only of the objects of several lights (a light
-    alone in its object reads the chain)."""
+    (``object_rank``), and ``prefix`` only of the objects of several lights (a light alone in its object reads the
+    chain)."""
     recv, log = scratch.recv, scratch.blockers.log
     dist2, obj_log, prefix = scratch.object_dist, scratch.object_log, scratch.object_prefix
     by_dist, running, rank, chain = scratch.object_order, scratch.running, scratch.object_rank, scratch.chain
@@ -973,9 +974,6 @@ def _object_prefix_logs(lights, n2, object_chain, scratch):
                     prefix[o, k, q] = running[k]
             for k in range(n2):
                 running[k] += obj_log[o, k, q]
-        if object_chain:
-            for k in range(n2):
-                chain[n_obj, k, q] = running[k]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -1053,15 +1051,15 @@ def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, sc
 def _chain_exponentials(exp_tables, n2, scratch):
     """``scratch.chain_exp[t] = exp*(chain[t])`` (HYB). Rank 0 has nothing in front, ``chain[0] = 0``: its
     exponential is written as the HYB exponential of a zero column makes it (OL's ``a(0) sqrt(4 pi)``, then zeros
-    times ``b(0)``). The last, ``chain[O]``, is the sum of every log, whose exponential the direct light has
-    formed (:func:`_direct_lanes`, from the logs summed in the lights' order: the same sum, to rounding): it is
-    read from ``exp_direct``, which must still hold it. The ranks between, two per exponential of ``2L``
-    columns, an odd number of them leaving the last alone (``L`` columns, in ``exp_direct``'s scratch after the
-    direct light's is copied)."""
+    times ``b(0)``). The last, ``chain_exp[O]``, is the exponential of the sum of every log, which the direct light
+    has formed (:func:`_direct_lanes`, from the logs summed in the lights' order; the chain's order would give the
+    same sum to rounding): it is read from ``exp_direct``, which must still hold it. The ranks between, two per
+    exponential of ``2L`` columns, an odd number of them leaving the last alone (``L`` columns, in
+    ``exp_direct``'s scratch after the direct light's is copied)."""
     chain, chain_exp, pair, hyb = scratch.chain, scratch.chain_exp, scratch.pair_log, scratch.exp_light
     e, direct = hyb.out, scratch.exp_direct.out
     n_lanes = pair.shape[1] // 2
-    n_obj = chain.shape[0] - 1
+    n_obj = chain.shape[0]
     a, b = _ol_coefficients(0.0, exp_tables.r_max, exp_tables.ol_a, exp_tables.ol_b)
     for q in range(n_lanes):
         chain_exp[0, 0, q] = a * math.sqrt(4.0 * math.pi)
