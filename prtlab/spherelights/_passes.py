@@ -244,7 +244,7 @@ _FUSED_SERIAL_BELOW = 1024
 
 def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_sh, cell_sums, albedo_sh, *,
                exp_method: str = "hyb", ground=None, extra_irradiance=None, order: int | None = None,
-               sample_weight=None, ground_projection=None) -> np.ndarray:
+               sample_weight=None, ground_projection=None, method: str = "fused") -> np.ndarray:
     """Light intensity distributions of the spherical lights (Eqs. 3-11).
 
     Parameters
@@ -279,6 +279,11 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     sample_weight : (..., S, m) float, optional
         Weights of the samples' radiance (an extension: :func:`prtlab.spherelights.coverage_weights`); leading axes give one emission
         per set of weights from the same samples' light.
+    method : {"fused", "numba"}
+        How the samples' direct light (Eqs. 6-8) is found. ``"fused"`` (default): by :func:`second_pass`'s fused
+        kernel (shadows only, every light a blocker; HYB, or OL without a ground); ``"numba"``:
+        :func:`prtlab.spherelights.blocker_log_sum`, :func:`prtlab.sh.exp` and :func:`environment_transfer`,
+        the specification of the fused tier (the two agree to rounding); ``exp_method="exact"`` takes it.
 
     Returns
     -------
@@ -290,29 +295,41 @@ def first_pass(sample_points, sample_normals, sample_valid, centres, radii, env_
     from ._ground import ground_blocked_transfer, hidden_transfer
     from ._shadows import blocker_log_sum
 
+    if method not in ("fused", "numba"):
+        raise ValueError(f"method must be 'fused' or 'numba', got {method!r}")
+    S, m = sample_valid.shape
+    env = np.asarray(env_sh, dtype=np.float64)
+    k = math.isqrt(np.asarray(albedo_sh).shape[1])
+    order = k if order is None else int(order)
+    radiance = np.zeros((S, m, 3))
+    has_ground = ground is not None and len(ground) > 0
+    fused = method == "fused" and (exp_method == "hyb" or (exp_method == "ol" and not has_ground))
     # a few thousand samples: the parallel kernels and matrix products of this pass run on one thread (the ground's
     # transfer in blocks, as tasks on the threads there were)
     threads = task_threads()
     with one_thread_below(np.asarray(sample_valid).size, _SERIAL_BELOW):
-        S, m = sample_valid.shape
-        env = np.asarray(env_sh, dtype=np.float64)
-        k = math.isqrt(np.asarray(albedo_sh).shape[1])
-        order = k if order is None else int(order)
-        radiance = np.zeros((S, m, 3))
         if sample_valid.any():
             pts = np.asarray(sample_points, dtype=np.float64)[sample_valid]
             nrm = np.asarray(sample_normals, dtype=np.float64)[sample_valid]
             nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-            vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method, channels=False)  # Eq. 6
-            t = environment_transfer(nrm, env, order)  # Eq. 8
-            if ground is not None and len(ground) and ground_projection is not None:
-                if np.shape(ground_projection)[0] != len(pts):
-                    raise ValueError(f"ground_projection must have a row per valid sample ({len(pts)}), got "
-                                     f"{np.shape(ground_projection)}")
-                t = t - hidden_transfer(ground_projection, env, order)
-            elif ground is not None and len(ground):
-                t = t - ground_blocked_transfer(pts, nrm, env, ground, order=order, threads=threads)
-            radiance[sample_valid] = np.einsum("bk,bkc->bc", vis, t) / np.pi
+            if ground_projection is not None and has_ground and np.shape(ground_projection)[0] != len(pts):
+                raise ValueError(f"ground_projection must have a row per valid sample ({len(pts)}), got "
+                                 f"{np.shape(ground_projection)}")
+            if fused:  # Eqs. 6-8, V . T_n (and V, to take the ground's hidden transfer from T_n)
+                n_all = np.asarray(radii).reshape(-1).shape[0]
+                direct, _, vis = _second_pass_fused_call(
+                    pts, nrm, centres, radii, np.arange(n_all), np.zeros((n_all, n_all), dtype=bool), np.eye(3),
+                    np.zeros((n_all, order * order, 3)), env, "sphere", exp_method, False, False, order,
+                    visibility=has_ground)
+            else:
+                vis = sh.exp(blocker_log_sum(pts, nrm, centres, radii, order), method=exp_method,
+                             channels=False)  # Eq. 6
+                direct = np.einsum("bk,bkc->bc", vis, environment_transfer(nrm, env, order))  # Eq. 8
+            if has_ground:  # the environment the ground hides, seen through the same visibility
+                hidden = (hidden_transfer(ground_projection, env, order) if ground_projection is not None
+                          else ground_blocked_transfer(pts, nrm, env, ground, order=order, threads=threads))
+                direct = direct - np.einsum("bk,bkc->bc", vis, hidden)
+            radiance[sample_valid] = direct / np.pi
         if extra_irradiance is not None:
             extra = np.asarray(extra_irradiance, dtype=np.float64)
             if extra.shape != (S, m, 3):
@@ -396,7 +413,7 @@ def second_pass(points, normals, centres, radii, sl_object, intersect, sl_rotati
         raise ValueError(f"average must be 'cosine' or 'paper', got {average!r}")
     if method == "fused" and exp_method in ("hyb", "ol"):  # the kernel normalises the normals
         return _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env,
-                                       blocking, exp_method, indirect, average == "cosine", order)
+                                       blocking, exp_method, indirect, average == "cosine", order)[:2]
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     method = "numba" if method == "fused" else method
     g_sphere, g_front, theta, axis = accumulate_blockers(p, n, centres, radii, sl_object, intersect, order,
@@ -582,11 +599,10 @@ def _front_lists(sl_object, intersect, per_object):
 #: ``light_object (S,)`` int, ``object_centres (O, 3)``, the candidate front lists of :func:`_front_lists`
 #: (``front_ptr (S+1,)``, ``front_idx``), ``rotation (S, 3, 3)`` world-from-light, ``emission (S, n*n, 3)``
 #: ``L^c`` in the light's frame and ``emission_dir (S, (n+1)**2, 9)`` the SH of ``L^c(u) u_j``
-#: (:func:`emission_times_direction`, columns ``(j, c)``), ``alone (S,)`` bool: the light is its object's only one,
-#: ``single (O,)`` bool: the object has one light.
+#: (:func:`emission_times_direction`, columns ``(j, c)``), ``single (O,)`` bool: the object has one light (a light
+#: of such an object is alone in it).
 _Lights = collections.namedtuple("_Lights", ["centres", "radii", "light_object", "object_centres", "front_ptr",
-                                             "front_idx", "rotation", "emission", "emission_dir", "alone",
-                                             "single"])
+                                             "front_idx", "rotation", "emission", "emission_dir", "single"])
 #: Tables read per receiver: ``blocker_log`` (:func:`blocker_log_table`) and its knots ``blocker_knots``
 #: (:func:`_blocker_log_knots`), ``transfer ((2n-1)**2, 3 n*n)`` the environment transfer matrix
 #: (:func:`transfer_matrix`, columns ``(c, k)``), the clamped-cosine ZH of orders ``2n - 1`` (``cosine_hi``) and
@@ -634,16 +650,16 @@ _BlockScratch = collections.namedtuple("_BlockScratch", [
 
 def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking, exp_method,
                   indirect, cosine, order):
-    """The structured inputs ``(lights, tables, exp_tables, mode)`` of :func:`_second_pass_fused`. The last ones
+    """The structured inputs ``(lights, tables, exp_tables, mode)`` of :func:`_second_pass_fused`. The last few
     are kept, keyed by the bytes of every input: a frame makes the same call for each receiving object, and
     packing them (the transfer matrix, the lights' arrays, the tables) took about 0.4 ms a call. The kernel only
     reads them."""
     arrays = [np.asarray(x) for x in (centres, radii, sl_object, intersect, sl_rotation, emission, env)]
     key = (tuple((x.dtype.str, x.shape, x.tobytes()) for x in arrays), blocking, exp_method, bool(indirect),
            bool(cosine), int(order))
-    kept = _FUSED_INPUTS[0]
-    if kept is not None and kept[0] == key:
-        return kept[1]
+    kept = _FUSED_INPUTS.get(key)
+    if kept is not None:
+        return kept
     m = math.isqrt(np.asarray(emission).shape[-2])
     c, r, obj, inter, obj_centres = _light_arrays(centres, radii, sl_object, intersect)
     n_sph, hi = c.shape[0], 2 * order - 1
@@ -659,9 +675,8 @@ def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, e
     front_ptr, front_idx = _front_lists(obj, inter, blocking == "object")
     n_obj = obj_centres.shape[0]
     single = np.bincount(obj, minlength=n_obj) == 1
-    alone = single[obj]
     lights = _Lights(np.array(c), np.array(r), np.array(obj), obj_centres, front_ptr, front_idx, rot, em, em_dir,
-                     np.ascontiguousarray(alone), single)
+                     single)
     tables = _Tables(blocker_log_table(order), _blocker_log_knots(), transfer,
                      np.ascontiguousarray(sh.clamped_cosine_zh(hi)), np.ascontiguousarray(sh.clamped_cosine_zh(order)),
                      np.ascontiguousarray(_w_theta_table(m)),
@@ -670,24 +685,33 @@ def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, e
     exp_tables = _ExpTables(float(r_max), tab_a, tab_b, float(_HYB_THRESHOLD), *_symmetric_gaunt(order))
     mode = _Mode(int(order), bool(blocking == "object"), bool(indirect and n_sph > 0), bool(exp_method == "hyb"),
                  bool(cosine), int(_LANES), bool(blocking == "object" and exp_method == "hyb" and
-                                                 2 * int(alone.sum()) > n_obj + 1), int(m))
+                                                 2 * int(single.sum()) > n_obj + 1), int(m))
     packed = (lights, tables, exp_tables, mode)
-    _FUSED_INPUTS[0] = (key, packed)
+    for old in list(_FUSED_INPUTS)[: max(0, len(_FUSED_INPUTS) - _FUSED_KEPT + 1)]:
+        del _FUSED_INPUTS[old]
+    _FUSED_INPUTS[key] = packed
     return packed
 
 
-_FUSED_INPUTS: list = [None]
+#: The last packed inputs of :func:`_fused_inputs` by key, at most ``_FUSED_KEPT`` (a frame's first pass and its
+#: second pass's receiving objects ask for two sets).
+_FUSED_INPUTS: dict = {}
+_FUSED_KEPT = 4
 
 
 def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotation, emission, env, blocking,
-                            exp_method, indirect, cosine, order):
-    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect)``, each ``(B, 3)``;
-    ``n``: the normals as given (the kernel normalises them); ``order``: the visibility's SH order (the
-    emission's may be higher)."""
+                            exp_method, indirect, cosine, order, visibility: bool = False):
+    """Packs the inputs of :func:`_second_pass_fused` and runs it: ``(direct, indirect, vis)``, ``(B, 3)``
+    each and ``vis (B, n*n)`` the direct light's visibility ``exp*(sum of the logs)`` with ``visibility`` (HYB
+    only), else ``(0, n*n)``; ``n``: the normals as given (the kernel normalises them); ``order``: the
+    visibility's SH order (the emission's may be higher)."""
+    if visibility and exp_method != "hyb":
+        raise ValueError(f"the visibility is formed with exp_method='hyb' only, got {exp_method!r}")
     lights, tables, exp_tables, mode = _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission,
                                                      env, blocking, exp_method, indirect, cosine, order)
     direct = np.empty((p.shape[0], 3))
     ind = np.empty((p.shape[0], 3))
+    vis = np.empty((p.shape[0] if visibility else 0, order * order))
     # writeable C arrays (one compiled signature), not copied when they are already: the kernel only reads them
     p, n = (x if x.flags.c_contiguous and x.flags.writeable else np.array(x, order="C") for x in (p, n))
     n_blocks = -(-p.shape[0] // _LANES)
@@ -697,16 +721,17 @@ def _second_pass_fused_call(p, n, centres, radii, sl_object, intersect, sl_rotat
         # receivers and results are the same whichever run it is in)
         step = _LANES * -(-n_blocks // threads)
         run_tasks([functools.partial(_second_pass_fused, p[s:s + step], n[s:s + step], lights, tables, exp_tables,
-                                     mode, direct[s:s + step], ind[s:s + step], 1)
+                                     mode, direct[s:s + step], ind[s:s + step], vis[s:s + step], 1)
                    for s in range(0, p.shape[0], step)])
-        return direct, ind
+        return direct, ind, vis
     with one_thread_below(p.shape[0], _FUSED_SERIAL_BELOW):  # a receiving object of a few blocks
-        _second_pass_fused(p, n, lights, tables, exp_tables, mode, direct, ind, numba.get_num_threads())
-    return direct, ind
+        _second_pass_fused(p, n, lights, tables, exp_tables, mode, direct, ind, vis, numba.get_num_threads())
+    return direct, ind, vis
 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy", nogil=True)
-def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out, threads):
+def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct_out, indirect_out, visibility_out,
+                       threads):
     """Second pass (Eqs. 8, 14, 18, 21-24) over blocks of ``mode.n_lanes`` receivers, the receivers of a block
     as the SIMD lanes of the inner loops: blocker logs, direct light, then per light the front sums,
     exponentials, average visibility and average radiance. Same quantities, to rounding, as the composed tier
@@ -733,7 +758,7 @@ def _second_pass_fused(points, normals, lights, tables, exp_tables, mode, direct
         for block in range(task, n_blocks, n_tasks):
             first = block * n_lanes
             _second_pass_block(points, normals, first, min(n_lanes, n_recv - first), lights, tables, exp_tables,
-                               mode, scratch, direct_out, indirect_out)
+                               mode, scratch, direct_out, indirect_out, visibility_out)
 
 
 @numba.njit(cache=True)
@@ -781,9 +806,10 @@ def _unit_normal(nx, ny, nz):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _second_pass_block(points, normals, first, n_valid, lights, tables, exp_tables, mode, scratch, direct_out,
-                       indirect_out):
+                       indirect_out, visibility_out):
     """The second pass of the receivers ``first .. first + n_valid - 1`` (one block; a partial block repeats
-    its last receiver in the remaining lanes); the normals divided by their norms as they are read."""
+    its last receiver in the remaining lanes); the normals divided by their norms as they are read. With HYB and
+    rows in ``visibility_out (B, n*n)``, the direct light's visibility ``exp*(sum of the logs)`` goes there too."""
     recv, direct, indirect = scratch.recv, scratch.direct, scratch.indirect
     for q in range(recv.shape[1]):
         b = first + min(q, n_valid - 1)
@@ -793,6 +819,11 @@ def _second_pass_block(points, normals, first, n_valid, lights, tables, exp_tabl
     _blocker_lanes(recv, lights.centres, lights.radii, tables, mode.order, scratch.blockers, scratch.lane,
                    mode.indirect)  # shadows only: the logs' sum alone
     _direct_lanes(tables, exp_tables, mode.hyb, mode.order, scratch)
+    if mode.hyb and visibility_out.shape[0]:
+        vis = scratch.exp_direct.out
+        for q in range(n_valid):
+            for k in range(visibility_out.shape[1]):
+                visibility_out[first + q, k] = vis[k, q]
     if mode.indirect:
         _indirect_lanes(lights, tables, exp_tables, mode, scratch)
     for q in range(n_valid):
@@ -1014,7 +1045,7 @@ def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, sc
     alone in its object reads them from ``scratch.chain_exp`` at its object's rank and the next (its front is the
     prefix of its object and its front + own the next prefix, the same sums)."""
     light_object, front_ptr, front_idx = lights.light_object, lights.front_ptr, lights.front_idx
-    rank, chain_exp, alone = scratch.object_rank, scratch.chain_exp, lights.alone
+    rank, chain_exp, single = scratch.object_rank, scratch.chain_exp, lights.single
     log, dist, theta = scratch.blockers.log, scratch.blockers.dist, scratch.blockers.theta
     front, prefix, pair, hyb = scratch.front, scratch.object_prefix, scratch.pair_log, scratch.exp_light
     rho, vis, e = scratch.cosine, scratch.visibility, scratch.exp_light.out
@@ -1024,7 +1055,7 @@ def _average_visibility_hyb(lights, exp_tables, per_object, object_chain, n2, sc
             vis[i, q] = 0.0
         if not _any_live(theta, i):
             continue
-        if object_chain and alone[i]:
+        if object_chain and single[light_object[i]]:
             oi = light_object[i]
             for k in range(n2):
                 for q in range(n_lanes):

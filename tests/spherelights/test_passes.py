@@ -531,6 +531,32 @@ def test_fused_second_pass_object_chain_matches_composed_tier(obj, average, rng)
     assert np.abs(i1).max() > 0.1
 
 
+@pytest.mark.parametrize("exp_method, ground", [("hyb", False), ("ol", False), ("hyb", True), ("ol", True)])
+def test_fused_first_pass_matches_composed_tier(exp_method, ground, rng):
+    """The samples' direct light by the second pass's fused kernel (``method="fused"``, the default) agrees with the
+    composed tier (``blocker_log_sum``, ``sh.exp``, ``environment_transfer``) to rounding, with and without a
+    ground hiding part of the environment (OL with a ground takes the composed tier); lights near each other shade
+    each other's samples; an unknown method raises."""
+    n_sph = 5
+    c = rng.uniform(-1.0, 1.0, size=(n_sph, 3))
+    r = rng.uniform(0.3, 0.6, n_sph)
+    dirs = geodesic_directions(92)
+    pts = c[:, None] + r[:, None, None] * dirs[None]
+    nrm = np.broadcast_to(dirs, pts.shape) * rng.uniform(0.5, 2.0, size=(n_sph, 92, 1))  # any length
+    valid = rng.random((n_sph, 92)) > 0.1
+    alb = rng.uniform(0.2, 0.8, size=(n_sph, ORDER * ORDER, 3))
+    rect = np.array([[-1.5, 0.0, 0.0, 3.0, 0.0, 0.0, 3.0]]) if ground else None
+    args = (pts, nrm, valid, c, r, _env_sh(), voronoi_cell_sums(ORDER), alb)
+    fused = first_pass(*args, exp_method=exp_method, ground=rect)
+    composed = first_pass(*args, exp_method=exp_method, ground=rect, method="numba")
+    np.testing.assert_allclose(fused, composed, rtol=0, atol=1e-12 * np.abs(composed).max())
+    alone = first_pass(pts[:1], nrm[:1], valid[:1], c[:1], r[:1], *args[5:7], alb[:1], exp_method=exp_method,
+                       ground=rect)
+    assert np.abs(fused[0] - alone[0]).max() > 1e-3 * np.abs(alone[0]).max()  # the other lights block
+    with pytest.raises(ValueError, match="method must be"):
+        first_pass(*args, method="reference")
+
+
 def test_first_pass_sample_weight():
     """Weights of the samples' radiance: ones are the paper's emission; a leading axis gives one emission per set of
     weights, each that of its own call; constant weights scale the emission; a wrong shape raises."""

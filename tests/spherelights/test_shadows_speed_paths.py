@@ -132,7 +132,7 @@ def test_kept_inputs_follow_every_change(rng):
     scene = list(_edge_scene(rng, 200))
 
     def fresh(args, **mode):
-        _passes._FUSED_INPUTS[0] = None
+        _passes._FUSED_INPUTS.clear()
         return second_pass(*args, order=ORDER, **mode)
 
     first = fresh(scene)
