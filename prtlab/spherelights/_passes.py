@@ -693,8 +693,8 @@ def _fused_inputs(centres, radii, sl_object, intersect, sl_rotation, emission, e
     return packed
 
 
-#: The last packed inputs of :func:`_fused_inputs` by key, at most ``_FUSED_KEPT`` (a frame's first pass and its
-#: second pass's receiving objects ask for two sets).
+#: The last packed inputs of :func:`_fused_inputs` by key, at most ``_FUSED_KEPT``: a frame asks for a set for its
+#: first pass, one for its second pass's receiving objects and, with a ground, one for the ground's texture.
 _FUSED_INPUTS: dict = {}
 _FUSED_KEPT = 4
 
